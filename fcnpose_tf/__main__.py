@@ -1,0 +1,5 @@
+"""`python -m fcnpose_tf` is the same as the `fcnpose-tf` command."""
+
+from fcnpose_tf.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,47 @@
+"""Print the paper-style layer table, parameters, MACs and file size of a model.
+
+Without MODEL, the unpruned FCN-Pose at the given --input-size (default 224).
+MACs are multiply-accumulates of all convolutions for one frame; FLOPs = 2 x MACs.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "summary"
+EXAMPLES = """\
+  fcnpose-tf summary                                  # the paper's FCN-Pose at 224x224
+  fcnpose-tf summary --input-size 64
+  fcnpose-tf summary saved_models/fcnpose_ur5.keras   # a trained or pruned model
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("model", nargs="?", type=Path, help="a .keras/.h5 model file (default: build FCN-Pose)")
+    parser.add_argument("--input-size", type=int, default=224,
+                        help="input side when building the default model (multiple of 32)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fcnpose_tf.model import build_fcn_pose, describe, load_model
+    from fcnpose_tf.tables import format_table
+
+    if args.model is None:
+        model = build_fcn_pose(input_size=args.input_size)
+        title = f"Model: FCN-Pose (unpruned, {args.input_size}x{args.input_size})"
+    else:
+        model = load_model(args.model)
+        title = f"Model: {args.model}"
+    rows = describe(model)
+    print(title)
+    print(format_table(["Layer", "Type", "Output shape", "Parameters", "MACs"],
+                       [(r.name, r.kind, str(r.output_shape), r.params, r.macs) for r in rows]))
+    total_params = sum(r.params for r in rows)
+    total_macs = sum(r.macs for r in rows)
+    print(f"Total parameters: {total_params:,}")
+    print(f"MACs per frame:   {total_macs:,} ({total_macs / 1e6:.1f} M; FLOPs = 2 x MACs = {2 * total_macs / 1e6:.1f} M)")
+    if args.model is not None:
+        size = args.model.stat().st_size
+        print(f"File size:        {size:,} bytes ({size / 1e6:.3f} MB)")
+    return 0

@@ -1,0 +1,126 @@
+"""The FCN-Pose network, exactly as the paper's table "FCN-Pose Structure".
+
+    conv1 pool1 conv2 pool2 conv3 pool3 conv4 pool4 conv5 pool5   (encoder)
+    conv6 up1 conv7 up2 conv8 up3 conv9 up4 conv10                   (decoder)
+
+Every Conv2D is 3x3 'same'; conv1..conv9 use ReLU, conv10 a sigmoid with one
+map per keypoint plus the skeleton map. Upsampling factors are 2, 2, 2 and 4,
+so an input of S x S (S a multiple of 32) gives S x S maps.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import tf_keras as keras
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.metrics import conv_macs
+
+DEFAULT_WIDTHS: tuple[int, ...] = (128, 64, 32, 16, 8, 8, 16, 32, 64)
+DEFAULT_INPUT_SIZE = 224
+DEFAULT_NUM_MAPS = 9
+UPSAMPLE_FACTORS = (2, 2, 2, 4)
+NUM_POOLS = 5
+SIZE_MULTIPLE = 2**NUM_POOLS
+
+
+def check_input_size(input_size: int) -> int:
+    """Return input_size if the network can take it (a positive multiple of 32), else raise UserError."""
+    if isinstance(input_size, bool) or not isinstance(input_size, int) or input_size <= 0 \
+            or input_size % SIZE_MULTIPLE:
+        raise UserError(
+            f"input size must be a positive multiple of {SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2), "
+            f"got {input_size!r}")
+    return input_size
+
+
+def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: int = DEFAULT_INPUT_SIZE,
+                   num_maps: int = DEFAULT_NUM_MAPS, name: str = "fcn_pose") -> keras.Model:
+    """Build FCN-Pose with the given widths of conv1..conv9 (conv10 has `num_maps` filters).
+
+    Args:
+        widths: filters of conv1..conv9; the paper's are (128, 64, 32, 16, 8, 8, 16, 32, 64).
+            Pruned models are the same network with smaller widths.
+        input_size: side of the square RGB input, a multiple of 32.
+        num_maps: output maps, keypoints + 1 skeleton map (9 for a UR5).
+    Returns:
+        An uncompiled tf_keras Model with layers named conv1..conv10, pool1..pool5, up1..up4.
+    Raises:
+        UserError: for an input size that is not a multiple of 32 or non-positive widths.
+    Example:
+        >>> build_fcn_pose().count_params()
+        131705
+    """
+    check_input_size(input_size)
+    widths = tuple(int(w) for w in widths)
+    if len(widths) != 9 or min(widths) < 1:
+        raise UserError(f"widths must be 9 positive filter counts (conv1..conv9), got {widths}")
+    if num_maps < 2:
+        raise UserError(f"num_maps must be at least 2 (keypoints + skeleton), got {num_maps}")
+
+    def conv(x, filters, index, activation="relu"):
+        return keras.layers.Conv2D(filters, 3, padding="same", activation=activation, name=f"conv{index}")(x)
+
+    inputs = keras.Input((input_size, input_size, 3), name="image")
+    x = inputs
+    for i in range(NUM_POOLS):
+        x = conv(x, widths[i], i + 1)
+        x = keras.layers.MaxPooling2D(2, name=f"pool{i + 1}")(x)
+    x = conv(x, widths[5], 6)
+    for i, factor in enumerate(UPSAMPLE_FACTORS):
+        x = keras.layers.UpSampling2D(factor, name=f"up{i + 1}")(x)
+        if i + 7 <= 9:
+            x = conv(x, widths[i + 6], i + 7)
+    outputs = conv(x, num_maps, 10, activation="sigmoid")
+    return keras.Model(inputs, outputs, name=name)
+
+
+@dataclass(frozen=True)
+class LayerRow:
+    """One line of the paper-style model table."""
+
+    name: str
+    kind: str
+    output_shape: tuple[int, ...]
+    params: int
+    macs: int
+
+
+def describe(model: keras.Model) -> list[LayerRow]:
+    """Layer table of a model: name, type, output shape (without batch), parameters and conv MACs."""
+    rows = []
+    for layer in model.layers:
+        shape = layer.output_shape
+        if isinstance(shape, list):
+            shape = shape[0]
+        shape = tuple(int(d) for d in shape[1:] if d is not None)
+        macs = 0
+        if isinstance(layer, keras.layers.Conv2D):
+            kh, kw, cin, cout = layer.kernel.shape
+            macs = conv_macs(shape[0], shape[1], int(kh), int(kw), int(cin), int(cout))
+        rows.append(LayerRow(layer.name, type(layer).__name__, shape, layer.count_params(), macs))
+    return rows
+
+
+def conv_widths(model: keras.Model) -> tuple[int, ...]:
+    """Filter counts of every Conv2D in order (the last is the number of output maps)."""
+    return tuple(int(layer.filters) for layer in model.layers if isinstance(layer, keras.layers.Conv2D))
+
+
+def load_model(path) -> keras.Model:
+    """Load a .keras or .h5 model file for inference, with a clear error for missing or broken files."""
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: model file not found")
+    if path.suffix not in (".keras", ".h5"):
+        raise UserError(f"{path}: expected a Keras model file (.keras or .h5)"
+                        + ("; use a .tflite with `run`, `bench` or `evaluate`" if path.suffix == ".tflite" else ""))
+    try:
+        return keras.models.load_model(path, compile=False)
+    except Exception as exc:  # keras raises many types for a corrupt file
+        raise UserError(f"{path}: cannot be read as a Keras model ({type(exc).__name__}: "
+                        f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from exc

@@ -1,0 +1,64 @@
+import subprocess
+import sys
+
+import pytest
+
+
+def test_importing_cli_does_not_import_tensorflow():
+    code = ("import sys, fcnpose_tf.cli as c; c.build_parser(); "
+            "bad = [m for m in ('tensorflow', 'tf_keras', 'keras') if m in sys.modules]; "
+            "print(bad); sys.exit(1 if bad else 0)")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_summary_prints_paper_figures(cli):
+    proc = cli("summary")
+    assert proc.returncode == 0, proc.stderr
+    out = proc.stdout
+    assert "131,705" in out
+    assert "(224, 224, 128)" in out and "(7, 7, 8)" in out and "(224, 224, 9)" in out
+    assert "1,481,675,328" in out  # MACs of the unpruned network at 224
+
+
+def test_summary_of_a_saved_model_reports_size(cli, tmp_path):
+    from fcnpose_tf.model import build_fcn_pose
+
+    path = tmp_path / "m.keras"
+    build_fcn_pose(input_size=64).save(path)
+    proc = cli("summary", path)
+    assert proc.returncode == 0, proc.stderr
+    assert "(64, 64, 9)" in proc.stdout and "File size:" in proc.stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["summary", "--input-size", "100"], "multiple of 32"),
+    (["summary", "missing.keras"], "missing.keras: model file not found"),
+    (["summary", "--input-size", "abc"], "invalid int value"),
+    (["no-such-command"], "invalid choice"),
+])
+def test_user_errors_are_one_line_exit_2(cli, args, message):
+    proc = cli(*args)
+    assert proc.returncode == 2
+    assert message in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+
+
+def test_corrupt_model_file(cli, tmp_path):
+    bad = tmp_path / "broken.keras"
+    bad.write_bytes(b"not a zip")
+    proc = cli("summary", bad)
+    assert proc.returncode == 2 and "broken.keras: cannot be read" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_every_command_help_shows_an_example(cli):
+    from fcnpose_tf.commands import COMMAND_MODULES
+    import importlib
+
+    for name in COMMAND_MODULES:
+        module = importlib.import_module(f"fcnpose_tf.commands.{name}")
+        proc = cli(module.NAME, "--help")
+        assert proc.returncode == 0
+        assert "examples:" in proc.stdout and f"fcnpose-tf {module.NAME}" in proc.stdout

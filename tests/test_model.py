@@ -1,0 +1,72 @@
+import numpy as np
+import pytest
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.metrics import conv_macs
+from fcnpose_tf.model import build_fcn_pose, conv_widths, describe
+
+# The paper's table "FCN-Pose Structure": (layer, output shape, parameters).
+PAPER_TABLE = [
+    ("conv1", (224, 224, 128), 3584), ("pool1", (112, 112, 128), 0),
+    ("conv2", (112, 112, 64), 73792), ("pool2", (56, 56, 64), 0),
+    ("conv3", (56, 56, 32), 18464), ("pool3", (28, 28, 32), 0),
+    ("conv4", (28, 28, 16), 4624), ("pool4", (14, 14, 16), 0),
+    ("conv5", (14, 14, 8), 1160), ("pool5", (7, 7, 8), 0),
+    ("conv6", (7, 7, 8), 584), ("up1", (14, 14, 8), 0),
+    ("conv7", (14, 14, 16), 1168), ("up2", (28, 28, 16), 0),
+    ("conv8", (28, 28, 32), 4640), ("up3", (56, 56, 32), 0),
+    ("conv9", (56, 56, 64), 18496), ("up4", (224, 224, 64), 0),
+    ("conv10", (224, 224, 9), 5193),
+]
+
+
+def test_matches_paper_table():
+    model = build_fcn_pose()
+    rows = describe(model)
+    assert rows[0].output_shape == (224, 224, 3)
+    assert [(r.name, r.output_shape, r.params) for r in rows[1:]] == PAPER_TABLE
+    assert model.count_params() == 131705
+    assert conv_widths(model) == (128, 64, 32, 16, 8, 8, 16, 32, 64, 9)
+
+
+def test_activations_and_no_batchnorm():
+    model = build_fcn_pose(input_size=64)
+    convs = [layer for layer in model.layers if type(layer).__name__ == "Conv2D"]
+    assert [c.activation.__name__ for c in convs] == ["relu"] * 9 + ["sigmoid"]
+    assert all(c.kernel_size == (3, 3) and c.padding == "same" for c in convs)
+    assert not any("BatchNormalization" in type(layer).__name__ for layer in model.layers)
+    assert [layer.size for layer in model.layers if type(layer).__name__ == "UpSampling2D"] == \
+        [(2, 2), (2, 2), (2, 2), (4, 4)]
+
+
+def test_macs_equal_numpy_reference():
+    model = build_fcn_pose(input_size=64)
+    expected = 0
+    for layer in model.layers:
+        if type(layer).__name__ == "Conv2D":
+            h, w, cout = layer.output_shape[1:]
+            kh, kw, cin, _ = layer.kernel.shape
+            expected += h * w * kh * kw * cin * cout
+    assert sum(r.macs for r in describe(model)) == expected
+    assert conv_macs(224, 224, 3, 3, 3, 128) == 173_408_256
+
+
+@pytest.mark.parametrize("size", [32, 64, 96, 320])
+def test_any_multiple_of_32_maps_to_same_size(size):
+    model = build_fcn_pose(input_size=size)
+    out = model(np.zeros((1, size, size, 3), np.float32))
+    assert out.shape == (1, size, size, 9)
+    assert model.count_params() == 131705  # parameters do not depend on the input size
+
+
+@pytest.mark.parametrize("size", [0, -32, 100, 225, 48, 64.0, "224"])
+def test_bad_input_size_is_rejected_with_rule(size):
+    with pytest.raises(UserError, match="multiple of 32"):
+        build_fcn_pose(input_size=size)
+
+
+def test_custom_widths_and_maps():
+    model = build_fcn_pose(widths=(39, 20, 10, 5, 3, 3, 5, 10, 20), input_size=64, num_maps=7)
+    assert conv_widths(model)[-1] == 7
+    with pytest.raises(UserError, match="9 positive"):
+        build_fcn_pose(widths=(8, 8))
