@@ -1,0 +1,67 @@
+"""Keypoint schemas: the names of a robot's keypoints and the skeleton edges between them. numpy only.
+
+A schema is data a dataset carries (it is stored in the dataset's VIA file
+attributes and in model reports); the network's number of output maps follows
+it: one map per keypoint plus one skeleton map, keypoint maps first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+from fcnpose_tf.errors import UserError
+
+
+@dataclass(frozen=True)
+class KeypointSchema:
+    """Names of a robot's keypoints in chain order and the skeleton edges (index pairs) between them."""
+
+    name: str
+    keypoints: tuple[str, ...]
+    edges: tuple[tuple[int, int], ...]
+
+    def __post_init__(self):
+        if len(self.keypoints) < 1 or len(set(self.keypoints)) != len(self.keypoints):
+            raise UserError(f"schema {self.name!r}: keypoint names must be non-empty and unique")
+        n = len(self.keypoints)
+        for a, b in self.edges:
+            if not (0 <= a < n and 0 <= b < n) or a == b:
+                raise UserError(f"schema {self.name!r}: edge ({a}, {b}) does not join two of its {n} keypoints")
+
+    @property
+    def num_keypoints(self) -> int:
+        return len(self.keypoints)
+
+    @property
+    def num_maps(self) -> int:
+        """Output maps of a model for this schema: one per keypoint plus the skeleton map."""
+        return len(self.keypoints) + 1
+
+    def index(self, name: str) -> int:
+        """Position of a keypoint name; UserError naming the known labels if it is unknown."""
+        try:
+            return self.keypoints.index(name)
+        except ValueError:
+            raise UserError(f"unknown keypoint label {name!r}; expected one of {', '.join(self.keypoints)}") from None
+
+    @classmethod
+    def chain(cls, name: str, keypoints: Sequence[str]) -> "KeypointSchema":
+        """A serial robot: consecutive keypoints joined by skeleton edges."""
+        kps = tuple(keypoints)
+        return cls(name, kps, tuple((i, i + 1) for i in range(len(kps) - 1)))
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "keypoints": list(self.keypoints), "edges": [list(e) for e in self.edges]}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "KeypointSchema":
+        try:
+            return cls(str(data["name"]), tuple(str(k) for k in data["keypoints"]),
+                       tuple((int(a), int(b)) for a, b in data["edges"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise UserError(f"invalid keypoint schema {data!r}: {exc}") from None
+
+
+UR5 = KeypointSchema.chain("ur5", ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"))
+"""The paper's 8 UR5 keypoints, base to tool, joined in a chain."""
