@@ -40,12 +40,13 @@ def frame_to_input_scale(frame_shape: tuple[int, ...], input_size: int) -> np.nd
 def keypoints_to_input(keypoints: np.ndarray, frame_shape: tuple[int, ...], input_size: int) -> np.ndarray:
     """Scale K x 2 (x, y) frame-pixel keypoints to model-input pixels (NaN stays NaN).
 
-    Coordinates are continuous pixel positions: pixel i covers [i, i+1), so the
-    scaling is exact for resize and no half-pixel offset is needed.
+    Coordinates follow the pixel-centre convention of OpenCV and VIA (pixel i's
+    centre is at i), so scaling goes through the pixel edges: (x + 0.5) * s - 0.5,
+    which is how cv2.resize places pixel centres.
     """
-    return np.asarray(keypoints, np.float64) * frame_to_input_scale(frame_shape, input_size)
+    return (np.asarray(keypoints, np.float64) + 0.5) * frame_to_input_scale(frame_shape, input_size) - 0.5
 
 
 def keypoints_to_frame(keypoints: np.ndarray, frame_shape: tuple[int, ...], map_size: int) -> np.ndarray:
     """Scale K x 2 keypoints from map/model-input pixels back to frame pixels (NaN stays NaN)."""
-    return np.asarray(keypoints, np.float64) / frame_to_input_scale(frame_shape, map_size)
+    return (np.asarray(keypoints, np.float64) + 0.5) / frame_to_input_scale(frame_shape, map_size) - 0.5
