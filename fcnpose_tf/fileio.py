@@ -1,0 +1,77 @@
+"""Safe output files: write to a temporary file beside the target, then rename into place.
+
+Nothing a user wrote is overwritten without force=True, and a failed or
+interrupted write leaves no partial file behind. numpy-free, TensorFlow-free.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+from fcnpose_tf.errors import UserError
+
+
+def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
+    """Raise UserError if `path` exists (and not force) or its folder cannot be created or written."""
+    path = Path(path)
+    if path.exists() and not force:
+        raise UserError(f"{path}: already exists; pass --force to replace it")
+    if path.is_dir():
+        raise UserError(f"{path}: is a folder, expected a file path")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{path.parent}: cannot create output folder ({exc.strerror})") from None
+    if not os.access(path.parent, os.W_OK):
+        raise UserError(f"{path.parent}: output folder is not writable")
+    return path
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
+    """Yield a temporary path in the target's folder; on success rename it to `path`, on error delete it.
+
+    The temporary name keeps the target's suffix, so libraries that pick a
+    format from the extension (Keras .keras/.h5, OpenCV .png) work unchanged.
+    """
+    path = check_writable(path, force)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{path.suffix}.tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    try:
+        yield tmp_path
+        os.replace(tmp_path, path)
+    finally:
+        if tmp_path.exists():
+            tmp_path.unlink()
+
+
+def write_bytes(path: str | os.PathLike, data: bytes, force: bool = False) -> Path:
+    """Atomically write bytes to path."""
+    with atomic_path(path, force) as tmp:
+        tmp.write_bytes(data)
+    return Path(path)
+
+
+def write_text(path: str | os.PathLike, text: str, force: bool = False) -> Path:
+    """Atomically write UTF-8 text to path."""
+    return write_bytes(path, text.encode("utf-8"), force)
+
+
+def write_json(path: str | os.PathLike, data: Any, force: bool = False) -> Path:
+    """Atomically write JSON (indented, keys in the given order) to path."""
+    return write_text(path, json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n", force)
+
+
+def _json_default(value: Any):
+    # numpy scalars and arrays without importing numpy here
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    raise TypeError(f"not JSON serializable: {type(value).__name__}")
