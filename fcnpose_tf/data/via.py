@@ -11,6 +11,8 @@ The schema a file was written with is stored under the top-level key
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 import os
 from dataclasses import dataclass, field
@@ -62,7 +64,7 @@ def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, a
                      base_dir: str | os.PathLike | None = None, project_name: str = "fcnpose") -> dict:
     """The VIA 2.x project (as a dict) holding `frames`' keypoints as named point regions.
 
-    Frames with size -1 get their byte size from `base_dir / filename` when that file exists.
+    Frames with size -1 get their byte size from the image file in `base_dir` or `base_dir/images`.
     """
     metadata: dict[str, dict] = {}
     for frame in frames:
@@ -71,9 +73,10 @@ def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, a
                              f"for schema {schema.name!r}, got {frame.keypoints.shape}")
         size = int(frame.size)
         if size < 0 and base_dir is not None:
-            image = Path(base_dir) / frame.filename
-            if image.is_file():
-                size = image.stat().st_size
+            for folder in (Path(base_dir), Path(base_dir) / "images"):
+                if (folder / frame.filename).is_file():
+                    size = (folder / frame.filename).stat().st_size
+                    break
         regions = [{"shape_attributes": {"name": "point", "cx": _number(x), "cy": _number(y)},
                     "region_attributes": {attribute: name}}
                    for name, (x, y) in zip(schema.keypoints, frame.keypoints)
@@ -112,10 +115,335 @@ def write_via_project(path: str | os.PathLike, frames: Sequence[ViaFrame], schem
     """Atomically write a VIA 2.x project file with `frames`' keypoints as named point regions.
 
     Image byte sizes (VIA's frame key) unknown in a frame (size -1) are read from
-    the image file, looked up relative to the project file's folder. Opening the
+    the image file, looked up in the project file's folder and its `images/`
+    subfolder (-1 when not found, as VIA does for remote images). Opening the
     file in VIA (Project > Load) shows the points labelled with their keypoint name.
     Raises UserError if `path` exists and not `force`.
     """
     path = Path(path)
     data = via_project_dict(frames, schema, attribute, base_dir=path.parent, project_name=path.stem)
     return fileio.write_json(path, data, force=force)
+
+
+# ----------------------------------------------------------------------------------------------- reading
+
+logger = logging.getLogger(__name__)
+
+EDGE_TOLERANCE_PX = 0.5
+"""Points up to this far outside the frame's extent (-0.5 .. W-0.5) are clipped onto it, not refused:
+VIA rounds clicks to whole pixels, so a click on the last pixel's outer half can land at W."""
+
+
+@dataclass
+class ViaAnnotations:
+    """What `read_via` found: the kept frames, the schema, and what was dropped and why.
+
+    `dropped` maps a reason to a frame count (frames with too few visible
+    keypoints, unannotated frames, frames skipped as bad with skip_bad);
+    `problems` lists one message per skipped bad frame or region.
+    """
+
+    path: Path
+    schema: KeypointSchema
+    frames: list[ViaFrame]
+    attribute: str = "keypoint"
+    min_visible: int = 1
+    dropped: dict[str, int] = field(default_factory=dict)
+    problems: list[str] = field(default_factory=list)
+    ignored_regions: int = 0
+
+    @property
+    def num_dropped(self) -> int:
+        return sum(self.dropped.values())
+
+
+def default_min_visible(schema: KeypointSchema) -> int:
+    """Default threshold for dropping occluded frames: half the schema's keypoints, rounded up (4 of 8)."""
+    return max(1, math.ceil(schema.num_keypoints / 2))
+
+
+class _FrameProblem(Exception):
+    """A problem with one frame or region (message already names both)."""
+
+
+def _load_json(path: Path):
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise UserError(f"{path}: VIA file not found") from None
+    except IsADirectoryError:
+        raise UserError(f"{path}: is a folder, expected a VIA .json file") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot read ({exc.strerror})") from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not a UTF-8 text file (byte {exc.start}); expected a VIA .json file") from None
+    if not text.strip():
+        raise UserError(f"{path}: empty file; expected a VIA project or region-data export (JSON)")
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        hint = " (the file looks truncated)" if exc.pos >= len(text.rstrip()) else ""
+        raise UserError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}{hint}") from None
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _schema_from_attributes(data: dict, attribute: str) -> KeypointSchema | None:
+    """A chain schema from the options of the region attribute, in their listed order (UR5 if they are UR5's)."""
+    try:
+        options = data["_via_attributes"]["region"][attribute]["options"]
+    except (KeyError, TypeError):
+        return None
+    if not isinstance(options, dict) or not options:
+        return None
+    names = tuple(str(k) for k in options)
+    if set(names) == set(UR5.keypoints):
+        return UR5
+    try:
+        return KeypointSchema.chain(attribute, names)
+    except UserError:
+        return None
+
+
+def _split_file(path: Path, data) -> tuple[dict, dict]:
+    """(image metadata keyed by VIA key, settings) of a VIA 2 project or region-data export."""
+    if not isinstance(data, dict):
+        raise UserError(f"{path}: expected a JSON object (VIA 2 project or region-data export), "
+                        f"got a JSON {type(data).__name__}")
+    if "_via_img_metadata" in data:
+        metadata = data["_via_img_metadata"]
+        if not isinstance(metadata, dict):
+            raise UserError(f"{path}: _via_img_metadata: expected an object keyed by filename+size, "
+                            f"got {type(metadata).__name__}")
+        settings = data.get("_via_settings") if isinstance(data.get("_via_settings"), dict) else {}
+        return metadata, settings
+    if {"project", "file", "metadata"} <= set(data) or "_via_project" in data:
+        raise UserError(f"{path}: this is a VIA 3 project; open it in VIA 2.x (Project > Load) and save the "
+                        "project, or export annotations as JSON, then use that file")
+    metadata = {k: v for k, v in data.items() if k != SCHEMA_KEY}
+    for key, meta in metadata.items():
+        if not (isinstance(meta, dict) and "filename" in meta and "regions" in meta):
+            raise UserError(f"{path}: entry {key!r}: not a VIA frame (expected an object with 'filename' and "
+                            "'regions'); expected a VIA 2 project (_via_img_metadata) or region-data export")
+    return metadata, {}
+
+
+def _image_dirs(path: Path, images_dir: str | os.PathLike | None, settings: dict) -> list[Path]:
+    if images_dir is not None:
+        images_dir = Path(images_dir)
+        if not images_dir.is_dir():
+            raise UserError(f"{images_dir}: images folder not found")
+        return [images_dir]
+    dirs = [path.parent, path.parent / "images"]
+    core = settings.get("core") if isinstance(settings.get("core"), dict) else {}
+    extra = [core.get("default_filepath")] + list(core.get("filepath") or {})
+    for entry in extra:
+        if isinstance(entry, str) and entry and "://" not in entry:
+            d = Path(entry) if Path(entry).is_absolute() else path.parent / entry
+            if d not in dirs:
+                dirs.append(d)
+    return dirs
+
+
+def _find_image(filename: str, dirs: list[Path]) -> Path:
+    if "://" in filename:
+        raise _FrameProblem(f"image is a URL ({filename}); download the images and pass their folder")
+    candidate = Path(filename)
+    if candidate.is_absolute():
+        if candidate.is_file():
+            return candidate
+        raise _FrameProblem(f"image file not found: {candidate}")
+    for d in dirs:
+        if (d / candidate).is_file():
+            return d / candidate
+    raise _FrameProblem("image file not found (looked in " + ", ".join(str(d) for d in dirs) + ")")
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file, reading only its header when Pillow is available."""
+    try:
+        from PIL import Image
+    except ImportError:  # pragma: no cover - Pillow comes with matplotlib
+        Image = None
+    if Image is not None:
+        try:
+            with Image.open(path) as im:
+                return int(im.width), int(im.height)
+        except Exception:  # noqa: BLE001 - fall back to OpenCV, which reads more formats' bodies
+            pass
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise _FrameProblem(f"cannot read image {path} (not an image or corrupt)")
+    return int(img.shape[1]), int(img.shape[0])
+
+
+def _region_label(region_attributes, attribute: str, where: str) -> str | None:
+    if region_attributes is None:
+        return None
+    if not isinstance(region_attributes, dict):
+        raise _FrameProblem(f"{where}: region_attributes must be an object, got {type(region_attributes).__name__}")
+    value = region_attributes.get(attribute)
+    if value is None or value == "":
+        return None
+    if isinstance(value, str):
+        return value.strip() or None
+    if isinstance(value, dict):  # VIA checkbox attribute: {"elbow": true}
+        chosen = [k for k, v in value.items() if v]
+        if len(chosen) == 1:
+            return str(chosen[0])
+        if not chosen:
+            return None
+        raise _FrameProblem(f"{where}: attribute {attribute!r} has several labels ticked ({', '.join(chosen)})")
+    raise _FrameProblem(f"{where}: attribute {attribute!r} must be a keypoint name, got {value!r}")
+
+
+def _parse_frame(meta: dict, key: str, schema: KeypointSchema, attribute: str,
+                 dirs: list[Path]) -> tuple[ViaFrame, int]:
+    """One VIA entry -> (ViaFrame, number of ignored non-point regions); raises _FrameProblem."""
+    filename = meta.get("filename")
+    if not isinstance(filename, str) or not filename:
+        raise _FrameProblem(f"entry {key!r}: 'filename' must be a non-empty string, got {filename!r}")
+    label = f"frame {filename!r}"
+    regions = meta.get("regions", [])
+    if isinstance(regions, dict):  # VIA 1.x region exports key regions by "0", "1", ...
+        regions = [regions[k] for k in sorted(regions, key=lambda k: (len(str(k)), str(k)))]
+    if not isinstance(regions, list):
+        raise _FrameProblem(f"{label}: 'regions' must be a list, got {type(regions).__name__}")
+    size = meta.get("size", -1)
+    size = int(size) if _is_number(size) or (isinstance(size, str) and size.lstrip("-").isdigit()) else -1
+
+    points: list[tuple[int, float, float, str | None]] = []
+    ignored = 0
+    for i, region in enumerate(regions):
+        where = f"{label} regions[{i}]"
+        if not isinstance(region, dict) or not isinstance(region.get("shape_attributes"), dict):
+            raise _FrameProblem(f"{where}: expected an object with 'shape_attributes'")
+        shape = region["shape_attributes"]
+        if shape.get("name") != "point":
+            ignored += 1
+            continue
+        cx, cy = shape.get("cx"), shape.get("cy")
+        for axis, v in (("cx", cx), ("cy", cy)):
+            if not _is_number(v):
+                raise _FrameProblem(f"{where}: point {axis} must be a finite number, got {v!r}")
+        points.append((i, float(cx), float(cy), _region_label(region.get("region_attributes"), attribute, where)))
+
+    image_path = _find_image(filename, dirs)
+    width, height = image_size(image_path)
+
+    keypoints = np.full((schema.num_keypoints, 2), np.nan)
+    named = [p for p in points if p[3] is not None]
+    if named and len(named) != len(points):
+        i = next(p[0] for p in points if p[3] is None)
+        raise _FrameProblem(f"{label} regions[{i}]: point has no {attribute!r} label while other points in this "
+                            "frame are labelled; label every point or none (unlabelled points are taken in "
+                            "schema order)")
+    if not named and len(points) > schema.num_keypoints:
+        raise _FrameProblem(f"{label}: {len(points)} unlabelled points but schema {schema.name!r} has "
+                            f"{schema.num_keypoints} keypoints")
+    first_region: dict[int, int] = {}
+    for order, (i, x, y, name) in enumerate(points):
+        where = f"{label} regions[{i}]"
+        if name is None:
+            k = order
+        elif name in schema.keypoints:
+            k = schema.keypoints.index(name)
+        else:
+            raise _FrameProblem(f"{where}: unknown keypoint label {name!r}; expected one of "
+                                + ", ".join(schema.keypoints))
+        if k in first_region:
+            raise _FrameProblem(f"{where}: duplicate keypoint {schema.keypoints[k]!r} "
+                                f"(also regions[{first_region[k]}])")
+        first_region[k] = i
+        t = EDGE_TOLERANCE_PX
+        if not (-0.5 - t <= x <= width - 0.5 + t and -0.5 - t <= y <= height - 0.5 + t):
+            raise _FrameProblem(f"{where}: point ({x:g}, {y:g}) is outside the {width}x{height} image")
+        keypoints[k] = (min(max(x, -0.5), width - 0.5), min(max(y, -0.5), height - 0.5))
+    return ViaFrame(filename, width, height, keypoints, size, image_path), ignored
+
+
+def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = None, *, attribute: str = "keypoint",
+             schema: KeypointSchema | None = None, min_visible: int | None = None,
+             skip_bad: bool = False) -> ViaAnnotations:
+    """Read keypoints from a VIA 2.x project file or region-data export (JSON keyed by filename+size).
+
+    Args:
+        path: the VIA .json file.
+        images_dir: folder of the images; by default the VIA file's folder, its `images/`
+            subfolder and the project's default path are searched.
+        attribute: region attribute naming each point's keypoint; in frames where no point
+            has it, points are taken in schema order.
+        schema: keypoint names and skeleton; default: the schema stored in the file by
+            `write_via_project`, else the attribute's dropdown options in order (UR5 when they
+            are UR5's names), else UR5.
+        min_visible: frames with fewer annotated keypoints are dropped (counted, with a
+            warning), as the paper drops heavily occluded frames; default half the schema's
+            keypoints (4 of 8).
+        skip_bad: skip frames with problems (counted in `dropped`, listed in `problems`)
+            instead of raising.
+
+    Returns:
+        ViaAnnotations with the kept frames in file order.
+
+    Raises:
+        UserError: naming the file, frame and region, for invalid or truncated JSON, missing
+        images, duplicate frames or keypoints, unknown labels, non-numeric coordinates or
+        points outside the image (the first problem, and how many more there are).
+    """
+    path = Path(path)
+    data = _load_json(path)
+    metadata, settings = _split_file(path, data)
+    if schema is None:
+        stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
+        schema = (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
+                  else _schema_from_attributes(data, attribute) or UR5)
+    if min_visible is None:
+        min_visible = default_min_visible(schema)
+    if not 0 <= min_visible <= schema.num_keypoints:
+        raise UserError(f"min_visible must be between 0 and {schema.num_keypoints} for schema {schema.name!r}, "
+                        f"got {min_visible}")
+    dirs = _image_dirs(path, images_dir, settings)
+
+    result = ViaAnnotations(path, schema, [], attribute, min_visible)
+    seen: dict[str, str] = {}
+    problems: list[str] = []
+    too_few = f"fewer than {min_visible} visible keypoints"
+    for key, meta in metadata.items():
+        try:
+            if not isinstance(meta, dict):
+                raise _FrameProblem(f"entry {key!r}: expected an object, got {type(meta).__name__}")
+            filename = meta.get("filename")
+            if isinstance(filename, str) and filename in seen:
+                raise _FrameProblem(f"frame {filename!r}: duplicate frame (entries {seen[filename]!r} and {key!r})")
+            frame, ignored = _parse_frame(meta, key, schema, attribute, dirs)
+        except _FrameProblem as exc:
+            problems.append(str(exc))
+            continue
+        seen[frame.filename] = key
+        result.ignored_regions += ignored
+        visible = frame.num_visible
+        if visible < min_visible:
+            reason = "no keypoints annotated" if visible == 0 else too_few
+            result.dropped[reason] = result.dropped.get(reason, 0) + 1
+        else:
+            result.frames.append(frame)
+    if problems:
+        if not skip_bad:
+            more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            raise UserError(f"{path}: {problems[0]}{more}; fix the file or pass --skip-bad to skip bad frames")
+        result.problems = problems
+        result.dropped["bad annotation or image (skipped)"] = len(problems)
+        for message in problems[:5]:
+            logger.warning("%s: skipped: %s", path, message)
+        if len(problems) > 5:
+            logger.warning("%s: skipped %d more bad frames", path, len(problems) - 5)
+    for reason in (too_few, "no keypoints annotated"):
+        if result.dropped.get(reason):
+            logger.warning("%s: dropped %d frame(s) with %s", path, result.dropped[reason], reason)
+    return result
