@@ -1,0 +1,342 @@
+"""Post-processing: the fast path must return exactly what the paper's Algorithm 1 returns."""
+
+from __future__ import annotations
+
+import doctest
+import math
+
+import numpy as np
+import pytest
+
+import fcnpose_tf.postprocess as pp
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.postprocess import decode, largest_cluster, maps_to_keypoints, probability_to_logit
+from fcnpose_tf.preprocess import keypoints_to_frame
+
+
+# --------------------------------------------------------------------------------------------
+# The reference: Algorithm 1 (Expansion Clustering) transcribed line by line, deliberately slow.
+# --------------------------------------------------------------------------------------------
+
+def expansion_clustering(points: list[tuple[int, int]], m: float = 1.0) -> list[list[tuple[int, int]]]:
+    """Algorithm 1 of the paper, literally. `points` is S, in the order the scan visits it.
+
+    Two readings the pseudo-code leaves open, taken from the paper's text: the seed p is removed
+    from S when it starts a cluster ("Those points are removed from the initial set of points";
+    otherwise a lone point would loop forever and every seed would be counted twice), and
+    "for each point p in S" skips points an earlier cluster of the same pass has taken.
+    """
+    S = list(points)                                   # S = set of points (x, y)
+    clusters: list[list[tuple[int, int]]] = []         # Clusters = set of clusters
+    M = m                                              # M = minimum distance
+    while S:                                           # while S is not empty
+        for p in list(S):                              # for each point p in S
+            if p not in S:
+                continue
+            C = [p]                                    # create a new cluster C; add p to C
+            S.remove(p)
+            new_point_added = True
+            while new_point_added:                     # while a new point is added on C
+                new_point_added = False
+                for p_i in C:                          # for each point p_i in C (C grows meanwhile)
+                    for p_j in list(S):                # for each point p_j in S
+                        if p_i != p_j and math.dist(p_i, p_j) <= M:
+                            C.append(p_j)              # add p_j to C
+                            S.remove(p_j)              # remove p_j from S
+                            new_point_added = True
+            clusters.append(C)                         # add C into Clusters
+    return clusters
+
+
+def reference_keypoint(mask: np.ndarray) -> tuple[float, float, int]:
+    """The paper's keypoint: the centroid of the cluster with most points (the first one on ties)."""
+    points = [(int(c), int(r)) for r, c in np.argwhere(mask)]   # (x, y), row-major order
+    clusters = expansion_clustering(points)
+    if not clusters:
+        return math.nan, math.nan, 0
+    best = max(clusters, key=len)                                # first maximal cluster
+    n = len(best)
+    return sum(p[0] for p in best) / n, sum(p[1] for p in best) / n, n
+
+
+def reference_maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    k = maps.shape[-1] - 1
+    kp = np.full((k, 2), np.nan)
+    conf = np.zeros(k, np.int64)
+    for i in range(k):
+        x, y, n = reference_keypoint(maps[..., i] > threshold)
+        kp[i] = x, y
+        conf[i] = n
+    return kp, conf
+
+
+def count_ties(mask: np.ndarray) -> int:
+    """How many other clusters share the largest size (0 = no tie)."""
+    sizes = [len(c) for c in expansion_clustering([(int(c), int(r)) for r, c in np.argwhere(mask)])]
+    return sizes.count(max(sizes)) - 1 if sizes else 0
+
+
+def assert_same(fast, ref):
+    kp, conf = fast
+    rkp, rconf = ref
+    np.testing.assert_array_equal(conf, rconf)
+    # Exact equality (NaN == NaN): the fast path must not even differ in the last bit.
+    np.testing.assert_array_equal(kp, rkp)
+
+
+def test_reference_on_hand_made_mask():
+    """The transcription itself on a case worked by hand, so the reference cannot be wrong silently."""
+    mask = np.zeros((5, 6), bool)
+    mask[0, 0] = True                    # lone pixel, first in row-major order
+    mask[1, 2:5] = True                  # a bar of three
+    mask[2, 2] = True                    # below the bar's left end: joins it (distance 1)
+    mask[3, 5] = True                    # diagonal to nothing: distance sqrt(2) > 1
+    mask[4, 4] = True                    # diagonal to (3, 5): its own cluster
+    clusters = expansion_clustering([(int(c), int(r)) for r, c in np.argwhere(mask)])
+    assert [sorted(c) for c in clusters] == [[(0, 0)], [(2, 1), (2, 2), (3, 1), (4, 1)], [(5, 3)], [(4, 4)]]
+    assert reference_keypoint(mask) == (11 / 4, 5 / 4, 4)
+    assert largest_cluster(mask) == (11 / 4, 5 / 4, 4)
+
+
+# --------------------------------------------------------------------------------------------
+# Equivalence on random masks
+# --------------------------------------------------------------------------------------------
+
+SHAPES = [(1, 1), (1, 9), (9, 1), (2, 2), (5, 5), (7, 13), (12, 12), (16, 10)]
+DENSITIES = [0.0, 0.03, 0.1, 0.25, 0.4, 0.5, 0.6, 0.75, 0.9, 1.0]
+
+
+def test_largest_cluster_equals_algorithm_1_on_random_masks():
+    rng = np.random.default_rng(1234)
+    ties = checked = 0
+    for shape in SHAPES:
+        for density in DENSITIES:
+            for _ in range(6):
+                mask = rng.random(shape) < density
+                expected = reference_keypoint(mask)
+                got = largest_cluster(mask)
+                assert got[2] == expected[2], (shape, density, mask.astype(int))
+                np.testing.assert_array_equal(got[:2], expected[:2], err_msg=str(mask.astype(int)))
+                ties += count_ties(mask) > 0
+                checked += 1
+    # The sample must exercise the tie rule, or this test proves less than it claims.
+    assert ties >= 40, ties
+    assert checked == len(SHAPES) * len(DENSITIES) * 6
+
+
+def test_maps_to_keypoints_equals_algorithm_1_on_random_maps():
+    """Whole maps, values drawn from a grid that hits the threshold exactly (strict '>')."""
+    rng = np.random.default_rng(99)
+    levels = np.array([0.0, 0.25, 0.5, 0.5, 0.75, 1.0], np.float32)
+    for trial in range(40):
+        h, w = rng.integers(1, 15, size=2)
+        c = int(rng.integers(2, 6))
+        maps = rng.choice(levels, size=(h, w, c))
+        # Vary how much of each map is active: scale some maps towards "off".
+        maps[..., : c - 1] *= (rng.random(c - 1) < 0.8).astype(np.float32)[None, None] * 0.5 + 0.5
+        assert_same(maps_to_keypoints(maps), reference_maps_to_keypoints(maps))
+
+
+def test_realistic_224_maps_equal_algorithm_1():
+    """Blobs of radius 6 plus speckles at the model's real size, including touching blobs."""
+    rng = np.random.default_rng(7)
+    maps = realistic_maps(rng, size=224, num_maps=9, speckles=6)
+    assert_same(maps_to_keypoints(maps), reference_maps_to_keypoints(maps))
+
+
+def realistic_maps(rng: np.random.Generator, size: int, num_maps: int, speckles: int) -> np.ndarray:
+    yy, xx = np.mgrid[:size, :size]
+    maps = np.zeros((size, size, num_maps), np.float32)
+    for k in range(num_maps - 1):
+        for _ in range(1 + (k % 3 == 0)):                      # some maps get a second blob
+            cx, cy = rng.uniform(0, size - 1, 2)
+            maps[..., k] = np.maximum(maps[..., k], 1.0 / (1.0 + np.exp(np.hypot(xx - cx, yy - cy) - 6.0)))
+        ys, xs = rng.integers(0, size, (2, speckles))
+        maps[ys, xs, k] = rng.uniform(0.5, 1.0, speckles)
+    maps[..., -1] = rng.random((size, size))                   # skeleton map: ignored
+    return maps
+
+
+# --------------------------------------------------------------------------------------------
+# Tie rule, thresholds, edge cases
+# --------------------------------------------------------------------------------------------
+
+def test_tie_goes_to_cluster_with_earliest_pixel_in_row_major_order():
+    mask = np.zeros((6, 8), bool)
+    mask[3:5, 0:2] = True        # square of 4, top-left pixel at row 3
+    mask[1, 4:8] = True          # bar of 4, first pixel at row 1: earlier in row-major order
+    assert largest_cluster(mask) == (5.5, 1.0, 4)
+    mask[1, 4] = False           # now the bar has 3: the square wins
+    assert largest_cluster(mask) == (0.5, 3.5, 4)
+
+
+def test_tie_on_same_top_row_goes_to_the_left_one():
+    mask = np.zeros((5, 9), bool)
+    mask[0:3, 6] = True          # vertical bar of 3, first pixel (row 0, col 6)
+    mask[0, 1:4] = True          # horizontal bar of 3, first pixel (row 0, col 1)
+    assert largest_cluster(mask) == (2.0, 0.0, 3)
+
+
+def test_tie_rule_is_first_pixel_not_bounding_box():
+    """Two 11-pixel clusters on the same top row: the L-shaped one reaches further left (bbox
+    left 0) but starts later in row-major order, so the block wins."""
+    mask = np.zeros((7, 6), bool)
+    mask[1:7, 5] = True
+    mask[6, 0:5] = True          # L shape: 11 pixels, first pixel (row 1, col 5), bbox left 0
+    mask[1:5, 1:4] = True
+    mask[4, 1] = False           # block: 11 pixels, first pixel (row 1, col 1), bbox left 1
+    assert count_ties(mask) == 1
+    assert reference_keypoint(mask) == (23 / 11, 26 / 11, 11)
+    assert largest_cluster(mask) == (23 / 11, 26 / 11, 11)
+
+
+def test_diagonal_neighbours_are_separate_clusters():
+    mask = np.eye(5, dtype=bool)            # five pixels touching only by corners
+    assert largest_cluster(mask) == (0.0, 0.0, 1)
+
+
+def test_threshold_is_strict_and_nan_is_inactive():
+    maps = np.zeros((4, 4, 2), np.float32)
+    maps[1, 1, 0] = 0.5                     # exactly at the threshold: inactive
+    maps[2, 2, 0] = np.nan                  # NaN: inactive
+    kp, conf = maps_to_keypoints(maps, 0.5)
+    assert np.isnan(kp).all() and conf.tolist() == [0]
+    maps[1, 1, 0] = np.nextafter(np.float32(0.5), np.float32(1))
+    kp, conf = maps_to_keypoints(maps, 0.5)
+    assert kp.tolist() == [[1.0, 1.0]] and conf.tolist() == [1]
+
+
+def test_empty_full_and_single_pixel_maps():
+    h, w = 7, 5
+    maps = np.zeros((h, w, 4), np.float32)
+    maps[..., 1] = 1.0                      # full map: one cluster of every pixel
+    maps[6, 4, 2] = 1.0                     # single pixel in the last corner
+    kp, conf = maps_to_keypoints(maps)
+    assert np.isnan(kp[0]).all() and conf[0] == 0
+    assert kp[1].tolist() == [(w - 1) / 2, (h - 1) / 2] and conf[1] == h * w
+    assert kp[2].tolist() == [4.0, 6.0] and conf[2] == 1
+    assert kp.dtype == np.float64 and conf.dtype == np.int64 and kp.shape == (3, 2) and conf.shape == (3,)
+
+
+def test_skeleton_map_is_ignored():
+    maps = np.zeros((6, 6, 3), np.float32)
+    maps[..., 2] = 1.0
+    kp, conf = maps_to_keypoints(maps)
+    assert kp.shape == (2, 2) and np.isnan(kp).all() and conf.tolist() == [0, 0]
+
+
+def test_one_by_one_and_thin_maps():
+    assert_same(maps_to_keypoints(np.ones((1, 1, 2))), (np.array([[0.0, 0.0]]), np.array([1])))
+    row = np.zeros((1, 9, 2)); row[0, [0, 2, 3, 4, 7, 8], 0] = 1
+    assert_same(maps_to_keypoints(row), (np.array([[3.0, 0.0]]), np.array([3])))
+    col = np.transpose(row, (1, 0, 2))
+    assert_same(maps_to_keypoints(col), (np.array([[0.0, 3.0]]), np.array([3])))
+
+
+def test_any_dtype_and_layout_gives_the_same_result():
+    rng = np.random.default_rng(3)
+    maps = realistic_maps(rng, size=32, num_maps=5, speckles=4)
+    expected = maps_to_keypoints(maps)
+    assert_same(maps_to_keypoints(maps.astype(np.float64)), expected)
+    assert_same(maps_to_keypoints(maps.astype(np.float16)), expected)
+    fortran = np.asfortranarray(maps)
+    assert not fortran.flags.c_contiguous
+    assert_same(maps_to_keypoints(fortran), expected)
+    chw = np.ascontiguousarray(maps.transpose(2, 0, 1))
+    assert_same(maps_to_keypoints(chw.transpose(1, 2, 0)), expected)      # a strided view
+    assert_same(maps_to_keypoints(maps > 0.5, threshold=0.5), expected)   # bool masks work too
+
+
+def test_batch_equals_frame_by_frame():
+    rng = np.random.default_rng(5)
+    batch = np.stack([realistic_maps(rng, 40, 4, 3) for _ in range(3)])
+    batch[1, ..., 0] = 0.0                  # a missing keypoint inside the batch
+    kp, conf = maps_to_keypoints(batch)
+    assert kp.shape == (3, 3, 2) and conf.shape == (3, 3)
+    for j in range(3):
+        assert_same((kp[j], conf[j]), maps_to_keypoints(batch[j]))
+    assert np.isnan(kp[1, 0]).all() and conf[1, 0] == 0
+
+
+def test_logits_threshold_equals_sigmoid_threshold():
+    rng = np.random.default_rng(11)
+    z = rng.choice(np.array([-6.0, -1.0, -1e-3, 0.0, 1e-3, 1.0, 6.0]), size=(20, 20, 4))
+    p = 1.0 / (1.0 + np.exp(-z))
+    for t in (0.5, 0.3, 0.9):
+        assert_same(maps_to_keypoints(z, t, logits=True), maps_to_keypoints(p, t))
+    assert probability_to_logit(0.5) == 0.0
+    assert probability_to_logit(0.9) == pytest.approx(math.log(9))
+
+
+@pytest.mark.parametrize("bad", [0.0, 1.0, -0.1, 2.0, float("nan")])
+def test_logits_need_a_probability_threshold(bad):
+    with pytest.raises(UserError, match="strictly between 0 and 1"):
+        maps_to_keypoints(np.zeros((4, 4, 2)), bad, logits=True)
+
+
+def test_min_size_rejects_small_clusters():
+    maps = np.zeros((8, 8, 3))
+    maps[0:2, 0:2, 0] = 1                   # 4 pixels
+    maps[5, 5, 1] = 1                       # 1 pixel
+    kp, conf = maps_to_keypoints(maps, min_size=2)
+    assert kp[0].tolist() == [0.5, 0.5] and conf.tolist() == [4, 0] and np.isnan(kp[1]).all()
+    with pytest.raises(UserError, match="min_size"):
+        maps_to_keypoints(maps, min_size=0)
+
+
+@pytest.mark.parametrize("shape, match", [
+    ((4, 4), "H x W x C"),
+    ((2, 2, 2, 2, 2), "H x W x C"),
+    ((4, 4, 1), "at least 2 maps"),
+    ((0, 4, 3), "empty dimension"),
+])
+def test_bad_shapes_are_user_errors(shape, match):
+    with pytest.raises(UserError, match=match):
+        maps_to_keypoints(np.zeros(shape))
+
+
+def test_bad_dtype_and_mask_shape_are_user_errors():
+    with pytest.raises(UserError, match="numeric"):
+        maps_to_keypoints(np.zeros((3, 3, 2), complex))
+    with pytest.raises(UserError, match="2-D mask"):
+        largest_cluster(np.zeros((3, 3, 3)))
+
+
+# --------------------------------------------------------------------------------------------
+# decode: map pixels -> frame pixels
+# --------------------------------------------------------------------------------------------
+
+def test_decode_maps_keypoints_to_frame_pixels():
+    rng = np.random.default_rng(2)
+    maps = realistic_maps(rng, size=32, num_maps=4, speckles=0)
+    frame_shape = (480, 640, 3)
+    kp_map, conf = maps_to_keypoints(maps)
+    kp_frame, conf_frame = decode(maps, frame_shape)
+    np.testing.assert_array_equal(kp_frame, keypoints_to_frame(kp_map, frame_shape, 32))
+    np.testing.assert_array_equal(conf_frame, conf)
+    # Pixel-centre convention: map pixel 0 spans frame pixels 0..19 (640 / 32), centre 9.5.
+    one = np.zeros((32, 32, 2)); one[0, 0, 0] = 1
+    assert decode(one, frame_shape)[0].tolist() == [[9.5, 7.0]]
+    assert decode(one[None].repeat(2, 0), frame_shape)[0].shape == (2, 1, 2)
+
+
+def test_decode_keeps_missing_and_rejects_non_square_maps():
+    kp, conf = decode(np.zeros((16, 16, 3)), (100, 100))
+    assert np.isnan(kp).all() and conf.tolist() == [0, 0]
+    with pytest.raises(UserError, match="square"):
+        decode(np.zeros((16, 8, 3)), (100, 100))
+    with pytest.raises(UserError, match="frame shape"):
+        decode(np.zeros((16, 16, 3)), (100,))
+
+
+def test_docstring_examples():
+    assert doctest.testmod(pp, optionflags=doctest.ELLIPSIS).failed == 0
+
+
+def test_postprocess_imports_no_tensorflow():
+    import subprocess
+    import sys
+    code = ("import sys; import fcnpose_tf.postprocess, fcnpose_tf.metrics; "
+            "bad = [m for m in ('tensorflow', 'tf_keras', 'keras') if m in sys.modules]; "
+            "sys.exit(1 if bad else 0)")
+    assert subprocess.run([sys.executable, "-c", code]).returncode == 0
