@@ -1,0 +1,462 @@
+"""Filter pruning by L1 norm with layer surgery (Li et al. 2017, as FCN-Pose applies it), and
+unstructured magnitude pruning with tensorflow-model-optimization for comparison.
+
+Structured pruning (`prune_model`) removes whole filters: every Conv2D except the output layer
+keeps its ``n - floor(n * rate)`` filters with the largest L1 norms, the network is rebuilt with
+the narrower layers (``from_config`` plus sliced weights, as keras-surgeon does), and the next
+Conv2D's kernel loses the matching input channels. Parameters, MACs, file size and latency all
+shrink. Before retraining, the pruned model computes exactly what the original computes with the
+removed channels deleted from the graph.
+
+Unstructured pruning (`magnitude_prune`) zeroes the smallest weights of every kernel instead. The
+tensors keep their shapes, so the parameter count and the latency stay the same; only a
+compressed file (gzip) gets smaller. It exists so reports can show the two side by side.
+
+Rates are fractions in [0, 1) of the filters to *remove*. The keep rule is the paper's (and
+NNI's), ``n - floor(n * rate)``, which always keeps at least one filter; Torch-Pruning's
+``floor(n * (1 - rate))`` keeps one fewer whenever ``n * rate`` is not a whole number.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from decimal import Decimal
+from fractions import Fraction
+from typing import Callable, Iterable, Sequence, Union
+
+import numpy as np
+import tf_keras as keras
+
+from fcnpose_tf.errors import UserError
+
+Rate = Union[float, int, Fraction, Decimal, str]
+
+STRATEGIES = ("independent", "greedy")
+
+# Slack added to n * rate before flooring, for rates computed in floating point (0.1 * 7 and the
+# like). Rates are first read exactly as the shortest decimal that prints as the float (0.29 ->
+# 29/100), so a typed rate never needs it.
+_RATE_SLACK = Fraction(1, 10**9)
+
+# Layers the surgery understands. Channel-wise layers pass the kept-channel set through unchanged.
+_CHANNELWISE = (
+    keras.layers.MaxPooling2D,
+    keras.layers.AveragePooling2D,
+    keras.layers.UpSampling2D,
+    keras.layers.ZeroPadding2D,
+    keras.layers.Cropping2D,
+    keras.layers.ReLU,
+    keras.layers.LeakyReLU,
+    keras.layers.ELU,
+    keras.layers.Dropout,  # also SpatialDropout2D; identity at inference, channel-wise in training
+)
+# Activation functions that mix channels: allowed only where no channel has been removed.
+_CHANNEL_MIXING_ACTIVATIONS = ("softmax", "log_softmax")
+
+_SUPPORTED_NAMES = ("Conv2D, MaxPooling2D, AveragePooling2D, UpSampling2D, ZeroPadding2D, Cropping2D, "
+                    "Activation, ReLU, LeakyReLU, ELU, Softmax, BatchNormalization and Dropout")
+
+
+# --------------------------------------------------------------------------------------------
+# The keep rule and the ranking
+# --------------------------------------------------------------------------------------------
+
+def _exact_rate(rate: Rate) -> Fraction:
+    """The rate as an exact fraction, validated to lie in [0, 1)."""
+    if isinstance(rate, bool):
+        raise UserError(f"pruning rate must be a number in [0, 1), got {rate!r}")
+    try:
+        if isinstance(rate, str):
+            value = Fraction(rate.strip())
+        elif isinstance(rate, (Fraction, int)):
+            value = Fraction(rate)
+        elif isinstance(rate, Decimal):
+            if not rate.is_finite():
+                raise ValueError
+            value = Fraction(rate)
+        elif isinstance(rate, numbers.Real):
+            if not math.isfinite(float(rate)):
+                raise ValueError
+            # repr of a float is the shortest decimal that reads back as it: 0.29 -> "0.29" -> 29/100.
+            value = Fraction(repr(float(rate)))
+        else:
+            raise ValueError
+    except (ValueError, ZeroDivisionError):
+        raise UserError(f"pruning rate must be a number in [0, 1), got {rate!r}") from None
+    if not 0 <= value < 1:
+        raise UserError(f"pruning rate must be in [0, 1) (the fraction of filters removed), got {rate!r}")
+    return value
+
+
+def keep_count(n: int, rate: Rate) -> int:
+    """Filters a layer of `n` filters keeps at `rate`: ``n - floor(n * rate)``, at least 1.
+
+    The product is computed exactly (the rate is read as the decimal it prints as), so
+    ``keep_count(100, 0.29) == 71`` although ``100 * 0.29`` is 28.999999999999996 in floating point.
+
+    Args:
+        n: the layer's filter count (positive).
+        rate: fraction of filters to remove, in [0, 1); a float, int, Fraction, Decimal or a
+            decimal string such as ``"0.7"``.
+    Returns:
+        The number of filters kept.
+    Raises:
+        UserError: if the rate is outside [0, 1) or not a number, or n is not positive.
+    Example:
+        >>> keep_count(128, 0.7), keep_count(8, 0.7), keep_count(64, 0.5)
+        (39, 3, 32)
+    """
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise UserError(f"filter count must be a positive integer, got {n!r}")
+    removed = math.floor(int(n) * _exact_rate(rate) + _RATE_SLACK)
+    return int(n) - min(int(removed), int(n) - 1)
+
+
+def pruned_widths(widths: Iterable[int], rate: Rate) -> tuple[int, ...]:
+    """The keep rule applied to each width, e.g. FCN-Pose's conv1..conv9 (not the output layer).
+
+    Args:
+        widths: filter counts of the layers that are pruned.
+        rate: fraction of filters to remove, in [0, 1).
+    Returns:
+        The kept filter counts, in the same order.
+    Raises:
+        UserError: for a rate outside [0, 1) or a non-positive width.
+    Example:
+        >>> pruned_widths((128, 64, 32, 16, 8, 8, 16, 32, 64), 0.7)
+        (39, 20, 10, 5, 3, 3, 5, 10, 20)
+    """
+    _exact_rate(rate)
+    return tuple(keep_count(int(w), rate) for w in widths)
+
+
+def filter_l1_norms(kernel: np.ndarray, input_channels: Sequence[int] | None = None) -> np.ndarray:
+    """L1 norm of every filter of a Conv2D kernel (kh, kw, cin, cout): sum of |w| over kh, kw and cin.
+
+    Args:
+        kernel: the Conv2D kernel, shape (kh, kw, cin, cout).
+        input_channels: if given, only these input channels count (the greedy strategy leaves out
+            the channels the previous layer lost).
+    Returns:
+        A float64 array of length cout.
+    """
+    kernel = np.asarray(kernel)
+    if kernel.ndim != 4:
+        raise UserError(f"expected a Conv2D kernel of shape (kh, kw, cin, cout), got shape {kernel.shape}")
+    if input_channels is not None:
+        kernel = kernel[:, :, np.asarray(input_channels, dtype=np.int64), :]
+    return np.abs(kernel.astype(np.float64)).sum(axis=(0, 1, 2))
+
+
+def kept_filters(kernel: np.ndarray, rate: Rate, input_channels: Sequence[int] | None = None) -> np.ndarray:
+    """Indices of the filters a Conv2D keeps at `rate`: the largest L1 norms, in their original order.
+
+    Ties in the norm go to the lower index, so the choice is deterministic.
+
+    Args:
+        kernel: the Conv2D kernel, shape (kh, kw, cin, cout).
+        rate: fraction of filters to remove, in [0, 1).
+        input_channels: rank only on these input channels (the greedy strategy); all if None.
+    Returns:
+        Sorted int64 indices, ``keep_count(cout, rate)`` of them.
+    Raises:
+        UserError: for a rate outside [0, 1) or a kernel that is not 4-D.
+    Example:
+        >>> k = np.zeros((1, 1, 1, 4)); k[..., :] = [3.0, -5.0, 1.0, 3.0]
+        >>> kept_filters(k, 0.5).tolist()
+        [0, 1]
+    """
+    norms = filter_l1_norms(kernel, input_channels)
+    keep = keep_count(len(norms), rate)
+    # Stable sort on the negated norms: largest first, equal norms in index order.
+    order = np.argsort(-norms, kind="stable")
+    return np.sort(order[:keep]).astype(np.int64)
+
+
+# --------------------------------------------------------------------------------------------
+# The chain of layers
+# --------------------------------------------------------------------------------------------
+
+def _unsupported(layer: keras.layers.Layer, why: str = "") -> UserError:
+    return UserError(f"unsupported layer {layer.name} ({type(layer).__name__}){': ' + why if why else ''}; "
+                     f"filter pruning handles a plain chain of {_SUPPORTED_NAMES} layers")
+
+
+def _chain(model: keras.Model) -> list[keras.layers.Layer]:
+    """The model's layers after its input, checked to form one unbranched chain of supported layers."""
+    if not isinstance(model, keras.Model):
+        raise UserError(f"expected a tf_keras Model, got {type(model).__name__} "
+                        "(models must be built with `import tf_keras as keras`)")
+    if not model.built or not getattr(model, "inputs", None):
+        raise UserError(f"model {model.name} is not built: give it an input shape (keras.Input) first")
+    if len(model.inputs) != 1 or len(model.outputs) != 1:
+        raise UserError(f"model {model.name} has {len(model.inputs)} inputs and {len(model.outputs)} outputs; "
+                        "filter pruning handles a single-input, single-output chain")
+    layers = [layer for layer in model.layers if not isinstance(layer, keras.layers.InputLayer)]
+    for layer in layers:
+        _check_supported(layer)
+    if not isinstance(model, keras.Sequential):
+        # A functional model: every layer must read exactly the previous layer's only output.
+        config = model.get_config()
+        previous = config["input_layers"][0][0]
+        for entry in config["layers"]:
+            if entry["class_name"] == "InputLayer":
+                continue
+            nodes = entry["inbound_nodes"]
+            sources = [inbound[0] for node in nodes for inbound in node]
+            if len(nodes) != 1 or sources != [previous]:
+                raise UserError(f"layer {entry['name']} reads {', '.join(sources) or 'nothing'} instead of only "
+                                f"{previous}: filter pruning handles a plain chain without branches "
+                                "or skip connections")
+            previous = entry["name"]
+        if [out[0] for out in config["output_layers"]] != [previous]:
+            raise UserError(f"model {model.name}: its output is not the end of its layer chain ({previous})")
+    if not any(type(layer) is keras.layers.Conv2D for layer in layers):
+        raise UserError(f"model {model.name} has no Conv2D layer to prune")
+    return layers
+
+
+def _check_supported(layer: keras.layers.Layer) -> None:
+    if type(layer) is keras.layers.Conv2D:
+        if layer.data_format != "channels_last":
+            raise _unsupported(layer, "channels_first data format")
+        if getattr(layer, "groups", 1) != 1:
+            raise _unsupported(layer, f"grouped convolution (groups={layer.groups})")
+        return
+    if isinstance(layer, keras.layers.BatchNormalization):
+        axis = layer.axis if isinstance(layer.axis, (list, tuple)) else [layer.axis]
+        if [a % 4 for a in axis] != [3]:
+            raise _unsupported(layer, f"normalises axis {layer.axis}, not the channel axis")
+        return
+    if isinstance(layer, (keras.layers.Activation, keras.layers.Softmax)):
+        return
+    if isinstance(layer, _CHANNELWISE):
+        if getattr(layer, "data_format", "channels_last") != "channels_last":
+            raise _unsupported(layer, "channels_first data format")
+        return
+    raise _unsupported(layer)
+
+
+def _mixes_channels(layer: keras.layers.Layer) -> bool:
+    if isinstance(layer, keras.layers.Softmax):
+        return True
+    if isinstance(layer, keras.layers.Activation):
+        name = getattr(layer.activation, "__name__", str(layer.activation))
+        return name in _CHANNEL_MIXING_ACTIVATIONS
+    return False
+
+
+def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent") -> dict[str, np.ndarray]:
+    """Which filters every Conv2D keeps at `rate`, without changing the model.
+
+    Args:
+        model: a built tf_keras model whose layers form one chain (see `prune_model`).
+        rate: fraction of filters to remove per layer, in [0, 1).
+        strategy: ``"independent"`` ranks each layer on its whole kernel; ``"greedy"`` ranks a layer
+            after taking the input channels the previous Conv2D lost out of its kernel
+            (Li et al. 2017, section 3.2).
+    Returns:
+        Layer name -> sorted kept filter indices, for every Conv2D in order. The output layer (the
+        last Conv2D) keeps all its filters.
+    Raises:
+        UserError: for a bad rate or strategy, or a model that is not a plain chain of supported layers.
+    """
+    if strategy not in STRATEGIES:
+        raise UserError(f"pruning strategy must be one of {', '.join(STRATEGIES)}, got {strategy!r}")
+    _exact_rate(rate)
+    layers = _chain(model)
+    convs = [layer for layer in layers if type(layer) is keras.layers.Conv2D]
+    plan: dict[str, np.ndarray] = {}
+    kept_in: np.ndarray | None = None  # input channels of the next Conv2D that survive
+    for i, conv in enumerate(convs):
+        kernel = conv.get_weights()[0]
+        if i == len(convs) - 1:
+            kept = np.arange(kernel.shape[3], dtype=np.int64)
+        else:
+            kept = kept_filters(kernel, rate, kept_in if strategy == "greedy" else None)
+        plan[conv.name] = kept
+        kept_in = kept
+    return plan
+
+
+# --------------------------------------------------------------------------------------------
+# Surgery
+# --------------------------------------------------------------------------------------------
+
+def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent") -> keras.Model:
+    """Remove the filters with the smallest L1 norms from every Conv2D but the output layer.
+
+    Every Conv2D except the last keeps ``n - floor(n * rate)`` filters (the largest L1 norms of
+    their kernels, ties to the lower index, in their original order). The network is rebuilt with
+    narrower layers and the kept weights: each Conv2D's kernel and bias lose the removed filters,
+    the next Conv2D's kernel loses the matching input channels, and a BatchNormalization between
+    them loses the same channels. Layer names, activations and all other settings are kept; the
+    output layer keeps all its maps. The original model is not modified.
+
+    The model must be one chain (functional or Sequential) of Conv2D, MaxPooling2D,
+    AveragePooling2D, UpSampling2D, ZeroPadding2D, Cropping2D, Activation, ReLU, LeakyReLU, ELU,
+    BatchNormalization and Dropout layers (softmax only where no channel was removed).
+
+    Args:
+        model: a built tf_keras model, e.g. from `fcnpose_tf.model.build_fcn_pose`.
+        rate: fraction of filters to remove per layer, in [0, 1); 0 returns an identical copy.
+        strategy: ``"independent"`` (default; each layer ranked on its original kernel) or
+            ``"greedy"`` (a layer ranked without the input channels the previous layer lost),
+            the two strategies Li et al. 2017 compare.
+    Returns:
+        A new, uncompiled tf_keras model (Sequential if the input was) with the same layer names.
+    Raises:
+        UserError: for a rate outside [0, 1), an unknown strategy, or a model with a branch or an
+            unsupported layer ("unsupported layer NAME (TYPE)").
+    Example:
+        >>> from fcnpose_tf.model import build_fcn_pose, conv_widths
+        >>> small = prune_model(build_fcn_pose(), 0.7)
+        >>> conv_widths(small), small.count_params()
+        ((39, 20, 10, 5, 3, 3, 5, 10, 20, 9), 14668)
+    """
+    plan = prune_plan(model, rate, strategy=strategy)
+    layers = _chain(model)
+    source = model.inputs[0]
+    new_layers: list[keras.layers.Layer] = []
+    new_weights: list[list[np.ndarray]] = []
+    channels: np.ndarray | None = None  # kept channels of the tensor flowing; None = all of them
+    for layer in layers:
+        config = layer.get_config()
+        config.pop("batch_input_shape", None)  # the rebuilt model gets its own Input
+        weights = layer.get_weights()
+        if type(layer) is keras.layers.Conv2D:
+            kept = plan[layer.name]
+            kernel = weights[0]
+            if channels is not None:
+                kernel = kernel[:, :, channels, :]
+            weights = [kernel[..., kept]] + [w[kept] for w in weights[1:]]  # bias, if any
+            config["filters"] = int(len(kept))
+            channels = None if len(kept) == layer.filters else kept
+        elif isinstance(layer, keras.layers.BatchNormalization):
+            if channels is not None:
+                weights = [w[channels] for w in weights]  # gamma, beta, moving mean and variance
+        elif _mixes_channels(layer) and channels is not None:
+            raise _unsupported(layer, "it mixes channels after some were pruned")
+        try:
+            new_layer = type(layer).from_config(config)
+        except Exception as exc:  # a custom activation or regularizer that cannot be re-created
+            raise UserError(f"layer {layer.name} ({type(layer).__name__}) cannot be rebuilt from its config: "
+                            f"{type(exc).__name__}: {exc}") from exc
+        new_layers.append(new_layer)
+        new_weights.append(weights)
+
+    shape = tuple(source.shape)
+    inputs = keras.Input(batch_shape=shape, dtype=source.dtype, name=_input_name(model))
+    if isinstance(model, keras.Sequential):
+        pruned: keras.Model = keras.Sequential([inputs] + new_layers, name=model.name)
+    else:
+        x = inputs
+        for new_layer in new_layers:
+            x = new_layer(x)
+        pruned = keras.Model(inputs, x, name=model.name)
+    for new_layer, weights in zip(new_layers, new_weights):
+        new_layer.set_weights(weights)
+    return pruned
+
+
+def _input_name(model: keras.Model) -> str:
+    first = model.layers[0] if model.layers else None
+    if isinstance(first, keras.layers.InputLayer):
+        return first.name
+    return model.inputs[0].name.split(":")[0]
+
+
+# --------------------------------------------------------------------------------------------
+# Unstructured magnitude pruning (tensorflow-model-optimization)
+# --------------------------------------------------------------------------------------------
+
+TrainFn = Callable[[keras.Model, list], None]
+
+
+def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | None = None,
+                    frequency: int = 100, include_output: bool = False) -> keras.Model:
+    """Zero the smallest-magnitude weights of every Conv2D kernel (unstructured pruning).
+
+    Uses tensorflow-model-optimization's ``prune_low_magnitude`` with a ``ConstantSparsity``
+    schedule: the masks are applied at once (so the result is sparse even without retraining),
+    then `train_fn` may retrain the wrapped model while the masks are kept, and the wrappers are
+    stripped. Tensor shapes do not change, so parameters, MACs and latency stay the same; only a
+    compressed file gets smaller. For the ``--method magnitude`` comparison with `prune_model`.
+
+    Args:
+        model: a built tf_keras model; it is copied, not modified.
+        sparsity: fraction of each pruned kernel's weights set to zero, in [0, 1).
+        train_fn: called as ``train_fn(wrapped_model, callbacks)`` to retrain; it must compile the
+            model and pass `callbacks` (tfmot's ``UpdatePruningStep``) to ``fit``. None skips it.
+        frequency: training steps between mask updates while retraining.
+        include_output: also prune the output layer (the last Conv2D); off by default, as in
+            `prune_model`. Biases are never pruned.
+    Returns:
+        A plain tf_keras model (wrappers stripped) with the same layers and names.
+    Raises:
+        UserError: for a sparsity outside [0, 1) or a model without a Conv2D to prune.
+    Example:
+        >>> from fcnpose_tf.model import build_fcn_pose
+        >>> sparse = magnitude_prune(build_fcn_pose(input_size=64), 0.7)
+        >>> round(weight_sparsity(sparse, ["conv2"])["conv2"], 3)
+        0.7
+    """
+    import tensorflow_model_optimization as tfmot
+
+    if isinstance(sparsity, bool) or not isinstance(sparsity, numbers.Real) or not 0 <= float(sparsity) < 1:
+        raise UserError(f"sparsity must be a number in [0, 1), got {sparsity!r}")
+    if isinstance(frequency, bool) or not isinstance(frequency, numbers.Integral) or frequency < 1:
+        raise UserError(f"frequency must be a positive number of steps, got {frequency!r}")
+    convs = [layer.name for layer in model.layers if type(layer) is keras.layers.Conv2D]
+    targets = set(convs if include_output else convs[:-1])
+    if not targets:
+        raise UserError(f"model {model.name} has no Conv2D layer to prune")
+    sparsity_api = tfmot.sparsity.keras
+    schedule = sparsity_api.ConstantSparsity(float(sparsity), begin_step=0, frequency=int(frequency))
+
+    # tfmot wraps the layer objects it is given; clone first so the caller's weights stay intact.
+    copy = keras.models.clone_model(model)
+    copy.set_weights(model.get_weights())
+
+    def wrap(layer):
+        if layer.name in targets:
+            return sparsity_api.prune_low_magnitude(layer, pruning_schedule=schedule)
+        return layer
+
+    wrapped = keras.models.clone_model(copy, clone_function=wrap)  # shares the copy's layers and weights
+    wrappers = [layer for layer in wrapped.layers if isinstance(layer, _prune_wrapper_type())]
+    # Step 0 of the schedule: compute the masks from the current weights and apply them now.
+    for layer in wrappers:
+        layer.pruning_step.assign(0)
+        layer.pruning_obj.conditional_mask_update()
+        layer.pruning_obj.weight_mask_op()
+    if train_fn is not None:
+        train_fn(wrapped, [sparsity_api.UpdatePruningStep()])
+        for layer in wrappers:  # the last optimizer step may have moved masked weights
+            layer.pruning_obj.weight_mask_op()
+    return sparsity_api.strip_pruning(wrapped)
+
+
+def _prune_wrapper_type() -> type:
+    from tensorflow_model_optimization.python.core.sparsity.keras.pruning_wrapper import PruneLowMagnitude
+
+    return PruneLowMagnitude
+
+
+def weight_sparsity(model: keras.Model, layer_names: Iterable[str] | None = None) -> dict[str, float]:
+    """Fraction of exactly-zero kernel weights of each Conv2D (or of the named layers).
+
+    Args:
+        model: a tf_keras model.
+        layer_names: the Conv2D layers to measure; all of them if None.
+    Returns:
+        Layer name -> fraction of zeros in its kernel (biases are not counted), in layer order.
+    """
+    wanted = None if layer_names is None else set(layer_names)
+    result = {}
+    for layer in model.layers:
+        if type(layer) is keras.layers.Conv2D and (wanted is None or layer.name in wanted):
+            kernel = layer.get_weights()[0]
+            result[layer.name] = float(np.count_nonzero(kernel == 0) / kernel.size)
+    return result

@@ -1,0 +1,422 @@
+"""Filter pruning: the keep rule, the L1 ranking, exact surgery, unsupported layers, magnitude pruning."""
+
+import gzip
+import io
+import math
+from decimal import Decimal
+from fractions import Fraction
+
+import numpy as np
+import pytest
+import tf_keras as keras
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
+from fcnpose_tf.prune import (filter_l1_norms, keep_count, kept_filters, magnitude_prune, prune_model, prune_plan,
+                              pruned_widths, weight_sparsity)
+
+SWEEP = [1, 2, 3, 4, 5, 6, 7, 8, 9]  # tenths: the paper's 10%..90% sweep
+
+
+# ------------------------------------------------------------------------------------------
+# helpers
+# ------------------------------------------------------------------------------------------
+
+def randomize(model, seed=0, bias_scale=0.1):
+    """Random kernels (He-like), non-zero biases and BatchNormalization statistics."""
+    rng = np.random.default_rng(seed)
+    for layer in model.layers:
+        if isinstance(layer, keras.layers.BatchNormalization):
+            layer.set_weights([rng.uniform(0.5, 2.0, w.shape).astype(np.float32) if i == len(layer.get_weights()) - 1
+                               else rng.normal(0, 0.5, w.shape).astype(np.float32)
+                               for i, w in enumerate(layer.get_weights())])
+        elif layer.get_weights():
+            weights = layer.get_weights()
+            fan_in = np.prod(weights[0].shape[:-1])
+            layer.set_weights([rng.normal(0, math.sqrt(2 / fan_in), weights[0].shape).astype(np.float32)]
+                              + [rng.normal(0, bias_scale, w.shape).astype(np.float32) for w in weights[1:]])
+    return model
+
+
+def zeroed_reference(model, plan):
+    """Copy of `model` whose removed filters output exactly 0: kernel and bias zeroed, and where a
+    BatchNormalization follows, its moving mean and beta zeroed for those channels, so BN maps the
+    0 to 0 whatever gamma and the variance are. Activations here map 0 to 0 (ReLU), so every later
+    layer sees zeros in those channels, which is what deleting them means."""
+    copy = keras.models.clone_model(model)
+    copy.set_weights(model.get_weights())
+    removed = np.array([], np.int64)
+    for layer in copy.layers:
+        if type(layer) is keras.layers.Conv2D:
+            weights = layer.get_weights()
+            removed = np.setdiff1d(np.arange(layer.filters), plan[layer.name])
+            weights[0][..., removed] = 0
+            if layer.use_bias:
+                weights[1][removed] = 0
+            layer.set_weights(weights)
+        elif isinstance(layer, keras.layers.BatchNormalization) and len(removed):
+            weights = layer.get_weights()  # [gamma], [beta], moving_mean, moving_variance
+            weights[-2][removed] = 0
+            if layer.center:
+                weights[1 if layer.scale else 0][removed] = 0
+            layer.set_weights(weights)
+    return copy
+
+
+def frames(size, n=2, seed=1):
+    return np.random.default_rng(seed).random((n, size, size, 3), dtype=np.float32)
+
+
+def bn_chain(size=32, order="conv-bn-relu", sequential=False, scale=True, center=True, use_bias=True):
+    """A plain chain with BatchNormalization, Dropout, average pooling and Activation layers."""
+    def block(filters, name):
+        conv = keras.layers.Conv2D(filters, 3, padding="same", use_bias=use_bias, name=name)
+        bn = keras.layers.BatchNormalization(scale=scale, center=center, name=f"{name}_bn")
+        relu = keras.layers.ReLU(name=f"{name}_relu")
+        return [conv, bn, relu] if order == "conv-bn-relu" else [conv, relu, bn]
+
+    body = (block(12, "conv1") + [keras.layers.MaxPooling2D(2, name="pool1")]
+            + block(10, "conv2") + [keras.layers.Dropout(0.3, name="drop"),
+                                    keras.layers.AveragePooling2D(2, name="pool2")]
+            + [keras.layers.Conv2D(8, 3, padding="same", name="conv3"), keras.layers.Activation("relu", name="act3"),
+               keras.layers.UpSampling2D(4, name="up"),
+               keras.layers.Conv2D(3, 1, activation="sigmoid", name="out")])
+    inputs = keras.Input((size, size, 3), name="image")
+    if sequential:
+        return randomize(keras.Sequential([inputs] + body, name="seq"))
+    x = inputs
+    for layer in body:
+        x = layer(x)
+    return randomize(keras.Model(inputs, x, name="bnnet"))
+
+
+# ------------------------------------------------------------------------------------------
+# the keep rule
+# ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("width", sorted(set(DEFAULT_WIDTHS)))
+@pytest.mark.parametrize("tenths", SWEEP)
+def test_keep_rule_every_width_every_rate(width, tenths):
+    expected = width - (width * tenths) // 10  # exact integer arithmetic: n - floor(n * r)
+    for rate in (tenths / 10, tenths * 0.1, 1 - (10 - tenths) / 10, f"0.{tenths}", Decimal(f"0.{tenths}"),
+                 Fraction(tenths, 10)):
+        assert keep_count(width, rate) == expected, rate
+
+
+def test_keep_rule_floating_point_traps():
+    assert 100 * 0.29 < 29  # the trap
+    assert keep_count(100, 0.29) == 71
+    assert keep_count(100, 0.57) == 43  # 100 * 0.57 = 56.99999999999999
+    assert keep_count(10, 0.7) == 3 and keep_count(10, 0.1 * 7) == 3
+    assert keep_count(3, 1 / 3) == 2  # 3 * (1/3) rounds to exactly 1.0
+    # ours is n - floor(n r); Torch-Pruning's floor(n (1 - r)) keeps one fewer here
+    assert keep_count(128, 0.7) == 39 and math.floor(128 * (1 - 0.7)) == 38
+    assert all(keep_count(n, 0.999) >= 1 for n in range(1, 200))
+
+
+def test_pruned_widths_reproduce_paper_parameter_counts():
+    assert pruned_widths(DEFAULT_WIDTHS, 0.7) == (39, 20, 10, 5, 3, 3, 5, 10, 20)
+    for rate, params in [(0.7, 14_668), (0.5, 35_185), (0.9, 2_480), (0.0, 131_705)]:
+        pruned = prune_model(build_fcn_pose(input_size=32), rate)
+        assert pruned.count_params() == params, rate
+        assert conv_widths(pruned) == pruned_widths(DEFAULT_WIDTHS, rate) + (9,)
+        assert build_fcn_pose(pruned_widths(DEFAULT_WIDTHS, rate), input_size=32).count_params() == params
+
+
+@pytest.mark.parametrize("rate", [-0.1, 1, 1.0, 1.2, float("nan"), float("inf"), "abc", "1/0", True, None, [0.5]])
+def test_bad_rate_is_a_clear_error(rate):
+    with pytest.raises(UserError, match="rate"):
+        keep_count(8, rate)
+    with pytest.raises(UserError, match="rate"):
+        prune_model(build_fcn_pose(input_size=32), rate)
+
+
+def test_bad_strategy():
+    with pytest.raises(UserError, match="strategy must be one of independent, greedy"):
+        prune_model(build_fcn_pose(input_size=32), 0.5, strategy="random")
+
+
+# ------------------------------------------------------------------------------------------
+# the ranking
+# ------------------------------------------------------------------------------------------
+
+def reference_kept(kernel, rate):
+    """Slow reference: sort (−L1 norm, index) pairs, keep the first n − floor(n·rate), in index order."""
+    n = kernel.shape[3]
+    norms = [float(np.sum(np.abs(kernel[:, :, :, j].astype(np.float64)))) for j in range(n)]
+    ranked = sorted(range(n), key=lambda j: (-norms[j], j))
+    return sorted(ranked[:n - math.floor(Fraction(str(rate)) * n)])
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_kept_filters_match_reference_with_ties(seed):
+    rng = np.random.default_rng(seed)
+    # integer-valued kernels make exact ties in the L1 norm common
+    kernel = rng.integers(-2, 3, size=(3, 3, 2, 16)).astype(np.float32)
+    for rate in (0.1, 0.25, 0.5, 0.7, 0.9):
+        assert kept_filters(kernel, rate).tolist() == reference_kept(kernel, rate)
+
+
+def test_ties_go_to_lower_index_and_order_is_kept():
+    kernel = np.zeros((1, 1, 1, 6), np.float32)
+    kernel[0, 0, 0] = [1, 3, -3, 2, 3, 0]
+    assert kept_filters(kernel, 0.5).tolist() == [1, 2, 4]  # the three 3s, in index order
+    assert kept_filters(kernel, 0.7).tolist() == [1, 2]  # 6 - floor(4.2) = 2: ties to lower index
+    assert filter_l1_norms(kernel).tolist() == [1, 3, 3, 2, 3, 0]
+    assert filter_l1_norms(kernel, input_channels=[]).tolist() == [0] * 6
+
+
+def test_plan_ranks_on_l1_norm_of_original_kernels():
+    model = randomize(build_fcn_pose(input_size=32), seed=3)
+    plan = prune_plan(model, 0.7)
+    assert list(plan) == [f"conv{i}" for i in range(1, 11)]
+    for name, kept in plan.items():
+        kernel = model.get_layer(name).get_weights()[0]
+        if name == "conv10":
+            assert kept.tolist() == list(range(9))
+        else:
+            assert kept.tolist() == reference_kept(kernel, 0.7)
+
+
+def test_greedy_ranks_without_the_removed_input_channels():
+    inputs = keras.Input((8, 8, 1))
+    x = keras.layers.Conv2D(2, 1, name="a")(inputs)
+    x = keras.layers.Conv2D(2, 1, name="b")(x)
+    model = keras.Model(inputs, keras.layers.Conv2D(1, 1, name="out")(x))
+    model.get_layer("a").set_weights([np.array([[[[5.0, 1.0]]]], np.float32), np.zeros(2, np.float32)])
+    # b's filter 0 is heavy only on input channel 1, which `a` loses; filter 1 is moderate on channel 0
+    model.get_layer("b").set_weights([np.array([[[[0.1, 2.0], [9.0, 0.0]]]], np.float32), np.zeros(2, np.float32)])
+    assert prune_plan(model, 0.5)["b"].tolist() == [0]
+    assert prune_plan(model, 0.5, strategy="greedy")["b"].tolist() == [1]
+    assert prune_plan(model, 0.5, strategy="greedy")["a"].tolist() == [0]  # first layer: same as independent
+    assert prune_model(model, 0.5, strategy="greedy").get_layer("b").get_weights()[0].ravel().tolist() == \
+        pytest.approx([2.0])
+
+
+def test_greedy_matches_reference_on_fcn_pose():
+    model = randomize(build_fcn_pose(input_size=32), seed=4)
+    plan = prune_plan(model, 0.5, strategy="greedy")
+    previous = None
+    for i in range(1, 10):
+        kernel = model.get_layer(f"conv{i}").get_weights()[0]
+        if previous is not None:
+            kernel = kernel[:, :, previous, :]
+        assert plan[f"conv{i}"].tolist() == reference_kept(kernel, 0.5)
+        previous = plan[f"conv{i}"]
+
+
+# ------------------------------------------------------------------------------------------
+# surgery is exact
+# ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("strategy", ["independent", "greedy"])
+@pytest.mark.parametrize("rate", [0.3, 0.7, 0.9])
+def test_surgery_equals_original_with_removed_filters_zeroed(strategy, rate):
+    model = randomize(build_fcn_pose(input_size=32), seed=5)
+    pruned = prune_model(model, rate, strategy=strategy)
+    reference = zeroed_reference(model, prune_plan(model, rate, strategy=strategy))
+    x = frames(32)
+    got, want, original = (np.asarray(m(x, training=False)) for m in (pruned, reference, model))
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
+    assert np.abs(got - original).max() > 1e-3  # the removed filters did matter: the test can fail
+
+
+@pytest.mark.parametrize("strategy", ["independent", "greedy"])
+@pytest.mark.parametrize("order", ["conv-bn-relu", "conv-relu-bn"])
+@pytest.mark.parametrize("sequential", [False, True])
+def test_surgery_exact_with_batchnorm(strategy, order, sequential):
+    model = bn_chain(order=order, sequential=sequential)
+    pruned = prune_model(model, 0.5, strategy=strategy)
+    assert isinstance(pruned, keras.Sequential) == sequential
+    assert [layer.name for layer in pruned.layers] == [layer.name for layer in model.layers]
+    assert conv_widths(pruned) == (6, 5, 4, 3)
+    assert pruned.get_layer("conv1_bn").get_weights()[0].shape == (6,)
+    reference = zeroed_reference(model, prune_plan(model, 0.5, strategy=strategy))
+    x = frames(32)
+    got, want, original = (np.asarray(m(x, training=False)) for m in (pruned, reference, model))
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
+    assert np.abs(got - original).max() > 1e-3
+
+
+@pytest.mark.parametrize("scale,center,use_bias", [(False, True, True), (True, False, False), (False, False, False)])
+def test_surgery_exact_with_batchnorm_variants(scale, center, use_bias):
+    model = bn_chain(scale=scale, center=center, use_bias=use_bias)
+    pruned = prune_model(model, 0.7)
+    reference = zeroed_reference(model, prune_plan(model, 0.7))
+    x = frames(32)
+    np.testing.assert_allclose(pruned(x, training=False), reference(x, training=False), atol=1e-5, rtol=0)
+
+
+def test_weights_are_the_kept_slices_and_original_untouched():
+    model = randomize(build_fcn_pose(input_size=32), seed=6)
+    before = [w.copy() for w in model.get_weights()]
+    plan = prune_plan(model, 0.7)
+    pruned = prune_model(model, 0.7)
+    k2, b2 = model.get_layer("conv2").get_weights()
+    new_k2, new_b2 = pruned.get_layer("conv2").get_weights()
+    np.testing.assert_array_equal(new_k2, k2[:, :, plan["conv1"], :][..., plan["conv2"]])
+    np.testing.assert_array_equal(new_b2, b2[plan["conv2"]])
+    assert pruned.get_layer("conv10").get_weights()[0].shape == (3, 3, 20, 9)
+    for a, b in zip(before, model.get_weights()):
+        np.testing.assert_array_equal(a, b)
+    assert pruned.name == model.name and pruned.get_layer("conv10").activation.__name__ == "sigmoid"
+    assert [layer.name for layer in pruned.layers] == [layer.name for layer in model.layers]
+
+
+def test_rate_zero_is_an_identical_copy():
+    model = randomize(build_fcn_pose(input_size=32), seed=7)
+    copy = prune_model(model, 0.0)
+    assert copy is not model and copy.count_params() == model.count_params()
+    x = frames(32)
+    np.testing.assert_array_equal(copy(x), model(x))
+
+
+def test_pruned_model_trains_and_saves(tmp_path):
+    pruned = prune_model(randomize(build_fcn_pose(input_size=32)), 0.7)
+    pruned.compile("adam", "binary_crossentropy")
+    pruned.fit(frames(32, 2), np.zeros((2, 32, 32, 9), np.float32), epochs=1, verbose=0)
+    path = tmp_path / "p70.keras"
+    pruned.save(path)
+    assert keras.models.load_model(path).count_params() == 14_668
+
+
+# ------------------------------------------------------------------------------------------
+# what is not a plain chain
+# ------------------------------------------------------------------------------------------
+
+def _functional(*layers, size=16):
+    inputs = keras.Input((size, size, 3))
+    x = inputs
+    for layer in layers:
+        x = layer(x)
+    return keras.Model(inputs, x)
+
+
+@pytest.mark.parametrize("make,message", [
+    (lambda: _functional(keras.layers.Conv2D(4, 3, name="c"), keras.layers.Flatten(name="flat"),
+                         keras.layers.Dense(2, name="fc")), r"unsupported layer flat \(Flatten\)"),
+    (lambda: _functional(keras.layers.Conv2D(4, 3, name="c"), keras.layers.GlobalAveragePooling2D(name="gap"),
+                         keras.layers.Dense(2, name="fc")), r"unsupported layer gap \(GlobalAveragePooling2D\)"),
+    (lambda: _functional(keras.layers.DepthwiseConv2D(3, name="dw"), keras.layers.Conv2D(2, 1)),
+     r"unsupported layer dw \(DepthwiseConv2D\)"),
+    (lambda: _functional(keras.layers.Conv2D(4, 3, name="c"), keras.layers.Conv2DTranspose(2, 3, name="tconv")),
+     r"unsupported layer tconv \(Conv2DTranspose\)"),
+    (lambda: _functional(keras.layers.Conv2D(4, 3, name="c"), keras.layers.PReLU(name="prelu"),
+                         keras.layers.Conv2D(2, 1)), r"unsupported layer prelu \(PReLU\)"),
+    (lambda: _functional(keras.layers.Conv2D(4, 3, groups=1, name="c"), keras.layers.Conv2D(4, 1, groups=2, name="g"),
+                         keras.layers.Conv2D(2, 1)), r"unsupported layer g \(Conv2D\): grouped"),
+    (lambda: _functional(keras.layers.Conv2D(4, 3, name="c"), keras.layers.Softmax(name="sm"),
+                         keras.layers.Conv2D(2, 1)), r"unsupported layer sm \(Softmax\): it mixes channels"),
+    (lambda: _functional(keras.layers.Conv2D(4, 3, name="c"), keras.layers.BatchNormalization(axis=1, name="bn1"),
+                         keras.layers.Conv2D(2, 1)), r"unsupported layer bn1 \(BatchNormalization\)"),
+    (lambda: _functional(keras.layers.Dense(4, name="fc"), keras.layers.Conv2D(2, 1)),
+     r"unsupported layer fc \(Dense\)"),
+    (lambda: _functional(keras.layers.Activation("relu")), "no Conv2D layer"),
+])
+def test_unsupported_models_are_clear_errors(make, message):
+    with pytest.raises(UserError, match=message):
+        prune_model(make(), 0.5)
+
+
+def test_skip_connection_is_refused():
+    inputs = keras.Input((16, 16, 3))
+    a = keras.layers.Conv2D(4, 3, padding="same", name="c1")(inputs)
+    b = keras.layers.Conv2D(4, 3, padding="same", name="c2")(a)
+    out = keras.layers.Conv2D(2, 1, name="out")(keras.layers.Add(name="skip")([a, b]))
+    with pytest.raises(UserError, match=r"unsupported layer skip \(Add\)"):
+        prune_model(keras.Model(inputs, out), 0.5)
+
+
+def test_branch_without_merge_is_refused():
+    inputs = keras.Input((16, 16, 3))
+    a = keras.layers.Conv2D(4, 3, padding="same", name="c1")(inputs)
+    b = keras.layers.Conv2D(4, 3, padding="same", name="c2")(a)
+    c = keras.layers.Conv2D(2, 1, name="c3")(a)
+    with pytest.raises(UserError, match="2 outputs"):
+        prune_model(keras.Model(inputs, [b, c]), 0.5)
+
+
+def test_shared_layer_is_refused():
+    inputs = keras.Input((16, 16, 3))
+    shared = keras.layers.Conv2D(3, 3, padding="same", name="shared")
+    x = shared(shared(inputs))  # one layer applied twice: its filters cannot be cut for one use only
+    model = keras.Model(inputs, keras.layers.Conv2D(2, 1, name="out")(x))
+    with pytest.raises(UserError, match="layer shared reads image|layer shared reads input"):
+        prune_model(model, 0.5)
+
+
+def test_softmax_on_the_output_is_fine():
+    model = randomize(_functional(keras.layers.Conv2D(6, 3, padding="same", name="c1", activation="relu"),
+                                  keras.layers.Conv2D(3, 1, name="out"), keras.layers.Softmax(name="sm")))
+    pruned = prune_model(model, 0.5)
+    assert conv_widths(pruned) == (3, 3)
+
+
+def test_unbuilt_and_non_keras_models():
+    with pytest.raises(UserError, match="not built"):
+        prune_model(keras.Sequential([keras.layers.Conv2D(4, 3), keras.layers.Conv2D(2, 1)]), 0.5)
+    with pytest.raises(UserError, match="tf_keras Model"):
+        prune_model(object(), 0.5)
+
+
+# ------------------------------------------------------------------------------------------
+# unstructured magnitude pruning
+# ------------------------------------------------------------------------------------------
+
+def _gzip_size(model):
+    buffer = io.BytesIO()
+    for w in model.get_weights():
+        buffer.write(w.tobytes())
+    return len(gzip.compress(buffer.getvalue()))
+
+
+def test_magnitude_prune_zeroes_the_smallest_weights():
+    model = randomize(build_fcn_pose(input_size=32), seed=8)
+    before = [w.copy() for w in model.get_weights()]
+    sparse = magnitude_prune(model, 0.7)
+    assert [layer.name for layer in sparse.layers] == [layer.name for layer in model.layers]
+    assert sparse.count_params() == model.count_params()  # shapes unchanged
+    fractions = weight_sparsity(sparse)
+    for name, fraction in fractions.items():
+        original = model.get_layer(name).get_weights()[0]
+        new = sparse.get_layer(name).get_weights()[0]
+        if name == "conv10":
+            assert fraction == 0.0
+            np.testing.assert_array_equal(new, original)
+            continue
+        # numpy reference: keep the k = round(size * (1 - s)) largest magnitudes, ties at the threshold kept
+        k = round(original.size * 0.3)
+        threshold = np.sort(np.abs(original).ravel())[::-1][k - 1]
+        assert np.count_nonzero(new == 0) == np.count_nonzero(np.abs(original) < threshold), name
+        assert abs(fraction - 0.7) < 1e-3
+        kept = new != 0
+        np.testing.assert_array_equal(new[kept], original[kept])  # survivors untouched
+        assert np.abs(original[~kept]).max() <= np.abs(original[kept]).min()  # the smallest went
+        np.testing.assert_array_equal(sparse.get_layer(name).get_weights()[1], model.get_layer(name).get_weights()[1])
+    for a, b in zip(before, model.get_weights()):
+        np.testing.assert_array_equal(a, b)  # caller's model untouched
+    assert _gzip_size(sparse) < 0.6 * _gzip_size(model)
+
+
+def test_magnitude_prune_keeps_masks_while_retraining():
+    model = randomize(build_fcn_pose(input_size=32), seed=9)
+    seen = {}
+
+    def train(wrapped, callbacks):
+        seen["callbacks"] = [type(c).__name__ for c in callbacks]
+        wrapped.compile(keras.optimizers.Adam(1e-2), "binary_crossentropy")
+        wrapped.fit(frames(32, 4), np.full((4, 32, 32, 9), 0.2, np.float32), batch_size=2, epochs=2,
+                    callbacks=callbacks, verbose=0)
+
+    sparse = magnitude_prune(model, 0.5, train_fn=train, frequency=1, include_output=True)
+    assert seen["callbacks"] == ["UpdatePruningStep"]
+    assert not np.allclose(sparse.get_layer("conv10").get_weights()[1], model.get_layer("conv10").get_weights()[1])
+    for name, fraction in weight_sparsity(sparse).items():
+        size = sparse.get_layer(name).get_weights()[0].size
+        assert abs(fraction - 0.5) <= 1 / size + 1e-9, name
+
+
+@pytest.mark.parametrize("sparsity", [-0.1, 1.0, "0.5", True])
+def test_magnitude_prune_bad_sparsity(sparsity):
+    with pytest.raises(UserError, match="sparsity"):
+        magnitude_prune(build_fcn_pose(input_size=32), sparsity)
