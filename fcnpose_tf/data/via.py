@@ -264,7 +264,7 @@ def _find_image(filename: str, dirs: list[Path]) -> Path:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) of an image file, reading only its header when Pillow is available."""
+    """(width, height) of an image file as displayed (EXIF orientation applied), reading only its header."""
     try:
         from PIL import Image
     except ImportError:  # pragma: no cover - Pillow comes with matplotlib
@@ -272,7 +272,11 @@ def image_size(path: Path) -> tuple[int, int]:
     if Image is not None:
         try:
             with Image.open(path) as im:
-                return int(im.width), int(im.height)
+                width, height = int(im.width), int(im.height)
+                # EXIF orientations 5-8 rotate by 90 degrees: browsers (VIA) and OpenCV show the frame upright
+                if im.getexif().get(0x0112) in (5, 6, 7, 8):
+                    width, height = height, width
+                return width, height
         except Exception:  # noqa: BLE001 - fall back to OpenCV, which reads more formats' bodies
             pass
     import cv2
