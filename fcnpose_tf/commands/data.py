@@ -1,0 +1,247 @@
+"""Check a dataset: frame and keypoint counts, dropped frames, folds, and a preview of the target maps.
+
+DATA is a folder holding one VIA project file (*.json) and its images (beside it
+or in images/), or a VIA file path (images beside it, in images/, or --images).
+The first look at a dataset stores its splits as <VIA stem>.splits.json beside
+the VIA file; every later command reuses them.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "data"
+EXAMPLES = """\
+  fcnpose-tf data inspect demo                          # counts, drops and folds of a dataset folder
+  fcnpose-tf data inspect demo --out preview.png        # plus frames with keypoints, skeleton and maps
+  fcnpose-tf data inspect labels.json --images frames/ --keypoint-attr joint --min-visible 6
+  fcnpose-tf data inspect my_export.json --skip-bad     # skip frames with bad regions, count them
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    inspect = actions.add_parser(
+        "inspect", help="counts, dropped frames, folds and a preview PNG", formatter_class=parser.formatter_class,
+        description="Load a dataset as training will (same drops, same stored splits), print what it holds "
+                    "and optionally write a preview of frames with keypoints, skeleton and target maps.",
+        epilog="examples:\n" + EXAMPLES.rstrip())
+    inspect.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                         help="show full tracebacks for errors")
+    add_data_arguments(inspect)
+    inspect.add_argument("--out", type=Path, help="write a preview PNG here")
+    inspect.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    inspect.add_argument("--samples", type=int, default=6, help="frames in the preview")
+    inspect.add_argument("--input-size", type=int, default=224, help="model input side for the target maps")
+    inspect.add_argument("--augment-copies", type=int, default=2,
+                         help="augmented copies per training frame (for the counts; the preview shows one)")
+    inspect.add_argument("--seed", type=int, default=0, help="augmentation seed")
+
+
+def add_data_arguments(parser: argparse.ArgumentParser) -> None:
+    """The dataset options every data-reading command shares (DATA, --images, labels, drops, splits)."""
+    parser.add_argument("data", type=Path, metavar="DATA", help="dataset folder or VIA .json file")
+    parser.add_argument("--images", type=Path, metavar="DIR", help="folder of the images the VIA file names")
+    parser.add_argument("--keypoint-attr", default="keypoint", metavar="NAME",
+                        help="VIA region attribute holding each point's keypoint name")
+    parser.add_argument("--min-visible", type=int, metavar="N",
+                        help="drop frames with fewer annotated keypoints (default: half the schema's, 4 of 8)")
+    parser.add_argument("--skip-bad", action="store_true",
+                        help="skip frames with bad regions or missing images instead of stopping")
+    parser.add_argument("--folds", type=int, default=5, help="K of the K-fold splits")
+    parser.add_argument("--split-seed", type=int, default=0, help="seed of the stored splits")
+    parser.add_argument("--resplit", action="store_true", help="replace the stored splits")
+
+
+def load_from_args(args: argparse.Namespace):
+    """load_dataset with the options of add_data_arguments."""
+    from fcnpose_tf.data.dataset import load_dataset
+
+    return load_dataset(args.data, args.images, attribute=args.keypoint_attr, min_visible=args.min_visible,
+                        skip_bad=args.skip_bad, folds=args.folds, split_seed=args.split_seed, resplit=args.resplit)
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.action == "inspect":
+        return _inspect(args)
+    raise AssertionError(args.action)  # pragma: no cover - argparse restricts the choices
+
+
+def _inspect(args: argparse.Namespace) -> int:
+    from collections import Counter
+
+    import numpy as np
+
+    from fcnpose_tf.data.masks import default_radius, default_thickness
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.fileio import check_writable
+    from fcnpose_tf.tables import format_table
+
+    if args.input_size < 8:
+        raise UserError(f"--input-size must be at least 8, got {args.input_size}")
+    if args.samples < 1:
+        raise UserError(f"--samples must be at least 1, got {args.samples}")
+    if args.augment_copies < 0:
+        raise UserError(f"--augment-copies must be >= 0, got {args.augment_copies}")
+    if args.out is not None:
+        check_writable(args.out, args.force)  # fail before the work, not after it
+    ds = load_from_args(args)
+    schema = ds.schema
+    kps = ds.keypoints()
+    visible = np.isfinite(kps).all(axis=2)
+
+    folder = {s.image_path.parent for s in ds.samples}
+    print(f"Dataset: {ds.via_path}  (images: {', '.join(sorted(map(str, folder)))})")
+    print(f"Schema:  {schema.name}, {schema.num_keypoints} keypoints ({', '.join(schema.keypoints)}), "
+          f"{schema.num_maps} target maps")
+    print(f"Frames:  {len(ds)} usable, {ds.num_dropped} dropped "
+          f"(threshold: at least {ds.min_visible} of {schema.num_keypoints} keypoints visible)")
+    sizes = Counter((s.width, s.height) for s in ds.samples)
+    print("Frame sizes: " + ", ".join(f"{w}x{h} ({n})" for (w, h), n in sizes.most_common()))
+    if ds.ignored_regions:
+        print(f"Ignored {ds.ignored_regions} non-point region(s) (rectangles, polygons, ...)")
+
+    per_frame = Counter(int(v) for v in visible.sum(axis=1))
+    print("\nKeypoints per frame")
+    print(format_table(["Visible keypoints", "Frames"], sorted(per_frame.items(), reverse=True)))
+    print("\nFrames per keypoint")
+    print(format_table(["Keypoint", "Annotated frames", "Share"],
+                       [(name, int(visible[:, k].sum()), f"{visible[:, k].mean():.1%}")
+                        for k, name in enumerate(schema.keypoints)]))
+    if ds.dropped:
+        print("\nDropped frames")
+        print(format_table(["Reason", "Frames"], list(ds.dropped.items())))
+        for message in ds.problems[:10]:
+            print(f"  {message}")
+        if len(ds.problems) > 10:
+            print(f"  ... and {len(ds.problems) - 10} more")
+
+    copies = args.augment_copies
+    rows = []
+    names = [("hold-out", None)] + [(f"fold {i}", i) for i in range(len(ds.splits.folds))]
+    for label, fold in names:
+        train, val = ds.split(fold)
+        rows.append((label, len(train), len(val), len(train) * (1 + copies)))
+    print(f"\nSplits (seed {ds.splits.seed}, {ds.splits.k}-fold and {1 - ds.splits.val_fraction:.0%}/"
+          f"{ds.splits.val_fraction:.0%} hold-out; {ds.splits_status}: {ds.splits_path})")
+    print(format_table(["Split", "Train frames", "Val frames", f"Train samples (+{copies} copies each)"], rows))
+    if not ds.splits.folds:
+        print(f"  (too few frames for {ds.splits.k} folds)")
+    s = args.input_size
+    print(f"\nTarget maps at {s}x{s}: discs of radius {default_radius(s):.3g} px, skeleton lines "
+          f"{max(1, round(default_thickness(s)))} px thick (the paper's 6 px and 30 px at 224, scaled)")
+
+    if args.out is not None:
+        image = preview_image(ds, args.samples, s, args.seed)
+        _write_png(args.out, image, args.force)
+        print(f"Preview: {args.out} ({min(args.samples, len(ds))} frames; columns: keypoints and skeleton, "
+              "target maps, an augmented copy with its maps)")
+    return 0
+
+
+# BGR colours for keypoints (matplotlib's tab10, then repeats)
+_PALETTE = [(180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140),
+            (194, 119, 227), (127, 127, 127), (34, 189, 188), (207, 190, 23)]
+_TILE = 256
+
+
+def _colour(k: int) -> tuple[int, int, int]:
+    return _PALETTE[k % len(_PALETTE)]
+
+
+def _draw_keypoints(tile, keypoints, schema, scale: float) -> None:
+    import cv2
+    import numpy as np
+
+    shift = 4
+    def fixed(v: float) -> int:  # input pixels -> tile pixels (pixel-centre convention), in 1/16 px
+        return int(round(((v + 0.5) * scale - 0.5) * (1 << shift)))
+
+    pts = {k: (fixed(x), fixed(y)) for k, (x, y) in enumerate(keypoints) if np.isfinite(x) and np.isfinite(y)}
+    for a, b in schema.edges:
+        if a in pts and b in pts:
+            cv2.line(tile, pts[a], pts[b], (255, 255, 255), 2, cv2.LINE_AA, shift)
+    for k, p in pts.items():
+        cv2.circle(tile, p, 5 << shift, _colour(k), -1, cv2.LINE_AA, shift)
+        cv2.circle(tile, p, 5 << shift, (0, 0, 0), 1, cv2.LINE_AA, shift)
+
+
+def _overlay_maps(rgb_image, maps):
+    """The input image darkened, skeleton map in grey, keypoint discs in their colours (BGR uint8)."""
+    import cv2
+    import numpy as np
+
+    base = cv2.cvtColor(rgb_image, cv2.COLOR_RGB2BGR).astype(np.float32) * 0.45
+    skeleton = maps[..., -1].astype(bool)
+    base[skeleton] = base[skeleton] * 0.5 + 110
+    for k in range(maps.shape[-1] - 1):
+        disc = maps[..., k].astype(bool)
+        base[disc] = _colour(k)
+    return np.ascontiguousarray(np.clip(base, 0, 255).astype(np.uint8))
+
+
+def _caption(tile, text: str) -> None:
+    import cv2
+
+    cv2.rectangle(tile, (0, 0), (tile.shape[1], 18), (0, 0, 0), -1)
+    cv2.putText(tile, text[:38], (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def _upscale(image):
+    import cv2
+
+    return cv2.resize(image, (_TILE, _TILE), interpolation=cv2.INTER_NEAREST if image.shape[0] < _TILE
+                      else cv2.INTER_AREA)
+
+
+def preview_image(dataset, samples: int, input_size: int, seed: int = 0):
+    """A BGR grid: per frame, (keypoints + skeleton | target maps | an augmented copy's maps), plus a legend."""
+    import cv2
+    import numpy as np
+
+    from fcnpose_tf.data.dataset import TrainingData
+
+    count = min(samples, len(dataset))
+    indices = np.unique(np.linspace(0, len(dataset) - 1, count).round().astype(int))
+    data = TrainingData(dataset, indices, input_size, augment_copies=1, seed=seed)
+    n = len(indices)
+    scale = _TILE / input_size
+    rows = []
+    for j in range(n):
+        original, augmented = j, n + j
+        left = _upscale(cv2.cvtColor(data.images[original], cv2.COLOR_RGB2BGR))
+        left = np.ascontiguousarray(left)
+        _draw_keypoints(left, data.keypoints[original], dataset.schema, scale)
+        _caption(left, dataset.samples[int(indices[j])].filename)
+        middle = np.ascontiguousarray(_upscale(_overlay_maps(data.images[original], data.maps[original])))
+        _caption(middle, f"target maps ({input_size}x{input_size})")
+        right = np.ascontiguousarray(_upscale(_overlay_maps(data.images[augmented], data.maps[augmented])))
+        _draw_keypoints(right, data.keypoints[augmented], dataset.schema, scale)
+        _caption(right, f"augmented: {data.kinds[augmented]}")
+        rows.append(np.concatenate([left, middle, right], axis=1))
+    grid = np.concatenate(rows, axis=0)
+    legend = np.zeros((24, grid.shape[1], 3), np.uint8)
+    x = 6
+    for k, name in enumerate(dataset.schema.keypoints):
+        cv2.circle(legend, (x + 6, 12), 6, _colour(k), -1, cv2.LINE_AA)
+        cv2.putText(legend, name, (x + 16, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+        x += 24 + 8 * len(name)
+        if x > legend.shape[1] - 60:
+            break
+    return np.concatenate([grid, legend], axis=0)
+
+
+def _write_png(path: Path, image, force: bool) -> None:
+    import cv2
+
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.fileio import write_bytes
+
+    suffix = path.suffix.lower()
+    if suffix not in (".png", ".jpg", ".jpeg"):
+        raise UserError(f"{path}: preview must be a .png (or .jpg) file")
+    ok, encoded = cv2.imencode(suffix, image)
+    if not ok:  # pragma: no cover - encoding a uint8 image does not fail
+        raise UserError(f"{path}: could not encode the preview")
+    write_bytes(path, encoded.tobytes(), force=force)
