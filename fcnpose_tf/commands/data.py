@@ -142,7 +142,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
 # BGR colours for keypoints (matplotlib's tab10, then repeats)
 _PALETTE = [(180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140),
-            (194, 119, 227), (127, 127, 127), (34, 189, 188), (207, 190, 23)]
+            (194, 119, 227), (0, 215, 255), (34, 189, 188), (207, 190, 23)]
 _TILE = 256
 
 
@@ -181,11 +181,14 @@ def _overlay_maps(rgb_image, maps):
     return np.ascontiguousarray(np.clip(base, 0, 255).astype(np.uint8))
 
 
-def _caption(tile, text: str) -> None:
+def _caption(tile, text: str):
+    """The tile with a caption strip above it (so no keypoint at the top edge is hidden)."""
     import cv2
+    import numpy as np
 
-    cv2.rectangle(tile, (0, 0), (tile.shape[1], 18), (0, 0, 0), -1)
-    cv2.putText(tile, text[:38], (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+    strip = np.zeros((18, tile.shape[1], 3), np.uint8)
+    cv2.putText(strip, text[:38], (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.concatenate([strip, tile], axis=0)
 
 
 def _upscale(image):
@@ -213,12 +216,12 @@ def preview_image(dataset, samples: int, input_size: int, seed: int = 0):
         left = _upscale(cv2.cvtColor(data.images[original], cv2.COLOR_RGB2BGR))
         left = np.ascontiguousarray(left)
         _draw_keypoints(left, data.keypoints[original], dataset.schema, scale)
-        _caption(left, dataset.samples[int(indices[j])].filename)
+        left = _caption(left, dataset.samples[int(indices[j])].filename)
         middle = np.ascontiguousarray(_upscale(_overlay_maps(data.images[original], data.maps[original])))
-        _caption(middle, f"target maps ({input_size}x{input_size})")
+        middle = _caption(middle, f"target maps ({input_size}x{input_size})")
         right = np.ascontiguousarray(_upscale(_overlay_maps(data.images[augmented], data.maps[augmented])))
         _draw_keypoints(right, data.keypoints[augmented], dataset.schema, scale)
-        _caption(right, f"augmented: {data.kinds[augmented]}")
+        right = _caption(right, f"augmented: {data.kinds[augmented]}")
         rows.append(np.concatenate([left, middle, right], axis=1))
     grid = np.concatenate(rows, axis=0)
     legend = np.zeros((24, grid.shape[1], 3), np.uint8)
