@@ -283,7 +283,7 @@ def image_size(path: Path) -> tuple[int, int]:
 
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if img is None:
-        raise _FrameProblem(f"cannot read image {path} (not an image or corrupt)")
+        raise _FrameProblem(f"cannot read image {path} (not an image, or corrupt)")
     return int(img.shape[1]), int(img.shape[0])
 
 
@@ -338,8 +338,11 @@ def _parse_frame(meta: dict, key: str, schema: KeypointSchema, attribute: str,
                 raise _FrameProblem(f"{where}: point {axis} must be a finite number, got {v!r}")
         points.append((i, float(cx), float(cy), _region_label(region.get("region_attributes"), attribute, where)))
 
-    image_path = _find_image(filename, dirs)
-    width, height = image_size(image_path)
+    try:
+        image_path = _find_image(filename, dirs)
+        width, height = image_size(image_path)
+    except _FrameProblem as exc:
+        raise _FrameProblem(f"{label}: {exc}") from None
 
     keypoints = np.full((schema.num_keypoints, 2), np.nan)
     named = [p for p in points if p[3] is not None]
