@@ -200,7 +200,8 @@ def test_skip_bad_keeps_good_frames_and_errors_count_the_rest(tmp_path):
     good = [region(5 + k, 5, name) for k, name in enumerate(UR5.keypoints)]
     path = export(tmp_path, [("a.png", good), ("b.png", [region(5, 5, "nope")]), ("c.png", good),
                              ("missing.png", good)])
-    with pytest.raises(UserError, match=r"regions\[0\]: unknown keypoint label 'nope'; .* \(and 1 more problem\(s\)\).*--skip-bad"):
+    message = r"regions\[0\]: unknown keypoint label 'nope'; .* \(and 1 more problem\(s\)\).*--skip-bad"
+    with pytest.raises(UserError, match=message):
         read_via(path)
     ann = read_via(path, skip_bad=True)
     assert [f.filename for f in ann.frames] == ["a.png", "c.png"]

@@ -130,7 +130,7 @@ def _inspect(args: argparse.Namespace) -> int:
         print(f"  (too few frames for {ds.splits.k} folds)")
     s = args.input_size
     print(f"\nTarget maps at {s}x{s}: discs of radius {default_radius(s):.3g} px, skeleton lines "
-          f"{max(1, round(default_thickness(s)))} px thick (the paper's 6 px and 30 px at 224, scaled)")
+          f"{default_thickness(s):.3g} px thick (the paper's 6 px and 30 px at 224, scaled)")
 
     if args.out is not None:
         image = preview_image(ds, args.samples, s, args.seed)
