@@ -1,0 +1,108 @@
+"""Run a .tflite model on a camera, a video, an image folder or an image: keypoints per frame, FPS.
+
+Needs only numpy, OpenCV and the LiteRT interpreter (`pip install 'fcnpose-tf[pi]'`).
+Each frame's keypoints are written and flushed at once (--out .jsonl or .csv),
+optionally drawn on a saved video (--save-video) or a window (--show), with a
+rolling FPS on the terminal and a summary of per-stage latencies at the end.
+Stop a camera run with Ctrl-C (or q/Esc in the window); what was processed is kept.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "run"
+EXAMPLES = """\
+  fcnpose-tf run model.tflite --source 0 --show                        # camera 0 in a window
+  fcnpose-tf run model.tflite --source /dev/video0 --out k.jsonl --threads 4
+  fcnpose-tf run model.tflite --source clip.mp4 --out k.jsonl --save-video overlay.mp4
+  fcnpose-tf run model.tflite --source frames/ --out k.csv             # every image in a folder
+  fcnpose-tf run model.tflite --source frame.png --out k.jsonl --force
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("model", type=Path, help="an FCN-Pose .tflite model")
+    parser.add_argument("--source", required=True,
+                        help="camera index (0), /dev/videoN, stream URL, video file, image folder or image")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="interpreter threads (default: all cores)")
+    parser.add_argument("--out", action="append", default=[], metavar="FILE",
+                        help="keypoints per frame, .jsonl or .csv (may be given twice)")
+    parser.add_argument("--save-video", type=Path, metavar="FILE",
+                        help="video with keypoints, skeleton and FPS drawn (.mp4, .avi, .mkv, .mov)")
+    parser.add_argument("--show", action="store_true", help="show the overlay in a window (q/Esc to stop)")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
+    parser.add_argument("--threshold", type=float, default=0.5,
+                        help="map probability above which a pixel belongs to a keypoint")
+    parser.add_argument("--camera-size", metavar="WxH", help="ask the camera for this resolution, e.g. 640x480")
+    parser.add_argument("--backend", default="auto",
+                        choices=("auto", "ai_edge_litert", "tflite_runtime", "tensorflow"),
+                        help="interpreter package (auto: LiteRT, then tflite_runtime, then tf.lite)")
+    parser.add_argument("--force", action="store_true", help="replace existing output files")
+
+
+def run(args: argparse.Namespace) -> int:
+    import signal
+    import sys
+
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.fileio import check_writable
+    from fcnpose_tf.runtime.estimator import KeypointModel
+    from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
+    from fcnpose_tf.runtime.sinks import VideoSink, open_record_writer, parse_outputs
+    from fcnpose_tf.runtime.sources import open_source, parse_size
+
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be at least 1, got {args.threads}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise UserError(f"--max-frames must be at least 1, got {args.max_frames}")
+    # Every output is checked before the model loads or the camera opens: fail in a second, not after a run.
+    outs = parse_outputs(args.out)
+    for path in outs:
+        check_writable(path, args.force)
+    if args.save_video is not None:
+        if args.save_video.resolve() in {p.resolve() for p in outs}:
+            raise UserError(f"{args.save_video}: given both as --out and --save-video")
+        check_writable(args.save_video, args.force)
+    camera_size = parse_size(args.camera_size) if args.camera_size else None
+    if args.show:
+        check_display()
+
+    model = KeypointModel(args.model, args.threads, args.threshold, backend=args.backend)
+    if model.backend.skipped:
+        print(f"note: using {model.backend.label} ({'; '.join(model.backend.skipped)})", file=sys.stderr)
+    writers = []
+    video = None
+    source = open_source(args.source, camera_size)
+    previous_term = signal.getsignal(signal.SIGTERM)
+
+    def on_term(signum, frame):  # a `kill` ends the run like Ctrl-C: outputs closed, summary printed
+        raise KeyboardInterrupt
+
+    finished = False
+    try:
+        for path in outs:
+            writers.append(open_record_writer(path, model.schema, args.force))
+        if args.save_video is not None:
+            video = VideoSink(args.save_video, source.fps, args.force)
+        print(f"{model.describe()}; {source.describe()}", file=sys.stderr, flush=True)
+        signal.signal(signal.SIGTERM, on_term)
+        summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine())
+        finished = True
+    finally:
+        signal.signal(signal.SIGTERM, previous_term)
+        source.close()
+        for writer in writers:
+            writer.close()
+        if video is not None and not finished:
+            video.discard()
+    if video is not None:
+        written = video.close()
+        summary.outputs.append(f"{written} ({video.count} frames)" if written else
+                               f"{args.save_video}: not written (no frames)")
+    print(summary.report(model, source))
+    if summary.frames == 0:
+        raise UserError(f"{args.source}: no frame was processed ({summary.end_reason})")
+    return 0

@@ -1,0 +1,219 @@
+"""KeypointModel: a BGR frame in, keypoints in the frame's pixels out, with per-stage timings.
+
+The three stages are the ones the FPS definition adds up (docs/runtime.md):
+preprocessing (the training side's `preprocess_frame`, written straight into
+the interpreter's input buffer), the interpreter's invoke, and post-processing
+(`maps_to_keypoints` on the output buffer, then scaling back to the frame).
+No per-frame allocation of model-sized buffers; not thread-safe (one model per
+thread).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.keypoints import UR5, KeypointSchema
+from fcnpose_tf.postprocess import maps_to_keypoints
+from fcnpose_tf.preprocess import keypoints_to_frame, preprocess_frame
+from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
+                                            load_interpreter, model_stats)
+
+
+def schema_for_maps(num_maps: int) -> KeypointSchema:
+    """UR5 for a 9-map model, else a chain of generic names kp0..kpN (one map per keypoint + skeleton)."""
+    if num_maps == UR5.num_maps:
+        return UR5
+    return KeypointSchema.chain("generic", [f"kp{i}" for i in range(num_maps - 1)])
+
+
+@dataclass(frozen=True)
+class StageTimes:
+    """Milliseconds spent in each stage for one frame."""
+
+    preprocess_ms: float
+    invoke_ms: float
+    postprocess_ms: float
+
+    @property
+    def total_ms(self) -> float:
+        """End-to-end model time: preprocess + invoke + postprocess (the FPS denominator)."""
+        return self.preprocess_ms + self.invoke_ms + self.postprocess_ms
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """Keypoints of one frame: K x 2 (x, y) in frame pixels (NaN = not found) and K confidences.
+
+    The confidence is post-processing's: the pixel count of the keypoint's
+    winning cluster in the output map (0 when not found).
+    """
+
+    keypoints: np.ndarray
+    confidence: np.ndarray
+    times: StageTimes
+    frame_shape: tuple[int, ...]
+
+    @property
+    def found(self) -> np.ndarray:
+        """Boolean mask of the keypoints that were found."""
+        return ~np.isnan(self.keypoints).any(axis=1)
+
+    def records(self, schema: KeypointSchema, decimals: int = 2) -> list[dict]:
+        """One {name, x, y, confidence} per keypoint; x and y are None for a keypoint not found."""
+        out = []
+        for i, name in enumerate(schema.keypoints):
+            x, y = (float(v) for v in self.keypoints[i])
+            c = float(self.confidence[i])
+            found = math.isfinite(x) and math.isfinite(y)
+            if not math.isfinite(c):
+                conf: float | int | None = None
+            else:
+                conf = int(c) if c.is_integer() else round(c, 4)
+            out.append({"name": name,
+                        "x": round(x, decimals) if found else None,
+                        "y": round(y, decimals) if found else None,
+                        "confidence": conf})
+        return out
+
+
+class KeypointModel:
+    """An FCN-Pose .tflite model ready to run on frames.
+
+    Args:
+        model_path: the .tflite file (1 x S x S x 3 image in, 1 x S x S x C maps out).
+        num_threads: interpreter threads; None = all cores.
+        threshold: probability above which a map pixel belongs to a keypoint (post-processing).
+        schema: keypoint names; default UR5 for 9 maps, kp0..kpN otherwise.
+        backend: `auto`, `ai_edge_litert`, `tflite_runtime` or `tensorflow`.
+    Raises:
+        UserError: missing, corrupt or non-FCN-Pose file; no interpreter installed.
+    Example:
+        >>> model = KeypointModel("saved_models/fcnpose_ur5_p70_fp16.tflite", num_threads=2)
+        >>> pred = model.predict(cv2.imread("frame.png"))
+        >>> pred.keypoints, pred.confidence, pred.times.total_ms
+    """
+
+    def __init__(self, model_path: str | os.PathLike, num_threads: int | None = None, threshold: float = 0.5,
+                 schema: KeypointSchema | None = None, backend: str = "auto"):
+        if not 0.0 < float(threshold) < 1.0:
+            raise UserError(f"threshold must be between 0 and 1 (exclusive), got {threshold}")
+        self.path = Path(model_path)
+        self.num_threads: int = default_num_threads() if num_threads is None else num_threads
+        self.backend: Backend
+        self.interpreter, self.backend = load_interpreter(self.path, self.num_threads, backend)
+        self.io: ModelIO = inspect_io(self.interpreter, self.path)
+        self.threshold = float(threshold)
+        self.schema = schema or schema_for_maps(self.io.num_maps)
+        if self.schema.num_maps != self.io.num_maps:
+            raise UserError(f"{self.path}: {self.io.num_maps} output maps, but schema {self.schema.name!r} "
+                            f"needs {self.schema.num_maps} ({self.schema.num_keypoints} keypoints + skeleton)")
+        size = self.io.input_size
+        self._input = self.interpreter.tensor(self.io.input.index)
+        self._output = self.interpreter.tensor(self.io.output.index)
+        # Float32 input: preprocess writes into the interpreter's buffer. Otherwise via one float32 scratch.
+        self._scratch_in = None if self.io.input.dtype == np.float32 else np.empty((size, size, 3), np.float32)
+        self._scratch_out = (np.empty(self.io.output.shape[1:], np.float32)
+                             if self.io.output.quantized else None)
+        self._stats: ModelStats | None = None
+
+    # -- properties ----------------------------------------------------------------------------------
+    @property
+    def input_size(self) -> int:
+        """Side of the square model input (frames are resized to it)."""
+        return self.io.input_size
+
+    @property
+    def map_size(self) -> int:
+        """Side of the square output maps."""
+        return self.io.map_size
+
+    @property
+    def num_maps(self) -> int:
+        return self.io.num_maps
+
+    def stats(self) -> ModelStats:
+        """Parameters, MACs and file size of the model (computed once)."""
+        if self._stats is None:
+            self._stats = model_stats(self.interpreter, self.path)
+        return self._stats
+
+    def describe(self) -> str:
+        """One line: file, shapes, backend and threads."""
+        return (f"{self.path.name} ({self.io.describe()}), {self.backend.label}, "
+                f"{self.num_threads} thread{'s' if self.num_threads != 1 else ''}")
+
+    # -- the three stages ----------------------------------------------------------------------------
+    def set_input(self, frame_bgr: np.ndarray) -> None:
+        """Preprocess a BGR uint8 frame into the interpreter's input tensor (the training preprocessing)."""
+        size = self.io.input_size
+        view = self._input()
+        if self._scratch_in is None:
+            preprocess_frame(frame_bgr, size, out=view[0])
+        else:
+            preprocess_frame(frame_bgr, size, out=self._scratch_in)
+            spec = self.io.input
+            if spec.quantized:
+                info = np.iinfo(spec.dtype)
+                q = np.rint(self._scratch_in / spec.scale + spec.zero_point)
+                view[0] = np.clip(q, info.min, info.max).astype(spec.dtype)
+            else:
+                view[0] = self._scratch_in
+        del view  # the interpreter refuses to invoke while a view of its buffers is alive
+
+    def invoke(self) -> None:
+        """Run the network on the current input."""
+        self.interpreter.invoke()
+
+    def read_maps(self, copy: bool = True) -> np.ndarray:
+        """The output maps (M x M x C float32 probabilities) of the last invoke.
+
+        With copy=False the result is a view of the interpreter's buffer (or of a
+        reused scratch buffer) that must be dropped before the next invoke.
+        """
+        view = self._output()[0]
+        spec = self.io.output
+        if self._scratch_out is not None:
+            np.subtract(view, spec.zero_point, out=self._scratch_out, dtype=np.float32)
+            self._scratch_out *= np.float32(spec.scale)
+            maps = self._scratch_out
+        elif view.dtype != np.float32:
+            maps = view.astype(np.float32)
+        else:
+            maps = view
+        del view
+        return maps.copy() if copy else maps
+
+    def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
+        maps = self.read_maps(copy=False)
+        keypoints, confidence = maps_to_keypoints(maps, threshold=self.threshold)
+        del maps
+        keypoints = keypoints_to_frame(keypoints, frame_shape, self.io.map_size)
+        return keypoints, np.array(confidence, dtype=np.float64, copy=True)
+
+    def predict(self, frame_bgr: np.ndarray) -> Prediction:
+        """Keypoints of one BGR uint8 frame (any size), with the time of each stage."""
+        t0 = time.perf_counter()
+        self.set_input(frame_bgr)
+        t1 = time.perf_counter()
+        self.interpreter.invoke()
+        t2 = time.perf_counter()
+        keypoints, confidence = self.decode(frame_bgr.shape)
+        t3 = time.perf_counter()
+        times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3)
+        return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape))
+
+    def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:
+        """The raw output maps for a frame (a copy): for debugging and parity checks."""
+        self.set_input(frame_bgr)
+        self.interpreter.invoke()
+        return self.read_maps(copy=True)
+

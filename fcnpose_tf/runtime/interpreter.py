@@ -1,0 +1,305 @@
+"""Load a .tflite file with the best interpreter available, check it is an FCN-Pose model, and read its cost.
+
+Backends, in order: LiteRT (`ai_edge_litert`, the maintained one, with aarch64
+wheels for a 64-bit Raspberry Pi OS), `tflite_runtime` (the old standalone
+package, the only choice on a 32-bit OS) and `tf.lite` (deprecated, needs
+TensorFlow; only tried when the other two are missing). Nothing here imports
+TensorFlow unless the first two are unavailable.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.metrics import conv_macs
+
+BACKENDS: tuple[str, ...] = ("ai_edge_litert", "tflite_runtime", "tensorflow")
+"""Interpreter providers in the order `auto` tries them."""
+
+_DISTRIBUTIONS = {"ai_edge_litert": "ai-edge-litert", "tflite_runtime": "tflite-runtime", "tensorflow": "tensorflow"}
+_INPUT_DTYPES = (np.float32, np.float16, np.uint8, np.int8)
+
+
+@dataclass(frozen=True)
+class Backend:
+    """The package that provides the Interpreter class, its version, and why earlier ones were skipped."""
+
+    name: str
+    version: str
+    interpreter_class: Any = field(repr=False, compare=False)
+    skipped: tuple[str, ...] = ()
+
+    @property
+    def label(self) -> str:
+        """Short description for reports, e.g. `ai_edge_litert 2.3.0`."""
+        return f"{self.name} {self.version}"
+
+
+def _version(module_name: str, module: Any) -> str:
+    try:
+        from importlib.metadata import version
+
+        return version(_DISTRIBUTIONS[module_name])
+    except Exception:  # not installed as a distribution (e.g. a vendored build)
+        return str(getattr(module, "__version__", "unknown"))
+
+
+def _import_backend(name: str) -> Any:
+    """The Interpreter class of one backend; ImportError/OSError if it cannot be loaded."""
+    if name == "ai_edge_litert":
+        return importlib.import_module("ai_edge_litert.interpreter").Interpreter
+    if name == "tflite_runtime":
+        return importlib.import_module("tflite_runtime.interpreter").Interpreter
+    if name == "tensorflow":
+        tf = importlib.import_module("tensorflow")
+        return tf.lite.Interpreter
+    raise UserError(f"unknown interpreter backend {name!r}; expected auto or one of {', '.join(BACKENDS)}")
+
+
+def find_backend(preferred: str = "auto") -> Backend:
+    """The first importable backend (or exactly `preferred`), recording why earlier ones were skipped.
+
+    Raises:
+        UserError: if no backend can be imported, naming what to install.
+    """
+    names = BACKENDS if preferred == "auto" else (preferred,)
+    skipped = []
+    for name in names:
+        try:
+            cls = _import_backend(name)
+        except (ImportError, OSError, AttributeError) as exc:
+            first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            skipped.append(f"{name}: {first}")
+            continue
+        module = importlib.import_module(name)
+        return Backend(name, _version(name, module), cls, tuple(skipped))
+    raise UserError("no TFLite interpreter available (" + "; ".join(skipped)
+                    + "); install one with `pip install ai-edge-litert` (64-bit OS) or `tflite-runtime` (32-bit)")
+
+
+def default_num_threads() -> int:
+    """CPU cores this process may run on (the interpreter's default thread count here)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def check_tflite_file(path: str | os.PathLike) -> Path:
+    """Raise UserError unless `path` is an existing, non-empty file with the TFLite identifier `TFL3`."""
+    path = Path(path)
+    if not path.exists():
+        raise UserError(f"{path}: model file not found")
+    if not path.is_file():
+        raise UserError(f"{path}: is not a file, expected a .tflite model")
+    with open(path, "rb") as fh:
+        head = fh.read(8)
+    if len(head) < 8 or head[4:8] != b"TFL3":
+        raise UserError(f"{path}: not a TFLite model (no 'TFL3' identifier; a Keras .keras/.h5 file? "
+                        "export it with `fcnpose-tf export`)")
+    return path
+
+
+def load_interpreter(path: str | os.PathLike, num_threads: int | None = None,
+                     backend: str = "auto") -> tuple[Any, Backend]:
+    """Create and allocate an interpreter for a .tflite file.
+
+    Args:
+        path: the .tflite file.
+        num_threads: interpreter threads (>= 1); None means all cores (`default_num_threads()`).
+        backend: `auto` (LiteRT, then tflite_runtime, then tf.lite) or one of BACKENDS.
+    Returns:
+        (interpreter, backend); the interpreter has its tensors allocated.
+    Raises:
+        UserError: missing or corrupt file, bad thread count, no interpreter installed.
+    """
+    path = check_tflite_file(path)
+    threads = default_num_threads() if num_threads is None else num_threads
+    if isinstance(threads, bool) or not isinstance(threads, int) or threads < 1:
+        raise UserError(f"threads must be a positive integer, got {num_threads!r}")
+    found = find_backend(backend)
+    try:
+        interpreter = found.interpreter_class(model_path=str(path), num_threads=threads)
+        interpreter.allocate_tensors()
+    except (ValueError, RuntimeError) as exc:
+        detail = " ".join(str(exc).split()) or type(exc).__name__
+        raise UserError(f"{path}: cannot be loaded as a TFLite model ({detail})") from None
+    return interpreter, found
+
+
+@dataclass(frozen=True)
+class TensorSpec:
+    """Index, shape (with batch), dtype and affine quantization of a model input or output."""
+
+    index: int
+    name: str
+    shape: tuple[int, ...]
+    dtype: np.dtype
+    scale: float = 0.0
+    zero_point: int = 0
+
+    @property
+    def quantized(self) -> bool:
+        """True for integer tensors carrying a real value as (q - zero_point) * scale."""
+        return np.issubdtype(self.dtype, np.integer) and self.scale > 0
+
+    @classmethod
+    def from_details(cls, details: dict) -> "TensorSpec":
+        scale, zero = details.get("quantization", (0.0, 0)) or (0.0, 0)
+        return cls(int(details["index"]), str(details.get("name", "")), tuple(int(d) for d in details["shape"]),
+                   np.dtype(details["dtype"]), float(scale), int(zero))
+
+
+@dataclass(frozen=True)
+class ModelIO:
+    """The input and output an FCN-Pose .tflite must have: 1xSxSx3 image in, 1xMxMxC maps out (C >= 2)."""
+
+    input: TensorSpec
+    output: TensorSpec
+
+    @property
+    def input_size(self) -> int:
+        """Side of the square model input in pixels."""
+        return self.input.shape[1]
+
+    @property
+    def map_size(self) -> int:
+        """Side of the square output maps in pixels (the input size for FCN-Pose)."""
+        return self.output.shape[1]
+
+    @property
+    def num_maps(self) -> int:
+        """Output maps: keypoints + 1 skeleton map."""
+        return self.output.shape[3]
+
+    def describe(self) -> str:
+        """E.g. `224x224x3 float32 -> 224x224x9 float32`."""
+        i, o = self.input, self.output
+        return (f"{'x'.join(map(str, i.shape[1:]))} {i.dtype.name} -> "
+                f"{'x'.join(map(str, o.shape[1:]))} {o.dtype.name}")
+
+
+def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
+    """Read and check the model's input and output; UserError naming what an FCN-Pose model needs."""
+    inputs, outputs = interpreter.get_input_details(), interpreter.get_output_details()
+    if len(inputs) != 1 or len(outputs) != 1:
+        raise UserError(f"{path}: expected one input image and one output of maps, "
+                        f"found {len(inputs)} inputs and {len(outputs)} outputs (not an FCN-Pose model)")
+    spec_in, spec_out = TensorSpec.from_details(inputs[0]), TensorSpec.from_details(outputs[0])
+    shape = spec_in.shape
+    if len(shape) != 4 or shape[0] != 1 or shape[3] != 3:
+        raise UserError(f"{path}: input shape {list(shape)}, expected [1, S, S, 3] (one RGB image; "
+                        "not an FCN-Pose model)")
+    if shape[1] != shape[2] or shape[1] < 1:
+        raise UserError(f"{path}: input {shape[1]}x{shape[2]} is not square; FCN-Pose takes an S x S image")
+    if not any(spec_in.dtype == np.dtype(t) for t in _INPUT_DTYPES):
+        raise UserError(f"{path}: input type {spec_in.dtype.name}, expected float32, float16, uint8 or int8")
+    if np.issubdtype(spec_in.dtype, np.integer) and not spec_in.quantized:
+        raise UserError(f"{path}: integer input without quantization parameters; cannot feed it an image")
+    shape = spec_out.shape
+    if len(shape) != 4 or shape[0] != 1 or shape[3] < 2:
+        raise UserError(f"{path}: output shape {list(shape)}, expected [1, H, W, C] maps with C >= 2 "
+                        "(keypoints + skeleton; not an FCN-Pose model)")
+    if shape[1] != shape[2]:
+        raise UserError(f"{path}: output maps {shape[1]}x{shape[2]} are not square")
+    if not (np.issubdtype(spec_out.dtype, np.floating) or spec_out.quantized):
+        raise UserError(f"{path}: output type {spec_out.dtype.name} without quantization parameters; "
+                        "expected probability maps")
+    return ModelIO(spec_in, spec_out)
+
+
+@dataclass(frozen=True)
+class ModelStats:
+    """What a .tflite costs: weights, multiply-accumulates per frame, bytes on disk.
+
+    `params` counts the elements of every weighted op's weights and biases (per
+    use, as Keras counts them; the converter may share identical constants).
+    `macs` is H*W*k*k*Cin*Cout per convolution (FLOPs = 2 x MACs), plus
+    depthwise and fully-connected ops if a model has them.
+    """
+
+    params: int | None
+    macs: int | None
+    size_bytes: int
+    weight_dtypes: tuple[str, ...]
+    conv_layers: int
+    op_counts: dict[str, int]
+
+    def to_dict(self) -> dict:
+        return {"params": self.params, "macs": self.macs, "size_bytes": self.size_bytes,
+                "weight_dtypes": list(self.weight_dtypes), "conv_layers": self.conv_layers,
+                "op_counts": dict(self.op_counts)}
+
+
+_WEIGHTED_OPS = ("CONV_2D", "DEPTHWISE_CONV_2D", "FULLY_CONNECTED", "TRANSPOSE_CONV")
+
+
+def model_stats(interpreter: Any, path: str | os.PathLike) -> ModelStats:
+    """Parameters and MACs from the interpreter's op and tensor details, and the file size.
+
+    Uses the interpreter's op table (`_get_ops_details`, available in LiteRT,
+    tflite_runtime and tf.lite); where an old interpreter lacks it, params and
+    macs are None rather than a guess.
+    """
+    size = Path(path).stat().st_size
+    try:
+        ops = interpreter._get_ops_details()  # noqa: SLF001 - the public API has no op table
+        tensors = {int(t["index"]): t for t in interpreter.get_tensor_details()}
+    except (AttributeError, ValueError, RuntimeError):
+        return ModelStats(None, None, size, (), 0, {})
+    ops = [op for op in ops if op.get("op_name") and op["op_name"] != "DELEGATE"]
+    producer = {int(t): op for op in ops for t in op["outputs"] if int(t) >= 0}
+
+    def shape(index: int) -> tuple[int, ...]:
+        return tuple(int(d) for d in tensors[index]["shape"]) if index in tensors else ()
+
+    def stored(index: int) -> int:
+        """The constant a weight comes from: follow DEQUANTIZE (float16/int8 storage) back to it."""
+        op = producer.get(index)
+        while op is not None and op["op_name"] == "DEQUANTIZE":
+            index = int(op["inputs"][0])
+            op = producer.get(index)
+        return index
+
+    params = macs = convs = 0
+    dtypes: set[str] = set()
+    counts: dict[str, int] = {}
+    for op in ops:
+        name = op["op_name"]
+        counts[name] = counts.get(name, 0) + 1
+        if name not in _WEIGHTED_OPS:
+            continue
+        ins = [int(t) for t in op["inputs"]]
+        if name == "TRANSPOSE_CONV":  # inputs: output_shape, weights, input[, bias]
+            weights = [ins[1]] + [t for t in ins[3:] if t >= 0]
+        else:  # inputs: activation, weights[, bias]
+            weights = [t for t in ins[1:] if t >= 0]
+        for t in weights:
+            params += int(np.prod(shape(t), dtype=np.int64))
+            source = stored(t)
+            if source in tensors:
+                dtypes.add(np.dtype(tensors[source]["dtype"]).name)
+        out = shape(int(op["outputs"][0]))
+        w = shape(weights[0]) if weights else ()
+        if name == "CONV_2D" and len(out) == 4 and len(w) == 4:  # filter: Cout x kh x kw x Cin
+            macs += conv_macs(out[1], out[2], w[1], w[2], w[3], w[0])
+            convs += 1
+        elif name == "DEPTHWISE_CONV_2D" and len(out) == 4 and len(w) == 4:  # filter: 1 x kh x kw x Cout
+            macs += int(out[1]) * int(out[2]) * int(w[1]) * int(w[2]) * int(w[3])
+            convs += 1
+        elif name == "TRANSPOSE_CONV" and len(w) == 4:  # MACs over the input grid: Hin*Win*k*k*Cin*Cout
+            x = shape(ins[2])
+            if len(x) == 4:
+                macs += conv_macs(x[1], x[2], w[1], w[2], w[3], w[0])
+            convs += 1
+        elif name == "FULLY_CONNECTED" and len(w) == 2:
+            rows = int(np.prod(out[:-1], dtype=np.int64)) if len(out) > 1 else 1
+            macs += rows * int(w[0]) * int(w[1])
+    return ModelStats(params, macs, size, tuple(sorted(dtypes)), convs, counts)

@@ -1,0 +1,176 @@
+"""The frame loop behind `fcnpose-tf run`: source -> model -> records, video, window; timings and a summary.
+
+Ends cleanly at the end of the source, after `max_frames`, on `q`/Esc in the
+window, or on Ctrl-C / SIGTERM (handled by the caller turning them into
+KeyboardInterrupt): the frames processed so far are written, the video is
+finalised and the summary reports why the run stopped.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence, TextIO
+
+import cv2
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.runtime.estimator import KeypointModel, Prediction
+from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
+from fcnpose_tf.runtime.sources import Frame, FrameSource
+from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog
+
+WINDOW_NAME = "fcnpose-tf"
+
+
+def check_display() -> None:
+    """UserError unless OpenCV can open a window (opencv-python-headless cannot)."""
+    try:
+        cv2.namedWindow(WINDOW_NAME, cv2.WINDOW_NORMAL)
+    except cv2.error:
+        raise UserError("--show needs OpenCV with GUI support and a display: `pip install opencv-python` "
+                        "(not -headless), or use --save-video instead") from None
+
+
+@dataclass
+class RunSummary:
+    """What a run did: frame counts, why it stopped, latencies, outputs."""
+
+    frames: int = 0
+    skipped: int = 0
+    dropped: int = 0
+    end_reason: str = ""
+    wall_s: float = 0.0
+    latency: LatencyLog = field(default_factory=LatencyLog)
+    outputs: list[str] = field(default_factory=list)
+
+    @property
+    def loop_fps(self) -> float:
+        """Frames per wall-clock second, including capture, drawing and writing."""
+        return self.frames / self.wall_s if self.wall_s > 0 else float("nan")
+
+    def report(self, model: KeypointModel, source: FrameSource) -> str:
+        """Multi-line summary: counts, the per-stage latency table, FPS with its definition, outputs."""
+        fps = self.latency.fps()
+        lines = [f"Model:   {model.describe()}",
+                 f"Source:  {source.describe()}; stopped: {self.end_reason}",
+                 f"Frames:  {self.frames} processed, {self.skipped} skipped (unreadable), "
+                 f"{self.dropped} dropped (stale camera frames); wall time {self.wall_s:.2f} s"]
+        if self.frames:
+            lines += ["", self.latency.table(), "",
+                      f"FPS:     {fps['end_to_end']:.1f} end-to-end, {fps['invoke']:.1f} invoke-only "
+                      f"({model.num_threads} thread{'s' if model.num_threads != 1 else ''}; {FPS_DEFINITION})",
+                      f"Loop:    {self.loop_fps:.1f} frames/s wall clock (with capture, drawing and writing)"]
+        for out in self.outputs:
+            lines.append(f"Wrote:   {out}")
+        return "\n".join(lines)
+
+
+class ProgressLine:
+    """A rolling status line on a terminal (carriage return, at most `rate_hz` updates a second)."""
+
+    def __init__(self, stream: TextIO | None = None, rate_hz: float = 4.0):
+        self.stream = stream or sys.stderr
+        self.enabled = bool(getattr(self.stream, "isatty", lambda: False)())
+        self.period = 1.0 / rate_hz
+        self._last = 0.0
+        self._width = 0
+
+    def update(self, frames: int, fps: float, loop_fps: float, times) -> None:
+        now = time.monotonic()
+        if not self.enabled or now - self._last < self.period:
+            return
+        self._last = now
+        text = (f"frame {frames}  FPS {fps:5.1f}  loop {loop_fps:5.1f}/s  "
+                f"pre {times.preprocess_ms:5.1f}  invoke {times.invoke_ms:5.1f}  post {times.postprocess_ms:5.1f} ms")
+        self.stream.write("\r" + text.ljust(self._width))
+        self.stream.flush()
+        self._width = len(text)
+
+    def close(self) -> None:
+        if self.enabled and self._width:
+            self.stream.write("\r" + " " * self._width + "\r")
+            self.stream.flush()
+            self._width = 0
+
+
+def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[RecordWriter] = (),
+               video: VideoSink | None = None, show: bool = False, max_frames: int | None = None,
+               progress: ProgressLine | None = None, fps_window: int = 30,
+               on_frame: Callable[[Frame, Prediction], None] | None = None) -> RunSummary:
+    """Run the model on every frame of `source`, writing each frame's record before reading the next.
+
+    Args:
+        model: the loaded model.
+        source: an opened frame source (closed by the caller).
+        writers: record writers (JSONL/CSV); each frame is written and flushed at once.
+        video: a video sink for frames with the overlay (finalised by the caller).
+        show: show the overlay in a window (`q` or Esc stops).
+        max_frames: stop after this many processed frames.
+        progress: a ProgressLine for the terminal, or None.
+        fps_window: frames averaged for the FPS drawn on the overlay and shown on the terminal.
+        on_frame: called with each frame and its prediction (API users).
+    Returns:
+        The RunSummary; `end_reason` says why the loop ended (Ctrl-C included: KeyboardInterrupt
+        during the loop ends it cleanly).
+    """
+    summary = RunSummary()
+    rolling = RollingFps(fps_window)
+    start = time.perf_counter()
+    frames_iter = iter(source)
+    try:
+        for frame in frames_iter:
+            try:
+                prediction = model.predict(frame.image)
+            except UserError as exc:  # e.g. a frame with an unexpected shape: skip, say so
+                summary.skipped += 1
+                source.warn(f"skipped frame {frame.index} of {frame.name}: {exc}")
+                continue
+            summary.latency.add(prediction.times)
+            rolling.add(prediction.times.total_ms)
+            for writer in writers:
+                writer.write(frame, prediction)
+            if video is not None or show:
+                overlay = draw_overlay(frame.image, prediction, model.schema, rolling.fps)
+                if video is not None:
+                    video.write(overlay)
+                if show:
+                    cv2.imshow(WINDOW_NAME, overlay)
+                    if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
+                        summary.end_reason = "stopped from the window (q/Esc)"
+                        break
+            if on_frame is not None:
+                on_frame(frame, prediction)
+            summary.frames += 1
+            if progress is not None:
+                elapsed = time.perf_counter() - start
+                progress.update(summary.frames, rolling.fps, summary.frames / elapsed if elapsed > 0 else 0.0,
+                                prediction.times)
+            if max_frames is not None and summary.frames >= max_frames:
+                summary.end_reason = f"reached --max-frames {max_frames}"
+                break
+    except KeyboardInterrupt:
+        summary.end_reason = "interrupted (Ctrl-C)"
+    finally:
+        summary.wall_s = time.perf_counter() - start
+        if progress is not None:
+            progress.close()
+        close = getattr(frames_iter, "close", None)
+        if close is not None:
+            close()
+        if show:
+            try:
+                cv2.destroyWindow(WINDOW_NAME)
+            except cv2.error:
+                pass
+    summary.skipped += source.skipped
+    summary.dropped = source.dropped
+    if not summary.end_reason:
+        summary.end_reason = source.end_reason
+    for writer in writers:
+        summary.outputs.append(f"{writer.path} ({writer.count} records)")
+    return summary
+
+
+__all__ = ["RunSummary", "ProgressLine", "run_stream", "check_display", "WINDOW_NAME"]

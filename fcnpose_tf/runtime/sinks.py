@@ -1,0 +1,283 @@
+"""Where keypoints go: JSON Lines or CSV records flushed per frame, and a video with the overlay drawn.
+
+Record files stream: each frame's line is written and flushed before the next
+frame is read, so a crash or kill loses at most the frame in flight. They are
+written directly under their final name (so `tail -f` works) and are never
+replaced unless `force` is given. A saved video is written to a temporary
+name and renamed into place when it is closed, so an existing video is only
+replaced by a complete one.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import tempfile
+from collections import deque
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import check_writable
+from fcnpose_tf.keypoints import KeypointSchema
+from fcnpose_tf.runtime.estimator import Prediction
+from fcnpose_tf.runtime.sources import Frame
+
+RECORD_SUFFIXES = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv"}
+VIDEO_CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
+
+
+def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> dict[str, Any]:
+    """The JSON record of one frame (keys in a stable order; coordinates in frame pixels)."""
+    h, w = frame.image.shape[:2]
+    t = prediction.times
+    record: dict[str, Any] = {"frame": frame.index, "timestamp": round(frame.timestamp, 6), "source": frame.name,
+                              "width": w, "height": h}
+    if frame.media_time_s is not None:
+        record["media_time_s"] = round(frame.media_time_s, 6)
+    record["latency_ms"] = {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
+                            "postprocess": round(t.postprocess_ms, 3)}
+    record["keypoints"] = prediction.records(schema)
+    return record
+
+
+class RecordWriter:
+    """Base of the per-frame record writers; a context manager. Subclasses implement `_write`."""
+
+    def __init__(self, path: str | os.PathLike, schema: KeypointSchema, force: bool = False):
+        self.path = check_writable(path, force)
+        self.schema = schema
+        self.count = 0
+        try:
+            # "x": a file that appeared since the check is still not overwritten
+            self._fh = open(self.path, "w" if force else "x", encoding="utf-8", newline="")
+        except FileExistsError:
+            raise UserError(f"{self.path}: already exists; pass --force to replace it") from None
+        except OSError as exc:
+            raise UserError(f"{self.path}: cannot be written ({exc.strerror})") from None
+
+    def write(self, frame: Frame, prediction: Prediction) -> None:
+        """Append one frame's record and flush it to the operating system."""
+        self._write(frame_record(frame, prediction, self.schema))
+        self._fh.flush()
+        self.count += 1
+
+    def _write(self, record: dict[str, Any]) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        if not self._fh.closed:
+            self._fh.close()
+
+    def __enter__(self) -> "RecordWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class JsonlWriter(RecordWriter):
+    """One JSON object per line (JSON Lines); a missing keypoint has x and y null."""
+
+    def _write(self, record: dict[str, Any]) -> None:
+        self._fh.write(json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n")
+
+
+class CsvWriter(RecordWriter):
+    """A header, then one row per frame: frame facts, then `<name>_x, <name>_y, <name>_confidence` per keypoint.
+
+    A missing keypoint has empty x and y cells.
+    """
+
+    BASE_COLUMNS = ("frame", "timestamp", "source", "width", "height", "media_time_s",
+                    "preprocess_ms", "invoke_ms", "postprocess_ms")
+
+    def __init__(self, path: str | os.PathLike, schema: KeypointSchema, force: bool = False):
+        super().__init__(path, schema, force)
+        self.columns = list(self.BASE_COLUMNS) + [f"{n}_{f}" for n in schema.keypoints
+                                                  for f in ("x", "y", "confidence")]
+        self._csv = csv.writer(self._fh, lineterminator="\n")
+        self._csv.writerow(self.columns)
+        self._fh.flush()
+
+    def _write(self, record: dict[str, Any]) -> None:
+        row: list[Any] = [record["frame"], record["timestamp"], record["source"], record["width"],
+                          record["height"], record.get("media_time_s", ""), record["latency_ms"]["preprocess"],
+                          record["latency_ms"]["invoke"], record["latency_ms"]["postprocess"]]
+        for kp in record["keypoints"]:
+            row += ["" if kp[k] is None else kp[k] for k in ("x", "y", "confidence")]
+        self._csv.writerow(row)
+
+
+def record_format(path: str | os.PathLike) -> str:
+    """`jsonl` or `csv` from a file name; UserError for other endings."""
+    suffix = Path(path).suffix.lower()
+    if suffix not in RECORD_SUFFIXES:
+        raise UserError(f"{path}: unknown keypoint file type {suffix or '(none)'!r}; use .jsonl or .csv")
+    return RECORD_SUFFIXES[suffix]
+
+
+def open_record_writer(path: str | os.PathLike, schema: KeypointSchema, force: bool = False) -> RecordWriter:
+    """A JsonlWriter for .jsonl/.ndjson, a CsvWriter for .csv."""
+    return (JsonlWriter if record_format(path) == "jsonl" else CsvWriter)(path, schema, force)
+
+
+# -- overlay -----------------------------------------------------------------------------------------------
+
+_PALETTE = [(66, 135, 245), (60, 180, 75), (255, 225, 25), (230, 25, 75), (245, 130, 48),
+            (145, 30, 180), (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)]
+"""Distinct colours (RGB), one per keypoint."""
+
+
+def keypoint_colour(i: int) -> tuple[int, int, int]:
+    """BGR colour of keypoint i."""
+    r, g, b = _PALETTE[i % len(_PALETTE)]
+    return b, g, r
+
+
+def draw_overlay(image: np.ndarray, prediction: Prediction, schema: KeypointSchema, fps: float | None = None,
+                 labels: bool = True, copy: bool = True) -> np.ndarray:
+    """Draw the skeleton, the keypoints (with names) and an FPS figure top-left on a BGR frame.
+
+    Missing keypoints and the edges touching them are not drawn.
+    """
+    out = np.ascontiguousarray(image.copy() if copy else image)  # OpenCV 5 draws only on C-contiguous arrays
+    h, w = out.shape[:2]
+    scale = max(h, w) / 640.0
+    radius = max(2, round(4 * scale))
+    thick = max(1, round(2 * scale))
+    pts = prediction.keypoints
+    found = prediction.found
+    for a, b in schema.edges:
+        if found[a] and found[b]:
+            pa = (int(round(pts[a, 0])), int(round(pts[a, 1])))
+            pb = (int(round(pts[b, 0])), int(round(pts[b, 1])))
+            cv2.line(out, pa, pb, (255, 255, 255), thick + 2, cv2.LINE_AA)
+            cv2.line(out, pa, pb, keypoint_colour(a), thick, cv2.LINE_AA)
+    font_scale = 0.4 * max(scale, 0.75)
+    for i, name in enumerate(schema.keypoints):
+        if not found[i]:
+            continue
+        p = (int(round(pts[i, 0])), int(round(pts[i, 1])))
+        cv2.circle(out, p, radius + 1, (0, 0, 0), -1, cv2.LINE_AA)
+        cv2.circle(out, p, radius, keypoint_colour(i), -1, cv2.LINE_AA)
+        if labels:
+            org = (p[0] + radius + 2, p[1] - radius)
+            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, font_scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
+            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), thick, cv2.LINE_AA)
+    if fps is not None and math.isfinite(fps):
+        text = f"FPS {fps:.1f}"
+        fs = 0.6 * max(scale, 0.75)
+        (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, fs, thick)
+        cv2.rectangle(out, (0, 0), (tw + 12, th + base + 12), (0, 0, 0), -1)
+        cv2.putText(out, text, (6, th + 6), cv2.FONT_HERSHEY_SIMPLEX, fs, (0, 255, 0), thick, cv2.LINE_AA)
+    return out
+
+
+class RollingFps:
+    """Frames per second averaged over the last `window` frames.
+
+    `add(ms)` takes a frame's end-to-end model time (preprocess + invoke +
+    postprocess, the FPS definition of docs/runtime.md); `fps` is
+    window / sum of those times.
+    """
+
+    def __init__(self, window: int = 30):
+        self._ms: deque[float] = deque(maxlen=max(1, int(window)))
+        self._sum = 0.0
+
+    def add(self, ms: float) -> None:
+        if len(self._ms) == self._ms.maxlen:
+            self._sum -= self._ms[0]
+        self._ms.append(ms)
+        self._sum += ms
+
+    @property
+    def fps(self) -> float:
+        return len(self._ms) * 1e3 / self._sum if self._sum > 0 else float("nan")
+
+
+class VideoSink:
+    """Writes BGR frames to a video (codec from the file ending), renamed into place on `close()`.
+
+    The frame size is fixed by the first frame; later frames of another size
+    (an image folder of mixed sizes) are resized to it.
+    """
+
+    def __init__(self, path: str | os.PathLike, fps: float | None = None, force: bool = False):
+        suffix = Path(path).suffix.lower()
+        if suffix not in VIDEO_CODECS:
+            raise UserError(f"{path}: unknown video type {suffix or '(none)'!r}; use "
+                            + ", ".join(sorted(VIDEO_CODECS)))
+        self.path = check_writable(path, force)
+        self.force = force
+        self.fps = float(fps) if fps and fps > 0 else 10.0
+        self.codec = VIDEO_CODECS[suffix]
+        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{suffix}", dir=self.path.parent)
+        os.close(fd)
+        self._tmp = Path(tmp)
+        self._writer: cv2.VideoWriter | None = None
+        self.size: tuple[int, int] | None = None
+        self.count = 0
+
+    def write(self, image: np.ndarray) -> None:
+        """Append a BGR uint8 frame."""
+        if self._writer is None:
+            h, w = image.shape[:2]
+            self.size = (w, h)
+            self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps, self.size)
+            if not self._writer.isOpened():
+                self._writer = None
+                self._tmp.unlink(missing_ok=True)
+                raise UserError(f"{self.path}: OpenCV cannot write {self.codec} video here; try an .avi file")
+        if (image.shape[1], image.shape[0]) != self.size:
+            image = cv2.resize(image, self.size, interpolation=cv2.INTER_AREA)
+        self._writer.write(np.ascontiguousarray(image))
+        self.count += 1
+
+    def close(self) -> Path | None:
+        """Finish the file and move it into place; returns its path, or None if no frame was written."""
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        if not self._tmp.exists():
+            return None
+        if self.count == 0:
+            self._tmp.unlink()
+            return None
+        if self.path.exists() and not self.force:  # appeared while we were recording: keep both
+            raise UserError(f"{self.path}: appeared during the run; the video was kept as {self._tmp}")
+        os.replace(self._tmp, self.path)
+        return self.path
+
+    def discard(self) -> None:
+        """Drop the partial video (on a failed run)."""
+        if self._writer is not None:
+            self._writer.release()
+            self._writer = None
+        self._tmp.unlink(missing_ok=True)
+
+
+def parse_outputs(paths: Sequence[str | os.PathLike]) -> list[Path]:
+    """Check record-output names (known ending, no duplicates) before anything runs."""
+    seen: set[Path] = set()
+    out = []
+    for p in paths:
+        path = Path(p)
+        record_format(path)
+        key = path.resolve()
+        if key in seen:
+            raise UserError(f"{path}: given twice as an output")
+        seen.add(key)
+        out.append(path)
+    return out
+
+
+__all__ = ["RecordWriter", "JsonlWriter", "CsvWriter", "open_record_writer", "record_format", "frame_record",
+           "draw_overlay", "keypoint_colour", "RollingFps", "VideoSink", "parse_outputs", "RECORD_SUFFIXES",
+           "VIDEO_CODECS"]
