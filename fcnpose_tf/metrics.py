@@ -1,8 +1,363 @@
-"""Metrics: model cost (MACs) now; PCK, EPE and PCK-AUC join with the training issue. numpy only."""
+"""Metrics: keypoint accuracy (PCK, PCK-AUC, EPE) and model cost (MACs). numpy only.
+
+Keypoints are N x K x 2 arrays of (x, y) pixel coordinates -- N frames, K keypoints -- in the
+original frame's pixels (map keypoints back with :func:`fcnpose_tf.postprocess.decode` first).
+NaN marks a missing keypoint: a missing *prediction* is a keypoint the network did not find, a
+missing *ground truth* one that is not annotated (not visible).
+
+Definitions (GUIDE section 4; the JSON keys of :func:`keypoint_report` carry their names):
+
+- **PCK@alpha (bbox)**, MMPose's PCKAccuracy convention: a prediction is correct when its
+  Euclidean distance to the ground truth divided by max(w, h) of the bounding box of that frame's
+  visible ground-truth keypoints is *below* alpha (strictly). Missing predictions are wrong;
+  missing ground truth is excluded. Frames whose box has no size (fewer than two distinct visible
+  ground-truth keypoints, so max(w, h) = 0) are excluded: the normalisation is undefined there
+  (MMPose skips them the same way); the report counts them. The overall PCK is the mean over
+  keypoints of the per-keypoint PCK (each keypoint weighs the same, as in MMPose).
+- **PCK-AUC 0-20 px**, NVlabs DREAM's convention: PCK at pixel thresholds t in [0, 20] (correct
+  when the error is below t), area under that curve divided by 20, pooled over every visible
+  ground-truth keypoint, missing predictions wrong. Computed exactly: the integral equals the mean
+  of max(0, 1 - error / 20) with missing predictions contributing 0. DREAM's code integrates on a
+  0.01 px grid with the trapezoidal rule and differs from the exact value by less than 0.001.
+- **EPE (px)**: mean Euclidean pixel error over the keypoints that were predicted and have ground
+  truth (DREAM's "L2 error"); missing predictions have no error and are reported separately as
+  ``missing_fraction`` (missing predictions / visible ground-truth keypoints), so EPE must always be
+  read next to it.
+- **MACs**: multiply-accumulates of all convolutions for one frame; FLOPs = 2 x MACs.
+"""
 
 from __future__ import annotations
+
+import math
+import warnings
+from typing import Any, Sequence
+
+import numpy as np
+
+from fcnpose_tf.errors import UserError
+
+__all__ = [
+    "DEFAULT_ALPHAS", "DEFAULT_MAX_PX", "conv_macs", "bbox_sizes", "errors_px", "normalized_errors",
+    "pck", "pck_per_keypoint", "pck_curve_px", "pck_auc_px", "epe", "epe_per_keypoint",
+    "missing_fraction", "pck_key", "auc_key", "keypoint_report", "format_report",
+]
+
+DEFAULT_ALPHAS: tuple[float, ...] = (0.5, 0.2, 0.05)
+"""The PCK thresholds reported: 0.5 (the paper's figure), 0.2 and 0.05."""
+
+DEFAULT_MAX_PX: float = 20.0
+"""Upper pixel threshold of PCK-AUC (DREAM)."""
 
 
 def conv_macs(out_h: int, out_w: int, k_h: int, k_w: int, c_in: int, c_out: int) -> int:
     """Multiply-accumulates of one 'same'/'valid' Conv2D for one frame: H*W*k*k*Cin*Cout (FLOPs = 2 x MACs)."""
     return int(out_h) * int(out_w) * int(k_h) * int(k_w) * int(c_in) * int(c_out)
+
+
+# ---------------------------------------------------------------------------- inputs
+
+def _pair(pred: Any, gt: Any) -> tuple[np.ndarray, np.ndarray]:
+    """Validate and promote pred/gt to float64 N x K x 2 (a single K x 2 frame becomes N = 1)."""
+    p = np.asarray(pred, dtype=np.float64)
+    g = np.asarray(gt, dtype=np.float64)
+    if p.ndim == 2:
+        p = p[None]
+    if g.ndim == 2:
+        g = g[None]
+    for name, a, given in (("predictions", p, pred), ("ground truth", g, gt)):
+        if a.ndim != 3 or a.shape[-1] != 2:
+            raise UserError(f"expected {name} of shape N x K x 2 (x, y), got {np.shape(given)}")
+    if p.shape != g.shape:
+        raise UserError(f"predictions {p.shape} and ground truth {g.shape} must have the same N x K x 2 shape")
+    return p, g
+
+
+def _valid(p: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(gt_visible, pred_found) boolean N x K masks; a keypoint is missing if either coordinate is NaN."""
+    return ~np.isnan(g).any(axis=-1), ~np.isnan(p).any(axis=-1)
+
+
+def _nan_mean(values: np.ndarray) -> float:
+    values = values[~np.isnan(values)]
+    return float(values.mean()) if values.size else math.nan
+
+
+# ---------------------------------------------------------------------------- building blocks
+
+def bbox_sizes(gt: Any) -> np.ndarray:
+    """max(w, h) of the bounding box of each frame's visible ground-truth keypoints.
+
+    Args:
+        gt: N x K x 2 (or K x 2) ground truth, NaN where not visible.
+
+    Returns:
+        (N,) float64; NaN for a frame without visible keypoints, 0.0 for one whose visible
+        keypoints all coincide (e.g. a single one).
+
+    Example:
+        >>> bbox_sizes([[[0, 0], [30, 10], [np.nan, np.nan]]]).tolist()
+        [30.0]
+    """
+    g = _pair(gt, gt)[1]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # "All-NaN slice": a frame without visible GT
+        span = np.nanmax(g, axis=1) - np.nanmin(g, axis=1)  # N x 2: (w, h)
+    return np.max(span, axis=1)
+
+
+def errors_px(pred: Any, gt: Any) -> np.ndarray:
+    """Euclidean pixel error per keypoint.
+
+    Returns:
+        N x K float64: the distance where both exist, +inf where the ground truth is visible but
+        the prediction missing, NaN where the ground truth is missing.
+    """
+    p, g = _pair(pred, gt)
+    visible, found = _valid(p, g)
+    err = np.hypot(p[..., 0] - g[..., 0], p[..., 1] - g[..., 1])
+    err[visible & ~found] = np.inf
+    err[~visible] = np.nan
+    return err
+
+
+def normalized_errors(pred: Any, gt: Any) -> np.ndarray:
+    """Pixel errors divided by each frame's ground-truth bbox size, max(w, h).
+
+    Returns:
+        N x K float64: +inf for a missing prediction, NaN where excluded (ground truth missing,
+        or a frame whose bbox has zero size).
+    """
+    err = errors_px(pred, gt)
+    size = bbox_sizes(gt)
+    out = np.full_like(err, np.nan)
+    ok = size > 0  # NaN compares False: frames without visible GT stay NaN
+    out[ok] = err[ok] / size[ok, None]
+    return out
+
+
+# ---------------------------------------------------------------------------- PCK
+
+def pck_per_keypoint(pred: Any, gt: Any, alpha: float) -> np.ndarray:
+    """PCK@alpha (bbox) of each keypoint over the frames.
+
+    Args:
+        pred, gt: N x K x 2 keypoints in pixels, NaN where missing.
+        alpha: fraction of max(w, h) of the frame's ground-truth bbox; correct when below it.
+
+    Returns:
+        (K,) float64 in [0, 1]; NaN for a keypoint with no usable ground truth.
+
+    Example:
+        >>> gt = [[[0, 0], [10, 0]]]
+        >>> pck_per_keypoint([[[1, 0], [np.nan, np.nan]]], gt, 0.5).tolist()
+        [1.0, 0.0]
+    """
+    alpha = _check_positive(alpha, "alpha")
+    d = normalized_errors(pred, gt)
+    used = ~np.isnan(d)
+    correct = np.where(used, d < alpha, False).sum(axis=0)
+    total = used.sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(total > 0, correct / np.maximum(total, 1), np.nan)
+
+
+def pck(pred: Any, gt: Any, alpha: float) -> float:
+    """PCK@alpha (bbox): the mean over keypoints of :func:`pck_per_keypoint`.
+
+    Args:
+        pred: N x K x 2 predicted (x, y) in pixels, NaN where the network found nothing (wrong).
+        gt: N x K x 2 ground truth in the same pixels, NaN where not annotated (excluded).
+        alpha: correct when distance / max(w, h) of the frame's GT bbox is below alpha.
+
+    Returns:
+        The fraction of correct keypoints, each keypoint weighing the same; NaN if no ground
+        truth is usable.
+
+    Example:
+        >>> gt = np.array([[[0.0, 0.0], [100.0, 50.0]]])           # bbox 100 x 50 -> size 100
+        >>> pred = np.array([[[4.0, 3.0], [100.0, 110.0]]])        # errors 5 px and 60 px
+        >>> pck(pred, gt, 0.5), pck(pred, gt, 0.05)
+        (0.5, 0.0)
+    """
+    return _nan_mean(pck_per_keypoint(pred, gt, alpha))
+
+
+def pck_curve_px(pred: Any, gt: Any, thresholds_px: Sequence[float]) -> np.ndarray:
+    """PCK at pixel thresholds (correct when the pixel error is below t), pooled over keypoints.
+
+    Returns:
+        float64 array like ``thresholds_px``; NaN if no ground truth is visible.
+    """
+    err = errors_px(pred, gt)
+    err = err[~np.isnan(err)]
+    t = np.asarray(thresholds_px, np.float64)
+    if err.size == 0:
+        return np.full(t.shape, np.nan)
+    return (err[:, None] < t.ravel()[None, :]).mean(axis=0).reshape(t.shape)
+
+
+def pck_auc_px(pred: Any, gt: Any, max_px: float = DEFAULT_MAX_PX) -> float:
+    """Area under the PCK-vs-pixel-threshold curve on [0, max_px], divided by max_px (DREAM).
+
+    Exact: equals the mean over visible ground-truth keypoints of max(0, 1 - error / max_px),
+    missing predictions counting 0. 1.0 means every keypoint exact.
+
+    Example:
+        >>> gt = [[[0, 0], [0, 0]]]
+        >>> pck_auc_px([[[0, 5], [np.nan, np.nan]]], gt, max_px=20)    # (0.75 + 0) / 2
+        0.375
+    """
+    max_px = _check_positive(max_px, "max_px")
+    err = errors_px(pred, gt)
+    err = err[~np.isnan(err)]
+    if err.size == 0:
+        return math.nan
+    return float(np.clip(1.0 - err / max_px, 0.0, 1.0).mean())
+
+
+# ---------------------------------------------------------------------------- EPE, missing
+
+def epe_per_keypoint(pred: Any, gt: Any) -> np.ndarray:
+    """Mean pixel error of each keypoint over the frames where it was predicted and annotated.
+
+    Returns:
+        (K,) float64; NaN for a keypoint never predicted (or never annotated).
+    """
+    err = errors_px(pred, gt)
+    err = np.where(np.isfinite(err), err, np.nan)
+    count = (~np.isnan(err)).sum(axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(count > 0, np.nansum(err, axis=0) / np.maximum(count, 1), np.nan)
+
+
+def epe(pred: Any, gt: Any) -> float:
+    """Mean Euclidean pixel error (EPE) over keypoints both predicted and annotated.
+
+    Missing predictions are not in this mean; read it with :func:`missing_fraction`.
+
+    Returns:
+        The mean error in pixels of the input's coordinates; NaN if nothing was predicted.
+
+    Example:
+        >>> epe([[[3, 4], [np.nan, np.nan]]], [[[0, 0], [1, 1]]])
+        5.0
+    """
+    err = errors_px(pred, gt)
+    err = err[np.isfinite(err)]
+    return float(err.mean()) if err.size else math.nan
+
+
+def missing_fraction(pred: Any, gt: Any) -> float:
+    """Fraction of visible ground-truth keypoints without a prediction (NaN if none is visible).
+
+    Example:
+        >>> missing_fraction([[[3, 4], [np.nan, np.nan]]], [[[0, 0], [1, 1]]])
+        0.5
+    """
+    p, g = _pair(pred, gt)
+    visible, found = _valid(p, g)
+    n = int(visible.sum())
+    return float((visible & ~found).sum() / n) if n else math.nan
+
+
+def _check_positive(value: float, name: str) -> float:
+    v = float(value)
+    if not v > 0 or not math.isfinite(v):
+        raise UserError(f"{name} must be a positive number, got {value!r}")
+    return v
+
+
+# ---------------------------------------------------------------------------- report
+
+def pck_key(alpha: float) -> str:
+    """Report key of PCK@alpha with bbox normalisation, e.g. ``pck@0.5_bbox``."""
+    return f"pck@{float(alpha):g}_bbox"
+
+
+def auc_key(max_px: float = DEFAULT_MAX_PX) -> str:
+    """Report key of the pixel PCK-AUC, e.g. ``pck_auc_0-20px``."""
+    return f"pck_auc_0-{float(max_px):g}px"
+
+
+def _json(value: float) -> float | None:
+    return None if value is None or not math.isfinite(value) else float(value)
+
+
+def keypoint_report(pred: Any, gt: Any, names: Sequence[str], alphas: Sequence[float] = DEFAULT_ALPHAS,
+                    max_px: float = DEFAULT_MAX_PX) -> dict[str, Any]:
+    """All keypoint metrics in one JSON-ready dict with stable keys naming their normalisation.
+
+    Args:
+        pred, gt: N x K x 2 keypoints in frame pixels, NaN where missing.
+        names: the K keypoint names (e.g. ``fcnpose_tf.keypoints.UR5.keypoints``).
+        alphas: PCK thresholds (bbox normalisation).
+        max_px: upper pixel threshold of the PCK-AUC.
+
+    Returns:
+        A dict (undefined values are None, never NaN, so it serialises as strict JSON)::
+
+            {"pck@0.5_bbox": ..., "pck@0.2_bbox": ..., "pck@0.05_bbox": ...,   # mean over keypoints
+             "pck_auc_0-20px": ..., "epe_px": ..., "epe_median_px": ..., "missing_fraction": ...,
+             "num_frames": N, "num_keypoints": K, "num_gt_visible": ..., "num_missing": ...,
+             "num_frames_excluded_bbox": ...,
+             "per_keypoint": {name: {"pck@0.5_bbox": ..., ..., "pck_auc_0-20px": ..., "epe_px": ...,
+                                     "missing_fraction": ..., "num_gt_visible": ...}, ...}}
+
+    Example:
+        >>> r = keypoint_report([[[1, 0], [10, 0]]], [[[0, 0], [10, 0]]], ["a", "b"], alphas=(0.5,))
+        >>> r["pck@0.5_bbox"], r["epe_px"], r["per_keypoint"]["a"]["epe_px"]
+        (1.0, 0.5, 1.0)
+    """
+    p, g = _pair(pred, gt)
+    names = [str(n) for n in names]
+    if len(names) != p.shape[1]:
+        raise UserError(f"got {len(names)} keypoint names for {p.shape[1]} keypoints")
+    alphas = [_check_positive(a, "alpha") for a in alphas]
+    visible, found = _valid(p, g)
+    err = errors_px(p, g)
+    finite = err[np.isfinite(err)]
+    per_kp_pck = {a: pck_per_keypoint(p, g, a) for a in alphas}
+    per_kp_epe = epe_per_keypoint(p, g)
+    sizes = bbox_sizes(g)
+    report: dict[str, Any] = {pck_key(a): _json(_nan_mean(per_kp_pck[a])) for a in alphas}
+    report[auc_key(max_px)] = _json(pck_auc_px(p, g, max_px))
+    report["epe_px"] = _json(float(finite.mean()) if finite.size else math.nan)
+    report["epe_median_px"] = _json(float(np.median(finite)) if finite.size else math.nan)
+    report["missing_fraction"] = _json(missing_fraction(p, g))
+    report["num_frames"] = int(p.shape[0])
+    report["num_keypoints"] = int(p.shape[1])
+    report["num_gt_visible"] = int(visible.sum())
+    report["num_missing"] = int((visible & ~found).sum())
+    # Frames with visible ground truth but a zero-size box: left out of the bbox PCK.
+    report["num_frames_excluded_bbox"] = int(((sizes == 0) & visible.any(axis=1)).sum())
+    per: dict[str, dict[str, Any]] = {}
+    for k, name in enumerate(names):
+        vis_k = int(visible[:, k].sum())
+        entry = {pck_key(a): _json(per_kp_pck[a][k]) for a in alphas}
+        entry[auc_key(max_px)] = _json(pck_auc_px(p[:, k:k + 1], g[:, k:k + 1], max_px))
+        entry["epe_px"] = _json(per_kp_epe[k])
+        entry["missing_fraction"] = _json((visible[:, k] & ~found[:, k]).sum() / vis_k if vis_k else math.nan)
+        entry["num_gt_visible"] = vis_k
+        per[name] = entry
+    report["per_keypoint"] = per
+    return report
+
+
+def format_report(report: dict[str, Any], markdown: bool = False) -> str:
+    """A table of :func:`keypoint_report`: one row per keypoint and a final ``all`` row.
+
+    Columns are the report's metric keys, so every PCK shows its normalisation in the header. The
+    ``all`` row holds the report's overall values: PCK (bbox) is the mean over keypoints, the
+    others are pooled over every keypoint (see the module docstring).
+    """
+    from fcnpose_tf.tables import format_table  # plain Python, no dependencies
+
+    per = report["per_keypoint"]
+    cols = [k for k in next(iter(per.values()), {}) if k != "num_gt_visible"] if per else []
+    rows = [[name] + [_round(v.get(c)) for c in cols] for name, v in per.items()]
+    rows.append(["all"] + [_round(report.get(c)) for c in cols])
+    return format_table(["keypoint"] + cols, rows, markdown=markdown)
+
+
+def _round(value: Any) -> Any:
+    return round(value, 4) if isinstance(value, float) else value
