@@ -23,9 +23,11 @@ Rules (see docs/postprocess.md):
 How it stays under a millisecond per 224 x 224 frame of 8 maps: all maps are thresholded in one
 contiguous pass (numpy is ~9x slower on a strided per-map slice), de-interleaved with one
 ``cv2.transpose``, and each map is labelled by ``cv2.connectedComponents`` only inside the bounding
-box of its active pixels (``cv2.boundingRect``), without OpenCV's statistics, whose cost grows with
-the whole labelled area (background included). ``tools/bench_postprocess.py`` measures this
-against the plain per-map ``cv2.connectedComponentsWithStats``.
+box of its active pixels (``cv2.boundingRect``). OpenCV's own statistics are not used: they cost
+per pixel of the labelled area, background included; cluster sizes come from the labels of the
+active pixels, the centroid from row and column sums of the kept cluster.
+``tools/bench_postprocess.py`` measures this against the plain per-map
+``cv2.connectedComponentsWithStats``.
 """
 
 from __future__ import annotations
@@ -89,34 +91,42 @@ def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, in
     x0, y0, w, h = cv2.boundingRect(plane)
     if w == 0:
         return math.nan, math.nan, 0
-    # The window around the active pixels keeps labelling cost proportional to where the
-    # activity is, not to the map size; raster order inside it is the map's raster order.
+    # Label only the window around the active pixels: the cost follows where the activity is,
+    # not the map size. Raster order inside the window is the map's raster order.
     win = plane[y0:y0 + h, x0:x0 + w]
     if w != plane.shape[1]:
         win = np.ascontiguousarray(win)
-    n, labels = cv2.connectedComponents(win, connectivity=4, ltype=cv2.CV_32S)
-    if n == 2:  # a single cluster: the window's active pixels are the cluster
-        mask = win
-    else:
-        flat = labels.ravel()
-        counts = np.bincount(flat, minlength=n)
-        counts[0] = 0
-        best = int(counts.argmax())
-        tied = np.flatnonzero(counts == counts[best])
-        if tied.size > 1:
-            # Tie rule: the cluster whose first pixel comes first in row-major order (what
-            # Algorithm 1 returns when S is scanned in that order). OpenCV numbers labels in
-            # that order when single-threaded, but we do not rely on it.
-            best = int(min(tied, key=lambda lab: int(np.argmax(flat == lab))))
-        mask = (labels == best).view(np.uint8)
-    mom = cv2.moments(mask, binaryImage=True)
-    size = int(mom["m00"])
+    active = cv2.countNonZero(win)
+    mask = win
+    if active != w * h:  # (a window with every pixel active is a single cluster)
+        n, labels = cv2.connectedComponents(win, connectivity=4, ltype=cv2.CV_32S)
+        if n > 2:
+            if active * 8 <= w * h:
+                # Sparse window: look at the active pixels only (findNonZero scans in raster order).
+                pts = cv2.findNonZero(win).reshape(-1, 2)
+                lab = labels[pts[:, 1], pts[:, 0]]
+            else:
+                lab = labels.ravel()  # background label 0 included; its count is zeroed below
+            counts = np.bincount(lab, minlength=n)
+            counts[0] = 0
+            best = int(counts.argmax())
+            tied = counts == counts[best]
+            if np.count_nonzero(tied) > 1:
+                # Tie rule: the cluster holding the earliest pixel in row-major order, which is the
+                # one Algorithm 1 creates first when it scans S in that order. (OpenCV numbers
+                # labels in that order when single-threaded; we do not rely on it.)
+                best = int(lab[np.argmax(tied[lab])])
+            mask = (labels == best).view(np.uint8)
+    # Centroid from per-column and per-row pixel counts: exact integer sums, one division,
+    # so the result is bit-identical to sum(x) / n over the cluster's pixels.
+    cols = cv2.reduce(mask, 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel().astype(np.int64)
+    rows = cv2.reduce(mask, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel().astype(np.int64)
+    size = int(cols.sum())
     if size < min_size:
         return math.nan, math.nan, 0
-    # Integer sums in absolute coordinates, one division: bit-identical to sum(x) / n.
-    x = (mom["m10"] + x0 * mom["m00"]) / mom["m00"]
-    y = (mom["m01"] + y0 * mom["m00"]) / mom["m00"]
-    return x, y, size
+    sum_x = int(cols @ np.arange(w, dtype=np.int64)) + x0 * size
+    sum_y = int(rows @ np.arange(h, dtype=np.int64)) + y0 * size
+    return sum_x / size, sum_y / size, size
 
 
 def _check_maps(maps: np.ndarray) -> np.ndarray:
