@@ -124,6 +124,23 @@ def test_largest_cluster_equals_algorithm_1_on_random_masks():
     assert checked == len(SHAPES) * len(DENSITIES) * 6
 
 
+def test_sparse_speckles_with_ties_equal_algorithm_1():
+    """Few active pixels in a wide window (the path that labels only the active pixels), where
+    the largest clusters are tied speckles of one or two pixels."""
+    rng = np.random.default_rng(77)
+    ties = 0
+    for _ in range(40):
+        shape = tuple(rng.integers(20, 48, size=2))
+        mask = rng.random(shape) < rng.uniform(0.005, 0.05)
+        mask[:, 1:] |= mask[:, :-1] & (rng.random((shape[0], shape[1] - 1)) < 0.3)   # some 2-pixel speckles
+        mask[rng.integers(shape[0]), rng.integers(shape[1])] = True                   # never empty
+        assert 8 * mask.sum() <= shape[0] * shape[1]
+        expected = reference_keypoint(mask)
+        assert largest_cluster(mask) == expected, mask.astype(int)
+        ties += count_ties(mask) > 0
+    assert ties >= 20, ties
+
+
 def test_maps_to_keypoints_equals_algorithm_1_on_random_maps():
     """Whole maps, values drawn from a grid that hits the threshold exactly (strict '>')."""
     rng = np.random.default_rng(99)
