@@ -211,6 +211,13 @@ class KeypointModel:
         times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3)
         return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape))
 
+    def warmup(self, frame_shape: tuple[int, int, int] = (480, 640, 3), runs: int = 1) -> None:
+        """Run `runs` untimed frames of this shape, so the first real frame pays no start-up cost
+        (XNNPACK weight packing, OpenCV's first resize)."""
+        blank = np.zeros(frame_shape, np.uint8)
+        for _ in range(runs):
+            self.predict(blank)
+
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:
         """The raw output maps for a frame (a copy): for debugging and parity checks."""
         self.set_input(frame_bgr)

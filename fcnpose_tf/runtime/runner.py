@@ -117,10 +117,14 @@ def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[Reco
     """
     summary = RunSummary()
     rolling = RollingFps(fps_window)
+    warm = False
     start = time.perf_counter()
     frames_iter = iter(source)
     try:
         for frame in frames_iter:
+            if not warm:  # one untimed frame of the source's size: start-up costs stay out of the figures
+                model.warmup(frame.image.shape)
+                warm = True
             try:
                 prediction = model.predict(frame.image)
             except UserError as exc:  # e.g. a frame with an unexpected shape: skip, say so

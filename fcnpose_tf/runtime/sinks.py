@@ -221,6 +221,7 @@ class VideoSink:
         fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{suffix}", dir=self.path.parent)
         os.close(fd)
         self._tmp = Path(tmp)
+        _chmod_default(self._tmp)  # mkstemp makes 0600 files; give the video the user's usual permissions
         self._writer: cv2.VideoWriter | None = None
         self.size: tuple[int, int] | None = None
         self.count = 0
@@ -261,6 +262,12 @@ class VideoSink:
             self._writer.release()
             self._writer = None
         self._tmp.unlink(missing_ok=True)
+
+
+def _chmod_default(path: Path) -> None:
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
 
 
 def parse_outputs(paths: Sequence[str | os.PathLike]) -> list[Path]:

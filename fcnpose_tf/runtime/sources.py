@@ -221,7 +221,9 @@ class CameraSource(FrameSource):
         self.end_reason = "running"
         used = 0
         while True:
-            timeout = self.first_frame_timeout_s if used == 0 else self.stall_timeout_s
+            # Twice the grab thread's limit: its own verdict (reads failing) comes first; this one
+            # catches a read() that blocks forever (some USB cameras when unplugged).
+            timeout = self.first_frame_timeout_s if used == 0 else 2 * self.stall_timeout_s
             with self._cond:
                 arrived = self._cond.wait_for(lambda: self._captured > used or self._failure is not None, timeout)
                 if self._captured > used:

@@ -1,0 +1,189 @@
+"""`fcnpose-tf run` and `fcnpose-tf bench` as a user meets them: help, outputs, and one-line errors (exit 2).
+
+Commands run in-process through `fcnpose_tf.cli.main` (fast); the subprocess
+runs without TensorFlow live in test_runtime.py.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fcnpose_tf.cli import build_parser, main
+from test_runtime import (RED_CYCLE, _convert_plain, _structured_model, expected_keypoints, quadrant_frame,
+                          write_video)
+
+
+@pytest.fixture(scope="module")
+def model_path(tmp_path_factory) -> Path:
+    path = tmp_path_factory.mktemp("cli_models") / "structured.tflite"
+    path.write_bytes(_convert_plain(_structured_model()))
+    return path
+
+
+@pytest.fixture(scope="module")
+def dense_model(tmp_path_factory) -> Path:
+    import tf_keras as keras
+
+    path = tmp_path_factory.mktemp("cli_models") / "dense.tflite"
+    path.write_bytes(_convert_plain(keras.Sequential([keras.Input((16,)), keras.layers.Dense(4)])))
+    return path
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory) -> Path:
+    frames = [quadrant_frame(320, 240, RED_CYCLE[i % 4]) for i in range(8)]
+    return write_video(tmp_path_factory.mktemp("cli_video") / "clip.avi", frames)
+
+
+def _run(capsys, *args):
+    code = main([str(a) for a in args])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _one_line_error(code, err, pattern):
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert lines[-1].startswith("error: ") and pattern in lines[-1], err
+    assert "Traceback" not in err
+
+
+def test_help_lists_commands_and_examples(capsys):
+    parser = build_parser()
+    assert "run" in parser.format_help() and "bench" in parser.format_help()
+    for command in ("run", "bench"):
+        with pytest.raises(SystemExit) as exc:
+            parser.parse_args([command, "--help"])
+        assert exc.value.code == 0
+        text = capsys.readouterr().out
+        assert "examples:" in text and f"fcnpose-tf {command} model.tflite" in text
+
+
+def test_run_writes_records_and_prints_the_summary(capsys, tmp_path, model_path, video):
+    out = tmp_path / "k.jsonl"
+    code, stdout, err = _run(capsys, "run", model_path, "--source", video, "--out", out, "--max-frames", 5,
+                             "--threads", 1)
+    assert code == 0, err
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert len(records) == 5
+    assert records[3]["keypoints"][0]["x"] == pytest.approx(expected_keypoints(320, 240, RED_CYCLE[3])[0, 0])
+    for expected in ("reached --max-frames 5", "Frames:  5 processed", "preprocess", "invoke", "postprocess",
+                     "end-to-end", "p50 (ms)", "p95 (ms)", "FPS:", "invoke-only", "1 thread;", "ai_edge_litert",
+                     f"Wrote:   {out} (5 records)"):
+        assert expected in stdout, expected
+
+
+def test_run_never_overwrites_without_force(capsys, tmp_path, model_path, video):
+    out = tmp_path / "k.jsonl"
+    out.write_text("precious\n")
+    code, _, err = _run(capsys, "run", model_path, "--source", video, "--out", out)
+    _one_line_error(code, err, "already exists; pass --force")
+    assert out.read_text() == "precious\n"
+    code, _, err = _run(capsys, "run", model_path, "--source", video, "--out", out, "--force")
+    assert code == 0, err
+    assert len(out.read_text().splitlines()) == 8
+
+
+def test_run_single_image_csv_and_video(capsys, tmp_path, model_path):
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), quadrant_frame(400, 300, "bl"))
+    code, stdout, err = _run(capsys, "run", model_path, "--source", image, "--out", tmp_path / "k.csv",
+                             "--save-video", tmp_path / "o.avi")
+    assert code == 0, err
+    lines = (tmp_path / "k.csv").read_text().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("frame,timestamp,source,width,height")
+    row = dict(zip(lines[0].split(","), lines[1].split(",")))
+    exp = expected_keypoints(400, 300, "bl")
+    assert float(row["base_x"]) == pytest.approx(exp[0, 0]) and row["flange_x"] == ""
+    cap = cv2.VideoCapture(str(tmp_path / "o.avi"))
+    ok, first = cap.read()
+    cap.release()
+    assert ok and first.shape == (300, 400, 3)
+    assert np.abs(first.astype(int) - quadrant_frame(400, 300, "bl").astype(int)).max() > 100  # overlay drawn
+
+
+def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
+    frames = [quadrant_frame(320, 240, "tl") for _ in range(30)]
+    full = write_video(tmp_path / "full.avi", frames)
+    cut = tmp_path / "cut.avi"
+    cut.write_bytes(full.read_bytes()[: int(full.stat().st_size * 0.6)])
+    code, stdout, err = _run(capsys, "run", model_path, "--source", cut, "--out", tmp_path / "k.jsonl")
+    assert code == 0, err
+    assert "of 30 frames (truncated file or unreadable frame)" in stdout + err
+    assert 0 < len((tmp_path / "k.jsonl").read_text().splitlines()) < 30
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--source", "{missing}"], "no such file or folder"),
+    (["--source", "97"], "camera 97: cannot be opened"),
+    (["--source", "/dev/video97"], "no such camera device"),
+    (["--source", "{video}", "--out", "k.txt"], "use .jsonl or .csv"),
+    (["--source", "{video}", "--out", "k.jsonl", "--save-video", "k.jsonl"], "given both as --out and --save-video"),
+    (["--source", "{video}", "--out", "k.jsonl", "--out", "k.jsonl"], "given twice"),
+    (["--source", "{video}", "--save-video", "o.gif"], "unknown video type"),
+    (["--source", "{video}", "--threads", "0"], "--threads must be at least 1"),
+    (["--source", "{video}", "--max-frames", "0"], "--max-frames must be at least 1"),
+    (["--source", "{video}", "--threshold", "1.5"], "threshold must be between 0 and 1"),
+    (["--source", "{video}", "--camera-size", "big"], "expected WIDTHxHEIGHT"),
+    (["--source", "{video}", "--show"], "--show needs OpenCV with GUI support"),
+])
+def test_run_user_errors(capsys, tmp_path, monkeypatch, model_path, video, args, message):
+    monkeypatch.chdir(tmp_path)
+    args = [a.format(missing=tmp_path / "nope.mp4", video=video) for a in args]
+    code, _, err = _run(capsys, "run", model_path, *args)
+    _one_line_error(code, err, message)
+    assert not (tmp_path / "k.jsonl").exists()  # nothing written for a run that never started
+
+
+@pytest.mark.parametrize("command", ["run", "bench"])
+def test_bad_models_are_user_errors(capsys, tmp_path, dense_model, video, command):
+    extra = ["--source", video] if command == "run" else ["--frames", "2"]
+    code, _, err = _run(capsys, command, dense_model, *extra)
+    _one_line_error(code, err, "input shape [1, 16], expected [1, S, S, 3]")
+    corrupt = tmp_path / "corrupt.tflite"
+    corrupt.write_bytes(b"\x1c\x00\x00\x00TFL3" + bytes(64))
+    code, _, err = _run(capsys, command, corrupt, *extra)
+    _one_line_error(code, err, "cannot be loaded as a TFLite model")
+    code, _, err = _run(capsys, command, tmp_path / "missing.tflite", *extra)
+    _one_line_error(code, err, "model file not found")
+
+
+def test_bench_table_markdown_and_json(capsys, tmp_path, model_path):
+    out = tmp_path / "bench.json"
+    code, stdout, err = _run(capsys, "bench", model_path, "--threads", "1,2", "--frames", 4, "--warmup", 1,
+                             "--json", out, "--markdown")
+    assert code == 0, err
+    assert "| Threads | Status | Invoke p50 (ms)" in stdout and "FPS invoke |" in stdout
+    assert "MACs per frame" in stdout and "parameters" in stdout
+    assert "1 thread: 1 warm-up + 4 timed frames" in err
+    data = json.loads(out.read_text())
+    assert [r["threads"] for r in data["results"]] == [1, 2] and data["frames"] == 4
+    assert data["frame"] == "synthetic 640x480" and data["fps_definition"].startswith("FPS = 1000 / mean")
+    code, _, err = _run(capsys, "bench", model_path, "--frames", 2, "--json", out)
+    _one_line_error(code, err, "already exists")
+
+
+def test_bench_on_a_real_image(capsys, tmp_path, model_path):
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), quadrant_frame(320, 240, "tr"))
+    code, stdout, err = _run(capsys, "bench", model_path, "--threads", "1", "--frames", 3, "--image", image)
+    assert code == 0, err
+    assert f"frame: {image} (320x240)" in stdout
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--threads", "0"], "expected positive integers"),
+    (["--threads", "1,x"], "expected positive integers"),
+    (["--frames", "0"], "--frames must be >= 1"),
+    (["--image", "{missing}"], "image not found"),
+    (["--frame-size", "640"], "expected WIDTHxHEIGHT"),
+])
+def test_bench_user_errors(capsys, tmp_path, model_path, args, message):
+    args = [a.format(missing=tmp_path / "nope.png") for a in args]
+    code, _, err = _run(capsys, "bench", model_path, *args)
+    _one_line_error(code, err, message)
