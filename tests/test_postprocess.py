@@ -141,6 +141,38 @@ def test_sparse_speckles_with_ties_equal_algorithm_1():
     assert ties >= 20, ties
 
 
+def test_blobs_and_speckles_in_wide_windows_equal_algorithm_1():
+    """Large, mostly empty windows (the path that squeezes out empty rows and columns): blobs,
+    speckles next to and one line apart from each other, clusters touching the squeezed gaps."""
+    rng = np.random.default_rng(2024)
+    ties = 0
+    for trial in range(40):
+        size = int(rng.integers(40, 90))
+        mask = np.zeros((size, size), bool)
+        for _ in range(int(rng.integers(1, 4))):
+            r, c, a, b = rng.integers(0, size - 4), rng.integers(0, size - 4), rng.integers(1, 4), rng.integers(1, 4)
+            mask[r:r + a, c:c + b] = True                          # rectangles, often tied in size
+        ys, xs = rng.integers(0, size, (2, int(rng.integers(0, 25))))
+        mask[ys, xs] = True                                        # speckles
+        if trial % 4 == 0:                                         # two bars one empty line apart
+            mask[5, 2:8] = mask[7, 2:8] = True
+        expected = reference_keypoint(mask)
+        assert largest_cluster(mask) == expected, np.argwhere(mask).tolist()
+        ties += count_ties(mask) > 0
+    assert ties >= 8, ties
+
+
+def test_squeezing_keeps_one_separator_line():
+    mask = np.zeros((60, 60), bool)
+    mask[10, 10:13] = True
+    mask[12, 10:14] = True                                         # 4 px, one empty row below the 3 px bar
+    mask[50, 50] = True                                            # makes the window large
+    assert largest_cluster(mask) == (11.5, 12.0, 4)
+    mask[11, 11] = True                                            # now all joined: 3 + 1 + 4
+    assert largest_cluster(mask) == reference_keypoint(mask)
+    assert largest_cluster(mask)[2] == 8
+
+
 def test_maps_to_keypoints_equals_algorithm_1_on_random_maps():
     """Whole maps, values drawn from a grid that hits the threshold exactly (strict '>')."""
     rng = np.random.default_rng(99)

@@ -6,8 +6,8 @@ Usage:
     python tools/bench_postprocess.py --threads 2 --json bench_pp.json
     python tools/bench_postprocess.py --litert-sigmoid     # also time a LiteRT LOGISTIC op (needs TF)
 
-Every variant runs on the same frames, interleaved round by round so that load from other
-processes hits them alike; the table gives medians and p95 in microseconds per frame (8 keypoint
+Every variant runs on the same frames, interleaved round by round in a shuffled order so that
+load from other processes and cache effects hit them alike; the table gives medians and p95 in microseconds per frame (8 keypoint
 maps + 1 skeleton map) and the speed-up over the plain per-map implementation. Each variant's
 keypoints are checked against the library's before timing.
 
@@ -201,8 +201,11 @@ def run(args: argparse.Namespace) -> dict:
         for _ in range(args.warmup):
             for call in calls.values():
                 call()
+        order = list(calls)
         for _ in range(args.rounds):
-            for name, call in calls.items():
+            rng.shuffle(order)  # no variant always runs right after the cache-thrashing one
+            for name in order:
+                call = calls[name]
                 t0 = time.perf_counter_ns()
                 call()
                 times[name].append(time.perf_counter_ns() - t0)
