@@ -109,6 +109,13 @@ def conv_widths(model: keras.Model) -> tuple[int, ...]:
     return tuple(int(layer.filters) for layer in model.layers if isinstance(layer, keras.layers.Conv2D))
 
 
+def save_for_inference(model: keras.Model, path) -> None:
+    """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count."""
+    clone = keras.models.clone_model(model)
+    clone.set_weights(model.get_weights())
+    clone.save(path)  # an uncompiled clone carries no optimizer
+
+
 def load_model(path) -> keras.Model:
     """Load a .keras or .h5 model file for inference, with a clear error for missing or broken files."""
     from pathlib import Path

@@ -10,6 +10,7 @@ import argparse
 from pathlib import Path
 
 NAME = "summary"
+USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf summary                                  # the paper's FCN-Pose at 224x224
   fcnpose-tf summary --input-size 64

@@ -1,0 +1,231 @@
+"""Fitting FCN-Pose: Adam, binary cross-entropy over the maps, early stopping, resumable checkpoints.
+
+A run writes, next to the model file NAME.keras:
+
+    NAME.keras             the best weights (lowest validation loss), no optimizer state
+    NAME_loss.csv/.png     training and validation loss per epoch (the paper's loss figure)
+    NAME_train.json        configuration, epochs run, best epoch, time
+    NAME.ckpt/             while running: the last epoch's model with optimizer state, the best
+                           weights so far and the early-stopping state; removed when the run ends
+
+Every checkpoint file is written atomically after each epoch, so an interrupted run (Ctrl-C,
+kill) loses at most the epoch in flight, and `resume=True` continues it.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import tf_keras as keras
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import atomic_path, check_writable, write_json, write_text
+from fcnpose_tf.model import save_for_inference
+
+
+@dataclass
+class FitConfig:
+    """Optimisation settings of one training run."""
+
+    epochs: int = 500
+    patience: int = 20
+    batch_size: int = 8
+    learning_rate: float = 1e-3
+    seed: int = 0
+
+    def validate(self) -> None:
+        if self.epochs < 1:
+            raise UserError(f"epochs must be at least 1, got {self.epochs}")
+        if self.patience < 1:
+            raise UserError(f"patience must be at least 1, got {self.patience}")
+        if self.batch_size < 1:
+            raise UserError(f"batch size must be at least 1, got {self.batch_size}")
+        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
+            raise UserError(f"learning rate must be a positive number, got {self.learning_rate}")
+
+
+@dataclass
+class FitResult:
+    """What a finished run produced."""
+
+    model_path: Path
+    epochs_run: int
+    best_epoch: int
+    best_val_loss: float
+    seconds: float
+    stopped_early: bool
+    history: list[dict[str, float]] = field(default_factory=list)
+
+
+def run_paths(model_path: Path) -> dict[str, Path]:
+    """Files belonging to the run that writes `model_path`."""
+    stem = model_path.with_suffix("")
+    ckpt = Path(f"{stem}.ckpt")
+    return {
+        "model": model_path,
+        "loss_csv": Path(f"{stem}_loss.csv"),
+        "loss_png": Path(f"{stem}_loss.png"),
+        "train_json": Path(f"{stem}_train.json"),
+        "ckpt_dir": ckpt,
+        "ckpt_model": ckpt / "last.keras",
+        "ckpt_best": ckpt / "best.h5",
+        "ckpt_state": ckpt / "state.json",
+    }
+
+
+def compile_for_training(model: keras.Model, learning_rate: float) -> keras.Model:
+    """Adam and binary cross-entropy over all maps, as in the paper."""
+    model.compile(optimizer=keras.optimizers.Adam(learning_rate),
+                  loss=keras.losses.BinaryCrossentropy(), jit_compile=False)
+    return model
+
+
+class _CheckpointAndStop(keras.callbacks.Callback):
+    """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early."""
+
+    def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int):
+        super().__init__()
+        self.paths = paths
+        self.state = state
+        self.patience = patience
+
+    def on_epoch_end(self, epoch: int, logs: dict | None = None) -> None:
+        logs = logs or {}
+        row = {"epoch": epoch + 1, "loss": float(logs["loss"]), "val_loss": float(logs["val_loss"])}
+        self.state["history"].append(row)
+        if row["val_loss"] < self.state["best_val_loss"]:
+            self.state.update(best_val_loss=row["val_loss"], best_epoch=epoch + 1, wait=0)
+            with atomic_path(self.paths["ckpt_best"], force=True) as tmp:
+                self.model.save_weights(tmp)
+        else:
+            self.state["wait"] += 1
+        self.state["epoch"] = epoch + 1
+        with atomic_path(self.paths["ckpt_model"], force=True) as tmp:
+            self.model.save(tmp)
+        write_json(self.paths["ckpt_state"], self.state, force=True)  # written last: marks the epoch complete
+        if self.state["wait"] >= self.patience:
+            self.state["stopped_early"] = True
+            self.model.stop_training = True
+
+
+def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np.ndarray, np.ndarray],
+        model_path: str | Path, config: FitConfig, *, resume: bool = False, force: bool = False,
+        metadata: dict[str, Any] | None = None, verbose: int = 1) -> FitResult:
+    """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
+
+    Args:
+        model: an FCN-Pose (or any maps-to-maps) tf_keras model; compiled here.
+        train_data: a keras Sequence of (images float32 N x S x S x 3, maps float32 N x S x S x C).
+        val_data: validation (images, maps) arrays; the validation loss drives early stopping.
+        model_path: where the best model is saved (.keras or .h5), without optimizer state.
+        config: epochs, patience, batch size, learning rate, seed.
+        resume: continue an interrupted run from `model_path`'s checkpoint.
+        force: replace an existing model file / start over despite a checkpoint.
+        metadata: extra facts recorded in NAME_train.json (data, split, input size...).
+    Returns:
+        FitResult with the epochs run, the best epoch and its validation loss.
+    Raises:
+        UserError: output exists without force, nothing to resume, or a checkpoint exists
+            and neither resume nor force was given.
+    """
+    config.validate()
+    model_path = Path(model_path)
+    if model_path.suffix not in (".keras", ".h5"):
+        raise UserError(f"{model_path}: the model file must end in .keras or .h5")
+    paths = run_paths(model_path)
+    has_ckpt = paths["ckpt_state"].is_file() and paths["ckpt_model"].is_file()
+    if resume and not has_ckpt:
+        raise UserError(f"{paths['ckpt_dir']}: no checkpoint to resume from")
+    if has_ckpt and not resume and not force:
+        raise UserError(f"{paths['ckpt_dir']}: an interrupted run's checkpoint exists; "
+                        "pass --resume to continue it or --force to start over")
+    if not resume:
+        check_writable(model_path, force)
+        if paths["ckpt_dir"].exists():
+            shutil.rmtree(paths["ckpt_dir"])
+    paths["ckpt_dir"].mkdir(parents=True, exist_ok=True)
+
+    keras.utils.set_random_seed(config.seed)
+    if resume:
+        state = json.loads(paths["ckpt_state"].read_text())
+        model = keras.models.load_model(paths["ckpt_model"])  # with optimizer state
+        if state["epoch"] >= config.epochs or state.get("stopped_early"):
+            print(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
+    else:
+        state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
+                 "history": [], "seconds": 0.0, "config": asdict(config)}
+        compile_for_training(model, config.learning_rate)
+
+    start = time.perf_counter()
+    seconds_before = state["seconds"]
+    callback = _CheckpointAndStop(paths, state, config.patience)
+    if state["epoch"] < config.epochs and not state["stopped_early"]:
+        try:
+            model.fit(train_data, validation_data=val_data, validation_batch_size=config.batch_size,
+                      initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[callback],
+                      verbose=verbose)
+        except KeyboardInterrupt:
+            raise UserError(f"interrupted after {state['epoch']} complete epochs; "
+                            f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
+        finally:
+            state["seconds"] = seconds_before + time.perf_counter() - start
+            if state["epoch"] > 0:
+                write_json(paths["ckpt_state"], state, force=True)
+
+    if paths["ckpt_best"].is_file():
+        model.load_weights(paths["ckpt_best"])
+    with atomic_path(model_path, force=True) as tmp:
+        save_for_inference(model, tmp)
+    write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"])
+    write_json(paths["train_json"], {
+        **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
+        "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
+        "stopped_early": state["stopped_early"], "train_seconds": round(state["seconds"], 1),
+    }, force=True)
+    shutil.rmtree(paths["ckpt_dir"], ignore_errors=True)
+    return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
+                     state["stopped_early"], state["history"])
+
+
+def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path) -> None:
+    """Write the per-epoch losses as CSV and as a PNG plot (training and validation BCE)."""
+    lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
+    write_text(csv_path, "\n".join(lines) + "\n", force=True)
+    if not history:
+        return
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    epochs = [h["epoch"] for h in history]
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
+    ax.plot(epochs, [h["loss"] for h in history], label="training")
+    ax.plot(epochs, [h["val_loss"] for h in history], label="validation")
+    best = min(history, key=lambda h: h["val_loss"])
+    ax.axvline(best["epoch"], color="grey", linestyle=":", label=f"best (epoch {best['epoch']})")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("binary cross-entropy")
+    ax.set_yscale("log")
+    ax.set_title("FCN-Pose training loss")
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    with atomic_path(png_path, force=True) as tmp:
+        fig.savefig(tmp)
+    plt.close(fig)
+
+
+def read_loss_csv(csv_path: Path) -> list[dict[str, float]]:
+    """Read back a NAME_loss.csv file."""
+    with open(csv_path, newline="") as fh:
+        return [{"epoch": int(r["epoch"]), "loss": float(r["loss"]), "val_loss": float(r["val_loss"])}
+                for r in csv.DictReader(fh)]
