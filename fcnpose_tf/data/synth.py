@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -307,17 +307,22 @@ def _box(centre, size, yaw: float, material: Material, label: int, **kw) -> Box:
     return Box(np.asarray(centre, np.float64), axes, material, label, **kw)
 
 
+_RING_COS, _RING_SIN = np.cos(np.arange(8) * PI / 4), np.sin(np.arange(8) * PI / 4)
+_SPHERE_DIRS = np.array([[x, y, z] for x in (-1, 0, 1) for y in (-1, 0, 1) for z in (-1, 0, 1) if x or y or z], float)
+_SPHERE_DIRS /= np.linalg.norm(_SPHERE_DIRS, axis=1, keepdims=True)
+
+
 def _part_points(part: Part) -> np.ndarray:
     """A few points on a part's outline (for framing, shadows and overlap tests)."""
     if isinstance(part, Box):
         return part.corners()
     if isinstance(part, Sphere):
-        return part.centre + part.radius * np.vstack([np.eye(3), -np.eye(3)])
+        return part.centre + part.radius * _SPHERE_DIRS
     a = part.p1 - part.p0
     a = a / max(np.linalg.norm(a), 1e-9)
     u = _perpendicular(a, part.u)
     v = np.cross(a, u)
-    ring = np.stack([u, -u, v, -v])
+    ring = _RING_COS[:, None] * u + _RING_SIN[:, None] * v
     r0, r1 = max(part.r0), max(part.r1)
     return np.vstack([part.p0 + r0 * ring, part.p1 + r1 * ring])
 
@@ -460,13 +465,13 @@ def _tool_parts(flange: np.ndarray, n: np.ndarray, side: np.ndarray, style: Robo
 _SKIN = np.array([[0.95, 0.80, 0.69], [0.88, 0.68, 0.55], [0.76, 0.57, 0.42], [0.55, 0.38, 0.26],
                   [0.38, 0.25, 0.17]])
 _HAIR = np.array([[0.05, 0.04, 0.04], [0.18, 0.11, 0.06], [0.35, 0.22, 0.12], [0.75, 0.62, 0.38],
-                  [0.55, 0.55, 0.55]])
+                  [0.45, 0.18, 0.08]])
 _SHIRT = np.array([[0.70, 0.12, 0.12], [0.10, 0.14, 0.36], [0.14, 0.45, 0.20], [0.07, 0.07, 0.08],
                    [0.92, 0.45, 0.10], [0.85, 0.75, 0.15], [0.42, 0.20, 0.50], [0.45, 0.08, 0.12],
                    [0.08, 0.45, 0.45], [0.45, 0.30, 0.18], [0.85, 0.93, 0.15], [0.92, 0.92, 0.90]])
 _TROUSERS = np.array([[0.17, 0.24, 0.40], [0.07, 0.07, 0.08], [0.58, 0.52, 0.38], [0.22, 0.22, 0.23],
                       [0.12, 0.14, 0.24]])
-_HELMET = np.array([[0.95, 0.8, 0.1], [0.95, 0.95, 0.93], [0.95, 0.45, 0.1]])
+_HELMET = np.array([[0.95, 0.8, 0.1], [0.85, 0.15, 0.1], [0.95, 0.45, 0.1], [0.1, 0.3, 0.8]])
 
 
 def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, height: float) -> list[Part]:
@@ -490,22 +495,27 @@ def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, heig
     for side in (-1.0, 1.0):
         hip = base + up * hip_z + side * 0.085 * lat
         foot = base + up * 0.07 + side * 0.11 * lat + rng.uniform(-0.15, 0.15) * fwd
-        parts.append(Tube(hip, foot, (0.078,) * 2, (0.052,) * 2, trousers, lab, segments=14))
+        knee = 0.5 * (hip + foot) + rng.uniform(0.0, 0.06) * fwd
+        parts.append(Tube(hip, knee, (0.08,) * 2, (0.06,) * 2, trousers, lab, caps=(False, False), segments=14))
+        parts.append(Sphere(knee, 0.06, trousers, lab))
+        parts.append(Tube(knee, foot, (0.06,) * 2, (0.05,) * 2, trousers, lab, segments=14))
         parts.append(_box(foot + 0.05 * fwd - 0.035 * up, (0.27, 0.1, 0.08), facing, shoes, lab))
         shoulder = base + up * (sh_z - 0.035) + side * 0.2 * lat
         flex, abduct = rng.uniform(-0.4, 1.4), rng.uniform(0.05, 0.45)
         upper_dir = -up * math.cos(flex) + fwd * math.sin(flex)
         upper_dir = upper_dir * math.cos(abduct) + side * lat * math.sin(abduct)
         elbow = shoulder + 0.17 * h * upper_dir
-        bend = rng.uniform(0.0, 1.9)
-        fore_dir = upper_dir * math.cos(bend) + np.cross(side * lat, upper_dir) * math.sin(bend) * side
-        fore_dir = fore_dir / np.linalg.norm(fore_dir)
+        bend = rng.uniform(0.0, 1.9)  # elbow flexion: the forearm swings forward about the lateral axis
+        ahead = np.cross(upper_dir, lat)
+        ahead /= max(np.linalg.norm(ahead), 1e-6)
+        fore_dir = upper_dir * math.cos(bend) + ahead * math.sin(bend)
         wrist = elbow + 0.145 * h * fore_dir
+        sleeve = shirt if long_sleeves else skin
         parts.append(Sphere(shoulder, 0.052, shirt, lab))
-        parts.append(Tube(shoulder, elbow, (0.056,) * 2, (0.045,) * 2, shirt, lab, segments=12))
-        parts.append(Tube(elbow, wrist, (0.044,) * 2, (0.032,) * 2, shirt if long_sleeves else skin, lab,
-                          segments=12))
-        parts.append(Sphere(wrist + 0.06 * fore_dir, 0.047, skin, lab))
+        parts.append(Tube(shoulder, elbow, (0.056,) * 2, (0.045,) * 2, shirt, lab, caps=(False, False), segments=12))
+        parts.append(Sphere(elbow, 0.044, sleeve, lab))
+        parts.append(Tube(elbow, wrist, (0.044,) * 2, (0.032,) * 2, sleeve, lab, caps=(False, True), segments=12))
+        parts.append(Sphere(wrist + 0.045 * fore_dir, 0.04, skin, lab))
     parts.append(Tube(base + up * (hip_z - 0.1), base + up * (hip_z + 0.04), (0.17, 0.115), (0.17, 0.115),
                       trousers, lab, u=lat, segments=16))
     parts.append(Tube(base + up * (hip_z + 0.02), base + up * (sh_z + 0.01), (0.165, 0.11), (0.205, 0.12), shirt,
@@ -955,7 +965,7 @@ class SynthSample:
     person: str
     mount: str
     tool: str
-    extra: dict = field(default_factory=dict)
+    tool_length: float
 
 
 def _frame_rng(seed: int, index: int) -> np.random.Generator:
@@ -1202,37 +1212,8 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     arm_lo, arm_hi = arm_lo - pad, arm_hi + pad
     robot_far = float(cam.to_camera(np.vstack([robot_pts] + [_part_points(p) for p in mount_parts]))[:, 2].max())
 
-    # the person: none, beside/behind the robot, or between camera and robot hiding part of the arm
-    person: list[Part] = []
-    person_mode = "none"
-    r = rng.random()
+    person, person_mode = _place_person(rng, cam, kp3d, kp_uv, kp_z, mount_radius)
     cam_xy = cam.eye[:2]
-    to_cam = cam_xy / max(np.linalg.norm(cam_xy), 1e-6)
-    person_keepout = max(1.0, mount_radius + 0.45)
-    if r < 0.22:
-        for _ in range(12):
-            lam = rng.uniform(0.25, 0.6)
-            side = np.array([-to_cam[1], to_cam[0]]) * rng.uniform(-0.6, 0.6)
-            feet = cam_xy * (1 - lam) + side
-            if np.linalg.norm(feet) < person_keepout or np.linalg.norm(feet - cam_xy) < 1.1:
-                continue
-            cand = person_parts(rng, feet, math.atan2(-feet[1], -feet[0]) + rng.normal(0, 0.8),
-                                rng.uniform(1.58, 1.92))
-            hidden = _covered(cand, cam, kp_uv, kp_z)
-            if 1 <= hidden.sum() <= 3:
-                person, person_mode = cand, "occluding"
-                break
-    if not person and r < 0.8:
-        for _ in range(12):
-            ang = math.atan2(to_cam[1], to_cam[0]) + rng.choice([-1, 1]) * rng.uniform(0.6, 2.6)
-            dist = rng.uniform(person_keepout, person_keepout + 1.2)
-            feet = dist * np.array([math.cos(ang), math.sin(ang)])
-            if np.linalg.norm(feet - cam_xy) < 0.8:
-                continue
-            cand = person_parts(rng, feet, rng.uniform(-PI, PI), rng.uniform(1.58, 1.92))
-            if not _covered(cand, cam, kp_uv, kp_z).any():
-                person, person_mode = cand, "beside"
-                break
 
     keepout = [(np.zeros(2), mount_radius + 1.0), (cam_xy, 0.7)]
     if person:
@@ -1283,7 +1264,53 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     for k in np.flatnonzero(inside):
         x, y = int(round(kp_uv[k, 0])), int(round(kp_uv[k, 1]))
         occluded[k] = labels_1x[y, x] == LABEL_PERSON
-    return SynthSample(img, keypoints, kp3d, q, cam, occluded, labels_1x, person_mode, mount, style.tool)
+    return SynthSample(img, keypoints, kp3d, q, cam, occluded, labels_1x, person_mode, mount, style.tool,
+                       style.tool_length)
+
+
+def _robot_clearance(parts: Sequence[Part], kp3d: np.ndarray) -> float:
+    """Smallest distance (m) from the parts' outline points to the arm's skeleton, minus the arm's radius."""
+    pts = np.vstack([_part_points(p) for p in parts])
+    chain = np.vstack([kp3d[:1], kp3d[:1] + (0, 0, 0.1), kp3d[1:]])
+    return min(float(_segment_distance(pts, a, b).min()) for a, b in zip(chain[:-1], chain[1:])) - 0.08
+
+
+def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv: np.ndarray, kp_z: np.ndarray,
+                  mount_radius: float) -> tuple[list[Part], str]:
+    """A person standing clear of the robot: ([], "none"), beside it, or in front hiding 1-3 keypoints."""
+    r = rng.random()
+    cam_xy = cam.eye[:2]
+    arm_xy = kp3d[:, :2].mean(0)
+    away = max(0.55, mount_radius + 0.3)  # feet at least this far from the base axis
+
+    def make(feet, facing):
+        return person_parts(rng, feet, facing, rng.uniform(1.58, 1.92))
+
+    if r < 0.3:
+        line = arm_xy - cam_xy
+        lateral = np.array([-line[1], line[0]]) / max(np.linalg.norm(line), 1e-6)
+        unit = line / max(np.linalg.norm(line), 1e-6)
+        for _ in range(30):  # next to the robot on the camera's side, as a co-worker would stand
+            feet = arm_xy - rng.uniform(0.35, 1.1) * unit + rng.uniform(-0.7, 0.7) * lateral
+            if np.linalg.norm(feet - cam_xy) < 1.0 or np.linalg.norm(feet) < away:
+                continue
+            toward_robot = math.atan2(-feet[1], -feet[0])
+            cand = make(feet, toward_robot + rng.normal(0, 0.9))
+            hidden = int(_covered(cand, cam, kp_uv, kp_z).sum())
+            if 1 <= hidden <= 3 and _robot_clearance(cand, kp3d) > 0.1:
+                return cand, "occluding"
+    if r < 0.85:
+        to_cam = math.atan2(cam_xy[1], cam_xy[0])
+        for _ in range(20):
+            ang = to_cam + rng.choice([-1, 1]) * rng.uniform(0.5, 2.8)
+            feet = rng.uniform(away, away + 1.3) * np.array([math.cos(ang), math.sin(ang)])
+            if np.linalg.norm(feet - cam_xy) < 0.8:
+                continue
+            facing = math.atan2(-feet[1], -feet[0]) + rng.normal(0, 1.0)
+            cand = make(feet, facing)
+            if not _covered(cand, cam, kp_uv, kp_z).any() and _robot_clearance(cand, kp3d) > 0.1:
+                return cand, "beside"
+    return [], "none"
 
 
 def _covered(parts: Sequence[Part], cam: Camera, kp_uv: np.ndarray, kp_z: np.ndarray) -> np.ndarray:

@@ -1,0 +1,247 @@
+"""Synthetic UR5 generator: kinematics, camera, rendering, determinism, VIA output, errors (tiny frames)."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from fcnpose_tf.data import synth
+from fcnpose_tf.data.synth import (Camera, forward_kinematics, generate, generate_dataset, pose_is_plausible,
+                                   render_frame, render_sample, sample_joints, ur5_keypoints_3d)
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.keypoints import UR5
+
+W, H = 160, 120
+
+# UR5 DH frame origins with all joints at zero (arm stretched along -x), from d1, a2, a3, d4, d5, d6.
+ZERO_POSE_ORIGINS = np.array([
+    [0.0, 0.0, 0.0],
+    [0.0, 0.0, 0.089159],
+    [-0.425, 0.0, 0.089159],
+    [-0.81725, 0.0, 0.089159],
+    [-0.81725, -0.10915, 0.089159],
+    [-0.81725, -0.10915, 0.089159 - 0.09465],
+    [-0.81725, -0.10915 - 0.0823, 0.089159 - 0.09465],
+])
+
+
+def test_forward_kinematics_zero_pose_gives_documented_dh_positions():
+    frames = forward_kinematics(np.zeros(6))
+    np.testing.assert_allclose(frames[:, :3, 3], ZERO_POSE_ORIGINS, atol=1e-12)
+    np.testing.assert_allclose(frames[6, :3, 2], [0.0, -1.0, 0.0], atol=1e-12)  # flange faces -y
+
+
+def test_forward_kinematics_upright_pose():
+    # shoulder at -90 degrees raises the upper arm and forearm straight up
+    origins = forward_kinematics([0.0, -math.pi / 2, 0.0, -math.pi / 2, 0.0, 0.0])[:, :3, 3]
+    np.testing.assert_allclose(origins[2], [0.0, 0.0, 0.089159 + 0.425], atol=1e-12)
+    np.testing.assert_allclose(origins[3], [0.0, 0.0, 0.089159 + 0.425 + 0.39225], atol=1e-12)
+
+
+def test_forward_kinematics_invariants_for_random_poses():
+    rng = np.random.default_rng(1)
+    for _ in range(20):
+        q = rng.uniform(-math.pi, math.pi, 6)
+        frames = forward_kinematics(q)
+        o = frames[:, :3, 3]
+        assert np.linalg.norm(o[2] - o[1]) == pytest.approx(0.425)
+        assert np.linalg.norm(o[3] - o[2]) == pytest.approx(0.39225)
+        assert np.linalg.norm(o[6] - o[5]) == pytest.approx(0.0823)
+        for f in frames:  # proper rotations
+            np.testing.assert_allclose(f[:3, :3] @ f[:3, :3].T, np.eye(3), atol=1e-12)
+        # turning the base joint turns the whole arm about the vertical axis
+        c, s = math.cos(0.7), math.sin(0.7)
+        rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        turned = forward_kinematics(q + [0.7, 0, 0, 0, 0, 0])[:, :3, 3]
+        np.testing.assert_allclose(turned, o @ rz.T, atol=1e-12)
+
+
+def test_keypoints_3d_lie_on_their_joint_axes():
+    q = np.array([0.3, -1.2, 1.1, -1.4, -1.5, 0.2])
+    frames = forward_kinematics(q)
+    kp = ur5_keypoints_3d(q, tool_length=0.15, base_z=0.0)
+    assert kp.shape == (UR5.num_keypoints, 3)
+    np.testing.assert_allclose(kp[0], 0.0)
+    for k, axis_frame in zip(range(1, 6), range(1, 6)):  # shoulder..wrist3 on the axes z1..z5
+        o, z = frames[axis_frame, :3, 3], frames[axis_frame, :3, 2]
+        assert np.linalg.norm(np.cross(kp[k] - o, z)) < 1e-12
+    np.testing.assert_allclose(kp[6], frames[6, :3, 3])
+    np.testing.assert_allclose(kp[7], frames[6, :3, 3] + 0.15 * frames[6, :3, 2])
+    np.testing.assert_allclose(ur5_keypoints_3d(q, 0.15, base_z=0.5) - kp, np.tile([0, 0, 0.5], (8, 1)))
+
+
+def test_sampled_poses_are_plausible_and_above_the_mount():
+    rng = np.random.default_rng(2)
+    for _ in range(100):
+        q = sample_joints(rng, tool_length=0.15)
+        assert pose_is_plausible(q, 0.15)
+        assert np.all(np.abs(q) <= 2 * math.pi)
+        assert ur5_keypoints_3d(q, 0.15)[1:, 2].min() > 0.0
+
+
+def test_implausible_poses_are_rejected():
+    assert not pose_is_plausible([0.0, 0.6, 0.0, 0.0, 0.0, 0.0])  # upper arm pointing into the floor
+    assert not pose_is_plausible([0.0, -math.pi / 2, 2.9, 0.0, 0.0, 0.0])  # elbow folded onto itself
+
+
+def test_camera_projection_pixel_centre_convention():
+    cam = Camera.look_at([3.0, 0.0, 1.0], [0.0, 0.0, 1.0], focal=500.0, width=W, height=H)
+    uv, z = cam.project(np.array([[0.0, 0.0, 1.0], [0.0, 0.3, 1.0], [0.0, 0.0, 1.3], [4.0, 0.0, 1.0]]))
+    np.testing.assert_allclose(uv[0], [(W - 1) / 2, (H - 1) / 2])  # the target lands on the image centre
+    np.testing.assert_allclose(uv[1], [(W - 1) / 2 + 50.0, (H - 1) / 2])  # looking along -x, +y is right
+    assert np.linalg.det(cam.R) == pytest.approx(1.0)  # a rotation: the image is not mirrored
+    np.testing.assert_allclose(uv[2], [(W - 1) / 2, (H - 1) / 2 - 50.0])  # up is up
+    assert z[0] == pytest.approx(3.0) and z[3] < 0  # behind the camera
+    uv2, _ = cam.scaled(2).project(np.array([[0.0, 0.3, 1.0]]))
+    np.testing.assert_allclose(uv2[0], (uv[1] + 0.5) * 2 - 0.5)
+
+
+@pytest.fixture(scope="module")
+def samples():
+    return [render_sample(0, i, W, H) for i in range(8)]
+
+
+def test_rendered_keypoints_are_the_projected_kinematics(samples):
+    for s in samples:
+        assert s.image.shape == (H, W, 3) and s.image.dtype == np.uint8 and s.image.flags.c_contiguous
+        assert s.keypoints.shape == (8, 2)
+        uv, z = s.camera.project(s.keypoints_3d)
+        np.testing.assert_allclose(s.keypoints_3d, ur5_keypoints_3d(s.joints, s.tool_length, s.keypoints_3d[0, 2]))
+        inside = np.isfinite(s.keypoints).all(1)
+        np.testing.assert_allclose(s.keypoints[inside], uv[inside])
+        assert np.isnan(s.keypoints[~inside]).all()
+        k = s.keypoints[inside]
+        assert (k >= 0).all() and (k[:, 0] <= W - 1).all() and (k[:, 1] <= H - 1).all()
+        assert (z > 0).all()
+
+
+def test_joint_keypoints_are_drawn_on_the_robot(samples):
+    """Where the person does not hide it, each joint centre projects onto pixels the renderer drew as robot."""
+    checked = 0
+    for s in samples:
+        for k in range(1, 7):  # shoulder, elbow, wrist1-3, flange: inside the arm's silhouette
+            if not np.isfinite(s.keypoints[k]).all() or s.occluded[k]:
+                continue
+            x, y = np.round(s.keypoints[k]).astype(int)
+            assert s.labels[y, x] == synth.LABEL_ROBOT, (k, s.labels[y - 1:y + 2, x - 1:x + 2])
+            checked += 1
+    assert checked >= 30
+
+
+def test_arm_is_framed_large_and_mostly_complete(samples):
+    spans = []
+    for s in samples:
+        k = s.keypoints[np.isfinite(s.keypoints).all(1)]
+        assert len(k) >= 6
+        spans.append(max(np.ptp(k[:, 0]) / W, np.ptp(k[:, 1]) / H))
+    assert 0.3 <= np.median(spans) <= 0.8
+
+
+def test_render_frame_is_deterministic_per_index():
+    img_a, kp_a = render_frame(5, 3, W, H)
+    img_b, kp_b = render_frame(5, 3, W, H)
+    img_c, _ = render_frame(5, 4, W, H)
+    img_d, _ = render_frame(6, 3, W, H)
+    assert np.array_equal(img_a, img_b) and np.array_equal(kp_a, kp_b, equal_nan=True)
+    assert not np.array_equal(img_a, img_c) and not np.array_equal(img_a, img_d)
+
+
+def _files(folder):
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_same_seed_gives_identical_files_for_any_worker_count(tmp_path):
+    a = generate(tmp_path / "a", n=4, seed=3, width=W, height=H, workers=1, progress=False)
+    b = generate(tmp_path / "b", n=4, seed=3, width=W, height=H, workers=2, progress=False)
+    c = generate(tmp_path / "c", n=4, seed=4, width=W, height=H, workers=1, progress=False)
+    fa, fb, fc = _files(a.parent), _files(b.parent), _files(c.parent)
+    assert sorted(fa) == ["images/synth_00000.png", "images/synth_00001.png", "images/synth_00002.png",
+                          "images/synth_00003.png", "ur5_synth.json"]
+    assert fa == fb
+    assert all(fa[name] != fc[name] for name in fa)
+    # a frame depends only on (seed, index): the written PNG equals the in-memory render
+    import cv2
+
+    image, _ = render_frame(3, 2, W, H)
+    assert np.array_equal(cv2.imread(str(a.parent / "images/synth_00002.png")), image)
+
+
+def test_via_project_has_the_keypoints_as_named_points(tmp_path):
+    from fcnpose_tf.data.via import read_via
+
+    report = generate_dataset(tmp_path / "set", n=4, seed=0, width=W, height=H, workers=1, progress=False)
+    data = json.loads(report.via_path.read_text())
+    meta = data["_via_img_metadata"]
+    assert len(meta) == 4
+    for record in report.frames:
+        entry = meta[f"{record.filename}{record.size}"]
+        assert entry["size"] == (tmp_path / "set/images" / record.filename).stat().st_size
+        names = [r["region_attributes"]["keypoint"] for r in entry["regions"]]
+        visible = [n for n, ok in zip(UR5.keypoints, np.isfinite(record.keypoints).all(1)) if ok]
+        assert names == visible
+        for region, (x, y) in zip(entry["regions"], record.keypoints[np.isfinite(record.keypoints).all(1)]):
+            assert region["shape_attributes"]["name"] == "point"
+            assert region["shape_attributes"]["cx"] == pytest.approx(x, abs=1e-3)
+            assert region["shape_attributes"]["cy"] == pytest.approx(y, abs=1e-3)
+    back = read_via(report.via_path, min_visible=1)
+    assert [f.filename for f in back.frames] == [r.filename for r in report.frames]
+    for frame, record in zip(back.frames, report.frames):
+        assert (frame.width, frame.height) == (W, H)
+        np.testing.assert_allclose(frame.keypoints, record.keypoints, atol=1e-3)
+
+
+def test_bad_arguments_raise_user_errors(tmp_path):
+    with pytest.raises(UserError, match="at least 1"):
+        generate(tmp_path / "x", n=0, width=W, height=H, progress=False)
+    with pytest.raises(UserError, match="too small"):
+        generate(tmp_path / "x", n=1, width=16, height=H, progress=False)
+    with pytest.raises(UserError, match="workers"):
+        generate(tmp_path / "x", n=1, width=W, height=H, workers=0, progress=False)
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "keep.txt").write_text("mine")
+    with pytest.raises(UserError, match="not empty"):
+        generate(tmp_path / "full", n=1, width=W, height=H, progress=False)
+    (tmp_path / "file").write_text("")
+    with pytest.raises(UserError, match="not a folder"):
+        generate(tmp_path / "file", n=1, width=W, height=H, progress=False)
+    with pytest.raises(UserError, match="cannot create"):
+        generate(tmp_path / "file" / "sub", n=1, width=W, height=H, progress=False)
+
+
+def test_force_rewrites_and_removes_stale_frames(tmp_path):
+    out = tmp_path / "set"
+    generate(out, n=3, seed=0, width=W, height=H, workers=1, progress=False)
+    (out / "notes.txt").write_text("mine")
+    generate(out, n=2, seed=1, width=W, height=H, workers=1, force=True, progress=False)
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["synth_00000.png", "synth_00001.png"]
+    assert (out / "notes.txt").read_text() == "mine"
+    assert len(json.loads((out / "ur5_synth.json").read_text())["_via_img_metadata"]) == 2
+
+
+def test_cli_writes_a_dataset_and_a_preview(cli, tmp_path):
+    proc = cli("synth", "--out", tmp_path / "s", "--n", 2, "--width", W, "--height", H, "--workers", 1,
+               "--preview", tmp_path / "p.png", "--no-progress")
+    assert proc.returncode == 0, proc.stderr
+    assert "frames" in proc.stdout and "ur5_synth.json" in proc.stdout
+    assert (tmp_path / "s/images/synth_00001.png").is_file() and (tmp_path / "p.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--n", "0"], "--n must be at least 1"),
+    (["--n", "x"], "invalid int value"),
+    (["--workers", "0"], "--workers must be at least 1"),
+])
+def test_cli_errors_exit_2(cli, tmp_path, args, message):
+    proc = cli("synth", "--out", tmp_path / "s", *args)
+    assert proc.returncode == 2
+    assert message in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_cli_refuses_a_non_empty_folder(cli, tmp_path):
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "old.png").write_bytes(b"x")
+    proc = cli("synth", "--out", tmp_path / "s", "--n", 1, "--width", W, "--height", H)
+    assert proc.returncode == 2
+    assert "not empty; pass --force" in proc.stderr and "Traceback" not in proc.stderr
+    assert (tmp_path / "s" / "old.png").read_bytes() == b"x"
