@@ -389,3 +389,19 @@ def test_postprocess_imports_no_tensorflow():
             "bad = [m for m in ('tensorflow', 'tf_keras', 'keras') if m in sys.modules]; "
             "sys.exit(1 if bad else 0)")
     assert subprocess.run([sys.executable, "-c", code]).returncode == 0
+
+
+def test_result_does_not_depend_on_opencv_threads():
+    """OpenCV may label in parallel stripes with several threads; the tie rule must not care."""
+    import cv2
+    rng = np.random.default_rng(13)
+    maps = realistic_maps(rng, size=224, num_maps=9, speckles=40)
+    maps[..., 3] = rng.random((224, 224)) < 0.5                     # thousands of clusters, ties
+    old = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        single = maps_to_keypoints(maps)
+        cv2.setNumThreads(4)
+        assert_same(maps_to_keypoints(maps), single)
+    finally:
+        cv2.setNumThreads(old)
