@@ -187,3 +187,29 @@ def test_bench_user_errors(capsys, tmp_path, model_path, args, message):
     args = [a.format(missing=tmp_path / "nope.png") for a in args]
     code, _, err = _run(capsys, "bench", model_path, *args)
     _one_line_error(code, err, message)
+
+
+def test_sigterm_ends_a_run_cleanly(tmp_path, model_path):
+    """`kill` during a run: exit 0, summary printed, every record written so far is complete."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    frames = [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(4)] * 1500
+    long_video = write_video(tmp_path / "long.avi", frames, fps=30)
+    out = tmp_path / "k.jsonl"
+    proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "run", str(model_path), "--source", str(long_video),
+                             "--threads", "1", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2"))
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out.exists() and out.stat().st_size > 0):
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 0, stderr
+    assert "stopped: terminated (SIGTERM)" in stdout
+    lines = out.read_text().splitlines()
+    assert 0 < len(lines) < 6000 and f"Wrote:   {out} ({len(lines)} records)" in stdout
+    assert [json.loads(line)["frame"] for line in lines] == list(range(len(lines)))

@@ -370,6 +370,37 @@ def test_runtime_matches_training_side_path(structured, random_model):
     np.testing.assert_allclose(KeypointModel(path, 2).predict_maps(frame), keras_maps, atol=1e-2)
 
 
+@pytest.mark.parametrize("dtype", ["uint8", "int8"])
+def test_fully_quantized_models_are_fed_and_read_through_their_scales(tmp_path, dtype):
+    """Integer input/output (full-integer quantization): the frame is quantized, the maps dequantized."""
+    import tensorflow as tf
+
+    from fcnpose_tf.model import describe
+    from fcnpose_tf.preprocess import preprocess_frame
+
+    keras_model = _structured_model()
+
+    def representative():
+        for red in RED_CYCLE:
+            yield [preprocess_frame(quadrant_frame(640, 480, red), SIZE)[None]]
+
+    converter = tf.lite.TFLiteConverter.from_keras_model(keras_model)
+    converter.optimizations = [tf.lite.Optimize.DEFAULT]
+    converter.representative_dataset = representative
+    converter.target_spec.supported_ops = [tf.lite.OpsSet.TFLITE_BUILTINS_INT8]
+    converter.inference_input_type = converter.inference_output_type = getattr(tf, dtype)
+    path = tmp_path / f"{dtype}.tflite"
+    path.write_bytes(converter.convert())
+    model = KeypointModel(path, 1)
+    assert model.io.input.dtype == np.dtype(dtype) and model.io.input.quantized and model.io.output.quantized
+    for red in RED_CYCLE:
+        pred = model.predict(quadrant_frame(640, 480, red))
+        np.testing.assert_allclose(pred.keypoints, expected_keypoints(640, 480, red), atol=1e-9)
+    stats = model.stats()
+    assert "int8" in stats.weight_dtypes
+    assert stats.params == keras_model.count_params() and stats.macs == sum(r.macs for r in describe(keras_model))
+
+
 def test_predict_reuses_buffers_and_leaves_interpreter_usable(structured):
     model = KeypointModel(structured[1], 1)
     frames = [quadrant_frame(640, 480, r) for r in RED_CYCLE]

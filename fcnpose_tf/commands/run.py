@@ -79,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     previous_term = signal.getsignal(signal.SIGTERM)
 
     def on_term(signum, frame):  # a `kill` ends the run like Ctrl-C: outputs closed, summary printed
-        raise KeyboardInterrupt
+        raise KeyboardInterrupt("terminated (SIGTERM)")
 
     finished = False
     try:

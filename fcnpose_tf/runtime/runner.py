@@ -154,8 +154,8 @@ def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[Reco
             if max_frames is not None and summary.frames >= max_frames:
                 summary.end_reason = f"reached --max-frames {max_frames}"
                 break
-    except KeyboardInterrupt:
-        summary.end_reason = "interrupted (Ctrl-C)"
+    except KeyboardInterrupt as exc:  # Ctrl-C, or a signal handler raising KeyboardInterrupt("reason")
+        summary.end_reason = str(exc) or "interrupted (Ctrl-C)"
     finally:
         summary.wall_s = time.perf_counter() - start
         if progress is not None:
