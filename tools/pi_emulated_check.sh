@@ -449,7 +449,12 @@ PYTHONPATH=$WORK/src "$HOST_PY" -m fcnpose_tf run "$WORK/model.tflite" --source 
     --threads "$THREADS" --out "$WORK/k-x86.jsonl" >"$WORK/run-x86.log" 2>&1 \
     || { tail -8 "$WORK/run-x86.log" | sed 's/^/    /' >&2; fail "fcnpose-tf run on x86 failed (log above)"; }
 t_run=$SECONDS
-guest "$GUEST_VENV/bin/fcnpose-tf" run "$GUEST_WORK/model.tflite" --source "$GUEST_WORK/frames" \
+if [[ $MODE == direct ]]; then  # qemu called directly runs ELF files only, not the console script
+    guest_cli=("$GUEST_VENV/bin/python" -m fcnpose_tf)
+else
+    guest_cli=("$GUEST_VENV/bin/fcnpose-tf")
+fi
+guest "${guest_cli[@]}" run "$GUEST_WORK/model.tflite" --source "$GUEST_WORK/frames" \
     --threads "$THREADS" --out "$GUEST_WORK/k-arm64.jsonl" >"$WORK/run-arm64.log" 2>&1 \
     || { tail -8 "$WORK/run-arm64.log" | sed 's/^/    /' >&2; fail "fcnpose-tf run in the emulated arm64 userland failed (log above)"; }
 log "emulated fcnpose-tf run took $((SECONDS - t_run)) s; its summary:"
