@@ -295,20 +295,12 @@ def _sample_frames(frames: np.ndarray | None, input_shape: tuple[int, ...], num_
     return frames
 
 
-def load_interpreter(model: bytes | str | os.PathLike, num_threads: int | None = None):
-    """A TFLite interpreter with tensors allocated: ai_edge_litert (LiteRT), else tflite_runtime, else tf.lite."""
-    try:
-        from ai_edge_litert.interpreter import Interpreter
-    except ImportError:  # pragma: no cover - ai-edge-litert is a core dependency
-        try:
-            from tflite_runtime.interpreter import Interpreter
-        except ImportError:
-            from tensorflow.lite import Interpreter
+def _interpreter(data: bytes, num_threads: int | None = None):
+    """An allocated interpreter for flatbuffer bytes, from the runtime's backend order (LiteRT first)."""
+    from fcnpose_tf.runtime.interpreter import find_backend
+
     kwargs: dict[str, Any] = {"num_threads": num_threads} if num_threads else {}
-    if isinstance(model, (bytes, bytearray)):
-        interpreter = Interpreter(model_content=bytes(model), **kwargs)
-    else:
-        interpreter = Interpreter(model_path=os.fspath(model), **kwargs)
+    interpreter = find_backend().interpreter_class(model_content=bytes(data), **kwargs)
     interpreter.allocate_tensors()
     return interpreter
 
@@ -352,7 +344,7 @@ def verify_tflite(model: keras.Model, tflite: bytes, frames: np.ndarray, *, map_
     """
     what = f"the {label} TFLite model"
     try:
-        interpreter = load_interpreter(tflite, num_threads)
+        interpreter = _interpreter(tflite, num_threads)
     except Exception as exc:
         detail = str(exc).strip().splitlines()
         raise ExportVerificationError(f"{what} does not load in the interpreter ({type(exc).__name__}: "
@@ -431,7 +423,8 @@ def _compare_keypoints(keras_maps: np.ndarray, tflite_maps: np.ndarray, max_diff
 # --------------------------------------------------------------------------------------------
 
 def _enum_names(enum_class: type) -> dict[int, str]:
-    return {value: name for name, value in vars(enum_class).items() if not name.startswith("_") and isinstance(value, int)}
+    return {value: name for name, value in vars(enum_class).items()
+            if not name.startswith("_") and isinstance(value, int)}
 
 
 def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:

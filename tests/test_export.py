@@ -8,8 +8,8 @@ import tf_keras as keras
 
 from fcnpose_tf import export as export_module
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.export import (ExportVerificationError, export_tflite, inspect_tflite, load_interpreter, run_tflite,
-                               to_tflite, verify_tflite, write_tflite)
+from fcnpose_tf.export import (ExportVerificationError, export_tflite, inspect_tflite, run_tflite, to_tflite,
+                               verify_tflite, write_tflite)
 from fcnpose_tf.model import build_fcn_pose
 from fcnpose_tf.prune import prune_model
 
@@ -143,9 +143,14 @@ def test_every_export_at_224_matches_keras(sizes224):
 # parity with Keras
 # ------------------------------------------------------------------------------------------
 
-def test_parity_on_fresh_frames(fcn64, fcn64_fp16):
+def test_parity_on_fresh_frames(fcn64, fcn64_fp16, tmp_path):
+    from fcnpose_tf.runtime.interpreter import load_interpreter
+
+    path = tmp_path / "fcn64_fp16.tflite"
+    path.write_bytes(fcn64_fp16.data)
+    interpreter, _ = load_interpreter(path, num_threads=1)  # the Pi-side loader, no TensorFlow involved
     x = frames(64, n=3, seed=7)  # not the frames the export was verified on
-    got = run_tflite(load_interpreter(fcn64_fp16.data, num_threads=1), x)
+    got = run_tflite(interpreter, x)
     want = fcn64(x, training=False).numpy()
     assert got.shape == want.shape == (3, 64, 64, 9)
     assert np.abs(got - want).max() <= 1e-2
@@ -239,7 +244,8 @@ def test_corrupt_bytes_are_refused(fcn64, fcn64_fp16, tmp_path, monkeypatch):
 
 def test_wrong_interface_is_refused(fcn64, monkeypatch):
     _substitute(monkeypatch, to_tflite(build_fcn_pose(input_size=32), "float32"))
-    with pytest.raises(ExportVerificationError, match=r"takes float32 \[1, 32, 32, 3\], expected float32 \[1, 64, 64, 3\]"):
+    with pytest.raises(ExportVerificationError,
+                       match=r"takes float32 \[1, 32, 32, 3\], expected float32 \[1, 64, 64, 3\]"):
         to_tflite(fcn64)
 
 
