@@ -523,9 +523,9 @@ def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, heig
     yoke = base + up * (sh_z - 0.035)
     parts.append(Tube(yoke - 0.2 * lat, yoke + 0.2 * lat, (0.055, 0.05), (0.055, 0.05), shirt, lab, u=up,
                       caps=(False, False), segments=14))
-    parts.append(Tube(base + up * (sh_z - 0.02), base + up * 0.885 * h, (0.05,) * 2, (0.045,) * 2, skin, lab,
-                      segments=10))
-    head = base + up * 0.935 * h + 0.01 * fwd
+    parts.append(Tube(base + up * (sh_z - 0.02), base + up * 0.875 * h, (0.06,) * 2, (0.052,) * 2, skin, lab,
+                      segments=12))
+    head = base + up * 0.925 * h + 0.01 * fwd
     parts.append(Sphere(head, 0.057 * h, skin, lab))
     if helmet:
         parts.append(Sphere(head + up * 0.035 - 0.01 * fwd, 0.062 * h, hair, lab))
@@ -890,7 +890,7 @@ def _render_background(rng: np.random.Generator, cam: Camera, room: Room, light:
     wall_seeds = rng.integers(0, 2 ** 63, size=4)
     out = np.zeros((H, W, 3), np.float32)
 
-    ppm_floor, size = 96.0, 384  # 4 m of floor, tiled
+    ppm_floor, size = 64.0, 256  # 4 m of floor, tiled
     floor_tex = _floor_texture(rng, size, ppm_floor)
     floor = (surf == 0).astype(np.uint8)
     if present[0]:
@@ -1361,7 +1361,7 @@ def _camera_effects(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
     vignette = np.float32(rng.uniform(0.0, 0.25) / 2)
     vx = ((np.arange(w, dtype=np.float32) - w / 2) / (w / 2)) ** 2
     vy = ((np.arange(h, dtype=np.float32) - h / 2) / (h / 2)) ** 2
-    img = img * (1.0 - vignette * (vx[None, :] + vy[:, None]))[..., None]
+    img *= (1.0 - vignette * (vx[None, :] + vy[:, None]))[..., None]
     img *= gain
     if rng.random() < 0.12:  # camera shake
         n = int(rng.integers(3, 8) * scale) | 1
@@ -1371,14 +1371,21 @@ def _camera_effects(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
         kernel = cv2.warpAffine(kernel, rot, (n, n))
         img = cv2.filter2D(img, -1, kernel / max(float(kernel.sum()), 1e-6))
     img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.25, 1.1) * scale)
-    noise = rng.standard_normal(img.shape, dtype=np.float32)
-    noise *= np.sqrt(np.clip(img, 0.02, 1.0)) * np.float32(1.6 * rng.uniform(0.004, 0.022))
-    img += noise
-    img = img[..., ::-1] * np.float32(255.0)  # RGB -> BGR
-    out = np.clip(img + 0.5, 0, 255).astype(np.uint8)
+    # sensor noise after the camera's processing: mostly luminance, shot-noise-like (grows with sqrt of the
+    # level), plus coarser colour noise
+    sigma = np.float32(1.6 * rng.uniform(0.004, 0.022))
+    lum = rng.standard_normal((h, w), dtype=np.float32)
+    lum *= np.sqrt(np.clip(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), 0.02, 1.0))
+    lum *= sigma
+    img += lum[..., None]
+    chroma = rng.standard_normal(((h + 1) // 2, (w + 1) // 2, 3), dtype=np.float32)
+    chroma *= sigma * np.float32(0.35)
+    img += cv2.resize(chroma, (w, h), interpolation=cv2.INTER_LINEAR)
+    np.clip(img, 0.0, 1.0, out=img)
+    out = cv2.cvtColor(cv2.convertScaleAbs(img, alpha=255.0), cv2.COLOR_RGB2BGR)
     gamma = rng.uniform(0.85, 1.15)
     lut = np.clip(255.0 * (np.arange(256) / 255.0) ** gamma + 0.5, 0, 255).astype(np.uint8)
-    out = np.ascontiguousarray(cv2.LUT(np.ascontiguousarray(out), lut))
+    out = cv2.LUT(out, lut)
     if rng.random() < 0.5:  # webcam MJPEG compression
         _, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(60, 96))])
         out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
