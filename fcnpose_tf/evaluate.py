@@ -28,6 +28,51 @@ MIN_TIMED_FRAMES = 50
 WARMUP_FRAMES = 5
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex SHA-256 of a file: identifies the exact annotation file a model was trained on."""
+    import hashlib
+
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def training_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
+    """The NAME_train.json written beside a model by `fcnpose-tf train`, or None."""
+    import json
+
+    stem = Path(model_path).with_suffix("")
+    # NAME.keras -> NAME_train.json; an export NAME_fp16.tflite -> NAME_train.json too
+    for candidate in (Path(f"{stem}_train.json"), stem.with_name(f"{stem.name.rsplit('_', 1)[0]}_train.json")):
+        if candidate.is_file():
+            try:
+                return json.loads(candidate.read_text())
+            except ValueError:
+                return None
+    return None
+
+
+def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold: int | None
+                  ) -> tuple[list[int], str]:
+    """Frame indices to evaluate and a description of them.
+
+    split "val": the validation part of the hold-out split (or of `fold`); "all": every frame;
+    "auto": the validation part if the model was trained on this very annotation file (its
+    NAME_train.json records the file's SHA-256), otherwise every frame (an unseen dataset).
+    """
+    if split == "auto":
+        record = training_record(model_path) or {}
+        if record.get("data_sha256") == file_sha256(dataset.via_path):
+            split = "val"
+            if fold is None:
+                fold = record.get("fold")
+        else:
+            split = "all"
+    if split == "all":
+        return list(range(len(dataset))), f"all {len(dataset)} frames"
+    _, val = dataset.split(fold)
+    name = "hold-out 80/20" if fold is None else f"fold {fold}"
+    return [int(i) for i in val], f"validation frames of the {name} split ({len(val)} frames)"
+
+
 def set_tensorflow_threads(threads: int | None) -> None:
     """Limit TensorFlow's CPU threads (call before TensorFlow runs anything; None = library default)."""
     if threads is None:

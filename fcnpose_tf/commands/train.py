@@ -44,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, help="TensorFlow CPU threads (default: all cores)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
-    parser.add_argument("--quiet", action="store_true", help="no per-batch progress bar")
+    parser.add_argument("--quiet", action="store_true", help="one line per epoch instead of a progress bar (for logs)")
 
 
 def fold_model_path(out: Path, fold: int | None) -> Path:
@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _train_one(args: argparse.Namespace, dataset, fold: int | None) -> dict:
     from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, format_timing
+    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, file_sha256, format_timing
     from fcnpose_tf.fileio import write_json
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.model import build_fcn_pose
@@ -110,13 +110,14 @@ def _train_one(args: argparse.Namespace, dataset, fold: int | None) -> dict:
     config = FitConfig(epochs=args.epochs, patience=args.patience, batch_size=args.batch_size,
                        learning_rate=args.learning_rate, seed=args.seed)
     model = build_fcn_pose(input_size=args.input_size, num_maps=dataset.schema.num_maps)
-    metadata = {"data": str(dataset.via_path), "num_frames": len(dataset), "split": split_name,
+    metadata = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path),
+                "num_frames": len(dataset), "split": split_name,
                 "fold": fold, "folds": args.folds, "split_seed": args.split_seed, "input_size": args.input_size,
                 "augment_copies": args.augment_copies, "train_samples": len(train_data),
                 "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
     result = fit(model, train_data.sequence(args.batch_size, shuffle=True, seed=args.seed),
                  val_data.arrays(), path, config, resume=args.resume, force=args.force, metadata=metadata,
-                 verbose=0 if args.quiet else 1)
+                 verbose=2 if args.quiet else 1)
     print(f"{path}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
           f"{result.epochs_run}{' (early stop)' if result.stopped_early else ''}; {result.seconds / 60:.1f} min")
 

@@ -1,0 +1,75 @@
+"""Measure a .keras or .tflite FCN-Pose on a dataset: PCK, pixel error, inference time and FPS.
+
+PCK@0.5/0.2/0.05 are normalised by max(w, h) of the ground-truth keypoints' bounding box
+(MMPose's convention; the paper reports 0.5); PCK-AUC 0-20 px is the DREAM convention; EPE is
+the mean pixel error in original frame pixels. Missing predictions count as wrong. Timing: mean
+and std over at least 50 frames after warm-up; FPS = 1 / (preprocess + inference + post-processing).
+
+Which frames: on the dataset a model was trained on (recorded in NAME_train.json), its
+validation split; on any other dataset, every frame (--split overrides).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "evaluate"
+USES_TENSORFLOW = True
+EXAMPLES = """\
+  fcnpose-tf synth --out heldout --n 100 --seed 1
+  fcnpose-tf evaluate --data heldout                       # the bundled baseline on unseen frames
+  fcnpose-tf evaluate saved_models/fcnpose_ur5_p70_fp16.tflite --data heldout --threads 1
+  fcnpose-tf evaluate models/arm.keras --data my_frames/ --fold 2 --json fold2.json
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf.commands.data import add_data_arguments
+
+    parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
+                        help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
+    add_data_arguments(parser, positional=False)
+    parser.add_argument("--split", choices=("auto", "val", "all"), default="auto",
+                        help="auto: validation frames on the model's own training data, else all frames")
+    parser.add_argument("--fold", type=int, metavar="k", help="use the validation frames of fold k")
+    parser.add_argument("--threads", type=int, help="inference threads (default: all cores)")
+    parser.add_argument("--threshold", type=float, default=0.5, help="map probability that counts as active")
+    parser.add_argument("--json", type=Path, metavar="OUT.json", help="also write the report as JSON")
+    parser.add_argument("--force", action="store_true", help="replace an existing --json file")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fcnpose_tf.bundled import baseline_model
+    from fcnpose_tf.commands.data import load_from_args
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.evaluate import choose_frames, evaluate_predictor, format_timing, open_model
+    from fcnpose_tf.fileio import check_writable, write_json
+    from fcnpose_tf.metrics import format_report
+
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be at least 1, got {args.threads}")
+    if args.fold is not None:
+        if args.split == "all":
+            raise UserError("--fold selects validation frames; it cannot be combined with --split all")
+        args.split = "val"
+        if not 0 <= args.fold < args.folds:
+            raise UserError(f"--fold must be between 0 and {args.folds - 1}, got {args.fold}")
+    if args.json is not None:
+        check_writable(args.json, args.force)
+    model_path = args.model or baseline_model()
+    predictor = open_model(model_path, args.threads, args.threshold)
+    dataset = load_from_args(args)
+    indices, description = choose_frames(dataset, model_path, args.split, args.fold)
+    result = evaluate_predictor(predictor, dataset, indices, dataset.schema, progress=True)
+    print(f"Model: {model_path} ({Path(model_path).stat().st_size:,} bytes)")
+    print(f"Data:  {dataset.via_path}, {description}")
+    print("PCK normalised by max(bbox w, h) of the ground-truth keypoints; EPE in frame pixels")
+    print(format_report(result["metrics"]))
+    print(format_timing(result["timing"]))
+    if args.json is not None:
+        write_json(args.json, {"model": str(model_path), "size_bytes": Path(model_path).stat().st_size,
+                               "data": str(dataset.via_path), "frames": description,
+                               "metrics": result["metrics"], "timing": result["timing"]}, force=args.force)
+        print(f"Report: {args.json}")
+    return 0
