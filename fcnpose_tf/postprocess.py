@@ -23,9 +23,10 @@ Rules (see docs/postprocess.md):
 How it stays under a millisecond per 224 x 224 frame of 8 maps: all maps are thresholded in one
 contiguous pass (numpy is ~9x slower on a strided per-map slice), de-interleaved with one
 ``cv2.transpose``, and each map is labelled by ``cv2.connectedComponents`` only inside the bounding
-box of its active pixels (``cv2.boundingRect``). OpenCV's own statistics are not used: they cost
-per pixel of the labelled area, background included; cluster sizes come from the labels of the
-active pixels, the centroid from row and column sums of the kept cluster.
+box of its active pixels (``cv2.boundingRect``), with the empty rows and columns between far-apart
+active pixels squeezed out. OpenCV's own statistics are not used: they cost per pixel of the
+labelled area, background included; cluster sizes come from the labels of the active pixels, the
+centroid from row and column sums of the kept cluster.
 ``tools/bench_postprocess.py`` measures this against the plain per-map
 ``cv2.connectedComponentsWithStats``.
 """
@@ -202,7 +203,8 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
     Args:
         maps: H x W x C (one frame) or N x H x W x C (a batch) maps, keypoint maps first and the
             skeleton map last (ignored). Any real dtype and memory layout.
-        threshold: a pixel is active when its value is strictly greater than this.
+        threshold: a pixel is active when its value is strictly greater than this (compared in
+            the maps' floating precision, numpy's rule for a Python scalar).
         logits: the maps are pre-sigmoid logits; ``threshold`` stays a probability and is
             compared as logit(threshold) (0 for 0.5). Same pixels as thresholding the sigmoid,
             except logits within float rounding of the cut (|z| < ~3e-8 at 0.5 in float32),
