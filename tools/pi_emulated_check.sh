@@ -13,7 +13,8 @@
 #   --tolerance PX     max keypoint distance allowed (default: 0.5)
 #   --maps-tolerance X max abs difference of the raw output maps allowed (default: 1e-4)
 #   --maps-only        pass on the raw-map check alone (while `fcnpose-tf run` is missing)
-#   --host-python PY   Python on the host with fcnpose-tf's core deps (default: $VIRTUAL_ENV's, else python3)
+#   --host-python PY   Python on the host with fcnpose-tf's core deps and pip, setuptools, wheel
+#                      (default: $VIRTUAL_ENV's, else ./.venv's, else fcnpose-tf's on PATH, else python3)
 #   --cache DIR        where the rootfs and wheels are kept
 #                      (default: ${FCNPOSE_PI_CACHE:-$HOME/.cache/fcnpose-tf/pi-rootfs})
 #   --rebuild          build the rootfs and its venv again
@@ -80,12 +81,18 @@ if [[ ${1:-} == __guest ]]; then
     envs=(PATH="$GUEST_PATH" HOME=/root LANG=C.UTF-8 QEMU_CPU="$qemu_cpu" PYTHONDONTWRITEBYTECODE=1
           PYTHONUNBUFFERED=1 PIP_CONFIG_FILE=/dev/null PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_NO_INPUT=1
           TMPDIR=/tmp)
-    status=0
     case $mode in
-        binfmt|native) env -i "${envs[@]}" chroot "$rootfs" "$@" || status=$? ;;
-        direct) env -i "${envs[@]}" chroot "$rootfs" /usr/bin/qemu-aarch64-static -cpu "$qemu_cpu" "$@" || status=$? ;;
+        binfmt|native) env -i "${envs[@]}" chroot "$rootfs" "$@" & ;;
+        direct) env -i "${envs[@]}" chroot "$rootfs" /usr/bin/qemu-aarch64-static -cpu "$qemu_cpu" "$@" & ;;
         *) guest_fail "unknown mode $mode" ;;
     esac
+    child=$!
+    # Run in the background and wait, so that a TERM/INT reaches this shell at once and is passed on;
+    # the EXIT trap then unmounts after the child has gone.
+    trap 'kill -TERM "$child" 2>/dev/null' TERM INT HUP
+    status=0
+    wait "$child" || status=$?
+    while kill -0 "$child" 2>/dev/null; do wait "$child" || status=$?; done
     exit "$status"
 fi
 
@@ -123,7 +130,8 @@ while [[ $# -gt 0 ]]; do
     esac
 done
 
-STEP="start"
+STEP="arguments"
+STEP_ACTIVE=0
 STEP_T0=$SECONDS
 T0=$SECONDS
 WORK=
@@ -148,16 +156,26 @@ on_exit() {
     fi
 }
 trap on_exit EXIT
-trap 'echo "FAIL: $STEP: interrupted"; exit 130' INT TERM
+on_signal() {
+    trap - ERR INT TERM
+    if [[ -n ${CHILD_PID:-} ]]; then
+        kill -TERM "$CHILD_PID" 2>/dev/null || true
+        wait "$CHILD_PID" 2>/dev/null || true
+    fi
+    echo "FAIL: $STEP: interrupted"
+    exit 130
+}
+trap on_signal INT TERM
 step() {
     end_step
     STEP=$1
+    STEP_ACTIVE=1
     STEP_T0=$SECONDS
     log "== $STEP"
 }
 end_step() {
-    if [[ $STEP != start ]]; then TIMINGS+=("$(printf '%5ds  %s' $((SECONDS - STEP_T0)) "$STEP")"); fi
-    STEP=start
+    if [[ $STEP_ACTIVE == 1 ]]; then TIMINGS+=("$(printf '%5ds  %s' $((SECONDS - STEP_T0)) "$STEP")"); fi
+    STEP_ACTIVE=0
 }
 
 [[ $THREADS =~ ^[1-9][0-9]*$ ]] || fail "--threads must be a positive integer, got '$THREADS'"
@@ -167,6 +185,15 @@ case $CPU in
     cortex-a72) CPU_PART=0xd08 CPU_REV=3 PI_MODEL="Raspberry Pi 4 Model B Rev 1.4" ;;
     *) fail "--cpu must be cortex-a53 or cortex-a72, got '$CPU'" ;;
 esac
+if [[ -z $MODEL ]]; then
+    MODEL=$(ls "$REPO"/saved_models/*70*.tflite 2>/dev/null | head -1 || true)
+    [[ -n $MODEL ]] || fail "no bundled 70% model (saved_models/*70*.tflite) yet; pass --model MODEL.tflite"
+fi
+[[ -f $MODEL ]] || fail "model $MODEL does not exist"
+MODEL=$(readlink -f "$MODEL")
+if [[ -n $FRAMES ]]; then
+    [[ -d $FRAMES ]] || fail "frames directory $FRAMES does not exist"
+fi
 [[ $(id -u) == 0 ]] || fail "needs root (debootstrap, chroot and mounts); run it with sudo"
 [[ -f $HELPER ]] || fail "helper $HELPER is missing"
 
@@ -191,10 +218,13 @@ fi
 
 if [[ -z $HOST_PY ]]; then
     if [[ -n ${VIRTUAL_ENV:-} && -x $VIRTUAL_ENV/bin/python ]]; then HOST_PY=$VIRTUAL_ENV/bin/python
-    elif [[ -x /work/venv/bin/python ]]; then HOST_PY=/work/venv/bin/python
+    elif [[ -x $REPO/.venv/bin/python ]]; then HOST_PY=$REPO/.venv/bin/python
+    elif command -v fcnpose-tf >/dev/null && head -1 "$(command -v fcnpose-tf)" | grep -q '^#!/.*python'; then
+        HOST_PY=$(head -1 "$(command -v fcnpose-tf)" | sed 's/^#!//; s/ .*//')
     else HOST_PY=$(command -v python3 || true); fi
 fi
-if [[ -z $HOST_PY ]] || ! "$HOST_PY" -c 'import numpy, cv2' 2>/dev/null; then fail "host Python '${HOST_PY:-python3}' cannot import numpy and cv2; pass --host-python of a venv with fcnpose-tf[pi]"
+if [[ -z $HOST_PY ]] || ! "$HOST_PY" -c 'import numpy, cv2' 2>/dev/null; then
+    fail "host Python '${HOST_PY:-python3}' cannot import numpy and cv2; pass --host-python of a venv with fcnpose-tf[pi]"
 fi
 "$HOST_PY" -m pip --version >/dev/null 2>&1 || fail "host Python $HOST_PY has no pip (needed to download the aarch64 wheels)"
 "$HOST_PY" -c 'import setuptools, wheel' 2>/dev/null \
@@ -253,8 +283,17 @@ CPUINFO=$WORK/cpuinfo
 } >"$CPUINFO"
 mkdir -p "$WORK/wheels"
 WHEELS=$WORK/wheels   # replaced by the cached wheel directory below
+CHILD_PID=
+run_child() {  # run a long command in the background and wait for it, so a TERM/INT stops it (see on_signal)
+    local status=0
+    "$@" &
+    CHILD_PID=$!
+    wait "$CHILD_PID" || status=$?
+    CHILD_PID=
+    return "$status"
+}
 guest() {
-    nice -n 10 unshare --mount --propagation private -- \
+    run_child nice -n 10 unshare --mount --propagation private -- \
         bash "$SCRIPT" __guest "$ROOTFS" "$WORK" "$WHEELS" "$CPUINFO" "$CPU" "$MODE" -- "$@"
 }
 install_qemu_into_rootfs() {  # $1 = rootfs; the interpreter binfmt names must exist inside unless flag F is set
@@ -289,7 +328,7 @@ else
     remove_tree "$ROOTFS"
     log "building with debootstrap from $MIRROR (one-off, a few minutes; log: $CACHE/debootstrap.log)"
     t_build=$SECONDS
-    if ! nice -n 10 unshare --mount --propagation private -- \
+    if ! run_child nice -n 10 unshare --mount --propagation private -- \
         debootstrap --arch=arm64 --variant=minbase --include=python3,python3-venv \
         bookworm "$partial" "$MIRROR" >"$CACHE/debootstrap.log" 2>&1; then
         tail -5 "$CACHE/debootstrap.log" | sed 's/^/    /' >&2
@@ -397,15 +436,9 @@ guest "$GUEST_VENV/bin/python" "$GUEST_WORK/pi_check.py" info --require-no-tenso
 
 # --- model and frames -----------------------------------------------------------------------------------
 step "model and frames"
-if [[ -z $MODEL ]]; then
-    MODEL=$(ls "$REPO"/saved_models/*70*.tflite 2>/dev/null | head -1 || true)
-    [[ -n $MODEL ]] || fail "no bundled 70% model (saved_models/*70*.tflite) yet; pass --model MODEL.tflite"
-fi
-[[ -f $MODEL ]] || fail "model $MODEL does not exist"
 cp "$MODEL" "$WORK/model.tflite"
 log "model: $MODEL ($(stat -c %s "$MODEL") bytes)"
 if [[ -n $FRAMES ]]; then
-    [[ -d $FRAMES ]] || fail "frames directory $FRAMES does not exist"
     mkdir -p "$WORK/frames"
     find "$FRAMES" -maxdepth 1 -type f \( -iname '*.png' -o -iname '*.jpg' -o -iname '*.jpeg' -o -iname '*.bmp' \) \
         -exec cp -t "$WORK/frames" {} +
