@@ -62,7 +62,9 @@ def _import_tensorflow_quietly() -> None:
     try:
         os.dup2(devnull, 2)
         try:
-            import tensorflow  # noqa: F401
+            import tensorflow
+
+            tensorflow.get_logger().setLevel("ERROR")  # Python-side INFO/WARNING chatter (compile notes)
         except ImportError as exc:
             raise UserError(f"this command needs TensorFlow ({exc}); install the training extra: "
                             "pip install 'fcnpose-tf[train]'") from None

@@ -1,0 +1,105 @@
+"""Compress FCN-Pose as the paper does: L1 filter pruning, retraining, float16 TFLite — and measure it.
+
+Writes NAME_p70.keras (pruned, retrained), NAME_p70_fp16.tflite (verified against Keras before
+it is written) and NAME_p70_report.json, and prints the unpruned model beside every step:
+parameters, MACs, size, PCK@0.5/0.2/0.05 (normalised by max(bbox w, h)), EPE, inference time
+and FPS. With no --model and no --data it compresses the bundled baseline, retrains on the
+synthetic frames it was trained on and measures on held-out synthetic frames (both generated
+once into a cache). --method magnitude runs tfmot's unstructured pruning to the same
+parameter reduction instead, for comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "compress"
+USES_TENSORFLOW = True
+EXAMPLES = """\
+  fcnpose-tf compress --rate 0.7                       # bundled baseline, synthetic data, ./compressed/
+  fcnpose-tf compress --rate 0.5 --retrain-epochs 100  # the paper's retraining budget
+  fcnpose-tf compress --rate 0.7 --method magnitude    # tfmot unstructured sparsity, for comparison
+  fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf.commands.data import add_data_arguments
+    from fcnpose_tf.compress import DEFAULT_RETRAIN_EPOCHS
+
+    parser.add_argument("--rate", type=float, required=True, help="fraction of filters to remove per layer, in [0, 1)")
+    parser.add_argument("--model", type=Path, help="the model to compress (default: the bundled baseline)")
+    add_data_arguments(parser, positional=False, required=False)
+    parser.add_argument("--test-data", type=Path, metavar="DATA",
+                        help="frames to measure on (default: --data's validation split; without --data, "
+                             "held-out synthetic frames)")
+    parser.add_argument("--retrain-epochs", type=int, default=DEFAULT_RETRAIN_EPOCHS,
+                        help="retraining epochs with early stopping (the paper: up to 100); 0 skips retraining")
+    parser.add_argument("--patience", type=int, default=5, help="early-stopping patience while retraining")
+    parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
+    parser.add_argument("--quantize", choices=("float16", "float32", "int8-weights"), default="float16",
+                        help="TFLite post-training quantization")
+    parser.add_argument("--method", choices=("l1", "magnitude"), default="l1",
+                        help="l1: filter surgery (the paper); magnitude: tfmot unstructured sparsity")
+    parser.add_argument("--strategy", choices=("independent", "greedy"), default="independent",
+                        help="L1 ranking on the original kernels, or after removing pruned inputs (Li et al.)")
+    parser.add_argument("--fold", type=int, metavar="k", help="retrain on fold k instead of the base model's split")
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--learning-rate", type=float, default=1e-3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, help="threads for training and timing (default: all cores)")
+    parser.add_argument("--force", action="store_true", help="replace existing output files")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fcnpose_tf import synthcache
+    from fcnpose_tf.bundled import baseline_model
+    from fcnpose_tf.commands.data import load_from_args
+    from fcnpose_tf.compress import CompressOptions, compress_model, report_table
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.evaluate import set_tensorflow_threads
+
+    options = CompressOptions(rate=args.rate, method=args.method, strategy=args.strategy, quantize=args.quantize,
+                              retrain_epochs=args.retrain_epochs, patience=args.patience,
+                              batch_size=args.batch_size, learning_rate=args.learning_rate, seed=args.seed,
+                              fold=args.fold, threads=args.threads)
+    options.validate()
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be at least 1, got {args.threads}")
+    model_path = args.model or baseline_model()
+    if not Path(model_path).is_file():
+        raise UserError(f"{model_path}: model file not found")
+    if args.out_dir.exists() and not args.out_dir.is_dir():
+        raise UserError(f"{args.out_dir}: exists and is not a folder")
+    set_tensorflow_threads(args.threads)
+    if args.data is None:
+        args.data = synthcache.baseline_training_data()
+    train_dataset = load_from_args(args)
+    if args.test_data is not None:
+        eval_dataset = load_dataset(args.test_data)
+        eval_indices, description = list(range(len(eval_dataset))), f"all {len(eval_dataset)} frames of {args.test_data}"
+    elif args.model is None and args.images is None and Path(args.data) == synthcache.baseline_training_data():
+        eval_dataset = load_dataset(synthcache.heldout_data())
+        eval_indices = list(range(len(eval_dataset)))
+        description = (f"{len(eval_dataset)} held-out synthetic frames (seed {synthcache.HELDOUT_SEED}, "
+                       "never used for training)")
+    else:
+        eval_dataset = train_dataset
+        _, val = train_dataset.split(args.fold)
+        eval_indices, description = [int(i) for i in val], f"{len(val)} validation frames of {train_dataset.via_path}"
+    report = compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, options,
+                            force=args.force, eval_description=description)
+    threads = args.threads if args.threads is not None else "all"
+    print(f"\nCompression at rate {args.rate:g} ({args.method}); measured on {description}; "
+          f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
+    print(report_table(report))
+    base, final = report["base"], report["quantized"]
+    print(f"parameters {base['params']:,} -> {final['params']:,} ({100 * (1 - final['params'] / base['params']):.1f}% fewer); "
+          f"MACs {base['macs'] / 1e6:.1f} M -> {final['macs'] / 1e6:.1f} M; "
+          f"size {base['h5_size_bytes'] / 1e3:.0f} KB (.h5) -> {final['tflite_size_bytes'] / 1e3:.1f} KB (.tflite); "
+          f"FPS {base['timing']['fps']:.1f} (Keras) -> {final['timing']['fps']:.1f} (TFLite)")
+    for key, path in report["files"].items():
+        print(f"wrote {path}")
+    return 0

@@ -1,0 +1,262 @@
+"""The paper's whole compression for one rate: prune, retrain, quantize, and measure every step.
+
+    base model ──► L1 filter surgery at rate r (or tfmot magnitude pruning) ──► retrain
+               ──► TFLite export (float16 by default), verified against Keras
+    measured at each step on the same frames: PCK@0.5/0.2/0.05 (bbox), EPE, PCK-AUC,
+    parameters, MACs, file sizes, inference time and FPS (Keras and TFLite, thread count stated).
+
+`compress_model` is the library entry point (the `compress` and `sweep` commands call it).
+"""
+
+from __future__ import annotations
+
+import gzip
+import os
+import tempfile
+import time
+import warnings
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import tf_keras as keras
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, file_sha256, training_record
+from fcnpose_tf.fileio import check_writable, write_json
+from fcnpose_tf.model import conv_widths, describe, save_for_inference
+
+METHODS = ("l1", "magnitude")
+DEFAULT_RETRAIN_EPOCHS = 15
+"""Default retraining budget: keeps `compress --rate 0.7` within ~10 minutes on 2 cores.
+The paper retrains up to 100 epochs until convergence; pass --retrain-epochs 100 for that."""
+
+
+@dataclass
+class CompressOptions:
+    """Settings of one compression run."""
+
+    rate: float
+    method: str = "l1"
+    strategy: str = "independent"
+    quantize: str = "float16"
+    retrain_epochs: int = DEFAULT_RETRAIN_EPOCHS
+    patience: int = 5
+    batch_size: int = 8
+    learning_rate: float = 1e-3
+    augment_copies: int = 2
+    seed: int = 0
+    fold: int | None = None
+    threads: int | None = None
+
+    def validate(self) -> None:
+        if self.method not in METHODS:
+            raise UserError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if isinstance(self.rate, bool) or not isinstance(self.rate, (int, float)) or not 0 <= self.rate < 1:
+            raise UserError(f"pruning rate must be in [0, 1) (e.g. 0.7 for 70%), got {self.rate!r}")
+        if self.retrain_epochs < 0:
+            raise UserError(f"retrain epochs must be >= 0, got {self.retrain_epochs}")
+
+
+def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
+    """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite, NAME_p70_report.json (m70 for magnitude)."""
+    tag = f"{'p' if options.method == 'l1' else 'm'}{round(options.rate * 100):02d}"
+    quant = {"float16": "fp16", "float32": "fp32", "int8-weights": "int8w"}[options.quantize]
+    stem = f"{base_name}_{tag}"
+    return {"stem": stem, "keras": f"{stem}.keras", "tflite": f"{stem}_{quant}.tflite",
+            "report": f"{stem}_report.json"}
+
+
+def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
+    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
+    sizes: dict[str, int] = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        h5 = Path(tmp) / "m.h5"
+        with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
+            warnings.simplefilter("ignore", UserWarning)
+            save_for_inference(model, h5)
+        sizes["h5_size_bytes"] = h5.stat().st_size
+        sizes["h5_gzip_size_bytes"] = len(gzip.compress(h5.read_bytes(), 9))
+        if keras_path is None:
+            keras_path = Path(tmp) / "m.keras"
+            save_for_inference(model, keras_path)
+        sizes["keras_size_bytes"] = keras_path.stat().st_size
+    return sizes
+
+
+def model_facts(model: keras.Model) -> dict[str, Any]:
+    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
+    rows = describe(model)
+    macs = sum(r.macs for r in rows)
+    return {"widths": list(conv_widths(model)), "params": int(model.count_params()), "macs": int(macs),
+            "flops": int(2 * macs), "nonzero_weights": int(sum(np.count_nonzero(w) for w in model.get_weights()))}
+
+
+def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, timing: bool = True) -> dict:
+    print(f"  evaluating {label} on {len(indices)} frames ...", flush=True)
+    result = evaluate_predictor(predictor, dataset, indices, dataset.schema,
+                                min_timed_frames=50 if timing else 1, warmup=5 if timing else 1)
+    out = {"metrics": result["metrics"]}
+    if timing:
+        out["timing"] = result["timing"]
+    return out
+
+
+def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
+                   out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
+                   eval_description: str = "", verbose: int = 1) -> dict[str, Any]:
+    """Prune, retrain, export and measure one model at one rate; write the files; return the report.
+
+    Args:
+        base_path: the unpruned (or any) .keras/.h5 FCN-Pose.
+        train_dataset: dataset to retrain on (its hold-out split, or `options.fold`).
+        eval_dataset, eval_indices: the frames every step is measured on.
+        out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite and NAME_p70_report.json go.
+        options: rate, method, strategy, quantize, retraining settings, threads.
+        force: replace existing output files.
+    Returns:
+        The report dict (also written as NAME_pXX_report.json).
+    Raises:
+        UserError: bad options, existing outputs without force, unwritable folder, a model whose
+            maps do not match the dataset, or an export that fails verification (nothing written).
+    """
+    from fcnpose_tf.data.dataset import fold_data
+    from fcnpose_tf.export import inspect_tflite, write_tflite
+    from fcnpose_tf.model import load_model
+    from fcnpose_tf.prune import magnitude_prune, prune_model
+    from fcnpose_tf.runtime.estimator import KeypointModel
+    from fcnpose_tf.train import FitConfig, fit
+
+    options.validate()
+    start = time.perf_counter()
+    base_path = Path(base_path)
+    out_dir = Path(out_dir)
+    names = output_names(base_path.stem, options)
+    paths = {k: out_dir / v for k, v in names.items() if k != "stem"}
+    for path in paths.values():
+        check_writable(path, force)
+    base = load_model(base_path)
+    if base.output_shape[-1] != train_dataset.schema.num_maps:
+        raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
+                        f"{train_dataset.schema.num_maps}")
+    input_size = int(base.input_shape[1])
+    steps = 6
+    print(f"[1/{steps}] base model {base_path} ({input_size}x{input_size})", flush=True)
+    report: dict[str, Any] = {
+        "base_model": str(base_path), "method": options.method, "options": asdict(options),
+        "evaluation_frames": eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
+        "pck_normalisation": "max(w, h) of the ground-truth keypoints' bounding box",
+        "threads": options.threads,
+    }
+    base_facts = model_facts(base)
+    base_eval = _measure(KerasKeypointModel(base, base_path, num_threads=options.threads), eval_dataset,
+                         eval_indices, "the base model (Keras)")
+    report["base"] = {**base_facts, **file_sizes(base, base_path if base_path.suffix == ".keras" else None),
+                      **base_eval}
+
+    print(f"[2/{steps}] pruning: {options.method} at rate {options.rate:g}"
+          + (f" ({options.strategy})" if options.method == "l1" else ""), flush=True)
+    train_data = val_data = None
+    record = training_record(base_path) or {}
+    fit_config = FitConfig(epochs=max(options.retrain_epochs, 1), patience=options.patience,
+                           batch_size=options.batch_size, learning_rate=options.learning_rate, seed=options.seed)
+    if options.retrain_epochs > 0:
+        fold = options.fold if options.fold is not None else (
+            record.get("fold") if record.get("data_sha256") == file_sha256(train_dataset.via_path) else None)
+        train_data, val_data = fold_data(train_dataset, fold, input_size, options.augment_copies, options.seed,
+                                         progress=verbose > 0)
+        report["retrain_data"] = {"data": str(train_dataset.via_path), "fold": fold,
+                                  "train_samples": len(train_data), "val_frames": len(val_data)}
+    if options.method == "l1":
+        pruned = prune_model(base, options.rate, strategy=options.strategy)
+    else:
+        sparsity = 1.0 - model_facts(prune_model(base, options.rate))["params"] / base_facts["params"]
+        report["magnitude_sparsity"] = round(sparsity, 6)
+
+        def train_fn(wrapped: keras.Model, callbacks: list) -> None:
+            wrapped.compile(optimizer=keras.optimizers.Adam(options.learning_rate),
+                            loss=keras.losses.BinaryCrossentropy())
+            if train_data is not None:
+                wrapped.fit(train_data.sequence(options.batch_size, seed=options.seed),
+                            validation_data=val_data.arrays(), epochs=options.retrain_epochs,
+                            callbacks=callbacks + [keras.callbacks.EarlyStopping(
+                                patience=options.patience, restore_best_weights=True)],
+                            verbose=2 if verbose else 0)
+
+        pruned = magnitude_prune(base, sparsity, train_fn=train_fn)
+    report["pruned_before_retraining"] = {**model_facts(pruned), **_measure(
+        KerasKeypointModel(pruned, num_threads=options.threads), eval_dataset, eval_indices,
+        "the pruned model before retraining", timing=False)}
+
+    print(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs", flush=True)
+    if options.method == "l1" and options.retrain_epochs > 0:
+        result = fit(pruned, train_data.sequence(options.batch_size, seed=options.seed), val_data.arrays(),
+                     paths["keras"], fit_config, force=force, verbose=2 if verbose else 0,
+                     metadata={"data": str(train_dataset.via_path),
+                               "data_sha256": file_sha256(train_dataset.via_path),
+                               "fold": report["retrain_data"]["fold"], "pruned_from": str(base_path),
+                               "rate": options.rate, "strategy": options.strategy, "input_size": input_size})
+        retrained = load_model(paths["keras"])
+        report["retraining"] = {"epochs_run": result.epochs_run, "best_epoch": result.best_epoch,
+                                "best_val_loss": result.best_val_loss, "seconds": round(result.seconds, 1)}
+    else:
+        retrained = pruned
+        from fcnpose_tf.fileio import atomic_path
+
+        with atomic_path(paths["keras"], force) as tmp:
+            save_for_inference(retrained, tmp)
+
+    print(f"[4/{steps}] measuring the retrained Keras model", flush=True)
+    report["retrained"] = {**model_facts(retrained), **file_sizes(retrained, paths["keras"]), **_measure(
+        KerasKeypointModel(retrained, paths["keras"], num_threads=options.threads), eval_dataset, eval_indices,
+        "the retrained model (Keras)")}
+
+    print(f"[5/{steps}] exporting {options.quantize} TFLite (verified against Keras)", flush=True)
+    from fcnpose_tf.preprocess import preprocess_frame
+
+    samples = np.stack([preprocess_frame(eval_dataset.load_image(int(i)), input_size)
+                        for i in list(eval_indices)[:4]])
+    export = write_tflite(retrained, paths["tflite"], options.quantize, force=force, sample_frames=samples,
+                          num_threads=options.threads)
+    tflite_info = inspect_tflite(paths["tflite"])
+
+    print(f"[6/{steps}] measuring the TFLite model", flush=True)
+    tfl = KeypointModel(paths["tflite"], num_threads=options.threads)
+    tfl.backend_label = tfl.backend.label
+    report["quantized"] = {
+        "params": report["retrained"]["params"], "macs": report["retrained"]["macs"],
+        "flops": report["retrained"]["flops"], "tflite_size_bytes": export.size_bytes,
+        "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)), "export": export.to_dict(),
+        "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
+        **_measure(tfl, eval_dataset, eval_indices, f"the {options.quantize} TFLite model")}
+    report["files"] = {k: str(v) for k, v in paths.items()}
+    report["seconds"] = round(time.perf_counter() - start, 1)
+    write_json(paths["report"], report, force=force)
+    return report
+
+
+def _fmt(value: Any, digits: int = 3) -> Any:
+    if value is None:
+        return None
+    return round(float(value), digits)
+
+
+def report_table(report: dict[str, Any]) -> str:
+    """The compression report as a table: the unpruned model beside each step of the compressed one."""
+    from fcnpose_tf.tables import format_table
+
+    def row(label: str, step: dict, size_key: str) -> list:
+        m = step["metrics"]
+        t = step.get("timing")
+        return [label, step["params"], round(step["macs"] / 1e6, 1), _fmt(step.get(size_key, 0) / 1e6, 3)
+                if step.get(size_key) else None,
+                _fmt(m["pck@0.5_bbox"]), _fmt(m["pck@0.2_bbox"]), _fmt(m["pck@0.05_bbox"]), _fmt(m["epe_px"], 2),
+                _fmt(t["inference_ms"]["mean"], 2) if t else None, _fmt(t["fps"], 1) if t else None]
+
+    rows = [row("unpruned (Keras)", report["base"], "h5_size_bytes"),
+            row("pruned, before retraining", report["pruned_before_retraining"], ""),
+            row("pruned + retrained (Keras)", report["retrained"], "h5_size_bytes"),
+            row(f"{report['options']['quantize']} TFLite", report["quantized"], "tflite_size_bytes")]
+    return format_table(["model", "params", "MMACs", "size MB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
+                         "infer ms", "FPS"], rows)
