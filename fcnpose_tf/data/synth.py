@@ -50,16 +50,17 @@ SHOULDER_OFFSET = 0.13585
 FOREARM_OFFSET = 0.13585 - 0.1197
 """Forearm centreline offset along the same axes (the elbow steps back 0.1197 m)."""
 
-# Joint housings: (axis frame index i -> axis z_i through DH origin O_i, span (lo, hi) along that axis, radius).
+# Joint housings: (axis frame index i -> axis z_i through DH origin O_i, span (lo, hi) along that axis, radius,
+# what each end shows: a blue-grey "cap", a "plain" face, or nothing when "buried" in the previous housing).
 # The keypoint of a joint is the centre of its housing on the joint axis, where an annotator clicks.
 _HOUSINGS = {
-    "shoulder": (1, (-0.060, 0.185), 0.0625),
-    "elbow": (2, (-0.035, 0.180), 0.0500),
-    "wrist1": (3, (-0.030, 0.150), 0.0450),
-    "wrist2": (4, (-0.042, 0.137), 0.0450),
-    "wrist3": (5, (-0.042, 0.070), 0.0450),
+    "shoulder": (1, (-0.070, 0.205), 0.0625, ("cap", "cap")),
+    "elbow": (2, (-0.045, 0.205), 0.0500, ("cap", "cap")),
+    "wrist1": (3, (-0.045, 0.160), 0.0450, ("cap", "cap")),
+    "wrist2": (4, (-0.010, 0.150), 0.0450, ("buried", "cap")),
+    "wrist3": (5, (-0.010, 0.070), 0.0450, ("buried", "plain")),
 }
-_BASE_SPAN, _BASE_RADIUS = (0.012, 0.095), 0.0640
+_BASE_SPAN, _BASE_RADIUS = (0.012, 0.075), 0.0640
 _FLANGE_SPAN, _FLANGE_RADIUS = (0.070, 0.0823), 0.0315
 
 
@@ -98,7 +99,7 @@ def ur5_keypoints_3d(q: Sequence[float], tool_length: float = 0.12, base_z: floa
     axis = frames[:, :3, 2]
     points = [origin[0]]
     for name in ("shoulder", "elbow", "wrist1", "wrist2", "wrist3"):
-        i, (lo, hi), _ = _HOUSINGS[name]
+        i, (lo, hi), _, _ = _HOUSINGS[name]
         points.append(origin[i] + 0.5 * (lo + hi) * axis[i])
     points.append(origin[6])
     points.append(origin[6] + tool_length * axis[6])
@@ -374,27 +375,27 @@ def _robot_style(rng: np.random.Generator) -> RobotStyle:
                       Material(fingers, 0.3, 24))
 
 
-def _housing_parts(centre_o, axis, span, radius, style: RobotStyle, caps=(True, True)) -> list[Part]:
-    """A UR joint housing: silver body, a dark band and a blue-grey cap at each capped end."""
+def _housing_parts(centre_o, axis, span, radius, style: RobotStyle, ends=("cap", "cap")) -> list[Part]:
+    """A UR joint housing: a silver body whose ends are each a dark band plus blue-grey cap ("cap"),
+    a plain silver face ("plain") or hidden inside the neighbouring housing ("buried", no face)."""
     lo, hi = span
     band, cap = 0.010, 0.014
     p = lambda s: centre_o + s * axis  # noqa: E731
-    body_lo = lo + (band + cap if caps[0] else 0.0)
-    body_hi = hi - (band + cap if caps[1] else 0.0)
+    body_lo = lo + (band + cap if ends[0] == "cap" else 0.0)
+    body_hi = hi - (band + cap if ends[1] == "cap" else 0.0)
     parts: list[Part] = [Tube(p(body_lo), p(body_hi), (radius, radius), (radius, radius), style.silver,
-                              LABEL_ROBOT, caps=(not caps[0], not caps[1]), segments=24)]
-    for end, capped in ((0, caps[0]), (1, caps[1])):
-        if not capped:
+                              LABEL_ROBOT, caps=(ends[0] == "plain", ends[1] == "plain"), segments=24)]
+    for end, kind in enumerate(ends):
+        if kind != "cap":
             continue
         sign = -1.0 if end == 0 else 1.0
         edge = lo if end == 0 else hi
         b0, b1 = edge - sign * (band + cap), edge - sign * cap
         parts.append(Tube(p(b0), p(b1), (radius * 0.985,) * 2, (radius * 0.985,) * 2, style.band, LABEL_ROBOT,
                           caps=(False, False), segments=24))
-        c0 = edge - sign * cap
         r_out = radius * 0.97
-        parts.append(Tube(p(c0), p(edge), (r_out, r_out), (r_out * 0.92, r_out * 0.92), style.cap, LABEL_ROBOT,
-                          caps=(end == 0, end == 1), segments=24))
+        parts.append(Tube(p(b1), p(edge), (r_out, r_out), (r_out * 0.92, r_out * 0.92), style.cap, LABEL_ROBOT,
+                          caps=(False, True), segments=24))  # p1 is the outer end
     return parts
 
 
@@ -415,17 +416,16 @@ def ur5_parts(q: Sequence[float], style: RobotStyle, base_z: float = 0.0) -> lis
     parts.append(Tube(o[0] + 0.022 * up, o[0] + _BASE_SPAN[1] * up, (_BASE_RADIUS,) * 2, (_BASE_RADIUS,) * 2,
                       silver, LABEL_ROBOT, caps=(False, True), segments=24))
     for name in ("shoulder", "elbow", "wrist1", "wrist2", "wrist3"):
-        i, span, radius = _HOUSINGS[name]
-        caps = (True, name != "wrist3")
-        parts += _housing_parts(o[i], z[i], span, radius, style, caps)
+        i, span, radius, ends = _HOUSINGS[name]
+        parts += _housing_parts(o[i], z[i], span, radius, style, ends)
     # upper arm and forearm tubes, thicker where they meet the housings
     ua0, ua1 = o[1] + SHOULDER_OFFSET * z[1], o[2] + SHOULDER_OFFSET * z[1]
     fa0, fa1 = o[2] + FOREARM_OFFSET * z[2], o[3] + FOREARM_OFFSET * z[3]
     for a, b, r in ((ua0, ua1, 0.044), (fa0, fa1, 0.037)):
         d = (b - a) / np.linalg.norm(b - a)
         parts.append(Tube(a + 0.04 * d, b - 0.04 * d, (r, r), (r, r), silver, LABEL_ROBOT, caps=(False, False)))
-        parts.append(Tube(a, a + 0.07 * d, (r * 1.2, r * 1.2), (r, r), silver, LABEL_ROBOT, caps=(False, False)))
-        parts.append(Tube(b - 0.07 * d, b, (r, r), (r * 1.2, r * 1.2), silver, LABEL_ROBOT, caps=(False, False)))
+        parts.append(Tube(a, a + 0.07 * d, (r * 1.12, r * 1.12), (r, r), silver, LABEL_ROBOT, caps=(False, False)))
+        parts.append(Tube(b - 0.07 * d, b, (r, r), (r * 1.12, r * 1.12), silver, LABEL_ROBOT, caps=(False, False)))
     # tool flange and tool
     parts.append(Tube(o[5] + _FLANGE_SPAN[0] * z[5], o[6], (_FLANGE_RADIUS,) * 2, (_FLANGE_RADIUS,) * 2,
                       Material(silver.rgb * 0.8, 0.4, 30), LABEL_ROBOT, caps=(False, True), segments=20))
@@ -554,7 +554,8 @@ def _fractal(rng, shape, cells=(64, 16, 4), weights=(1.0, 0.5, 0.25)) -> np.ndar
 
 def _floor_texture(rng: np.random.Generator, size: int, ppm: float) -> np.ndarray:
     """A size x size RGB texture covering size/ppm metres of floor (tiles seamlessly every few metres)."""
-    kind = rng.choice(["concrete", "concrete", "epoxy", "tiles", "wood", "vinyl", "checker"])
+    kind = rng.choice(["concrete", "concrete", "concrete", "epoxy", "epoxy", "tiles", "tiles", "wood", "wood", "vinyl",
+                       "checker"])
     shape = (size, size)
     if kind == "concrete":
         base = np.full(3, rng.uniform(0.42, 0.68)) * (1 + rng.normal(0, 0.03, 3))
@@ -746,27 +747,44 @@ def _shade(material: Material, normals: np.ndarray, points: np.ndarray, light: L
 
 
 class _Painter:
-    """Draws parts onto a float RGB canvas (and an integer label map) with one camera and one light."""
+    """Painter's algorithm over facets: parts are cut into small planar facets (cylinder strips, caps, box
+    faces, whole spheres), which are sorted by depth and drawn back to front onto a float RGB canvas and
+    an integer label map. Sorting facets rather than whole parts keeps long links, joints that touch and
+    a person next to the robot in the right order."""
+
+    SEGMENT_LENGTH = 0.08  # m; longer cylinders are cut along their length too
 
     def __init__(self, canvas: np.ndarray, labels: np.ndarray, cam: Camera, light: Light, shift: int = 3):
         self.canvas, self.labels, self.cam, self.light = canvas, labels, cam, light
         self.shift = shift
         self.one = 1 << shift
+        self.items: list[tuple[float, int, object, object, int]] = []
 
-    def _fill(self, uv: np.ndarray, color, label: int) -> None:
-        pts = np.round(uv * self.one).astype(np.int32)
-        cv2.fillConvexPoly(self.canvas, pts, tuple(float(c) for c in color[:3]), cv2.LINE_8, self.shift)
-        cv2.fillConvexPoly(self.labels, pts, int(label), cv2.LINE_8, self.shift)
-
-    def draw(self, part: Part) -> None:
+    def add(self, part: Part, min_depth: float = 0.0) -> None:
+        """Queue a part's visible facets; `min_depth` pushes them back (drawn before nearer facets)."""
         if isinstance(part, Tube):
-            self._tube(part)
+            self._tube(part, min_depth)
         elif isinstance(part, Sphere):
-            self._sphere(part)
+            self._sphere(part, min_depth)
         else:
-            self._box(part)
+            self._box(part, min_depth)
 
-    def _tube(self, t: Tube) -> None:
+    def _queue(self, depth: float, shape, color, label: int) -> None:
+        self.items.append((depth, len(self.items), shape, color, label))
+
+    def flush(self) -> None:
+        """Draw everything queued, farthest first."""
+        self.items.sort(key=lambda it: (-it[0], it[1]))
+        for _, _, shape, color, label in self.items:
+            if isinstance(shape, Sphere):
+                self._draw_sphere(shape, label)
+            else:
+                pts = np.round(shape * self.one).astype(np.int32)
+                cv2.fillConvexPoly(self.canvas, pts, color, cv2.LINE_8, self.shift)
+                cv2.fillConvexPoly(self.labels, pts, label, cv2.LINE_8, self.shift)
+        self.items.clear()
+
+    def _tube(self, t: Tube, min_depth: float) -> None:
         axis = t.p1 - t.p0
         length = float(np.linalg.norm(axis))
         if length < 1e-6:
@@ -775,38 +793,51 @@ class _Painter:
         u = _perpendicular(a, t.u)
         v = np.cross(a, u)
         n = t.segments
+        m = max(1, int(math.ceil(length / self.SEGMENT_LENGTH)))
         th = np.arange(n) * (2 * PI / n)
-        c, s = np.cos(th)[:, None], np.sin(th)[:, None]
-        ring0 = t.p0 + t.r0[0] * c * u + t.r0[1] * s * v
-        ring1 = t.p1 + t.r1[0] * c * u + t.r1[1] * s * v
-        uv0, z0 = self.cam.project(ring0)
-        uv1, z1 = self.cam.project(ring1)
-        if min(z0.min(), z1.min()) < 0.05:
+        s = np.linspace(0.0, 1.0, m + 1)
+        rx = t.r0[0] + (t.r1[0] - t.r0[0]) * s
+        ry = t.r0[1] + (t.r1[1] - t.r0[1]) * s
+        rings = (t.p0 + s[:, None] * axis)[:, None, :] + (rx[:, None, None] * np.cos(th)[None, :, None] * u
+                                                          + ry[:, None, None] * np.sin(th)[None, :, None] * v)
+        uv, z = self.cam.project(rings.reshape(-1, 3))
+        if z.min() < 0.05:
             return
+        uv = uv.reshape(m + 1, n, 2)
         thm = th + PI / n
-        rx, ry = 0.5 * (t.r0[0] + t.r1[0]), 0.5 * (t.r0[1] + t.r1[1])
-        radial = (np.cos(thm) / rx)[:, None] * u + (np.sin(thm) / ry)[:, None] * v
+        rxm, rym = 0.5 * (t.r0[0] + t.r1[0]), 0.5 * (t.r0[1] + t.r1[1])
+        radial = (np.cos(thm) / rxm)[:, None] * u + (np.sin(thm) / rym)[:, None] * v
         radial /= np.linalg.norm(radial, axis=1, keepdims=True)
-        slope = (max(t.r0) - max(t.r1)) / length
-        normals = radial + slope * a
+        normals = radial + ((max(t.r0) - max(t.r1)) / length) * a
         normals /= np.linalg.norm(normals, axis=1, keepdims=True)
         nxt = np.roll(np.arange(n), -1)
-        centres = 0.25 * (ring0 + ring0[nxt] + ring1 + ring1[nxt])
-        visible = ((self.cam.eye - centres) * normals).sum(1) > 0
-        colors = _shade(t.material, normals, centres, self.light, self.cam.eye)
-        for i in np.flatnonzero(visible):
-            j = nxt[i]
-            self._fill(np.stack([uv0[i], uv0[j], uv1[j], uv1[i]]), colors[i], t.label)
+        centres = 0.25 * (rings[:-1] + rings[:-1, nxt] + rings[1:] + rings[1:, nxt])  # m x n x 3
+        visible = ((self.cam.eye - centres) * normals).sum(-1) > 0
+        if visible.any():
+            colors = _shade(t.material, np.broadcast_to(normals, centres.shape), centres, self.light, self.cam.eye)
+            depth = np.maximum(self.cam.to_camera(centres.reshape(-1, 3))[:, 2].reshape(m, n), min_depth)
+            label = int(t.label)
+            for j, i in zip(*np.nonzero(visible)):
+                k = nxt[i]
+                quad = np.stack([uv[j, i], uv[j, k], uv[j + 1, k], uv[j + 1, i]])
+                self._queue(float(depth[j, i]), quad, tuple(colors[j, i].tolist()), label)
         cap_mat = t.cap_material or t.material
-        for capped, centre, normal, uv in ((t.caps[0], t.p0, -a, uv0), (t.caps[1], t.p1, a, uv1)):
+        z = z.reshape(m + 1, n)
+        for capped, centre, normal, end in ((t.caps[0], t.p0, -a, 0), (t.caps[1], t.p1, a, -1)):
             if capped and (self.cam.eye - centre) @ normal > 0:
                 col = _shade(cap_mat, normal[None], centre[None], self.light, self.cam.eye)[0]
-                self._fill(uv, col, t.label)
+                # a visible end disc hides whatever is attached behind its plane (the link leaving the
+                # housing's side), so it sorts by its nearest rim point rather than its centre
+                depth = max(float(z[end].min()), min_depth)
+                self._queue(depth, uv[end], tuple(col.tolist()), int(t.label))
 
-    def _sphere(self, sp: Sphere) -> None:
+    def _sphere(self, sp: Sphere, min_depth: float) -> None:
+        depth = float(self.cam.to_camera(sp.centre[None])[0, 2])
+        if depth > sp.radius + 0.05:
+            self._queue(max(depth, min_depth), sp, None, int(sp.label))
+
+    def _draw_sphere(self, sp: Sphere, label: int) -> None:
         pc = self.cam.to_camera(sp.centre[None])[0]
-        if pc[2] < sp.radius + 0.05:
-            return
         K = self.cam.K
         cu, cv_ = K[0, 0] * pc[0] / pc[2] + K[0, 2], K[1, 1] * pc[1] / pc[2] + K[1, 2]
         rad = K[0, 0] * sp.radius / math.sqrt(max(pc @ pc - sp.radius ** 2, 1e-9))
@@ -822,18 +853,15 @@ class _Painter:
         if not inside.any():
             return
         nz = -np.sqrt(np.clip(1.0 - r2[inside], 0.0, 1.0))
-        n_cam = np.stack([dx[inside], dy[inside], nz], 1)
-        n_world = n_cam @ self.cam.R
+        n_world = np.stack([dx[inside], dy[inside], nz], 1) @ self.cam.R
         points = sp.centre + sp.radius * n_world
-        col = _shade(sp.material, n_world, points, self.light, self.cam.eye).astype(np.float32)
-        patch = self.canvas[y0:y1, x0:x1]
-        patch[inside] = col
-        self.labels[y0:y1, x0:x1][inside] = sp.label
+        self.canvas[y0:y1, x0:x1][inside] = _shade(sp.material, n_world, points, self.light, self.cam.eye)
+        self.labels[y0:y1, x0:x1][inside] = label
 
     _FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
     _FACE_AXIS = ((0, -1), (0, 1), (1, -1), (1, 1), (2, -1), (2, 1))
 
-    def _box(self, b: Box) -> None:
+    def _box(self, b: Box, min_depth: float) -> None:
         corners = b.corners()
         uv, z = self.cam.project(corners)
         if z.min() < 0.05:
@@ -845,12 +873,13 @@ class _Painter:
                 continue
             mat = b.top_material if (b.top_material is not None and normal[2] > 0.9) else b.material
             col = _shade(mat, normal[None], centre[None], self.light, self.cam.eye)[0]
-            pts = uv[list(face)]
-            self._fill(pts, col, b.label)
-            if b.edges:
-                poly = np.round(pts * self.one).astype(np.int32)
-                cv2.polylines(self.canvas, [poly], True, tuple(float(c) for c in col * 0.6), 1, cv2.LINE_8,
-                              self.shift)
+            depth = max(float(self.cam.to_camera(centre[None])[0, 2]), min_depth)
+            if b.edges:  # a darker rim, as real edges and seams catch less light
+                self._queue(depth, uv[list(face)], tuple((col * 0.7).tolist()), int(b.label))
+                inner = (corners[list(face)] - centre) * 0.97 + centre
+                self._queue(depth - 1e-4, self.cam.project(inner)[0], tuple(col.tolist()), int(b.label))
+            else:
+                self._queue(depth, uv[list(face)], tuple(col.tolist()), int(b.label))
 
 
 @dataclass
@@ -1260,14 +1289,11 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     labels = np.zeros((height * ss, width * ss), np.uint8)
     painter = _Painter(canvas, labels, cam2, light)
     robot_depth_far = float(cam.to_camera(robot_pts)[:, 2].max())
-    items: list[tuple[float, int, Part]] = []
     for part in robot + person + [p for obj in clutter for p in obj]:
-        items.append((float(cam.to_camera(part.centroid()[None])[0, 2]), len(items), part))
-    for part in mount_parts:  # the mount is under the robot: drawn before any robot part
-        depth = float(cam.to_camera(part.centroid()[None])[0, 2])
-        items.append((max(depth, robot_depth_far + 1e-3), len(items), part))
-    for _, _, part in sorted(items, key=lambda it: (-it[0], it[1])):
-        painter.draw(part)
+        painter.add(part)
+    for part in mount_parts:  # the mount is under the robot: drawn before any robot facet
+        painter.add(part, min_depth=robot_depth_far + 1e-3)
+    painter.flush()
     img = cv2.resize(canvas, (width, height), interpolation=cv2.INTER_AREA)
     labels_1x = cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
 
