@@ -405,3 +405,20 @@ def test_result_does_not_depend_on_opencv_threads():
         assert_same(maps_to_keypoints(maps), single)
     finally:
         cv2.setNumThreads(old)
+
+
+def test_benchmark_tool_runs_and_checks_its_variants(tmp_path):
+    """Smoke test of tools/bench_postprocess.py on tiny maps (no timing is asserted)."""
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+    tool = Path(__file__).resolve().parents[1] / "tools" / "bench_postprocess.py"
+    out = tmp_path / "bench.json"
+    proc = subprocess.run([sys.executable, str(tool), "--size", "48", "--rounds", "3", "--warmup", "1",
+                           "--json", str(out)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "library (bbox window)" in proc.stdout and "median µs" in proc.stdout
+    report = json.loads(out.read_text())
+    assert {r["scenario"] for r in report["results"]} == {"clean", "speckled", "noisy", "empty", "full", "random50"}
+    assert report["threads"] == 1 and all(r["median_us"] > 0 for r in report["results"])
