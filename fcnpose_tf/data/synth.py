@@ -262,6 +262,7 @@ class Tube:
     cap_material: Material | None = None
     u: np.ndarray | None = None
     segments: int = 20
+    cap_in_front: bool = False  # nothing sticks out of the end discs: sort them by their nearest rim point
 
     def centroid(self) -> np.ndarray:
         return 0.5 * (self.p0 + self.p1)
@@ -395,7 +396,7 @@ def _housing_parts(centre_o, axis, span, radius, style: RobotStyle, ends=("cap",
                           caps=(False, False), segments=24))
         r_out = radius * 0.97
         parts.append(Tube(p(b1), p(edge), (r_out, r_out), (r_out * 0.92, r_out * 0.92), style.cap, LABEL_ROBOT,
-                          caps=(False, True), segments=24))  # p1 is the outer end
+                          caps=(False, True), segments=24, cap_in_front=True))  # p1 is the outer end
     return parts
 
 
@@ -441,7 +442,7 @@ def _tool_parts(flange: np.ndarray, n: np.ndarray, side: np.ndarray, style: Robo
         parts: list[Part] = [Tube(flange, flange + 0.012 * n, (0.036,) * 2, (0.036,) * 2, style.band, LABEL_ROBOT,
                                   caps=(False, True)),
                              Tube(flange + 0.012 * n, flange + body * n, (0.037, 0.030), (0.037, 0.030), m,
-                                  LABEL_ROBOT, u=side, segments=16)]
+                                  LABEL_ROBOT, caps=(False, True), u=side, segments=16)]
         for sgn in (-1.0, 1.0):
             a = flange + body * n + sgn * 0.018 * side
             b = flange + L * n + sgn * 0.009 * side
@@ -498,7 +499,7 @@ def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, heig
         knee = 0.5 * (hip + foot) + rng.uniform(0.0, 0.06) * fwd
         parts.append(Tube(hip, knee, (0.08,) * 2, (0.06,) * 2, trousers, lab, caps=(False, False), segments=14))
         parts.append(Sphere(knee, 0.06, trousers, lab))
-        parts.append(Tube(knee, foot, (0.06,) * 2, (0.05,) * 2, trousers, lab, segments=14))
+        parts.append(Tube(knee, foot, (0.06,) * 2, (0.05,) * 2, trousers, lab, caps=(False, False), segments=14))
         parts.append(_box(foot + 0.05 * fwd - 0.035 * up, (0.27, 0.1, 0.08), facing, shoes, lab))
         shoulder = base + up * (sh_z - 0.035) + side * 0.2 * lat
         flex, abduct = rng.uniform(-0.4, 1.4), rng.uniform(0.05, 0.45)
@@ -514,17 +515,17 @@ def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, heig
         parts.append(Sphere(shoulder, 0.052, shirt, lab))
         parts.append(Tube(shoulder, elbow, (0.056,) * 2, (0.045,) * 2, shirt, lab, caps=(False, False), segments=12))
         parts.append(Sphere(elbow, 0.044, sleeve, lab))
-        parts.append(Tube(elbow, wrist, (0.044,) * 2, (0.032,) * 2, sleeve, lab, caps=(False, True), segments=12))
+        parts.append(Tube(elbow, wrist, (0.044,) * 2, (0.032,) * 2, sleeve, lab, caps=(False, False), segments=12))
         parts.append(Sphere(wrist + 0.045 * fore_dir, 0.04, skin, lab))
     parts.append(Tube(base + up * (hip_z - 0.1), base + up * (hip_z + 0.04), (0.17, 0.115), (0.17, 0.115),
-                      trousers, lab, u=lat, segments=16))
+                      trousers, lab, caps=(True, False), u=lat, segments=16))
     parts.append(Tube(base + up * (hip_z + 0.02), base + up * (sh_z + 0.01), (0.165, 0.11), (0.205, 0.12), shirt,
-                      lab, u=lat, segments=18))
+                      lab, caps=(False, True), u=lat, segments=18))
     yoke = base + up * (sh_z - 0.035)
     parts.append(Tube(yoke - 0.2 * lat, yoke + 0.2 * lat, (0.055, 0.05), (0.055, 0.05), shirt, lab, u=up,
                       caps=(False, False), segments=14))
     parts.append(Tube(base + up * (sh_z - 0.02), base + up * 0.875 * h, (0.06,) * 2, (0.052,) * 2, skin, lab,
-                      segments=12))
+                      caps=(False, False), segments=12))
     head = base + up * 0.925 * h + 0.01 * fwd
     parts.append(Sphere(head, 0.057 * h, skin, lab))
     if helmet:
@@ -826,9 +827,10 @@ class _Painter:
         for capped, centre, normal, end in ((t.caps[0], t.p0, -a, 0), (t.caps[1], t.p1, a, -1)):
             if capped and (self.cam.eye - centre) @ normal > 0:
                 col = _shade(cap_mat, normal[None], centre[None], self.light, self.cam.eye)[0]
-                # a visible end disc hides whatever is attached behind its plane (the link leaving the
+                # a joint's end cap hides whatever is attached behind its plane (the link leaving the
                 # housing's side), so it sorts by its nearest rim point rather than its centre
-                depth = max(float(z[end].min()), min_depth)
+                depth = float(z[end].min()) if t.cap_in_front else float(self.cam.to_camera(centre[None])[0, 2])
+                depth = max(depth, min_depth)
                 self._queue(depth, uv[end], tuple(col.tolist()), int(t.label))
 
     def _sphere(self, sp: Sphere, min_depth: float) -> None:
