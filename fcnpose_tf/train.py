@@ -40,6 +40,7 @@ class FitConfig:
     batch_size: int = 8
     learning_rate: float = 1e-3
     seed: int = 0
+    positive_weight: float = 1.0
 
     def validate(self) -> None:
         if self.epochs < 1:
@@ -50,6 +51,8 @@ class FitConfig:
             raise UserError(f"batch size must be at least 1, got {self.batch_size}")
         if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
             raise UserError(f"learning rate must be a positive number, got {self.learning_rate}")
+        if not (self.positive_weight >= 1 and math.isfinite(self.positive_weight)):
+            raise UserError(f"positive weight must be a number >= 1, got {self.positive_weight}")
 
 
 @dataclass
@@ -81,10 +84,41 @@ def run_paths(model_path: Path) -> dict[str, Path]:
     }
 
 
-def compile_for_training(model: keras.Model, learning_rate: float) -> keras.Model:
-    """Adam and binary cross-entropy over all maps, as in the paper."""
-    model.compile(optimizer=keras.optimizers.Adam(learning_rate),
-                  loss=keras.losses.BinaryCrossentropy(), jit_compile=False)
+@keras.utils.register_keras_serializable(package="fcnpose_tf")
+class KeypointBinaryCrossentropy(keras.losses.Loss):
+    """Binary cross-entropy over all maps, with the active pixels of the keypoint maps weighted.
+
+    With positive_weight 1 this is exactly Keras' BinaryCrossentropy (the paper's loss). A keypoint
+    disc covers about 0.2% of its map, so plain BCE spends many epochs predicting empty maps
+    before any disc crosses 0.5; weighting the disc pixels (not the skeleton map, which is
+    large) shortens that phase several-fold at the same optimum location of each disc.
+    """
+
+    def __init__(self, positive_weight: float = 1.0, name: str = "keypoint_bce", **kwargs):
+        super().__init__(name=name, **kwargs)
+        self.positive_weight = float(positive_weight)
+
+    def call(self, y_true, y_pred):
+        import tensorflow as tf
+
+        y_true = tf.cast(y_true, y_pred.dtype)
+        eps = keras.backend.epsilon()
+        p = tf.clip_by_value(y_pred, eps, 1.0 - eps)
+        pos = y_true * tf.math.log(p)
+        if self.positive_weight != 1.0:
+            channels = tf.shape(y_true)[-1]
+            weights = tf.concat([tf.fill([channels - 1], self.positive_weight), tf.ones([1])], axis=0)
+            pos = pos * tf.cast(weights, pos.dtype)
+        return -tf.reduce_mean(pos + (1.0 - y_true) * tf.math.log(1.0 - p), axis=-1)
+
+    def get_config(self) -> dict:
+        return {**super().get_config(), "positive_weight": self.positive_weight}
+
+
+def compile_for_training(model: keras.Model, learning_rate: float, positive_weight: float = 1.0) -> keras.Model:
+    """Adam and binary cross-entropy over all maps (the paper's), optionally weighting keypoint pixels."""
+    loss = keras.losses.BinaryCrossentropy() if positive_weight == 1.0 else KeypointBinaryCrossentropy(positive_weight)
+    model.compile(optimizer=keras.optimizers.Adam(learning_rate), loss=loss, jit_compile=False)
     return model
 
 
@@ -162,7 +196,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     else:
         state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
                  "history": [], "seconds": 0.0, "config": asdict(config)}
-        compile_for_training(model, config.learning_rate)
+        compile_for_training(model, config.learning_rate, config.positive_weight)
 
     start = time.perf_counter()
     seconds_before = state["seconds"]
