@@ -15,7 +15,6 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
@@ -96,7 +95,7 @@ class KeypointModel:
     Raises:
         UserError: missing, corrupt or non-FCN-Pose file; no interpreter installed.
     Example:
-        >>> model = KeypointModel("saved_models/fcnpose_ur5_p70_fp16.tflite", num_threads=2)
+        >>> model = KeypointModel("p70_fp16.tflite", num_threads=2)
         >>> pred = model.predict(cv2.imread("frame.png"))
         >>> pred.keypoints, pred.confidence, pred.times.total_ms
     """
