@@ -770,19 +770,24 @@ class _Painter:
         else:
             self._box(part, min_depth)
 
+    def _fixed(self, uv: np.ndarray) -> np.ndarray:
+        """Pixel coordinates as OpenCV's fixed-point integers (`shift` fractional bits)."""
+        return np.round(uv * self.one).astype(np.int32)
+
     def _queue(self, depth: float, shape, color, label: int) -> None:
+        """Queue a polygon (fixed-point int32 points) or a Sphere."""
         self.items.append((depth, len(self.items), shape, color, label))
 
     def flush(self) -> None:
         """Draw everything queued, farthest first."""
         self.items.sort(key=lambda it: (-it[0], it[1]))
+        canvas, labels, shift = self.canvas, self.labels, self.shift
         for _, _, shape, color, label in self.items:
             if isinstance(shape, Sphere):
                 self._draw_sphere(shape, label)
             else:
-                pts = np.round(shape * self.one).astype(np.int32)
-                cv2.fillConvexPoly(self.canvas, pts, color, cv2.LINE_8, self.shift)
-                cv2.fillConvexPoly(self.labels, pts, label, cv2.LINE_8, self.shift)
+                cv2.fillConvexPoly(canvas, shape, color, cv2.LINE_8, shift)
+                cv2.fillConvexPoly(labels, shape, label, cv2.LINE_8, shift)
         self.items.clear()
 
     def _tube(self, t: Tube, min_depth: float) -> None:
@@ -818,10 +823,11 @@ class _Painter:
             colors = _shade(t.material, np.broadcast_to(normals, centres.shape), centres, self.light, self.cam.eye)
             depth = np.maximum(self.cam.to_camera(centres.reshape(-1, 3))[:, 2].reshape(m, n), min_depth)
             label = int(t.label)
+            quads = self._fixed(np.stack([uv[:-1], uv[:-1, nxt], uv[1:, nxt], uv[1:]], axis=2))  # m x n x 4 x 2
+            colors = colors.tolist()
+            depth = depth.tolist()
             for j, i in zip(*np.nonzero(visible)):
-                k = nxt[i]
-                quad = np.stack([uv[j, i], uv[j, k], uv[j + 1, k], uv[j + 1, i]])
-                self._queue(float(depth[j, i]), quad, tuple(colors[j, i].tolist()), label)
+                self._queue(depth[j][i], quads[j, i], tuple(colors[j][i]), label)
         cap_mat = t.cap_material or t.material
         z = z.reshape(m + 1, n)
         for capped, centre, normal, end in ((t.caps[0], t.p0, -a, 0), (t.caps[1], t.p1, a, -1)):
@@ -831,7 +837,7 @@ class _Painter:
                 # housing's side), so it sorts by its nearest rim point rather than its centre
                 depth = float(z[end].min()) if t.cap_in_front else float(self.cam.to_camera(centre[None])[0, 2])
                 depth = max(depth, min_depth)
-                self._queue(depth, uv[end], tuple(col.tolist()), int(t.label))
+                self._queue(depth, self._fixed(uv[end]), tuple(col.tolist()), int(t.label))
 
     def _sphere(self, sp: Sphere, min_depth: float) -> None:
         depth = float(self.cam.to_camera(sp.centre[None])[0, 2])
@@ -877,11 +883,11 @@ class _Painter:
             col = _shade(mat, normal[None], centre[None], self.light, self.cam.eye)[0]
             depth = max(float(self.cam.to_camera(centre[None])[0, 2]), min_depth)
             if b.edges:  # a darker rim, as real edges and seams catch less light
-                self._queue(depth, uv[list(face)], tuple((col * 0.7).tolist()), int(b.label))
+                self._queue(depth, self._fixed(uv[list(face)]), tuple((col * 0.7).tolist()), int(b.label))
                 inner = (corners[list(face)] - centre) * 0.97 + centre
-                self._queue(depth - 1e-4, self.cam.project(inner)[0], tuple(col.tolist()), int(b.label))
+                self._queue(depth - 1e-4, self._fixed(self.cam.project(inner)[0]), tuple(col.tolist()), int(b.label))
             else:
-                self._queue(depth, uv[list(face)], tuple(col.tolist()), int(b.label))
+                self._queue(depth, self._fixed(uv[list(face)]), tuple(col.tolist()), int(b.label))
 
 
 @dataclass
