@@ -1,0 +1,149 @@
+"""Training, resuming, evaluation and their CLI errors on a small, non-synthetic VIA dataset built on the fly."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from fcnpose_tf.data.via import ViaFrame, write_via_project
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.keypoints import UR5
+
+
+def make_via_folder(folder, n=10, size=(96, 72), seed=0):
+    """Frames of any size with coloured dots at the keypoints (a user's VIA export, not synthetic)."""
+    rng = np.random.default_rng(seed)
+    (folder / "images").mkdir(parents=True)
+    w, h = size
+    frames = []
+    for i in range(n):
+        img = np.full((h, w, 3), 40, np.uint8)
+        kps = np.c_[rng.uniform(8, w - 9, 8), rng.uniform(8, h - 9, 8)]
+        for k, (x, y) in enumerate(kps):
+            cv2.circle(img, (int(round(x)), int(round(y))), 3, (30 * k, 255 - 30 * k, 200), -1)
+        cv2.imwrite(str(folder / "images" / f"cam_{i:02d}.jpg"), img)
+        frames.append(ViaFrame(f"cam_{i:02d}.jpg", w, h, kps))
+    write_via_project(folder / "labels.json", frames, UR5)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    """A 64x64 FCN-Pose trained 2 epochs by the CLI on a small VIA folder (shared by the tests below)."""
+    import os
+    import subprocess
+    import sys
+
+    root = tmp_path_factory.mktemp("train")
+    data = make_via_folder(root / "frames")
+    out = root / "models" / "arm.keras"
+    proc = subprocess.run([sys.executable, "-m", "fcnpose_tf", "train", "--data", str(data), "--out", str(out),
+                           "--epochs", "2", "--input-size", "64", "--augment-copies", "1", "--quiet"],
+                          capture_output=True, text=True, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="3"),
+                          timeout=600)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    return data, out, proc.stdout
+
+
+def test_train_writes_model_curves_and_record(trained):
+    data, out, stdout = trained
+    stem = out.with_suffix("")
+    assert out.is_file() and not out.with_suffix(".ckpt").exists()
+    rows = (stem.parent / f"{stem.name}_loss.csv").read_text().splitlines()
+    assert rows[0] == "epoch,loss,val_loss" and len(rows) == 3
+    png = cv2.imread(str(stem.parent / f"{stem.name}_loss.png"))
+    assert png is not None and png.shape[0] > 100
+    record = json.loads((stem.parent / f"{stem.name}_train.json").read_text())
+    assert record["epochs_run"] == 2 and record["train_samples"] == 16 and record["val_frames"] == 2
+    assert "pck@0.5_bbox" in record["validation"]["metrics"]
+    assert "16 samples (8 frames + 1 augmented copies each)" in stdout
+    assert "PCK normalised by max(bbox w, h)" in stdout
+
+
+def test_existing_model_needs_force(trained, cli):
+    data, out, _ = trained
+    before = out.read_bytes()
+    proc = cli("train", "--data", data, "--out", out, "--epochs", "1", "--input-size", "64")
+    assert proc.returncode == 2 and "already exists; pass --force" in proc.stderr
+    assert out.read_bytes() == before
+
+
+def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, cli, tmp_path):
+    data, out, _ = trained
+    proc = cli("evaluate", out, "--data", data, "--json", tmp_path / "r.json", "--threads", "1")
+    assert proc.returncode == 0, proc.stderr
+    assert "validation frames of the hold-out 80/20 split (2 frames)" in proc.stdout
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["timing"]["frames_timed"] >= 50 and report["timing"]["threads"] == 1
+    assert set(report["metrics"]) >= {"pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "epe_px", "pck_auc_0-20px"}
+    other = make_via_folder(tmp_path / "other", n=4, seed=5)
+    proc = cli("evaluate", out, "--data", other)
+    assert proc.returncode == 0, proc.stderr
+    assert "all 4 frames" in proc.stdout
+
+
+def test_evaluate_errors(trained, cli, tmp_path):
+    from fcnpose_tf.model import build_fcn_pose
+
+    data, out, _ = trained
+    proc = cli("evaluate", tmp_path / "nope.keras", "--data", data)
+    assert proc.returncode == 2 and "nope.keras: model file not found" in proc.stderr
+    wrong = tmp_path / "five.keras"
+    build_fcn_pose(input_size=64, num_maps=5).save(wrong)
+    proc = cli("evaluate", wrong, "--data", data)
+    assert proc.returncode == 2 and "5 output maps" in proc.stderr and "Traceback" not in proc.stderr
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    write_via_project(empty / "labels.json", [], UR5)
+    proc = cli("evaluate", out, "--data", empty)
+    assert proc.returncode == 2 and "no usable frames" in proc.stderr
+    proc = cli("evaluate", out, "--data", tmp_path / "missing")
+    assert proc.returncode == 2 and "not found" in proc.stderr
+
+
+def test_interrupted_training_resumes(tmp_path, monkeypatch):
+    from fcnpose_tf import train
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.model import build_fcn_pose
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
+    tr, va = fold_data(ds, None, 32, 0)
+    out = tmp_path / "m.keras"
+    config = train.FitConfig(epochs=3, patience=5, batch_size=4)
+    original = train._CheckpointAndStop.on_epoch_end
+
+    def interrupt_after_first(self, epoch, logs=None):
+        original(self, epoch, logs)
+        if epoch == 0:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
+    with pytest.raises(UserError, match="interrupted after 1 complete epochs; continue with --resume"):
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, verbose=0)
+    state = json.loads((tmp_path / "m.ckpt" / "state.json").read_text())
+    assert state["epoch"] == 1 and not out.exists()
+    with pytest.raises(UserError, match="pass --resume to continue it or --force"):
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, verbose=0)
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", original)
+    result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, resume=True,
+                       verbose=0)
+    assert result.epochs_run == 3 and [h["epoch"] for h in result.history] == [1, 2, 3]
+    assert out.is_file() and not (tmp_path / "m.ckpt").exists()
+
+
+def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
+    import tensorflow as tf
+    import tf_keras as keras
+
+    from fcnpose_tf.train import KeypointBinaryCrossentropy
+
+    rng = np.random.default_rng(0)
+    y = (rng.random((2, 8, 8, 3)) > 0.8).astype(np.float32)
+    p = rng.uniform(0.01, 0.99, (2, 8, 8, 3)).astype(np.float32)
+    plain = float(keras.losses.BinaryCrossentropy()(y, p))
+    assert float(KeypointBinaryCrossentropy(1.0)(y, p)) == pytest.approx(plain, rel=1e-5)
+    w = 5.0
+    ref = -(w * y * np.log(p) + (1 - y) * np.log(1 - p))
+    ref[..., -1] = -(y[..., -1] * np.log(p[..., -1]) + (1 - y[..., -1]) * np.log(1 - p[..., -1]))
+    assert float(KeypointBinaryCrossentropy(w)(tf.constant(y), tf.constant(p))) == pytest.approx(ref.mean(), rel=1e-5)
