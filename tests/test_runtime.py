@@ -521,7 +521,7 @@ def test_camera_keeps_only_the_newest_frame(monkeypatch):
 def test_camera_that_disappears_ends_the_run(monkeypatch):
     monkeypatch.setattr(rsources.cv2, "VideoCapture", lambda device: FakeCapture(device, fail_after=5))
     messages = []
-    src = rsources.CameraSource(0, warn=messages.append, stall_timeout_s=0.1)
+    src = rsources.CameraSource(0, warn=messages.append, stall_timeout_s=0.2)
     frames = list(src)
     src.close()
     assert 1 <= len(frames) <= 5
