@@ -475,8 +475,13 @@ _TROUSERS = np.array([[0.17, 0.24, 0.40], [0.07, 0.07, 0.08], [0.58, 0.52, 0.38]
 _HELMET = np.array([[0.95, 0.8, 0.1], [0.85, 0.15, 0.1], [0.95, 0.45, 0.1], [0.1, 0.3, 0.8]])
 
 
-def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, height: float) -> list[Part]:
-    """A standing person (legs, torso, arms, head) of `height` m at floor point `feet`, facing yaw `facing`."""
+def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, height: float,
+                 reach: np.ndarray | None = None) -> list[Part]:
+    """A standing person (legs, torso, arms, head) of `height` m at floor point `feet`, facing yaw `facing`.
+
+    With `reach` (a world point), the arm on that side reaches toward it, as a co-worker handing
+    something to the robot; otherwise both arms take random relaxed or working poses.
+    """
     pick = lambda table: table[rng.integers(len(table))] * rng.uniform(0.9, 1.08)  # noqa: E731
     skin = Material(np.clip(pick(_SKIN), 0, 1), 0.08, 10)
     shirt = Material(np.clip(pick(_SHIRT), 0, 1), 0.05, 8)
@@ -502,14 +507,21 @@ def person_parts(rng: np.random.Generator, feet: np.ndarray, facing: float, heig
         parts.append(Tube(knee, foot, (0.06,) * 2, (0.05,) * 2, trousers, lab, caps=(False, False), segments=14))
         parts.append(_box(foot + 0.05 * fwd - 0.035 * up, (0.27, 0.1, 0.08), facing, shoes, lab))
         shoulder = base + up * (sh_z - 0.035) + side * 0.2 * lat
-        flex, abduct = rng.uniform(-0.4, 1.4), rng.uniform(0.05, 0.45)
-        upper_dir = -up * math.cos(flex) + fwd * math.sin(flex)
-        upper_dir = upper_dir * math.cos(abduct) + side * lat * math.sin(abduct)
-        elbow = shoulder + 0.17 * h * upper_dir
-        bend = rng.uniform(0.0, 1.9)  # elbow flexion: the forearm swings forward about the lateral axis
-        ahead = np.cross(upper_dir, lat)
-        ahead /= max(np.linalg.norm(ahead), 1e-6)
-        fore_dir = upper_dir * math.cos(bend) + ahead * math.sin(bend)
+        if reach is not None and side * ((reach - base) @ lat) >= 0:  # the arm on the target's side
+            to_target = (reach - shoulder) / max(np.linalg.norm(reach - shoulder), 1e-6)
+            upper_dir = to_target - 0.3 * up
+            upper_dir /= np.linalg.norm(upper_dir)
+            elbow = shoulder + 0.17 * h * upper_dir
+            fore_dir = (reach - elbow) / max(np.linalg.norm(reach - elbow), 1e-6)
+        else:
+            flex, abduct = rng.uniform(-0.4, 1.4), rng.uniform(0.05, 0.45)
+            upper_dir = -up * math.cos(flex) + fwd * math.sin(flex)
+            upper_dir = upper_dir * math.cos(abduct) + side * lat * math.sin(abduct)
+            elbow = shoulder + 0.17 * h * upper_dir
+            bend = rng.uniform(0.0, 1.9)  # elbow flexion: the forearm swings forward about the lateral axis
+            ahead = np.cross(upper_dir, lat)
+            ahead /= max(np.linalg.norm(ahead), 1e-6)
+            fore_dir = upper_dir * math.cos(bend) + ahead * math.sin(bend)
         wrist = elbow + 0.145 * h * fore_dir
         sleeve = shirt if long_sleeves else skin
         parts.append(Sphere(shoulder, 0.052, shirt, lab))
@@ -1334,19 +1346,29 @@ def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv
     arm_xy = kp3d[:, :2].mean(0)
     away = max(0.55, mount_radius + 0.3)  # feet at least this far from the base axis
 
-    def make(feet, facing):
-        return person_parts(rng, feet, facing, rng.uniform(1.58, 1.92))
+    def make(feet, facing, reach=None):
+        return person_parts(rng, feet, facing, rng.uniform(1.58, 1.92), reach)
 
-    if r < 0.4:
+    if r < 0.55:
         line = arm_xy - cam_xy
         lateral = np.array([-line[1], line[0]]) / max(np.linalg.norm(line), 1e-6)
         unit = line / max(np.linalg.norm(line), 1e-6)
-        for _ in range(30):  # next to the robot on the camera's side, as a co-worker would stand
-            feet = arm_xy - rng.uniform(0.35, 1.1) * unit + rng.uniform(-0.7, 0.7) * lateral
+        for _ in range(40):  # next to the robot on the camera's side, as a co-worker would stand
+            feet = arm_xy - rng.uniform(0.35, 1.2) * unit + rng.uniform(-0.8, 0.8) * lateral
             if np.linalg.norm(feet - cam_xy) < 1.0 or np.linalg.norm(feet) < away:
                 continue
-            toward_robot = math.atan2(-feet[1], -feet[0])
-            cand = make(feet, toward_robot + rng.normal(0, 0.9))
+            chest_uv, chest_z = cam.project(np.array([[feet[0], feet[1], 1.2]]))
+            if chest_z[0] < 0.5 or chest_uv[0, 1] < 0 or not 0 <= chest_uv[0, 0] <= cam.width - 1:
+                continue  # keep the chest in the picture: a person, not two posts or a lone arm
+            reach = None
+            if rng.random() < 0.6:  # hand something to the robot: reach toward a point near a joint
+                kp = kp3d[rng.integers(2, 8)]
+                away_from_kp = np.array([feet[0], feet[1], kp[2]]) - kp
+                reach = kp + 0.25 * away_from_kp / max(np.linalg.norm(away_from_kp), 1e-6)
+                facing = math.atan2(reach[1] - feet[1], reach[0] - feet[0]) + rng.normal(0, 0.3)
+            else:
+                facing = math.atan2(-feet[1], -feet[0]) + rng.normal(0, 0.9)
+            cand = make(feet, facing, reach)
             hidden = int(_covered(cand, cam, kp_uv, kp_z).sum())
             if 1 <= hidden <= 3 and _robot_clearance(cand, kp3d) > 0.1:
                 return cand, "occluding"
@@ -1444,10 +1466,11 @@ def draw_keypoints(image_bgr: np.ndarray, keypoints: np.ndarray, schema=UR5, lab
                    occluded: np.ndarray | None = None) -> np.ndarray:
     """A copy of a BGR frame with the skeleton, keypoint dots and (optionally) their names drawn on it.
 
-    Occluded keypoints (if given) are drawn as hollow rings.
+    Names are placed greedily where they overlap neither each other nor the dots, with a thin leader
+    line when pushed away; occluded keypoints (if given) are drawn as rings.
     """
     out = np.ascontiguousarray(image_bgr.copy())
-    h = out.shape[0]
+    h, w = out.shape[:2]
     scale = max(0.6, h / 480)
     kp = np.asarray(keypoints, np.float64)
     shift = 4
@@ -1456,19 +1479,45 @@ def draw_keypoints(image_bgr: np.ndarray, keypoints: np.ndarray, schema=UR5, lab
         if np.isfinite(kp[[a, b]]).all():
             cv2.line(out, fx(kp[a]), fx(kp[b]), (255, 255, 255), max(1, int(3 * scale)), cv2.LINE_AA, shift)
             cv2.line(out, fx(kp[a]), fx(kp[b]), (40, 40, 40), max(1, int(1 * scale)), cv2.LINE_AA, shift)
-    for k, name in enumerate(schema.keypoints):
-        if not np.isfinite(kp[k]).all():
-            continue
+    r = max(2, int(4 * scale))
+    visible = [k for k in range(schema.num_keypoints) if np.isfinite(kp[k]).all()]
+    for k in visible:
         color = _KEYPOINT_COLORS_BGR[k % len(_KEYPOINT_COLORS_BGR)]
-        r = max(2, int(4 * scale))
         hollow = occluded is not None and bool(occluded[k])
         cv2.circle(out, fx(kp[k]), r * 16, color, max(1, int(2 * scale)) if hollow else -1, cv2.LINE_AA, shift)
         cv2.circle(out, fx(kp[k]), (r + 1) * 16, (0, 0, 0), 1, cv2.LINE_AA, shift)
-        if labels:
-            org = (int(kp[k, 0] + r + 3), int(kp[k, 1] - r))
-            fs = 0.42 * scale
-            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, fs, (0, 0, 0), max(2, int(3 * scale)), cv2.LINE_AA)
-            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, fs, color, max(1, int(1 * scale)), cv2.LINE_AA)
+    if not labels:
+        return out
+    fs = max(0.4, 0.45 * scale)
+    taken = [(kp[k, 0] - r, kp[k, 1] - r, kp[k, 0] + r, kp[k, 1] + r) for k in visible]
+    for k in visible:
+        name = schema.keypoints[k]
+        color = _KEYPOINT_COLORS_BGR[k % len(_KEYPOINT_COLORS_BGR)]
+        (tw, th), base = cv2.getTextSize(name, cv2.FONT_HERSHEY_SIMPLEX, fs, 1)
+        x, y = kp[k]
+        best = None
+        for dist in (r + 3, 3 * r + 8, 6 * r + 14, 10 * r + 22):
+            for dx, dy in ((1, 0), (-1, 0), (0, -1), (0, 1), (1, -1), (-1, -1), (1, 1), (-1, 1)):
+                x0 = x + dx * dist - (tw if dx < 0 else 0 if dx > 0 else tw / 2)
+                y0 = y + dy * dist + (th / 2 if dy == 0 else 0 if dy > 0 else -th) - th / 2
+                box = (x0 - 1, y0 - 1, x0 + tw + 1, y0 + th + base)
+                if box[0] < 0 or box[1] < 0 or box[2] >= w or box[3] >= h:
+                    continue
+                if all(box[2] < t[0] or box[0] > t[2] or box[3] < t[1] or box[1] > t[3] for t in taken):
+                    best = (box, dist)
+                    break
+            if best:
+                break
+        if best is None:
+            continue  # no free spot: leave this name out rather than cover another
+        box, dist = best
+        taken.append(box)
+        org = (int(box[0] + 1), int(box[1] + 1 + th))
+        if dist > r + 3:
+            anchor = (min(max(x, box[0]), box[2]), min(max(y, box[1]), box[3]))
+            cv2.line(out, fx(kp[k]), fx(anchor), color, 1, cv2.LINE_AA, shift)
+        cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, fs, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, fs, color, 1, cv2.LINE_AA)
     return out
 
 
@@ -1673,5 +1722,6 @@ def write_preview(report: SynthReport, path: str | os.PathLike, count: int = 6, 
         if image is None:
             raise UserError(f"{image_dir / record.filename}: cannot read the frame back")
         frames.append((image, record.keypoints, record.occluded))
-    ok, buf = cv2.imencode(".png", preview_grid(frames, columns=3 if len(frames) > 4 else 2))
+    grid = preview_grid(frames, columns=3 if len(frames) > 4 else 2, tile_width=400)
+    ok, buf = cv2.imencode(".png", grid, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     return fileio.write_bytes(path, buf.tobytes(), force=force)
