@@ -1349,7 +1349,7 @@ def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv
     def make(feet, facing, reach=None):
         return person_parts(rng, feet, facing, rng.uniform(1.58, 1.92), reach)
 
-    if r < 0.55:
+    if r < 0.65:
         line = arm_xy - cam_xy
         lateral = np.array([-line[1], line[0]]) / max(np.linalg.norm(line), 1e-6)
         unit = line / max(np.linalg.norm(line), 1e-6)
