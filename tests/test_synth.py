@@ -213,9 +213,11 @@ def test_force_rewrites_and_removes_stale_frames(tmp_path):
     out = tmp_path / "set"
     generate(out, n=3, seed=0, width=W, height=H, workers=1, progress=False)
     (out / "notes.txt").write_text("mine")
+    (out / "ur5_synth.splits.json").write_text("{}")  # folds stored by a loader for the old frames
     generate(out, n=2, seed=1, width=W, height=H, workers=1, force=True, progress=False)
     assert sorted(p.name for p in (out / "images").iterdir()) == ["synth_00000.png", "synth_00001.png"]
     assert (out / "notes.txt").read_text() == "mine"
+    assert not (out / "ur5_synth.splits.json").exists()
     assert len(json.loads((out / "ur5_synth.json").read_text())["_via_img_metadata"]) == 2
 
 
@@ -245,3 +247,13 @@ def test_cli_refuses_a_non_empty_folder(cli, tmp_path):
     assert proc.returncode == 2
     assert "not empty; pass --force" in proc.stderr and "Traceback" not in proc.stderr
     assert (tmp_path / "s" / "old.png").read_bytes() == b"x"
+
+
+def test_generated_folder_loads_as_a_dataset(tmp_path):
+    from fcnpose_tf.data.dataset import load_dataset
+
+    report = generate_dataset(tmp_path / "set", n=5, seed=2, width=W, height=H, workers=1, progress=False)
+    ds = load_dataset(tmp_path / "set", write_splits=False)
+    assert ds.schema == UR5 and ds.names == [r.filename for r in report.frames]
+    for sample, record in zip(ds.samples, report.frames):
+        np.testing.assert_allclose(sample.keypoints, record.keypoints, atol=1e-3)

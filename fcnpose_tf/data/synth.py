@@ -1654,7 +1654,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
 
     Frames are rendered by a pool of `workers` processes (default: one per core);
     the files are the same for any number of workers. A non-empty out_dir is refused
-    unless force, which also removes stale synth_*.png frames of an earlier, larger run.
+    unless force, which also removes what belonged to the set being replaced: synth_*.png
+    frames beyond n and the stored folds (ur5_synth.splits.json).
 
     Raises:
         UserError: n < 1, a frame size below 32x32, workers < 1, or an output folder that
@@ -1675,6 +1676,9 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     for stale in image_dir.glob("synth_*.png"):
         if stale.name not in keep:
             stale.unlink()
+    from fcnpose_tf.data.splits import splits_path
+
+    splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
 
     from tqdm import tqdm
 
