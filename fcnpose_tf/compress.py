@@ -17,15 +17,19 @@ import time
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
-import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, file_sha256, training_record
 from fcnpose_tf.fileio import check_writable, write_json
-from fcnpose_tf.model import conv_widths, describe, save_for_inference
+
+if TYPE_CHECKING:
+    import tf_keras as keras
+
+# TensorFlow is imported inside the functions: the CLI reads this module's defaults to build
+# its parser, and the parser must load on a Pi without TensorFlow.
 
 METHODS = ("l1", "magnitude")
 DEFAULT_RETRAIN_EPOCHS = 15
@@ -70,6 +74,8 @@ def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
 
 def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
     """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
+    from fcnpose_tf.model import save_for_inference
+
     sizes: dict[str, int] = {}
     with tempfile.TemporaryDirectory() as tmp:
         h5 = Path(tmp) / "m.h5"
@@ -87,6 +93,8 @@ def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, 
 
 def model_facts(model: keras.Model) -> dict[str, Any]:
     """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
+    from fcnpose_tf.model import conv_widths, describe
+
     rows = describe(model)
     macs = sum(r.macs for r in rows)
     return {"widths": list(conv_widths(model)), "params": int(model.count_params()), "macs": int(macs),
@@ -121,9 +129,11 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         UserError: bad options, existing outputs without force, unwritable folder, a model whose
             maps do not match the dataset, or an export that fails verification (nothing written).
     """
+    import tf_keras as keras
+
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.export import inspect_tflite, write_tflite
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.model import load_model, save_for_inference
     from fcnpose_tf.prune import magnitude_prune, prune_model
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.train import FitConfig, fit

@@ -1,0 +1,80 @@
+"""`fcnpose-tf compress` end to end on a tiny model, and its refusals (nothing partial left behind)."""
+
+import json
+
+import pytest
+
+from test_train_evaluate import make_via_folder
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    from fcnpose_tf.model import build_fcn_pose
+
+    root = tmp_path_factory.mktemp("compress")
+    data = make_via_folder(root / "frames", n=10)
+    base = root / "base.keras"
+    build_fcn_pose(input_size=64).save(base)
+    return root, data, base
+
+
+def test_compress_writes_model_tflite_and_report(setup, cli):
+    root, data, base = setup
+    out = root / "out"
+    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "1",
+               "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    names = {"base_p70.keras", "base_p70_fp16.tflite", "base_p70_report.json"}
+    assert names <= {p.name for p in out.iterdir()}
+    report = json.loads((out / "base_p70_report.json").read_text())
+    assert report["base"]["params"] == 131705
+    assert report["retrained"]["params"] == 14668 == report["quantized"]["params"]
+    assert report["retrained"]["widths"] == [39, 20, 10, 5, 3, 3, 5, 10, 20, 9]
+    assert report["quantized"]["tflite_size_bytes"] == (out / "base_p70_fp16.tflite").stat().st_size < 45_000
+    for step in ("base", "pruned_before_retraining", "retrained", "quantized"):
+        assert "pck@0.05_bbox" in report[step]["metrics"]
+    assert report["quantized"]["timing"]["threads"] == 1
+    assert "14,668" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
+
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    again = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "0",
+                "--out-dir", out)
+    assert again.returncode == 2 and "already exists; pass --force" in again.stderr
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--rate", "1.2"], "pruning rate must be in [0, 1)"),
+    (["--rate", "-0.1"], "pruning rate must be in [0, 1)"),
+    (["--rate", "0.5", "--data", "MISSING"], "MISSING: not found"),
+])
+def test_bad_input_leaves_nothing(setup, cli, extra, message):
+    root, data, base = setup
+    out = root / "refused"
+    args = ["compress", "--model", base, "--out-dir", out, "--retrain-epochs", "0"] + extra
+    if "--data" not in extra:
+        args += ["--data", data]
+    proc = cli(*args)
+    assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
+    import tf_keras as keras
+
+    root, data, base = setup
+    inp = keras.Input((64, 64, 3))
+    a = keras.layers.Conv2D(8, 3, padding="same", name="conv1")(inp)
+    b = keras.layers.Conv2D(8, 3, padding="same", name="conv2")(a)
+    skip = keras.layers.Add(name="skip")([a, b])
+    outp = keras.layers.Conv2D(9, 3, padding="same", activation="sigmoid", name="conv3")(skip)
+    odd = tmp_path / "skip.keras"
+    keras.Model(inp, outp).save(odd)
+    out = tmp_path / "out"
+    proc = cli("compress", "--rate", "0.5", "--model", odd, "--data", data, "--retrain-epochs", "0", "--out-dir", out)
+    assert proc.returncode == 2 and "unsupported layer" in proc.stderr and "Traceback" not in proc.stderr
+    assert not out.exists() or not any(out.iterdir())
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--out-dir", blocker)
+    assert proc.returncode == 2 and "not a folder" in proc.stderr
