@@ -53,6 +53,8 @@ class CompressOptions:
     seed: int = 0
     fold: int | None = None
     threads: int | None = None
+    positive_weight: float = 1.0
+    """Weight of keypoint-disc pixels in the retraining loss (1 = plain BCE; use the base model's)."""
 
     def validate(self) -> None:
         if self.method not in METHODS:
@@ -170,7 +172,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     train_data = val_data = None
     record = training_record(base_path) or {}
     fit_config = FitConfig(epochs=max(options.retrain_epochs, 1), patience=options.patience,
-                           batch_size=options.batch_size, learning_rate=options.learning_rate, seed=options.seed)
+                           batch_size=options.batch_size, learning_rate=options.learning_rate, seed=options.seed,
+                           positive_weight=options.positive_weight)
     if options.retrain_epochs > 0:
         fold = options.fold if options.fold is not None else (
             record.get("fold") if record.get("data_sha256") == file_sha256(train_dataset.via_path) else None)
