@@ -129,6 +129,18 @@ def test_joint_keypoints_are_drawn_on_the_robot(samples):
     assert checked >= 30
 
 
+def test_the_person_hides_at_most_three_keypoints():
+    modes = set()
+    for i in range(40):
+        s = render_sample(1, i, W, H)
+        modes.add(s.person)
+        assert s.occluded.sum() <= 3
+        assert s.person == "occluding" or not s.occluded.any()
+        if s.person == "occluding":
+            assert s.occluded.any()
+    assert modes == {"none", "beside", "occluding"}
+
+
 def test_arm_is_framed_large_and_mostly_complete(samples):
     spans = []
     for s in samples:

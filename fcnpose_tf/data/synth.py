@@ -323,17 +323,25 @@ def _part_points(part: Part) -> np.ndarray:
     a = part.p1 - part.p0
     a = a / max(np.linalg.norm(a), 1e-9)
     u = _perpendicular(a, part.u)
-    v = np.cross(a, u)
+    v = _cross(a, u)
     ring = _RING_COS[:, None] * u + _RING_SIN[:, None] * v
     r0, r1 = max(part.r0), max(part.r1)
     return np.vstack([part.p0 + r0 * ring, part.p1 + r1 * ring])
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of two 3-vectors (np.cross is ~20x slower on single vectors)."""
+    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
+    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
+    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+
+
 def _perpendicular(a: np.ndarray, hint: np.ndarray | None) -> np.ndarray:
+    """A unit vector perpendicular to unit vector `a`, as close to `hint` as possible."""
     if hint is None:
         hint = np.array([0.0, 0.0, 1.0]) if abs(a[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    u = hint - (hint @ a) * a
-    n = np.linalg.norm(u)
+    u = hint - float(hint @ a) * a
+    n = math.sqrt(float(u @ u))
     if n < 1e-6:
         return _perpendicular(a, None)
     return u / n
@@ -767,8 +775,10 @@ class _Painter:
 
     SEGMENT_LENGTH = 0.08  # m; longer cylinders are cut along their length too
 
-    def __init__(self, canvas: np.ndarray, labels: np.ndarray, cam: Camera, light: Light, shift: int = 3):
+    def __init__(self, canvas: np.ndarray, labels: np.ndarray, cam: Camera, light: Light, shift: int = 3,
+                 depth: np.ndarray | None = None):
         self.canvas, self.labels, self.cam, self.light = canvas, labels, cam, light
+        self.depth = depth  # optional float32 map of each pixel's facet depth (m), for occlusion tests
         self.shift = shift
         self.one = 1 << shift
         self.items: list[tuple[float, int, object, object, int]] = []
@@ -793,13 +803,15 @@ class _Painter:
     def flush(self) -> None:
         """Draw everything queued, farthest first."""
         self.items.sort(key=lambda it: (-it[0], it[1]))
-        canvas, labels, shift = self.canvas, self.labels, self.shift
-        for _, _, shape, color, label in self.items:
+        canvas, labels, depth, shift = self.canvas, self.labels, self.depth, self.shift
+        for z, _, shape, color, label in self.items:
             if isinstance(shape, Sphere):
-                self._draw_sphere(shape, label)
+                self._draw_sphere(shape, label, z)
             else:
                 cv2.fillConvexPoly(canvas, shape, color, cv2.LINE_8, shift)
                 cv2.fillConvexPoly(labels, shape, label, cv2.LINE_8, shift)
+                if depth is not None:
+                    cv2.fillConvexPoly(depth, shape, z, cv2.LINE_8, shift)
         self.items.clear()
 
     def _tube(self, t: Tube, min_depth: float) -> None:
@@ -809,7 +821,7 @@ class _Painter:
             return
         a = axis / length
         u = _perpendicular(a, t.u)
-        v = np.cross(a, u)
+        v = _cross(a, u)
         n = t.segments
         m = max(1, int(math.ceil(length / self.SEGMENT_LENGTH)))
         th = np.arange(n) * (2 * PI / n)
@@ -856,7 +868,7 @@ class _Painter:
         if depth > sp.radius + 0.05:
             self._queue(max(depth, min_depth), sp, None, int(sp.label))
 
-    def _draw_sphere(self, sp: Sphere, label: int) -> None:
+    def _draw_sphere(self, sp: Sphere, label: int, z: float) -> None:
         pc = self.cam.to_camera(sp.centre[None])[0]
         K = self.cam.K
         cu, cv_ = K[0, 0] * pc[0] / pc[2] + K[0, 2], K[1, 1] * pc[1] / pc[2] + K[1, 2]
@@ -877,6 +889,8 @@ class _Painter:
         points = sp.centre + sp.radius * n_world
         self.canvas[y0:y1, x0:x1][inside] = _shade(sp.material, n_world, points, self.light, self.cam.eye)
         self.labels[y0:y1, x0:x1][inside] = label
+        if self.depth is not None:
+            self.depth[y0:y1, x0:x1][inside] = z
 
     _FACES = ((0, 1, 3, 2), (4, 5, 7, 6), (0, 1, 5, 4), (2, 3, 7, 6), (0, 2, 6, 4), (1, 3, 7, 5))
     _FACE_AXIS = ((0, -1), (0, 1), (1, -1), (1, 1), (2, -1), (2, 1))
@@ -1000,8 +1014,10 @@ class SynthSample:
     """One rendered frame and what produced it.
 
     keypoints: K x 2 pixel coordinates (pixel-centre convention), NaN where outside the frame.
-    occluded: per keypoint, True when the person hides it (it is still annotated).
+    occluded: per keypoint, True when the person is in front of it (it is still annotated).
     labels: H x W uint8 map of what each pixel shows (0 room, 1 robot, 2 person, 3 clutter, 4 mount).
+    person: "none" (nobody in the scene), "beside" (a person who hides no keypoint) or "occluding"
+    (hides 1 to MAX_HIDDEN_BY_PERSON keypoints).
     """
 
     image: np.ndarray
@@ -1278,7 +1294,7 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     arm_lo, arm_hi = arm_lo - pad, arm_hi + pad
     robot_far = float(cam.to_camera(np.vstack([robot_pts] + [_part_points(p) for p in mount_parts]))[:, 2].max())
 
-    person, person_mode = _place_person(rng, cam, kp3d, kp_uv, kp_z, mount_radius)
+    person, _ = _place_person(rng, cam, kp3d, kp_uv, kp_z, mount_radius)
     cam_xy = cam.eye[:2]
 
     keepout = [(np.zeros(2), mount_radius + 1.0), (cam_xy, 0.7)]
@@ -1295,40 +1311,56 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
             continue
         clutter.append(obj)
 
-    # background with shadows, then everything else back to front at 2x and downsampled (anti-aliasing)
-    # background at half resolution (it is out of focus anyway), with shadows; then everything else
-    # back to front at twice the resolution, downsampled for anti-aliasing
-    bg_cam = cam.scaled(0.5)
-    bg, floor_mask = _render_background(rng, bg_cam, room, light, lamp)
-    casters = robot + mount_parts + person + [p for obj in clutter for p in obj]
-    shadow = _shadow_mask(casters, light, bg_cam, bg.shape[:2]) * floor_mask
-    bg *= (1.0 - rng.uniform(0.3, 0.55) * shadow)[..., None]
-    ss = 2
-    cam2 = cam.scaled(ss)
-    canvas = cv2.resize(bg, (width * ss, height * ss), interpolation=cv2.INTER_LINEAR)
-    labels = np.zeros((height * ss, width * ss), np.uint8)
-    painter = _Painter(canvas, labels, cam2, light)
-    robot_depth_far = float(cam.to_camera(robot_pts)[:, 2].max())
-    for part in robot + person + [p for obj in clutter for p in obj]:
-        painter.add(part)
-    for part in mount_parts:  # the mount is under the robot: drawn before any robot facet
-        painter.add(part, min_depth=robot_depth_far + 1e-3)
-    painter.flush()
-    img = cv2.resize(canvas, (width, height), interpolation=cv2.INTER_AREA)
-    labels_1x = cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
-
-    img = _camera_effects(rng, img)
-
     keypoints = kp_uv.copy()
     inside = (kp_z > 0) & (kp_uv[:, 0] >= 0) & (kp_uv[:, 0] <= width - 1) & (kp_uv[:, 1] >= 0) & \
              (kp_uv[:, 1] <= height - 1)
     keypoints[~inside] = np.nan
-    occluded = np.zeros(len(kp3d), bool)
-    for k in np.flatnonzero(inside):
-        x, y = int(round(kp_uv[k, 0])), int(round(kp_uv[k, 1]))
-        occluded[k] = labels_1x[y, x] == LABEL_PERSON
+    objects = [p for obj in clutter for p in obj]
+    state = rng.bit_generator.state
+    ss = 2
+    while True:
+        canvas, labels, depth = _paint(rng, cam, ss, room, light, lamp, robot, mount_parts, person, objects,
+                                       robot_depth_far=float(cam.to_camera(robot_pts)[:, 2].max()))
+        occluded = _person_in_front(labels, depth, (keypoints + 0.5) * ss - 0.5, kp_z)
+        if occluded.sum() <= MAX_HIDDEN_BY_PERSON or not person:
+            break
+        rng.bit_generator.state = state  # the person would hide most of the arm: the same frame without them
+        person = []
+    person_mode = "none" if not person else "occluding" if occluded.any() else "beside"
+    img = cv2.resize(canvas, (width, height), interpolation=cv2.INTER_AREA)
+    labels_1x = cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
+    img = _camera_effects(rng, img)
     return SynthSample(img, keypoints, kp3d, q, cam, occluded, labels_1x, person_mode, mount, style.tool,
                        style.tool_length)
+
+
+MAX_HIDDEN_BY_PERSON = 3
+"""A frame where the person would hide more keypoints than this is rendered without the person."""
+
+
+def _paint(rng: np.random.Generator, cam: Camera, ss: int, room: Room, light: Light, lamp: np.ndarray,
+           robot: list[Part], mount_parts: list[Part], person: list[Part], objects: list[Part],
+           robot_depth_far: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(RGB canvas, label map, depth map) at `ss` times the camera's resolution.
+
+    The room is rendered at half resolution (it is out of focus anyway) with the objects' shadows,
+    upsampled, and everything else painted over it back to front.
+    """
+    bg_cam = cam.scaled(0.5)
+    bg, floor_mask = _render_background(rng, bg_cam, room, light, lamp)
+    shadow = _shadow_mask(robot + mount_parts + person + objects, light, bg_cam, bg.shape[:2]) * floor_mask
+    bg *= (1.0 - rng.uniform(0.3, 0.55) * shadow)[..., None]
+    cam2 = cam.scaled(ss)
+    canvas = cv2.resize(bg, (cam2.width, cam2.height), interpolation=cv2.INTER_LINEAR)
+    labels = np.zeros((cam2.height, cam2.width), np.uint8)
+    depth = np.full((cam2.height, cam2.width), np.inf, np.float32)
+    painter = _Painter(canvas, labels, cam2, light, depth=depth)
+    for part in robot + person + objects:
+        painter.add(part)
+    for part in mount_parts:  # the mount is under the robot: drawn before any robot facet
+        painter.add(part, min_depth=robot_depth_far + 1e-3)
+    painter.flush()
+    return canvas, labels, depth
 
 
 def _robot_clearance(parts: Sequence[Part], kp3d: np.ndarray) -> float:
@@ -1369,8 +1401,7 @@ def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv
             else:
                 facing = math.atan2(-feet[1], -feet[0]) + rng.normal(0, 0.9)
             cand = make(feet, facing, reach)
-            hidden = int(_covered(cand, cam, kp_uv, kp_z).sum())
-            if 1 <= hidden <= 3 and _robot_clearance(cand, kp3d) > 0.1:
+            if 1 <= int(_covered(cand, cam, kp_uv, kp_z).sum()) <= 3 and _robot_clearance(cand, kp3d) > 0.1:
                 return cand, "occluding"
     if r < 0.85:
         to_cam = math.atan2(cam_xy[1], cam_xy[0])
@@ -1389,6 +1420,16 @@ def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv
             if not _covered(cand, cam, kp_uv, kp_z).any() and _robot_clearance(cand, kp3d) > 0.1:
                 return cand, "beside"
     return [], "none"
+
+
+def _person_in_front(labels: np.ndarray, depth: np.ndarray, kp_uv: np.ndarray, kp_z: np.ndarray) -> np.ndarray:
+    """Keypoints whose pixel shows the person at a smaller depth than the keypoint's own."""
+    px = np.round(np.nan_to_num(kp_uv, nan=-1.0)).astype(int)
+    inside = (px >= 0).all(1) & (px[:, 0] < labels.shape[1]) & (px[:, 1] < labels.shape[0])
+    hidden = np.zeros(len(kp_uv), bool)
+    y, x = px[inside, 1], px[inside, 0]
+    hidden[inside] = (labels[y, x] == LABEL_PERSON) & (depth[y, x] < kp_z[inside])
+    return hidden
 
 
 def _covered(parts: Sequence[Part], cam: Camera, kp_uv: np.ndarray, kp_z: np.ndarray) -> np.ndarray:
