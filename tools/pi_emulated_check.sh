@@ -6,7 +6,7 @@
 # usage: sudo tools/pi_emulated_check.sh [--model MODEL.tflite] [--frames DIR] [options]
 #
 #   --model PATH       .tflite to run (default: the bundled 70% float16 model in saved_models/)
-#   --frames DIR       directory of images (default: a few synthetic frames made here)
+#   --frames DIR       directory of images (default: --count synthetic UR5 frames from fcnpose_tf.data.synth)
 #   --count N          how many synthetic frames to make when --frames is not given (default: 4)
 #   --threads N        interpreter threads on both sides (default: 1)
 #   --cpu NAME         emulated CPU, cortex-a53 (Pi 3, default) or cortex-a72 (Pi 4)

@@ -4,8 +4,9 @@ Needs only the standard library, numpy and OpenCV (and a TFLite interpreter for 
 the Pi-like venv that has no TensorFlow. Subcommands:
 
     info                      what this Python sees: machine, versions, CPU model, TensorFlow importable?
-    frames DIR                write a few synthetic frames (a fallback when `fcnpose-tf synth` is absent)
+    frames DIR                write a few synthetic frames (fcnpose_tf.data.synth, else a drawn stick arm)
     maps MODEL                raw output maps of a .tflite for a directory of frames (or saved inputs)
+    save-inputs NPZ OUT       the preprocessed inputs of a `maps` result, as .npy (to feed the other side)
     compare-maps A B          max abs difference of inputs and output maps of two `maps` results
     compare-keypoints A B     max keypoint distance (px) of two `fcnpose-tf run --out X.jsonl` results
 
