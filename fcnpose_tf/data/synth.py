@@ -13,8 +13,10 @@ so a frame does not depend on which worker renders it or on the other frames:
 the same seed gives byte-identical files for any number of workers.
 
 Public API: `forward_kinematics`, `ur5_keypoints_3d`, `sample_joints`, `Camera`,
-`render_sample` / `render_frame` (one frame in memory) and `generate` (a
-dataset folder: images/*.png plus one VIA project file).
+`render_sample` / `render_frame` (one frame in memory), `generate` /
+`generate_dataset` (a dataset folder: images/*.png plus one VIA project file),
+`draw_keypoints` / `preview_grid` / `write_preview` (pictures to look at).
+See docs/synthetic.md.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Sequence
 
 import cv2
 import numpy as np
@@ -1101,7 +1103,7 @@ def _place_camera(rng: np.random.Generator, kp3d: np.ndarray, robot_pts: np.ndar
             moved = target - (shift[0] * ct[2] / focal) * cam.R[0] - (shift[1] * ct[2] / focal) * cam.R[1]
             cam2 = Camera.look_at(eye, moved, focal, width, height, roll=roll)
             uv2, _ = cam2.project(kp3d)
-            ruv, rz = cam2.project(robot_pts)
+            _, rz = cam2.project(robot_pts)
             ok = (uv2.min(0) >= 0.02 * size).all() and (uv2.max(0) <= 0.98 * size).all() and rz.min() > 0.2
             if ok:
                 return cam2
@@ -1132,7 +1134,7 @@ def _clutter(rng: np.random.Generator, room: Room, keepout: list[tuple[np.ndarra
                 "bin": (rng.uniform(0.4, 0.6),) * 2 + (rng.uniform(0.5, 0.9),),
                 "machine": (rng.uniform(1.0, 1.8), rng.uniform(0.8, 1.2), rng.uniform(1.4, 2.0)),
                 "cone": (0.35, 0.35, 0.5)}[kind]
-        sx, sy, sz = dims
+        sx, sy, _ = dims
         if rng.random() < 0.6:  # against a wall
             wall = rng.integers(4)
             if wall < 2:
@@ -1197,7 +1199,7 @@ def _clutter_parts(rng, kind: str, pos: np.ndarray, dims, yaw: float) -> list[Pa
         for level in np.linspace(0.15, sz - 0.05, int(rng.integers(3, 5))):
             parts.append(_box(pos + up * level, (sx, sy, 0.03), yaw, Material(np.array([0.6, 0.6, 0.6]), 0.2), lab))
             if level < sz - 0.3:
-                for k in range(int(rng.integers(0, 3))):
+                for _ in range(int(rng.integers(0, 3))):
                     w = rng.uniform(0.2, 0.4)
                     off = rng.uniform(-sx / 2 + w / 2, sx / 2 - w / 2)
                     h = rng.uniform(0.12, 0.28)
@@ -1768,5 +1770,5 @@ def write_preview(report: SynthReport, path: str | os.PathLike, count: int = 6, 
             raise UserError(f"{image_dir / record.filename}: cannot read the frame back")
         frames.append((image, record.keypoints, record.occluded))
     grid = preview_grid(frames, columns=3 if len(frames) > 4 else 2, tile_width=400)
-    ok, buf = cv2.imencode(".png", grid, [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    _, buf = cv2.imencode(".png", grid, [cv2.IMWRITE_PNG_COMPRESSION, 9])
     return fileio.write_bytes(path, buf.tobytes(), force=force)
