@@ -1044,16 +1044,21 @@ def _keypoint_bbox_fraction(uv: np.ndarray, width: int, height: int) -> float:
     return float(max(span[0] / width, span[1] / height))
 
 
+TIGHT_FRAMING_RATE = 0.04
+"""Share of frames framed so tightly that one or two keypoints fall outside (left unannotated)."""
+
+
 def _place_camera(rng: np.random.Generator, kp3d: np.ndarray, robot_pts: np.ndarray, width: int, height: int,
                   min_eye_z: float) -> Camera:
     """A webcam-like camera around the robot framing the arm at a random size and image position.
 
-    In about 1 frame in 25 the framing is tight and one or two keypoints fall outside the image.
+    In TIGHT_FRAMING_RATE of the frames (1 in 25) the framing is tight and one or two keypoints fall
+    outside the image.
     """
     diag = math.hypot(width, height)
     centre = 0.5 * (kp3d.min(0) + kp3d.max(0))
     size = np.array([width, height]) - 1.0
-    if rng.random() < 0.04:
+    if rng.random() < TIGHT_FRAMING_RATE:
         for _ in range(100):
             focal = 0.5 * diag / math.tan(math.radians(rng.uniform(55.0, 78.0)) / 2)
             yaw, elev = rng.uniform(-PI, PI), math.radians(rng.uniform(0.0, 35.0))
