@@ -1727,6 +1727,7 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     from fcnpose_tf.data.splits import splits_path
 
     splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
+    (out_dir / VIA_FILENAME).unlink(missing_ok=True)  # written again last: no VIA file while frames change
 
     from tqdm import tqdm
 
