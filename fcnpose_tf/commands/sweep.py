@@ -1,0 +1,157 @@
+"""Reproduce the paper's experiment: every pruning rate on every fold, Keras and float16 TFLite, as tables and a plot.
+
+Per fold K it trains the unpruned model on the fold's training frames (or reuses
+OUT/models/base_foldK.keras); per (fold, rate) it prunes (L1 filters), retrains, exports a
+verified float16 TFLite model and measures both on the fold's validation frames. It writes the
+paper's tables ("5-Folds Desktop", "Pruning Results", "Requirements", "Pruning and
+Quantization") as Markdown and CSV, OUT/summary.md, OUT/pck_vs_fps.png and OUT/results.json.
+Each finished job is saved at once (OUT/jobs/): Ctrl-C loses at most the running job(s), and
+rerunning the same command skips what is finished. Without --data it uses the synthetic UR5 set
+the bundled baseline was trained on (generated once into a cache).
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "sweep"
+USES_TENSORFLOW = True
+EXAMPLES = """\
+  fcnpose-tf sweep --rates 0.1:0.9:0.1 --folds 5 --out results/          # the paper's nine rates, 5-fold CV
+  fcnpose-tf sweep --rates full,0.5,0.7 --epochs 30 --retrain-epochs 10  # plus the unpruned TFLite row
+  fcnpose-tf sweep --rates 0.5,0.7 --folds 2 --epochs 2 --retrain-epochs 1 --input-size 64   # a smoke test
+  fcnpose-tf sweep --workers 2 --out results/                             # 2 local processes, 1 thread each
+  fcnpose-tf sweep --executor ray --num-cpus 8 --threads 2                # a local Ray instance, 4 tasks at once
+  fcnpose-tf sweep --executor ray --address auto --data /shared/ur5 --out /shared/results   # a Ray cluster
+  fcnpose-tf sweep --out results/ --report-only                           # rebuild tables and plot only
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf.commands.data import add_data_arguments
+    from fcnpose_tf.compress import DEFAULT_RETRAIN_EPOCHS
+    from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC
+
+    parser.add_argument("--rates", default=DEFAULT_RATES_SPEC, metavar="SPEC",
+                        help="pruning rates: START:STOP:STEP, a comma list, or both; 'full' (= 0) adds the "
+                             "unpruned model's TFLite export")
+    parser.add_argument("--folds", type=int, default=5, metavar="K", help="K-fold cross-validation (the paper: 5)")
+    add_data_arguments(parser, positional=False, required=False, folds_option=False)
+    parser.add_argument("--out", type=Path, default=Path("results"), metavar="DIR",
+                        help="results folder (jobs/, models/, tables/, summary.md, pck_vs_fps.png, results.json)")
+    train = parser.add_argument_group("training")
+    train.add_argument("--epochs", type=int, default=60,
+                       help="base-model epochs, with early stopping (the paper: up to 500, converging near 60)")
+    train.add_argument("--patience", type=int, default=20, help="early-stopping patience of the base models")
+    train.add_argument("--retrain-epochs", type=int, default=DEFAULT_RETRAIN_EPOCHS,
+                       help="retraining epochs after pruning, with early stopping (the paper: up to 100)")
+    train.add_argument("--retrain-patience", type=int, default=5, help="early-stopping patience while retraining")
+    train.add_argument("--input-size", type=int, default=224, help="model input side, a multiple of 32")
+    train.add_argument("--batch-size", type=int, default=8)
+    train.add_argument("--learning-rate", type=float, default=1e-3, help="Adam learning rate")
+    train.add_argument("--positive-weight", type=float, default=1.0,
+                       help="weight of keypoint-disc pixels in the BCE, for training and retraining (1 = the "
+                            "paper's plain BCE)")
+    train.add_argument("--augment-copies", type=int, default=2,
+                       help="offline augmented copies per training frame (the paper: 2)")
+    train.add_argument("--seed", type=int, default=0, help="seed of weights, augmentation and batch order")
+    run = parser.add_argument_group("execution")
+    run.add_argument("--executor", choices=("local", "ray"), default="local",
+                     help="local: this machine (sequential, or --workers processes); ray: one Ray task per job")
+    run.add_argument("--workers", type=int, default=1,
+                     help="local executor: jobs run at once, each in its own process")
+    run.add_argument("--address", metavar="ADDR",
+                     help="ray executor: the cluster to join (e.g. auto, or ray://head:10001); default: start "
+                          "a local Ray instance")
+    run.add_argument("--num-cpus", type=int, metavar="N",
+                     help="ray executor: CPUs of the local Ray instance (default: all cores)")
+    run.add_argument("--threads", type=int,
+                     help="CPU threads per job for TensorFlow and LiteRT (default: all cores when sequential, "
+                          "cores / workers with --workers, 1 per Ray task); timing figures depend on it")
+    parser.add_argument("--force", action="store_true",
+                        help="redo every job (retraining the base models), also when OUT holds other settings")
+    parser.add_argument("--report-only", action="store_true",
+                        help="only rebuild the tables, plot and results.json from OUT's saved jobs")
+    parser.add_argument("--quiet", action="store_true", help="one line per epoch instead of progress bars (logs)")
+
+
+def resolve_threads(args: argparse.Namespace) -> int:
+    """Threads per job: --threads, else all cores (sequential), cores / workers, or 1 per Ray task."""
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.sweep.jobs import available_cores
+
+    if args.threads is not None:
+        if args.threads < 1:
+            raise UserError(f"--threads must be at least 1, got {args.threads}")
+        return args.threads
+    if args.executor == "ray":
+        return 1
+    return max(1, available_cores() // max(1, args.workers))
+
+
+def make_executor(args: argparse.Namespace, threads: int):
+    """The executor the options ask for (with the option combinations that make no sense refused)."""
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.sweep.executors import LocalExecutor, RayExecutor
+
+    if args.executor == "local":
+        if args.address or args.num_cpus is not None:
+            raise UserError("--address and --num-cpus are for --executor ray")
+        return LocalExecutor(workers=args.workers, threads=threads)
+    if args.workers != 1:
+        raise UserError("--workers is for the local executor; with ray, --threads sets the CPUs per task and "
+                        "Ray runs as many tasks as the CPUs allow (--num-cpus for a local instance)")
+    return RayExecutor(address=args.address, num_cpus=args.num_cpus, threads=threads)
+
+
+def run(args: argparse.Namespace) -> int:
+    from fcnpose_tf import synthcache
+    from fcnpose_tf.sweep import SweepConfig, parse_rates, run_sweep, write_report
+
+    if args.report_only:
+        result = write_report(args.out)
+        _print_tables(result)
+        return 0
+    rates = parse_rates(args.rates)
+    threads = resolve_threads(args)
+    executor = make_executor(args, threads)
+    parallel = args.workers > 1 or args.executor == "ray"
+    if args.data is None:
+        args.data = synthcache.baseline_training_data()
+    config = SweepConfig(
+        out=str(args.out), data=str(args.data), images=str(args.images) if args.images else None,
+        keypoint_attr=args.keypoint_attr, min_visible=args.min_visible, skip_bad=args.skip_bad,
+        split_seed=args.split_seed, folds=args.folds, rates=rates, input_size=args.input_size, epochs=args.epochs,
+        patience=args.patience, retrain_epochs=args.retrain_epochs, retrain_patience=args.retrain_patience,
+        batch_size=args.batch_size, learning_rate=args.learning_rate, positive_weight=args.positive_weight,
+        augment_copies=args.augment_copies, seed=args.seed, threads=threads,
+        verbose=2 if (args.quiet or parallel) else 1, force=args.force)
+    if args.resplit:  # store new splits first; the sweep then refuses OUT's old jobs unless --force
+        from fcnpose_tf.commands.data import load_from_args
+
+        load_from_args(args)
+    outcome = run_sweep(config, executor)
+    _print_tables(outcome.report)
+    print(f"\n{len(outcome.done)} job(s) run, {len(outcome.skipped)} skipped as finished, "
+          f"{len(outcome.failed)} failed" + (f", {len(outcome.not_run)} not run" if outcome.not_run else "")
+          + f"; {outcome.seconds / 60:.1f} min")
+    for name, error in outcome.failed.items():
+        print(f"  failed: {name}: {error}")
+    return 1 if outcome.failed else 0
+
+
+def _print_tables(report: dict) -> None:
+    tables = report["tables"]
+    results = report["results"]
+    cfg = results.config
+    print(f"\nPCK normalised by max(bbox w, h); mean ± std over folds; timing on {cfg['threads']} thread(s)")
+    for name in ("folds", "pruning", "requirements", "quantization"):
+        table = tables[name]
+        if table.rows:
+            print(f"\n{table.title}\n{table.text()}")
+    missing = results.missing()
+    if missing:
+        print(f"\n{len(missing)} job(s) not finished yet: {', '.join(missing[:10])}{', ...' if len(missing) > 10 else ''}")
+    out = Path(cfg["out"])
+    print(f"\nwrote {out / 'summary.md'}, {out / 'tables'}/*.md|csv, {out / 'pck_vs_fps.png'}, {out / 'results.json'}")

@@ -1,0 +1,436 @@
+"""The units of a sweep, run the same way by every executor.
+
+Two kinds of job, both identified by name:
+
+    fold{K}_base   train fold K's unpruned model on the fold's training frames (or reuse
+                   models/base_fold{K}.keras), measure it (Keras) on the fold's validation frames
+    fold{K}_p{RR}  compress that model at rate RR% with `compress_model`: L1 filter pruning,
+                   retraining, verified float16 TFLite export, Keras and TFLite measured on the
+                   same validation frames (p00: the unpruned model exported, not retrained)
+
+A job writes its model files under OUT/models/ and then, as its very last step, its record
+OUT/jobs/NAME.json (atomically). A record on disk therefore means the job is finished; anything
+else a job left behind (a half-trained checkpoint, a partial export) is redone or resumed on
+the next run. `run_job` is a plain module-level function taking only picklable arguments, so a
+local process pool and Ray can both ship it. Nothing here imports TensorFlow at module level.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import socket
+import time
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_tag
+
+RECORD_VERSION = 1
+JOBS_DIR = "jobs"
+MODELS_DIR = "models"
+
+KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "patience", "retrain_epochs",
+              "retrain_patience", "batch_size", "learning_rate", "positive_weight", "augment_copies", "seed",
+              "threads")
+"""Settings that change a job's results: a results folder holds jobs of one value of each."""
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """Everything a job needs, as plain values (picklable, JSON-ready).
+
+    `data` and `out` must be paths every worker sees (absolute; on a Ray cluster a shared
+    file system). `data_sha256` and `splits_sha256` identify the annotation file and its folds;
+    `prepare_data` fills them in, and each job checks that it sees the same.
+    """
+
+    out: str
+    data: str
+    images: str | None = None
+    keypoint_attr: str = "keypoint"
+    min_visible: int | None = None
+    skip_bad: bool = False
+    split_seed: int = 0
+    folds: int = 5
+    rates: tuple[float, ...] = parse_rates(DEFAULT_RATES_SPEC)
+    input_size: int = 224
+    epochs: int = 60
+    patience: int = 20
+    retrain_epochs: int = 15
+    retrain_patience: int = 5
+    batch_size: int = 8
+    learning_rate: float = 1e-3
+    positive_weight: float = 1.0
+    augment_copies: int = 2
+    seed: int = 0
+    threads: int = 1
+    verbose: int = 1
+    """1: Keras progress bars; 2: one line per epoch (logs, parallel workers); 0: silent training."""
+    force: bool = False
+    """Redo every job, retraining base models from scratch."""
+    data_sha256: str = ""
+    splits_sha256: str = ""
+
+    def key(self) -> dict[str, Any]:
+        """The result-affecting settings (KEY_FIELDS) that every job record carries."""
+        return {name: getattr(self, name) for name in KEY_FIELDS}
+
+    def to_dict(self) -> dict[str, Any]:
+        data = asdict(self)
+        data["rates"] = list(self.rates)
+        return data
+
+    def validate(self) -> None:
+        """Raise UserError for settings no job could run with."""
+        checks = [(isinstance(self.input_size, int) and self.input_size > 0 and self.input_size % 32 == 0,
+                   f"--input-size must be a positive multiple of 32 (FCN-Pose pools 5 times by 2), "
+                   f"got {self.input_size}"),(self.folds >= 2, f"--folds must be at least 2, got {self.folds}"),
+                  (self.epochs >= 1, f"--epochs must be at least 1, got {self.epochs}"),
+                  (self.patience >= 1, f"--patience must be at least 1, got {self.patience}"),
+                  (self.retrain_epochs >= 0, f"--retrain-epochs must be >= 0, got {self.retrain_epochs}"),
+                  (self.retrain_patience >= 1, f"--retrain-patience must be at least 1, got {self.retrain_patience}"),
+                  (self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),
+                  (self.learning_rate > 0, f"--learning-rate must be positive, got {self.learning_rate}"),
+                  (self.positive_weight >= 1, f"--positive-weight must be >= 1, got {self.positive_weight}"),
+                  (self.augment_copies >= 0, f"--augment-copies must be >= 0, got {self.augment_copies}"),
+                  (self.threads >= 1, f"--threads must be at least 1, got {self.threads}"),
+                  (len(self.rates) > 0, "no pruning rates given")]
+        for ok, message in checks:
+            if not ok:
+                raise UserError(message)
+
+
+@dataclass(frozen=True, order=True)
+class Job:
+    """One unit of work: fold K's base model (rate None) or its compression at one rate."""
+
+    fold: int
+    rate: float | None = None
+
+    @property
+    def is_base(self) -> bool:
+        return self.rate is None
+
+    @property
+    def name(self) -> str:
+        """File stem of the job's record: fold0_base, fold0_p70."""
+        return f"fold{self.fold}_base" if self.is_base else f"fold{self.fold}_{rate_tag(self.rate)}"
+
+    @property
+    def label(self) -> str:
+        """For progress lines: "fold 0 base model", "fold 0 rate 70%"."""
+        if self.is_base:
+            return f"fold {self.fold} base model"
+        return f"fold {self.fold} rate {rate_label(self.rate)}" + (" (unpruned export)" if self.rate == 0 else "")
+
+    def base(self) -> Job:
+        """The job this one depends on (itself for a base job)."""
+        return Job(self.fold)
+
+
+def plan_jobs(folds: int, rates: tuple[float, ...]) -> list[Job]:
+    """Every job of a sweep, fold by fold: base first, then its rates in increasing order."""
+    return [job for k in range(folds) for job in [Job(k)] + [Job(k, float(r)) for r in rates]]
+
+
+def base_model_path(out: str | os.PathLike, fold: int) -> Path:
+    """OUT/models/base_fold{K}.keras (the name `fcnpose-tf train --folds K --out OUT/models/base.keras` writes)."""
+    return Path(out) / MODELS_DIR / f"base_fold{fold}.keras"
+
+
+def job_path(out: str | os.PathLike, job: Job) -> Path:
+    """OUT/jobs/NAME.json: the finished job's record."""
+    return Path(out) / JOBS_DIR / f"{job.name}.json"
+
+
+def read_record(path: Path) -> dict[str, Any] | None:
+    """A job record, or None when it is unreadable (a stray file; the job is then redone)."""
+    try:
+        record = json.loads(path.read_text("utf-8"))
+    except (OSError, ValueError):
+        return None
+    return record if isinstance(record, dict) and record.get("record_version") == RECORD_VERSION else None
+
+
+# ------------------------------------------------------------------------------------------
+# Machine, versions, data identity (no TensorFlow)
+# ------------------------------------------------------------------------------------------
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (Linux), else platform's best guess."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                if key.strip() in ("model name", "Model", "Hardware") and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def available_cores() -> int:
+    """CPU cores this process may run on (affinity-aware)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+def machine_info(threads: int | None = None) -> dict[str, Any]:
+    """Host, CPU model, cores, memory, OS and Python; `threads` as used by the jobs."""
+    info: dict[str, Any] = {"hostname": socket.gethostname(), "cpu_model": cpu_model(),
+                            "cpu_cores": os.cpu_count(), "cpu_cores_available": available_cores()}
+    try:
+        with open("/proc/meminfo", encoding="utf-8") as fh:
+            kb = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal:"))
+        info["memory_bytes"] = kb * 1024
+    except (OSError, StopIteration, ValueError, IndexError):
+        pass
+    info.update(platform=platform.platform(), python=platform.python_version())
+    if threads is not None:
+        info["threads"] = threads
+    return info
+
+
+_DISTRIBUTIONS = {
+    "tensorflow": ("tensorflow", "tensorflow-cpu", "tensorflow-intel"),
+    "tf_keras": ("tf-keras", "tf_keras"),
+    "tensorflow_model_optimization": ("tensorflow-model-optimization",),
+    "ai_edge_litert": ("ai-edge-litert", "ai-edge-litert-nightly"),
+    "tflite_runtime": ("tflite-runtime",),
+    "numpy": ("numpy",),
+    "opencv": ("opencv-python-headless", "opencv-python", "opencv-contrib-python-headless",
+               "opencv-contrib-python"),
+    "matplotlib": ("matplotlib",),
+    "ray": ("ray",),
+}
+
+
+def library_versions() -> dict[str, str | None]:
+    """Installed versions of the libraries that shape the results (from package metadata, no imports)."""
+    from importlib import metadata
+
+    from fcnpose_tf import __version__
+
+    versions: dict[str, str | None] = {"fcnpose_tf": __version__}
+    for name, dists in _DISTRIBUTIONS.items():
+        versions[name] = None
+        for dist in dists:
+            try:
+                versions[name] = metadata.version(dist)
+                break
+            except metadata.PackageNotFoundError:
+                continue
+    return versions
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def splits_sha256(dataset: Any, folds: int) -> str:
+    """Fingerprint of the K folds' validation frames (by file name): same folds, same hash."""
+    names = dataset.names
+    parts = []
+    for k in range(folds):
+        _, val = dataset.split(k)
+        parts.append(",".join(sorted(names[int(i)] for i in val)))
+    return hashlib.sha256("\n".join(parts).encode("utf-8")).hexdigest()
+
+
+def load_data(config: SweepConfig, *, write_splits: bool = False) -> Any:
+    """The sweep's dataset with its K folds; UserError if it is not the one `config` was made for.
+
+    Workers pass write_splits=False (the driver stored the splits before any job started; a
+    node without them rebuilds the same folds from the seed).
+    """
+    from fcnpose_tf.data.dataset import load_dataset
+
+    where = socket.gethostname()
+    if not Path(config.data).exists():
+        raise UserError(f"{config.data}: data not found on {where}; with several machines the data (and --out) "
+                        "must be on a path every worker sees")
+    dataset = load_dataset(config.data, config.images, attribute=config.keypoint_attr,
+                           min_visible=config.min_visible, skip_bad=config.skip_bad, folds=config.folds,
+                           split_seed=config.split_seed, write_splits=write_splits)
+    if config.data_sha256 and file_sha256(dataset.via_path) != config.data_sha256:
+        raise UserError(f"{dataset.via_path}: on {where} this annotation file differs from the one the sweep "
+                        "started with")
+    if config.splits_sha256 and splits_sha256(dataset, config.folds) != config.splits_sha256:
+        raise UserError(f"{dataset.splits_path}: on {where} the folds differ from the sweep's")
+    return dataset
+
+
+# ------------------------------------------------------------------------------------------
+# Running a job (imports TensorFlow)
+# ------------------------------------------------------------------------------------------
+
+def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
+    """Run one job, write its model files and (last) its record; return the record.
+
+    Raises:
+        UserError: data not visible or changed, a reused base model that does not fit the
+            sweep, or anything `compress_model` refuses (e.g. an export failing verification).
+    """
+    import gc
+
+    from fcnpose_tf.evaluate import set_tensorflow_threads
+
+    start = time.perf_counter()
+    set_tensorflow_threads(config.threads)
+    dataset = load_data(config)
+    try:
+        body = _run_base(config, job, dataset) if job.is_base else _run_rate(config, job, dataset)
+    finally:
+        import tf_keras as keras
+
+        keras.backend.clear_session()
+        gc.collect()
+    record = {"record_version": RECORD_VERSION, "job": job.name, "kind": "base" if job.is_base else "rate",
+              "fold": job.fold, "rate": job.rate, "config_key": config.key(), **body,
+              "seconds": round(time.perf_counter() - start, 1),
+              "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+              "machine": machine_info(config.threads), "versions": library_versions()}
+    from fcnpose_tf.fileio import write_json
+
+    write_json(job_path(config.out, job), record, force=True)
+    return record
+
+
+def _relative(path: str | os.PathLike, out: str | os.PathLike) -> str:
+    try:
+        return str(Path(path).resolve().relative_to(Path(out).resolve()))
+    except ValueError:
+        return str(path)
+
+
+def _strip(step: dict[str, Any]) -> dict[str, Any]:
+    """A compress report step without what the tables never need (kept in the NAME_report.json)."""
+    return {k: v for k, v in step.items() if k not in ("export", "tflite_ops")}
+
+
+def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
+    from fcnpose_tf.compress import file_sizes, model_facts
+    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, training_record
+    from fcnpose_tf.model import load_model
+    from fcnpose_tf.train import run_paths
+
+    path = base_model_path(config.out, job.fold)
+    _, val_idx = dataset.split(job.fold)
+    checkpoint = run_paths(path)["ckpt_state"]
+    if path.is_file() and not checkpoint.is_file() and not config.force:
+        training = _check_reused_base(config, job, dataset, path)
+        print(f"{job.label}: reusing {path}", flush=True)
+    else:
+        training = _train_base(config, job, dataset, path, resume=checkpoint.is_file() and not config.force)
+    model = load_model(path)
+    print(f"{job.label}: evaluating on {len(val_idx)} validation frames", flush=True)
+    result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads), dataset, val_idx,
+                                dataset.schema)
+    keras_step = {**model_facts(model), **file_sizes(model, path), "metrics": result["metrics"],
+                  "timing": result["timing"]}
+    record = training_record(path) or {}
+    return {"eval_frames": len(val_idx), "training": training, "keras": keras_step,
+            "files": {"keras": _relative(path, config.out)}, "model_sha256": file_sha256(path),
+            "base_training_record": {k: record.get(k) for k in ("data", "split", "train_samples", "val_frames",
+                                                                "config", "epochs_run", "best_epoch")}}
+
+
+def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) -> dict[str, Any]:
+    from fcnpose_tf.evaluate import training_record
+    from fcnpose_tf.model import load_model
+
+    model = load_model(path)
+    size, maps = int(model.input_shape[1]), int(model.output_shape[-1])
+    if size != config.input_size:
+        raise UserError(f"{path}: a {size}x{size} model, but the sweep's --input-size is {config.input_size}; "
+                        "use another --out, or --force to retrain it")
+    if maps != dataset.schema.num_maps:
+        raise UserError(f"{path}: {maps} output maps, but the data needs {dataset.schema.num_maps}")
+    record = training_record(path)
+    if record is None:
+        print(f"warning: {path} has no training record (NAME_train.json); cannot check that it was trained on "
+              f"fold {job.fold}'s training frames only", flush=True)
+        return {"reused": True, "record": False}
+    if record.get("data_sha256") not in (None, config.data_sha256) or record.get("fold") != job.fold \
+            or record.get("split_seed", config.split_seed) != config.split_seed \
+            or record.get("folds", config.folds) != config.folds:
+        raise UserError(f"{path}: trained on {record.get('split', 'another split')} of {record.get('data')}, not on "
+                        f"fold {job.fold} of {config.folds} of {config.data} (its validation frames would leak "
+                        "into training); move it away or pass --force to retrain")
+    return {"reused": True, "record": True, "epochs_run": record.get("epochs_run"),
+            "best_epoch": record.get("best_epoch"), "best_val_loss": record.get("best_val_loss"),
+            "seconds": record.get("train_seconds"), "stopped_early": record.get("stopped_early")}
+
+
+def _train_base(config: SweepConfig, job: Job, dataset: Any, path: Path, resume: bool) -> dict[str, Any]:
+    from fcnpose_tf.data.dataset import fold_data
+    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.train import FitConfig, fit
+
+    train_data, val_data = fold_data(dataset, job.fold, config.input_size, config.augment_copies, config.seed,
+                                     progress=config.verbose == 1)
+    print(f"{job.label}: {'resuming' if resume else 'training'} {path.name} on {len(train_data)} samples "
+          f"({len(train_data) // (1 + config.augment_copies)} frames + {config.augment_copies} augmented copies "
+          f"each), {len(val_data)} validation frames, {config.input_size}x{config.input_size}, "
+          f"up to {config.epochs} epochs", flush=True)
+    fit_config = FitConfig(epochs=config.epochs, patience=config.patience, batch_size=config.batch_size,
+                           learning_rate=config.learning_rate, seed=config.seed,
+                           positive_weight=config.positive_weight)
+    metadata = {"data": config.data, "data_sha256": config.data_sha256, "num_frames": len(dataset),
+                "split": f"fold {job.fold} of {config.folds}", "fold": job.fold, "folds": config.folds,
+                "split_seed": config.split_seed, "input_size": config.input_size,
+                "augment_copies": config.augment_copies, "train_samples": len(train_data),
+                "val_frames": len(val_data), "schema": dataset.schema.to_dict(), "trained_by": "fcnpose-tf sweep"}
+    model = build_fcn_pose(input_size=config.input_size, num_maps=dataset.schema.num_maps)
+    result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
+                 path, fit_config, resume=resume, force=config.force or not resume, metadata=metadata,
+                 verbose=config.verbose)
+    return {"reused": False, "resumed": resume, "epochs_run": result.epochs_run, "best_epoch": result.best_epoch,
+            "best_val_loss": result.best_val_loss, "seconds": round(result.seconds, 1),
+            "stopped_early": result.stopped_early}
+
+
+def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
+    from fcnpose_tf.compress import CompressOptions, compress_model
+
+    base = base_model_path(config.out, job.fold)
+    if not base.is_file():
+        raise UserError(f"{base}: fold {job.fold}'s base model is missing (its base job must finish first)")
+    _, val_idx = dataset.split(job.fold)
+    base_sha256 = file_sha256(base)
+    options = CompressOptions(rate=float(job.rate), retrain_epochs=0 if job.rate == 0 else config.retrain_epochs,
+                              patience=config.retrain_patience, batch_size=config.batch_size,
+                              learning_rate=config.learning_rate, augment_copies=config.augment_copies,
+                              seed=config.seed, fold=job.fold, threads=config.threads,
+                              positive_weight=config.positive_weight)
+    print(f"{job.label}: compressing {base.name}", flush=True)
+    report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
+                            options, force=True, verbose=1 if config.verbose else 0,
+                            eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
+    return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
+            "keras": _strip(report["retrained"]),
+            "tflite": _strip(report["quantized"]),
+            "pruned_before_retraining": report["pruned_before_retraining"],
+            "base_remeasured": {"timing": report["base"].get("timing")},
+            "retraining": report.get("retraining"),
+            "verification": report["quantized"].get("export", {}).get("parity"),
+            "files": {k: _relative(v, config.out) for k, v in report["files"].items()}}
+
+
+@dataclass
+class JobEvent:
+    """What an executor reports about a job: started, done (with its record), failed or skipped."""
+
+    kind: str
+    job: Job
+    record: dict[str, Any] | None = None
+    error: str | None = None
+    details: dict[str, Any] = field(default_factory=dict)

@@ -1,0 +1,404 @@
+"""`fcnpose-tf sweep`: rate specs, tables and plot from saved jobs, resumability, executors, smoke sweeps.
+
+The fast tests use a fake job function (no TensorFlow) that writes records shaped like the real
+ones; the smoke tests run real tiny sweeps (64x64, 1 epoch) on the local executor and on a local
+Ray instance limited to 2 CPUs.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import write_json
+from fcnpose_tf.sweep import Job, LocalExecutor, RayExecutor, SweepConfig, parse_rates, run_sweep, write_report
+from fcnpose_tf.sweep.jobs import base_model_path, file_sha256, job_path, plan_jobs
+from fcnpose_tf.sweep.rates import rate_label, rate_tag
+
+# ------------------------------------------------------------------------------------------
+# Rate specifications
+# ------------------------------------------------------------------------------------------
+
+
+def test_range_gives_exactly_nine_rates_without_float_drift():
+    rates = parse_rates("0.1:0.9:0.1")
+    assert rates == (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+    assert [repr(r) for r in rates] == ["0.1", "0.2", "0.3", "0.4", "0.5", "0.6", "0.7", "0.8", "0.9"]
+    assert [rate_tag(r) for r in rates] == [f"p{10 * i}" for i in range(1, 10)]
+
+
+@pytest.mark.parametrize("spec, expected", [
+    ("0.5,0.7", (0.5, 0.7)),
+    (" 0.7 , 0.5 ,0.7", (0.5, 0.7)),
+    ("full,0.5", (0.0, 0.5)),
+    ("0,0.05", (0.0, 0.05)),
+    ("0:0.2:0.1", (0.0, 0.1, 0.2)),
+    ("0.1:0.85:0.1", (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)),
+    ("0.5:0.5:0.1", (0.5,)),
+    ("0.9,0.1:0.3:0.1", (0.1, 0.2, 0.3, 0.9)),
+    ("0.01:0.99:0.01", tuple(i / 100 for i in range(1, 100))),
+])
+def test_rate_specs(spec, expected):
+    assert parse_rates(spec) == expected
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("", "--rates is empty"),
+    ("0.5,,0.7", "empty item"),
+    ("abc", "'abc' is not a number"),
+    ("1.0", "outside [0, 1)"),
+    ("70", "write 0.7 for 70%"),
+    ("-0.1", "outside [0, 1)"),
+    ("nan", "not a finite number"),
+    ("0.125", "not a whole percentage"),
+    ("0.1:0.9", "must be START:STOP:STEP"),
+    ("0.1:0.9:0", "step of '0.1:0.9:0' must be positive"),
+    ("0.9:0.1:0.1", "starts above its stop"),
+    ("0.1:0.9:0.015", "not a whole percentage"),
+    ("0.1:1.5:0.1", "outside [0, 1)"),
+])
+def test_bad_rate_specs_are_user_errors(spec, message):
+    with pytest.raises(UserError, match=None) as info:
+        parse_rates(spec)
+    assert message in str(info.value)
+
+
+def test_job_names_and_labels():
+    assert Job(3).name == "fold3_base" and Job(3).is_base
+    assert Job(0, 0.7).name == "fold0_p70" and Job(1, 0.05).name == "fold1_p05" and Job(2, 0.0).name == "fold2_p00"
+    assert Job(0, 0.7).base() == Job(0)
+    assert rate_label(0.0) == rate_label(None) == "full" and rate_label(0.7) == "70%"
+    assert [j.name for j in plan_jobs(2, (0.5, 0.7))] == ["fold0_base", "fold0_p50", "fold0_p70",
+                                                          "fold1_base", "fold1_p50", "fold1_p70"]
+
+
+# ------------------------------------------------------------------------------------------
+# Fake job records: the paper's figures, per fold a little apart
+# ------------------------------------------------------------------------------------------
+
+PAPER = {  # rate: (PCK@0.5, Keras FPS, params, TFLite FPS)
+    0.0: (0.997, 11.7, 131705, 27.0), 0.1: (0.998, 11.1, 110237, 30.0), 0.3: (0.991, 13.7, 68014, 45.0),
+    0.5: (0.985, 27.8, 35185, 70.0), 0.7: (0.980, 41.9, 14668, 110.0), 0.9: (0.284, 61.9, 2480, 200.0)}
+
+
+def _step(pck: float, fps: float, params: int, tflite: bool = False) -> dict:
+    metrics = {"pck@0.5_bbox": pck, "pck@0.2_bbox": pck * 0.9, "pck@0.05_bbox": pck * 0.5, "epe_px": 40 * (1 - pck) + 2}
+    timing = {"inference_ms": {"mean": 900 / fps, "std": 0.1, "median": 900 / fps}, "fps": fps,
+              "fps_inference_only": fps * 1.1, "threads": 2, "total_ms": {"mean": 1000 / fps}}
+    step = {"params": params, "macs": params * 4000, "flops": params * 8000, "metrics": metrics, "timing": timing}
+    if tflite:
+        step["tflite_size_bytes"] = params * 2 + 9000
+    else:
+        step.update(h5_size_bytes=params * 4 + 50000, keras_size_bytes=params * 4 + 60000)
+    return step
+
+
+def fake_record(config: SweepConfig, job: Job, offset: float = 0.0) -> dict:
+    """A job record shaped like run_job's, with the paper's numbers shifted by `offset`."""
+    rate = 0.0 if job.is_base else job.rate
+    pck, fps, params, tfl_fps = PAPER.get(rate, (0.95, 20.0, 50000, 60.0))
+    record = {"record_version": 1, "job": job.name, "kind": "base" if job.is_base else "rate", "fold": job.fold,
+              "rate": job.rate, "config_key": config.key(), "eval_frames": 5, "seconds": 1.5,
+              "machine": {"hostname": "h", "cpu_model": "Test CPU", "cpu_cores": 2, "threads": config.threads},
+              "keras": _step(min(1.0, pck + offset), fps * (1 + offset), params)}
+    if job.is_base:
+        record["training"] = {"epochs_run": 3, "seconds": 60.0}
+    else:
+        record["tflite"] = _step(min(1.0, pck + offset - 0.002), tfl_fps * (1 + offset), params, tflite=True)
+        record["pruned_before_retraining"] = {"metrics": {"pck@0.5_bbox": pck / 2}}
+    return record
+
+
+def fake_job(config: SweepConfig, job: Job) -> dict:
+    """A stand-in for run_job: obeys the same contract (files first, record last), no TensorFlow.
+
+    FAKE_FAIL names jobs to fail; a rate job refuses to run before its base model exists.
+    """
+    if job.name in os.environ.get("FAKE_FAIL", "").split(","):
+        raise UserError(f"{job.name}: made to fail")
+    base = base_model_path(config.out, job.fold)
+    if job.is_base:
+        base.parent.mkdir(parents=True, exist_ok=True)
+        base.write_bytes(b"model of fold %d" % job.fold)
+    elif not base.is_file():
+        raise UserError(f"{base}: missing (ran before its base)")
+    time.sleep(float(os.environ.get("FAKE_SLEEP", "0")))
+    record = fake_record(config, job, offset=0.01 * job.fold)
+    record["files"] = {"keras": f"models/{base.name}"}
+    record["worker"] = {"pid": os.getpid(), "TF_NUM_INTRAOP_THREADS": os.environ.get("TF_NUM_INTRAOP_THREADS")}
+    if job.is_base:
+        record["model_sha256"] = file_sha256(base)
+    else:
+        record["base_model_sha256"] = file_sha256(base)
+    write_json(job_path(config.out, job), record, force=True)
+    return record
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory):
+    from test_train_evaluate import make_via_folder
+
+    return make_via_folder(tmp_path_factory.mktemp("sweepdata") / "frames", n=10)
+
+
+def _config(out, data, rates="0.5,0.7", folds=2, **kwargs) -> SweepConfig:
+    settings = {"input_size": 64, "epochs": 1, "retrain_epochs": 1, "threads": 1, **kwargs}
+    return SweepConfig(out=str(out), data=str(data), rates=parse_rates(rates), folds=folds, **settings)
+
+
+# ------------------------------------------------------------------------------------------
+# Tables, plot and results.json from saved jobs
+# ------------------------------------------------------------------------------------------
+
+
+def test_report_from_saved_jobs_has_every_table_plot_and_results(tmp_path, frames):
+    import cv2
+
+    config = _config(tmp_path / "res", frames, rates="full,0.1,0.3,0.5,0.7,0.9", folds=2)
+    lines = []
+    outcome = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lines.append)
+    assert len(outcome.done) == 14 and not outcome.failed and not outcome.skipped
+    out = tmp_path / "res"
+    for name in ("folds", "pruning", "requirements", "quantization"):
+        assert (out / "tables" / f"{name}.md").is_file() and (out / "tables" / f"{name}.csv").is_file()
+
+    # Folds 0 and 1 differ by offset 0.01: PCK@0.5 of the bases 0.997 and 1.0 (capped) -> mean 0.9985
+    folds = list(csv.DictReader(io.StringIO((out / "tables" / "folds.csv").read_text())))
+    assert [r["fold"] for r in folds] == ["0", "1", "mean", "std"]
+    assert float(folds[2]["pck@0.5_bbox"]) == pytest.approx(0.9985)
+    assert float(folds[3]["pck@0.5_bbox"]) == pytest.approx(0.0015)
+
+    pruning = list(csv.DictReader(io.StringIO((out / "tables" / "pruning.csv").read_text())))
+    assert [float(r["rate"]) for r in pruning] == [0.0, 0.1, 0.3, 0.5, 0.7, 0.9]
+    row70 = pruning[4]
+    assert row70["params"] == "14668" and row70["folds"] == "2"
+    assert float(row70["pck@0.5_bbox_mean"]) == pytest.approx(0.985) and \
+        float(row70["pck@0.5_bbox_std"]) == pytest.approx(0.005)
+    fps70 = (41.9 + 41.9 * 1.01) / 2
+    assert float(row70["fps_mean"]) == pytest.approx(fps70, rel=1e-5)
+    assert float(row70["speedup"]) == pytest.approx(fps70 / ((11.7 + 11.7 * 1.01) / 2), rel=1e-4)
+    md = (out / "tables" / "pruning.md").read_text()
+    assert "| 70%  |" in md and "0.985 ± 0.005" in md and "14,668" in md
+
+    req = list(csv.DictReader(io.StringIO((out / "tables" / "requirements.csv").read_text())))
+    assert req[0]["params"] == "131705" and float(req[0]["params_fraction"]) == 1.0
+    assert float(req[-1]["h5_size_mb"]) == pytest.approx((2480 * 4 + 50000) / 1e6)
+    assert float(req[-1]["flops_millions"]) == pytest.approx(2 * float(req[-1]["macs_millions"]))
+
+    quant = list(csv.DictReader(io.StringIO((out / "tables" / "quantization.csv").read_text())))
+    assert [float(r["rate"]) for r in quant] == [0.0, 0.1, 0.3, 0.5, 0.7, 0.9]  # "full" = the rate-0 export
+    assert float(quant[4]["pck@0.5_bbox_delta_vs_keras_mean"]) == pytest.approx(-0.002)
+    assert "+0.000" not in (out / "tables" / "quantization.md").read_text().split("| 70%")[1].split("\n")[0]
+
+    results = json.loads((out / "results.json").read_text())
+    assert results["complete"] and results["missing_jobs"] == [] and len(results["jobs"]) == 14
+    assert results["machine"]["cpu_model"] and results["machine"]["cpu_cores"] >= 1 and results["threads"] == 1
+    for lib in ("tensorflow", "tf_keras", "ai_edge_litert", "numpy", "opencv", "fcnpose_tf"):
+        assert lib in results["versions"]
+    assert set(results["tables"]) == {"folds", "pruning", "requirements", "quantization"}
+    assert results["tables"]["pruning"]["rows"][4]["pck@0.5_bbox"]["mean"] == pytest.approx(0.985)
+    assert results["runs"][0]["executor"] == "local" and results["runs"][0]["jobs_done"]
+
+    summary = (out / "summary.md").read_text()
+    for title in ("5-Folds Desktop", "Pruning Results", "Requirements", "Pruning and Quantization", "Definitions"):
+        assert title in summary
+    assert "(complete)" in summary and "![PCK@0.5 vs FPS](pck_vs_fps.png)" in summary
+
+    image = cv2.imread(str(out / "pck_vs_fps.png"))
+    assert image is not None and image.shape[0] > 400 and image.shape[1] > 600 and image.std() > 10
+    assert any("sweep: job 14/14 done" in line for line in lines)
+
+
+def test_partial_results_show_fold_counts_and_missing_jobs(tmp_path, frames):
+    config = _config(tmp_path / "res", frames)
+    run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    out = tmp_path / "res"
+    (out / "jobs" / "fold1_p70.json").unlink()
+    other = fake_record(SweepConfig(**{**config.to_dict(), "rates": (0.5,), "epochs": 99}), Job(0, 0.5))
+    write_json(out / "jobs" / "fold0_p90.json", {**other, "job": "fold0_p90", "rate": 0.9})  # another config
+    result = write_report(out)
+    pruning = {r["rate"]: r for r in result["tables"]["pruning"].records()}
+    assert pruning[0.7]["folds"] == 1 and pruning[0.5]["folds"] == 2 and 0.9 not in pruning
+    assert pruning[0.7]["pck@0.5_bbox"]["n"] == 1
+    assert "0.980 ±" not in (out / "tables" / "pruning.md").read_text().split("| 70%")[1].split("\n")[0]
+    results = json.loads((out / "results.json").read_text())
+    assert results["missing_jobs"] == ["fold1_p70"] and not results["complete"]
+    assert results["ignored_job_files"] == ["fold0_p90.json"]
+    assert "1 missing (fold1_p70)" in (out / "summary.md").read_text()
+
+
+def test_report_only_needs_a_sweep(tmp_path):
+    with pytest.raises(UserError, match="holds no sweep"):
+        write_report(tmp_path)
+
+
+def test_report_modules_import_no_tensorflow_or_ray():
+    code = ("import sys, fcnpose_tf.sweep, fcnpose_tf.sweep.report, fcnpose_tf.commands.sweep; "
+            "bad = [m for m in ('tensorflow', 'tf_keras', 'ray', 'matplotlib') if m in sys.modules]; "
+            "assert not bad, bad")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+
+
+# ------------------------------------------------------------------------------------------
+# Resuming, failures, settings checks, executors (fake jobs)
+# ------------------------------------------------------------------------------------------
+
+
+def test_rerun_skips_finished_jobs_and_redoes_rates_of_a_changed_base(tmp_path, frames):
+    config = _config(tmp_path / "res", frames)
+    first = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert len(first.done) == 6
+    lines = []
+    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lines.append)
+    assert again.done == [] and len(again.skipped) == 6
+    assert any("skipping 6 finished job(s)" in s for s in lines) and any("nothing to run" in s for s in lines)
+
+    # A job lost (e.g. interrupted) is redone; a base model replaced invalidates its fold's rate jobs
+    (tmp_path / "res" / "jobs" / "fold0_p70.json").unlink()
+    base_model_path(config.out, 1).write_bytes(b"retrained elsewhere")
+    third = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert sorted(third.done) == ["fold0_p70", "fold1_base", "fold1_p50", "fold1_p70"]
+
+    # More rates later: only the new jobs run, and sweep.json keeps every rate
+    fourth = run_sweep(_config(tmp_path / "res", frames, rates="0.9"), LocalExecutor(), job_fn=fake_job,
+                       log=lambda s: None)
+    assert sorted(fourth.done) == ["fold0_p90", "fold1_p90"]
+    assert json.loads((tmp_path / "res" / "sweep.json").read_text())["config"]["rates"] == [0.5, 0.7, 0.9]
+    assert len(json.loads((tmp_path / "res" / "sweep.json").read_text())["runs"]) == 4
+
+
+def test_failed_base_skips_its_rates_and_the_rest_still_runs(tmp_path, frames, monkeypatch):
+    monkeypatch.setenv("FAKE_FAIL", "fold0_base,fold1_p50")
+    outcome = run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert set(outcome.failed) == {"fold0_base", "fold1_p50"} and "made to fail" in outcome.failed["fold0_base"]
+    assert sorted(outcome.not_run) == ["fold0_p50", "fold0_p70"]
+    assert sorted(outcome.done) == ["fold1_base", "fold1_p70"]
+    monkeypatch.delenv("FAKE_FAIL")
+    retry = run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert sorted(retry.done) == ["fold0_base", "fold0_p50", "fold0_p70", "fold1_p50"]
+
+
+def test_other_settings_in_the_same_folder_are_refused_unless_forced(tmp_path, frames):
+    run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    changed = _config(tmp_path / "res", frames, epochs=5)
+    with pytest.raises(UserError, match=r"other settings \(epochs 1 -> 5\).*--force"):
+        run_sweep(changed, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    forced = SweepConfig(**{**changed.to_dict(), "rates": changed.rates, "force": True})
+    outcome = run_sweep(forced, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert len(outcome.done) == 6 and json.loads((tmp_path / "res" / "sweep.json").read_text())["config"]["epochs"] == 5
+
+
+def test_too_few_frames_for_the_folds(tmp_path):
+    from test_train_evaluate import make_via_folder
+
+    frames = make_via_folder(tmp_path / "frames", n=10)
+    with pytest.raises(UserError, match="too few frames for 11 folds"):
+        run_sweep(_config(tmp_path / "res", frames, folds=11), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+
+
+def test_process_pool_limits_threads_and_keeps_bases_before_rates(tmp_path, monkeypatch):
+    from test_train_evaluate import make_via_folder
+
+    monkeypatch.setenv("FAKE_SLEEP", "0.3")
+    config = _config(tmp_path / "res", make_via_folder(tmp_path / "frames", n=10), folds=3, threads=1)
+    outcome = run_sweep(config, LocalExecutor(workers=2, threads=1), job_fn=fake_job, log=lambda s: None)
+    assert len(outcome.done) == 9 and not outcome.failed  # a rate job before its base would have failed
+    records = [json.loads(p.read_text()) for p in (tmp_path / "res" / "jobs").glob("*.json")]
+    assert {r["worker"]["TF_NUM_INTRAOP_THREADS"] for r in records} == {"1"}
+    assert len({r["worker"]["pid"] for r in records}) == 2 and os.getpid() not in {r["worker"]["pid"] for r in records}
+
+
+def test_ray_missing_is_a_clear_error(monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)
+    with pytest.raises(UserError, match=r"pip install 'fcnpose-tf\[ray\]'"):
+        RayExecutor(num_cpus=1).run(fake_job, None, [Job(0)], set(), lambda e: None)
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--executor", "ray", "--workers", "2"], "--workers is for the local executor"),
+    (["--address", "auto"], "are for --executor ray"),
+    (["--executor", "ray", "--address", "auto", "--num-cpus", "2"], "--num-cpus sizes a local Ray instance"),
+    (["--executor", "ray", "--num-cpus", "1", "--threads", "2"], "no task could ever be scheduled"),
+    (["--workers", "0"], "--workers must be at least 1"),
+])
+def test_executor_option_combinations(argv, message):
+    from fcnpose_tf.cli import build_parser
+    from fcnpose_tf.commands.sweep import make_executor, resolve_threads
+
+    args = build_parser().parse_args(["sweep", *argv])
+    with pytest.raises(UserError) as info:
+        make_executor(args, resolve_threads(args))
+    assert message in str(info.value)
+
+
+# ------------------------------------------------------------------------------------------
+# Real smoke sweeps (TensorFlow): local executor, then a local Ray instance
+# ------------------------------------------------------------------------------------------
+
+SMOKE = ["--rates", "0.5,0.7", "--folds", "2", "--epochs", "1", "--retrain-epochs", "1", "--input-size", "64",
+         "--quiet"]
+
+
+def _check_smoke_outputs(out: Path, threads: int) -> None:
+    for name in ("summary.md", "pck_vs_fps.png", "results.json", "sweep.json"):
+        assert (out / name).is_file(), name
+    for name in ("folds", "pruning", "requirements", "quantization"):
+        assert (out / "tables" / f"{name}.md").is_file() and (out / "tables" / f"{name}.csv").is_file()
+    assert sorted(p.name for p in (out / "jobs").iterdir()) == [
+        "fold0_base.json", "fold0_p50.json", "fold0_p70.json", "fold1_base.json", "fold1_p50.json", "fold1_p70.json"]
+    for k in (0, 1):
+        assert (out / "models" / f"base_fold{k}.keras").is_file()
+        assert (out / "models" / f"base_fold{k}_p70_fp16.tflite").is_file()
+    results = json.loads((out / "results.json").read_text())
+    assert results["complete"] and len(results["jobs"]) == 6
+    rows = {r["rate"]: r for r in results["tables"]["requirements"]["rows"]}
+    assert rows[0.0]["params"] == 131705 and rows[0.5]["params"] == 35185 and rows[0.7]["params"] == 14668
+    quant = {r["rate"]: r for r in results["tables"]["quantization"]["rows"]}
+    assert quant[0.7]["folds"] == 2 and quant[0.7]["fps"]["mean"] > 0 and quant[0.7]["tflite_size_mb"] < 0.05
+    for job in results["jobs"]:
+        assert job["machine"]["threads"] == threads
+        section = job["keras"] if job["kind"] == "base" else job["tflite"]
+        assert section["timing"]["threads"] == threads and section["metrics"]["num_frames"] == 5
+
+
+def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
+    out = tmp_path / "res"
+    proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    _check_smoke_outputs(out, threads=2)
+    assert "Pruning results, Keras" in proc.stdout and "14,668" in proc.stdout
+    stamps = {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir()}
+    jobs = {p.name: p.read_bytes() for p in (out / "jobs").iterdir()}
+
+    again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
+    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+    assert "skipping 6 finished job(s)" in again.stdout and "nothing to run" in again.stdout
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir()} == stamps
+    assert {p.name: p.read_bytes() for p in (out / "jobs").iterdir()} == jobs
+
+    other = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "1")
+    assert other.returncode == 2 and "threads 2 -> 1" in other.stderr
+
+
+def test_smoke_sweep_on_a_local_ray_instance(tmp_path, frames, cli):
+    pytest.importorskip("ray")
+    out = tmp_path / "res"
+    proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
+               "--threads", "1", env={"RAY_USAGE_STATS_ENABLED": "0"})
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    _check_smoke_outputs(out, threads=1)
+    results = json.loads((out / "results.json").read_text())
+    assert results["runs"][-1]["executor"] == "ray" and results["runs"][-1]["cluster"]["cpus"] == 2
+    again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
+                "--threads", "1")
+    assert again.returncode == 0 and "skipping 6 finished job(s)" in again.stdout
