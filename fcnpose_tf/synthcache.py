@@ -12,8 +12,6 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from fcnpose_tf import __version__
-
 BASELINE_FRAMES = 400
 BASELINE_SEED = 0
 HELDOUT_FRAMES = 100
@@ -27,9 +25,18 @@ def cache_dir() -> Path:
     return Path(root)
 
 
+def generator_fingerprint() -> str:
+    """First 12 hex digits of the generator's source hash: a changed generator gets a fresh cache."""
+    import hashlib
+
+    from fcnpose_tf.data import synth
+
+    return hashlib.sha256(Path(synth.__file__).read_bytes()).hexdigest()[:12]
+
+
 def synthetic_dataset(n: int, seed: int, width: int = 640, height: int = 480) -> Path:
     """Folder of a synthetic UR5 dataset (n frames, seed), generating it atomically on first use."""
-    folder = cache_dir() / f"synth-v{__version__}" / f"ur5_n{n}_seed{seed}_{width}x{height}"
+    folder = cache_dir() / f"synth-{generator_fingerprint()}" / f"ur5_n{n}_seed{seed}_{width}x{height}"
     if (folder / "ur5_synth.json").is_file():
         return folder
     from fcnpose_tf.data.synth import generate
@@ -39,6 +46,7 @@ def synthetic_dataset(n: int, seed: int, width: int = 640, height: int = 480) ->
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
         generate(tmp, n=n, seed=seed, width=width, height=height, force=True)
+        os.chmod(tmp, 0o755)  # mkdtemp makes it private; the cache is ordinary data
         os.replace(tmp, folder)
     finally:
         if tmp.exists():
