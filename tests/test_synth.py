@@ -269,3 +269,12 @@ def test_generated_folder_loads_as_a_dataset(tmp_path):
     assert ds.schema == UR5 and ds.names == [r.filename for r in report.frames]
     for sample, record in zip(ds.samples, report.frames):
         np.testing.assert_allclose(sample.keypoints, record.keypoints, atol=1e-3)
+
+
+def test_tight_framing_option_leaves_keypoints_out_only_when_asked():
+    from fcnpose_tf.data.synth import render_frame
+
+    full = [render_frame(3, i, 160, 120)[1] for i in range(4)]
+    tight = [render_frame(3, i, 160, 120, tight_framing=1.0)[1] for i in range(4)]
+    assert all(not np.isnan(k).any() for k in full)
+    assert any(np.isnan(k).any() for k in tight)

@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preview", type=Path, metavar="PNG",
                         help="also write a grid of the first 6 frames with keypoints and skeleton drawn")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--tight-framing", type=float, default=0.0, metavar="RATE",
+                        help="share of frames framed so tightly that 1-2 keypoints fall outside (unannotated)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,7 +48,8 @@ def run(args: argparse.Namespace) -> int:
 
         check_writable(args.preview, force=args.force)  # fail before rendering, not after
     report = generate_dataset(args.out, n=args.n, seed=args.seed, width=args.width, height=args.height,
-                              workers=args.workers, force=args.force, progress=not args.no_progress)
+                              workers=args.workers, force=args.force, progress=not args.no_progress,
+                              tight_framing=args.tight_framing)
     print(format_table(["Synthetic UR5 set", "Value"], report.summary_rows()))
     print(f"VIA project: {report.via_path}")
     if args.preview is not None:

@@ -1044,21 +1044,22 @@ def _keypoint_bbox_fraction(uv: np.ndarray, width: int, height: int) -> float:
     return float(max(span[0] / width, span[1] / height))
 
 
-TIGHT_FRAMING_RATE = 0.04
-"""Share of frames framed so tightly that one or two keypoints fall outside (left unannotated)."""
+DEFAULT_TIGHT_FRAMING = 0.0
+"""Default share of frames framed so tightly that one or two keypoints fall outside (left
+unannotated); `--tight-framing 0.04` gives 1 frame in 25, to exercise partly annotated frames."""
 
 
 def _place_camera(rng: np.random.Generator, kp3d: np.ndarray, robot_pts: np.ndarray, width: int, height: int,
-                  min_eye_z: float) -> Camera:
+                  min_eye_z: float, tight_framing: float = DEFAULT_TIGHT_FRAMING) -> Camera:
     """A webcam-like camera around the robot framing the arm at a random size and image position.
 
-    In TIGHT_FRAMING_RATE of the frames (1 in 25) the framing is tight and one or two keypoints fall
-    outside the image.
+    In `tight_framing` of the frames the framing is tight and one or two keypoints fall outside
+    the image. The draw is made whatever the rate, so other frames do not depend on it.
     """
     diag = math.hypot(width, height)
     centre = 0.5 * (kp3d.min(0) + kp3d.max(0))
     size = np.array([width, height]) - 1.0
-    if rng.random() < TIGHT_FRAMING_RATE:
+    if rng.random() < tight_framing:
         for _ in range(100):
             focal = 0.5 * diag / math.tan(math.radians(rng.uniform(55.0, 78.0)) / 2)
             yaw, elev = rng.uniform(-PI, PI), math.radians(rng.uniform(0.0, 35.0))
@@ -1266,7 +1267,7 @@ def _mount_parts(rng: np.random.Generator) -> tuple[str, float, list[Part], floa
 
 
 def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
-                  height: int = 480) -> SynthSample:
+                  height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING) -> SynthSample:
     """Render frame `index` of the synthetic set `seed` (or draw from a given Generator) at width x height."""
     if width < 32 or height < 32:
         raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
@@ -1277,7 +1278,7 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     kp3d = ur5_keypoints_3d(q, style.tool_length, base_z)
     robot = ur5_parts(q, style, base_z)
     robot_pts = np.vstack([_part_points(p) for p in robot])
-    cam = _place_camera(rng, kp3d, robot_pts, width, height, min_eye_z=base_z + 0.15)
+    cam = _place_camera(rng, kp3d, robot_pts, width, height, min_eye_z=base_z + 0.15, tight_framing=tight_framing)
 
     # light
     az, el = rng.uniform(-PI, PI), math.radians(rng.uniform(35, 78))
@@ -1497,9 +1498,9 @@ def _camera_effects(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
 
 
 def render_frame(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
-                 height: int = 480) -> tuple[np.ndarray, np.ndarray]:
+                 height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING) -> tuple[np.ndarray, np.ndarray]:
     """(H x W x 3 uint8 BGR image, 8 x 2 keypoints in UR5 order, NaN outside the frame) of one frame."""
-    sample = render_sample(seed, index, width, height)
+    sample = render_sample(seed, index, width, height, tight_framing)
     return sample.image, sample.keypoints
 
 
@@ -1656,12 +1657,12 @@ def _init_worker() -> None:
     cv2.setNumThreads(1)  # one process per core; OpenCV's own threads would only compete
 
 
-def _render_and_write(task: tuple[int, int, int, int, str]) -> FrameRecord:
+def _render_and_write(task: tuple[int, int, int, int, str, float]) -> FrameRecord:
     """Worker: render frame `index`, write it as PNG atomically, return its record."""
     from fcnpose_tf import fileio
 
-    seed, index, width, height, image_dir = task
-    sample = render_sample(seed, index, width, height)
+    seed, index, width, height, image_dir, tight_framing = task
+    sample = render_sample(seed, index, width, height, tight_framing)
     ok, buf = cv2.imencode(".png", sample.image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 BGR image
         raise RuntimeError("PNG encoding failed")
@@ -1697,7 +1698,8 @@ def _prepare_output(out_dir: Path, force: bool) -> Path:
 
 
 def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
-                     workers: int | None = None, force: bool = False, progress: bool = True) -> SynthReport:
+                     workers: int | None = None, force: bool = False, progress: bool = True,
+                     tight_framing: float = DEFAULT_TIGHT_FRAMING) -> SynthReport:
     """Render n frames into out_dir/images/*.png and write out_dir/ur5_synth.json (VIA 2.x project).
 
     Frames are rendered by a pool of `workers` processes (default: one per core);
@@ -1732,7 +1734,9 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     from tqdm import tqdm
 
     start = time.perf_counter()
-    tasks = [(int(seed), i, int(width), int(height), str(image_dir)) for i in range(n)]
+    if not 0.0 <= tight_framing <= 1.0:
+        raise UserError(f"--tight-framing must be between 0 and 1, got {tight_framing}")
+    tasks = [(int(seed), i, int(width), int(height), str(image_dir), float(tight_framing)) for i in range(n)]
     workers = min(workers, n)
     records: list[FrameRecord] = []
     with tqdm(total=n, unit="frame", desc="synth", disable=not progress, dynamic_ncols=True) as bar:
@@ -1755,13 +1759,14 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
 
 
 def generate(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
-             workers: int | None = None, force: bool = False, progress: bool = True) -> Path:
+             workers: int | None = None, force: bool = False, progress: bool = True,
+             tight_framing: float = DEFAULT_TIGHT_FRAMING) -> Path:
     """Render a synthetic UR5 dataset into out_dir (see `generate_dataset`); returns the VIA file's path.
 
     Example:
         >>> via = generate("data/synth", n=500, seed=0)   # data/synth/images/*.png + ur5_synth.json
     """
-    return generate_dataset(out_dir, n, seed, width, height, workers, force, progress).via_path
+    return generate_dataset(out_dir, n, seed, width, height, workers, force, progress, tight_framing).via_path
 
 
 def write_preview(report: SynthReport, path: str | os.PathLike, count: int = 6, force: bool = False) -> Path:
