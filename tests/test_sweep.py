@@ -366,7 +366,7 @@ def _check_smoke_outputs(out: Path, threads: int) -> None:
     quant = {r["rate"]: r for r in results["tables"]["quantization"]["rows"]}
     assert quant[0.7]["folds"] == 2 and quant[0.7]["fps"]["mean"] > 0 and quant[0.7]["tflite_size_mb"] < 0.05
     for job in results["jobs"]:
-        assert job["machine"]["threads"] == threads
+        assert job["machine"]["threads"] == threads and job["tensorflow_threads"]["intra_op"] == threads
         section = job["keras"] if job["kind"] == "base" else job["tflite"]
         assert section["timing"]["threads"] == threads and section["metrics"]["num_frames"] == 5
 

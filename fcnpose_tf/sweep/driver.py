@@ -143,18 +143,19 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
 
     def on_event(event: JobEvent) -> None:
         job = event.job
+        count = len(outcome.done) + len(outcome.failed) + len(outcome.not_run) + 1
         if event.kind == "done":
             outcome.done.append(job.name)
-            log(f"sweep: job {len(outcome.done) + len(outcome.failed)}/{total} done: {job.label} in "
-                f"{_duration(event.record.get('seconds'))}; {_brief(event.record)}")
+            log(f"sweep: job {count}/{total} done: {job.label} in {_duration(event.record.get('seconds'))}; "
+                f"{_brief(event.record)}")
         elif event.kind == "failed":
             outcome.failed[job.name] = event.error or "failed"
-            log(f"sweep: job {len(outcome.done) + len(outcome.failed)}/{total} FAILED: {job.label}: {event.error}")
+            log(f"sweep: job {count}/{total} FAILED: {job.label}: {event.error}")
             if event.details.get("traceback"):
                 log(event.details["traceback"].rstrip())
         elif event.kind == "skipped":
             outcome.not_run.append(job.name)
-            log(f"sweep: {job.label} not run ({event.error})")
+            log(f"sweep: job {count}/{total} not run: {job.label} ({event.error})")
         elif event.kind == "started" and desc.get("workers", 1) > 1:
             log(f"sweep: {job.label} started")
 

@@ -17,12 +17,13 @@ jobs keep their records, and rerunning continues. `ray` is imported only by RayE
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
 import traceback
 from abc import ABC, abstractmethod
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.sweep.jobs import Job, JobEvent
@@ -39,6 +40,32 @@ def thread_env(threads: int) -> dict[str, str]:
     n = str(int(threads))
     return {"TF_NUM_INTRAOP_THREADS": n, "TF_NUM_INTEROP_THREADS": "1", "OMP_NUM_THREADS": n,
             "OPENBLAS_NUM_THREADS": n, "MKL_NUM_THREADS": n, "TF_CPP_MIN_LOG_LEVEL": "3"}
+
+
+@contextlib.contextmanager
+def stop_on_signals() -> Iterator[threading.Event]:
+    """Turn SIGINT and SIGTERM into KeyboardInterrupt while jobs run; the event records that one came.
+
+    Installed explicitly because a sweep started in the background (`nohup ... &`) inherits an
+    ignored SIGINT, and SIGTERM would otherwise end the driver without stopping its workers. The
+    event also tells a KeyboardInterrupt that a job turned into another exception (fit() raises
+    UserError on Ctrl-C) from a real job failure.
+    """
+    event = threading.Event()
+    if threading.current_thread() is not threading.main_thread():
+        yield event
+        return
+
+    def handler(signum, frame):
+        event.set()
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield event
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
 
 
 def _error_text(exc: BaseException) -> str:
@@ -85,44 +112,32 @@ class LocalExecutor(Executor):
 
     def run(self, fn: JobFunction, config: Any, jobs: Sequence[Job], finished: set[str],
             on_event: EventHandler) -> None:
-        if self.workers == 1:
-            self._run_here(fn, config, jobs, set(finished), on_event)
-        else:
-            self._run_pool(fn, config, jobs, set(finished), on_event)
+        with stop_on_signals() as interrupted:
+            if self.workers == 1:
+                self._run_here(fn, config, jobs, set(finished), on_event, interrupted)
+            else:
+                self._run_pool(fn, config, jobs, set(finished), on_event)
 
     # -- sequential ------------------------------------------------------------------------
     def _run_here(self, fn: JobFunction, config: Any, jobs: Sequence[Job], finished: set[str],
-                  on_event: EventHandler) -> None:
-        interrupted = threading.Event()
-
-        def on_sigint(signum, frame):  # fit() turns KeyboardInterrupt into a UserError: remember it
-            interrupted.set()
-            raise KeyboardInterrupt
-
-        in_main = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, on_sigint) if in_main else None
-        try:
-            for job in sorted(jobs, key=lambda j: (j.fold, not j.is_base, j.rate or 0.0)):
-                if not _ready(job, finished):
-                    on_event(JobEvent("skipped", job, error=f"fold {job.fold}'s base model failed"))
-                    continue
-                on_event(JobEvent("started", job))
-                try:
-                    record = fn(config, job)
-                except KeyboardInterrupt:
-                    raise
-                except Exception as exc:  # noqa: BLE001 - one failed job must not end a long sweep
-                    if interrupted.is_set():
-                        raise KeyboardInterrupt from None
-                    on_event(JobEvent("failed", job, error=_error_text(exc),
-                                      details={} if isinstance(exc, UserError)
-                                      else {"traceback": traceback.format_exc()}))
-                    continue
-                finished.add(job.name)
-                on_event(JobEvent("done", job, record=record))
-        finally:
-            if in_main:
-                signal.signal(signal.SIGINT, previous)
+                  on_event: EventHandler, interrupted: threading.Event) -> None:
+        for job in sorted(jobs, key=lambda j: (j.fold, not j.is_base, j.rate or 0.0)):
+            if not _ready(job, finished):
+                on_event(JobEvent("skipped", job, error=f"fold {job.fold}'s base model failed"))
+                continue
+            on_event(JobEvent("started", job))
+            try:
+                record = fn(config, job)
+            except KeyboardInterrupt:
+                raise
+            except Exception as exc:  # noqa: BLE001 - one failed job must not end a long sweep
+                if interrupted.is_set():  # fit() turned the Ctrl-C into a UserError
+                    raise KeyboardInterrupt from None
+                on_event(JobEvent("failed", job, error=_error_text(exc),
+                                  details={} if isinstance(exc, UserError) else {"traceback": traceback.format_exc()}))
+                continue
+            finished.add(job.name)
+            on_event(JobEvent("done", job, record=record))
 
     # -- process pool ----------------------------------------------------------------------
     def _run_pool(self, fn: JobFunction, config: Any, jobs: Sequence[Job], finished: set[str],
@@ -215,12 +230,13 @@ class RayExecutor(Executor):
                 "threads_per_job": self.threads, **({"cluster": self.cluster} if self.cluster else {})}
 
     def _init(self, ray: Any) -> None:
-        common = {"include_dashboard": False, "logging_level": "WARNING", "log_to_driver": True}
+        common = {"logging_level": "WARNING", "log_to_driver": True}
         try:
             if self.address:
                 ray.init(address=self.address, **common)
-            else:
-                ray.init(num_cpus=self.num_cpus or os.cpu_count(), object_store_memory=256 * 2**20, **common)
+            else:  # only records travel through the object store: keep it small
+                ray.init(num_cpus=self.num_cpus or os.cpu_count(), object_store_memory=256 * 2**20,
+                         include_dashboard=False, **common)
         except (ConnectionError, RuntimeError, ValueError) as exc:
             where = f"the Ray cluster at {self.address}" if self.address else "a local Ray instance"
             raise UserError(f"cannot start or reach {where}: {exc}") from None
@@ -238,6 +254,11 @@ class RayExecutor(Executor):
             import ray
         except ImportError:
             raise UserError(RAY_MISSING) from None
+        with stop_on_signals():
+            self._run_ray(ray, fn, config, jobs, finished, on_event)
+
+    def _run_ray(self, ray: Any, fn: JobFunction, config: Any, jobs: Sequence[Job], finished: set[str],
+                 on_event: EventHandler) -> None:
         from ray.exceptions import RayError, RayTaskError
 
         self._init(ray)

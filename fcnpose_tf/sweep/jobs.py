@@ -281,10 +281,17 @@ def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
     """
     import gc
 
+    from fcnpose_tf.cli import _import_tensorflow_quietly
     from fcnpose_tf.evaluate import set_tensorflow_threads
 
     start = time.perf_counter()
+    _import_tensorflow_quietly()  # in a worker process: without TensorFlow's start-up log lines, as the CLI does
     set_tensorflow_threads(config.threads)
+    import tensorflow as tf
+
+    tf_threads = {"intra_op": tf.config.threading.get_intra_op_parallelism_threads(),
+                  "inter_op": tf.config.threading.get_inter_op_parallelism_threads(),
+                  "env_TF_NUM_INTRAOP_THREADS": os.environ.get("TF_NUM_INTRAOP_THREADS")}
     dataset = load_data(config)
     try:
         body = _run_base(config, job, dataset) if job.is_base else _run_rate(config, job, dataset)
@@ -297,7 +304,8 @@ def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
               "fold": job.fold, "rate": job.rate, "config_key": config.key(), **body,
               "seconds": round(time.perf_counter() - start, 1),
               "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "machine": machine_info(config.threads), "versions": library_versions()}
+              "machine": machine_info(config.threads), "tensorflow_threads": tf_threads,
+              "versions": library_versions()}
     from fcnpose_tf.fileio import write_json
 
     write_json(job_path(config.out, job), record, force=True)

@@ -453,7 +453,10 @@ def plot_pck_vs_fps(results: SweepResults, path: str | Path, subtitle: str = "")
         fig.text(0.5, 0.01, subtitle, ha="center", va="bottom", fontsize=8, color="dimgray")
     fig.tight_layout(rect=(0, 0.04 if subtitle else 0, 1, 1))
     _place_labels(fig, ax, labels)
-    ax.legend(loc="best", framealpha=0.9)
+    if labels:
+        ax.legend(loc="best", framealpha=0.9)
+    else:
+        ax.text(0.5, 0.5, "no finished jobs yet", transform=ax.transAxes, ha="center", color="dimgray")
     path = Path(path)
     with atomic_path(path, force=True) as tmp:
         fig.savefig(tmp)
