@@ -111,8 +111,8 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
         if diffs and not config.force:
             raise UserError(f"{out}: holds a sweep with other settings ({'; '.join(diffs)}); use another --out, "
                             "or pass --force to redo every job with the new settings")
-        runs = previous.get("runs", [])
         if not diffs:  # the same experiment: later runs may add rates
+            runs = previous.get("runs", [])
             rates = tuple(sorted(set(rates) | {float(r) for r in previous["config"]["rates"]}))
     config_doc = {**config.to_dict(), "rates": list(rates), "num_frames": num_frames}
     for transient in ("force", "verbose"):

@@ -127,7 +127,9 @@ class Job:
         """For progress lines: "fold 0 base model", "fold 0 rate 70%"."""
         if self.is_base:
             return f"fold {self.fold} base model"
-        return f"fold {self.fold} rate {rate_label(self.rate)}" + (" (unpruned export)" if self.rate == 0 else "")
+        if self.rate == 0:
+            return f"fold {self.fold} unpruned export"
+        return f"fold {self.fold} rate {rate_label(self.rate)}"
 
     def base(self) -> Job:
         """The job this one depends on (itself for a base job)."""

@@ -529,6 +529,10 @@ def _hosts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return list(seen.values())
 
 
+def _epochs(n: int) -> str:
+    return f"{n} epoch" + ("" if n == 1 else "s")
+
+
 def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: dict[str, Any],
                      versions: dict[str, Any], runs: list[dict[str, Any]]) -> str:
     """OUT/summary.md: a header with the configuration, the plot, every table, the definitions."""
@@ -540,8 +544,8 @@ def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: d
         "# FCN-Pose pruning sweep", "",
         f"- **Data**: `{cfg['data']}` ({cfg.get('num_frames', '?')} frames), {cfg['folds']}-fold cross-validation "
         f"(split seed {cfg['split_seed']}), {cfg['augment_copies']} augmented copies per training frame",
-        f"- **Training**: input {cfg['input_size']}x{cfg['input_size']}, base models up to {cfg['epochs']} epochs "
-        f"(patience {cfg['patience']}), retraining up to {cfg['retrain_epochs']} epochs (patience "
+        f"- **Training**: input {cfg['input_size']}x{cfg['input_size']}, base models up to {_epochs(cfg['epochs'])} "
+        f"(patience {cfg['patience']}), retraining up to {_epochs(cfg['retrain_epochs'])} (patience "
         f"{cfg['retrain_patience']}), batch {cfg['batch_size']}, Adam {cfg['learning_rate']:g}, "
         + ("binary cross-entropy" if cfg["positive_weight"] == 1 else
            f"binary cross-entropy with keypoint pixels weighted {cfg['positive_weight']:g}") + f", seed {cfg['seed']}",
