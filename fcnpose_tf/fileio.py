@@ -27,8 +27,11 @@ def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
         path.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"{path.parent}: cannot create output folder ({exc.strerror})") from None
-    if not os.access(path.parent, os.W_OK):
-        raise UserError(f"{path.parent}: output folder is not writable")
+    try:  # os.access says yes to root everywhere; only a real file proves the folder takes files
+        with tempfile.TemporaryFile(dir=path.parent):
+            pass
+    except OSError as exc:
+        raise UserError(f"{path.parent}: output folder is not writable ({exc.strerror})") from None
     return path
 
 

@@ -185,7 +185,10 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         check_writable(model_path, force)
         if paths["ckpt_dir"].exists():
             shutil.rmtree(paths["ckpt_dir"])
-    paths["ckpt_dir"].mkdir(parents=True, exist_ok=True)
+    try:
+        paths["ckpt_dir"].mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{paths['ckpt_dir']}: cannot create the checkpoint folder ({exc.strerror})") from None
 
     keras.utils.set_random_seed(config.seed)
     if resume:

@@ -103,7 +103,7 @@ def check_tflite_file(path: str | os.PathLike) -> Path:
         head = fh.read(8)
     if len(head) < 8 or head[4:8] != b"TFL3":
         raise UserError(f"{path}: not a TFLite model (no 'TFL3' identifier; a Keras .keras/.h5 file? "
-                        "export it with `fcnpose-tf export`)")
+                        "make one with `fcnpose-tf compress`)")
     return path
 
 
