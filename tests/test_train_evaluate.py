@@ -147,3 +147,13 @@ def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
     ref = -(w * y * np.log(p) + (1 - y) * np.log(1 - p))
     ref[..., -1] = -(y[..., -1] * np.log(p[..., -1]) + (1 - y[..., -1]) * np.log(1 - p[..., -1]))
     assert float(KeypointBinaryCrossentropy(w)(tf.constant(y), tf.constant(p))) == pytest.approx(ref.mean(), rel=1e-5)
+
+
+def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_path):
+    data, out, _ = trained
+    proc = cli("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1", "--input-size", "64",
+               "--augment-copies", "0", "--init", out, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "ft_train.json").read_text())["init"] == str(out)
+    proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--epochs", "1", "--init", out)
+    assert proc.returncode == 2 and "do not match --input-size 224" in proc.stderr

@@ -20,6 +20,7 @@ EXAMPLES = """\
   fcnpose-tf train --data data/ur5 --out saved_models/my_ur5.keras --epochs 60 --resume   # after Ctrl-C
   fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5 --epochs 100         # 5-fold CV
   fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
+  fcnpose-tf train --data my_frames/ --out models/arm.keras --init saved_models/fcnpose_ur5.keras  # fine-tune
 """
 
 
@@ -44,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="train one model per fold of K-fold cross-validation (the paper: 5)")
     parser.add_argument("--fold", type=int, metavar="k", help="train only fold k (0-based) of the K folds")
     parser.add_argument("--seed", type=int, default=0, help="seed of weights, augmentation and batch order")
+    parser.add_argument("--init", type=Path, metavar="MODEL",
+                        help="start from this model's weights (e.g. fine-tune the synthetic baseline on real frames)")
     parser.add_argument("--threads", type=int, help="TensorFlow CPU threads (default: all cores)")
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
@@ -104,6 +107,17 @@ def _train_one(args: argparse.Namespace, dataset, fold: int | None) -> dict:
     from fcnpose_tf.train import FitConfig, fit, run_paths
 
     path = fold_model_path(args.out, fold)
+    if args.init is not None:
+        from fcnpose_tf.errors import UserError
+        from fcnpose_tf.model import load_model
+
+        model = load_model(args.init)
+        if tuple(model.input_shape[1:3]) != (args.input_size, args.input_size) \
+                or model.output_shape[-1] != dataset.schema.num_maps:
+            raise UserError(f"{args.init}: input {model.input_shape[1:3]} and {model.output_shape[-1]} maps do not "
+                            f"match --input-size {args.input_size} and the data's {dataset.schema.num_maps} maps")
+    else:
+        model = build_fcn_pose(input_size=args.input_size, num_maps=dataset.schema.num_maps)
     split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {args.folds}"
     train_data, val_data = fold_data(dataset, fold, args.input_size, args.augment_copies, args.seed,
                                      progress=not args.quiet)
@@ -112,12 +126,12 @@ def _train_one(args: argparse.Namespace, dataset, fold: int | None) -> dict:
           f"{len(val_data)} validation frames at {args.input_size}x{args.input_size}")
     config = FitConfig(epochs=args.epochs, patience=args.patience, batch_size=args.batch_size,
                        learning_rate=args.learning_rate, seed=args.seed, positive_weight=args.positive_weight)
-    model = build_fcn_pose(input_size=args.input_size, num_maps=dataset.schema.num_maps)
     metadata = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path),
                 "num_frames": len(dataset), "split": split_name,
                 "fold": fold, "folds": args.folds, "split_seed": args.split_seed, "input_size": args.input_size,
                 "augment_copies": args.augment_copies, "train_samples": len(train_data),
-                "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
+                "val_frames": len(val_data), "schema": dataset.schema.to_dict(),
+                "init": str(args.init) if args.init else None}
     result = fit(model, train_data.sequence(args.batch_size, shuffle=True, seed=args.seed),
                  val_data.arrays(), path, config, resume=args.resume, force=args.force, metadata=metadata,
                  verbose=2 if args.quiet else 1)
