@@ -130,6 +130,8 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         self.paths = paths
         self.state = state
         self.patience = patience
+        self.seconds_before = float(state["seconds"])
+        self.start = time.perf_counter()
 
     def on_epoch_end(self, epoch: int, logs: dict | None = None) -> None:
         logs = logs or {}
@@ -142,6 +144,7 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         else:
             self.state["wait"] += 1
         self.state["epoch"] = epoch + 1
+        self.state["seconds"] = self.seconds_before + time.perf_counter() - self.start
         with atomic_path(self.paths["ckpt_model"], force=True) as tmp:
             self.model.save(tmp)
         write_json(self.paths["ckpt_state"], self.state, force=True)  # written last: marks the epoch complete
@@ -201,8 +204,6 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                  "history": [], "seconds": 0.0, "config": asdict(config)}
         compile_for_training(model, config.learning_rate, config.positive_weight)
 
-    start = time.perf_counter()
-    seconds_before = state["seconds"]
     callback = _CheckpointAndStop(paths, state, config.patience)
     if state["epoch"] < config.epochs and not state["stopped_early"]:
         try:
@@ -212,10 +213,6 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         except KeyboardInterrupt:
             raise UserError(f"interrupted after {state['epoch']} complete epochs; "
                             f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
-        finally:
-            state["seconds"] = seconds_before + time.perf_counter() - start
-            if state["epoch"] > 0:
-                write_json(paths["ckpt_state"], state, force=True)
 
     if paths["ckpt_best"].is_file():
         model.load_weights(paths["ckpt_best"])
