@@ -57,6 +57,8 @@ class CompressOptions:
     """Weight of keypoint-disc pixels in the retraining loss (1 = plain BCE; use the base model's)."""
 
     def validate(self) -> None:
+        if not self.positive_weight >= 1:
+            raise UserError(f"positive weight must be >= 1, got {self.positive_weight}")
         if self.method not in METHODS:
             raise UserError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if isinstance(self.rate, bool) or not isinstance(self.rate, (int, float)) or not 0 <= self.rate < 1:

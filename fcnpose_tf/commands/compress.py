@@ -5,7 +5,8 @@ it is written) and NAME_p70_report.json, and prints the unpruned model beside ev
 parameters, MACs, size, PCK@0.5/0.2/0.05 (normalised by max(bbox w, h)), EPE, inference time
 and FPS. With no --model and no --data it compresses the bundled baseline, retrains on the
 synthetic frames it was trained on and measures on held-out synthetic frames (both generated
-once into a cache). --method magnitude runs tfmot's unstructured pruning to the same
+once into a cache; the retraining set is the first 400 of the baseline's 1,200 training
+frames). --method magnitude runs tfmot's unstructured pruning to the same
 parameter reduction instead, for comparison.
 """
 
@@ -47,6 +48,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fold", type=int, metavar="k", help="retrain on fold k instead of the base model's split")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--learning-rate", type=float, default=1e-3)
+    parser.add_argument("--positive-weight", type=float,
+                        help="keypoint-pixel weight of the retraining loss (default: the base model's, "
+                             "from its NAME_train.json; else 1, the paper's plain BCE)")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--threads", type=int, help="threads for training and timing (default: all cores)")
     parser.add_argument("--force", action="store_true", help="replace existing output files")
@@ -61,26 +65,30 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import set_tensorflow_threads
 
-    options = CompressOptions(rate=args.rate, method=args.method, strategy=args.strategy, quantize=args.quantize,
+    model_path = args.model or baseline_model()
+    if args.positive_weight is None:
+        from fcnpose_tf.evaluate import training_record
+
+        args.positive_weight = float(((training_record(model_path) or {}).get("config") or {}).get("positive_weight", 1.0))
+    options = CompressOptions(rate=args.rate, positive_weight=args.positive_weight, method=args.method, strategy=args.strategy, quantize=args.quantize,
                               retrain_epochs=args.retrain_epochs, patience=args.patience,
                               batch_size=args.batch_size, learning_rate=args.learning_rate, seed=args.seed,
                               fold=args.fold, threads=args.threads)
     options.validate()
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be at least 1, got {args.threads}")
-    model_path = args.model or baseline_model()
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     set_tensorflow_threads(args.threads)
     if args.data is None:
-        args.data = synthcache.baseline_training_data()
+        args.data = synthcache.default_training_data()
     train_dataset = load_from_args(args)
     if args.test_data is not None:
         eval_dataset = load_dataset(args.test_data)
         eval_indices, description = list(range(len(eval_dataset))), f"all {len(eval_dataset)} frames of {args.test_data}"
-    elif args.model is None and args.images is None and Path(args.data) == synthcache.baseline_training_data():
+    elif args.model is None and args.images is None and Path(args.data) == synthcache.default_training_data():
         eval_dataset = load_dataset(synthcache.heldout_data())
         eval_indices = list(range(len(eval_dataset)))
         description = (f"{len(eval_dataset)} held-out synthetic frames (seed {synthcache.HELDOUT_SEED}, "

@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
     executor = make_executor(args, threads)
     parallel = args.workers > 1 or args.executor == "ray"
     if args.data is None:
-        args.data = synthcache.baseline_training_data()
+        args.data = synthcache.default_training_data()
     config = SweepConfig(
         out=str(args.out), data=str(args.data), images=str(args.images) if args.images else None,
         keypoint_attr=args.keypoint_attr, min_visible=args.min_visible, skip_bad=args.skip_bad,
