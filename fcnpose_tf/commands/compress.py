@@ -4,10 +4,9 @@ Writes NAME_p70.keras (pruned, retrained), NAME_p70_fp16.tflite (verified agains
 it is written) and NAME_p70_report.json, and prints the unpruned model beside every step:
 parameters, MACs, size, PCK@0.5/0.2/0.05 (normalised by max(bbox w, h)), EPE, inference time
 and FPS. With no --model and no --data it compresses the bundled baseline, retrains on the
-synthetic frames it was trained on and measures on held-out synthetic frames (both generated
-once into a cache; the retraining set is the first 400 of the baseline's 1,200 training
-frames). --method magnitude runs tfmot's unstructured pruning to the same
-parameter reduction instead, for comparison.
+first 400 of the 1,200 synthetic frames the baseline was trained on, and measures on 100
+held-out synthetic frames (both sets generated once into a cache). --method magnitude runs
+tfmot's unstructured pruning to the same parameter reduction instead, for comparison.
 """
 
 from __future__ import annotations
