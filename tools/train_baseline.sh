@@ -12,4 +12,4 @@ fcnpose-tf train --data "$work/ur5_train" --out saved_models/fcnpose_ur5.keras \
 fcnpose-tf evaluate saved_models/fcnpose_ur5.keras --data "$work/ur5_heldout" --threads 1 \
   --json saved_models/fcnpose_ur5_heldout.json --force
 fcnpose-tf compress --rate 0.7 --model saved_models/fcnpose_ur5.keras --data "$work/ur5_retrain" \
-  --test-data "$work/ur5_heldout" --out-dir saved_models --force
+  --test-data "$work/ur5_heldout" --retrain-epochs 40 --patience 8 --out-dir saved_models --force
