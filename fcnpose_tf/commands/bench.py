@@ -32,9 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threshold", type=float, default=0.5, help="post-processing threshold")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the results as JSON")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
-    parser.add_argument("--backend", default="auto",
-                        choices=("auto", "ai_edge_litert", "tflite_runtime", "tensorflow"),
-                        help="interpreter package (auto: LiteRT, then tflite_runtime, then tf.lite)")
+    from fcnpose_tf.commands.run import add_backend_argument
+
+    add_backend_argument(parser)
     parser.add_argument("--force", action="store_true", help="replace an existing --json file")
 
 

@@ -37,10 +37,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threshold", type=float, default=0.5,
                         help="map probability above which a pixel belongs to a keypoint")
     parser.add_argument("--camera-size", metavar="WxH", help="ask the camera for this resolution, e.g. 640x480")
-    parser.add_argument("--backend", default="auto",
-                        choices=("auto", "ai_edge_litert", "tflite_runtime", "tensorflow"),
-                        help="interpreter package (auto: LiteRT, then tflite_runtime, then tf.lite)")
+    add_backend_argument(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
+
+
+def add_backend_argument(parser: argparse.ArgumentParser) -> None:
+    """--backend, shared by `run` and `bench`; the choices are the runtime's own fallback list."""
+    from fcnpose_tf.runtime.interpreter import BACKENDS  # numpy only, no TensorFlow
+
+    parser.add_argument("--backend", default="auto", choices=("auto", *BACKENDS),
+                        help="interpreter package (auto: LiteRT, then tflite_runtime, then tf.lite)")
 
 
 def run(args: argparse.Namespace) -> int:
