@@ -278,3 +278,48 @@ def test_tight_framing_option_leaves_keypoints_out_only_when_asked():
     tight = [render_frame(3, i, 160, 120, tight_framing=1.0)[1] for i in range(4)]
     assert all(not np.isnan(k).any() for k in full)
     assert any(np.isnan(k).any() for k in tight)
+
+
+def _camera_key(sample):
+    return np.concatenate([sample.camera.K.ravel(), sample.camera.R.ravel(), sample.camera.eye])
+
+
+def test_workcell_frames_share_one_camera_and_cell_across_seeds():
+    """The default scene is one fixed cell: every frame of any --seed has the same camera, mount and tool."""
+    frames = [render_sample(seed, i, W, H) for seed, i in ((0, 0), (0, 1), (1, 0), (7, 3))]
+    for s in frames[1:]:
+        np.testing.assert_array_equal(_camera_key(s), _camera_key(frames[0]))
+        assert (s.mount, s.tool, s.tool_length) == (frames[0].mount, frames[0].tool, frames[0].tool_length)
+    assert len({tuple(np.round(s.joints, 6)) for s in frames}) == len(frames)  # the arm moves
+    other = render_sample(0, 0, W, H, scene_seed=1)
+    assert not np.array_equal(_camera_key(other), _camera_key(frames[0]))
+
+
+def test_workcell_background_is_static_where_nothing_moves():
+    """Pixels that show the room in two frames of one cell are the same up to sensor effects."""
+    a, b = render_sample(0, 0, W, H), render_sample(0, 1, W, H)
+    room = (a.labels == 0) & (b.labels == 0)
+    diff = np.abs(a.image.astype(int) - b.image.astype(int)).mean(-1)[room]
+    other = render_sample(0, 0, W, H, scene="random")
+    diff_random = np.abs(a.image.astype(int) - other.image.astype(int)).mean(-1)[room & (other.labels == 0)]
+    assert np.median(diff) < 0.5 * np.median(diff_random)
+
+
+def test_random_scene_draws_a_new_camera_per_frame():
+    a, b = render_sample(0, 0, W, H, scene="random"), render_sample(0, 1, W, H, scene="random")
+    assert not np.array_equal(_camera_key(a), _camera_key(b))
+
+
+def test_unknown_scene_is_a_user_error(tmp_path):
+    with pytest.raises(UserError, match="unknown scene 'lab'"):
+        render_sample(0, 0, W, H, scene="lab")
+    with pytest.raises(UserError, match="unknown scene"):
+        generate_dataset(tmp_path / "s", n=1, width=W, height=H, scene="lab", progress=False)
+
+
+def test_cli_scene_option(cli, tmp_path):
+    proc = cli("synth", "--out", tmp_path / "s", "--n", 2, "--width", W, "--height", H, "--scene", "random",
+               "--scene-seed", 3, "--no-progress", "--workers", 1)
+    assert proc.returncode == 0, proc.stderr
+    bad = cli("synth", "--out", tmp_path / "t", "--scene", "lab")
+    assert bad.returncode == 2 and "invalid choice: 'lab'" in bad.stderr

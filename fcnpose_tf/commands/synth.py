@@ -1,8 +1,9 @@
 """Render a synthetic UR5 dataset: PNG frames plus a VIA project file with the 8 keypoints.
 
 A UR5 posed by forward kinematics from its published DH parameters, seen by a
-webcam-like camera in a randomised workshop (floors, walls, clutter, a person who
-sometimes hides part of the arm, light, blur, noise). Writes OUT/images/*.png and
+webcam-like camera in a workshop (floors, walls, clutter, a person who sometimes
+hides part of the arm, light, blur, noise): by default one fixed cell and camera
+(--scene-seed) with the arm in a new pose every frame, as in the paper's data. Writes OUT/images/*.png and
 OUT/ur5_synth.json, a folder every --data option accepts. The same --seed gives
 byte-identical files for any --workers. See docs/synthetic.md.
 """
@@ -18,6 +19,7 @@ EXAMPLES = """\
   fcnpose-tf synth --out data/synth_test --n 100 --seed 1     # a held-out set from another seed
   fcnpose-tf synth --out demo --n 50 --preview demo_preview.png
   fcnpose-tf synth --out data/synth --n 500 --force --workers 1
+  fcnpose-tf synth --out data/random --n 500 --scene random   # a new room and camera per frame
 """
 
 
@@ -35,6 +37,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preview", type=Path, metavar="PNG",
                         help="also write a grid of the first 6 frames with keypoints and skeleton drawn")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--scene", choices=("workcell", "random"), default="workcell",
+                        help="workcell: one robot cell filmed by one fixed camera, as in the paper (the default); "
+                             "random: a new cell and camera for every frame (domain randomisation)")
+    parser.add_argument("--scene-seed", type=int, default=0, metavar="S",
+                        help="which workcell (robot look, mount, room, light, camera); frames of every --seed "
+                             "share it, so a held-out set is the same cell in new poses (default: 0)")
     parser.add_argument("--tight-framing", type=float, default=0.0, metavar="RATE",
                         help="share of frames framed so tightly that 1-2 keypoints fall outside (unannotated)")
 
@@ -49,7 +57,7 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.preview, force=args.force)  # fail before rendering, not after
     report = generate_dataset(args.out, n=args.n, seed=args.seed, width=args.width, height=args.height,
                               workers=args.workers, force=args.force, progress=not args.no_progress,
-                              tight_framing=args.tight_framing)
+                              tight_framing=args.tight_framing, scene=args.scene, scene_seed=args.scene_seed)
     print(format_table(["Synthetic UR5 set", "Value"], report.summary_rows()))
     print(f"VIA project: {report.via_path}")
     if args.preview is not None:

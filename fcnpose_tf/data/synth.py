@@ -1050,7 +1050,8 @@ unannotated); `--tight-framing 0.04` gives 1 frame in 25, to exercise partly ann
 
 
 def _place_camera(rng: np.random.Generator, kp3d: np.ndarray, robot_pts: np.ndarray, width: int, height: int,
-                  min_eye_z: float, tight_framing: float = DEFAULT_TIGHT_FRAMING) -> Camera:
+                  min_eye_z: float, tight_framing: float = DEFAULT_TIGHT_FRAMING,
+                  frac_range: tuple[float, float] = (0.38, 0.72)) -> Camera:
     """A webcam-like camera around the robot framing the arm at a random size and image position.
 
     In `tight_framing` of the frames the framing is tight and one or two keypoints fall outside
@@ -1078,7 +1079,7 @@ def _place_camera(rng: np.random.Generator, kp3d: np.ndarray, robot_pts: np.ndar
         focal = 0.5 * diag / math.tan(fov / 2)
         yaw = rng.uniform(-PI, PI)
         elev = math.radians(rng.uniform(-8.0, 42.0))
-        frac = rng.uniform(0.38, 0.72)
+        frac = rng.uniform(*frac_range)
         direction = np.array([math.cos(yaw) * math.cos(elev), math.sin(yaw) * math.cos(elev), math.sin(elev)])
         target = centre + rng.normal(0.0, 0.03, 3)
         dist = 2.5
@@ -1266,28 +1267,51 @@ def _mount_parts(rng: np.random.Generator) -> tuple[str, float, list[Part], floa
     return "table", h, parts, 0.5 * math.hypot(sx, sy) + 0.2
 
 
-def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
-                  height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING) -> SynthSample:
-    """Render frame `index` of the synthetic set `seed` (or draw from a given Generator) at width x height."""
-    if width < 32 or height < 32:
-        raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
-    rng = seed if isinstance(seed, np.random.Generator) else _frame_rng(seed, index)
-    style = _robot_style(rng)
-    mount, base_z, mount_parts, mount_radius = _mount_parts(rng)
-    q = sample_joints(rng, style.tool_length)
-    kp3d = ur5_keypoints_3d(q, style.tool_length, base_z)
-    robot = ur5_parts(q, style, base_z)
-    robot_pts = np.vstack([_part_points(p) for p in robot])
-    cam = _place_camera(rng, kp3d, robot_pts, width, height, min_eye_z=base_z + 0.15, tight_framing=tight_framing)
+SCENES = ("workcell", "random")
+DEFAULT_SCENE = "workcell"
+"""`workcell`: one robot cell filmed by one fixed camera, as in the paper (a webcam on a tripod
+watching its arm). The robot's paint and tool, its mount, the room, the clutter, the light and the
+camera come from `scene_seed`; each frame draws the arm's pose, the co-worker and the camera's
+exposure, blur, noise and compression. `random`: every frame is a new cell seen from a new camera
+(domain randomisation; a much harder task for a small network)."""
 
-    # light
+PERSON_ODDS = {"workcell": (0.15, 0.45), "random": (0.65, 0.2)}
+"""Chances that the co-worker stands in front of the arm (hiding 1-3 keypoints) or beside it; else
+nobody is there. A workcell is mostly the robot at work; random scenes stress occlusion."""
+
+WORKSPACE_POSES = 64
+"""Poses sampled to frame a workcell's camera on the arm's workspace."""
+
+
+@dataclass
+class Scene:
+    """What stays put while the arm moves: robot look, mount, camera, light, room and clutter."""
+
+    style: RobotStyle
+    mount: str
+    base_z: float
+    mount_parts: list
+    mount_radius: float
+    camera: Camera
+    light: Light
+    room: Room
+    lamp: np.ndarray
+    objects: list
+    keepout: list
+    room_seed: int | None = None
+    """Seed of the room's textures (fixed in a workcell); None: drawn from the frame's generator."""
+
+
+def _light(rng: np.random.Generator) -> Light:
     az, el = rng.uniform(-PI, PI), math.radians(rng.uniform(35, 78))
     light_dir = np.array([math.cos(az) * math.cos(el), math.sin(az) * math.cos(el), math.sin(el)])
     warmth = rng.uniform(-1, 1)
-    light = Light(light_dir, np.array([1 + 0.07 * warmth, 1.0, 1 - 0.09 * warmth]), rng.uniform(0.45, 0.8),
-                  rng.uniform(0.35, 0.6))
+    return Light(light_dir, np.array([1 + 0.07 * warmth, 1.0, 1 - 0.09 * warmth]), rng.uniform(0.45, 0.8),
+                 rng.uniform(0.35, 0.6))
 
-    # room around robot and camera
+
+def _room(rng: np.random.Generator, cam: Camera) -> tuple[Room, np.ndarray]:
+    """A room around the robot (at the origin) and the camera, and its ceiling lamp."""
     ex, ey = cam.eye[0], cam.eye[1]
     room = Room(xmin=min(-rng.uniform(1.8, 6.0), ex - rng.uniform(0.6, 3.0)),
                 xmax=max(rng.uniform(1.8, 6.0), ex + rng.uniform(0.6, 3.0)),
@@ -1295,20 +1319,15 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
                 ymax=max(rng.uniform(1.8, 6.0), ey + rng.uniform(0.6, 3.0)),
                 height=rng.uniform(2.6, 4.5))
     lamp = np.array([rng.uniform(room.xmin, room.xmax), rng.uniform(room.ymin, room.ymax), room.height - 0.1])
+    return room, lamp
 
-    kp_uv, kp_z = cam.project(kp3d)
-    arm_lo, arm_hi = kp_uv.min(0), kp_uv.max(0)
-    pad = 0.08 * max(width, height)
-    arm_lo, arm_hi = arm_lo - pad, arm_hi + pad
-    robot_far = float(cam.to_camera(np.vstack([robot_pts] + [_part_points(p) for p in mount_parts]))[:, 2].max())
 
-    person, _ = _place_person(rng, cam, kp3d, kp_uv, kp_z, mount_radius)
-    cam_xy = cam.eye[:2]
-
-    keepout = [(np.zeros(2), mount_radius + 1.0), (cam_xy, 0.7)]
-    if person:
-        pts = np.vstack([_part_points(p) for p in person])
-        keepout.append((pts[:, :2].mean(0), 0.5))
+def _clutter_in_view(rng: np.random.Generator, cam: Camera, room: Room, keepout: list, arm_pts: np.ndarray,
+                     robot_far: float) -> list[Part]:
+    """Clutter parts that neither stand in `keepout` nor hide the arm's image box (`arm_pts` projected)."""
+    uv, _ = cam.project(arm_pts)
+    pad = 0.08 * max(cam.width, cam.height)
+    arm_lo, arm_hi = uv.min(0) - pad, uv.max(0) + pad
     clutter = []
     for obj in _clutter(rng, room, keepout):
         pts = np.vstack([_part_points(p) for p in obj])
@@ -1318,17 +1337,110 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
         if _overlap(lo, hi, arm_lo, arm_hi) and z.min() < robot_far + 0.05:
             continue
         clutter.append(obj)
+    return [p for obj in clutter for p in obj]
+
+
+def _scene_rng(scene_seed: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence([int(scene_seed) & 0xFFFFFFFF, 0xCE11]))
+
+
+_WORKCELLS: dict[tuple[int, int, int], Scene] = {}
+
+
+def workcell(scene_seed: int = 0, width: int = 640, height: int = 480) -> Scene:
+    """The fixed cell of `scene_seed`: its camera frames the arm's whole workspace (many sampled poses)."""
+    key = (int(scene_seed), int(width), int(height))
+    if key not in _WORKCELLS:
+        rng = _scene_rng(scene_seed)
+        style = _robot_style(rng)
+        mount, base_z, mount_parts, mount_radius = _mount_parts(rng)
+        reach = np.vstack([ur5_keypoints_3d(sample_joints(rng, style.tool_length), style.tool_length, base_z)
+                           for _ in range(WORKSPACE_POSES)])
+        cam = _place_camera(rng, reach, reach, width, height, min_eye_z=base_z + 0.15, frac_range=(0.8, 0.92))
+        light = _light(rng)
+        room, lamp = _room(rng, cam)
+        keepout = [(np.zeros(2), mount_radius + 1.0), (cam.eye[:2], 0.7)]
+        far = float(cam.to_camera(reach)[:, 2].max())
+        objects = _clutter_in_view(rng, cam, room, keepout, reach, far)
+        _WORKCELLS[key] = Scene(style, mount, base_z, mount_parts, mount_radius, cam, light, room, lamp, objects,
+                                keepout, room_seed=int(rng.integers(0, 2 ** 63)))
+    return _WORKCELLS[key]
+
+
+def _pose_in_view(rng: np.random.Generator, scene: Scene, tight_framing: float) -> np.ndarray:
+    """Joint angles of a plausible pose whose 8 keypoints the scene's camera sees (6-7 when tightly framed)."""
+    cam, style = scene.camera, scene.style
+    size = np.array([cam.width, cam.height]) - 1.0
+    tight = rng.random() < tight_framing
+    q = None
+    for _ in range(400):
+        q = sample_joints(rng, style.tool_length)
+        kp3d = ur5_keypoints_3d(q, style.tool_length, scene.base_z)
+        uv, z = cam.project(kp3d)
+        if z.min() < 0.3:
+            continue
+        if tight:
+            inside = (uv >= 0).all(1) & (uv <= size).all(1)
+            if 6 <= inside.sum() <= 7:
+                return q
+        elif (uv >= 0.02 * size).all() and (uv <= 0.98 * size).all():
+            return q
+    return q  # pragma: no cover - a workspace-framed camera sees most poses
+
+
+def _random_scene(rng: np.random.Generator, width: int, height: int,
+                  tight_framing: float) -> tuple[Scene, np.ndarray]:
+    """A new cell and camera framing the arm in a random pose: (scene, joint angles)."""
+    style = _robot_style(rng)
+    mount, base_z, mount_parts, mount_radius = _mount_parts(rng)
+    q = sample_joints(rng, style.tool_length)
+    kp3d = ur5_keypoints_3d(q, style.tool_length, base_z)
+    robot_pts = np.vstack([_part_points(p) for p in ur5_parts(q, style, base_z)])
+    cam = _place_camera(rng, kp3d, robot_pts, width, height, min_eye_z=base_z + 0.15, tight_framing=tight_framing)
+    light = _light(rng)
+    room, lamp = _room(rng, cam)
+    keepout = [(np.zeros(2), mount_radius + 1.0), (cam.eye[:2], 0.7)]
+    far = float(cam.to_camera(np.vstack([robot_pts] + [_part_points(p) for p in mount_parts]))[:, 2].max())
+    objects = _clutter_in_view(rng, cam, room, keepout, kp3d, far)
+    return Scene(style, mount, base_z, mount_parts, mount_radius, cam, light, room, lamp, objects, keepout), q
+
+
+def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
+                  height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
+                  scene_seed: int = 0) -> SynthSample:
+    """Render frame `index` of the synthetic set `seed` (or draw from a given Generator) at width x height.
+
+    `scene` is "workcell" (the fixed cell of `scene_seed`) or "random" (see DEFAULT_SCENE).
+    """
+    if width < 32 or height < 32:
+        raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
+    if scene not in SCENES:
+        raise UserError(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}")
+    rng = seed if isinstance(seed, np.random.Generator) else _frame_rng(seed, index)
+    if scene == "workcell":
+        cell = workcell(scene_seed, width, height)
+        q = _pose_in_view(rng, cell, tight_framing)
+    else:
+        cell, q = _random_scene(rng, width, height, tight_framing)
+    style, cam, base_z = cell.style, cell.camera, cell.base_z
+    kp3d = ur5_keypoints_3d(q, style.tool_length, base_z)
+    robot = ur5_parts(q, style, base_z)
+    robot_pts = np.vstack([_part_points(p) for p in robot])
+    kp_uv, kp_z = cam.project(kp3d)
+    person, _ = _place_person(rng, cam, kp3d, kp_uv, kp_z, cell.mount_radius, cell.keepout[2:],
+                              PERSON_ODDS[scene])
 
     keypoints = kp_uv.copy()
     inside = (kp_z > 0) & (kp_uv[:, 0] >= 0) & (kp_uv[:, 0] <= width - 1) & (kp_uv[:, 1] >= 0) & \
              (kp_uv[:, 1] <= height - 1)
     keypoints[~inside] = np.nan
-    objects = [p for obj in clutter for p in obj]
     state = rng.bit_generator.state
     ss = 2
     while True:
-        canvas, labels, depth = _paint(rng, cam, ss, room, light, lamp, robot, mount_parts, person, objects,
-                                       robot_depth_far=float(cam.to_camera(robot_pts)[:, 2].max()))
+        room_rng = None if cell.room_seed is None else np.random.default_rng(cell.room_seed)
+        canvas, labels, depth = _paint(rng, cam, ss, cell.room, cell.light, cell.lamp, robot, cell.mount_parts,
+                                       person, cell.objects, robot_depth_far=float(cam.to_camera(robot_pts)[:, 2].max()),
+                                       room_rng=room_rng)
         occluded = _person_in_front(labels, depth, (keypoints + 0.5) * ss - 0.5, kp_z)
         if occluded.sum() <= MAX_HIDDEN_BY_PERSON or not person:
             break
@@ -1338,7 +1450,7 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     img = cv2.resize(canvas, (width, height), interpolation=cv2.INTER_AREA)
     labels_1x = cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
     img = _camera_effects(rng, img)
-    return SynthSample(img, keypoints, kp3d, q, cam, occluded, labels_1x, person_mode, mount, style.tool,
+    return SynthSample(img, keypoints, kp3d, q, cam, occluded, labels_1x, person_mode, cell.mount, style.tool,
                        style.tool_length)
 
 
@@ -1348,14 +1460,16 @@ MAX_HIDDEN_BY_PERSON = 3
 
 def _paint(rng: np.random.Generator, cam: Camera, ss: int, room: Room, light: Light, lamp: np.ndarray,
            robot: list[Part], mount_parts: list[Part], person: list[Part], objects: list[Part],
-           robot_depth_far: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           robot_depth_far: float, room_rng: np.random.Generator | None = None
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(RGB canvas, label map, depth map) at `ss` times the camera's resolution.
 
     The room is rendered at half resolution (it is out of focus anyway) with the objects' shadows,
-    upsampled, and everything else painted over it back to front.
+    upsampled, and everything else painted over it back to front. The room's textures are drawn
+    from `room_rng` when given (a workcell's fixed room), else from `rng`.
     """
     bg_cam = cam.scaled(0.5)
-    bg, floor_mask = _render_background(rng, bg_cam, room, light, lamp)
+    bg, floor_mask = _render_background(rng if room_rng is None else room_rng, bg_cam, room, light, lamp)
     shadow = _shadow_mask(robot + mount_parts + person + objects, light, bg_cam, bg.shape[:2]) * floor_mask
     bg *= (1.0 - rng.uniform(0.3, 0.55) * shadow)[..., None]
     cam2 = cam.scaled(ss)
@@ -1379,23 +1493,29 @@ def _robot_clearance(parts: Sequence[Part], kp3d: np.ndarray) -> float:
 
 
 def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv: np.ndarray, kp_z: np.ndarray,
-                  mount_radius: float) -> tuple[list[Part], str]:
-    """A person standing clear of the robot: ([], "none"), beside it, or in front hiding 1-3 keypoints."""
+                  mount_radius: float, keepout: Sequence[tuple[np.ndarray, float]] = (),
+                  odds: tuple[float, float] = (0.65, 0.2)) -> tuple[list[Part], str]:
+    """A person standing clear of the robot and of `keepout` circles ((centre xy, radius) of furniture):
+    in front hiding 1-3 keypoints, beside it (chances `odds`), or ([], "none")."""
     r = rng.random()
+    p_front, p_beside = odds
     cam_xy = cam.eye[:2]
     arm_xy = kp3d[:, :2].mean(0)
     away = max(0.55, mount_radius + 0.3)  # feet at least this far from the base axis
 
+    def blocked(feet):
+        return any(np.linalg.norm(feet - c) < r + 0.3 for c, r in keepout)
+
     def make(feet, facing, reach=None):
         return person_parts(rng, feet, facing, rng.uniform(1.58, 1.92), reach)
 
-    if r < 0.65:
+    if r < p_front:
         line = arm_xy - cam_xy
         lateral = np.array([-line[1], line[0]]) / max(np.linalg.norm(line), 1e-6)
         unit = line / max(np.linalg.norm(line), 1e-6)
         for _ in range(40):  # next to the robot on the camera's side, as a co-worker would stand
             feet = arm_xy - rng.uniform(0.35, 1.2) * unit + rng.uniform(-0.8, 0.8) * lateral
-            if np.linalg.norm(feet - cam_xy) < 1.0 or np.linalg.norm(feet) < away:
+            if np.linalg.norm(feet - cam_xy) < 1.0 or np.linalg.norm(feet) < away or blocked(feet):
                 continue
             chest_uv, chest_z = cam.project(np.array([[feet[0], feet[1], 1.2]]))
             if chest_z[0] < 0.5 or chest_uv[0, 1] < 0 or not 0 <= chest_uv[0, 0] <= cam.width - 1:
@@ -1411,13 +1531,13 @@ def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv
             cand = make(feet, facing, reach)
             if 1 <= int(_covered(cand, cam, kp_uv, kp_z).sum()) <= 3 and _robot_clearance(cand, kp3d) > 0.1:
                 return cand, "occluding"
-    if r < 0.85:
+    if r < p_front + p_beside:
         to_cam = math.atan2(cam_xy[1], cam_xy[0])
         in_view = rng.random() < 0.8  # most of the time the person is (at least partly) in the picture
         for _ in range(30):
             ang = to_cam + rng.choice([-1, 1]) * rng.uniform(0.5, 2.8)
             feet = rng.uniform(away, away + 1.3) * np.array([math.cos(ang), math.sin(ang)])
-            if np.linalg.norm(feet - cam_xy) < 0.8:
+            if np.linalg.norm(feet - cam_xy) < 0.8 or blocked(feet):
                 continue
             if in_view:
                 uv, z = cam.project(np.array([[feet[0], feet[1], 1.2]]))
@@ -1498,9 +1618,10 @@ def _camera_effects(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
 
 
 def render_frame(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
-                 height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING) -> tuple[np.ndarray, np.ndarray]:
+                 height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
+                 scene_seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """(H x W x 3 uint8 BGR image, 8 x 2 keypoints in UR5 order, NaN outside the frame) of one frame."""
-    sample = render_sample(seed, index, width, height, tight_framing)
+    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed)
     return sample.image, sample.keypoints
 
 
@@ -1657,12 +1778,12 @@ def _init_worker() -> None:
     cv2.setNumThreads(1)  # one process per core; OpenCV's own threads would only compete
 
 
-def _render_and_write(task: tuple[int, int, int, int, str, float]) -> FrameRecord:
+def _render_and_write(task: tuple[int, int, int, int, str, float, str, int]) -> FrameRecord:
     """Worker: render frame `index`, write it as PNG atomically, return its record."""
     from fcnpose_tf import fileio
 
-    seed, index, width, height, image_dir, tight_framing = task
-    sample = render_sample(seed, index, width, height, tight_framing)
+    seed, index, width, height, image_dir, tight_framing, scene, scene_seed = task
+    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed)
     ok, buf = cv2.imencode(".png", sample.image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 BGR image
         raise RuntimeError("PNG encoding failed")
@@ -1699,16 +1820,18 @@ def _prepare_output(out_dir: Path, force: bool) -> Path:
 
 def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
                      workers: int | None = None, force: bool = False, progress: bool = True,
-                     tight_framing: float = DEFAULT_TIGHT_FRAMING) -> SynthReport:
+                     tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
+                     scene_seed: int = 0) -> SynthReport:
     """Render n frames into out_dir/images/*.png and write out_dir/ur5_synth.json (VIA 2.x project).
 
     Frames are rendered by a pool of `workers` processes (default: one per core);
-    the files are the same for any number of workers. A non-empty out_dir is refused
+    the files are the same for any number of workers. `scene` and `scene_seed` choose one fixed
+    workcell or a new random cell per frame (see DEFAULT_SCENE). A non-empty out_dir is refused
     unless force, which also removes what belonged to the set being replaced: synth_*.png
     frames beyond n and the stored folds (ur5_synth.splits.json).
 
     Raises:
-        UserError: n < 1, a frame size below 32x32, workers < 1, or an output folder that
+        UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, or an output folder that
             is not empty (without force), not a folder, or not writable.
     """
     from fcnpose_tf.data.via import ViaFrame, write_via_project
@@ -1717,6 +1840,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
         raise UserError(f"--n must be at least 1, got {n}")
     if width < 32 or height < 32:
         raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
+    if scene not in SCENES:
+        raise UserError(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}")
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
@@ -1736,7 +1861,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     start = time.perf_counter()
     if not 0.0 <= tight_framing <= 1.0:
         raise UserError(f"--tight-framing must be between 0 and 1, got {tight_framing}")
-    tasks = [(int(seed), i, int(width), int(height), str(image_dir), float(tight_framing)) for i in range(n)]
+    tasks = [(int(seed), i, int(width), int(height), str(image_dir), float(tight_framing), scene, int(scene_seed))
+             for i in range(n)]
     workers = min(workers, n)
     records: list[FrameRecord] = []
     with tqdm(total=n, unit="frame", desc="synth", disable=not progress, dynamic_ncols=True) as bar:
@@ -1760,13 +1886,14 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
 
 def generate(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
              workers: int | None = None, force: bool = False, progress: bool = True,
-             tight_framing: float = DEFAULT_TIGHT_FRAMING) -> Path:
+             tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE, scene_seed: int = 0) -> Path:
     """Render a synthetic UR5 dataset into out_dir (see `generate_dataset`); returns the VIA file's path.
 
     Example:
         >>> via = generate("data/synth", n=500, seed=0)   # data/synth/images/*.png + ur5_synth.json
     """
-    return generate_dataset(out_dir, n, seed, width, height, workers, force, progress, tight_framing).via_path
+    return generate_dataset(out_dir, n, seed, width, height, workers, force, progress, tight_framing, scene,
+                            scene_seed).via_path
 
 
 def write_preview(report: SynthReport, path: str | os.PathLike, count: int = 6, force: bool = False) -> Path:
