@@ -1,0 +1,63 @@
+"""Frame preprocessing: the two-step resize keeps keypoint coordinates exact and is used for every size."""
+
+import cv2
+import numpy as np
+import pytest
+
+from fcnpose_tf.preprocess import keypoints_to_frame, keypoints_to_input, preprocess_frame, resize_to_input
+
+
+def _blob_frame(w, h, centre, sigma=6.0):
+    """A smooth bright blob at a sub-pixel centre (pixel-centre convention) on a dark frame."""
+    x = np.arange(w)[None, :] - centre[0]
+    y = np.arange(h)[:, None] - centre[1]
+    blob = 255.0 * np.exp(-(x ** 2 + y ** 2) / (2 * sigma ** 2))
+    return np.repeat(np.round(blob).astype(np.uint8)[..., None], 3, axis=2)
+
+
+def _centroid(image):
+    v = image[..., 0].astype(np.float64)
+    ys, xs = np.mgrid[:v.shape[0], :v.shape[1]]
+    return np.array([(v * xs).sum() / v.sum(), (v * ys).sum() / v.sum()])
+
+
+@pytest.mark.parametrize("w, h", [(640, 480), (1280, 720), (601, 457), (224, 224), (160, 120)])
+def test_blob_centre_lands_where_keypoints_to_input_says(w, h):
+    centre = np.array([0.37 * w + 0.3, 0.61 * h - 0.2])
+    out = preprocess_frame(_blob_frame(w, h, centre, sigma=max(w, h) / 40), 64)
+    assert out.shape == (64, 64, 3) and out.dtype == np.float32
+    expected = keypoints_to_input(centre[None], (h, w), 64)[0]
+    np.testing.assert_allclose(_centroid(out), expected, atol=0.05)
+    np.testing.assert_allclose(keypoints_to_frame(expected[None], (h, w), 64)[0], centre, atol=1e-9)
+
+
+def test_reduction_averages_instead_of_skipping_pixels():
+    """A one-pixel checkerboard (sensor-noise-like detail) becomes flat grey, not an aliasing pattern."""
+    board = (np.indices((480, 640)).sum(0) % 2 * 255).astype(np.uint8)
+    small = resize_to_input(np.repeat(board[..., None], 3, axis=2), 224)
+    assert small.shape == (224, 224, 3)
+    assert abs(float(small.mean()) - 127.5) < 1.0 and float(small.std()) < 2.0
+
+
+def test_rgb_order_and_scale():
+    frame = np.zeros((100, 100, 3), np.uint8)
+    frame[..., 0] = 255  # blue in BGR
+    out = preprocess_frame(frame, 32)
+    np.testing.assert_allclose(out[..., 2], 1.0) and np.testing.assert_allclose(out[..., :2], 0.0)
+
+
+def test_grey_or_broken_frames_are_user_errors():
+    from fcnpose_tf.errors import UserError
+
+    with pytest.raises(UserError, match="H x W x 3"):
+        preprocess_frame(np.zeros((10, 10), np.uint8), 32)
+    with pytest.raises(UserError, match="got None"):
+        preprocess_frame(None, 32)
+
+
+def test_speed_path_is_the_integer_box_filter():
+    """640x480 -> 224: a 2x2 box reduction to 320x240 then bilinear (OpenCV's fast INTER_AREA path)."""
+    frame = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    expected = cv2.resize(cv2.resize(frame, (320, 240), interpolation=cv2.INTER_AREA), (224, 224),
+                          interpolation=cv2.INTER_LINEAR)
+    np.testing.assert_array_equal(resize_to_input(frame, 224), expected)
