@@ -41,6 +41,9 @@ class FitConfig:
     learning_rate: float = 1e-3
     seed: int = 0
     positive_weight: float = 1.0
+    lr_patience: int = 0
+    """Halve the learning rate after this many epochs without a better validation loss (and again
+    after as many more), down to MIN_LEARNING_RATE; 0 keeps it constant (the paper's plain Adam)."""
 
     def validate(self) -> None:
         if self.epochs < 1:
@@ -53,6 +56,11 @@ class FitConfig:
             raise UserError(f"learning rate must be a positive number, got {self.learning_rate}")
         if not (self.positive_weight >= 1 and math.isfinite(self.positive_weight)):
             raise UserError(f"positive weight must be a number >= 1, got {self.positive_weight}")
+        if self.lr_patience < 0:
+            raise UserError(f"learning-rate patience must be 0 (off) or more, got {self.lr_patience}")
+
+
+MIN_LEARNING_RATE = 1e-5
 
 
 @dataclass
@@ -125,17 +133,20 @@ def compile_for_training(model: keras.Model, learning_rate: float, positive_weig
 class _CheckpointAndStop(keras.callbacks.Callback):
     """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early."""
 
-    def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int):
+    def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0):
         super().__init__()
         self.paths = paths
         self.state = state
         self.patience = patience
+        self.lr_patience = lr_patience
         self.seconds_before = float(state["seconds"])
         self.start = time.perf_counter()
 
     def on_epoch_end(self, epoch: int, logs: dict | None = None) -> None:
         logs = logs or {}
-        row = {"epoch": epoch + 1, "loss": float(logs["loss"]), "val_loss": float(logs["val_loss"])}
+        lr_var = self.model.optimizer.learning_rate
+        lr = float(keras.backend.get_value(lr_var))
+        row = {"epoch": epoch + 1, "loss": float(logs["loss"]), "val_loss": float(logs["val_loss"]), "lr": lr}
         self.state["history"].append(row)
         if row["val_loss"] < self.state["best_val_loss"]:
             self.state.update(best_val_loss=row["val_loss"], best_epoch=epoch + 1, wait=0)
@@ -143,6 +154,8 @@ class _CheckpointAndStop(keras.callbacks.Callback):
                 self.model.save_weights(tmp)
         else:
             self.state["wait"] += 1
+            if self.lr_patience and self.state["wait"] % self.lr_patience == 0 and lr > MIN_LEARNING_RATE:
+                keras.backend.set_value(lr_var, max(lr * 0.5, MIN_LEARNING_RATE))  # saved with the optimizer
         self.state["epoch"] = epoch + 1
         self.state["seconds"] = self.seconds_before + time.perf_counter() - self.start
         with atomic_path(self.paths["ckpt_model"], force=True) as tmp:
@@ -204,7 +217,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                  "history": [], "seconds": 0.0, "config": asdict(config)}
         compile_for_training(model, config.learning_rate, config.positive_weight)
 
-    callback = _CheckpointAndStop(paths, state, config.patience)
+    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience)
     if state["epoch"] < config.epochs and not state["stopped_early"]:
         try:
             model.fit(train_data, validation_data=val_data, validation_batch_size=config.batch_size,

@@ -157,3 +157,25 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
     assert json.loads((tmp_path / "ft_train.json").read_text())["init"] == str(out)
     proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--epochs", "1", "--init", out)
     assert proc.returncode == 2 and "do not match --input-size 224" in proc.stderr
+
+
+def test_learning_rate_halves_after_lr_patience_epochs_without_improvement(tmp_path):
+    """--lr-patience N: the rate halves after N epochs with no better validation loss, again after N more."""
+    import tf_keras as keras
+
+    from fcnpose_tf.train import _CheckpointAndStop, compile_for_training, run_paths
+
+    model = keras.Sequential([keras.Input((4, 4, 3)), keras.layers.Conv2D(9, 1, activation="sigmoid")])
+    compile_for_training(model, 1e-3)
+    paths = run_paths(tmp_path / "m.keras")
+    paths["ckpt_dir"].mkdir()
+    state = {"epoch": 0, "best_val_loss": float("inf"), "best_epoch": 0, "wait": 0, "stopped_early": False,
+             "history": [], "seconds": 0.0}
+    callback = _CheckpointAndStop(paths, state, patience=10, lr_patience=2)
+    callback.set_model(model)
+    for epoch, val_loss in enumerate([1.0, 0.5, 0.6, 0.7, 0.8, 0.9, 0.4, 0.45]):
+        callback.on_epoch_end(epoch, {"loss": 1.0, "val_loss": val_loss})
+    rates = [round(row["lr"], 8) for row in state["history"]]
+    # epochs 3-4 no better than 0.5 -> halve after epoch 4; epochs 5-6 -> halve again; 0.4 improves
+    assert rates == [1e-3, 1e-3, 1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4]
+    assert state["best_epoch"] == 7

@@ -35,6 +35,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this many epochs without a lower validation loss")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--learning-rate", type=float, default=1e-3, help="Adam learning rate")
+    parser.add_argument("--lr-patience", type=int, default=0, metavar="N",
+                        help="halve the learning rate after N epochs without a better validation loss "
+                             "(again after N more; floor 1e-5); 0 keeps it constant, as the paper does")
     parser.add_argument("--positive-weight", type=float, default=1.0,
                         help="weight of keypoint-disc pixels in the binary cross-entropy (1 = the paper's plain "
                              "BCE; 20 converges several times faster on small discs, see docs/training.md)")
@@ -125,7 +128,8 @@ def _train_one(args: argparse.Namespace, dataset, fold: int | None) -> dict:
           f"({len(train_data) // (1 + args.augment_copies)} frames + {args.augment_copies} augmented copies each), "
           f"{len(val_data)} validation frames at {args.input_size}x{args.input_size}")
     config = FitConfig(epochs=args.epochs, patience=args.patience, batch_size=args.batch_size,
-                       learning_rate=args.learning_rate, seed=args.seed, positive_weight=args.positive_weight)
+                       learning_rate=args.learning_rate, seed=args.seed, positive_weight=args.positive_weight,
+                       lr_patience=args.lr_patience)
     metadata = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path),
                 "num_frames": len(dataset), "split": split_name,
                 "fold": fold, "folds": args.folds, "split_seed": args.split_seed, "input_size": args.input_size,
