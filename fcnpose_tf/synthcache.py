@@ -1,6 +1,7 @@
 """Synthetic datasets generated once into a cache and reused (the defaults of `compress` and `sweep`).
 
-The bundled baseline was trained on `fcnpose-tf synth --n 1200 --seed 0`. Frame i of a set depends
+The bundled baseline was trained on `fcnpose-tf synth --n 1200 --seed 0` (the default scene:
+workcell 0, one fixed camera). Frame i of a set depends
 only on (seed, i), so the first TRAINING_FRAMES of that set are a subset of the baseline's training
 frames: `compress` and `sweep` retrain on them when given no --data (400 frames keep `compress
 --rate 0.7` within about 10 minutes on 2 cores). Every default measurement uses a held-out set
