@@ -55,10 +55,15 @@ class CompressOptions:
     threads: int | None = None
     positive_weight: float = 1.0
     """Weight of keypoint-disc pixels in the retraining loss (1 = plain BCE; use the base model's)."""
+    lr_patience: int = 0
+    """While retraining, halve Adam's rate after this many epochs without a better validation loss
+    (floor 1e-5); 0 keeps it constant."""
 
     def validate(self) -> None:
         if not self.positive_weight >= 1:
             raise UserError(f"positive weight must be >= 1, got {self.positive_weight}")
+        if isinstance(self.lr_patience, bool) or not isinstance(self.lr_patience, int) or self.lr_patience < 0:
+            raise UserError(f"learning-rate patience must be 0 (off) or more epochs, got {self.lr_patience!r}")
         if self.method not in METHODS:
             raise UserError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if isinstance(self.rate, bool) or not isinstance(self.rate, (int, float)) or not 0 <= self.rate < 1:
@@ -140,7 +145,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     from fcnpose_tf.model import load_model, save_for_inference
     from fcnpose_tf.prune import magnitude_prune, prune_model
     from fcnpose_tf.runtime.estimator import KeypointModel
-    from fcnpose_tf.train import FitConfig, fit
+    from fcnpose_tf.train import MIN_LEARNING_RATE, FitConfig, compile_for_training, fit
 
     options.validate()
     start = time.perf_counter()
@@ -175,7 +180,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     record = training_record(base_path) or {}
     fit_config = FitConfig(epochs=max(options.retrain_epochs, 1), patience=options.patience,
                            batch_size=options.batch_size, learning_rate=options.learning_rate, seed=options.seed,
-                           positive_weight=options.positive_weight)
+                           positive_weight=options.positive_weight, lr_patience=options.lr_patience)
     if options.retrain_epochs > 0:
         fold = options.fold if options.fold is not None else (
             record.get("fold") if record.get("data_sha256") == file_sha256(train_dataset.via_path) else None)
@@ -190,14 +195,28 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         report["magnitude_sparsity"] = round(sparsity, 6)
 
         def train_fn(wrapped: keras.Model, callbacks: list) -> None:
-            wrapped.compile(optimizer=keras.optimizers.Adam(options.learning_rate),
-                            loss=keras.losses.BinaryCrossentropy())
-            if train_data is not None:
-                wrapped.fit(train_data.sequence(options.batch_size, seed=options.seed),
-                            validation_data=val_data.arrays(), epochs=options.retrain_epochs,
-                            callbacks=callbacks + [keras.callbacks.EarlyStopping(
-                                patience=options.patience, restore_best_weights=True)],
-                            verbose=2 if verbose else 0)
+            # the same loss and optimizer as the l1 path's `fit` (weighted BCE when positive_weight > 1)
+            compile_for_training(wrapped, options.learning_rate, options.positive_weight)
+            if train_data is None:
+                return
+            extra = [keras.callbacks.EarlyStopping(patience=options.patience, restore_best_weights=True)]
+            if options.lr_patience:  # as fit's: halve after lr_patience epochs without a lower val loss
+                extra.append(keras.callbacks.ReduceLROnPlateau(factor=0.5, patience=options.lr_patience,
+                                                               min_delta=0.0, min_lr=MIN_LEARNING_RATE))
+            keras.utils.set_random_seed(options.seed)
+            started = time.perf_counter()
+            history = wrapped.fit(train_data.sequence(options.batch_size, seed=options.seed),
+                                  validation_data=val_data.arrays(), validation_batch_size=options.batch_size,
+                                  epochs=options.retrain_epochs, callbacks=callbacks + extra,
+                                  verbose=2 if verbose else 0).history
+            val = [float(v) for v in history.get("val_loss", [])]
+            best = int(np.argmin(val)) if val else -1
+            report["retraining"] = {"epochs_run": len(val), "best_epoch": best + 1 if val else 0,
+                                    "best_val_loss": val[best] if val else None,
+                                    "seconds": round(time.perf_counter() - started, 1),
+                                    "loss": _loss_name(wrapped),
+                                    "positive_weight": options.positive_weight,
+                                    "learning_rates": [float(f"{v:.6g}") for v in history.get("lr", [])]}
 
         pruned = magnitude_prune(base, sparsity, train_fn=train_fn)
     report["pruned_before_retraining"] = {**model_facts(pruned), **_measure(
@@ -214,7 +233,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
                                "rate": options.rate, "strategy": options.strategy, "input_size": input_size})
         retrained = load_model(paths["keras"])
         report["retraining"] = {"epochs_run": result.epochs_run, "best_epoch": result.best_epoch,
-                                "best_val_loss": result.best_val_loss, "seconds": round(result.seconds, 1)}
+                                "best_val_loss": result.best_val_loss, "seconds": round(result.seconds, 1),
+                                "loss": _loss_name(pruned), "positive_weight": options.positive_weight,
+                                "learning_rates": [float(f"{h['lr']:.6g}") for h in result.history if "lr" in h]}
     else:
         retrained = pruned
         from fcnpose_tf.fileio import atomic_path
@@ -249,6 +270,12 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     report["seconds"] = round(time.perf_counter() - start, 1)
     write_json(paths["report"], report, force=force)
     return report
+
+
+def _loss_name(model: Any) -> str:
+    """The compiled loss's name: binary_crossentropy (plain BCE) or keypoint_bce (weighted)."""
+    loss = getattr(model, "loss", None)
+    return str(getattr(loss, "name", loss))
 
 
 def _fmt(value: Any, digits: int = 3) -> Any:

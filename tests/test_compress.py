@@ -22,7 +22,7 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     root, data, base = setup
     out = root / "out"
     proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "1",
-               "--out-dir", out, "--threads", "1")
+               "--out-dir", out, "--threads", "1", "--lr-patience", "3")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     names = {"base_p70.keras", "base_p70_fp16.tflite", "base_p70_report.json"}
     assert names <= {p.name for p in out.iterdir()}
@@ -35,6 +35,10 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
         assert "pck@0.05_bbox" in report[step]["metrics"]
     assert report["quantized"]["timing"]["threads"] == 1
     assert "14,668" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
+    # --lr-patience reaches the retraining's FitConfig; the base model has no record: plain BCE
+    assert report["options"]["lr_patience"] == 3
+    assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 3
+    assert report["retraining"]["loss"] == "binary_crossentropy" and report["retraining"]["learning_rates"] == [0.001]
 
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     again = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "0",
@@ -43,7 +47,24 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli):
+    """--method magnitude retrains with the same loss as the l1 path (compile_for_training), not plain BCE."""
+    root, data, base = setup
+    out = root / "magnitude"
+    proc = cli("compress", "--rate", "0.5", "--method", "magnitude", "--model", base, "--data", data,
+               "--retrain-epochs", "2", "--positive-weight", "20", "--lr-patience", "1", "--out-dir", out,
+               "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((out / "base_m50_report.json").read_text())
+    retraining = report["retraining"]
+    assert retraining["loss"] == "keypoint_bce" and retraining["positive_weight"] == 20
+    assert retraining["epochs_run"] == 2 and len(retraining["learning_rates"]) == 2  # ReduceLROnPlateau ran
+    assert retraining["learning_rates"][0] == pytest.approx(1e-3)
+    assert report["options"]["lr_patience"] == 1 and report["retrained"]["params"] == 131705
+
+
 @pytest.mark.parametrize("extra, message", [
+    (["--lr-patience", "-1", "--rate", "0.5"], "learning-rate patience must be 0 (off) or more"),
     (["--rate", "1.2"], "pruning rate must be in [0, 1)"),
     (["--rate", "-0.1"], "pruning rate must be in [0, 1)"),
     (["--rate", "0.5", "--data", "MISSING"], "MISSING: not found"),

@@ -47,6 +47,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fold", type=int, metavar="k", help="retrain on fold k instead of the base model's split")
     parser.add_argument("--batch-size", type=int, default=8)
     parser.add_argument("--learning-rate", type=float, default=1e-3)
+    parser.add_argument("--lr-patience", type=int, default=0, metavar="N",
+                        help="while retraining, halve the learning rate after N epochs without a better validation "
+                             "loss (again after N more; floor 1e-5); 0 keeps it constant, as the paper does")
     parser.add_argument("--positive-weight", type=float,
                         help="keypoint-pixel weight of the retraining loss (default: the base model's, "
                              "from its NAME_train.json; else 1, the paper's plain BCE)")
@@ -69,10 +72,10 @@ def run(args: argparse.Namespace) -> int:
         from fcnpose_tf.evaluate import training_record
 
         args.positive_weight = float(((training_record(model_path) or {}).get("config") or {}).get("positive_weight", 1.0))
-    options = CompressOptions(rate=args.rate, positive_weight=args.positive_weight, method=args.method, strategy=args.strategy, quantize=args.quantize,
-                              retrain_epochs=args.retrain_epochs, patience=args.patience,
-                              batch_size=args.batch_size, learning_rate=args.learning_rate, seed=args.seed,
-                              fold=args.fold, threads=args.threads)
+    options = CompressOptions(rate=args.rate, positive_weight=args.positive_weight, method=args.method,
+                              strategy=args.strategy, quantize=args.quantize, retrain_epochs=args.retrain_epochs,
+                              patience=args.patience, batch_size=args.batch_size, learning_rate=args.learning_rate,
+                              lr_patience=args.lr_patience, seed=args.seed, fold=args.fold, threads=args.threads)
     options.validate()
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be at least 1, got {args.threads}")
