@@ -298,6 +298,110 @@ def test_other_settings_in_the_same_folder_are_refused_unless_forced(tmp_path, f
     assert len(outcome.done) == 6 and json.loads((tmp_path / "res" / "sweep.json").read_text())["config"]["epochs"] == 5
 
 
+def test_lr_patience_is_a_result_setting_and_folders_older_than_it_still_match(tmp_path, frames):
+    out = tmp_path / "res"
+    run_sweep(_config(out, frames, lr_patience=4), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    records = [json.loads(p.read_text()) for p in (out / "jobs").glob("*.json")]
+    assert {r["config_key"]["lr_patience"] for r in records} == {4}
+    assert "halved after 4 epochs without a better validation loss" in (out / "summary.md").read_text()
+    with pytest.raises(UserError, match=r"other settings \(lr_patience 4 -> 0\)"):
+        run_sweep(_config(out, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+
+    # A folder written before lr_patience existed: no such key anywhere; it means 0 (constant rate)
+    old = tmp_path / "old"
+    run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    sweep = json.loads((old / "sweep.json").read_text())
+    del sweep["config"]["lr_patience"]
+    write_json(old / "sweep.json", sweep, force=True)
+    for path in (old / "jobs").glob("*.json"):
+        record = json.loads(path.read_text())
+        del record["config_key"]["lr_patience"]
+        write_json(path, record, force=True)
+    assert len(write_report(old)["results"].records) == 6
+    again = run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert again.done == [] and len(again.skipped) == 6
+    with pytest.raises(UserError, match=r"lr_patience 0 -> 2"):
+        run_sweep(_config(old, frames, lr_patience=2), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+
+
+def _fake_measure(factor: float, spoil: str | None = None):
+    """A stand-in for retime.measure_job: the recorded metrics, FPS times `factor` (metrics of `spoil` changed)."""
+    def measure(config, record, dataset):
+        sections = ["keras"] if record["kind"] == "base" else ["keras", "tflite"]
+        out = {}
+        for section in sections:
+            metrics = json.loads(json.dumps(record[section]["metrics"]))
+            if record["job"] == spoil:
+                metrics["pck@0.5_bbox"] -= 0.01
+            timing = {**record[section]["timing"], "fps": round(record[section]["timing"]["fps"] * factor, 2),
+                      "frames_timed": 55}
+            out[section] = {"metrics": metrics, "timing": timing}
+        return out
+    return measure
+
+
+def test_retime_replaces_timings_keeps_metrics_and_rebuilds_the_report(tmp_path, frames):
+    from fcnpose_tf.sweep.retime import retime_sweep
+
+    out = tmp_path / "res"
+    config = _config(out, frames)
+    run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    before = {p.name: json.loads(p.read_text()) for p in (out / "jobs").glob("*.json")}
+    fps_before = {r["rate"]: r["fps"]["mean"] for r in json.loads((out / "results.json").read_text())[
+        "tables"]["quantization"]["rows"]}
+
+    # Metrics that differ: loud failure naming the job, and nothing written
+    raw = {p.name: p.read_bytes() for p in (out / "jobs").glob("*.json")}
+    with pytest.raises(UserError, match=r"fold1_p70 keras: pck@0.5_bbox: .*nothing was written|nothing was written"
+                       ) as info:
+        retime_sweep(out, measure=_fake_measure(2.0, spoil="fold1_p70"), log=lambda s: None)
+    assert "fold1_p70 keras: pck@0.5_bbox" in str(info.value) and "fold1_p70 tflite" in str(info.value)
+    assert {p.name: p.read_bytes() for p in (out / "jobs").glob("*.json")} == raw
+    with pytest.raises(UserError, match="timed with 1 thread"):
+        retime_sweep(out, threads=2, measure=_fake_measure(2.0), log=lambda s: None)
+
+    lines = []
+    outcome = retime_sweep(out, measure=_fake_measure(2.0), log=lines.append)
+    assert len(outcome.jobs) == 6 and any("metrics identical" in s for s in lines)
+    for path in (out / "jobs").glob("*.json"):
+        record, old = json.loads(path.read_text()), before[path.name]
+        for section in ("keras", "tflite"):
+            if section in old:
+                assert record[section]["metrics"] == old[section]["metrics"]
+                assert record[section]["timing"]["fps"] == pytest.approx(old[section]["timing"]["fps"] * 2, abs=0.01)
+                assert record["retimed"]["original_timing"][section] == old[section]["timing"]
+        assert record["retimed"]["machine"]["cpu_model"] and record["retimed"]["utc"] and record["retimed"]["count"] == 1
+        assert record["config_key"] == old["config_key"] and record["seconds"] == old["seconds"]
+    results = json.loads((out / "results.json").read_text())
+    fps_after = {r["rate"]: r["fps"]["mean"] for r in results["tables"]["quantization"]["rows"]}
+    assert fps_after[0.7] == pytest.approx(2 * fps_before[0.7], rel=1e-3)
+    assert results["timing_source"]["retimed_jobs"] == 6 == results["timing_source"]["jobs"]
+    assert results["runs"][-1]["kind"] == "retime" and len(results["runs"][-1]["jobs_retimed"]) == 6
+    summary = (out / "summary.md").read_text()
+    assert "re-measured with `--retime` for every job" in summary
+
+    # A second retime keeps the jobs' own timings as the original; the sweep still skips every job
+    retime_sweep(out, measure=_fake_measure(1.5), log=lambda s: None)
+    record = json.loads((out / "jobs" / "fold0_p50.json").read_text())
+    assert record["retimed"]["count"] == 2
+    assert record["retimed"]["original_timing"]["keras"] == before["fold0_p50.json"]["keras"]["timing"]
+    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert again.done == [] and len(again.skipped) == 6
+
+
+def test_retime_needs_finished_jobs(tmp_path, frames):
+    from fcnpose_tf.sweep.retime import retime_sweep
+
+    with pytest.raises(UserError, match="holds no sweep"):
+        retime_sweep(tmp_path / "none", measure=_fake_measure(2.0))
+    out = tmp_path / "res"
+    run_sweep(_config(out, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    for path in (out / "jobs").glob("*.json"):
+        path.unlink()
+    with pytest.raises(UserError, match="no finished job to retime"):
+        retime_sweep(out, measure=_fake_measure(2.0))
+
+
 def test_too_few_frames_for_the_folds(tmp_path):
     from test_train_evaluate import make_via_folder
 
@@ -346,7 +450,7 @@ def test_executor_option_combinations(argv, message):
 # ------------------------------------------------------------------------------------------
 
 SMOKE = ["--rates", "0.5,0.7", "--folds", "2", "--epochs", "1", "--retrain-epochs", "1", "--input-size", "64",
-         "--quiet"]
+         "--lr-patience", "3", "--quiet"]
 
 
 def _check_smoke_outputs(out: Path, threads: int) -> None:
@@ -365,6 +469,10 @@ def _check_smoke_outputs(out: Path, threads: int) -> None:
     assert rows[0.0]["params"] == 131705 and rows[0.5]["params"] == 35185 and rows[0.7]["params"] == 14668
     quant = {r["rate"]: r for r in results["tables"]["quantization"]["rows"]}
     assert quant[0.7]["folds"] == 2 and quant[0.7]["fps"]["mean"] > 0 and quant[0.7]["tflite_size_mb"] < 0.05
+    assert results["config"]["lr_patience"] == 3  # reached both trainings' FitConfig:
+    for k in (0, 1):
+        assert json.loads((out / "models" / f"base_fold{k}_train.json").read_text())["config"]["lr_patience"] == 3
+        assert json.loads((out / "models" / f"base_fold{k}_p70_train.json").read_text())["config"]["lr_patience"] == 3
     for job in results["jobs"]:
         assert job["machine"]["threads"] == threads and job["tensorflow_threads"]["intra_op"] == threads
         section = job["keras"] if job["kind"] == "base" else job["tflite"]
@@ -388,6 +496,24 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
 
     other = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "1")
     assert other.returncode == 2 and "threads 2 -> 1" in other.stderr
+
+    # --retime: the same measurements from the saved files; identical metrics, new timings, same models
+    retime = cli("sweep", "--out", out, "--retime")
+    assert retime.returncode == 0, retime.stdout[-3000:] + retime.stderr[-3000:]
+    assert "metrics identical" in retime.stdout and "FPS before" in retime.stdout
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir() if p.suffix != ".json"} == \
+        {k: v for k, v in stamps.items() if not k.endswith(".json")}
+    for name, raw in jobs.items():
+        old, new = json.loads(raw), json.loads((out / "jobs" / name).read_text())
+        for section in ("keras", "tflite"):
+            if section in old:
+                assert new[section]["metrics"] == old[section]["metrics"]
+                assert new[section]["timing"]["threads"] == 2
+                assert new[section]["timing"]["total_ms"] != old[section]["timing"]["total_ms"]
+        assert new["retimed"]["tensorflow_threads"]["intra_op"] == 2
+    report = json.loads((out / "models" / "base_fold0_p70_report.json").read_text())
+    assert report["quantized"]["timing"] == json.loads((out / "jobs" / "fold0_p70.json").read_text())["tflite"]["timing"]
+    assert "re-measured with `--retime` for every job" in (out / "summary.md").read_text()
 
 
 def test_smoke_sweep_on_a_local_ray_instance(tmp_path, frames, cli):

@@ -25,6 +25,7 @@ EXAMPLES = """\
   fcnpose-tf sweep --executor ray --num-cpus 8 --threads 2                # a local Ray instance, 4 tasks at once
   fcnpose-tf sweep --executor ray --address auto --data /shared/ur5 --out /shared/results   # a Ray cluster
   fcnpose-tf sweep --out results/ --report-only                           # rebuild tables and plot only
+  fcnpose-tf sweep --out results/ --retime                                # re-measure timings on this idle machine
 """
 
 
@@ -50,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--input-size", type=int, default=224, help="model input side, a multiple of 32")
     train.add_argument("--batch-size", type=int, default=8)
     train.add_argument("--learning-rate", type=float, default=1e-3, help="Adam learning rate")
+    train.add_argument("--lr-patience", type=int, default=0, metavar="N",
+                       help="halve the learning rate after N epochs without a better validation loss (again after "
+                            "N more; floor 1e-5), in training and retraining; 0 keeps it constant, as the paper does")
     train.add_argument("--positive-weight", type=float, default=1.0,
                        help="weight of keypoint-disc pixels in the BCE, for training and retraining (1 = the "
                             "paper's plain BCE)")
@@ -73,6 +77,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="redo every job (retraining the base models), also when OUT holds other settings")
     parser.add_argument("--report-only", action="store_true",
                         help="only rebuild the tables, plot and results.json from OUT's saved jobs")
+    parser.add_argument("--retime", action="store_true",
+                        help="re-measure inference time and FPS (Keras and TFLite) of every finished job from its "
+                             "saved model files, sequentially on this machine with the sweep's --threads, without "
+                             "retraining; the metrics must come out identical; then rebuild the report")
     parser.add_argument("--quiet", action="store_true", help="one line per epoch instead of progress bars (logs)")
 
 
@@ -109,10 +117,16 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import synthcache
     from fcnpose_tf.sweep import SweepConfig, parse_rates, run_sweep, write_report
 
+    if args.report_only and args.retime:
+        from fcnpose_tf.errors import UserError
+
+        raise UserError("--report-only and --retime exclude each other (--retime rebuilds the report too)")
     if args.report_only:
         result = write_report(args.out)
         _print_tables(result)
         return 0
+    if args.retime:
+        return _retime(args)
     rates = parse_rates(args.rates)
     threads = resolve_threads(args)
     executor = make_executor(args, threads)
@@ -124,7 +138,8 @@ def run(args: argparse.Namespace) -> int:
         keypoint_attr=args.keypoint_attr, min_visible=args.min_visible, skip_bad=args.skip_bad,
         split_seed=args.split_seed, folds=args.folds, rates=rates, input_size=args.input_size, epochs=args.epochs,
         patience=args.patience, retrain_epochs=args.retrain_epochs, retrain_patience=args.retrain_patience,
-        batch_size=args.batch_size, learning_rate=args.learning_rate, positive_weight=args.positive_weight,
+        batch_size=args.batch_size, learning_rate=args.learning_rate, lr_patience=args.lr_patience,
+        positive_weight=args.positive_weight,
         augment_copies=args.augment_copies, seed=args.seed, threads=threads,
         verbose=2 if (args.quiet or parallel) else 1, force=args.force)
     if args.resplit:  # store new splits first; the sweep then refuses OUT's old jobs unless --force
@@ -139,6 +154,21 @@ def run(args: argparse.Namespace) -> int:
     for name, error in outcome.failed.items():
         print(f"  failed: {name}: {error}")
     return 1 if outcome.failed else 0
+
+
+def _retime(args: argparse.Namespace) -> int:
+    from fcnpose_tf.sweep.retime import retime_sweep
+    from fcnpose_tf.tables import format_table
+
+    outcome = retime_sweep(args.out, threads=args.threads, data=str(args.data) if args.data else None)
+    _print_tables(outcome.report)
+    rows = [[c["job"], c["section"], c["fps_before"], c["fps_after"],
+             None if not c["fps_before"] or not c["fps_after"] else round(c["fps_after"] / c["fps_before"], 2)]
+            for c in outcome.changes]
+    print("\nFPS as the jobs measured it and as re-measured now (metrics identical)")
+    print(format_table(["job", "model", "FPS before", "FPS now", "ratio"], rows))
+    print(f"\n{len(outcome.jobs)} job(s) re-timed in {outcome.seconds / 60:.1f} min")
+    return 0
 
 
 def _print_tables(report: dict) -> None:

@@ -14,7 +14,7 @@ Quantization" (Markdown and CSV), a PCK-vs-FPS plot, and results.json.
 
 Modules: `rates` (rate specs), `jobs` (config, job identity, the job function), `executors`
 (local sequential / process pool / Ray), `report` (tables, plot, results.json from the saved
-job records), `driver` (`run_sweep`). Importing this package imports no TensorFlow and no Ray.
+job records), `driver` (`run_sweep`), `retime` (`retime_sweep`: re-measure timings of finished jobs). Importing this package imports no TensorFlow and no Ray.
 """
 
 from fcnpose_tf.sweep.driver import SweepOutcome, prepare_config, run_sweep
@@ -22,7 +22,8 @@ from fcnpose_tf.sweep.executors import Executor, LocalExecutor, RayExecutor
 from fcnpose_tf.sweep.jobs import Job, SweepConfig, run_job
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_tag
 from fcnpose_tf.sweep.report import Table, write_report
+from fcnpose_tf.sweep.retime import RetimeOutcome, retime_sweep
 
-__all__ = ["DEFAULT_RATES_SPEC", "Executor", "Job", "LocalExecutor", "RayExecutor", "SweepConfig", "SweepOutcome",
-           "Table", "parse_rates", "prepare_config", "rate_label", "rate_tag", "run_job", "run_sweep",
-           "write_report"]
+__all__ = ["DEFAULT_RATES_SPEC", "Executor", "Job", "LocalExecutor", "RayExecutor", "RetimeOutcome", "SweepConfig",
+           "SweepOutcome", "Table", "parse_rates", "prepare_config", "rate_label", "rate_tag", "retime_sweep",
+           "run_job", "run_sweep", "write_report"]

@@ -22,7 +22,7 @@ from fcnpose_tf.fileio import write_json
 from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.executors import Executor, JobFunction
 from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, SweepConfig, file_sha256, job_path, load_data,
-                                   plan_jobs, read_record, run_job, splits_sha256)
+                                   normalize_key, plan_jobs, read_record, run_job, splits_sha256)
 from fcnpose_tf.sweep.rates import rate_label
 
 
@@ -55,6 +55,7 @@ def prepare_config(config: SweepConfig) -> tuple[SweepConfig, int]:
 
 
 def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
+    old, new = normalize_key(old), normalize_key(new)
     return [f"{name} {old.get(name)!r} -> {new.get(name)!r}" for name in KEY_FIELDS if old.get(name) != new.get(name)]
 
 
@@ -67,7 +68,7 @@ def finished_jobs(config: SweepConfig, jobs: list[Job]) -> set[str]:
     done: set[str] = set()
     for job in jobs:
         rec = records[job.name]
-        if rec is None or rec.get("config_key") != key:
+        if rec is None or normalize_key(rec.get("config_key")) != key:
             continue
         if job.is_base:
             model = Path(config.out) / rec.get("files", {}).get("keras", "")

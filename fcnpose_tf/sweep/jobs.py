@@ -36,9 +36,19 @@ JOBS_DIR = "jobs"
 MODELS_DIR = "models"
 
 KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "patience", "retrain_epochs",
-              "retrain_patience", "batch_size", "learning_rate", "positive_weight", "augment_copies", "seed",
-              "threads")
+              "retrain_patience", "batch_size", "learning_rate", "lr_patience", "positive_weight", "augment_copies",
+              "seed", "threads")
 """Settings that change a job's results: a results folder holds jobs of one value of each."""
+
+KEY_DEFAULTS = {"lr_patience": 0}
+"""Key fields added after results folders existed, with the value older folders were made with."""
+
+
+def normalize_key(key: dict[str, Any] | None) -> dict[str, Any] | None:
+    """A stored config key with the fields it predates filled in (so older folders still match)."""
+    if not isinstance(key, dict):
+        return key
+    return {**{name: value for name, value in KEY_DEFAULTS.items() if name not in key}, **key}
 
 
 @dataclass(frozen=True)
@@ -66,6 +76,9 @@ class SweepConfig:
     retrain_patience: int = 5
     batch_size: int = 8
     learning_rate: float = 1e-3
+    lr_patience: int = 0
+    """Halve Adam's rate after this many epochs without a better validation loss (base training and
+    retraining); 0 keeps it constant (the paper)."""
     positive_weight: float = 1.0
     augment_copies: int = 2
     seed: int = 0
@@ -97,6 +110,7 @@ class SweepConfig:
                   (self.retrain_patience >= 1, f"--retrain-patience must be at least 1, got {self.retrain_patience}"),
                   (self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),
                   (self.learning_rate > 0, f"--learning-rate must be positive, got {self.learning_rate}"),
+                  (self.lr_patience >= 0, f"--lr-patience must be 0 (off) or more, got {self.lr_patience}"),
                   (self.positive_weight >= 1, f"--positive-weight must be >= 1, got {self.positive_weight}"),
                   (self.augment_copies >= 0, f"--augment-copies must be >= 0, got {self.augment_copies}"),
                   (self.threads >= 1, f"--threads must be at least 1, got {self.threads}"),
@@ -393,7 +407,7 @@ def _train_base(config: SweepConfig, job: Job, dataset: Any, path: Path, resume:
           f"up to {config.epochs} epochs", flush=True)
     fit_config = FitConfig(epochs=config.epochs, patience=config.patience, batch_size=config.batch_size,
                            learning_rate=config.learning_rate, seed=config.seed,
-                           positive_weight=config.positive_weight)
+                           positive_weight=config.positive_weight, lr_patience=config.lr_patience)
     metadata = {"data": config.data, "data_sha256": config.data_sha256, "num_frames": len(dataset),
                 "split": f"fold {job.fold} of {config.folds}", "fold": job.fold, "folds": config.folds,
                 "split_seed": config.split_seed, "input_size": config.input_size,
@@ -420,7 +434,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
                               patience=config.retrain_patience, batch_size=config.batch_size,
                               learning_rate=config.learning_rate, augment_copies=config.augment_copies,
                               seed=config.seed, fold=job.fold, threads=config.threads,
-                              positive_weight=config.positive_weight)
+                              positive_weight=config.positive_weight, lr_patience=config.lr_patience)
     print(f"{job.label}: compressing {base.name}", flush=True)
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
                             options, force=True, verbose=1 if config.verbose else 0,

@@ -226,13 +226,13 @@ def collect(out: str | Path, config: dict[str, Any]) -> SweepResults:
     Records of another configuration (a sweep redone with --force and other settings) are
     listed in `ignored`, not mixed in.
     """
-    from fcnpose_tf.sweep.jobs import KEY_FIELDS
+    from fcnpose_tf.sweep.jobs import KEY_DEFAULTS, KEY_FIELDS, normalize_key
 
-    key = {name: config.get(name) for name in KEY_FIELDS}
+    key = {name: config.get(name, KEY_DEFAULTS.get(name)) for name in KEY_FIELDS}
     results = SweepResults(config)
     for path in sorted((Path(out) / JOBS_DIR).glob("*.json")):
         record = read_record(path)
-        if record is None or record.get("config_key") != key:
+        if record is None or normalize_key(record.get("config_key")) != key:
             results.ignored.append(path.name)
             continue
         fold = int(record["fold"])
@@ -529,6 +529,32 @@ def _hosts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return list(seen.values())
 
 
+def timing_source(records: list[dict[str, Any]]) -> dict[str, Any]:
+    """Where the timings come from: the jobs themselves, or `--retime` (when, on which hosts, how many jobs)."""
+    retimed = [r["retimed"] for r in records if isinstance(r.get("retimed"), dict)]
+    hosts: dict[tuple, dict[str, Any]] = {}
+    for entry in retimed:
+        m = entry.get("machine") or {}
+        host = hosts.setdefault((m.get("hostname"), m.get("cpu_model")), {
+            "hostname": m.get("hostname"), "cpu_model": m.get("cpu_model"), "cpu_cores": m.get("cpu_cores"),
+            "threads": m.get("threads"), "jobs": 0})
+        host["jobs"] += 1
+    return {"jobs": len(records), "retimed_jobs": len(retimed), "retimed_utc": sorted({e.get("utc") for e in retimed}),
+            "retimed_on": list(hosts.values())}
+
+
+def _timing_line(source: dict[str, Any]) -> str:
+    if not source["retimed_jobs"]:
+        return ("- **Timing**: measured by each job right after it ran, on the machine and with the load it ran "
+                "with; `fcnpose-tf sweep --out OUT --retime` re-measures every job on one idle machine")
+    hosts = "; ".join(f"{h['hostname']} ({h['cpu_model']}, {h['cpu_cores']} cores)" for h in source["retimed_on"])
+    when = ", ".join(source["retimed_utc"])
+    which = ("every job" if source["retimed_jobs"] == source["jobs"] else
+             f"{source['retimed_jobs']} of {source['jobs']} jobs (the others as measured by their jobs)")
+    return (f"- **Timing**: re-measured with `--retime` for {which}, sequentially, on {hosts} at {when}; "
+            "the keypoint metrics of every re-measurement were identical to the jobs'")
+
+
 def _epochs(n: int) -> str:
     return f"{n} epoch" + ("" if n == 1 else "s")
 
@@ -539,14 +565,17 @@ def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: d
     cfg = results.config
     missing = results.missing()
     compute = sum(float(r.get("seconds") or 0) for r in results.records)
-    wall = sum(float(r.get("seconds") or 0) for r in runs)
+    sweep_runs = [r for r in runs if r.get("kind") != "retime"]
+    wall = sum(float(r.get("seconds") or 0) for r in sweep_runs)
     lines = [
         "# FCN-Pose pruning sweep", "",
         f"- **Data**: `{cfg['data']}` ({cfg.get('num_frames', '?')} frames), {cfg['folds']}-fold cross-validation "
         f"(split seed {cfg['split_seed']}), {cfg['augment_copies']} augmented copies per training frame",
         f"- **Training**: input {cfg['input_size']}x{cfg['input_size']}, base models up to {_epochs(cfg['epochs'])} "
         f"(patience {cfg['patience']}), retraining up to {_epochs(cfg['retrain_epochs'])} (patience "
-        f"{cfg['retrain_patience']}), batch {cfg['batch_size']}, Adam {cfg['learning_rate']:g}, "
+        f"{cfg['retrain_patience']}), batch {cfg['batch_size']}, Adam {cfg['learning_rate']:g}"
+        + (f" halved after {_epochs(cfg['lr_patience'])} without a better validation loss (floor 1e-5)"
+           if cfg.get("lr_patience") else "") + ", "
         + ("binary cross-entropy" if cfg["positive_weight"] == 1 else
            f"binary cross-entropy with keypoint pixels weighted {cfg['positive_weight']:g}") + f", seed {cfg['seed']}",
         f"- **Rates**: {', '.join(rate_label(r) for r in cfg['rates'])}; L1 filter pruning keeping n - floor(n·rate) "
@@ -560,8 +589,9 @@ def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: d
         f"- **Jobs**: {len(results.records)} finished"
         + (f", {len(missing)} missing ({', '.join(missing[:8])}{', ...' if len(missing) > 8 else ''}): rerun the "
            "sweep to finish them" if missing else " (complete)")
-        + f"; {compute / 60:.1f} min of job time" + (f", {wall / 60:.1f} min wall-clock over {len(runs)} run(s)"
-                                                     if wall else ""),
+        + f"; {compute / 60:.1f} min of job time" + (f", {wall / 60:.1f} min wall-clock over {len(sweep_runs)} "
+                                                     "run(s)" if wall else ""),
+        _timing_line(timing_source(results.records)),
         "", f"![PCK@0.5 vs FPS]({PLOT_FILE})", ""]
     for name in TABLE_NAMES:
         table = tables[name]
@@ -610,6 +640,7 @@ def write_report(out: str | Path, *, machine: dict[str, Any] | None = None,
         "missing_jobs": results.missing(),
         "ignored_job_files": results.ignored,
         "job_seconds_total": round(sum(float(r.get("seconds") or 0) for r in results.records), 1),
+        "timing_source": timing_source(results.records),
         "tables": {name: {"title": t.title, "caption": t.caption, "rows": t.records()} for name, t in tables.items()},
         "jobs": results.records,
     }
