@@ -1,0 +1,272 @@
+"""Exact inference-time rewrites of a trained network, applied before TFLite conversion.
+
+`fold_upsampling` removes FCN-Pose's nearest-neighbour upsampling layers from the graph without
+changing what the network computes. In the decoder, ``conv10(up4(x))`` runs a 3x3 convolution over
+a 224 x 224 x C map that is a 56 x 56 one with every pixel repeated 4 x 4 times. The same result
+comes from one convolution at 56 x 56 with 16 x as many filters, one per output phase, followed by
+``depth_to_space(4)``, which interleaves the 16 phases back into 224 x 224 (see `fold_upsampling`
+for why this is exact). The multiply-accumulate count is unchanged, but the 224 x 224 x C
+upsampled tensor is never built, and the folded convolution has 16 x the output channels, which
+the TFLite CPU kernels (XNNPACK) vectorise far better than FCN-Pose's 9 maps.
+``tools/bench_speedup.py`` and docs/runtime.md have the measured effect.
+
+`fcnpose_tf.export` applies it to every model it converts, and verifies the file against the
+original Keras model. The rewritten model is for inference only: train and save the original.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import tensorflow as tf
+import tf_keras as keras
+
+from fcnpose_tf.errors import UserError
+
+__all__ = ["DepthToSpace", "UnsupportedGraphError", "describe_folds", "fold_kernel", "fold_upsampling",
+           "foldable_pairs"]
+
+# Conv2D activations that act on each value alone, so they commute with depth_to_space and can stay
+# fused in the folded convolution. Any other (softmax over channels, custom) is applied after it.
+_ELEMENTWISE_ACTIVATIONS = frozenset({
+    "linear", "relu", "relu6", "sigmoid", "hard_sigmoid", "tanh", "elu", "selu", "softplus", "softsign",
+    "swish", "silu", "gelu", "exponential", "mish", "leaky_relu"})
+
+
+class UnsupportedGraphError(UserError):
+    """The model (or one upsampling + convolution pair in it) cannot be rewritten exactly."""
+
+
+@keras.saving.register_keras_serializable(package="fcnpose_tf")
+class DepthToSpace(keras.layers.Layer):
+    """``tf.nn.depth_to_space``: (H, W, b*b*C) -> (b*H, b*W, C), channel blocks ordered (row, column, C).
+
+    Converts to TFLite's DEPTH_TO_SPACE built-in op.
+    """
+
+    def __init__(self, block_size: int, **kwargs):
+        super().__init__(**kwargs)
+        self.block_size = int(block_size)
+
+    def call(self, inputs):
+        return tf.nn.depth_to_space(inputs, self.block_size)
+
+    def compute_output_shape(self, input_shape):
+        b = self.block_size
+        n, h, w, c = tf.TensorShape(input_shape).as_list()
+        return tf.TensorShape([n, None if h is None else h * b, None if w is None else w * b, c // (b * b)])
+
+    def get_config(self):
+        return {**super().get_config(), "block_size": self.block_size}
+
+
+def _phase_taps(factor: int, size: int) -> np.ndarray:
+    """M[p, a, d] = 1 where tap d of a 'same' kernel of `size` taps, at output phase p of a `factor`-fold
+    nearest upsampling, reads low-resolution offset a - R (R = ceil((size // 2) / factor))."""
+    r = size // 2
+    reach = -(-r // factor)
+    taps = np.zeros((factor, 2 * reach + 1, size))
+    for p in range(factor):
+        for d in range(size):
+            taps[p, (p + d - r) // factor + reach, d] = 1.0
+    return taps
+
+
+def fold_kernel(kernel: np.ndarray, factor: int) -> np.ndarray:
+    """The low-resolution kernel equivalent to `kernel` applied after nearest upsampling by `factor`.
+
+    Args:
+        kernel: kh x kw x Cin x Cout, odd kh and kw (a 'same', stride-1 Conv2D's kernel).
+        factor: the upsampling factor of both axes.
+    Returns:
+        A (2*ceil((kh//2)/factor)+1) x (2*ceil((kw//2)/factor)+1) x Cin x (factor*factor*Cout) kernel
+        (3 x 3 for a 3 x 3 kernel and any factor >= 1) in `kernel`'s dtype, whose output channels
+        are ordered (row phase, column phase, Cout) as `tf.nn.depth_to_space` expects. Each entry is
+        the sum of the original taps that land on that low-resolution pixel (computed in float64).
+    """
+    kernel = np.asarray(kernel)
+    kh, kw, cin, cout = kernel.shape
+    rows, cols = _phase_taps(factor, kh), _phase_taps(factor, kw)
+    folded = np.einsum("pay,qbx,yxic->abipqc", rows, cols, kernel.astype(np.float64))
+    return folded.reshape(rows.shape[1], cols.shape[1], cin, factor * factor * cout).astype(kernel.dtype)
+
+
+def _chain(model: keras.Model) -> list[keras.layers.Layer]:
+    """The layers after the input, checked to form one unbranched chain."""
+    if not isinstance(model, keras.Model):
+        raise UnsupportedGraphError(f"expected a tf_keras Model, got {type(model).__name__}")
+    if not model.built or not getattr(model, "inputs", None):
+        raise UnsupportedGraphError(f"model {model.name} is not built: give it an input shape (keras.Input) first")
+    if len(model.inputs) != 1 or len(model.outputs) != 1:
+        raise UnsupportedGraphError(f"model {model.name} has {len(model.inputs)} inputs and {len(model.outputs)} "
+                                    "outputs; folding the upsampling handles a single-input, single-output chain")
+    layers = [layer for layer in model.layers if not isinstance(layer, keras.layers.InputLayer)]
+    if not isinstance(model, keras.Sequential):
+        config = model.get_config()
+        previous = config["input_layers"][0][0]
+        for entry in config["layers"]:
+            if entry["class_name"] == "InputLayer":
+                continue
+            nodes = entry["inbound_nodes"]
+            sources = [inbound[0] for node in nodes for inbound in node]
+            if len(nodes) != 1 or sources != [previous]:
+                raise UnsupportedGraphError(
+                    f"layer {entry['name']} reads {', '.join(sources) or 'nothing'} instead of only {previous}: "
+                    "folding the upsampling handles a plain chain without branches or skip connections")
+            previous = entry["name"]
+        if [out[0] for out in config["output_layers"]] != [previous]:
+            raise UnsupportedGraphError(f"model {model.name}: its output is not the end of its layer chain "
+                                        f"({previous})")
+    for layer in layers:
+        if isinstance(layer, keras.Model):
+            raise UnsupportedGraphError(f"layer {layer.name} is a nested model; folding the upsampling handles a "
+                                        "flat chain of layers")
+    return layers
+
+
+def _fold_factor(up: keras.layers.Layer, conv: keras.layers.Layer) -> int:
+    """The factor of an UpSampling2D + Conv2D pair that can be folded exactly, else UnsupportedGraphError."""
+    def refuse(why: str) -> UnsupportedGraphError:
+        return UnsupportedGraphError(f"cannot fold {up.name} (UpSampling2D) into {conv.name} (Conv2D): {why}")
+
+    fy, fx = (int(s) for s in up.size)
+    if up.interpolation != "nearest":
+        raise refuse(f"{up.interpolation!r} interpolation (only 'nearest' repeats pixels)")
+    if up.data_format != "channels_last" or conv.data_format != "channels_last":
+        raise refuse("channels_first data format")
+    if fy != fx:
+        raise refuse(f"unequal factors {fy} x {fx} (depth_to_space needs square blocks)")
+    if tuple(conv.strides) != (1, 1) or tuple(conv.dilation_rate) != (1, 1):
+        raise refuse(f"strides {tuple(conv.strides)} and dilation {tuple(conv.dilation_rate)} (needs 1, 1)")
+    if conv.padding != "same":
+        raise refuse(f"{conv.padding!r} padding (needs 'same')")
+    if getattr(conv, "groups", 1) != 1:
+        raise refuse(f"grouped convolution (groups={conv.groups})")
+    if any(k % 2 == 0 for k in conv.kernel_size):
+        raise refuse(f"even kernel size {tuple(conv.kernel_size)} ('same' padding is then asymmetric)")
+    return fy
+
+
+def foldable_pairs(model: keras.Model) -> list[tuple[str, str, int]]:
+    """(upsampling layer, convolution layer, factor) of every pair `fold_upsampling` would fold.
+
+    Raises:
+        UnsupportedGraphError: as `fold_upsampling`.
+    """
+    layers = _chain(model)
+    pairs = []
+    for up, conv in zip(layers, layers[1:]):
+        if type(up) is keras.layers.UpSampling2D and type(conv) is keras.layers.Conv2D:
+            factor = _fold_factor(up, conv)
+            if factor > 1:
+                pairs.append((up.name, conv.name, factor))
+    return pairs
+
+
+def _activation_name(activation) -> str | None:
+    try:
+        name = keras.activations.serialize(activation)
+    except Exception:  # a custom callable
+        return None
+    return name if isinstance(name, str) else None
+
+
+def _clone(layer: keras.layers.Layer) -> keras.layers.Layer:
+    try:
+        return layer.__class__.from_config(layer.get_config())
+    except Exception as exc:
+        raise UnsupportedGraphError(f"layer {layer.name} ({type(layer).__name__}) cannot be rebuilt from its "
+                                    f"config ({type(exc).__name__}: {exc})") from exc
+
+
+def fold_upsampling(model: keras.Model) -> keras.Model:
+    """The same network with every nearest UpSampling2D + 'same' Conv2D pair computed at low resolution.
+
+    Each pair ``conv(up_f(x))`` becomes ``depth_to_space_f(conv'(x))``, where conv' has the same
+    (odd) kernel reach at x's resolution and f*f times the filters: one set per output phase
+    (py, px) of an f x f block (`fold_kernel`). The rest of the chain is rebuilt unchanged, with
+    the same layer names and weights (the folded convolution keeps its name; the new layer is
+    named ``<conv>_depth_to_space``), so the model takes and returns the same tensors.
+
+    Why it is exact: nearest upsampling gives U[y, x] = x[y // f, x // f]. Output pixel
+    (f*Y + py, f*X + px) of a stride-1 'same' convolution with taps dy, dx in [-r, r] reads
+    U[f*Y + py + dy, ...] = x[Y + (py + dy) // f, ...]: for each phase, every tap lands on a fixed
+    low-resolution offset (for a 3x3 kernel and f = 4: phases 1 and 2 of a row on row Y only,
+    phase 0 on rows Y-1 and Y, phase 3 on rows Y and Y+1), so summing the taps that land on the same
+    offset gives a convolution over x itself with per-phase kernels. Zero padding is preserved:
+    f*Y + py + dy lies outside [0, f*H) exactly when Y + (py + dy) // f lies outside [0, H), so a
+    tap that reads padding in the original reads padding in the folded convolution. The bias is
+    the same for every phase, and the activation is applied per value, before or after
+    depth_to_space alike (a channel-mixing activation such as softmax is moved after it). The
+    result equals the original up to float rounding of the summed taps (~1e-7 relative).
+
+    The multiply-accumulates are the same; what changes is that the f*f times larger upsampled
+    tensor is never written or read, and the convolution has f*f times more output channels,
+    which TFLite's XNNPACK kernels run at a much higher rate. The folded kernels hold f*f times
+    more weights (for a 3x3 kernel and f >= 2, 3x3 per phase, most of them zero), so the
+    .tflite file grows accordingly.
+
+    Works for any widths and any input size (also a variable one): the rewrite does not depend on
+    the spatial size.
+
+    Args:
+        model: a built tf_keras model that is one unbranched chain of layers (functional or
+            Sequential), single input and output, e.g. FCN-Pose pruned or not.
+    Returns:
+        A new functional tf_keras model (inference only; not compiled), or `model` itself when it
+        has no UpSampling2D directly followed by a Conv2D.
+    Raises:
+        UnsupportedGraphError (a UserError): a model that is not such a chain (branches, skip
+            connections, several inputs or outputs, nested models, a layer that cannot be
+            rebuilt from its config), or an UpSampling2D -> Conv2D pair that cannot be folded
+            exactly: bilinear interpolation, unequal factors, channels_first, strides or
+            dilation other than 1, padding other than 'same', grouped, or even-sized kernels.
+    Example:
+        >>> from fcnpose_tf.model import build_fcn_pose
+        >>> folded = fold_upsampling(build_fcn_pose(input_size=64))
+        >>> [layer.name for layer in folded.layers][-2:]
+        ['conv10', 'conv10_depth_to_space']
+    """
+    pairs = {conv: factor for _, conv, factor in foldable_pairs(model)}
+    if not pairs:
+        return model
+    layers = _chain(model)
+    first = model.layers[0] if model.layers and isinstance(model.layers[0], keras.layers.InputLayer) else None
+    input_name = first.name if first is not None else model.inputs[0].name.split(":")[0]
+    inputs = keras.Input(batch_shape=tuple(model.inputs[0].shape), dtype=model.inputs[0].dtype, name=input_name)
+    x = inputs
+    assignments = []  # (layer, weights): set once every layer is built
+    skip = False
+    for index, layer in enumerate(layers):
+        if skip:
+            skip = False
+            continue
+        following = layers[index + 1] if index + 1 < len(layers) else None
+        if type(layer) is keras.layers.UpSampling2D and following is not None and following.name in pairs:
+            conv, factor = following, pairs[following.name]
+            weights = conv.get_weights()
+            kernel = fold_kernel(weights[0], factor)
+            activation = _activation_name(conv.activation)
+            fused = activation if activation in _ELEMENTWISE_ACTIVATIONS else "linear"
+            folded = keras.layers.Conv2D(kernel.shape[-1], kernel.shape[:2], padding="same", activation=fused,
+                                         use_bias=conv.use_bias, dtype=conv.dtype, name=conv.name)
+            x = folded(x)
+            assignments.append((folded, [kernel] + ([np.tile(weights[1], factor * factor)] if conv.use_bias else [])))
+            x = DepthToSpace(factor, name=f"{conv.name}_depth_to_space")(x)
+            if fused != activation:
+                x = keras.layers.Activation(conv.activation, name=f"{conv.name}_activation")(x)
+            skip = True
+            continue
+        clone = _clone(layer)
+        x = clone(x)
+        assignments.append((clone, layer.get_weights()))
+    for layer, weights in assignments:
+        if weights:
+            layer.set_weights(weights)
+    return keras.Model(inputs, x, name=model.name)
+
+
+def describe_folds(model: keras.Model) -> list[str]:
+    """One line per pair `fold_upsampling` folds, e.g. ``up4 + conv10 -> conv10 at 1/4 size + depth_to_space(4)``."""
+    return [f"{up} + {conv} -> {conv} at 1/{factor} size + depth_to_space({factor})"
+            for up, conv, factor in foldable_pairs(model)]
+
