@@ -44,10 +44,9 @@ def sizes224():
     """float32 / float16 / int8-weights exports of the full and the 70%-pruned FCN-Pose at 224."""
     full = randomize(build_fcn_pose(), seed=3)
     models = {"full": full, "p70": prune_model(full, 0.7)}
-    # int8-weights: dynamic-range hybrid kernels also quantize activations on the fly, which on an
-    # untrained random network moves maps by up to ~0.05 (a trained one stays near 0.008); sizes
-    # do not depend on it, so the map check is loosened here only.
-    return {(name, q): (model.count_params(), export_tflite(model, q, map_atol=0.1 if q == "int8-weights" else 1e-2))
+    # int8-weights: dynamic-range hybrid kernels also quantize activations on the fly, which on this
+    # untrained network moves maps by up to ~0.05; the mode's default map_atol (0.15) allows it.
+    return {(name, q): (model.count_params(), export_tflite(model, q))
             for name, model in models.items() for q in ("float32", "float16", "int8-weights")}
 
 
@@ -137,6 +136,16 @@ def test_every_export_at_224_matches_keras(sizes224):
     for (name, quantize), (_, result) in sizes224.items():
         assert result.parity.max_abs_diff <= (0.1 if quantize == "int8-weights" else 1e-2), (name, quantize)
         assert result.parity.frames == 2 and result.convert_seconds > 0
+
+
+def test_verification_tolerance_is_per_mode(sizes224):
+    for (name, quantize), (_, result) in sizes224.items():
+        int8 = quantize == "int8-weights"
+        assert (result.parity.map_atol, result.parity.keypoint_px) == ((0.15, 2.0) if int8 else (1e-2, 1.0))
+    assert sizes224[("full", "int8-weights")][1].parity.max_abs_diff > 1e-2  # needs the looser check
+    # an explicit tolerance still wins
+    with pytest.raises(ExportVerificationError, match=r"max abs map difference .* > 0.001"):
+        export_tflite(randomize(build_fcn_pose(input_size=64), seed=3), "int8-weights", map_atol=1e-3)
 
 
 # ------------------------------------------------------------------------------------------
