@@ -1,14 +1,18 @@
 #!/usr/bin/env python
 """Issue 6 point 5: the Pi path's speed against the paper's desktop path, measured in one run.
 
-Compares, on the same frames, machine and thread count, interleaved frame by frame so both see
-the same load:
+Compares, on the same frames, machine and thread count, interleaved frame by frame (the order
+alternating every frame) so all paths see the same load:
   A. the unpruned Keras model called directly (the paper's desktop path), and
   B. the compressed float16 TFLite model through the LiteRT runtime (the Pi path),
-each end to end (preprocess + forward pass + post-processing). Prints medians, p95, the FPS
-ratio B/A, and the share of B's frame time spent outside the interpreter (pre + post).
+  C... optionally more TFLite files (--tflite again) and float16 exports of Keras models made on
+     the fly (--export, verified against the Keras model; --fold exports them with
+     fcnpose_tf.inference_graph.fold_upsampling, --no-fold without, --both both ways),
+each end to end (preprocess + forward pass + post-processing). Prints medians, p95, each path's
+FPS ratio to A, and the share of its frame time spent outside the interpreter (pre + post).
 
-    python tools/bench_speedup.py --threads 1
+    python tools/bench_speedup.py --threads 1 --frames 100
+    python tools/bench_speedup.py --threads 1 --frames 100 --export saved_models/fcnpose_ur5_p70.keras --both
     python tools/bench_speedup.py --keras saved_models/fcnpose_ur5.keras \
         --tflite saved_models/fcnpose_ur5_p70_fp16.tflite --data DIR --frames 200 --threads 1
 
@@ -22,13 +26,22 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 from pathlib import Path
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--keras", type=Path, help="unpruned Keras model (default: bundled baseline)")
-    parser.add_argument("--tflite", type=Path, help="compressed .tflite (default: bundled 70%% float16)")
+    parser.add_argument("--tflite", type=Path, action="append",
+                        help="compressed .tflite; repeat for more (default: bundled 70%% float16)")
+    parser.add_argument("--export", type=Path, action="append", default=[],
+                        help="also export this Keras model to float16 TFLite (into a temporary folder) and time it")
+    fold = parser.add_mutually_exclusive_group()
+    fold.add_argument("--fold", dest="fold", action="store_const", const="fold", default="fold",
+                      help="--export with fold_upsampling (default)")
+    fold.add_argument("--no-fold", dest="fold", action="store_const", const="plain", help="--export without it")
+    fold.add_argument("--both", dest="fold", action="store_const", const="both", help="--export both ways")
     parser.add_argument("--data", type=Path, help="dataset whose frames are used (default: held-out synthetic)")
     parser.add_argument("--frames", type=int, default=200, help="timed frames per model")
     parser.add_argument("--warmup", type=int, default=10)
@@ -47,19 +60,42 @@ def main() -> int:
 
     set_tensorflow_threads(args.threads)
     keras_path = args.keras or baseline_model()
-    tflite_path = args.tflite or models_dir() / "fcnpose_ur5_p70_fp16.tflite"
+    tflite_paths = args.tflite or [models_dir() / "fcnpose_ur5_p70_fp16.tflite"]
     dataset = load_dataset(args.data or heldout_data())
     frames = [dataset.load_image(i) for i in range(min(len(dataset), 50))]
+
+    tmp = tempfile.TemporaryDirectory(prefix="bench_speedup_")
+    labels = [f"{p.name} (LiteRT)" for p in tflite_paths]
+    if args.export:
+        from fcnpose_tf.export import write_tflite
+        from fcnpose_tf.model import load_model
+        from fcnpose_tf.preprocess import preprocess_frame
+
+        for source in args.export:
+            model = load_model(source)
+            size = int(model.input_shape[1])
+            samples = np.stack([preprocess_frame(f, size) for f in frames[:4]])
+            for folded in {"fold": [True], "plain": [False], "both": [False, True]}[args.fold]:
+                path = Path(tmp.name) / f"{source.stem}_fp16{'_folded' if folded else ''}.tflite"
+                export = write_tflite(model, path, "float16", sample_frames=samples, fold_upsampling=folded)
+                print(f"exported {source.name} -> {path.name}: {export.size_bytes:,} bytes, max abs map difference "
+                      f"{export.parity.max_abs_diff:.2g} vs Keras"
+                      + (f", {len(export.graph_rewrites)} upsampling layers folded" if folded else ""), flush=True)
+                tflite_paths.append(path)
+                labels.append(f"{source.stem} fp16 {'folded' if folded else 'plain'} (export)")
+
     a = KerasKeypointModel(keras_path, keras_path, num_threads=args.threads)
-    b = KeypointModel(tflite_path, num_threads=args.threads)
+    others = [KeypointModel(p, num_threads=args.threads) for p in tflite_paths]
+    models = [a] + others
     for i in range(args.warmup):
-        a.predict(frames[i % len(frames)])
-        b.predict(frames[i % len(frames)])
-    times = {"keras": [], "tflite": []}
+        for model in models:
+            model.predict(frames[i % len(frames)])
+    times: list[list] = [[] for _ in models]
+    order = list(range(len(models)))
     for i in range(args.frames):
         frame = frames[i % len(frames)]
-        times["keras"].append(a.predict(frame).times)
-        times["tflite"].append(b.predict(frame).times)
+        for k in (order if i % 2 == 0 else order[::-1]):
+            times[k].append(models[k].predict(frame).times)
 
     def stats(ts):
         total = np.array([t.total_ms for t in ts])
@@ -71,22 +107,33 @@ def main() -> int:
                 "postprocess_ms_median": float(np.median(post)), "fps_median": 1000.0 / float(np.median(total)),
                 "pre_post_share_percent": float(100 * np.median((pre + post) / total))}
 
+    keras_stats = stats(times[0])
+    variants = []
+    for label, path, ts, model in zip(labels, tflite_paths, times[1:], others):
+        s = stats(ts)
+        s.update(label=label, model=str(path), size_bytes=path.stat().st_size,
+                 fps_ratio=s["fps_median"] / keras_stats["fps_median"],
+                 inference_ratio=keras_stats["inference_ms_median"] / s["inference_ms_median"])
+        variants.append(s)
     result = {"threads": args.threads, "frames": args.frames, "keras_model": str(keras_path),
-              "tflite_model": str(tflite_path), "tflite_backend": b.backend.label,
-              "keras": stats(times["keras"]), "tflite": stats(times["tflite"])}
-    result["fps_ratio"] = result["tflite"]["fps_median"] / result["keras"]["fps_median"]
+              "tflite_model": str(tflite_paths[0]), "tflite_backend": others[0].backend.label,
+              "keras": keras_stats, "tflite": variants[0], "fps_ratio": variants[0]["fps_ratio"],
+              "variants": variants}
     print(f"{args.frames} frames each, interleaved, {args.threads} thread(s); medians in ms")
-    print(f"{'path':<38} {'pre':>6} {'infer':>7} {'post':>6} {'total':>7} {'p95':>7} {'FPS':>7} {'pre+post':>9}")
-    for key, label in (("keras", f"A unpruned Keras direct ({keras_path.name})"),
-                       ("tflite", f"B {tflite_path.name} (LiteRT)")):
-        s = result[key]
-        print(f"{label[:38]:<38} {s['preprocess_ms_median']:6.2f} {s['inference_ms_median']:7.2f} "
+    print(f"{'path':<46} {'pre':>6} {'infer':>7} {'post':>6} {'total':>7} {'p95':>7} {'FPS':>7} {'xA':>6} "
+          f"{'pre+post':>9}")
+    rows = [(f"A unpruned Keras direct ({keras_path.name})", keras_stats, None)]
+    rows += [(f"{chr(ord('B') + i)} {v['label']}", v, v["fps_ratio"]) for i, v in enumerate(variants)]
+    for label, s, ratio in rows:
+        print(f"{label[:46]:<46} {s['preprocess_ms_median']:6.2f} {s['inference_ms_median']:7.2f} "
               f"{s['postprocess_ms_median']:6.2f} {s['total_ms_median']:7.2f} {s['total_ms_p95']:7.2f} "
-              f"{s['fps_median']:7.1f} {s['pre_post_share_percent']:8.1f}%")
+              f"{s['fps_median']:7.1f} {'' if ratio is None else f'{ratio:5.1f}x':>6} "
+              f"{s['pre_post_share_percent']:8.1f}%")
     print(f"FPS ratio B/A: {result['fps_ratio']:.1f}x (target >= 8x; the paper's desktop 41.90/11.71 = 3.6x)")
     print(f"B pre+post share of frame time: {result['tflite']['pre_post_share_percent']:.1f}% (target <= 15%)")
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
+    tmp.cleanup()
     return 0
 
 
