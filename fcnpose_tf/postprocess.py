@@ -26,7 +26,8 @@ contiguous pass (numpy is ~9x slower on a strided per-map slice), de-interleaved
 box of its active pixels (``cv2.boundingRect``), with the empty rows and columns between far-apart
 active pixels squeezed out. OpenCV's own statistics are not used: they cost per pixel of the
 labelled area, background included; cluster sizes come from the labels of the active pixels, the
-centroid from row and column sums of the kept cluster.
+centroid from the kept cluster's binary image moments
+(``cv2.moments``: exact integer sums, one call; row and column sums where lines were squeezed out).
 ``tools/bench_postprocess.py`` measures this against the plain per-map
 ``cv2.connectedComponentsWithStats``.
 """
@@ -144,6 +145,15 @@ def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, in
                 # labels in that order when single-threaded; we do not rely on it.)
                 best = int(lab[np.argmax(tied[lab])])
             mask = (labels == best).view(np.uint8)
+    if xs is None:
+        # Window coordinates are map coordinates minus (x0, y0). The binary image moments are
+        # exact integers (pixel count, sums of column and row indices), so one division gives a
+        # result bit-identical to sum(x) / n over the cluster's pixels, in one OpenCV call.
+        m = cv2.moments(mask, True)
+        size = int(m["m00"])
+        if size < min_size:
+            return math.nan, math.nan, 0
+        return (int(m["m10"]) + x0 * size) / size, (int(m["m01"]) + y0 * size) / size, size
     # Centroid from per-column and per-row pixel counts: exact integer sums, one division,
     # so the result is bit-identical to sum(x) / n over the cluster's pixels.
     cols = cv2.reduce(mask, 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel().astype(np.int64)
