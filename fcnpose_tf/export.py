@@ -51,12 +51,13 @@ KEYPOINT_PX = 1.0
 # Per-mode defaults of the verification (export_tflite's map_atol / keypoint_px = None).
 # float32 and float16 are measured far inside 1e-2 and 1 px (float16 weights: max |diff| 0.0036
 # and compared keypoints within 0.11 px on 16 frames of the trained bundled models). Dynamic-range
-# int8 also quantizes every layer's input on the fly: on the same 16 frames the trained full /
-# 70% models' maps move by up to 0.11 / 0.08 (p99.9 0.033 / 0.024), and compared keypoints by
-# median 0.14 / 0.18 px, p95 0.55 / 0.60 px, max 1.38 px when the winning cluster stays the same.
-# So int8-weights gets 0.15 and 2 px; a keypoint whose winning cluster changes (seen for 2 of
-# 114 keypoints of the 70% model) still fails, as it should: the file then decodes differently.
-MAP_ATOL_BY_MODE = {"float32": 1e-2, "float16": 1e-2, "int8-weights": 0.15}
+# int8 also quantizes every layer's input on the fly: on 32 frames the trained full / 70% models'
+# maps move by up to 0.11 / 0.10 (0.14 / 0.11 with fold_upsampling; per-frame maximum median
+# 0.04-0.06), and compared keypoints by median 0.13-0.18 px, p95 0.5-0.9 px, at most 1.4 px when
+# the winning cluster stays the same. So int8-weights gets 0.2 and 2 px; a keypoint whose winning
+# cluster changes (seen for 2 of 114 keypoints of the 70% model) still fails, as it should: the
+# file then decodes differently.
+MAP_ATOL_BY_MODE = {"float32": 1e-2, "float16": 1e-2, "int8-weights": 0.2}
 KEYPOINT_PX_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 2.0}
 DEFAULT_SAMPLES = 2
 # Default of export_tflite / to_tflite `fold_upsampling`. Off until the runtime counts a folded file's
@@ -260,8 +261,8 @@ def to_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sample_fr
         seed: seed of the random frames.
         input_size: H (or (H, W)) for a model whose input size is not fixed.
         map_atol: largest allowed |tflite - keras| over the maps; None: the mode's default
-            (`MAP_ATOL_BY_MODE`: 1e-2 for float32 and float16, 0.15 for int8-weights, whose
-            on-the-fly activation quantization moves trained FCN-Pose maps by up to ~0.11).
+            (`MAP_ATOL_BY_MODE`: 1e-2 for float32 and float16, 0.2 for int8-weights, whose
+            on-the-fly activation quantization moves trained FCN-Pose maps by up to ~0.14).
         keypoint_px: largest allowed distance between decoded keypoints, in map pixels; None: the
             mode's default (`KEYPOINT_PX_BY_MODE`: 1 px, 2 px for int8-weights, where trained
             models' keypoints move by up to 1.4 px, median 0.15 px).

@@ -45,7 +45,7 @@ def sizes224():
     full = randomize(build_fcn_pose(), seed=3)
     models = {"full": full, "p70": prune_model(full, 0.7)}
     # int8-weights: dynamic-range hybrid kernels also quantize activations on the fly, which on this
-    # untrained network moves maps by up to ~0.05; the mode's default map_atol (0.15) allows it.
+    # untrained network moves maps by up to ~0.05; the mode's default map_atol (0.2) allows it.
     return {(name, q): (model.count_params(), export_tflite(model, q))
             for name, model in models.items() for q in ("float32", "float16", "int8-weights")}
 
@@ -141,7 +141,7 @@ def test_every_export_at_224_matches_keras(sizes224):
 def test_verification_tolerance_is_per_mode(sizes224):
     for (name, quantize), (_, result) in sizes224.items():
         int8 = quantize == "int8-weights"
-        assert (result.parity.map_atol, result.parity.keypoint_px) == ((0.15, 2.0) if int8 else (1e-2, 1.0))
+        assert (result.parity.map_atol, result.parity.keypoint_px) == ((0.2, 2.0) if int8 else (1e-2, 1.0))
     assert sizes224[("full", "int8-weights")][1].parity.max_abs_diff > 1e-2  # needs the looser check
     # an explicit tolerance still wins
     with pytest.raises(ExportVerificationError, match=r"max abs map difference .* > 0.001"):
