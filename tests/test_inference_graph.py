@@ -157,6 +157,18 @@ def test_folded_export_runs_depth_to_space_and_matches_the_original(p70_64):
     assert np.abs(run_tflite(_interpreter(f32.data), x) - np.asarray(p70_64(x))).max() <= 1e-5
 
 
+def test_runtime_counts_a_folded_file_as_the_original_network(p70_64, tmp_path):
+    """The Pi runtime's parameter and MAC counts of a folded file are the Keras model's, not the phase kernels'."""
+    from fcnpose_tf.model import describe
+    from fcnpose_tf.runtime.estimator import KeypointModel
+
+    path = tmp_path / "folded.tflite"
+    path.write_bytes(export_tflite(p70_64, "float16", fold_upsampling=True).data)
+    stats = KeypointModel(path, 1).stats()
+    assert stats.params == p70_64.count_params()
+    assert stats.conv_layers == 10
+
+
 def test_unfolded_export_keeps_resize_and_branched_models_export_unfolded(p70_64):
     plain = export_tflite(p70_64, "float32", fold_upsampling=False)
     ops = _op_names(plain.data)

@@ -268,6 +268,26 @@ def model_stats(interpreter: Any, path: str | os.PathLike) -> ModelStats:
             op = producer.get(index)
         return index
 
+    # A CONV_2D feeding DEPTH_TO_SPACE(b) is an upsampling folded into a convolution by
+    # fcnpose_tf.inference_graph.fold_upsampling: its b*b phase kernels stand for one 3x3 kernel
+    # (3x3 taps per phase for a 3x3 or 1x1 per phase for a 1x1 original), so count its weights / (b*b).
+    consumers: dict[int, list] = {}
+    for op in ops:
+        for t in op["inputs"]:
+            consumers.setdefault(int(t), []).append(op)
+
+    def fold_block(op) -> int:
+        out = int(op["outputs"][0])
+        users = consumers.get(out, [])
+        while len(users) == 1 and users[0]["op_name"] in ("LOGISTIC", "TANH", "RELU", "RELU6", "ELU"):
+            users = consumers.get(int(users[0]["outputs"][0]), [])  # an activation between them
+        if len(users) != 1 or users[0]["op_name"] != "DEPTH_TO_SPACE":
+            return 1
+        before, after = shape(out), shape(int(users[0]["outputs"][0]))
+        if len(before) != 4 or len(after) != 4 or before[1] == 0 or after[1] % before[1]:
+            return 1
+        return after[1] // before[1]
+
     params = macs = convs = 0
     dtypes: set[str] = set()
     counts: dict[str, int] = {}
@@ -281,8 +301,9 @@ def model_stats(interpreter: Any, path: str | os.PathLike) -> ModelStats:
             weights = [ins[1]] + [t for t in ins[3:] if t >= 0]
         else:  # inputs: activation, weights[, bias]
             weights = [t for t in ins[1:] if t >= 0]
+        block = fold_block(op) if name == "CONV_2D" else 1
         for t in weights:
-            params += int(np.prod(shape(t), dtype=np.int64))
+            params += int(np.prod(shape(t), dtype=np.int64)) // (block * block)
             source = stored(t)
             if source in tensors:
                 dtypes.add(np.dtype(tensors[source]["dtype"]).name)
