@@ -132,6 +132,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite and NAME_p70_report.json go.
         options: rate, method, strategy, quantize, retraining settings, threads.
         force: replace existing output files.
+        verbose: 0 silent training; 1 progress bars while preparing data and one line per epoch; 2 one
+            line per epoch without progress bars (logs: `sweep --quiet`).
     Returns:
         The report dict (also written as NAME_pXX_report.json).
     Raises:
@@ -185,7 +187,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         fold = options.fold if options.fold is not None else (
             record.get("fold") if record.get("data_sha256") == file_sha256(train_dataset.via_path) else None)
         train_data, val_data = fold_data(train_dataset, fold, input_size, options.augment_copies, options.seed,
-                                         progress=verbose > 0)
+                                         progress=verbose == 1)
         report["retrain_data"] = {"data": str(train_dataset.via_path), "fold": fold,
                                   "train_samples": len(train_data), "val_frames": len(val_data)}
     if options.method == "l1":

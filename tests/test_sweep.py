@@ -485,6 +485,7 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     _check_smoke_outputs(out, threads=2)
     assert "Pruning results, Keras" in proc.stdout and "14,668" in proc.stdout
+    assert "frames at 64x64" not in proc.stdout + proc.stderr  # --quiet: no progress bars in logs
     stamps = {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir()}
     jobs = {p.name: p.read_bytes() for p in (out / "jobs").iterdir()}
 

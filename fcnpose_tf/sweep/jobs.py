@@ -437,7 +437,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
                               positive_weight=config.positive_weight, lr_patience=config.lr_patience)
     print(f"{job.label}: compressing {base.name}", flush=True)
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
-                            options, force=True, verbose=1 if config.verbose else 0,
+                            options, force=True, verbose=config.verbose,
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
     return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
             "keras": _strip(report["retrained"]),
