@@ -360,6 +360,15 @@ def test_retime_replaces_timings_keeps_metrics_and_rebuilds_the_report(tmp_path,
     with pytest.raises(UserError, match="timed with 1 thread"):
         retime_sweep(out, threads=2, measure=_fake_measure(2.0), log=lambda s: None)
 
+    # A copied folder (trained on a cluster, timed elsewhere) is retimed where it is; the original is untouched
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(out, copy)
+    assert len(retime_sweep(copy, measure=_fake_measure(3.0), log=lambda s: None).jobs) == 6
+    assert {p.name: p.read_bytes() for p in (out / "jobs").glob("*.json")} == raw
+    assert json.loads((copy / "jobs" / "fold0_base.json").read_text())["retimed"]["count"] == 1
+
     lines = []
     outcome = retime_sweep(out, measure=_fake_measure(2.0), log=lines.append)
     assert len(outcome.jobs) == 6 and any("metrics identical" in s for s in lines)
@@ -515,6 +524,10 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
     report = json.loads((out / "models" / "base_fold0_p70_report.json").read_text())
     assert report["quantized"]["timing"] == json.loads((out / "jobs" / "fold0_p70.json").read_text())["tflite"]["timing"]
     assert "re-measured with `--retime` for every job" in (out / "summary.md").read_text()
+    moved = tmp_path / "moved"
+    out.rename(moved)
+    again = cli("sweep", "--out", moved, "--report-only")
+    assert again.returncode == 0 and f"wrote {moved / 'summary.md'}" in again.stdout
 
 
 def test_smoke_sweep_on_a_local_ray_instance(tmp_path, frames, cli):

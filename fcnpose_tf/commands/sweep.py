@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--report-only and --retime exclude each other (--retime rebuilds the report too)")
     if args.report_only:
         result = write_report(args.out)
-        _print_tables(result)
+        _print_tables(result, args.out)
         return 0
     if args.retime:
         return _retime(args)
@@ -147,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
 
         load_from_args(args)
     outcome = run_sweep(config, executor)
-    _print_tables(outcome.report)
+    _print_tables(outcome.report, args.out)
     print(f"\n{len(outcome.done)} job(s) run, {len(outcome.skipped)} skipped as finished, "
           f"{len(outcome.failed)} failed" + (f", {len(outcome.not_run)} not run" if outcome.not_run else "")
           + f"; {outcome.seconds / 60:.1f} min")
@@ -161,9 +161,9 @@ def _retime(args: argparse.Namespace) -> int:
     from fcnpose_tf.tables import format_table
 
     outcome = retime_sweep(args.out, threads=args.threads, data=str(args.data) if args.data else None)
-    _print_tables(outcome.report)
+    _print_tables(outcome.report, args.out)
     rows = [[c["job"], c["section"], c["fps_before"], c["fps_after"],
-             None if not c["fps_before"] or not c["fps_after"] else round(c["fps_after"] / c["fps_before"], 2)]
+             None if not c["fps_before"] or not c["fps_after"] else f"{c['fps_after'] / c['fps_before']:.2f}"]
             for c in outcome.changes]
     print("\nFPS as the jobs measured it and as re-measured now (metrics identical)")
     print(format_table(["job", "model", "FPS before", "FPS now", "ratio"], rows))
@@ -171,7 +171,7 @@ def _retime(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_tables(report: dict) -> None:
+def _print_tables(report: dict, out: Path) -> None:
     tables = report["tables"]
     results = report["results"]
     cfg = results.config
@@ -183,5 +183,5 @@ def _print_tables(report: dict) -> None:
     missing = results.missing()
     if missing:
         print(f"\n{len(missing)} job(s) not finished yet: {', '.join(missing[:10])}{', ...' if len(missing) > 10 else ''}")
-    out = Path(cfg["out"])
+    out = Path(out)  # the folder given, not the one recorded in sweep.json (a copied or moved folder)
     print(f"\nwrote {out / 'summary.md'}, {out / 'tables'}/*.md|csv, {out / 'pck_vs_fps.png'}, {out / 'results.json'}")
