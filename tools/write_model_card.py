@@ -74,17 +74,19 @@ Every command uses `fcnpose_ur5.keras` when no model is given; `run`/`bench` tak
 
 ## Training
 
-- Data: `fcnpose-tf synth --n {train['num_frames']} --seed 0` (640 x 480), {train['split']} split:
+- Data: `fcnpose-tf synth --n {train['num_frames']} --seed 0` (640 x 480, the default workcell: scene seed 0, one
+  fixed camera, the arm in a new pose in every frame), {train['split']} split:
   {train['train_samples']} training samples ({train['augment_copies']} augmented copies per frame), {train['val_frames']} validation frames.
 - Adam (learning rate {cfg['learning_rate']}), batch {cfg['batch_size']}, binary cross-entropy with keypoint-disc pixels
-  weighted x{cfg.get('positive_weight', 1)} (`--positive-weight`, see docs/training.md), early stopping patience {cfg['patience']}.
+  weighted x{cfg.get('positive_weight', 1)} (`--positive-weight`, see docs/training.md), early stopping patience {cfg['patience']},
+  learning rate halved after {cfg.get('lr_patience', 0)} epochs without a better validation loss (0 = never).
 - Epochs run: {train['epochs_run']} (best: {train['best_epoch']}, validation loss {train['best_val_loss']:.5f}),
   {'stopped early' if train['stopped_early'] else f"epoch limit {cfg['epochs']}"}; training time {train['train_seconds'] / 60:.0f} min on 2 CPU cores.{init_line}
 - Retrain: `tools/train_baseline.sh` (one command; about 1.5 hours on 2 cores).
 
 ## Held-out figures
 
-{held['frames']} (`fcnpose-tf synth --n 100 --seed 1`, a seed never used for training).
+{held['frames']} (`fcnpose-tf synth --n 100 --seed 1`: the same workcell, poses from a seed never used for training).
 PCK normalised by max(w, h) of the ground-truth keypoints' bounding box; EPE in 640 x 480 frame pixels.
 
 | keypoint | PCK@0.5 | PCK@0.2 | PCK@0.05 | EPE px | missing |
