@@ -70,6 +70,8 @@ class CompressOptions:
             raise UserError(f"pruning rate must be in [0, 1) (e.g. 0.7 for 70%), got {self.rate!r}")
         if self.retrain_epochs < 0:
             raise UserError(f"retrain epochs must be >= 0, got {self.retrain_epochs}")
+        if self.augment_copies < 0:
+            raise UserError(f"augmented copies must be >= 0, got {self.augment_copies}")
 
 
 def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:

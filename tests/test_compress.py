@@ -65,6 +65,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
 
 @pytest.mark.parametrize("extra, message", [
     (["--lr-patience", "-1", "--rate", "0.5"], "learning-rate patience must be 0 (off) or more"),
+    (["--augment-copies", "-1", "--rate", "0.5"], "augmented copies must be >= 0"),
     (["--rate", "1.2"], "pruning rate must be in [0, 1)"),
     (["--rate", "-0.1"], "pruning rate must be in [0, 1)"),
     (["--rate", "0.5", "--data", "MISSING"], "MISSING: not found"),

@@ -50,6 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lr-patience", type=int, default=0, metavar="N",
                         help="while retraining, halve the learning rate after N epochs without a better validation "
                              "loss (again after N more; floor 1e-5); 0 keeps it constant, as the paper does")
+    parser.add_argument("--augment-copies", type=int, default=2, metavar="N",
+                        help="offline rotation/padding copies per retraining frame (the paper: 2)")
     parser.add_argument("--positive-weight", type=float,
                         help="keypoint-pixel weight of the retraining loss (default: the base model's, "
                              "from its NAME_train.json; else 1, the paper's plain BCE)")
@@ -75,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     options = CompressOptions(rate=args.rate, positive_weight=args.positive_weight, method=args.method,
                               strategy=args.strategy, quantize=args.quantize, retrain_epochs=args.retrain_epochs,
                               patience=args.patience, batch_size=args.batch_size, learning_rate=args.learning_rate,
-                              lr_patience=args.lr_patience, seed=args.seed, fold=args.fold, threads=args.threads)
+                              lr_patience=args.lr_patience, seed=args.seed, fold=args.fold, threads=args.threads,
+                              augment_copies=args.augment_copies)
     options.validate()
     if args.threads is not None and args.threads < 1:
         raise UserError(f"--threads must be at least 1, got {args.threads}")
