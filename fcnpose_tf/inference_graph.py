@@ -21,6 +21,7 @@ import tensorflow as tf
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.model import chain_layers
 
 __all__ = ["DepthToSpace", "UnsupportedGraphError", "describe_folds", "fold_kernel", "fold_upsampling",
            "foldable_pairs"]
@@ -92,30 +93,7 @@ def fold_kernel(kernel: np.ndarray, factor: int) -> np.ndarray:
 
 def _chain(model: keras.Model) -> list[keras.layers.Layer]:
     """The layers after the input, checked to form one unbranched chain."""
-    if not isinstance(model, keras.Model):
-        raise UnsupportedGraphError(f"expected a tf_keras Model, got {type(model).__name__}")
-    if not model.built or not getattr(model, "inputs", None):
-        raise UnsupportedGraphError(f"model {model.name} is not built: give it an input shape (keras.Input) first")
-    if len(model.inputs) != 1 or len(model.outputs) != 1:
-        raise UnsupportedGraphError(f"model {model.name} has {len(model.inputs)} inputs and {len(model.outputs)} "
-                                    "outputs; folding the upsampling handles a single-input, single-output chain")
-    layers = [layer for layer in model.layers if not isinstance(layer, keras.layers.InputLayer)]
-    if not isinstance(model, keras.Sequential):
-        config = model.get_config()
-        previous = config["input_layers"][0][0]
-        for entry in config["layers"]:
-            if entry["class_name"] == "InputLayer":
-                continue
-            nodes = entry["inbound_nodes"]
-            sources = [inbound[0] for node in nodes for inbound in node]
-            if len(nodes) != 1 or sources != [previous]:
-                raise UnsupportedGraphError(
-                    f"layer {entry['name']} reads {', '.join(sources) or 'nothing'} instead of only {previous}: "
-                    "folding the upsampling handles a plain chain without branches or skip connections")
-            previous = entry["name"]
-        if [out[0] for out in config["output_layers"]] != [previous]:
-            raise UnsupportedGraphError(f"model {model.name}: its output is not the end of its layer chain "
-                                        f"({previous})")
+    layers = chain_layers(model, "folding the upsampling", UnsupportedGraphError)
     for layer in layers:
         if isinstance(layer, keras.Model):
             raise UnsupportedGraphError(f"layer {layer.name} is a nested model; folding the upsampling handles a "

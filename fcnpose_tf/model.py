@@ -109,6 +109,43 @@ def conv_widths(model: keras.Model) -> tuple[int, ...]:
     return tuple(int(layer.filters) for layer in model.layers if isinstance(layer, keras.layers.Conv2D))
 
 
+def chain_layers(model: keras.Model, purpose: str, error: type[UserError] = UserError,
+                 check_layer=None) -> list[keras.layers.Layer]:
+    """The model's layers after its input, checked to form one unbranched single-input chain.
+
+    `purpose` completes the error messages ("filter pruning handles ..."); `error` is the
+    UserError subclass raised for a model that is not such a chain; `check_layer(layer)`, if
+    given, vets every layer before the wiring is checked (so an unsupported layer is named first).
+    """
+    if not isinstance(model, keras.Model):
+        raise error(f"expected a tf_keras Model, got {type(model).__name__} "
+                    "(models must be built with `import tf_keras as keras`)")
+    if not model.built or not getattr(model, "inputs", None):
+        raise error(f"model {model.name} is not built: give it an input shape (keras.Input) first")
+    if len(model.inputs) != 1 or len(model.outputs) != 1:
+        raise error(f"model {model.name} has {len(model.inputs)} inputs and {len(model.outputs)} outputs; "
+                    f"{purpose} handles a single-input, single-output chain")
+    layers = [layer for layer in model.layers if not isinstance(layer, keras.layers.InputLayer)]
+    for layer in layers if check_layer else ():
+        check_layer(layer)
+    if not isinstance(model, keras.Sequential):
+        # A functional model: every layer must read exactly the previous layer's only output.
+        config = model.get_config()
+        previous = config["input_layers"][0][0]
+        for entry in config["layers"]:
+            if entry["class_name"] == "InputLayer":
+                continue
+            nodes = entry["inbound_nodes"]
+            sources = [inbound[0] for node in nodes for inbound in node]
+            if len(nodes) != 1 or sources != [previous]:
+                raise error(f"layer {entry['name']} reads {', '.join(sources) or 'nothing'} instead of only "
+                            f"{previous}: {purpose} handles a plain chain without branches or skip connections")
+            previous = entry["name"]
+        if [out[0] for out in config["output_layers"]] != [previous]:
+            raise error(f"model {model.name}: its output is not the end of its layer chain ({previous})")
+    return layers
+
+
 def save_for_inference(model: keras.Model, path) -> None:
     """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count."""
     clone = keras.models.clone_model(model)

@@ -29,6 +29,7 @@ import numpy as np
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.model import chain_layers
 
 Rate = Union[float, int, Fraction, Decimal, str]
 
@@ -185,33 +186,7 @@ def _unsupported(layer: keras.layers.Layer, why: str = "") -> UserError:
 
 def _chain(model: keras.Model) -> list[keras.layers.Layer]:
     """The model's layers after its input, checked to form one unbranched chain of supported layers."""
-    if not isinstance(model, keras.Model):
-        raise UserError(f"expected a tf_keras Model, got {type(model).__name__} "
-                        "(models must be built with `import tf_keras as keras`)")
-    if not model.built or not getattr(model, "inputs", None):
-        raise UserError(f"model {model.name} is not built: give it an input shape (keras.Input) first")
-    if len(model.inputs) != 1 or len(model.outputs) != 1:
-        raise UserError(f"model {model.name} has {len(model.inputs)} inputs and {len(model.outputs)} outputs; "
-                        "filter pruning handles a single-input, single-output chain")
-    layers = [layer for layer in model.layers if not isinstance(layer, keras.layers.InputLayer)]
-    for layer in layers:
-        _check_supported(layer)
-    if not isinstance(model, keras.Sequential):
-        # A functional model: every layer must read exactly the previous layer's only output.
-        config = model.get_config()
-        previous = config["input_layers"][0][0]
-        for entry in config["layers"]:
-            if entry["class_name"] == "InputLayer":
-                continue
-            nodes = entry["inbound_nodes"]
-            sources = [inbound[0] for node in nodes for inbound in node]
-            if len(nodes) != 1 or sources != [previous]:
-                raise UserError(f"layer {entry['name']} reads {', '.join(sources) or 'nothing'} instead of only "
-                                f"{previous}: filter pruning handles a plain chain without branches "
-                                "or skip connections")
-            previous = entry["name"]
-        if [out[0] for out in config["output_layers"]] != [previous]:
-            raise UserError(f"model {model.name}: its output is not the end of its layer chain ({previous})")
+    layers = chain_layers(model, "filter pruning", check_layer=_check_supported)
     if not any(type(layer) is keras.layers.Conv2D for layer in layers):
         raise UserError(f"model {model.name} has no Conv2D layer to prune")
     return layers

@@ -1,7 +1,5 @@
 """TFLite export: what the converter writes (inspected in the flatbuffer), parity with Keras, refusal."""
 
-import math
-
 import numpy as np
 import pytest
 import tf_keras as keras
@@ -12,17 +10,7 @@ from fcnpose_tf.export import (ExportVerificationError, export_tflite, inspect_t
                                verify_tflite, write_tflite)
 from fcnpose_tf.model import build_fcn_pose
 from fcnpose_tf.prune import prune_model
-
-
-def randomize(model, seed=0):
-    rng = np.random.default_rng(seed)
-    for layer in model.layers:
-        weights = layer.get_weights()
-        if weights:
-            fan_in = np.prod(weights[0].shape[:-1])
-            layer.set_weights([rng.normal(0, math.sqrt(2 / fan_in), weights[0].shape).astype(np.float32)]
-                              + [rng.normal(0, 0.1, w.shape).astype(np.float32) for w in weights[1:]])
-    return model
+from weights import randomize
 
 
 def frames(size, n=2, seed=1):

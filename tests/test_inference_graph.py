@@ -1,7 +1,5 @@
 """fold_upsampling: the rewritten network computes what the original computes, and exports as DEPTH_TO_SPACE."""
 
-import math
-
 import numpy as np
 import pytest
 import tf_keras as keras
@@ -12,20 +10,9 @@ from fcnpose_tf.inference_graph import (DepthToSpace, UnsupportedGraphError, des
                                         fold_upsampling, foldable_pairs)
 from fcnpose_tf.model import DEFAULT_WIDTHS, build_fcn_pose
 from fcnpose_tf.prune import pruned_widths
+from weights import randomize
 
 L = keras.layers
-
-
-def randomize(model, seed=0):
-    """He-normal kernels and small non-zero biases, so maps are O(1) and not saturated."""
-    rng = np.random.default_rng(seed)
-    for layer in model.layers:
-        weights = layer.get_weights()
-        if weights:
-            fan_in = np.prod(weights[0].shape[:-1])
-            layer.set_weights([rng.normal(0, math.sqrt(2 / fan_in), weights[0].shape).astype(np.float32)]
-                              + [rng.normal(0, 0.1, w.shape).astype(np.float32) for w in weights[1:]])
-    return model
 
 
 def images(size, n=2, seed=1, channels=3):
