@@ -439,7 +439,7 @@ def plot_pck_vs_fps(results: SweepResults, path: str | Path, subtitle: str = "")
     log_x = bool(fps) and min(fps) > 0 and max(fps) / min(fps) > 8
     if log_x:  # Keras and TFLite, unpruned and 90%: an order of magnitude apart
         ax.set_xscale("log")
-        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 3.0, 5.0)))
         ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
         ax.xaxis.set_minor_formatter(NullFormatter())
     else:
@@ -477,8 +477,16 @@ def _place_labels(fig: Any, ax: Any, labels: list[tuple[str, float, float, str, 
         inside = frame.x0 <= box[0] and box[2] <= frame.x1 and frame.y0 <= box[1] and box[3] <= frame.y1
         return inside and all(box[2] <= o[0] or box[0] >= o[2] or box[3] <= o[1] or box[1] >= o[3] for o in taken)
 
+    renderer = fig.canvas.get_renderer()
+
+    def size(text: str) -> tuple[float, float]:  # the label's real extent in points, with 1.5 pt to spare
+        probe = ax.text(0, 0, text, fontsize=fontsize)
+        box = probe.get_window_extent(renderer)
+        probe.remove()
+        return box.width / scale + 1.5, box.height / scale
+
     for (text, x, y, color, side), (cx, cy) in zip(labels, centres):
-        w, h = 0.62 * fontsize * len(text), fontsize
+        w, h = size(text)
         options = [(5, 5), (5, -5 - h), (-5 - w, 5), (-5 - w, -5 - h), (5, 15), (5, -15 - h), (-5 - w, 15),
                    (-5 - w, -15 - h), (5, 25), (5, -25 - h)]
         if side < 0:  # TFLite labels prefer below their points, Keras above
