@@ -72,7 +72,7 @@ class SweepConfig:
     input_size: int = 224
     epochs: int = 60
     patience: int = 20
-    retrain_epochs: int = 15
+    retrain_epochs: int = 25  # = compress.DEFAULT_RETRAIN_EPOCHS, the CLI default (not imported: no numpy here)
     retrain_patience: int = 5
     batch_size: int = 8
     learning_rate: float = 1e-3
