@@ -11,6 +11,7 @@ import csv
 import io
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -22,7 +23,7 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
 from fcnpose_tf.sweep import Job, LocalExecutor, RayExecutor, SweepConfig, parse_rates, run_sweep, write_report
 from fcnpose_tf.sweep.jobs import base_model_path, file_sha256, job_path, plan_jobs
-from fcnpose_tf.sweep.rates import rate_label, rate_tag
+from fcnpose_tf.sweep.rates import parse_per_rate_epochs, rate_label, rate_tag
 
 # ------------------------------------------------------------------------------------------
 # Rate specifications
@@ -72,6 +73,30 @@ def test_bad_rate_specs_are_user_errors(spec, message):
     assert message in str(info.value)
 
 
+@pytest.mark.parametrize("spec, expected", [
+    ("25", (25, ())),
+    (" 10 , 0.6:0.9:0.1=40 ", (10, ((0.6, 40), (0.7, 40), (0.8, 40), (0.9, 40)))),
+    ("0.7=30,10,0.5=20", (10, ((0.5, 20), (0.7, 30)))),
+    ("0", (0, ())),
+])
+def test_per_rate_retraining_budgets(spec, expected):
+    assert parse_per_rate_epochs(spec) == expected
+
+
+@pytest.mark.parametrize("spec, message", [
+    ("x", "'x' is not a whole number of epochs"),
+    ("10,12", "two default epoch counts"),
+    ("0.6=40", "no default epoch count"),
+    ("10,0.6=-1", "epochs must be >= 0"),
+    ("10,0.6=4,0.6:0.7:0.1=5", "rate 60% is given 4 and 5 epochs"),
+    ("10,1.5=4", "--retrain-epochs '1.5': rate 1.5 is outside [0, 1)"),
+])
+def test_bad_per_rate_retraining_budgets(spec, message):
+    with pytest.raises(UserError) as info:
+        parse_per_rate_epochs(spec)
+    assert message in str(info.value)
+
+
 def test_job_names_and_labels():
     assert Job(3).name == "fold3_base" and Job(3).is_base
     assert Job(0, 0.7).name == "fold0_p70" and Job(1, 0.05).name == "fold1_p05" and Job(2, 0.0).name == "fold2_p00"
@@ -107,7 +132,7 @@ def fake_record(config: SweepConfig, job: Job, offset: float = 0.0) -> dict:
     rate = 0.0 if job.is_base else job.rate
     pck, fps, params, tfl_fps = PAPER.get(rate, (0.95, 20.0, 50000, 60.0))
     record = {"record_version": 1, "job": job.name, "kind": "base" if job.is_base else "rate", "fold": job.fold,
-              "rate": job.rate, "config_key": config.key(), "eval_frames": 5, "seconds": 1.5,
+              "rate": job.rate, "config_key": config.job_key(job), "eval_frames": 5, "seconds": 1.5,
               "machine": {"hostname": "h", "cpu_model": "Test CPU", "cpu_cores": 2, "threads": config.threads},
               "keras": _step(min(1.0, pck + offset), fps * (1 + offset), params)}
     if job.is_base:
@@ -296,6 +321,43 @@ def test_other_settings_in_the_same_folder_are_refused_unless_forced(tmp_path, f
     forced = SweepConfig(**{**changed.to_dict(), "rates": changed.rates, "force": True})
     outcome = run_sweep(forced, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
     assert len(outcome.done) == 6 and json.loads((tmp_path / "res" / "sweep.json").read_text())["config"]["epochs"] == 5
+
+
+def test_per_rate_retraining_budget_is_each_jobs_own_setting(tmp_path, frames):
+    out = tmp_path / "res"
+    config = _config(out, frames, retrain_epochs=1, retrain_epochs_by_rate=((0.7, 3),))
+    assert (config.retrain_epochs_at(0.5), config.retrain_epochs_at(0.7)) == (1, 3)
+    run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    keys = {p.stem: json.loads(p.read_text())["config_key"] for p in (out / "jobs").glob("*.json")}
+    assert keys["fold0_p50"]["retrain_epochs"] == 1 and keys["fold1_p70"]["retrain_epochs"] == 3
+    assert "retrain_epochs" not in keys["fold0_base"]  # a base model does not depend on retraining
+    assert "retraining up to 1 epoch (3 at 70%)" in (out / "summary.md").read_text()
+    assert json.loads((out / "sweep.json").read_text())["config"]["retrain_epochs_by_rate"] == [[0.7, 3]]
+    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert again.done == [] and len(again.skipped) == 6
+
+    # The same folder refuses another budget for a rate it ran; adding a rate with its own budget is fine
+    with pytest.raises(UserError, match=r"other settings \(retrain_epochs at 70% 3 -> 1\)"):
+        run_sweep(_config(out, frames, retrain_epochs=1), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    more = run_sweep(_config(out, frames, rates="0.7,0.9", retrain_epochs=1, retrain_epochs_by_rate=((0.7, 3), (0.9, 5))),
+                     LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert sorted(more.done) == ["fold0_p90", "fold1_p90"]
+
+    # Longer retraining for some rates in a new folder that reuses the base models and the other rates' jobs
+    longer = tmp_path / "longer"
+    for sub in ("jobs", "models"):
+        (longer / sub).mkdir(parents=True)
+    for name in ("fold0_base", "fold1_base", "fold0_p50", "fold1_p50"):
+        shutil.copy(out / "jobs" / f"{name}.json", longer / "jobs")
+    for model in (out / "models").glob("base_fold*.keras"):
+        shutil.copy(model, longer / "models")
+    redo = run_sweep(_config(longer, frames, retrain_epochs=1, retrain_epochs_by_rate=((0.7, 8),)), LocalExecutor(),
+                     job_fn=fake_job, log=lambda s: None)
+    assert sorted(redo.done) == ["fold0_p70", "fold1_p70"] and len(redo.skipped) == 4
+    assert json.loads((longer / "jobs" / "fold0_p70.json").read_text())["config_key"]["retrain_epochs"] == 8
+
+    with pytest.raises(UserError, match=r"budget for 80%, which --rates \(50%, 70%\) does not include"):
+        _config(out, frames, retrain_epochs_by_rate=((0.8, 3),)).validate()
 
 
 def test_lr_patience_is_a_result_setting_and_folders_older_than_it_still_match(tmp_path, frames):

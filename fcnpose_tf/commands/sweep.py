@@ -21,6 +21,7 @@ EXAMPLES = """\
   fcnpose-tf sweep --rates 0.1:0.9:0.1 --folds 5 --out results/          # the paper's nine rates, 5-fold CV
   fcnpose-tf sweep --rates full,0.5,0.7 --epochs 30 --retrain-epochs 10  # plus the unpruned TFLite row
   fcnpose-tf sweep --rates 0.5,0.7 --folds 2 --epochs 2 --retrain-epochs 1 --input-size 64   # a smoke test
+  fcnpose-tf sweep --retrain-epochs 10,0.6:0.9:0.1=40                     # 40 retraining epochs from 60% up
   fcnpose-tf sweep --workers 2 --out results/                             # 2 local processes, 1 thread each
   fcnpose-tf sweep --executor ray --num-cpus 8 --threads 2                # a local Ray instance, 4 tasks at once
   fcnpose-tf sweep --executor ray --address auto --data /shared/ur5 --out /shared/results   # a Ray cluster
@@ -45,8 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     train.add_argument("--epochs", type=int, default=60,
                        help="base-model epochs, with early stopping (the paper: up to 500, converging near 60)")
     train.add_argument("--patience", type=int, default=20, help="early-stopping patience of the base models")
-    train.add_argument("--retrain-epochs", type=int, default=DEFAULT_RETRAIN_EPOCHS,
-                       help="retraining epochs after pruning, with early stopping (the paper: up to 100)")
+    train.add_argument("--retrain-epochs", default=DEFAULT_RETRAIN_EPOCHS, metavar="E[,RATES=E]",
+                       help="retraining epochs after pruning, with early stopping (the paper: up to 100); "
+                            "RATES=E items give some rates their own budget, e.g. 10,0.6:0.9:0.1=40 "
+                            "(heavier pruning needs longer to converge)")
     train.add_argument("--retrain-patience", type=int, default=5, help="early-stopping patience while retraining")
     train.add_argument("--input-size", type=int, default=224, help="model input side, a multiple of 32")
     train.add_argument("--batch-size", type=int, default=8)
@@ -116,6 +119,7 @@ def make_executor(args: argparse.Namespace, threads: int):
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import synthcache
     from fcnpose_tf.sweep import SweepConfig, parse_rates, run_sweep, write_report
+    from fcnpose_tf.sweep.rates import parse_per_rate_epochs
 
     if args.report_only and args.retime:
         from fcnpose_tf.errors import UserError
@@ -128,6 +132,7 @@ def run(args: argparse.Namespace) -> int:
     if args.retime:
         return _retime(args)
     rates = parse_rates(args.rates)
+    retrain_epochs, retrain_epochs_by_rate = parse_per_rate_epochs(args.retrain_epochs)
     threads = resolve_threads(args)
     executor = make_executor(args, threads)
     parallel = args.workers > 1 or args.executor == "ray"
@@ -137,7 +142,8 @@ def run(args: argparse.Namespace) -> int:
         out=str(args.out), data=str(args.data), images=str(args.images) if args.images else None,
         keypoint_attr=args.keypoint_attr, min_visible=args.min_visible, skip_bad=args.skip_bad,
         split_seed=args.split_seed, folds=args.folds, rates=rates, input_size=args.input_size, epochs=args.epochs,
-        patience=args.patience, retrain_epochs=args.retrain_epochs, retrain_patience=args.retrain_patience,
+        patience=args.patience, retrain_epochs=retrain_epochs,
+        retrain_epochs_by_rate=retrain_epochs_by_rate, retrain_patience=args.retrain_patience,
         batch_size=args.batch_size, learning_rate=args.learning_rate, lr_patience=args.lr_patience,
         positive_weight=args.positive_weight,
         augment_copies=args.augment_copies, seed=args.seed, threads=threads,

@@ -22,7 +22,8 @@ from fcnpose_tf.fileio import write_json
 from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.executors import Executor, JobFunction
 from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, SweepConfig, file_sha256, job_path, load_data,
-                                   normalize_key, plan_jobs, read_record, run_job, splits_sha256)
+                                   normalize_key, plan_jobs, read_record, record_matches, retrain_epochs_at,
+                                   run_job, splits_sha256)
 from fcnpose_tf.sweep.rates import rate_label
 
 
@@ -54,9 +55,23 @@ def prepare_config(config: SweepConfig) -> tuple[SweepConfig, int]:
     return config, len(dataset)
 
 
-def _differences(old: dict[str, Any], new: dict[str, Any]) -> list[str]:
-    old, new = normalize_key(old), normalize_key(new)
-    return [f"{name} {old.get(name)!r} -> {new.get(name)!r}" for name in KEY_FIELDS if old.get(name) != new.get(name)]
+def _differences(old: dict[str, Any], config: SweepConfig) -> list[str]:
+    """Settings of the stored sweep `old` (its config document) that `config` changes.
+
+    The retraining budget is compared rate by rate, for the rates `old` ran: adding a rate with
+    its own budget is not a change.
+    """
+    old_key, new = normalize_key({name: old.get(name) for name in KEY_FIELDS if name in old}), config.key()
+    diffs = [f"{name} {old_key.get(name)!r} -> {new.get(name)!r}" for name in KEY_FIELDS
+             if name != "retrain_epochs" and old_key.get(name) != new.get(name)]
+    for rate in old.get("rates", ()):
+        if float(rate) == 0:
+            continue
+        before = retrain_epochs_at(float(rate), old["retrain_epochs"], old.get("retrain_epochs_by_rate", ()))
+        after = config.retrain_epochs_at(float(rate))
+        if before != after:
+            diffs.append(f"retrain_epochs at {rate_label(float(rate))} {before} -> {after}")
+    return diffs
 
 
 def finished_jobs(config: SweepConfig, jobs: list[Job]) -> set[str]:
@@ -68,7 +83,7 @@ def finished_jobs(config: SweepConfig, jobs: list[Job]) -> set[str]:
     done: set[str] = set()
     for job in jobs:
         rec = records[job.name]
-        if rec is None or normalize_key(rec.get("config_key")) != key:
+        if not record_matches(rec, key, config.retrain_epochs_by_rate):
             continue
         if job.is_base:
             model = Path(config.out) / rec.get("files", {}).get("keras", "")
@@ -108,7 +123,7 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
     rates = tuple(config.rates)
     if sweep_path.is_file():
         previous = _report.read_sweep(out)
-        diffs = _differences(previous["config"], config.key())
+        diffs = _differences(previous["config"], config)
         if diffs and not config.force:
             raise UserError(f"{out}: holds a sweep with other settings ({'; '.join(diffs)}); use another --out, "
                             "or pass --force to redo every job with the new settings")

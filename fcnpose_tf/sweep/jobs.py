@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_tag
+from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
 
 RECORD_VERSION = 1
 JOBS_DIR = "jobs"
@@ -43,12 +43,50 @@ KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "
 KEY_DEFAULTS = {"lr_patience": 0}
 """Key fields added after results folders existed, with the value older folders were made with."""
 
+RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience")
+"""Key fields that only matter to jobs that retrain (a rate above 0): a base job or the unpruned export
+keeps its record when they change."""
+
 
 def normalize_key(key: dict[str, Any] | None) -> dict[str, Any] | None:
     """A stored config key with the fields it predates filled in (so older folders still match)."""
     if not isinstance(key, dict):
         return key
     return {**{name: value for name, value in KEY_DEFAULTS.items() if name not in key}, **key}
+
+
+def retrain_epochs_at(rate: float | None, default: int, by_rate: Any = ()) -> int:
+    """The retraining budget of `rate`: its entry in `by_rate` ((rate, epochs) pairs), else `default`."""
+    for r, epochs in by_rate or ():
+        if rate is not None and rate_percent(float(r)) == rate_percent(rate):
+            return int(epochs)
+    return int(default)
+
+
+def job_key(key: dict[str, Any], rate: float | None, by_rate: Any = ()) -> dict[str, Any]:
+    """What a job of `rate` (None: base job) must have been run with, from the sweep's `key`.
+
+    The retraining budget is the rate's own (`by_rate` overrides the default); jobs that do not
+    retrain (base, rate 0) leave the retraining fields out, so changing them keeps those jobs.
+    """
+    key = dict(normalize_key(key))
+    if rate is None or rate_percent(rate) == 0:
+        for name in RETRAINING_FIELDS:
+            key.pop(name, None)
+    else:
+        key["retrain_epochs"] = retrain_epochs_at(rate, key["retrain_epochs"], by_rate)
+    return key
+
+
+def record_matches(record: dict[str, Any] | None, key: dict[str, Any], by_rate: Any = ()) -> bool:
+    """Whether a job record was made with the settings `key` (+ per-rate budgets) asks of its job."""
+    if not isinstance(record, dict) or not isinstance(record.get("config_key"), dict):
+        return False
+    rate = None if record.get("kind") == "base" else record.get("rate")
+    stored = normalize_key(record["config_key"])
+    if rate is None or rate_percent(float(rate)) == 0:
+        stored = {k: v for k, v in stored.items() if k not in RETRAINING_FIELDS}
+    return stored == job_key(key, None if rate is None else float(rate), by_rate)
 
 
 @dataclass(frozen=True)
@@ -73,6 +111,9 @@ class SweepConfig:
     epochs: int = 60
     patience: int = 20
     retrain_epochs: int = 25  # = compress.DEFAULT_RETRAIN_EPOCHS, the CLI default (not imported: no numpy here)
+    retrain_epochs_by_rate: tuple[tuple[float, int], ...] = ()
+    """(rate, epochs) pairs overriding `retrain_epochs` for those rates (`--retrain-epochs 10,0.6:0.9:0.1=40`):
+    heavier pruning may need longer retraining to converge."""
     retrain_patience: int = 5
     batch_size: int = 8
     learning_rate: float = 1e-3
@@ -94,9 +135,17 @@ class SweepConfig:
         """The result-affecting settings (KEY_FIELDS) that every job record carries."""
         return {name: getattr(self, name) for name in KEY_FIELDS}
 
+    def job_key(self, job: "Job") -> dict[str, Any]:
+        """The settings `job`'s record carries (its own retraining budget; none for jobs that do not retrain)."""
+        return job_key(self.key(), job.rate, self.retrain_epochs_by_rate)
+
+    def retrain_epochs_at(self, rate: float) -> int:
+        return retrain_epochs_at(rate, self.retrain_epochs, self.retrain_epochs_by_rate)
+
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["rates"] = list(self.rates)
+        data["retrain_epochs_by_rate"] = [list(pair) for pair in self.retrain_epochs_by_rate]
         return data
 
     def validate(self) -> None:
@@ -107,6 +156,8 @@ class SweepConfig:
                   (self.epochs >= 1, f"--epochs must be at least 1, got {self.epochs}"),
                   (self.patience >= 1, f"--patience must be at least 1, got {self.patience}"),
                   (self.retrain_epochs >= 0, f"--retrain-epochs must be >= 0, got {self.retrain_epochs}"),
+                  (all(int(e) >= 0 for _, e in self.retrain_epochs_by_rate),
+                   "--retrain-epochs: every per-rate budget must be >= 0"),
                   (self.retrain_patience >= 1, f"--retrain-patience must be at least 1, got {self.retrain_patience}"),
                   (self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),
                   (self.learning_rate > 0, f"--learning-rate must be positive, got {self.learning_rate}"),
@@ -118,6 +169,11 @@ class SweepConfig:
         for ok, message in checks:
             if not ok:
                 raise UserError(message)
+        stray = [r for r, _ in self.retrain_epochs_by_rate
+                 if rate_percent(r) not in {rate_percent(x) for x in self.rates}]
+        if stray:
+            raise UserError(f"--retrain-epochs gives a budget for {', '.join(rate_label(r) for r in stray)}, which "
+                            f"--rates ({', '.join(rate_label(r) for r in self.rates)}) does not include")
 
 
 @dataclass(frozen=True, order=True)
@@ -317,7 +373,7 @@ def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
         keras.backend.clear_session()
         gc.collect()
     record = {"record_version": RECORD_VERSION, "job": job.name, "kind": "base" if job.is_base else "rate",
-              "fold": job.fold, "rate": job.rate, "config_key": config.key(), **body,
+              "fold": job.fold, "rate": job.rate, "config_key": config.job_key(job), **body,
               "seconds": round(time.perf_counter() - start, 1),
               "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
               "machine": machine_info(config.threads), "tensorflow_threads": tf_threads,
@@ -430,7 +486,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         raise UserError(f"{base}: fold {job.fold}'s base model is missing (its base job must finish first)")
     _, val_idx = dataset.split(job.fold)
     base_sha256 = file_sha256(base)
-    options = CompressOptions(rate=float(job.rate), retrain_epochs=0 if job.rate == 0 else config.retrain_epochs,
+    options = CompressOptions(rate=float(job.rate), retrain_epochs=0 if job.rate == 0 else config.retrain_epochs_at(job.rate),
                               patience=config.retrain_patience, batch_size=config.batch_size,
                               learning_rate=config.learning_rate, augment_copies=config.augment_copies,
                               seed=config.seed, fold=job.fold, threads=config.threads,

@@ -103,3 +103,66 @@ def rate_tag(rate: float) -> str:
 def rate_label(rate: float | None) -> str:
     """Table label: "full" for the unpruned model (None or 0), else "70%"."""
     return "full" if rate is None or rate_percent(rate) == 0 else f"{rate_percent(rate)}%"
+
+
+def parse_per_rate_epochs(spec: str | int, option: str = "--retrain-epochs") -> tuple[int, tuple[tuple[float, int], ...]]:
+    """Read an epoch budget that may differ by rate: ``10`` or ``10,0.6:0.9:0.1=40``.
+
+    Args:
+        spec: comma-separated items: one plain count (the default for every rate) and any number
+            of ``RATES=COUNT`` items, RATES being a rate or a range as `parse_rates` reads them.
+        option: the option's name, for messages.
+    Returns:
+        (default, overrides): the overrides as sorted (rate, count) pairs, one per rate.
+    Raises:
+        UserError: no or two defaults, a count that is not a whole number >= 0, a bad rate, or a
+            rate given two counts.
+    Example:
+        >>> parse_per_rate_epochs("10,0.6:0.7:0.1=40")
+        (10, ((0.6, 40), (0.7, 40)))
+    """
+    if isinstance(spec, int):
+        return spec, ()
+    default: int | None = None
+    overrides: dict[float, int] = {}
+    for raw in str(spec).split(","):
+        item = raw.strip()
+        rates_text, sep, count_text = item.rpartition("=")
+        try:
+            count = int(count_text.strip())
+        except ValueError:
+            raise UserError(f"{option} {spec!r}: {count_text.strip()!r} is not a whole number of epochs (expected "
+                            "e.g. 25 or 10,0.6:0.9:0.1=40)") from None
+        if count < 0:
+            raise UserError(f"{option} {spec!r}: epochs must be >= 0, got {count}")
+        if not sep:
+            if default is not None:
+                raise UserError(f"{option} {spec!r}: two default epoch counts ({default} and {count}); give one, "
+                                "then RATES=EPOCHS items")
+            default = count
+            continue
+        try:
+            rates = parse_rates(rates_text)
+        except UserError as exc:
+            raise UserError(str(exc).replace("--rates", option, 1)) from None
+        for rate in rates:
+            if rate in overrides and overrides[rate] != count:
+                raise UserError(f"{option} {spec!r}: rate {rate_label(rate)} is given {overrides[rate]} and {count} "
+                                "epochs")
+            overrides[rate] = count
+    if default is None:
+        raise UserError(f"{option} {spec!r}: no default epoch count; start with one, e.g. 10,0.6:0.9:0.1=40")
+    return default, tuple(sorted(overrides.items()))
+
+
+def describe_per_rate(default: int, overrides) -> str:
+    """"10 epochs (40 at 60%, 70%)": a per-rate epoch budget, for headers and logs."""
+    groups: dict[int, list[float]] = {}
+    for rate, count in overrides:
+        if count != default:
+            groups.setdefault(int(count), []).append(float(rate))
+    text = f"{default} epoch" + ("" if default == 1 else "s")
+    if groups:
+        text += " (" + "; ".join(f"{count} at {', '.join(rate_label(r) for r in sorted(rates))}"
+                                 for count, rates in sorted(groups.items())) + ")"
+    return text

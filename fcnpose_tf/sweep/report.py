@@ -29,7 +29,7 @@ from typing import Any, Iterable, Sequence
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import atomic_path, write_json, write_text
 from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, machine_info, plan_jobs, read_record
-from fcnpose_tf.sweep.rates import rate_label
+from fcnpose_tf.sweep.rates import describe_per_rate, rate_label
 
 SWEEP_FILE = "sweep.json"
 TABLE_NAMES = ("folds", "pruning", "requirements", "quantization")
@@ -226,13 +226,14 @@ def collect(out: str | Path, config: dict[str, Any]) -> SweepResults:
     Records of another configuration (a sweep redone with --force and other settings) are
     listed in `ignored`, not mixed in.
     """
-    from fcnpose_tf.sweep.jobs import KEY_DEFAULTS, KEY_FIELDS, normalize_key
+    from fcnpose_tf.sweep.jobs import KEY_DEFAULTS, KEY_FIELDS, record_matches
 
     key = {name: config.get(name, KEY_DEFAULTS.get(name)) for name in KEY_FIELDS}
+    by_rate = config.get("retrain_epochs_by_rate", ())
     results = SweepResults(config)
     for path in sorted((Path(out) / JOBS_DIR).glob("*.json")):
         record = read_record(path)
-        if record is None or normalize_key(record.get("config_key")) != key:
+        if record is None or not record_matches(record, key, by_rate):
             results.ignored.append(path.name)
             continue
         fold = int(record["fold"])
@@ -580,7 +581,8 @@ def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: d
         f"- **Data**: `{cfg['data']}` ({cfg.get('num_frames', '?')} frames), {cfg['folds']}-fold cross-validation "
         f"(split seed {cfg['split_seed']}), {cfg['augment_copies']} augmented copies per training frame",
         f"- **Training**: input {cfg['input_size']}x{cfg['input_size']}, base models up to {_epochs(cfg['epochs'])} "
-        f"(patience {cfg['patience']}), retraining up to {_epochs(cfg['retrain_epochs'])} (patience "
+        f"(patience {cfg['patience']}), retraining up to "
+        f"{describe_per_rate(cfg['retrain_epochs'], cfg.get('retrain_epochs_by_rate', ()))} (patience "
         f"{cfg['retrain_patience']}), batch {cfg['batch_size']}, Adam {cfg['learning_rate']:g}"
         + (f" halved after {_epochs(cfg['lr_patience'])} without a better validation loss (floor 1e-5)"
            if cfg.get("lr_patience") else "") + ", "
