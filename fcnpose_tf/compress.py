@@ -159,12 +159,13 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     out_dir = Path(out_dir)
     names = output_names(base_path.stem, options)
     paths = {k: out_dir / v for k, v in names.items() if k != "stem"}
-    for path in paths.values():
-        check_writable(path, force)
     base = load_model(base_path)
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
+    surgery = prune_model(base, options.rate, strategy=options.strategy)  # an unsupported layer fails here, first
+    for path in paths.values():
+        check_writable(path, force)
     input_size = int(base.input_shape[1])
     steps = 6
     print(f"[1/{steps}] base model {base_path} ({input_size}x{input_size})", flush=True)
@@ -195,9 +196,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         report["retrain_data"] = {"data": str(train_dataset.via_path), "fold": fold,
                                   "train_samples": len(train_data), "val_frames": len(val_data)}
     if options.method == "l1":
-        pruned = prune_model(base, options.rate, strategy=options.strategy)
+        pruned = surgery
     else:
-        sparsity = 1.0 - model_facts(prune_model(base, options.rate))["params"] / base_facts["params"]
+        sparsity = 1.0 - model_facts(surgery)["params"] / base_facts["params"]
         report["magnitude_sparsity"] = round(sparsity, 6)
 
         def train_fn(wrapped: keras.Model, callbacks: list) -> None:
@@ -284,27 +285,26 @@ def _loss_name(model: Any) -> str:
     return str(getattr(loss, "name", loss))
 
 
-def _fmt(value: Any, digits: int = 3) -> Any:
-    if value is None:
-        return None
-    return round(float(value), digits)
-
-
 def report_table(report: dict[str, Any]) -> str:
-    """The compression report as a table: the unpruned model beside each step of the compressed one."""
+    """The compression report as a table: the unpruned model beside each step of the compressed one.
+
+    Sizes are of the file each row's model ships as (.h5 for Keras, .tflite), in KB (1000 bytes);
+    "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
+    """
     from fcnpose_tf.tables import format_table
 
     def row(label: str, step: dict, size_key: str) -> list:
         m = step["metrics"]
         t = step.get("timing")
-        return [label, step["params"], round(step["macs"] / 1e6, 1), _fmt(step.get(size_key, 0) / 1e6, 3)
-                if step.get(size_key) else None,
-                _fmt(m["pck@0.5_bbox"]), _fmt(m["pck@0.2_bbox"]), _fmt(m["pck@0.05_bbox"]), _fmt(m["epe_px"], 2),
-                _fmt(t["inference_ms"]["mean"], 2) if t else None, _fmt(t["fps"], 1) if t else None]
+        size = step.get(size_key) if size_key else None
+        return [label, step["params"], step["macs"] / 1e6, size / 1e3 if size else None,
+                m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
+                t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
 
-    rows = [row("unpruned (Keras)", report["base"], "h5_size_bytes"),
+    quantize = report["options"]["quantize"]
+    rows = [row("unpruned (Keras, .h5)", report["base"], "h5_size_bytes"),
             row("pruned, before retraining", report["pruned_before_retraining"], ""),
-            row("pruned + retrained (Keras)", report["retrained"], "h5_size_bytes"),
-            row(f"{report['options']['quantize']} TFLite", report["quantized"], "tflite_size_bytes")]
-    return format_table(["model", "params", "MMACs", "size MB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
-                         "infer ms", "FPS"], rows)
+            row("pruned + retrained (Keras, .h5)", report["retrained"], "h5_size_bytes"),
+            row(f"{quantize} TFLite (.tflite)", report["quantized"], "tflite_size_bytes")]
+    return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
+                         "infer ms", "FPS e2e"], rows, digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])

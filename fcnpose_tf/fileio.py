@@ -36,6 +36,19 @@ def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
 
 
 @contextlib.contextmanager
+def removed_if_left_empty(folder: str | os.PathLike) -> Iterator[Path]:
+    """Run a block that may create `folder`; if the block fails and leaves it created but empty, remove it."""
+    folder = Path(folder)
+    existed = folder.exists()
+    try:
+        yield folder
+    except BaseException:
+        if not existed and folder.is_dir() and not any(folder.iterdir()):
+            folder.rmdir()
+        raise
+
+
+@contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; on success rename it to `path`, on error delete it.
 

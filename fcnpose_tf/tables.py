@@ -5,9 +5,11 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 
-def _cell(value: Any) -> str:
+def _cell(value: Any, digits: int | None = None) -> str:
     if value is None:
         return "-"
+    if isinstance(value, float) and digits is not None:
+        return f"{value:,.{digits}f}"
     if isinstance(value, float):
         return f"{value:.4g}" if abs(value) < 1e4 else f"{value:,.0f}"
     if isinstance(value, int) and not isinstance(value, bool):
@@ -15,9 +17,14 @@ def _cell(value: Any) -> str:
     return str(value)
 
 
-def format_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], markdown: bool = False) -> str:
-    """Align rows under headers; numbers right-aligned, ints with thousands separators."""
-    cells = [[_cell(v) for v in row] for row in rows]
+def format_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], markdown: bool = False,
+                 digits: Sequence[int | None] | None = None) -> str:
+    """Align rows under headers; numbers right-aligned, ints with thousands separators.
+
+    `digits` gives a column's floats a fixed number of decimals (None: 4 significant digits).
+    """
+    digits = list(digits or []) + [None] * (len(headers) - len(digits or []))
+    cells = [[_cell(v, d) for v, d in zip(row, digits)] for row in rows]
     numeric = [all(isinstance(row[i], (int, float)) or row[i] is None for row in rows) if rows else False
                for i in range(len(headers))]
     widths = [max([len(h)] + [len(r[i]) for r in cells]) for i, h in enumerate(headers)]

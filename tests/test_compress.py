@@ -35,6 +35,12 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
         assert "pck@0.05_bbox" in report[step]["metrics"]
     assert report["quantized"]["timing"]["threads"] == 1
     assert "14,668" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
+    # the table: sizes of each row's own file in KB, PCK always with 3 decimals, FPS labelled end to end
+    header = next(line for line in proc.stdout.splitlines() if line.startswith("model "))
+    assert "size KB" in header and "FPS e2e" in header
+    tflite_row = next(line for line in proc.stdout.splitlines() if line.startswith("float16 TFLite (.tflite)"))
+    assert f"{report['quantized']['tflite_size_bytes'] / 1e3:.1f}" in tflite_row
+    assert f"{report['quantized']['metrics']['pck@0.05_bbox']:.3f}" in tflite_row
     # --lr-patience reaches the retraining's FitConfig; the base model has no record: plain BCE
     assert report["options"]["lr_patience"] == 3
     assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 3
@@ -78,7 +84,7 @@ def test_bad_input_leaves_nothing(setup, cli, extra, message):
         args += ["--data", data]
     proc = cli(*args)
     assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
-    assert not out.exists() or not any(out.iterdir())
+    assert not out.exists()  # not even an empty folder
 
 
 def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
@@ -95,7 +101,8 @@ def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
     out = tmp_path / "out"
     proc = cli("compress", "--rate", "0.5", "--model", odd, "--data", data, "--retrain-epochs", "0", "--out-dir", out)
     assert proc.returncode == 2 and "unsupported layer" in proc.stderr and "Traceback" not in proc.stderr
-    assert not out.exists() or not any(out.iterdir())
+    assert "[1/6]" not in proc.stdout  # refused before measuring or preparing anything
+    assert not out.exists()
     blocker = tmp_path / "file"
     blocker.write_text("x")
     proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--out-dir", blocker)

@@ -39,3 +39,26 @@ def test_unwritable_folder(tmp_path):
     blocker.write_text("x")
     with pytest.raises(UserError, match="cannot create output folder"):
         write_text(blocker / "out.txt", "y")
+
+
+def test_a_folder_a_failed_block_created_is_removed_only_when_left_empty(tmp_path):
+    from fcnpose_tf.fileio import removed_if_left_empty
+
+    made = tmp_path / "made"
+    with pytest.raises(KeyboardInterrupt):
+        with removed_if_left_empty(made):
+            made.mkdir()
+            raise KeyboardInterrupt
+    assert not made.exists()
+    with pytest.raises(RuntimeError):  # something was written: kept
+        with removed_if_left_empty(made):
+            made.mkdir()
+            (made / "checkpoint").write_text("x")
+            raise RuntimeError("late failure")
+    assert (made / "checkpoint").is_file()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    with pytest.raises(RuntimeError):  # existed before: never removed, even empty
+        with removed_if_left_empty(mine):
+            raise RuntimeError("x")
+    assert mine.is_dir()

@@ -45,7 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--strategy", choices=("independent", "greedy"), default="independent",
                         help="L1 ranking on the original kernels, or after removing pruned inputs (Li et al.)")
     parser.add_argument("--fold", type=int, metavar="k", help="retrain on fold k instead of the base model's split")
-    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--batch-size", type=int, default=8, help="retraining batch size")
     parser.add_argument("--learning-rate", type=float, default=1e-3)
     parser.add_argument("--lr-patience", type=int, default=0, metavar="N",
                         help="while retraining, halve the learning rate after N epochs without a better validation "
@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--positive-weight", type=float,
                         help="keypoint-pixel weight of the retraining loss (default: the base model's, "
                              "from its NAME_train.json; else 1, the paper's plain BCE)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the retraining's shuffling and augmentation")
     parser.add_argument("--threads", type=int, help="threads for training and timing (default: all cores)")
     parser.add_argument("--force", action="store_true", help="replace existing output files")
 
@@ -68,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import set_tensorflow_threads
+    from fcnpose_tf.fileio import removed_if_left_empty
+    from fcnpose_tf.system import available_cores
 
     model_path = args.model or baseline_model()
     if args.positive_weight is None:
@@ -102,9 +104,10 @@ def run(args: argparse.Namespace) -> int:
         eval_dataset = train_dataset
         _, val = train_dataset.split(args.fold)
         eval_indices, description = [int(i) for i in val], f"{len(val)} validation frames of {train_dataset.via_path}"
-    report = compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, options,
-                            force=args.force, eval_description=description)
-    threads = args.threads if args.threads is not None else "all"
+    with removed_if_left_empty(args.out_dir):
+        report = compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, options,
+                                force=args.force, eval_description=description)
+    threads = args.threads if args.threads is not None else f"all {available_cores()}"
     print(f"\nCompression at rate {args.rate:g} ({args.method}); measured on {description}; "
           f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
     print(report_table(report))

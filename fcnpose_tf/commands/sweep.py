@@ -90,7 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def resolve_threads(args: argparse.Namespace) -> int:
     """Threads per job: --threads, else all cores (sequential), cores / workers, or 1 per Ray task."""
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.sweep.jobs import available_cores
+    from fcnpose_tf.system import available_cores
 
     if args.threads is not None:
         if args.threads < 1:

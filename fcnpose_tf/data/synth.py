@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.system import available_cores
 from fcnpose_tf.keypoints import UR5
 
 PI = math.pi
@@ -1796,10 +1797,7 @@ def _render_and_write(task: tuple[int, int, int, int, str, float, str, int]) -> 
 
 def default_workers() -> int:
     """Cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
+    return available_cores()
 
 
 def _prepare_output(out_dir: Path, force: bool) -> Path:

@@ -19,6 +19,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.metrics import conv_macs
+from fcnpose_tf.system import available_cores
 
 BACKENDS: tuple[str, ...] = ("ai_edge_litert", "tflite_runtime", "tensorflow")
 """Interpreter providers in the order `auto` tries them."""
@@ -86,10 +87,7 @@ def find_backend(preferred: str = "auto") -> Backend:
 
 def default_num_threads() -> int:
     """CPU cores this process may run on (the interpreter's default thread count here)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
+    return available_cores()
 
 
 def check_tflite_file(path: str | os.PathLike) -> Path:

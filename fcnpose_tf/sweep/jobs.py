@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.system import available_cores
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
 
 RECORD_VERSION = 1
@@ -245,14 +246,6 @@ def cpu_model() -> str:
     except OSError:
         pass
     return platform.processor() or platform.machine() or "unknown"
-
-
-def available_cores() -> int:
-    """CPU cores this process may run on (affinity-aware)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
 
 
 def machine_info(threads: int | None = None) -> dict[str, Any]:
