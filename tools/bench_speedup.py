@@ -17,7 +17,10 @@ FPS ratio to A, and the share of its frame time spent outside the interpreter (p
         --tflite saved_models/fcnpose_ur5_p70_fp16.tflite --data DIR --frames 200 --threads 1
 
 Targets (issue 6): B's FPS >= 8 x A's; B's pre + post <= 15 % of its frame time (70 % model,
-224, one thread).
+224, one thread). Each forward pass is also put as a throughput, GMAC/s = the network's
+multiply-accumulates per frame / its median forward-pass time, and the line at the end says what
+throughput B's forward pass would need for 8x: the budget that target leaves once A's frame time
+and B's own pre + post are fixed.
 """
 
 from __future__ import annotations
@@ -107,13 +110,24 @@ def main() -> int:
                 "postprocess_ms_median": float(np.median(post)), "fps_median": 1000.0 / float(np.median(total)),
                 "pre_post_share_percent": float(100 * np.median((pre + post) / total))}
 
+    from fcnpose_tf.model import describe
+
+    def throughput(macs: int, inference_ms: float) -> float:
+        return macs / inference_ms / 1e6  # GMAC/s
+
     keras_stats = stats(times[0])
+    keras_stats["macs"] = int(sum(row.macs for row in describe(a.model)))
+    keras_stats["gmac_per_s"] = throughput(keras_stats["macs"], keras_stats["inference_ms_median"])
     variants = []
     for label, path, ts, model in zip(labels, tflite_paths, times[1:], others):
         s = stats(ts)
         s.update(label=label, model=str(path), size_bytes=path.stat().st_size,
                  fps_ratio=s["fps_median"] / keras_stats["fps_median"],
-                 inference_ratio=keras_stats["inference_ms_median"] / s["inference_ms_median"])
+                 inference_ratio=keras_stats["inference_ms_median"] / s["inference_ms_median"],
+                 macs=int(model.stats.macs), gmac_per_s=throughput(model.stats.macs, s["inference_ms_median"]))
+        budget_ms = keras_stats["total_ms_median"] / 8 - s["preprocess_ms_median"] - s["postprocess_ms_median"]
+        s["forward_ms_for_8x"] = budget_ms
+        s["gmac_per_s_for_8x"] = throughput(model.stats.macs, budget_ms) if budget_ms > 0 else None
         variants.append(s)
     result = {"threads": args.threads, "frames": args.frames, "keras_model": str(keras_path),
               "tflite_model": str(tflite_paths[0]), "tflite_backend": others[0].backend.label,
@@ -121,16 +135,21 @@ def main() -> int:
               "variants": variants}
     print(f"{args.frames} frames each, interleaved, {args.threads} thread(s); medians in ms")
     print(f"{'path':<46} {'pre':>6} {'infer':>7} {'post':>6} {'total':>7} {'p95':>7} {'FPS':>7} {'xA':>6} "
-          f"{'pre+post':>9}")
+          f"{'pre+post':>9} {'MMACs':>7} {'GMAC/s':>7}")
     rows = [(f"A unpruned Keras direct ({keras_path.name})", keras_stats, None)]
     rows += [(f"{chr(ord('B') + i)} {v['label']}", v, v["fps_ratio"]) for i, v in enumerate(variants)]
     for label, s, ratio in rows:
         print(f"{label[:46]:<46} {s['preprocess_ms_median']:6.2f} {s['inference_ms_median']:7.2f} "
               f"{s['postprocess_ms_median']:6.2f} {s['total_ms_median']:7.2f} {s['total_ms_p95']:7.2f} "
               f"{s['fps_median']:7.1f} {'' if ratio is None else f'{ratio:5.1f}x':>6} "
-              f"{s['pre_post_share_percent']:8.1f}%")
+              f"{s['pre_post_share_percent']:8.1f}% {s['macs'] / 1e6:7.1f} {s['gmac_per_s']:7.1f}")
     print(f"FPS ratio B/A: {result['fps_ratio']:.1f}x (target >= 8x; the paper's desktop 41.90/11.71 = 3.6x)")
     print(f"B pre+post share of frame time: {result['tflite']['pre_post_share_percent']:.1f}% (target <= 15%)")
+    for i, v in enumerate(variants):
+        need = v["gmac_per_s_for_8x"]
+        print(f"for 8x, {chr(ord('B') + i)}'s forward pass needs <= {v['forward_ms_for_8x']:.2f} ms"
+              + (f" = {need:.1f} GMAC/s on its {v['macs'] / 1e6:.1f} M MACs (it runs {v['gmac_per_s']:.1f}; "
+                 f"A runs {keras_stats['gmac_per_s']:.1f})" if need else " (impossible: pre + post alone exceed it)"))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
     tmp.cleanup()
