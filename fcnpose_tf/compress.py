@@ -285,7 +285,7 @@ def _loss_name(model: Any) -> str:
     return str(getattr(loss, "name", loss))
 
 
-def report_table(report: dict[str, Any]) -> str:
+def report_table(report: dict[str, Any], markdown: bool = False) -> str:
     """The compression report as a table: the unpruned model beside each step of the compressed one.
 
     Sizes are of the file each row's model ships as (.h5 for Keras, .tflite), in KB (1000 bytes);
@@ -307,4 +307,5 @@ def report_table(report: dict[str, Any]) -> str:
             row("pruned + retrained (Keras, .h5)", report["retrained"], "h5_size_bytes"),
             row(f"{quantize} TFLite (.tflite)", report["quantized"], "tflite_size_bytes")]
     return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
-                         "infer ms", "FPS e2e"], rows, digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])
+                         "infer ms", "FPS e2e"], rows, markdown=markdown,
+                        digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])

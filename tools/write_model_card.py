@@ -15,6 +15,8 @@ import json
 import sys
 from pathlib import Path
 
+from fcnpose_tf.compress import report_table
+
 
 def _load(path: Path) -> dict:
     if not path.is_file():
@@ -40,15 +42,6 @@ def main() -> int:
     m, t = held["metrics"], held["timing"]
     cfg = train["config"]
     val = train.get("validation", {}).get("metrics", {})
-
-    def step_row(label, step, size_key):
-        sm = step["metrics"]
-        tm = step.get("timing")
-        size = step.get(size_key)
-        return (f"| {label} | {step['params']:,} | {step['macs'] / 1e6:.1f} | "
-                f"{_f(size / 1e6 if size else None)} | {_f(sm['pck@0.5_bbox'])} | {_f(sm['pck@0.2_bbox'])} | "
-                f"{_f(sm['pck@0.05_bbox'])} | {_f(sm['epe_px'], 1)} | "
-                f"{_f(tm['inference_ms']['mean'], 1) if tm else '–'} | {_f(tm['fps'], 1) if tm else '–'} |")
 
     per_kp = "\n".join(
         f"| {name} | {_f(v['pck@0.5_bbox'])} | {_f(v['pck@0.2_bbox'])} | {_f(v['pck@0.05_bbox'])} | "
@@ -102,12 +95,7 @@ PCK@0.05 {_f(val.get('pck@0.05_bbox'))}. Keras inference {t['inference_ms']['mea
 
 Measured on {comp['evaluation_frames']}; timing with {comp['threads'] or 'all'} thread(s).
 
-| model | params | MMACs | size MB | PCK@0.5 | PCK@0.2 | PCK@0.05 | EPE px | infer ms | FPS |
-|---|---|---|---|---|---|---|---|---|---|
-{step_row('unpruned (Keras, .h5 size)', comp['base'], 'h5_size_bytes')}
-{step_row('pruned, before retraining', comp['pruned_before_retraining'], '')}
-{step_row('pruned + retrained (Keras, .h5 size)', comp['retrained'], 'h5_size_bytes')}
-{step_row('float16 TFLite', comp['quantized'], 'tflite_size_bytes')}
+{report_table(comp, markdown=True)}
 """ + (f"\n## Provenance\n\n{provenance}\n" if provenance else "")
     (d / "README.md").write_text(card)
     print(f"wrote {d / 'README.md'}")
