@@ -115,7 +115,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"parameters {base['params']:,} -> {final['params']:,} ({100 * (1 - final['params'] / base['params']):.1f}% fewer); "
           f"MACs {base['macs'] / 1e6:.1f} M -> {final['macs'] / 1e6:.1f} M; "
           f"size {base['h5_size_bytes'] / 1e3:.0f} KB (.h5) -> {final['tflite_size_bytes'] / 1e3:.1f} KB (.tflite); "
-          f"FPS {base['timing']['fps']:.1f} (Keras) -> {final['timing']['fps']:.1f} (TFLite)")
+          f"FPS {base['timing']['fps']:.1f} (Keras) -> {final['timing']['fps']:.1f} (TFLite); "
+          f"PCK@0.5 {base['metrics']['pck@0.5_bbox']:.3f} -> {final['metrics']['pck@0.5_bbox']:.3f} "
+          f"({final['metrics']['pck@0.5_bbox'] - base['metrics']['pck@0.5_bbox']:+.4f})")
     for key, path in report["files"].items():
         print(f"wrote {path}")
     return 0
