@@ -9,7 +9,7 @@ fcnpose-tf synth --out "$work/ur5_train" --n 1200 --seed 0 --force
 fcnpose-tf synth --out "$work/ur5_retrain" --n 400 --seed 0 --force    # the first 400 of the same frames
 fcnpose-tf synth --out "$work/ur5_heldout" --n 100 --seed 1 --force
 fcnpose-tf train --data "$work/ur5_train" --out saved_models/fcnpose_ur5.keras \
-  --epochs 60 --patience 12 --lr-patience 4 --positive-weight 20 --augment-copies 0 --quiet --force
+  --epochs 40 --patience 12 --lr-patience 4 --positive-weight 20 --augment-copies 0 --quiet --force
 fcnpose-tf evaluate saved_models/fcnpose_ur5.keras --data "$work/ur5_heldout" --threads 1 \
   --json saved_models/fcnpose_ur5_heldout.json --force
 fcnpose-tf compress --rate 0.7 --model saved_models/fcnpose_ur5.keras --data "$work/ur5_retrain" \
