@@ -75,7 +75,7 @@ Every command uses `fcnpose_ur5.keras` when no model is given; `run`/`bench` tak
   learning rate halved after {cfg.get('lr_patience', 0)} epochs without a better validation loss (0 = never).
 - Epochs run: {train['epochs_run']} (best: {train['best_epoch']}, validation loss {train['best_val_loss']:.5f}),
   {'stopped early' if train['stopped_early'] else f"epoch limit {cfg['epochs']}"}; training time {train['train_seconds'] / 60:.0f} min on 2 CPU cores.{init_line}
-- Retrain: `tools/train_baseline.sh` (one command; about 1.5 hours on 2 cores).
+- Retrain: `tools/train_baseline.sh` (one command; about 45 minutes on 2 cores).
 
 ## Held-out figures
 

@@ -147,15 +147,37 @@ def _wrap(angle: float) -> float:
     return (angle + PI) % (2 * PI) - PI
 
 
-def sample_joints(rng: np.random.Generator, tool_length: float = 0.12) -> np.ndarray:
+@dataclass(frozen=True)
+class WorkTask:
+    """The poses a workcell's arm takes: its base turns within `half_width` of `yaw` (rad), the elbow
+    stays on one side (`elbow` = +1 or -1), the tool points roughly down (pick and place)."""
+
+    yaw: float
+    half_width: float = math.radians(45.0)
+    elbow: float = 1.0
+
+
+def sample_joints(rng: np.random.Generator, tool_length: float = 0.12, task: WorkTask | None = None) -> np.ndarray:
     """Random plausible joint angles (rad), biased toward poses a working UR5 takes.
 
-    Four in five draws raise the upper arm and bend the elbow; three in five point
-    the tool roughly down (wrist 1 compensating shoulder + elbow, as in pick-and-place).
-    Draws that hit the floor or the robot itself (`pose_is_plausible`) are redrawn.
+    Without a task: any base angle; four in five draws raise the upper arm and bend the elbow
+    (either way); three in five point the tool roughly down (wrist 1 compensating shoulder +
+    elbow). With a `task`: the base within the task's sector, the upper arm raised, the elbow on
+    the task's side, the tool down. Draws that hit the floor or the robot itself
+    (`pose_is_plausible`) are redrawn.
     """
     for _ in range(1000):
         q = np.empty(6)
+        if task is not None:
+            q[0] = task.yaw + rng.uniform(-task.half_width, task.half_width)
+            q[1] = rng.uniform(-2.4, -0.7)
+            q[2] = rng.uniform(0.5, 2.4) * task.elbow
+            q[3] = _wrap(-PI / 2 - q[1] - q[2] + rng.normal(0.0, 0.35))
+            q[4] = -PI / 2 + rng.normal(0.0, 0.35)
+            q[5] = rng.uniform(-PI, PI)
+            if pose_is_plausible(q, tool_length):
+                return q
+            continue
         q[0] = rng.uniform(-PI, PI)
         if rng.random() < 0.8:
             q[1] = rng.uniform(-2.55, -0.55)
@@ -1301,6 +1323,8 @@ class Scene:
     keepout: list
     room_seed: int | None = None
     """Seed of the room's textures (fixed in a workcell); None: drawn from the frame's generator."""
+    task: WorkTask | None = None
+    """The poses a workcell's arm takes (None: any plausible pose, a random scene)."""
 
 
 def _light(rng: np.random.Generator) -> Light:
@@ -1348,23 +1372,30 @@ def _scene_rng(scene_seed: int) -> np.random.Generator:
 _WORKCELLS: dict[tuple[int, int, int], Scene] = {}
 
 
+WORKCELL_FRAMING = (0.85, 0.95)
+"""Share of the image side a workcell's camera gives its task's workspace (the keypoints of
+WORKSPACE_POSES sampled poses)."""
+
+
 def workcell(scene_seed: int = 0, width: int = 640, height: int = 480) -> Scene:
-    """The fixed cell of `scene_seed`: its camera frames the arm's whole workspace (many sampled poses)."""
+    """The fixed cell of `scene_seed`: an arm at one task (`WorkTask`: a 90-degree sector, elbow on
+    one side, tool down) and a camera framing that task's workspace (many sampled poses)."""
     key = (int(scene_seed), int(width), int(height))
     if key not in _WORKCELLS:
         rng = _scene_rng(scene_seed)
+        task = WorkTask(yaw=float(rng.uniform(-PI, PI)), elbow=1.0 if rng.random() < 0.5 else -1.0)
         style = _robot_style(rng)
         mount, base_z, mount_parts, mount_radius = _mount_parts(rng)
-        reach = np.vstack([ur5_keypoints_3d(sample_joints(rng, style.tool_length), style.tool_length, base_z)
+        reach = np.vstack([ur5_keypoints_3d(sample_joints(rng, style.tool_length, task), style.tool_length, base_z)
                            for _ in range(WORKSPACE_POSES)])
-        cam = _place_camera(rng, reach, reach, width, height, min_eye_z=base_z + 0.15, frac_range=(0.8, 0.92))
+        cam = _place_camera(rng, reach, reach, width, height, min_eye_z=base_z + 0.15, frac_range=WORKCELL_FRAMING)
         light = _light(rng)
         room, lamp = _room(rng, cam)
         keepout = [(np.zeros(2), mount_radius + 1.0), (cam.eye[:2], 0.7)]
         far = float(cam.to_camera(reach)[:, 2].max())
         objects = _clutter_in_view(rng, cam, room, keepout, reach, far)
         _WORKCELLS[key] = Scene(style, mount, base_z, mount_parts, mount_radius, cam, light, room, lamp, objects,
-                                keepout, room_seed=int(rng.integers(0, 2 ** 63)))
+                                keepout, room_seed=int(rng.integers(0, 2 ** 63)), task=task)
     return _WORKCELLS[key]
 
 
@@ -1375,7 +1406,7 @@ def _pose_in_view(rng: np.random.Generator, scene: Scene, tight_framing: float) 
     tight = rng.random() < tight_framing
     q = None
     for _ in range(400):
-        q = sample_joints(rng, style.tool_length)
+        q = sample_joints(rng, style.tool_length, scene.task)
         kp3d = ur5_keypoints_3d(q, style.tool_length, scene.base_z)
         uv, z = cam.project(kp3d)
         if z.min() < 0.3:
@@ -1516,11 +1547,11 @@ def _place_person(rng: np.random.Generator, cam: Camera, kp3d: np.ndarray, kp_uv
         unit = line / max(np.linalg.norm(line), 1e-6)
         for _ in range(40):  # next to the robot on the camera's side, as a co-worker would stand
             feet = arm_xy - rng.uniform(0.35, 1.2) * unit + rng.uniform(-0.8, 0.8) * lateral
-            if np.linalg.norm(feet - cam_xy) < 1.0 or np.linalg.norm(feet) < away or blocked(feet):
+            if np.linalg.norm(feet - cam_xy) < 0.6 or np.linalg.norm(feet) < away or blocked(feet):
                 continue
-            chest_uv, chest_z = cam.project(np.array([[feet[0], feet[1], 1.2]]))
+            chest_uv, chest_z = cam.project(np.array([[feet[0], feet[1], 1.0]]))
             if chest_z[0] < 0.5 or chest_uv[0, 1] < 0 or not 0 <= chest_uv[0, 0] <= cam.width - 1:
-                continue  # keep the chest in the picture: a person, not two posts or a lone arm
+                continue  # keep the torso in the picture: a person, not two posts or a lone arm
             reach = None
             if rng.random() < 0.6:  # hand something to the robot: reach toward a point near a joint
                 kp = kp3d[rng.integers(2, 8)]
