@@ -124,10 +124,10 @@ def main() -> int:
         s.update(label=label, model=str(path), size_bytes=path.stat().st_size,
                  fps_ratio=s["fps_median"] / keras_stats["fps_median"],
                  inference_ratio=keras_stats["inference_ms_median"] / s["inference_ms_median"],
-                 macs=int(model.stats.macs), gmac_per_s=throughput(model.stats.macs, s["inference_ms_median"]))
+                 macs=int(model.stats().macs), gmac_per_s=throughput(model.stats().macs, s["inference_ms_median"]))
         budget_ms = keras_stats["total_ms_median"] / 8 - s["preprocess_ms_median"] - s["postprocess_ms_median"]
         s["forward_ms_for_8x"] = budget_ms
-        s["gmac_per_s_for_8x"] = throughput(model.stats.macs, budget_ms) if budget_ms > 0 else None
+        s["gmac_per_s_for_8x"] = throughput(model.stats().macs, budget_ms) if budget_ms > 0 else None
         variants.append(s)
     result = {"threads": args.threads, "frames": args.frames, "keras_model": str(keras_path),
               "tflite_model": str(tflite_paths[0]), "tflite_backend": others[0].backend.label,
