@@ -83,11 +83,9 @@ def record_matches(record: dict[str, Any] | None, key: dict[str, Any], by_rate: 
     """Whether a job record was made with the settings `key` (+ per-rate budgets) asks of its job."""
     if not isinstance(record, dict) or not isinstance(record.get("config_key"), dict):
         return False
-    rate = None if record.get("kind") == "base" else record.get("rate")
-    stored = normalize_key(record["config_key"])
-    if rate is None or rate_percent(float(rate)) == 0:
-        stored = {k: v for k, v in stored.items() if k not in RETRAINING_FIELDS}
-    return stored == job_key(key, None if rate is None else float(rate), by_rate)
+    rate = None if record.get("kind") == "base" else float(record["rate"])
+    # job_key of the stored key keeps its own budget and drops what the job does not depend on
+    return job_key(record["config_key"], rate) == job_key(key, rate, by_rate)
 
 
 @dataclass(frozen=True)
