@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fcnpose_tf.preprocess import keypoints_to_frame, keypoints_to_input, preprocess_frame, resize_to_input
+from fcnpose_tf.preprocess import box_reduce, keypoints_to_frame, keypoints_to_input, preprocess_frame
 
 
 def _blob_frame(w, h, centre, sigma=6.0):
@@ -34,9 +34,9 @@ def test_blob_centre_lands_where_keypoints_to_input_says(w, h):
 def test_reduction_averages_instead_of_skipping_pixels():
     """A one-pixel checkerboard (sensor-noise-like detail) becomes flat grey, not an aliasing pattern."""
     board = (np.indices((480, 640)).sum(0) % 2 * 255).astype(np.uint8)
-    small = resize_to_input(np.repeat(board[..., None], 3, axis=2), 224)
+    small = preprocess_frame(np.repeat(board[..., None], 3, axis=2), 224)
     assert small.shape == (224, 224, 3)
-    assert abs(float(small.mean()) - 127.5) < 1.0 and float(small.std()) < 2.0
+    assert abs(float(small.mean()) - 0.5) < 1 / 255 and float(small.std()) < 2 / 255
 
 
 def test_rgb_order_and_scale():
@@ -55,9 +55,31 @@ def test_grey_or_broken_frames_are_user_errors():
         preprocess_frame(None, 32)
 
 
-def test_speed_path_is_the_integer_box_filter():
-    """640x480 -> 224: a 2x2 box reduction to 320x240 then bilinear (OpenCV's fast INTER_AREA path)."""
+def test_speed_path_is_an_integer_box_filter_then_float_bilinear():
+    """640x480 -> 224: a 2x2 box reduction to 320x240 (uint8, OpenCV's exact INTER_AREA path), then
+    bilinear in float32, so no platform-dependent uint8 rounding happens after the box step."""
     frame = np.random.default_rng(0).integers(0, 256, (480, 640, 3), dtype=np.uint8)
-    expected = cv2.resize(cv2.resize(frame, (320, 240), interpolation=cv2.INTER_AREA), (224, 224),
-                          interpolation=cv2.INTER_LINEAR)
-    np.testing.assert_array_equal(resize_to_input(frame, 224), expected)
+    reduced = box_reduce(frame, 224)
+    np.testing.assert_array_equal(reduced, cv2.resize(frame, (320, 240), interpolation=cv2.INTER_AREA))
+    rgb = cv2.cvtColor(reduced, cv2.COLOR_BGR2RGB).astype(np.float32) / np.float32(255)
+    expected = cv2.resize(rgb, (224, 224), interpolation=cv2.INTER_LINEAR)
+    out = preprocess_frame(frame, 224)
+    np.testing.assert_allclose(out, expected, atol=1e-6)
+    # float bilinear: values between grey levels survive (uint8 bilinear would round them away)
+    off_grid = np.abs(out * 255 - np.round(out * 255)) > 0.01
+    assert off_grid.mean() > 0.5
+
+
+def test_output_buffer_is_filled_in_place():
+    frame = np.random.default_rng(1).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    buffer = np.full((224, 224, 3), -1, np.float32)
+    assert preprocess_frame(frame, 224, out=buffer) is buffer
+    np.testing.assert_array_equal(buffer, preprocess_frame(frame, 224))
+    view = np.full((224, 224, 4), -1, np.float32)[..., :3]  # not contiguous: still filled
+    assert preprocess_frame(frame, 224, out=view) is view
+    np.testing.assert_array_equal(view, buffer)
+
+
+def test_frame_already_at_input_size_is_only_scaled():
+    frame = np.random.default_rng(2).integers(0, 256, (64, 64, 3), dtype=np.uint8)
+    np.testing.assert_allclose(preprocess_frame(frame, 64) * 255, frame[..., ::-1], atol=1e-4)
