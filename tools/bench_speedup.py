@@ -20,7 +20,9 @@ Targets (issue 6): B's FPS >= 8 x A's; B's pre + post <= 15 % of its frame time 
 224, one thread). Each forward pass is also put as a throughput, GMAC/s = the network's
 multiply-accumulates per frame / its median forward-pass time, and the line at the end says what
 throughput B's forward pass would need for 8x: the budget that target leaves once A's frame time
-and B's own pre + post are fixed.
+and B's own pre + post are fixed. For scale it also measures this machine's float32 matrix-multiply
+throughput on the same thread count (numpy's OpenBLAS sgemm, 512 x 512, best of 200, in a
+subprocess): what a well-tuned float32 kernel reaches on these cores, which no convolution beats.
 """
 
 from __future__ import annotations
@@ -28,9 +30,30 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import subprocess
 import sys
 import tempfile
 from pathlib import Path
+
+_MATMUL_PROBE = """
+import time, numpy as np
+n = 512
+a, b = (np.random.default_rng(i).random((n, n), dtype=np.float32) for i in (0, 1))
+times = []
+for _ in range(200):
+    start = time.perf_counter()
+    a @ b
+    times.append(time.perf_counter() - start)
+print(n ** 3 / min(times) / 1e9)
+"""
+
+
+def matmul_gmac_per_s(threads: int) -> float:
+    """Best float32 matrix-multiply throughput (GMAC/s) of `threads` threads, measured in a fresh process
+    (OpenBLAS reads its thread count at import)."""
+    env = {**os.environ, **{name: str(threads) for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")}}
+    out = subprocess.run([sys.executable, "-c", _MATMUL_PROBE], env=env, capture_output=True, text=True, check=True)
+    return float(out.stdout.strip())
 
 
 def main() -> int:
@@ -129,7 +152,9 @@ def main() -> int:
         s["forward_ms_for_8x"] = budget_ms
         s["gmac_per_s_for_8x"] = throughput(model.stats().macs, budget_ms) if budget_ms > 0 else None
         variants.append(s)
+    matmul = matmul_gmac_per_s(args.threads)
     result = {"threads": args.threads, "frames": args.frames, "keras_model": str(keras_path),
+              "matmul_gmac_per_s": matmul,
               "tflite_model": str(tflite_paths[0]), "tflite_backend": others[0].backend.label,
               "keras": keras_stats, "tflite": variants[0], "fps_ratio": variants[0]["fps_ratio"],
               "variants": variants}
@@ -149,7 +174,7 @@ def main() -> int:
         need = v["gmac_per_s_for_8x"]
         print(f"for 8x, {chr(ord('B') + i)}'s forward pass needs <= {v['forward_ms_for_8x']:.2f} ms"
               + (f" = {need:.1f} GMAC/s on its {v['macs'] / 1e6:.1f} M MACs (it runs {v['gmac_per_s']:.1f}; "
-                 f"A runs {keras_stats['gmac_per_s']:.1f})" if need else " (impossible: pre + post alone exceed it)"))
+                 f"A runs {keras_stats['gmac_per_s']:.1f}; float32 matmul here {matmul:.1f})" if need else " (impossible: pre + post alone exceed it)"))
     if args.json:
         args.json.write_text(json.dumps(result, indent=2) + "\n")
     tmp.cleanup()
