@@ -231,7 +231,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         model.load_weights(paths["ckpt_best"])
     with atomic_path(model_path, force=True) as tmp:
         save_for_inference(model, tmp)
-    write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"])
+    write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight)
     write_json(paths["train_json"], {
         **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
         "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
@@ -242,8 +242,16 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                      state["stopped_early"], state["history"])
 
 
-def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path) -> None:
-    """Write the per-epoch losses as CSV and as a PNG plot (training and validation BCE)."""
+def loss_name(positive_weight: float) -> str:
+    """What the training loss is, for labels: the paper's BCE, or BCE with keypoint pixels weighted."""
+    if positive_weight == 1:
+        return "binary cross-entropy"
+    return f"binary cross-entropy, keypoint pixels weighted {positive_weight:g}"
+
+
+def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path,
+                      positive_weight: float = 1.0) -> None:
+    """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss)."""
     lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
     if not history:
@@ -260,7 +268,7 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
     best = min(history, key=lambda h: h["val_loss"])
     ax.axvline(best["epoch"], color="grey", linestyle=":", label=f"best (epoch {best['epoch']})")
     ax.set_xlabel("epoch")
-    ax.set_ylabel("binary cross-entropy")
+    ax.set_ylabel(loss_name(positive_weight))
     ax.set_yscale("log")
     ax.set_title("FCN-Pose training loss")
     ax.grid(alpha=0.3)

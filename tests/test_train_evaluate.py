@@ -179,3 +179,10 @@ def test_learning_rate_halves_after_lr_patience_epochs_without_improvement(tmp_p
     # epochs 3-4 no better than 0.5 -> halve after epoch 4; epochs 5-6 -> halve again; 0.4 improves
     assert rates == [1e-3, 1e-3, 1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4]
     assert state["best_epoch"] == 7
+
+
+def test_loss_label_names_the_weighting():
+    from fcnpose_tf.train import loss_name
+
+    assert loss_name(1.0) == "binary cross-entropy"
+    assert loss_name(20.0) == "binary cross-entropy, keypoint pixels weighted 20"
