@@ -15,8 +15,9 @@ edges onto the output's, so the keypoint scaling below stays exact.
 
 The bilinear step runs on float32, not uint8: OpenCV's uint8 bilinear kernels
 round their fixed-point sums differently on x86 and arm64 (a few pixels one grey
-level apart), which moved a keypoint by 0.6 px between this machine and a
-Raspberry Pi. In float32 both give the same input to within float rounding.
+level apart), which moved a keypoint by 0.6 px between x86 and an emulated
+arm64 Raspberry Pi userland (tools/pi_emulated_check.sh). In float32 both give
+the same input to within float rounding.
 """
 
 from __future__ import annotations
@@ -52,7 +53,7 @@ def preprocess_frame(frame_bgr: np.ndarray, input_size: int, out: np.ndarray | N
 def box_reduce(image: np.ndarray, input_size: int) -> np.ndarray:
     """Average whole blocks of pixels (per axis the largest factor that keeps the side >= input_size).
 
-    OpenCV's INTER_AREA takes its exact integer path for whole factors; an image no larger than
+    OpenCV's INTER_AREA takes its exact integer path for whole factors; an image less than twice
     input_size on both sides is returned as is.
     """
     h, w = image.shape[:2]
