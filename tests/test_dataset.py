@@ -164,8 +164,7 @@ def test_rows_match_preprocessing_and_maps(tmp_path):
     np.testing.assert_array_equal(data.frame_sizes[0], (96, 40))
     x, y = data.arrays()
     assert x.dtype == y.dtype == np.float32
-    # the runtime's input rounded to the 8-bit grid the arrays are stored on: at most half a grey level off
-    np.testing.assert_allclose(x[0], preprocess_frame(frame, 32), rtol=0, atol=0.5 / 255 + 1e-6)
+    np.testing.assert_array_equal(x[0], preprocess_frame(frame, 32))  # bit-identical to the runtime input
 
 
 def test_same_seed_same_training_data(tmp_path):

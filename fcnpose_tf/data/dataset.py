@@ -12,9 +12,6 @@ runtime uses), keypoints scaled by `keypoints_to_input`, target maps drawn by
 `masks.make_target_maps`, plus offline augmented copies for training frames.
 Arrays are kept as uint8 (1,218 frames at 224 take ~0.7 GB) and served as
 float32 batches by a tf_keras `Sequence`. Only `sequence()` imports tf_keras.
-The stored images are preprocess_frame's float output rounded to the nearest
-1/255 (its bilinear step runs in float32), so a training input is at most half
-a grey level from what the runtime feeds the model for the same frame.
 """
 
 from __future__ import annotations
@@ -171,7 +168,7 @@ class TrainingData:
     depend only on (seed, its dataset index), so they are the same in every fold.
 
     Attributes:
-        images: N x S x S x 3 uint8 RGB (preprocess_frame's output times 255, rounded).
+        images: N x S x S x 3 uint8 RGB (preprocess_frame's output times 255).
         maps: N x S x S x (K+1) uint8 in {0, 1}: keypoint discs, then the skeleton.
         keypoints: N x K x 2 float64 keypoints in input pixels (NaN missing).
         source: N dataset indices each row comes from.
@@ -256,7 +253,7 @@ def fold_data(dataset: Dataset, fold: int | None, input_size: int, augment_copie
 
 
 def _to_float(images: np.ndarray) -> np.ndarray:
-    # preprocess_frame's scaling (uint8 times float32(1/255)), on the rounded stored values
+    # the same float32 values as preprocess_frame (uint8 times float32(1/255))
     out = np.empty(images.shape, np.float32)
     np.multiply(images, np.float32(1.0 / 255.0), out=out, casting="unsafe")
     return out
