@@ -15,6 +15,7 @@ from typing import Sequence
 from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.tfsetup import import_tensorflow_quietly
 
 
 class _Parser(argparse.ArgumentParser):
@@ -54,31 +55,6 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _import_tensorflow_quietly() -> None:
-    """Import TensorFlow with its native start-up log lines (oneDNN, CUDA probing) sent to /dev/null.
-
-    TensorFlow's C++ logging ignores TF_CPP_MIN_LOG_LEVEL set from inside Python, so the
-    file descriptor is silenced for the import only; errors still surface as Python exceptions.
-    """
-    if "tensorflow" in sys.modules or os.environ.get("FCNPOSE_TF_VERBOSE"):
-        return
-    sys.stderr.flush()
-    saved, devnull = os.dup(2), os.open(os.devnull, os.O_WRONLY)
-    try:
-        os.dup2(devnull, 2)
-        try:
-            import tensorflow
-
-            tensorflow.get_logger().setLevel("ERROR")  # Python-side INFO/WARNING chatter (compile notes)
-        except ImportError as exc:
-            raise UserError(f"this command needs TensorFlow ({exc}); install the training extra: "
-                            "pip install 'fcnpose-tf[train]'") from None
-    finally:
-        os.dup2(saved, 2)
-        os.close(saved)
-        os.close(devnull)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Parse arguments and run a subcommand; user errors print `error: ...` and return 2."""
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # keep TensorFlow's C++ start-up chatter (CUDA probing) off the terminal
@@ -89,7 +65,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     try:
         if args._uses_tensorflow:
-            _import_tensorflow_quietly()
+            import_tensorflow_quietly()
         status = args._run(args)
         return int(status or 0)
     except UserError as exc:

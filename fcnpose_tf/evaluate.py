@@ -73,19 +73,6 @@ def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold:
     return [int(i) for i in val], f"validation frames of the {name} split ({len(val)} frames)"
 
 
-def set_tensorflow_threads(threads: int | None) -> None:
-    """Limit TensorFlow's CPU threads (call before TensorFlow runs anything; None = library default)."""
-    if threads is None:
-        return
-    import tensorflow as tf
-
-    try:
-        tf.config.threading.set_intra_op_parallelism_threads(threads)
-        tf.config.threading.set_inter_op_parallelism_threads(1)
-    except RuntimeError:  # already initialised: keep what is set
-        pass
-
-
 class KerasKeypointModel:
     """A tf_keras FCN-Pose with the same `predict(frame) -> Prediction` interface as the LiteRT runtime.
 
@@ -143,6 +130,8 @@ def open_model(path: str | os.PathLike, threads: int | None = None, threshold: f
         model.backend_label = model.backend.label if hasattr(model.backend, "label") else str(model.backend)
         return model
     if path.suffix in (".keras", ".h5"):
+        from fcnpose_tf.tfsetup import set_tensorflow_threads
+
         set_tensorflow_threads(threads)
         return KerasKeypointModel(path, path, threshold, threads)
     raise UserError(f"{path}: unknown model format; expected .keras, .h5 or .tflite")

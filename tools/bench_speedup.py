@@ -80,9 +80,10 @@ def main() -> int:
 
     from fcnpose_tf.bundled import baseline_model, models_dir
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.evaluate import KerasKeypointModel, set_tensorflow_threads
+    from fcnpose_tf.evaluate import KerasKeypointModel
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.synthcache import heldout_data
+    from fcnpose_tf.tfsetup import set_tensorflow_threads
 
     set_tensorflow_threads(args.threads)
     keras_path = args.keras or baseline_model()

@@ -67,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compress import CompressOptions, compress_model, report_table
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.evaluate import set_tensorflow_threads
+    from fcnpose_tf.tfsetup import set_tensorflow_threads
     from fcnpose_tf.fileio import removed_if_left_empty
     from fcnpose_tf.system import available_cores
 

@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     args.folds = k
     dataset = load_from_args(args)
 
-    from fcnpose_tf.evaluate import set_tensorflow_threads
+    from fcnpose_tf.tfsetup import set_tensorflow_threads
 
     set_tensorflow_threads(args.threads)
     reports = [(fold, _train_one(args, dataset, fold)) for fold in folds]

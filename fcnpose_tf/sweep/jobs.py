@@ -344,11 +344,10 @@ def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
     """
     import gc
 
-    from fcnpose_tf.cli import _import_tensorflow_quietly
-    from fcnpose_tf.evaluate import set_tensorflow_threads
+    from fcnpose_tf.tfsetup import import_tensorflow_quietly, set_tensorflow_threads
 
     start = time.perf_counter()
-    _import_tensorflow_quietly()  # in a worker process: without TensorFlow's start-up log lines, as the CLI does
+    import_tensorflow_quietly()  # in a worker process: without TensorFlow's start-up log lines, as the CLI does
     set_tensorflow_threads(config.threads)
     import tensorflow as tf
 

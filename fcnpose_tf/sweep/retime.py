@@ -233,15 +233,11 @@ def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | Non
 
 def _prepare_tensorflow(threads: int) -> dict[str, Any]:
     """Import TensorFlow quietly with the jobs' thread settings; return them as TensorFlow reports them."""
-    from fcnpose_tf.cli import _import_tensorflow_quietly
-    from fcnpose_tf.evaluate import set_tensorflow_threads
+    from fcnpose_tf.tfsetup import import_tensorflow_quietly, set_tensorflow_threads, tensorflow_threads
 
-    _import_tensorflow_quietly()
+    import_tensorflow_quietly()
     set_tensorflow_threads(threads)
-    import tensorflow as tf
-
-    return {"intra_op": tf.config.threading.get_intra_op_parallelism_threads(),
-            "inter_op": tf.config.threading.get_inter_op_parallelism_threads()}
+    return tensorflow_threads()
 
 
 def _fps(step: dict[str, Any] | None) -> float | None:
