@@ -22,8 +22,9 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, file_sha256, training_record
+from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
 from fcnpose_tf.fileio import check_writable, write_json
+from fcnpose_tf.records import file_sha256, training_record
 
 if TYPE_CHECKING:
     import tf_keras as keras

@@ -21,33 +21,12 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.metrics import keypoint_report
 from fcnpose_tf.postprocess import maps_to_keypoints
+from fcnpose_tf.records import file_sha256, training_record
 from fcnpose_tf.preprocess import keypoints_to_frame, preprocess_frame
 from fcnpose_tf.runtime.estimator import Prediction, StageTimes
 
 MIN_TIMED_FRAMES = 50
 WARMUP_FRAMES = 5
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """Hex SHA-256 of a file: identifies the exact annotation file a model was trained on."""
-    import hashlib
-
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
-def training_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
-    """The NAME_train.json written beside a model by `fcnpose-tf train`, or None."""
-    import json
-
-    stem = Path(model_path).with_suffix("")
-    # NAME.keras -> NAME_train.json; an export NAME_fp16.tflite -> NAME_train.json too
-    for candidate in (Path(f"{stem}_train.json"), stem.with_name(f"{stem.name.rsplit('_', 1)[0]}_train.json")):
-        if candidate.is_file():
-            try:
-                return json.loads(candidate.read_text())
-            except ValueError:
-                return None
-    return None
 
 
 def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold: int | None

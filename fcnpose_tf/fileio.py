@@ -85,11 +85,11 @@ def write_text(path: str | os.PathLike, text: str, force: bool = False) -> Path:
 
 def write_json(path: str | os.PathLike, data: Any, force: bool = False) -> Path:
     """Atomically write JSON (indented, keys in the given order) to path."""
-    return write_text(path, json.dumps(data, indent=2, allow_nan=False, default=_json_default) + "\n", force)
+    return write_text(path, json.dumps(data, indent=2, allow_nan=False, default=json_default) + "\n", force)
 
 
-def _json_default(value: Any):
-    # numpy scalars and arrays without importing numpy here
+def json_default(value: Any) -> Any:
+    """`json.dumps(default=...)` for numpy scalars and arrays (without importing numpy) and paths."""
     if hasattr(value, "tolist"):
         return value.tolist()
     if isinstance(value, os.PathLike):

@@ -22,7 +22,8 @@ import pytest
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
 from fcnpose_tf.sweep import Job, LocalExecutor, RayExecutor, SweepConfig, parse_rates, run_sweep, write_report
-from fcnpose_tf.sweep.jobs import base_model_path, file_sha256, job_path, plan_jobs
+from fcnpose_tf.records import file_sha256
+from fcnpose_tf.sweep.jobs import base_model_path, job_path, plan_jobs
 from fcnpose_tf.sweep.rates import parse_per_rate_epochs, rate_label, rate_tag
 
 # ------------------------------------------------------------------------------------------

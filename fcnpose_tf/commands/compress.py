@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
 
     model_path = args.model or baseline_model()
     if args.positive_weight is None:
-        from fcnpose_tf.evaluate import training_record
+        from fcnpose_tf.records import training_record
 
         args.positive_weight = float(((training_record(model_path) or {}).get("config") or {}).get("positive_weight", 1.0))
     options = CompressOptions(rate=args.rate, positive_weight=args.positive_weight, method=args.method,

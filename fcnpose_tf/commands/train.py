@@ -103,7 +103,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _train_one(args: argparse.Namespace, dataset, fold: int | None) -> dict:
     from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, file_sha256, format_timing
+    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, format_timing
+    from fcnpose_tf.records import file_sha256
     from fcnpose_tf.fileio import write_json
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.model import build_fcn_pose

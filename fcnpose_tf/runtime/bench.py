@@ -11,7 +11,6 @@ mean and std over the timed iterations; FPS follows timing.FPS_DEFINITION.
 from __future__ import annotations
 
 import os
-import platform
 import sys
 import time
 from dataclasses import dataclass, field
@@ -22,6 +21,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.records import host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
 from fcnpose_tf.runtime.interpreter import check_tflite_file, default_num_threads
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms, fps_from_ms
@@ -186,13 +186,6 @@ class BenchReport:
                 "backend_version": self.backend_version, "frames": self.frames, "warmup": self.warmup,
                 "frame": self.frame, "threshold": self.threshold, "fps_definition": FPS_DEFINITION,
                 "host": dict(self.host), "results": [r.to_dict() for r in self.results]}
-
-
-def host_info() -> dict[str, Any]:
-    """Machine, OS, cores and library versions, for the record."""
-    return {"machine": platform.machine(), "system": platform.platform(terse=True),
-            "cpu_count": default_num_threads(), "python": platform.python_version(),
-            "numpy": np.__version__, "opencv": cv2.__version__}
 
 
 def load_frame(path: str | os.PathLike | None, size: tuple[int, int] = (640, 480)) -> tuple[np.ndarray, str]:

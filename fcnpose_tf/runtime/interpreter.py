@@ -19,12 +19,12 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.metrics import conv_macs
+from fcnpose_tf.records import distribution_version
 from fcnpose_tf.system import available_cores
 
 BACKENDS: tuple[str, ...] = ("ai_edge_litert", "tflite_runtime", "tensorflow")
 """Interpreter providers in the order `auto` tries them."""
 
-_DISTRIBUTIONS = {"ai_edge_litert": "ai-edge-litert", "tflite_runtime": "tflite-runtime", "tensorflow": "tensorflow"}
 _INPUT_DTYPES = (np.float32, np.float16, np.uint8, np.int8)
 
 
@@ -44,12 +44,8 @@ class Backend:
 
 
 def _version(module_name: str, module: Any) -> str:
-    try:
-        from importlib.metadata import version
-
-        return version(_DISTRIBUTIONS[module_name])
-    except Exception:  # not installed as a distribution (e.g. a vendored build)
-        return str(getattr(module, "__version__", "unknown"))
+    # the installed distribution's version; a vendored build without metadata: the module's own
+    return distribution_version(module_name) or str(getattr(module, "__version__", "unknown"))
 
 
 def _import_backend(name: str) -> Any:

@@ -19,9 +19,10 @@ from typing import Any, Callable
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
+from fcnpose_tf.records import file_sha256
 from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.executors import Executor, JobFunction
-from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, SweepConfig, file_sha256, job_path, load_data,
+from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, SweepConfig, job_path, load_data,
                                    normalize_key, plan_jobs, read_record, record_matches, retrain_epochs_at,
                                    run_job, splits_sha256)
 from fcnpose_tf.sweep.rates import rate_label

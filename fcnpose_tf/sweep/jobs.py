@@ -20,7 +20,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import platform
 import socket
 import time
 from dataclasses import asdict, dataclass, field
@@ -29,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.system import available_cores
+from fcnpose_tf.records import file_sha256, library_versions, machine_info, training_record
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
 
 RECORD_VERSION = 1
@@ -230,73 +229,8 @@ def read_record(path: Path) -> dict[str, Any] | None:
 
 
 # ------------------------------------------------------------------------------------------
-# Machine, versions, data identity (no TensorFlow)
+# Data identity (no TensorFlow)
 # ------------------------------------------------------------------------------------------
-
-def cpu_model() -> str:
-    """The CPU's model name from /proc/cpuinfo (Linux), else platform's best guess."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
-            for line in fh:
-                key, _, value = line.partition(":")
-                if key.strip() in ("model name", "Model", "Hardware") and value.strip():
-                    return value.strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine() or "unknown"
-
-
-def machine_info(threads: int | None = None) -> dict[str, Any]:
-    """Host, CPU model, cores, memory, OS and Python; `threads` as used by the jobs."""
-    info: dict[str, Any] = {"hostname": socket.gethostname(), "cpu_model": cpu_model(),
-                            "cpu_cores": os.cpu_count(), "cpu_cores_available": available_cores()}
-    try:
-        with open("/proc/meminfo", encoding="utf-8") as fh:
-            kb = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal:"))
-        info["memory_bytes"] = kb * 1024
-    except (OSError, StopIteration, ValueError, IndexError):
-        pass
-    info.update(platform=platform.platform(), python=platform.python_version())
-    if threads is not None:
-        info["threads"] = threads
-    return info
-
-
-_DISTRIBUTIONS = {
-    "tensorflow": ("tensorflow", "tensorflow-cpu", "tensorflow-intel"),
-    "tf_keras": ("tf-keras", "tf_keras"),
-    "tensorflow_model_optimization": ("tensorflow-model-optimization",),
-    "ai_edge_litert": ("ai-edge-litert", "ai-edge-litert-nightly"),
-    "tflite_runtime": ("tflite-runtime",),
-    "numpy": ("numpy",),
-    "opencv": ("opencv-python-headless", "opencv-python", "opencv-contrib-python-headless",
-               "opencv-contrib-python"),
-    "matplotlib": ("matplotlib",),
-    "ray": ("ray",),
-}
-
-
-def library_versions() -> dict[str, str | None]:
-    """Installed versions of the libraries that shape the results (from package metadata, no imports)."""
-    from importlib import metadata
-
-    from fcnpose_tf import __version__
-
-    versions: dict[str, str | None] = {"fcnpose_tf": __version__}
-    for name, dists in _DISTRIBUTIONS.items():
-        versions[name] = None
-        for dist in dists:
-            try:
-                versions[name] = metadata.version(dist)
-                break
-            except metadata.PackageNotFoundError:
-                continue
-    return versions
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
 
 def splits_sha256(dataset: Any, folds: int) -> str:
     """Fingerprint of the K folds' validation frames (by file name): same folds, same hash."""
@@ -388,7 +322,7 @@ def _strip(step: dict[str, Any]) -> dict[str, Any]:
 
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     from fcnpose_tf.compress import file_sizes, model_facts
-    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor, training_record
+    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.model import load_model
     from fcnpose_tf.train import run_paths
 
@@ -414,7 +348,6 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
 
 
 def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) -> dict[str, Any]:
-    from fcnpose_tf.evaluate import training_record
     from fcnpose_tf.model import load_model
 
     model = load_model(path)

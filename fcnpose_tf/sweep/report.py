@@ -28,7 +28,8 @@ from typing import Any, Iterable, Sequence
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import atomic_path, write_json, write_text
-from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, machine_info, plan_jobs, read_record
+from fcnpose_tf.records import library_versions, machine_info
+from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, plan_jobs, read_record
 from fcnpose_tf.sweep.rates import describe_per_rate, rate_label
 
 SWEEP_FILE = "sweep.json"
@@ -620,8 +621,6 @@ def write_report(out: str | Path, *, machine: dict[str, Any] | None = None,
     Raises:
         UserError: OUT holds no sweep.json.
     """
-    from fcnpose_tf.sweep.jobs import library_versions
-
     out = Path(out)
     sweep = read_sweep(out)
     results = collect(out, sweep["config"])

@@ -30,10 +30,10 @@ from pathlib import Path
 from typing import Any, Callable
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import _json_default, write_json
+from fcnpose_tf.fileio import json_default, write_json
+from fcnpose_tf.records import file_sha256, library_versions, machine_info
 from fcnpose_tf.sweep import report as _report
-from fcnpose_tf.sweep.jobs import (JOBS_DIR, SweepConfig, base_model_path, file_sha256, library_versions,
-                                   load_data, machine_info)
+from fcnpose_tf.sweep.jobs import JOBS_DIR, SweepConfig, base_model_path, load_data
 
 RETIME_KIND = "retime"
 TIMED_SECTIONS = ("keras", "tflite", "base_remeasured")
@@ -63,7 +63,7 @@ def config_from_sweep(out: str | Path, data: str | None = None) -> SweepConfig:
 
 def _normalized(value: Any) -> Any:
     """As it reads back from a record (JSON round trip: numpy scalars become floats, tuples lists)."""
-    return json.loads(json.dumps(value, allow_nan=False, default=_json_default))
+    return json.loads(json.dumps(value, allow_nan=False, default=json_default))
 
 
 def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:

@@ -1,0 +1,117 @@
+"""What a result record states about where it came from: file hashes, a model's training record,
+the host and the library versions. Standard library only (runtime/ uses it on a Pi).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import platform
+import socket
+import sys
+from pathlib import Path
+from typing import Any, Iterable
+
+from fcnpose_tf.system import available_cores
+
+DISTRIBUTIONS: dict[str, tuple[str, ...]] = {
+    "tensorflow": ("tensorflow", "tensorflow-cpu", "tensorflow-intel"),
+    "tf_keras": ("tf-keras", "tf_keras"),
+    "tensorflow_model_optimization": ("tensorflow-model-optimization",),
+    "ai_edge_litert": ("ai-edge-litert", "ai-edge-litert-nightly"),
+    "tflite_runtime": ("tflite-runtime",),
+    "numpy": ("numpy",),
+    "opencv": ("opencv-python-headless", "opencv-python", "opencv-contrib-python-headless",
+               "opencv-contrib-python"),
+    "matplotlib": ("matplotlib",),
+    "ray": ("ray",),
+}
+"""The libraries that shape results, each with the pip distributions that provide it."""
+
+_IMPORT_NAMES = {"opencv": "cv2"}
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex SHA-256 of a file: identifies the exact annotation file or model a record refers to."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def training_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
+    """The NAME_train.json written beside a model by `fcnpose-tf train`, or None (none, or unreadable).
+
+    An export or a compressed model (NAME_fp16.tflite, NAME_p70.keras) finds NAME_train.json too.
+    """
+    stem = Path(model_path).with_suffix("")
+    for candidate in (Path(f"{stem}_train.json"), stem.with_name(f"{stem.name.rsplit('_', 1)[0]}_train.json")):
+        if candidate.is_file():
+            try:
+                return json.loads(candidate.read_text())
+            except ValueError:
+                return None
+    return None
+
+
+def distribution_version(name: str) -> str | None:
+    """Installed version of a library of DISTRIBUTIONS (package metadata, no import), or None.
+
+    Without package metadata (e.g. OpenCV from the OS packages) the version of the already
+    imported module is used.
+    """
+    from importlib import metadata
+
+    for dist in DISTRIBUTIONS.get(name, (name,)):
+        try:
+            return metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            continue
+    module = sys.modules.get(_IMPORT_NAMES.get(name, name))
+    version = getattr(module, "__version__", None)
+    return str(version) if version is not None else None
+
+
+def library_versions(names: Iterable[str] | None = None) -> dict[str, str | None]:
+    """fcnpose_tf's version and those of `names` (default: every library of DISTRIBUTIONS)."""
+    from fcnpose_tf import __version__
+
+    versions: dict[str, str | None] = {"fcnpose_tf": __version__}
+    for name in DISTRIBUTIONS if names is None else names:
+        versions[name] = distribution_version(name)
+    return versions
+
+
+def cpu_model() -> str:
+    """The CPU's model name from /proc/cpuinfo (Linux), else platform's best guess."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                key, _, value = line.partition(":")
+                if key.strip() in ("model name", "Model", "Hardware") and value.strip():
+                    return value.strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine() or "unknown"
+
+
+def machine_info(threads: int | None = None) -> dict[str, Any]:
+    """Host, CPU model, cores, memory, OS and Python (a sweep job's record); `threads` as used by the jobs."""
+    info: dict[str, Any] = {"hostname": socket.gethostname(), "cpu_model": cpu_model(),
+                            "cpu_cores": os.cpu_count(), "cpu_cores_available": available_cores()}
+    try:
+        with open("/proc/meminfo", encoding="utf-8") as fh:
+            kb = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal:"))
+        info["memory_bytes"] = kb * 1024
+    except (OSError, StopIteration, ValueError, IndexError):
+        pass
+    info.update(platform=platform.platform(), python=platform.python_version())
+    if threads is not None:
+        info["threads"] = threads
+    return info
+
+
+def host_info() -> dict[str, Any]:
+    """Machine, OS, usable cores, Python, numpy and OpenCV versions (a benchmark's host line)."""
+    versions = library_versions(("numpy", "opencv"))
+    return {"machine": platform.machine(), "system": platform.platform(terse=True),
+            "cpu_count": available_cores(), "python": platform.python_version(),
+            "numpy": versions["numpy"], "opencv": versions["opencv"]}
