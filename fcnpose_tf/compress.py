@@ -267,7 +267,6 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
 
     print(f"[6/{steps}] measuring the TFLite model", flush=True)
     tfl = KeypointModel(paths["tflite"], num_threads=options.threads)
-    tfl.backend_label = tfl.backend.label
     report["quantized"] = {
         "params": report["retrained"]["params"], "macs": report["retrained"]["macs"],
         "flops": report["retrained"]["flops"], "tflite_size_bytes": export.size_bytes,

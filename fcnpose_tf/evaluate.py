@@ -1,17 +1,16 @@
 """Evaluate a .keras or .tflite FCN-Pose on dataset frames: keypoint metrics, inference time and FPS.
 
-Both formats go through the same frame path: `preprocess_frame`, the model's
-forward pass, `maps_to_keypoints`, then keypoints back to frame pixels; the
-metrics compare with the ground truth in original frame pixels. Timing follows
-docs (GUIDE section 4): after warm-up, mean and std over at least 50 frames;
-FPS = 1 / (preprocess + inference + post-processing), with the invoke-only
-rate beside it and the thread count stated.
+Both formats are `runtime.estimator.KeypointPredictor`s and go through the same frame path:
+`preprocess_frame`, the model's forward pass, then `postprocess.decode` (keypoints in frame
+pixels); the metrics compare with the ground truth in original frame pixels. Timing follows
+docs/training.md (metric definitions): after warm-up, mean and sample std over at least 50
+frames; FPS = 1 / (preprocess + inference + post-processing), with the invoke-only rate beside
+it and the thread count stated.
 """
 
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -20,10 +19,10 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.metrics import keypoint_report
-from fcnpose_tf.postprocess import maps_to_keypoints
+from fcnpose_tf.preprocess import preprocess_frame
 from fcnpose_tf.records import file_sha256, training_record
-from fcnpose_tf.preprocess import keypoints_to_frame, preprocess_frame
-from fcnpose_tf.runtime.estimator import Prediction, StageTimes
+from fcnpose_tf.runtime.estimator import KeypointPredictor
+from fcnpose_tf.runtime.timing import LatencyLog, fps_from_ms
 
 MIN_TIMED_FRAMES = 50
 WARMUP_FRAMES = 5
@@ -52,17 +51,18 @@ def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold:
     return [int(i) for i in val], f"validation frames of the {name} split ({len(val)} frames)"
 
 
-class KerasKeypointModel:
-    """A tf_keras FCN-Pose with the same `predict(frame) -> Prediction` interface as the LiteRT runtime.
+class KerasKeypointModel(KeypointPredictor):
+    """A tf_keras FCN-Pose behind the runtime's predictor protocol (`KeypointPredictor`).
 
     The forward pass is the model called directly on one frame (`model(x, training=False)`),
-    the way a Keras user runs it; that is the "Keras" figure in reports.
+    the way a Keras user runs it; that is the "Keras" figure in reports. Preprocessing,
+    decoding and timing are the runtime's own.
     """
+
+    backend_label = "tf_keras (direct call)"
 
     def __init__(self, model: Any, path: str | os.PathLike | None = None, threshold: float = 0.5,
                  num_threads: int | None = None):
-        import tf_keras as keras
-
         if isinstance(model, (str, os.PathLike)):
             from fcnpose_tf.model import load_model
 
@@ -71,30 +71,28 @@ class KerasKeypointModel:
         if len(shape) != 4 or shape[1] != shape[2] or shape[3] != 3 or len(model.output_shape) != 4:
             raise UserError(f"{path or model.name}: not an FCN-Pose model (input {shape}, output "
                             f"{model.output_shape}); expected S x S x 3 in, S x S x C maps out")
-        self.model: keras.Model = model
+        self.model = model
         self.path = Path(path) if path else None
         self.threshold = threshold
         self.num_threads = num_threads
         self.input_size = int(shape[1])
         self.num_maps = int(model.output_shape[-1])
-        self.backend_label = "tf_keras (direct call)"
         self._x = np.empty((1, self.input_size, self.input_size, 3), np.float32)
+        self._maps: np.ndarray | None = None
 
-    def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:
+    def set_input(self, frame_bgr: np.ndarray) -> None:
+        """Preprocess a BGR uint8 frame into the model's one-frame input batch."""
         preprocess_frame(frame_bgr, self.input_size, out=self._x[0])
-        return self.model(self._x, training=False).numpy()[0]
 
-    def predict(self, frame_bgr: np.ndarray) -> Prediction:
-        t0 = time.perf_counter()
-        preprocess_frame(frame_bgr, self.input_size, out=self._x[0])
-        t1 = time.perf_counter()
-        maps = self.model(self._x, training=False).numpy()[0]
-        t2 = time.perf_counter()
-        kps, conf = maps_to_keypoints(maps, self.threshold)
-        kps = keypoints_to_frame(kps, frame_bgr.shape, maps.shape[0])
-        t3 = time.perf_counter()
-        return Prediction(kps, conf, StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3),
-                          frame_bgr.shape)
+    def invoke(self) -> None:
+        """Call the model on the current input (its maps as a numpy array)."""
+        self._maps = self.model(self._x, training=False).numpy()[0]
+
+    def read_maps(self, copy: bool = True) -> np.ndarray:
+        """The output maps of the last invoke."""
+        if self._maps is None:
+            raise RuntimeError("read_maps before any invoke")
+        return self._maps.copy() if copy else self._maps
 
 
 def open_model(path: str | os.PathLike, threads: int | None = None, threshold: float = 0.5):
@@ -105,9 +103,7 @@ def open_model(path: str | os.PathLike, threads: int | None = None, threshold: f
     if path.suffix == ".tflite":
         from fcnpose_tf.runtime.estimator import KeypointModel
 
-        model = KeypointModel(path, num_threads=threads, threshold=threshold)
-        model.backend_label = model.backend.label if hasattr(model.backend, "label") else str(model.backend)
-        return model
+        return KeypointModel(path, num_threads=threads, threshold=threshold)
     if path.suffix in (".keras", ".h5"):
         from fcnpose_tf.tfsetup import set_tensorflow_threads
 
@@ -116,19 +112,15 @@ def open_model(path: str | os.PathLike, threads: int | None = None, threshold: f
     raise UserError(f"{path}: unknown model format; expected .keras, .h5 or .tflite")
 
 
-def _mean_std(values: Sequence[float]) -> dict[str, float]:
-    arr = np.asarray(values, np.float64)
-    return {"mean": round(float(arr.mean()), 4), "std": round(float(arr.std()), 4),
-            "median": round(float(np.median(arr)), 4)}
-
-
-def evaluate_predictor(predictor: Any, dataset: Any, indices: Sequence[int], schema: KeypointSchema,
+def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequence[int], schema: KeypointSchema,
                        min_timed_frames: int = MIN_TIMED_FRAMES, warmup: int = WARMUP_FRAMES,
                        progress: bool = False) -> dict[str, Any]:
     """Run a predictor over dataset frames; keypoint metrics plus timing, as a JSON-ready dict.
 
     Every frame in `indices` is scored once; timing covers those frames and, if there are fewer
     than `min_timed_frames`, cycles through them again (timing only) to reach that count.
+    Each stage's time is summarised by `runtime.timing.describe_ms` (mean, sample std, median;
+    rounded to 4 decimals); FPS by `runtime.timing.fps_from_ms`.
     """
     indices = [int(i) for i in indices]
     if not indices:
@@ -141,7 +133,7 @@ def evaluate_predictor(predictor: Any, dataset: Any, indices: Sequence[int], sch
         predictor.predict(frames[indices[0]])
     pred = np.full((len(indices), schema.num_keypoints, 2), np.nan)
     gt = np.stack([dataset.samples[i].keypoints for i in indices])
-    times: list[StageTimes] = []
+    log = LatencyLog()
     iterator = range(max(len(indices), min_timed_frames))
     if progress:
         from tqdm import tqdm
@@ -150,21 +142,24 @@ def evaluate_predictor(predictor: Any, dataset: Any, indices: Sequence[int], sch
     for step in iterator:
         j = step % len(indices)
         result = predictor.predict(frames[indices[j]])
-        times.append(result.times)
+        log.add(result.times)
         if step < len(indices):
             pred[j] = result.keypoints
-    total = [t.total_ms for t in times]
-    invoke = [t.invoke_ms for t in times]
+    summary = log.summary()
+
+    def stage(name: str) -> dict[str, float]:
+        return {k: round(summary[name][k], 4) for k in ("mean", "std", "median")}
+
     timing = {
         "threads": predictor.num_threads,
-        "backend": getattr(predictor, "backend_label", ""),
-        "frames_timed": len(times),
-        "preprocess_ms": _mean_std([t.preprocess_ms for t in times]),
-        "inference_ms": _mean_std(invoke),
-        "postprocess_ms": _mean_std([t.postprocess_ms for t in times]),
-        "total_ms": _mean_std(total),
-        "fps": round(1000.0 / float(np.mean(total)), 2),
-        "fps_inference_only": round(1000.0 / float(np.mean(invoke)), 2),
+        "backend": predictor.backend_label,
+        "frames_timed": len(log),
+        "preprocess_ms": stage("preprocess"),
+        "inference_ms": stage("invoke"),
+        "postprocess_ms": stage("postprocess"),
+        "total_ms": stage("end_to_end"),
+        "fps": round(fps_from_ms(summary["end_to_end"]["mean"]), 2),
+        "fps_inference_only": round(fps_from_ms(summary["invoke"]["mean"]), 2),
     }
     return {"metrics": keypoint_report(pred, gt, schema.keypoints), "timing": timing,
             "predictions": pred, "ground_truth": gt}

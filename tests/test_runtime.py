@@ -369,6 +369,41 @@ def test_runtime_matches_training_side_path(structured, random_model):
     np.testing.assert_allclose(KeypointModel(path, 2).predict_maps(frame), keras_maps, atol=1e-2)
 
 
+def test_keras_and_litert_predictors_share_one_frame_path(tmp_path, random_model):
+    """The same float32-exported model behind both predictors: one predict, the same keypoints and maps."""
+    from fcnpose_tf.evaluate import KerasKeypointModel
+    from fcnpose_tf.export import to_tflite
+    from fcnpose_tf.runtime.estimator import KeypointPredictor
+
+    model = _structured_model()
+    path = tmp_path / "structured_fp32.tflite"
+    path.write_bytes(to_tflite(model, "float32"))
+    keras_predictor, litert = KerasKeypointModel(model, num_threads=1), KeypointModel(path, 1)
+    assert isinstance(keras_predictor, KeypointPredictor) and isinstance(litert, KeypointPredictor)
+    assert type(keras_predictor).predict is type(litert).predict is KeypointPredictor.predict
+    assert keras_predictor.backend_label == "tf_keras (direct call)"
+    assert litert.backend_label == litert.backend.label and litert.backend.name in litert.backend_label
+    for width, height, red in [(640, 480, "tl"), (333, 517, "br")]:
+        frame = quadrant_frame(width, height, red)
+        a, b = keras_predictor.predict(frame), litert.predict(frame)
+        np.testing.assert_array_equal(a.keypoints, b.keypoints)
+        np.testing.assert_array_equal(a.keypoints, litert.predict(frame).keypoints)
+        np.testing.assert_allclose(a.keypoints, expected_keypoints(width, height, red), atol=1e-9)
+        np.testing.assert_array_equal(a.confidence, b.confidence)
+        assert a.confidence.dtype == b.confidence.dtype == np.float64 and a.frame_shape == b.frame_shape
+        assert min(a.times.preprocess_ms, a.times.invoke_ms, a.times.postprocess_ms) > 0
+    # random weights (maps away from 0/1): the two forward passes agree to float32 rounding
+    model = random_model[0]
+    path = tmp_path / "random_fp32.tflite"
+    path.write_bytes(to_tflite(model, "float32"))
+    keras_predictor, litert = KerasKeypointModel(model, num_threads=1), KeypointModel(path, 1)
+    frame = rbench.synthetic_frame(320, 240, seed=5)
+    for predictor in (keras_predictor, litert):
+        predictor.set_input(frame)
+        predictor.invoke()
+    np.testing.assert_allclose(keras_predictor.read_maps(), litert.read_maps(), atol=1e-5)
+
+
 @pytest.mark.parametrize("dtype", ["uint8", "int8"])
 def test_fully_quantized_models_are_fed_and_read_through_their_scales(tmp_path, dtype):
     """Integer input/output (full-integer quantization): the frame is quantized, the maps dequantized."""
@@ -618,6 +653,20 @@ def test_latency_log_statistics():
     assert log.fps()["end_to_end"] == pytest.approx(1000 / 52.0)
     assert describe_ms([])["mean"] != describe_ms([])["mean"]  # NaN
     assert "end-to-end" in log.table()
+
+
+def test_stage_summary_is_mean_sample_std_and_median():
+    """The one summary of per-frame times: std is the sample std (ddof=1), as numpy computes it."""
+    values = np.random.default_rng(0).gamma(2.0, 3.0, 57)
+    summary = describe_ms(values)
+    assert summary["mean"] == pytest.approx(np.mean(values), rel=1e-12)
+    assert summary["std"] == pytest.approx(np.std(values, ddof=1), rel=1e-12)
+    assert summary["std"] != pytest.approx(np.std(values), rel=1e-6)  # not the population std
+    assert summary["median"] == pytest.approx(np.median(values), rel=1e-12)
+    assert describe_ms([4.0])["std"] == 0.0
+    log = LatencyLog(StageTimes(0.5, float(v), 0.25) for v in values)
+    assert log.summary()["invoke"]["std"] == pytest.approx(np.std(values, ddof=1), rel=1e-12)
+    assert log.summary()["end_to_end"]["std"] == pytest.approx(np.std(values + 0.75, ddof=1), rel=1e-9)
 
 
 def test_video_sink_appears_only_when_closed(tmp_path):

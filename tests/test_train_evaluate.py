@@ -186,3 +186,36 @@ def test_loss_label_names_the_weighting():
 
     assert loss_name(1.0) == "binary cross-entropy"
     assert loss_name(20.0) == "binary cross-entropy, keypoint pixels weighted 20"
+
+
+def test_evaluate_timing_uses_the_runtime_summary_with_sample_std():
+    """evaluate_predictor's "± std" is the sample std (ddof=1) of the per-frame stage times."""
+    from types import SimpleNamespace
+
+    from fcnpose_tf.evaluate import evaluate_predictor, format_timing
+    from fcnpose_tf.runtime.estimator import Prediction, StageTimes
+
+    invoke = np.random.default_rng(1).uniform(5.0, 9.0, 60)
+    truth = np.array([[10.0 + k, 20.0] for k in range(UR5.num_keypoints)])
+
+    class Fake:
+        num_maps, num_threads, backend_label = UR5.num_maps, 1, "fake backend"
+        calls = 0
+
+        def predict(self, frame):
+            ms = invoke[max(Fake.calls - 2, 0)]  # after 2 warm-up frames, invoke[0], invoke[1], ...
+            Fake.calls += 1
+            return Prediction(truth, np.ones(len(truth)), StageTimes(1.0, float(ms), 0.5), frame.shape)
+
+    dataset = SimpleNamespace(load_image=lambda i: np.zeros((48, 64, 3), np.uint8),
+                              samples=[SimpleNamespace(keypoints=truth)] * 3)
+    result = evaluate_predictor(Fake(), dataset, [0, 1, 2], UR5, min_timed_frames=60, warmup=2)
+    timing = result["timing"]
+    assert timing["frames_timed"] == 60 and timing["backend"] == "fake backend"
+    assert timing["inference_ms"] == {"mean": round(float(np.mean(invoke)), 4),
+                                      "std": round(float(np.std(invoke, ddof=1)), 4),
+                                      "median": round(float(np.median(invoke)), 4)}
+    assert timing["total_ms"]["std"] == round(float(np.std(invoke + 1.5, ddof=1)), 4)
+    assert timing["fps"] == round(1000 / float(np.mean(invoke + 1.5)), 2)
+    assert result["metrics"]["pck@0.5_bbox"] == 1.0
+    assert "fake backend" in format_timing(timing)

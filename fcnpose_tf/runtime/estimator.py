@@ -1,15 +1,17 @@
-"""KeypointModel: a BGR frame in, keypoints in the frame's pixels out, with per-stage timings.
+"""Predictors: a BGR frame in, keypoints in the frame's pixels out, with per-stage timings.
 
-The three stages are the ones the FPS definition adds up (docs/runtime.md):
-preprocessing (the training side's `preprocess_frame`, written straight into
-the interpreter's input buffer), the interpreter's invoke, and post-processing
-(`maps_to_keypoints` on the output buffer, then scaling back to the frame).
-No per-frame allocation of model-sized buffers; not thread-safe (one model per
-thread).
+`KeypointPredictor` is the one frame path (preprocess -> forward -> decode) every backend shares;
+the stages are the ones the FPS definition adds up (docs/runtime.md): preprocessing (the training
+side's `preprocess_frame`), the network's forward pass, and post-processing (`postprocess.decode`:
+`maps_to_keypoints`, then scaling back to the frame). A backend supplies only the forward pass and
+its buffers. `KeypointModel` is the LiteRT one (preprocessing writes straight into the
+interpreter's input buffer); the tf_keras one is `fcnpose_tf.evaluate.KerasKeypointModel`.
+No per-frame allocation of model-sized buffers; not thread-safe (one model per thread).
 """
 
 from __future__ import annotations
 
+import abc
 import math
 import os
 import time
@@ -20,8 +22,8 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema
-from fcnpose_tf.postprocess import maps_to_keypoints
-from fcnpose_tf.preprocess import keypoints_to_frame, preprocess_frame
+from fcnpose_tf.postprocess import decode as decode_maps
+from fcnpose_tf.preprocess import preprocess_frame
 from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
                                             load_interpreter, model_stats)
 
@@ -83,8 +85,74 @@ class Prediction:
         return out
 
 
-class KeypointModel:
-    """An FCN-Pose .tflite model ready to run on frames.
+class KeypointPredictor(abc.ABC):
+    """An FCN-Pose ready to run on frames: preprocess -> forward -> decode, each stage timed.
+
+    A backend implements `set_input` (preprocess a frame into the model's input), `invoke` (the
+    forward pass), `read_maps` (the output maps of the last forward pass) and `backend_label`; it
+    sets `input_size`, `num_maps`, `threshold` and `num_threads`. Decoding and `predict` are
+    shared, so every backend maps keypoints back to frame pixels and times its stages the same way.
+    """
+
+    input_size: int
+    """Side of the square model input (frames are resized to it)."""
+    num_maps: int
+    """Output maps: one per keypoint, then the skeleton map."""
+    threshold: float
+    """Probability above which a map pixel belongs to a keypoint (post-processing)."""
+    num_threads: int | None
+    """Threads of the forward pass (None: the library's default)."""
+
+    @property
+    @abc.abstractmethod
+    def backend_label(self) -> str:
+        """What runs the forward pass, for reports (e.g. `ai_edge_litert 2.3.0`)."""
+
+    @abc.abstractmethod
+    def set_input(self, frame_bgr: np.ndarray) -> None:
+        """Preprocess a BGR uint8 frame into the model's input (the training preprocessing)."""
+
+    @abc.abstractmethod
+    def invoke(self) -> None:
+        """Run the network on the current input."""
+
+    @abc.abstractmethod
+    def read_maps(self, copy: bool = True) -> np.ndarray:
+        """The output maps (M x M x C float32 probabilities) of the last invoke.
+
+        With copy=False the result may be a view of a buffer the next invoke overwrites; drop it
+        before then.
+        """
+
+    def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
+        maps = self.read_maps(copy=False)
+        keypoints, confidence = decode_maps(maps, frame_shape, self.threshold)
+        del maps
+        return keypoints, np.array(confidence, dtype=np.float64, copy=True)
+
+    def predict(self, frame_bgr: np.ndarray) -> Prediction:
+        """Keypoints of one BGR uint8 frame (any size), with the time of each stage."""
+        t0 = time.perf_counter()
+        self.set_input(frame_bgr)
+        t1 = time.perf_counter()
+        self.invoke()
+        t2 = time.perf_counter()
+        keypoints, confidence = self.decode(frame_bgr.shape)
+        t3 = time.perf_counter()
+        times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3)
+        return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape))
+
+    def warmup(self, frame_shape: tuple[int, int, int] = (480, 640, 3), runs: int = 1) -> None:
+        """Run `runs` untimed frames of this shape, so the first real frame pays no start-up cost
+        (XNNPACK weight packing, OpenCV's first resize)."""
+        blank = np.zeros(frame_shape, np.uint8)
+        for _ in range(runs):
+            self.predict(blank)
+
+
+class KeypointModel(KeypointPredictor):
+    """An FCN-Pose .tflite model ready to run on frames (LiteRT).
 
     Args:
         model_path: the .tflite file (1 x S x S x 3 image in, 1 x S x S x C maps out).
@@ -136,7 +204,13 @@ class KeypointModel:
 
     @property
     def num_maps(self) -> int:
+        """Output maps: one per keypoint, then the skeleton map."""
         return self.io.num_maps
+
+    @property
+    def backend_label(self) -> str:
+        """The interpreter package and its version, e.g. `ai_edge_litert 2.3.0`."""
+        return self.backend.label
 
     def stats(self) -> ModelStats:
         """Parameters, MACs and file size of the model (computed once)."""
@@ -146,7 +220,7 @@ class KeypointModel:
 
     def describe(self) -> str:
         """One line: file, shapes, backend and threads."""
-        return (f"{self.path.name} ({self.io.describe()}), {self.backend.label}, "
+        return (f"{self.path.name} ({self.io.describe()}), {self.backend_label}, "
                 f"{self.num_threads} thread{'s' if self.num_threads != 1 else ''}")
 
     # -- the three stages ----------------------------------------------------------------------------
@@ -189,33 +263,6 @@ class KeypointModel:
             maps = view
         del view
         return maps.copy() if copy else maps
-
-    def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
-        maps = self.read_maps(copy=False)
-        keypoints, confidence = maps_to_keypoints(maps, threshold=self.threshold)
-        del maps
-        keypoints = keypoints_to_frame(keypoints, frame_shape, self.io.map_size)
-        return keypoints, np.array(confidence, dtype=np.float64, copy=True)
-
-    def predict(self, frame_bgr: np.ndarray) -> Prediction:
-        """Keypoints of one BGR uint8 frame (any size), with the time of each stage."""
-        t0 = time.perf_counter()
-        self.set_input(frame_bgr)
-        t1 = time.perf_counter()
-        self.interpreter.invoke()
-        t2 = time.perf_counter()
-        keypoints, confidence = self.decode(frame_bgr.shape)
-        t3 = time.perf_counter()
-        times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3)
-        return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape))
-
-    def warmup(self, frame_shape: tuple[int, int, int] = (480, 640, 3), runs: int = 1) -> None:
-        """Run `runs` untimed frames of this shape, so the first real frame pays no start-up cost
-        (XNNPACK weight packing, OpenCV's first resize)."""
-        blank = np.zeros(frame_shape, np.uint8)
-        for _ in range(runs):
-            self.predict(blank)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:
         """The raw output maps for a frame (a copy): for debugging and parity checks."""

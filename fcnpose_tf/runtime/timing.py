@@ -1,6 +1,6 @@
 """Latency bookkeeping shared by `run` and `bench`: per-stage logs, summaries, the FPS definition.
 
-FPS (docs/runtime.md, GUIDE section 4) = 1000 / mean end-to-end milliseconds,
+FPS (docs/runtime.md, timing) = 1000 / mean end-to-end milliseconds,
 where end-to-end = preprocess + invoke + postprocess of one frame; the
 invoke-only rate (1000 / mean invoke ms) is reported next to it. Capture,
 drawing and writing are not part of either; `run` reports the wall-clock loop
@@ -23,7 +23,12 @@ FPS_DEFINITION = "FPS = 1000 / mean(preprocess + invoke + postprocess ms); invok
 
 
 def describe_ms(values: Sequence[float] | np.ndarray) -> dict[str, float]:
-    """mean, std, median, p95, min, max of millisecond samples (NaN for none)."""
+    """mean, std, median, p95, min, max of millisecond samples (NaN for none).
+
+    The one summary of per-frame times (`run`, `bench`, `evaluate`, `compress`, the sweep).
+    std is the sample standard deviation (ddof=1; 0 for a single sample), as docs/runtime.md
+    defines it.
+    """
     arr = np.asarray(values, np.float64)
     if arr.size == 0:
         return {k: float("nan") for k in ("mean", "std", "median", "p95", "min", "max")}

@@ -126,7 +126,6 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
                                  dataset, indices)
     tflite_path = _checked_file(out, files.get("tflite"), "the TFLite export")
     tfl = KeypointModel(tflite_path, num_threads=threads)
-    tfl.backend_label = tfl.backend.label
     measured["tflite"] = _measure(tfl, dataset, indices)
     return measured
 
