@@ -5,7 +5,7 @@ original frame's pixels (map keypoints back with :func:`fcnpose_tf.postprocess.d
 NaN marks a missing keypoint: a missing *prediction* is a keypoint the network did not find, a
 missing *ground truth* one that is not annotated (not visible).
 
-Definitions (GUIDE section 4; the JSON keys of :func:`keypoint_report` carry their names):
+Definitions (docs/training.md, evaluation; the JSON keys of :func:`keypoint_report` carry their names):
 
 - **PCK@alpha (bbox)**, MMPose's PCKAccuracy convention: a prediction is correct when its
   Euclidean distance to the ground truth divided by max(w, h) of the bounding box of that frame's

@@ -14,7 +14,6 @@ kill) loses at most the epoch in flight, and `resume=True` continues it.
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import shutil
@@ -278,9 +277,3 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
         fig.savefig(tmp)
     plt.close(fig)
 
-
-def read_loss_csv(csv_path: Path) -> list[dict[str, float]]:
-    """Read back a NAME_loss.csv file."""
-    with open(csv_path, newline="") as fh:
-        return [{"epoch": int(r["epoch"]), "loss": float(r["loss"]), "val_loss": float(r["val_loss"])}
-                for r in csv.DictReader(fh)]

@@ -16,7 +16,7 @@ FPS ratio to A, and the share of its frame time spent outside the interpreter (p
     python tools/bench_speedup.py --keras saved_models/fcnpose_ur5.keras \
         --tflite saved_models/fcnpose_ur5_p70_fp16.tflite --data DIR --frames 200 --threads 1
 
-Targets (issue 6): B's FPS >= 8 x A's; B's pre + post <= 15 % of its frame time (70 % model,
+Targets (docs/runtime.md, speed targets): B's FPS >= 8 x A's; B's pre + post <= 15 % of its frame time (70 % model,
 224, one thread). Each forward pass is also put as a throughput, GMAC/s = the network's
 multiply-accumulates per frame / its median forward-pass time, and the line at the end says what
 throughput B's forward pass would need for 8x: the budget that target leaves once A's frame time

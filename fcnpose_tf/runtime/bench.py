@@ -28,7 +28,7 @@ from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms, f
 from fcnpose_tf.tables import format_table
 
 MIN_FRAMES_FOR_STATS = 50
-"""GUIDE section 4: mean and std over at least this many frames."""
+"""Mean and std over at least this many frames (docs/runtime.md, how FPS is defined)."""
 
 
 def synthetic_frame(width: int = 640, height: int = 480, seed: int = 0) -> np.ndarray:
@@ -94,7 +94,7 @@ class ThreadResult:
 
     @property
     def pre_post_share_percent(self) -> float:
-        """Preprocess + postprocess as a share of the end-to-end mean (the issue's <= 15% target)."""
+        """Preprocess + postprocess as a share of the end-to-end mean (docs/runtime.md's <= 15% target)."""
         total = self.end_to_end.get("mean", float("nan"))
         if not total or not np.isfinite(total):
             return float("nan")

@@ -36,7 +36,6 @@ from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.jobs import JOBS_DIR, SweepConfig, base_model_path, load_data
 
 RETIME_KIND = "retime"
-TIMED_SECTIONS = ("keras", "tflite", "base_remeasured")
 
 
 @dataclass
