@@ -204,19 +204,18 @@ class KeypointModel(KeypointPredictor):
 
     @property
     def num_maps(self) -> int:
-        """Output maps: one per keypoint, then the skeleton map."""
         return self.io.num_maps
-
-    @property
-    def backend_label(self) -> str:
-        """The interpreter package and its version, e.g. `ai_edge_litert 2.3.0`."""
-        return self.backend.label
 
     def stats(self) -> ModelStats:
         """Parameters, MACs and file size of the model (computed once)."""
         if self._stats is None:
             self._stats = model_stats(self.interpreter, self.path)
         return self._stats
+
+    @property
+    def backend_label(self) -> str:
+        """The interpreter package and its version, e.g. `ai_edge_litert 2.3.0`."""
+        return self.backend.label
 
     def describe(self) -> str:
         """One line: file, shapes, backend and threads."""
