@@ -5,7 +5,8 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 
-def _cell(value: Any, digits: int | None = None) -> str:
+def format_cell(value: Any, digits: int | None = None) -> str:
+    """One table cell: "-" for None, floats to `digits` places (else 4 significant), ints with separators."""
     if value is None:
         return "-"
     if isinstance(value, float) and digits is not None:
@@ -24,7 +25,7 @@ def format_table(headers: Sequence[str], rows: Sequence[Sequence[Any]], markdown
     `digits` gives a column's floats a fixed number of decimals (None: 4 significant digits).
     """
     digits = list(digits or []) + [None] * (len(headers) - len(digits or []))
-    cells = [[_cell(v, d) for v, d in zip(row, digits)] for row in rows]
+    cells = [[format_cell(v, d) for v, d in zip(row, digits)] for row in rows]
     numeric = [all(isinstance(row[i], (int, float)) or row[i] is None for row in rows) if rows else False
                for i in range(len(headers))]
     widths = [max([len(h)] + [len(r[i]) for r in cells]) for i, h in enumerate(headers)]

@@ -82,6 +82,7 @@ def main() -> int:
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.evaluate import KerasKeypointModel
     from fcnpose_tf.runtime.estimator import KeypointModel
+    from fcnpose_tf.runtime.timing import LatencyLog
     from fcnpose_tf.synthcache import heldout_data
     from fcnpose_tf.tfsetup import set_tensorflow_threads
 
@@ -125,14 +126,13 @@ def main() -> int:
             times[k].append(models[k].predict(frame).times)
 
     def stats(ts):
-        total = np.array([t.total_ms for t in ts])
-        pre = np.array([t.preprocess_ms for t in ts])
-        inv = np.array([t.invoke_ms for t in ts])
-        post = np.array([t.postprocess_ms for t in ts])
-        return {"total_ms_median": float(np.median(total)), "total_ms_p95": float(np.percentile(total, 95)),
-                "preprocess_ms_median": float(np.median(pre)), "inference_ms_median": float(np.median(inv)),
-                "postprocess_ms_median": float(np.median(post)), "fps_median": 1000.0 / float(np.median(total)),
-                "pre_post_share_percent": float(100 * np.median((pre + post) / total))}
+        log = LatencyLog(ts)
+        s = log.summary()
+        share = (log.values("preprocess") + log.values("postprocess")) / log.values("end_to_end")
+        return {"total_ms_median": s["end_to_end"]["median"], "total_ms_p95": s["end_to_end"]["p95"],
+                "preprocess_ms_median": s["preprocess"]["median"], "inference_ms_median": s["invoke"]["median"],
+                "postprocess_ms_median": s["postprocess"]["median"], "fps_median": 1000.0 / s["end_to_end"]["median"],
+                "pre_post_share_percent": float(100 * np.median(share))}
 
     from fcnpose_tf.model import describe
 

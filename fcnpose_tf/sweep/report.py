@@ -162,9 +162,9 @@ def _number(value: float | None, fmt: str) -> str:
         return format(int(round(value)), fmt)
     if fmt:
         return format(value, fmt)
-    from fcnpose_tf.tables import _cell
+    from fcnpose_tf.tables import format_cell
 
-    return _cell(value)
+    return format_cell(value)
 
 
 def _round(value: Any) -> Any:
