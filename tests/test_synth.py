@@ -299,7 +299,8 @@ def test_workcell_frames_share_one_camera_and_cell_across_seeds():
 
 def test_a_workcell_arm_keeps_to_its_task():
     """Every pose of a cell: base within the task's sector, elbow on the task's side, tool pointing down."""
-    from fcnpose_tf.data.synth import _wrap, workcell
+    from fcnpose_tf.data.synth import workcell
+    from fcnpose_tf.data.synth.kinematics import _wrap
 
     for scene_seed in (0, 2):
         task = workcell(scene_seed, W, H).task
