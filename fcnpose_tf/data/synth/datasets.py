@@ -135,9 +135,11 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     frames beyond n and the stored folds (ur5_synth.splits.json).
 
     Raises:
-        UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, or an output folder that
-            is not empty (without force), not a folder, or not writable.
+        UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, tight_framing outside
+            [0, 1], or an output folder that is not empty (without force), not a folder, or not writable.
+            Every option is checked before anything in out_dir is touched.
     """
+    from fcnpose_tf.data.splits import splits_path
     from fcnpose_tf.data.via import ViaFrame, write_via_project
 
     if int(n) != n or n < 1:
@@ -149,22 +151,20 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
-    out_dir = Path(out_dir)
+    if not 0.0 <= tight_framing <= 1.0:
+        raise UserError(f"--tight-framing must be between 0 and 1, got {tight_framing}")
+    from tqdm import tqdm  # a missing package is also found before anything is touched
+
+    out_dir = Path(out_dir)  # every option checked: only now is an earlier set replaced
     image_dir = _prepare_output(out_dir, force)
     keep = {IMAGE_NAME.format(index=i) for i in range(n)}
     for stale in image_dir.glob("synth_*.png"):
         if stale.name not in keep:
             stale.unlink()
-    from fcnpose_tf.data.splits import splits_path
-
     splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
     (out_dir / VIA_FILENAME).unlink(missing_ok=True)  # written again last: no VIA file while frames change
 
-    from tqdm import tqdm
-
     start = time.perf_counter()
-    if not 0.0 <= tight_framing <= 1.0:
-        raise UserError(f"--tight-framing must be between 0 and 1, got {tight_framing}")
     tasks = [(int(seed), i, int(width), int(height), str(image_dir), float(tight_framing), scene, int(scene_seed))
              for i in range(n)]
     workers = min(workers, n)
