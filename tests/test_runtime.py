@@ -369,6 +369,7 @@ def test_runtime_matches_training_side_path(structured, random_model):
     np.testing.assert_allclose(KeypointModel(path, 2).predict_maps(frame), keras_maps, atol=1e-2)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", ["uint8", "int8"])
 def test_fully_quantized_models_are_fed_and_read_through_their_scales(tmp_path, dtype):
     """Integer input/output (full-integer quantization): the frame is quantized, the maps dequantized."""

@@ -129,6 +129,7 @@ def test_joint_keypoints_are_drawn_on_the_robot(samples):
     assert checked >= 30
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", ["workcell", "random"])
 def test_the_person_hides_at_most_three_keypoints(scene):
     modes = set()
