@@ -6,7 +6,8 @@ only on (seed, i), so the first TRAINING_FRAMES of that set are a subset of the 
 frames: `compress` and `sweep` retrain on them when given no --data (400 frames keep `compress
 --rate 0.7` within about 10 minutes on 2 cores). Every default measurement uses a held-out set
 from another seed. Both are generated on first use under $FCNPOSE_CACHE (default
-~/.cache/fcnpose-tf), keyed by the generator's source hash.
+~/.cache/fcnpose-tf), keyed by a hash of everything that shapes the generated files
+(`generator_fingerprint`).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import os
 import shutil
 import tempfile
 from pathlib import Path
+from typing import Sequence
 
 BASELINE_FRAMES = 1200
 """Frames of the synthetic set the bundled baseline was trained on (seed BASELINE_SEED)."""
@@ -32,13 +34,57 @@ def cache_dir() -> Path:
     return Path(root)
 
 
-def generator_fingerprint() -> str:
-    """First 12 hex digits of the generator's source hash: a changed generator gets a fresh cache."""
+GENERATOR_MODULES = ("fcnpose_tf.data.synth", "fcnpose_tf.keypoints", "fcnpose_tf.data.via", "fcnpose_tf.fileio")
+"""What shapes a generated dataset's bytes: the generator package (every module in it), the keypoint
+schema, the VIA writer and the JSON writer it formats the VIA file with."""
+NOT_SHAPING_MODULES = {
+    "fcnpose_tf.errors": "error messages only",
+    "fcnpose_tf.system": "the worker count; the files are the same for any",
+    "fcnpose_tf.data.splits": "only removes the folds of a set being replaced",
+    "fcnpose_tf.draw": "previews, which are not part of a dataset",
+}
+"""First-party modules the generator imports that do not change the files (tests check that every
+module the generator imports is in one of the two lists)."""
+
+
+def generator_sources() -> list[Path]:
+    """The source files of GENERATOR_MODULES (a package: all its .py files), in a stable order."""
+    import importlib.util
+
+    files: list[Path] = []
+    for name in GENERATOR_MODULES:
+        spec = importlib.util.find_spec(name)
+        if spec is None or spec.origin is None:  # pragma: no cover - the package is installed with its sources
+            raise RuntimeError(f"cannot find the source of {name}")
+        if spec.submodule_search_locations:
+            files += sorted(Path(spec.origin).parent.rglob("*.py"))
+        else:
+            files.append(Path(spec.origin))
+    return files
+
+
+def generator_fingerprint(sources: Sequence[str | os.PathLike] | None = None) -> str:
+    """First 12 hex digits of a hash over everything that shapes a generated dataset: a changed
+    generator gets a fresh cache.
+
+    Hashes each of `sources` (default: `generator_sources()`) by its path inside the package and its
+    bytes, plus the numpy and OpenCV versions (random streams, resizing, blurring, PNG and JPEG coding).
+    """
     import hashlib
 
-    from fcnpose_tf.data import synth
+    import cv2
+    import numpy as np
 
-    return hashlib.sha256(Path(synth.__file__).read_bytes()).hexdigest()[:12]
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for source in generator_sources() if sources is None else sources:
+        path = Path(source).resolve()
+        name = path.relative_to(root).as_posix() if path.is_relative_to(root) else path.name
+        data = path.read_bytes()
+        digest.update(f"{name}\0{len(data)}\0".encode())
+        digest.update(data)
+    digest.update(f"numpy {np.__version__}\0opencv {cv2.__version__}".encode())
+    return digest.hexdigest()[:12]
 
 
 def synthetic_dataset(n: int, seed: int, width: int = 640, height: int = 480) -> Path:

@@ -21,6 +21,7 @@ def test_summary_prints_paper_figures(cli):
     assert "1,481,675,328" in out  # MACs of the unpruned network at 224
 
 
+@pytest.mark.slow
 def test_summary_of_a_saved_model_reports_size(cli, tmp_path):
     from fcnpose_tf.model import build_fcn_pose
 
@@ -31,6 +32,7 @@ def test_summary_of_a_saved_model_reports_size(cli, tmp_path):
     assert "(64, 64, 9)" in proc.stdout and "File size:" in proc.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("args, message", [
     (["summary", "--input-size", "100"], "multiple of 32"),
     (["summary", "missing.keras"], "missing.keras: model file not found"),
@@ -45,6 +47,7 @@ def test_user_errors_are_one_line_exit_2(cli, args, message):
     assert [line for line in proc.stderr.splitlines() if line.startswith("error:")]
 
 
+@pytest.mark.slow
 def test_corrupt_model_file(cli, tmp_path):
     bad = tmp_path / "broken.keras"
     bad.write_bytes(b"not a zip")

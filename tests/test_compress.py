@@ -18,6 +18,7 @@ def setup(tmp_path_factory):
     return root, data, base
 
 
+@pytest.mark.slow
 def test_compress_writes_model_tflite_and_report(setup, cli):
     root, data, base = setup
     out = root / "out"
@@ -53,6 +54,7 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
+@pytest.mark.slow
 def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli):
     """--method magnitude retrains with the same loss as the l1 path (compile_for_training), not plain BCE."""
     root, data, base = setup
@@ -69,6 +71,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     assert report["options"]["lr_patience"] == 1 and report["retrained"]["params"] == 131705
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("extra, message", [
     (["--lr-patience", "-1", "--rate", "0.5"], "learning-rate patience must be 0 (off) or more"),
     (["--augment-copies", "-1", "--rate", "0.5"], "augmented copies must be >= 0"),
@@ -87,6 +90,7 @@ def test_bad_input_leaves_nothing(setup, cli, extra, message):
     assert not out.exists()  # not even an empty folder
 
 
+@pytest.mark.slow
 def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
     import tf_keras as keras
 

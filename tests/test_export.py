@@ -90,6 +90,7 @@ def test_interface_is_static_float32_and_builtin_only(fcn64_fp16):
     assert fcn64_fp16.input_shape == (1, 64, 64, 3)
 
 
+@pytest.mark.slow
 def test_float32_has_no_dequantize_and_int8_weights_are_int8(sizes224):
     f32 = inspect_tflite(sizes224[("full", "float32")][1].data)
     assert "DEQUANTIZE" not in f32["op_counts"] and set(f32["constant_dtypes"]) == {"FLOAT32", "INT32"}
@@ -102,6 +103,7 @@ def test_float32_has_no_dequantize_and_int8_weights_are_int8(sizes224):
     assert i8["builtin_only"] and i8["inputs"][0]["dtype"] == "FLOAT32" and i8["outputs"][0]["dtype"] == "FLOAT32"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name,limit", [("full", 280_000), ("p70", 45_000)])
 def test_sizes_at_224(sizes224, name, limit):
     params, fp16 = sizes224[(name, "float16")]
@@ -114,18 +116,21 @@ def test_sizes_at_224(sizes224, name, limit):
     assert sizes224[(name, "int8-weights")][1].size_bytes < fp16.size_bytes < f32
 
 
+@pytest.mark.slow
 def test_size_overhead_does_not_depend_on_widths(sizes224):
     overheads = [sizes224[(name, "float16")][1].size_bytes - 2 * sizes224[(name, "float16")][0]
                  for name in ("full", "p70")]
     assert abs(overheads[0] - overheads[1]) < 1_000, overheads
 
 
+@pytest.mark.slow
 def test_every_export_at_224_matches_keras(sizes224):
     for (name, quantize), (_, result) in sizes224.items():
         assert result.parity.max_abs_diff <= (0.1 if quantize == "int8-weights" else 1e-2), (name, quantize)
         assert result.parity.frames == 2 and result.convert_seconds > 0
 
 
+@pytest.mark.slow
 def test_verification_tolerance_is_per_mode(sizes224):
     for (name, quantize), (_, result) in sizes224.items():
         int8 = quantize == "int8-weights"
@@ -221,6 +226,7 @@ def test_other_weights_are_refused_and_nothing_written(fcn64, tmp_path, monkeypa
     assert not target.exists() and list(target.parent.iterdir()) == []
 
 
+@pytest.mark.slow
 def test_nan_output_is_refused(fcn64, tmp_path, monkeypatch):
     broken = randomize(build_fcn_pose(input_size=64), seed=2)
     kernel, bias = broken.get_layer("conv10").get_weights()

@@ -24,6 +24,7 @@ def max_diff(a, b, x):
     return float(np.abs(np.asarray(a(x, training=False)) - np.asarray(b(x, training=False))).max())
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("widths,size", [
     (DEFAULT_WIDTHS, 64),                          # the full network
     (pruned_widths(DEFAULT_WIDTHS, 0.7), 64),      # 70% pruned: 39, 20, 10, 5, 3, 3, 5, 10, 20
@@ -130,6 +131,7 @@ def p70_64():
     return randomize(build_fcn_pose(pruned_widths(DEFAULT_WIDTHS, 0.7), input_size=64), seed=5)
 
 
+@pytest.mark.slow
 def test_folded_export_runs_depth_to_space_and_matches_the_original(p70_64):
     export = export_tflite(p70_64, "float16", fold_upsampling=True)
     ops = _op_names(export.data)
@@ -144,6 +146,7 @@ def test_folded_export_runs_depth_to_space_and_matches_the_original(p70_64):
     assert np.abs(run_tflite(_interpreter(f32.data), x) - np.asarray(p70_64(x))).max() <= 1e-5
 
 
+@pytest.mark.slow
 def test_runtime_counts_a_folded_file_as_the_original_network(p70_64, tmp_path):
     """The Pi runtime's parameter and MAC counts of a folded file are the Keras model's, not the phase kernels'."""
     from fcnpose_tf.model import describe
@@ -156,6 +159,7 @@ def test_runtime_counts_a_folded_file_as_the_original_network(p70_64, tmp_path):
     assert stats.conv_layers == 10
 
 
+@pytest.mark.slow
 def test_unfolded_export_keeps_resize_and_branched_models_export_unfolded(p70_64):
     plain = export_tflite(p70_64, "float32", fold_upsampling=False)
     ops = _op_names(plain.data)

@@ -117,6 +117,7 @@ def test_keep_rule_floating_point_traps():
     assert all(keep_count(n, 0.999) >= 1 for n in range(1, 200))
 
 
+@pytest.mark.slow
 def test_pruned_widths_reproduce_paper_parameter_counts():
     assert pruned_widths(DEFAULT_WIDTHS, 0.7) == (39, 20, 10, 5, 3, 3, 5, 10, 20)
     for rate, params in [(0.7, 14_668), (0.5, 35_185), (0.9, 2_480), (0.0, 131_705)]:
@@ -212,6 +213,7 @@ def test_greedy_matches_reference_on_fcn_pose():
 # surgery is exact
 # ------------------------------------------------------------------------------------------
 
+@pytest.mark.slow
 @pytest.mark.parametrize("strategy", ["independent", "greedy"])
 @pytest.mark.parametrize("rate", [0.3, 0.7, 0.9])
 def test_surgery_equals_original_with_removed_filters_zeroed(strategy, rate):
@@ -274,6 +276,7 @@ def test_rate_zero_is_an_identical_copy():
     np.testing.assert_array_equal(copy(x), model(x))
 
 
+@pytest.mark.slow
 def test_pruned_model_trains_and_saves(tmp_path):
     pruned = prune_model(randomize(build_fcn_pose(input_size=32)), 0.7)
     pruned.compile("adam", "binary_crossentropy")
@@ -404,6 +407,7 @@ def test_magnitude_prune_zeroes_the_smallest_weights():
     assert _gzip_size(sparse) < 0.6 * _gzip_size(model)
 
 
+@pytest.mark.slow
 def test_magnitude_prune_keeps_masks_while_retraining():
     model = randomize(build_fcn_pose(input_size=32), seed=9)
     seen = {}

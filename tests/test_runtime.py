@@ -404,6 +404,7 @@ def test_keras_and_litert_predictors_share_one_frame_path(tmp_path, random_model
     np.testing.assert_allclose(keras_predictor.read_maps(), litert.read_maps(), atol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("dtype", ["uint8", "int8"])
 def test_fully_quantized_models_are_fed_and_read_through_their_scales(tmp_path, dtype):
     """Integer input/output (full-integer quantization): the frame is quantized, the maps dequantized."""

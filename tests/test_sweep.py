@@ -403,6 +403,7 @@ def _fake_measure(factor: float, spoil: str | None = None):
     return measure
 
 
+@pytest.mark.slow
 def test_retime_replaces_timings_keeps_metrics_and_rebuilds_the_report(tmp_path, frames):
     from fcnpose_tf.sweep.retime import retime_sweep
 
@@ -551,6 +552,7 @@ def _check_smoke_outputs(out: Path, threads: int) -> None:
         assert section["timing"]["threads"] == threads and section["metrics"]["num_frames"] == 5
 
 
+@pytest.mark.slow
 def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
     out = tmp_path / "res"
     proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
@@ -593,6 +595,7 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
     assert again.returncode == 0 and f"wrote {moved / 'summary.md'}" in again.stdout
 
 
+@pytest.mark.slow
 def test_smoke_sweep_on_a_local_ray_instance(tmp_path, frames, cli):
     pytest.importorskip("ray")
     out = tmp_path / "res"

@@ -129,6 +129,7 @@ def test_joint_keypoints_are_drawn_on_the_robot(samples):
     assert checked >= 30
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("scene", ["workcell", "random"])
 def test_the_person_hides_at_most_three_keypoints(scene):
     modes = set()
@@ -235,6 +236,44 @@ def test_force_rewrites_and_removes_stale_frames(tmp_path):
     assert len(json.loads((out / "ur5_synth.json").read_text())["_via_img_metadata"]) == 2
 
 
+def _tree(folder):
+    """{relative path: SHA-256} of every file under folder."""
+    import hashlib
+
+    return {str(f.relative_to(folder)): hashlib.sha256(f.read_bytes()).hexdigest()
+            for f in sorted(folder.rglob("*")) if f.is_file()}
+
+
+@pytest.mark.parametrize("bad, message", [
+    (dict(tight_framing=1.5), "--tight-framing must be between 0 and 1"),
+    (dict(tight_framing=float("nan")), "--tight-framing must be between 0 and 1"),
+    (dict(n=0), "--n must be at least 1"),
+    (dict(workers=0), "--workers must be at least 1"),
+    (dict(width=8), "too small"),
+    (dict(scene="lab"), "unknown scene"),
+])
+def test_force_with_a_bad_option_leaves_the_existing_set_untouched(tmp_path, bad, message):
+    out = tmp_path / "set"
+    generate(out, n=3, seed=0, width=W, height=H, workers=1, progress=False)
+    (out / "ur5_synth.splits.json").write_text("{}")
+    before = _tree(out)
+    options = dict(n=2, seed=1, width=W, height=H, workers=1, force=True, progress=False) | bad
+    with pytest.raises(UserError, match=message):
+        generate(out, **options)
+    assert _tree(out) == before
+
+
+def test_cli_force_with_bad_tight_framing_exits_2_and_keeps_the_files(cli, tmp_path):
+    out = tmp_path / "set"
+    generate(out, n=2, seed=0, width=W, height=H, workers=1, progress=False)
+    (out / "ur5_synth.splits.json").write_text("{}")
+    before = _tree(out)
+    proc = cli("synth", "--out", out, "--n", 1, "--width", W, "--height", H, "--force", "--tight-framing", "2")
+    assert proc.returncode == 2
+    assert "--tight-framing must be between 0 and 1" in proc.stderr and "Traceback" not in proc.stderr
+    assert _tree(out) == before
+
+
 def test_cli_writes_a_dataset_and_a_preview(cli, tmp_path):
     proc = cli("synth", "--out", tmp_path / "s", "--n", 2, "--width", W, "--height", H, "--workers", 1,
                "--preview", tmp_path / "p.png", "--no-progress")
@@ -299,7 +338,8 @@ def test_workcell_frames_share_one_camera_and_cell_across_seeds():
 
 def test_a_workcell_arm_keeps_to_its_task():
     """Every pose of a cell: base within the task's sector, elbow on the task's side, tool pointing down."""
-    from fcnpose_tf.data.synth import _wrap, workcell
+    from fcnpose_tf.data.synth import workcell
+    from fcnpose_tf.data.synth.kinematics import _wrap
 
     for scene_seed in (0, 2):
         task = workcell(scene_seed, W, H).task

@@ -46,6 +46,7 @@ def trained(tmp_path_factory):
     return data, out, proc.stdout
 
 
+@pytest.mark.slow
 def test_train_writes_model_curves_and_record(trained):
     data, out, stdout = trained
     stem = out.with_suffix("")
@@ -61,6 +62,7 @@ def test_train_writes_model_curves_and_record(trained):
     assert "PCK normalised by max(bbox w, h)" in stdout
 
 
+@pytest.mark.slow
 def test_existing_model_needs_force(trained, cli):
     data, out, _ = trained
     before = out.read_bytes()
@@ -69,6 +71,7 @@ def test_existing_model_needs_force(trained, cli):
     assert out.read_bytes() == before
 
 
+@pytest.mark.slow
 def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, cli, tmp_path):
     data, out, _ = trained
     proc = cli("evaluate", out, "--data", data, "--json", tmp_path / "r.json", "--threads", "1")
@@ -83,6 +86,7 @@ def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, 
     assert "all 4 frames" in proc.stdout
 
 
+@pytest.mark.slow
 def test_evaluate_errors(trained, cli, tmp_path):
     from fcnpose_tf.model import build_fcn_pose
 
@@ -102,6 +106,7 @@ def test_evaluate_errors(trained, cli, tmp_path):
     assert proc.returncode == 2 and "not found" in proc.stderr
 
 
+@pytest.mark.slow
 def test_interrupted_training_resumes(tmp_path, monkeypatch):
     from fcnpose_tf import train
     from fcnpose_tf.data.dataset import fold_data, load_dataset
@@ -149,6 +154,7 @@ def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
     assert float(KeypointBinaryCrossentropy(w)(tf.constant(y), tf.constant(p))) == pytest.approx(ref.mean(), rel=1e-5)
 
 
+@pytest.mark.slow
 def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_path):
     data, out, _ = trained
     proc = cli("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1", "--input-size", "64",

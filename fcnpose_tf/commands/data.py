@@ -151,31 +151,8 @@ def _inspect(args: argparse.Namespace) -> int:
     return 0
 
 
-# BGR colours for keypoints (matplotlib's tab10, then repeats)
-_PALETTE = [(180, 119, 31), (14, 127, 255), (44, 160, 44), (40, 39, 214), (189, 103, 148), (75, 86, 140),
-            (194, 119, 227), (0, 215, 255), (34, 189, 188), (207, 190, 23)]
 _TILE = 256
-
-
-def _colour(k: int) -> tuple[int, int, int]:
-    return _PALETTE[k % len(_PALETTE)]
-
-
-def _draw_keypoints(tile, keypoints, schema, scale: float) -> None:
-    import cv2
-    import numpy as np
-
-    shift = 4
-    def fixed(v: float) -> int:  # input pixels -> tile pixels (pixel-centre convention), in 1/16 px
-        return int(round(((v + 0.5) * scale - 0.5) * (1 << shift)))
-
-    pts = {k: (fixed(x), fixed(y)) for k, (x, y) in enumerate(keypoints) if np.isfinite(x) and np.isfinite(y)}
-    for a, b in schema.edges:
-        if a in pts and b in pts:
-            cv2.line(tile, pts[a], pts[b], (255, 255, 255), 2, cv2.LINE_AA, shift)
-    for k, p in pts.items():
-        cv2.circle(tile, p, 5 << shift, _colour(k), -1, cv2.LINE_AA, shift)
-        cv2.circle(tile, p, 5 << shift, (0, 0, 0), 1, cv2.LINE_AA, shift)
+_DOT_SCALE = 1.25  # keypoint dots of 5 px on a 256 px tile
 
 
 def _overlay_maps(rgb_image, maps):
@@ -183,12 +160,14 @@ def _overlay_maps(rgb_image, maps):
     import cv2
     import numpy as np
 
+    from fcnpose_tf.draw import keypoint_colour
+
     base = cv2.cvtColor(rgb_image, cv2.COLOR_RGB2BGR).astype(np.float32) * 0.45
     skeleton = maps[..., -1].astype(bool)
     base[skeleton] = base[skeleton] * 0.5 + 110
     for k in range(maps.shape[-1] - 1):
         disc = maps[..., k].astype(bool)
-        base[disc] = _colour(k)
+        base[disc] = keypoint_colour(k)
     return np.ascontiguousarray(np.clip(base, 0, 255).astype(np.uint8))
 
 
@@ -215,6 +194,7 @@ def preview_image(dataset, samples: int, input_size: int, seed: int = 0):
     import numpy as np
 
     from fcnpose_tf.data.dataset import TrainingData
+    from fcnpose_tf.draw import draw_keypoints, keypoint_colour
 
     count = min(samples, len(dataset))
     indices = np.unique(np.linspace(0, len(dataset) - 1, count).round().astype(int))
@@ -225,20 +205,21 @@ def preview_image(dataset, samples: int, input_size: int, seed: int = 0):
     for j in range(n):
         original, augmented = j, n + j
         left = _upscale(cv2.cvtColor(data.images[original], cv2.COLOR_RGB2BGR))
-        left = np.ascontiguousarray(left)
-        _draw_keypoints(left, data.keypoints[original], dataset.schema, scale)
+        left = draw_keypoints(left, data.keypoints[original], dataset.schema, labels=False, scale=_DOT_SCALE,
+                              point_scale=scale, copy=False)
         left = _caption(left, dataset.samples[int(indices[j])].filename)
         middle = np.ascontiguousarray(_upscale(_overlay_maps(data.images[original], data.maps[original])))
         middle = _caption(middle, f"target maps ({input_size}x{input_size})")
-        right = np.ascontiguousarray(_upscale(_overlay_maps(data.images[augmented], data.maps[augmented])))
-        _draw_keypoints(right, data.keypoints[augmented], dataset.schema, scale)
+        right = _upscale(_overlay_maps(data.images[augmented], data.maps[augmented]))
+        right = draw_keypoints(right, data.keypoints[augmented], dataset.schema, labels=False, scale=_DOT_SCALE,
+                               point_scale=scale, copy=False)
         right = _caption(right, f"augmented: {data.kinds[augmented]}")
         rows.append(np.concatenate([left, middle, right], axis=1))
     grid = np.concatenate(rows, axis=0)
     legend = np.zeros((24, grid.shape[1], 3), np.uint8)
     x = 6
     for k, name in enumerate(dataset.schema.keypoints):
-        cv2.circle(legend, (x + 6, 12), 6, _colour(k), -1, cv2.LINE_AA)
+        cv2.circle(legend, (x + 6, 12), 6, keypoint_colour(k), -1, cv2.LINE_AA)
         cv2.putText(legend, name, (x + 16, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
         x += 24 + 8 * len(name)
         if x > legend.shape[1] - 60:

@@ -22,6 +22,7 @@ from typing import Any, Sequence
 import cv2
 import numpy as np
 
+from fcnpose_tf.draw import draw_keypoints
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import check_writable
 from fcnpose_tf.keypoints import KeypointSchema
@@ -129,47 +130,16 @@ def open_record_writer(path: str | os.PathLike, schema: KeypointSchema, force: b
 
 # -- overlay -----------------------------------------------------------------------------------------------
 
-_PALETTE = [(66, 135, 245), (60, 180, 75), (255, 225, 25), (230, 25, 75), (245, 130, 48),
-            (145, 30, 180), (70, 240, 240), (240, 50, 230), (210, 245, 60), (250, 190, 212)]
-"""Distinct colours (RGB), one per keypoint."""
-
-
-def keypoint_colour(i: int) -> tuple[int, int, int]:
-    """BGR colour of keypoint i."""
-    r, g, b = _PALETTE[i % len(_PALETTE)]
-    return b, g, r
-
-
 def draw_overlay(image: np.ndarray, prediction: Prediction, schema: KeypointSchema, fps: float | None = None,
                  labels: bool = True, copy: bool = True) -> np.ndarray:
     """Draw the skeleton, the keypoints (with names) and an FPS figure top-left on a BGR frame.
 
-    Missing keypoints and the edges touching them are not drawn.
+    Missing keypoints and the edges touching them are not drawn (`fcnpose_tf.draw`'s style and palette).
     """
-    out = np.ascontiguousarray(image.copy() if copy else image)  # OpenCV 5 draws only on C-contiguous arrays
+    out = draw_keypoints(image, prediction.keypoints, schema, labels=labels, copy=copy)
     h, w = out.shape[:2]
     scale = max(h, w) / 640.0
-    radius = max(2, round(4 * scale))
     thick = max(1, round(2 * scale))
-    pts = prediction.keypoints
-    found = prediction.found
-    for a, b in schema.edges:
-        if found[a] and found[b]:
-            pa = (int(round(pts[a, 0])), int(round(pts[a, 1])))
-            pb = (int(round(pts[b, 0])), int(round(pts[b, 1])))
-            cv2.line(out, pa, pb, (255, 255, 255), thick + 2, cv2.LINE_AA)
-            cv2.line(out, pa, pb, keypoint_colour(a), thick, cv2.LINE_AA)
-    font_scale = 0.4 * max(scale, 0.75)
-    for i, name in enumerate(schema.keypoints):
-        if not found[i]:
-            continue
-        p = (int(round(pts[i, 0])), int(round(pts[i, 1])))
-        cv2.circle(out, p, radius + 1, (0, 0, 0), -1, cv2.LINE_AA)
-        cv2.circle(out, p, radius, keypoint_colour(i), -1, cv2.LINE_AA)
-        if labels:
-            org = (p[0] + radius + 2, p[1] - radius)
-            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, font_scale, (0, 0, 0), thick + 2, cv2.LINE_AA)
-            cv2.putText(out, name, org, cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), thick, cv2.LINE_AA)
     if fps is not None and math.isfinite(fps):
         text = f"FPS {fps:.1f}"
         fs = 0.6 * max(scale, 0.75)
@@ -286,5 +256,5 @@ def parse_outputs(paths: Sequence[str | os.PathLike]) -> list[Path]:
 
 
 __all__ = ["RecordWriter", "JsonlWriter", "CsvWriter", "open_record_writer", "record_format", "frame_record",
-           "draw_overlay", "keypoint_colour", "RollingFps", "VideoSink", "parse_outputs", "RECORD_SUFFIXES",
+           "draw_overlay", "RollingFps", "VideoSink", "parse_outputs", "RECORD_SUFFIXES",
            "VIDEO_CODECS"]

@@ -1,0 +1,99 @@
+"""Keypoints and skeleton drawn on a BGR image: one palette and one style for every picture.
+
+Used by the synthetic-data preview (`data.synth.preview`), `data inspect`'s preview and the runtime's
+video overlay (`runtime.sinks`), so it belongs to the Pi-side core: numpy and OpenCV only.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from fcnpose_tf.keypoints import UR5, KeypointSchema
+
+KEYPOINT_COLOURS_BGR = ((60, 60, 230), (40, 160, 250), (40, 220, 230), (60, 200, 60), (220, 200, 40),
+                        (230, 110, 40), (200, 60, 200), (250, 250, 250))
+"""One colour per keypoint (BGR), red to blue along the arm then magenta and white: UR5's base,
+shoulder, elbow, wrist1-3, flange, tool. Schemas with more keypoints repeat it."""
+
+_SHIFT = 4  # fractional bits of the fixed-point coordinates OpenCV draws with (1/16 px)
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def keypoint_colour(k: int) -> tuple[int, int, int]:
+    """BGR colour of keypoint k."""
+    return KEYPOINT_COLOURS_BGR[k % len(KEYPOINT_COLOURS_BGR)]
+
+
+def _fixed(p) -> tuple[int, int]:
+    return int(round(p[0] * (1 << _SHIFT))), int(round(p[1] * (1 << _SHIFT)))
+
+
+def draw_keypoints(image_bgr: np.ndarray, keypoints: np.ndarray, schema: KeypointSchema = UR5, labels: bool = True,
+                   occluded: np.ndarray | None = None, *, scale: float | None = None, point_scale: float = 1.0,
+                   copy: bool = True) -> np.ndarray:
+    """The BGR image with the skeleton, keypoint dots and (optionally) their names drawn on it.
+
+    keypoints: K x 2 pixel coordinates (pixel-centre convention), NaN for a missing keypoint (it and
+    its edges are not drawn). point_scale: the image is that many times the size of the one the
+    keypoints refer to (a resized tile); they are mapped through pixel edges, (x + 0.5) * s - 0.5.
+    scale: size of lines, dots and names relative to a 640 px frame (default: from the image size,
+    at least 0.6). occluded: per keypoint, True draws a ring instead of a dot (hidden but annotated).
+    Names are placed greedily where they overlap neither each other nor the dots, with a thin leader
+    line when pushed away. copy=False draws into image_bgr itself when it is C-contiguous (OpenCV 5
+    draws only on C-contiguous arrays); use the returned array either way.
+    """
+    out = np.ascontiguousarray(image_bgr.copy() if copy else image_bgr)
+    h, w = out.shape[:2]
+    if scale is None:
+        scale = max(0.6, max(h, w) / 640)
+    kp = (np.asarray(keypoints, np.float64) + 0.5) * point_scale - 0.5
+    line = max(1, round(2 * scale))
+    for a, b in schema.edges:
+        if np.isfinite(kp[[a, b]]).all():
+            cv2.line(out, _fixed(kp[a]), _fixed(kp[b]), (255, 255, 255), line + 2, cv2.LINE_AA, _SHIFT)
+            cv2.line(out, _fixed(kp[a]), _fixed(kp[b]), keypoint_colour(a), line, cv2.LINE_AA, _SHIFT)
+    r = max(2, round(4 * scale))
+    visible = [k for k in range(schema.num_keypoints) if np.isfinite(kp[k]).all()]
+    for k in visible:
+        hollow = occluded is not None and bool(occluded[k])
+        cv2.circle(out, _fixed(kp[k]), (r + 1) << _SHIFT, (0, 0, 0), -1 if not hollow else 1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(out, _fixed(kp[k]), r << _SHIFT, keypoint_colour(k), line if hollow else -1, cv2.LINE_AA, _SHIFT)
+    if labels:
+        _draw_names(out, kp, visible, schema, r, max(0.4, 0.45 * scale))
+    return out
+
+
+def _draw_names(out: np.ndarray, kp: np.ndarray, visible: list[int], schema: KeypointSchema, r: int,
+                font_scale: float) -> None:
+    """Each visible keypoint's name next to it, at the first of 32 nearby spots that is free and inside."""
+    h, w = out.shape[:2]
+    taken = [(kp[k, 0] - r, kp[k, 1] - r, kp[k, 0] + r, kp[k, 1] + r) for k in visible]
+    for k in visible:
+        name = schema.keypoints[k]
+        color = keypoint_colour(k)
+        (tw, th), base = cv2.getTextSize(name, _FONT, font_scale, 1)
+        x, y = kp[k]
+        best = None
+        for dist in (r + 3, 3 * r + 8, 6 * r + 14, 10 * r + 22):
+            for dx, dy in ((1, 0), (-1, 0), (0, -1), (0, 1), (1, -1), (-1, -1), (1, 1), (-1, 1)):
+                x0 = x + dx * dist - (tw if dx < 0 else 0 if dx > 0 else tw / 2)
+                y0 = y + dy * dist + (th / 2 if dy == 0 else 0 if dy > 0 else -th) - th / 2
+                box = (x0 - 1, y0 - 1, x0 + tw + 1, y0 + th + base)
+                if box[0] < 0 or box[1] < 0 or box[2] >= w or box[3] >= h:
+                    continue
+                if all(box[2] < t[0] or box[0] > t[2] or box[3] < t[1] or box[1] > t[3] for t in taken):
+                    best = (box, dist)
+                    break
+            if best:
+                break
+        if best is None:
+            continue  # no free spot: leave this name out rather than cover another
+        box, dist = best
+        taken.append(box)
+        org = (int(box[0] + 1), int(box[1] + 1 + th))
+        if dist > r + 3:
+            anchor = (min(max(x, box[0]), box[2]), min(max(y, box[1]), box[3]))
+            cv2.line(out, _fixed(kp[k]), _fixed(anchor), color, 1, cv2.LINE_AA, _SHIFT)
+        cv2.putText(out, name, org, _FONT, font_scale, (0, 0, 0), 3, cv2.LINE_AA)
+        cv2.putText(out, name, org, _FONT, font_scale, color, 1, cv2.LINE_AA)

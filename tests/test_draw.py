@@ -1,0 +1,72 @@
+"""The one keypoint/skeleton drawer: palette, missing and occluded keypoints, scaling, copies, no TensorFlow."""
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from fcnpose_tf.draw import KEYPOINT_COLOURS_BGR, draw_keypoints, keypoint_colour
+from fcnpose_tf.keypoints import UR5
+
+NAN = [np.nan, np.nan]
+
+
+def _points(**where):
+    """8 x 2 UR5 keypoints, NaN except the named ones."""
+    kp = np.array([NAN] * UR5.num_keypoints)
+    for name, xy in where.items():
+        kp[UR5.keypoints.index(name)] = xy
+    return kp
+
+
+def test_dots_take_the_palette_colour_and_missing_keypoints_are_skipped():
+    img = np.zeros((240, 320, 3), np.uint8)
+    kp = _points(base=(60, 120), shoulder=(260, 120))
+    out = draw_keypoints(img, kp, labels=False)
+    assert tuple(out[120, 60]) == keypoint_colour(0) and tuple(out[120, 260]) == keypoint_colour(1)
+    assert out[120, 160].any()  # the base-shoulder edge
+    assert not out[20:100].any() and not out[140:].any()  # nothing else: no edge to a missing keypoint
+    assert img.max() == 0  # a copy by default
+    assert keypoint_colour(len(KEYPOINT_COLOURS_BGR)) == keypoint_colour(0)  # more keypoints: the palette repeats
+
+
+def test_occluded_keypoints_are_rings():
+    img = np.zeros((240, 320, 3), np.uint8)
+    kp = _points(elbow=(100, 100), wrist2=(220, 100))  # not joined by an edge
+    occluded = np.zeros(UR5.num_keypoints, bool)
+    occluded[UR5.keypoints.index("elbow")] = True
+    out = draw_keypoints(img, kp, labels=False, occluded=occluded, scale=2.0)
+    assert not out[100, 100].any()  # hollow centre
+    assert tuple(out[100 - 8, 100]) == keypoint_colour(2)  # the ring, radius 8 at scale 2
+    assert tuple(out[100, 220]) == keypoint_colour(4)  # a filled dot
+
+
+def test_point_scale_maps_keypoints_through_pixel_edges():
+    img = np.zeros((200, 200, 3), np.uint8)
+    out = draw_keypoints(img, _points(base=(24.5, 12.0)), labels=False, point_scale=4.0, scale=1.0)
+    assert tuple(out[50, 100]) == keypoint_colour(0)  # ((24.5, 12) + 0.5) * 4 - 0.5 = (99.5, 49.5)
+    assert not out[:30, :40].any()  # nothing at the unscaled position
+
+
+def test_names_are_drawn_only_when_asked():
+    img = np.zeros((240, 320, 3), np.uint8)
+    kp = _points(base=(100, 120))
+    bare = draw_keypoints(img, kp, labels=False)
+    named = draw_keypoints(img, kp, labels=True)
+    assert (named != bare).any() and not bare[:, 120:].any() and named[:, 108:160].any()
+
+
+def test_copy_false_draws_in_place_and_non_contiguous_input_works():
+    img = np.zeros((120, 160, 3), np.uint8)
+    out = draw_keypoints(img, _points(base=(40, 60)), labels=False, copy=False)
+    assert out is img and img[60, 40].any()
+    view = np.zeros((120, 320, 3), np.uint8)[:, ::2]  # not C-contiguous (OpenCV 5 refuses to draw on it)
+    assert draw_keypoints(view, _points(base=(40, 60)), labels=False)[60, 40].any()
+
+
+@pytest.mark.parametrize("module", ["fcnpose_tf.draw", "fcnpose_tf.runtime.sinks"])
+def test_drawer_is_pi_side_core(module):
+    code = (f"import sys, {module}; bad = [m for m in ('tensorflow', 'tf_keras', 'albumentations') "
+            "if m in sys.modules]; assert not bad, bad")
+    subprocess.run([sys.executable, "-c", code], check=True)
