@@ -187,8 +187,8 @@ LEARNING_RATE = Setting("learning_rate", float, 1e-3, "Adam learning rate", labe
                         check=lambda v: v > 0, requirement="a positive number")
 LR_PATIENCE = Setting(
     "lr_patience", int, 0,
-    "halve the learning rate after N epochs without a better validation loss (again after N more; floor 1e-5), "
-    "in training and retraining; 0 keeps it constant, as the paper does",
+    "halve the learning rate after N epochs without a better validation loss (again after N more; floor 1e-5); "
+    "0 keeps it constant, as the paper does",
     label="learning-rate patience", check=lambda v: v >= 0, requirement="0 (off) or more epochs", metavar="N")
 POSITIVE_WEIGHT = Setting(
     "positive_weight", float, 1.0,
