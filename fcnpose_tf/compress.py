@@ -41,30 +41,15 @@ METHODS = settings.METHOD.choices
 Log = Callable[[str], None]
 
 
-@dataclass
+@settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE, settings.RETRAIN_EPOCHS,
+                       ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
+                       settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
+                       settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
 class CompressOptions:
-    """Settings of one compression run (defaults and checks: `fcnpose_tf.settings`)."""
-
-    rate: float = settings.RATE.field()
-    method: str = settings.METHOD.field()
-    strategy: str = settings.STRATEGY.field()
-    quantize: str = settings.QUANTIZE.field()
-    retrain_epochs: int = settings.RETRAIN_EPOCHS.field()
-    patience: int = settings.RETRAIN_PATIENCE.field()
-    batch_size: int = settings.BATCH_SIZE.field()
-    learning_rate: float = settings.LEARNING_RATE.field()
-    augment_copies: int = settings.AUGMENT_COPIES.field()
-    seed: int = settings.SEED.field()
-    fold: int | None = None
-    threads: int | None = settings.THREADS.field()
-    positive_weight: float = settings.POSITIVE_WEIGHT.field()
-    """Weight of keypoint-disc pixels in the retraining loss (1 = plain BCE; use the base model's)."""
-    lr_patience: int = settings.LR_PATIENCE.field()
-    """While retraining, halve Adam's rate after this many epochs without a better validation loss
-    (floor 1e-5); 0 keeps it constant."""
-
-    def validate(self) -> None:
-        settings.validate_fields(self)
+    """Settings of one compression run: rate, method, strategy, quantize, and the retraining's
+    retrain_epochs, patience, batch_size, learning_rate, augment_copies, seed, fold, threads,
+    positive_weight (use the base model's) and lr_patience. Defaults, checks and meanings:
+    `fcnpose_tf.settings`."""
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
@@ -247,7 +232,8 @@ class _Run:
 def measure_base(run: _Run) -> dict[str, Any]:
     """The unpruned model: widths, parameters, MACs, file sizes, metrics and timing."""
     base_path = run.base_path
-    return {"base": {**model_facts(run.base), **file_sizes(run.base, base_path if base_path.suffix == ".keras" else None),
+    keras_file = base_path if base_path.suffix == ".keras" else None
+    return {"base": {**model_facts(run.base), **file_sizes(run.base, keras_file),
                      **run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)")}}
 
 

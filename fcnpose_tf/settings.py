@@ -112,8 +112,29 @@ def _is_type(value: Any, kind: Callable) -> bool:
     return True
 
 
+def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], type]:
+    """Class decorator: make `cls` a dataclass whose fields are these settings, in this order.
+
+    Each field takes its name (unless given as a (name, setting) pair), type and default from its
+    setting, so a configuration class states only which settings it holds; `validate` (added
+    unless the class defines one) checks each with its setting's message.
+    """
+    def decorate(cls: type) -> type:
+        annotations: dict[str, str] = {}
+        for entry in entries:
+            name, setting = entry if isinstance(entry, tuple) else (entry.name, entry)
+            kind = getattr(setting.type, "__name__", "Any")
+            annotations[name] = f"{kind} | None" if setting.default is None else kind
+            setattr(cls, name, setting.field())
+        cls.__annotations__ = {**annotations, **cls.__dict__.get("__annotations__", {})}
+        if "validate" not in cls.__dict__:
+            cls.validate = validate_fields
+        return dataclasses.dataclass(cls)
+    return decorate
+
+
 def validate_fields(config: Any) -> None:
-    """Check every field of the dataclass instance `config` declared with `Setting.field`."""
+    """Check every field of the dataclass instance `config` declared with `Setting.field`; UserError if bad."""
     for f in dataclasses.fields(config):
         setting = f.metadata.get(_SETTING)
         if setting is not None:
@@ -147,6 +168,10 @@ FOLDS = Setting("folds", int, 5, "K of the K-fold cross-validation splits (the p
 TRAIN_FOLDS = FOLDS.variant(
     default=None, help="train one model per fold of K-fold cross-validation (the paper: 5)")
 """`train` trains on the 80/20 hold-out split unless --folds asks for one model per fold."""
+FOLD = Setting("fold", int, None, "train only fold k (0-based) of the K folds", label="fold",
+               check=lambda v: v >= 0, requirement="a fold index (0-based)", metavar="k")
+RETRAIN_FOLD = FOLD.variant(help="retrain on fold k instead of the base model's split")
+"""`compress` retrains on the base model's own split unless told otherwise."""
 AUGMENT_COPIES = Setting("augment_copies", int, 2, "offline rotation/padding copies per training frame (the paper: 2)",
                          label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
 SEED = Setting("seed", int, 0, "seed of weights, augmentation and batch order", label="seed",

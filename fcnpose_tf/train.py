@@ -31,22 +31,13 @@ from fcnpose_tf.fileio import atomic_path, check_writable, write_json, write_tex
 from fcnpose_tf.model import save_for_inference
 
 
-@dataclass
+@settings.config_class(settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
+                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
 class FitConfig:
-    """Optimisation settings of one training run (defaults and checks: `fcnpose_tf.settings`)."""
-
-    epochs: int = settings.EPOCHS.field()
-    patience: int = settings.PATIENCE.field()
-    batch_size: int = settings.BATCH_SIZE.field()
-    learning_rate: float = settings.LEARNING_RATE.field()
-    seed: int = settings.SEED.field()
-    positive_weight: float = settings.POSITIVE_WEIGHT.field()
-    lr_patience: int = settings.LR_PATIENCE.field()
-    """Halve the learning rate after this many epochs without a better validation loss (and again
-    after as many more), down to MIN_LEARNING_RATE; 0 keeps it constant (the paper's plain Adam)."""
-
-    def validate(self) -> None:
-        settings.validate_fields(self)
+    """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
+    positive_weight and lr_patience (halve the learning rate after this many epochs without a better
+    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant). Defaults, checks and meanings:
+    `fcnpose_tf.settings`."""
 
 
 MIN_LEARNING_RATE = 1e-5

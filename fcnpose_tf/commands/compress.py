@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
     for setting in (settings.QUANTIZE, settings.METHOD, settings.STRATEGY):
         setting.add_to(parser)
-    parser.add_argument("--fold", type=int, metavar="k", help="retrain on fold k instead of the base model's split")
+    settings.RETRAIN_FOLD.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.LEARNING_RATE, settings.LR_PATIENCE, settings.AUGMENT_COPIES,
                     settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS):
         setting.add_to(parser)

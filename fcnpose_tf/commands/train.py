@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.INPUT_SIZE, settings.AUGMENT_COPIES,
                     settings.TRAIN_FOLDS):
         setting.add_to(parser)
-    parser.add_argument("--fold", type=int, metavar="k", help="train only fold k (0-based) of the K folds")
+    settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
     parser.add_argument("--init", type=Path, metavar="MODEL",
                         help="start from this model's weights (e.g. fine-tune the synthetic baseline on real frames)")
@@ -61,7 +61,8 @@ def run(args: argparse.Namespace) -> int:
 
     config = FitConfig(**settings.values_from_args(args, FitConfig))
     config.validate()
-    for setting in (settings.INPUT_SIZE, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.THREADS):
+    for setting in (settings.INPUT_SIZE, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
+                    settings.THREADS):
         setting.validate(getattr(args, setting.name))
     if args.out.suffix not in (".keras", ".h5"):
         raise UserError(f"{args.out}: --out must end in .keras or .h5")

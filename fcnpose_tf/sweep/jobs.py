@@ -159,7 +159,8 @@ class SweepConfig:
         """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained)."""
         from fcnpose_tf.compress import CompressOptions
 
-        return CompressOptions(rate=float(job.rate), retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
+        return CompressOptions(rate=float(job.rate),
+                               retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
                                patience=self.retrain_patience, batch_size=self.batch_size,
                                learning_rate=self.learning_rate, augment_copies=self.augment_copies, seed=self.seed,
                                fold=job.fold, threads=self.threads, positive_weight=self.positive_weight,
