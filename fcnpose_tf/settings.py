@@ -188,7 +188,7 @@ SWEEP_EPOCHS = EPOCHS.variant(
 """A sweep trains one base model per fold before it prunes anything; its base models converge near
 60 epochs, so 500 would only spend hours on early stopping's patience."""
 PATIENCE = Setting("patience", int, 20, "stop after this many epochs without a lower validation loss",
-                   label="patience", check=lambda v: v >= 1, requirement="at least 1")
+                   label="patience", check=lambda v: v >= 1, requirement="at least 1", metavar="N")
 RETRAIN_PATIENCE = PATIENCE.variant(
     name="retrain_patience", default=5, label="retraining patience",
     help="early-stopping patience while retraining")
