@@ -5,7 +5,10 @@
     measured at each step on the same frames: PCK@0.5/0.2/0.05 (bbox), EPE, PCK-AUC,
     parameters, MACs, file sizes, inference time and FPS (Keras and TFLite, thread count stated).
 
-`compress_model` is the library entry point (the `compress` and `sweep` commands call it).
+`compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
+the steps below in order (measure_base, prune_step, retrain_step, measure_retrained, export_step,
+measure_quantized), each returning its part of the report. A pruning method is a `PruningMethod`
+object (`L1FilterPruning`, `MagnitudePruning`); both retrain through `train.fit`.
 """
 
 from __future__ import annotations
@@ -17,10 +20,11 @@ import time
 import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
 import numpy as np
 
+from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
 from fcnpose_tf.fileio import check_writable, write_json
@@ -29,57 +33,37 @@ from fcnpose_tf.records import file_sha256, training_record
 if TYPE_CHECKING:
     import tf_keras as keras
 
-# TensorFlow is imported inside the functions: the CLI reads this module's defaults to build
-# its parser, and the parser must load on a Pi without TensorFlow.
+    from fcnpose_tf.train import FitConfig, FitResult
 
-METHODS = ("l1", "magnitude")
-DEFAULT_RETRAIN_EPOCHS = 25
-"""Default retraining budget: keeps `compress --rate 0.7` within ~10 minutes on 2 cores (measured:
-11 min 55 s wall with a sweep job sharing one of the two cores; held-out PCK@0.5 0.946 against the
-base's 0.966, the same as 40 epochs). The paper retrains up to 100 epochs until convergence; pass
---retrain-epochs 100 for that."""
+# TensorFlow is imported inside the functions: `sweep.jobs` and the CLI import this module (or
+# read its settings) without needing TensorFlow until a compression runs.
+
+METHODS = settings.METHOD.choices
+Log = Callable[[str], None]
 
 
-@dataclass
+@settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE, settings.RETRAIN_EPOCHS,
+                       ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
+                       settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
+                       settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
 class CompressOptions:
-    """Settings of one compression run."""
+    """Settings of one compression run: rate, method, strategy, quantize, and the retraining's
+    retrain_epochs, patience, batch_size, learning_rate, augment_copies, seed, fold, threads,
+    positive_weight (use the base model's) and lr_patience. Defaults, checks and meanings:
+    `fcnpose_tf.settings`."""
 
-    rate: float
-    method: str = "l1"
-    strategy: str = "independent"
-    quantize: str = "float16"
-    retrain_epochs: int = DEFAULT_RETRAIN_EPOCHS
-    patience: int = 5
-    batch_size: int = 8
-    learning_rate: float = 1e-3
-    augment_copies: int = 2
-    seed: int = 0
-    fold: int | None = None
-    threads: int | None = None
-    positive_weight: float = 1.0
-    """Weight of keypoint-disc pixels in the retraining loss (1 = plain BCE; use the base model's)."""
-    lr_patience: int = 0
-    """While retraining, halve Adam's rate after this many epochs without a better validation loss
-    (floor 1e-5); 0 keeps it constant."""
+    def fit_config(self) -> FitConfig:
+        """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
+        from fcnpose_tf.train import FitConfig
 
-    def validate(self) -> None:
-        if not self.positive_weight >= 1:
-            raise UserError(f"positive weight must be >= 1, got {self.positive_weight}")
-        if isinstance(self.lr_patience, bool) or not isinstance(self.lr_patience, int) or self.lr_patience < 0:
-            raise UserError(f"learning-rate patience must be 0 (off) or more epochs, got {self.lr_patience!r}")
-        if self.method not in METHODS:
-            raise UserError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
-        if isinstance(self.rate, bool) or not isinstance(self.rate, (int, float)) or not 0 <= self.rate < 1:
-            raise UserError(f"pruning rate must be in [0, 1) (e.g. 0.7 for 70%), got {self.rate!r}")
-        if self.retrain_epochs < 0:
-            raise UserError(f"retrain epochs must be >= 0, got {self.retrain_epochs}")
-        if self.augment_copies < 0:
-            raise UserError(f"augmented copies must be >= 0, got {self.augment_copies}")
+        return FitConfig(epochs=max(self.retrain_epochs, 1), patience=self.patience, batch_size=self.batch_size,
+                         learning_rate=self.learning_rate, seed=self.seed, positive_weight=self.positive_weight,
+                         lr_patience=self.lr_patience)
 
 
 def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
     """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite, NAME_p70_report.json (m70 for magnitude)."""
-    tag = f"{'p' if options.method == 'l1' else 'm'}{round(options.rate * 100):02d}"
+    tag = f"{pruning_method(options).tag}{round(options.rate * 100):02d}"
     quant = {"float16": "fp16", "float32": "fp32", "int8-weights": "int8w"}[options.quantize]
     stem = f"{base_name}_{tag}"
     return {"stem": stem, "keras": f"{stem}.keras", "tflite": f"{stem}_{quant}.tflite",
@@ -115,8 +99,9 @@ def model_facts(model: keras.Model) -> dict[str, Any]:
             "flops": int(2 * macs), "nonzero_weights": int(sum(np.count_nonzero(w) for w in model.get_weights()))}
 
 
-def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, timing: bool = True) -> dict:
-    print(f"  evaluating {label} on {len(indices)} frames ...", flush=True)
+def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, log: Log,
+             timing: bool = True) -> dict:
+    log(f"  evaluating {label} on {len(indices)} frames ...")
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema,
                                 min_timed_frames=50 if timing else 1, warmup=5 if timing else 1)
     out = {"metrics": result["metrics"]}
@@ -125,9 +110,218 @@ def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, t
     return out
 
 
+# ------------------------------------------------------------------------------------------
+# Pruning methods: one interface, one object per method
+# ------------------------------------------------------------------------------------------
+
+FitFn = Callable[..., "FitResult"]
+"""`fit_fn(model, callbacks=(), inference_model=None)`: the retraining `fit`, writing NAME_pXX.keras."""
+
+
+class PruningMethod(Protocol):
+    """How a method prunes the base model and retrains the result through the same `fit`."""
+
+    name: str
+    tag: str
+    """First letter of the output names' rate tag: p70 (filters removed), m70 (weights zeroed)."""
+
+    def describe(self) -> str:
+        """The progress line's words for what is pruned."""
+
+    def prune(self, base: keras.Model, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+        """The pruned model before retraining, and the report entries the method adds."""
+
+    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
+
+    def training_record(self) -> dict[str, Any]:
+        """What the retraining's NAME_train.json says about the method."""
+
+
+class L1FilterPruning:
+    """The paper's method: remove the filters with the smallest L1 norms (exact layer surgery)."""
+
+    name, tag = "l1", "p"
+
+    def __init__(self, rate: float, strategy: str) -> None:
+        self.rate, self.strategy = rate, strategy
+
+    def describe(self) -> str:
+        return f"l1 at rate {self.rate:g} ({self.strategy})"
+
+    def prune(self, base: keras.Model, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+        return surgery, {}
+
+    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        fit_fn(pruned)
+
+    def training_record(self) -> dict[str, Any]:
+        return {"rate": self.rate, "strategy": self.strategy}
+
+
+class MagnitudePruning:
+    """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at `rate` removes."""
+
+    name, tag = "magnitude", "m"
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.sparsity = 0.0
+
+    def describe(self) -> str:
+        return f"magnitude at rate {self.rate:g}"
+
+    def prune(self, base: keras.Model, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+        from fcnpose_tf.prune import magnitude_prune
+
+        self.sparsity = 1.0 - model_facts(surgery)["params"] / model_facts(base)["params"]
+        return magnitude_prune(base, self.sparsity), {"magnitude_sparsity": round(self.sparsity, 6)}
+
+    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        import tensorflow_model_optimization as tfmot
+
+        from fcnpose_tf.prune import magnitude_prune
+
+        # the same masks as `prune` (computed from the base's weights), kept while fit retrains
+        magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(
+            wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
+
+    def training_record(self) -> dict[str, Any]:
+        return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
+
+
+def pruning_method(options: CompressOptions) -> PruningMethod:
+    """The pruning method `options.method` names."""
+    if options.method == "magnitude":
+        return MagnitudePruning(options.rate)
+    return L1FilterPruning(options.rate, options.strategy)
+
+
+# ------------------------------------------------------------------------------------------
+# The steps of a compression run, each returning its part of the report
+# ------------------------------------------------------------------------------------------
+
+@dataclass
+class _Run:
+    """What every step of one compression run reads."""
+
+    base_path: Path
+    base: keras.Model
+    method: PruningMethod
+    options: CompressOptions
+    paths: dict[str, Path]
+    train_dataset: Any
+    eval_dataset: Any
+    eval_indices: Sequence[int]
+    force: bool
+    verbose: int
+    log: Log
+
+    @property
+    def input_size(self) -> int:
+        return int(self.base.input_shape[1])
+
+    def measure(self, predictor: Any, label: str, timing: bool = True) -> dict:
+        """Metrics (and timing) of a predictor on the run's frames."""
+        return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.log, timing=timing)
+
+    def keras_predictor(self, model: keras.Model, path: Path | None = None) -> KerasKeypointModel:
+        """`model` as a predictor with the run's threads (`path`: its file, for the report)."""
+        return KerasKeypointModel(model, path, num_threads=self.options.threads)
+
+
+def measure_base(run: _Run) -> dict[str, Any]:
+    """The unpruned model: widths, parameters, MACs, file sizes, metrics and timing."""
+    base_path = run.base_path
+    keras_file = base_path if base_path.suffix == ".keras" else None
+    return {"base": {**model_facts(run.base), **file_sizes(run.base, keras_file),
+                     **run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)")}}
+
+
+def prune_step(run: _Run, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+    """Prune with the run's method; measure the result before any retraining."""
+    pruned, entries = run.method.prune(run.base, surgery)
+    entries["pruned_before_retraining"] = {**model_facts(pruned), **run.measure(
+        run.keras_predictor(pruned), "the pruned model before retraining", timing=False)}
+    return pruned, entries
+
+
+def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+    """Retrain the pruned model through `train.fit` (or only save it with 0 epochs); the saved model."""
+    from fcnpose_tf.data.dataset import fold_data
+    from fcnpose_tf.fileio import atomic_path
+    from fcnpose_tf.model import load_model, save_for_inference
+    from fcnpose_tf.train import fit
+
+    options, keras_path = run.options, run.paths["keras"]
+    if options.retrain_epochs == 0:
+        with atomic_path(keras_path, run.force) as tmp:
+            save_for_inference(pruned, tmp)
+        return pruned, {}
+    record = training_record(run.base_path) or {}
+    data_sha256 = file_sha256(run.train_dataset.via_path)
+    fold = options.fold if options.fold is not None else (
+        record.get("fold") if record.get("data_sha256") == data_sha256 else None)
+    train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
+                                     progress=run.verbose == 1)
+    entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
+                                                "train_samples": len(train_data), "val_frames": len(val_data)}}
+    metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
+                "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size}
+
+    def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
+        result = fit(model, train_data.sequence(options.batch_size, seed=options.seed), val_data.arrays(),
+                     keras_path, options.fit_config(), force=run.force, verbose=2 if run.verbose else 0,
+                     metadata=metadata, callbacks=callbacks, inference_model=inference_model)
+        entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight)
+        return result
+
+    run.method.retrain(run.base, pruned, fit_fn)
+    return load_model(keras_path), entries
+
+
+def retraining_report(result: FitResult, loss: str, positive_weight: float) -> dict[str, Any]:
+    """The report's "retraining" part: epochs, best epoch and loss, time, loss function, learning rates."""
+    return {"epochs_run": result.epochs_run, "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
+            "seconds": round(result.seconds, 1), "loss": loss, "positive_weight": positive_weight,
+            "learning_rates": [float(f"{h['lr']:.6g}") for h in result.history if "lr" in h]}
+
+
+def measure_retrained(run: _Run, retrained: keras.Model) -> dict[str, Any]:
+    """The retrained Keras model as saved: widths, parameters, MACs, file sizes, metrics and timing."""
+    keras_path = run.paths["keras"]
+    return {"retrained": {**model_facts(retrained), **file_sizes(retrained, keras_path),
+                          **run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)")}}
+
+
+def export_step(run: _Run, retrained: keras.Model) -> Any:
+    """Write the TFLite file, verified against Keras on the first evaluation frames; the export result."""
+    from fcnpose_tf.export import write_tflite
+    from fcnpose_tf.preprocess import preprocess_frame
+
+    samples = np.stack([preprocess_frame(run.eval_dataset.load_image(int(i)), run.input_size)
+                        for i in list(run.eval_indices)[:4]])
+    return write_tflite(retrained, run.paths["tflite"], run.options.quantize, force=run.force,
+                        sample_frames=samples, num_threads=run.options.threads)
+
+
+def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any]) -> dict[str, Any]:
+    """The TFLite model: its size (plain and gzip), export facts, operators, metrics and timing."""
+    from fcnpose_tf.export import inspect_tflite
+    from fcnpose_tf.runtime.estimator import KeypointModel
+
+    tflite_info = inspect_tflite(run.paths["tflite"])
+    tfl = KeypointModel(run.paths["tflite"], num_threads=run.options.threads)
+    return {"quantized": {
+        "params": retrained_facts["params"], "macs": retrained_facts["macs"], "flops": retrained_facts["flops"],
+        "tflite_size_bytes": export.size_bytes, "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)),
+        "export": export.to_dict(), "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
+        **run.measure(tfl, f"the {run.options.quantize} TFLite model")}}
+
+
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
                    out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
-                   eval_description: str = "", verbose: int = 1) -> dict[str, Any]:
+                   eval_description: str = "", verbose: int = 1, log: Log = print) -> dict[str, Any]:
     """Prune, retrain, export and measure one model at one rate; write the files; return the report.
 
     Args:
@@ -137,29 +331,24 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite and NAME_p70_report.json go.
         options: rate, method, strategy, quantize, retraining settings, threads.
         force: replace existing output files.
-        verbose: 0 silent training; 1 progress bars while preparing data and one line per epoch; 2 one
-            line per epoch without progress bars (logs: `sweep --quiet`).
+        verbose: 0 silent (no progress lines either); 1 progress bars while preparing data and one line
+            per epoch; 2 one line per epoch without progress bars (logs: `sweep --quiet`).
+        log: where the progress lines go.
     Returns:
         The report dict (also written as NAME_pXX_report.json).
     Raises:
         UserError: bad options, existing outputs without force, unwritable folder, a model whose
             maps do not match the dataset, or an export that fails verification (nothing written).
     """
-    import tf_keras as keras
-
-    from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.export import inspect_tflite, write_tflite
-    from fcnpose_tf.model import load_model, save_for_inference
-    from fcnpose_tf.prune import magnitude_prune, prune_model
-    from fcnpose_tf.runtime.estimator import KeypointModel
-    from fcnpose_tf.train import MIN_LEARNING_RATE, FitConfig, compile_for_training, fit
+    from fcnpose_tf.model import load_model
+    from fcnpose_tf.prune import prune_model
 
     options.validate()
     start = time.perf_counter()
+    say = log if verbose else (lambda line: None)
     base_path = Path(base_path)
-    out_dir = Path(out_dir)
     names = output_names(base_path.stem, options)
-    paths = {k: out_dir / v for k, v in names.items() if k != "stem"}
+    paths = {k: Path(out_dir) / v for k, v in names.items() if k != "stem"}
     base = load_model(base_path)
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
@@ -167,112 +356,29 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     surgery = prune_model(base, options.rate, strategy=options.strategy)  # an unsupported layer fails here, first
     for path in paths.values():
         check_writable(path, force)
-    input_size = int(base.input_shape[1])
+    run = _Run(base_path, base, pruning_method(options), options, paths, train_dataset, eval_dataset,
+               eval_indices, force, verbose, say)
     steps = 6
-    print(f"[1/{steps}] base model {base_path} ({input_size}x{input_size})", flush=True)
+    say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size})")
     report: dict[str, Any] = {
         "base_model": str(base_path), "method": options.method, "options": asdict(options),
         "evaluation_frames": eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
         "pck_normalisation": "max(w, h) of the ground-truth keypoints' bounding box",
         "threads": options.threads,
     }
-    base_facts = model_facts(base)
-    base_eval = _measure(KerasKeypointModel(base, base_path, num_threads=options.threads), eval_dataset,
-                         eval_indices, "the base model (Keras)")
-    report["base"] = {**base_facts, **file_sizes(base, base_path if base_path.suffix == ".keras" else None),
-                      **base_eval}
-
-    print(f"[2/{steps}] pruning: {options.method} at rate {options.rate:g}"
-          + (f" ({options.strategy})" if options.method == "l1" else ""), flush=True)
-    train_data = val_data = None
-    record = training_record(base_path) or {}
-    fit_config = FitConfig(epochs=max(options.retrain_epochs, 1), patience=options.patience,
-                           batch_size=options.batch_size, learning_rate=options.learning_rate, seed=options.seed,
-                           positive_weight=options.positive_weight, lr_patience=options.lr_patience)
-    if options.retrain_epochs > 0:
-        fold = options.fold if options.fold is not None else (
-            record.get("fold") if record.get("data_sha256") == file_sha256(train_dataset.via_path) else None)
-        train_data, val_data = fold_data(train_dataset, fold, input_size, options.augment_copies, options.seed,
-                                         progress=verbose == 1)
-        report["retrain_data"] = {"data": str(train_dataset.via_path), "fold": fold,
-                                  "train_samples": len(train_data), "val_frames": len(val_data)}
-    if options.method == "l1":
-        pruned = surgery
-    else:
-        sparsity = 1.0 - model_facts(surgery)["params"] / base_facts["params"]
-        report["magnitude_sparsity"] = round(sparsity, 6)
-
-        def train_fn(wrapped: keras.Model, callbacks: list) -> None:
-            # the same loss and optimizer as the l1 path's `fit` (weighted BCE when positive_weight > 1)
-            compile_for_training(wrapped, options.learning_rate, options.positive_weight)
-            if train_data is None:
-                return
-            extra = [keras.callbacks.EarlyStopping(patience=options.patience, restore_best_weights=True)]
-            if options.lr_patience:  # as fit's: halve after lr_patience epochs without a lower val loss
-                extra.append(keras.callbacks.ReduceLROnPlateau(factor=0.5, patience=options.lr_patience,
-                                                               min_delta=0.0, min_lr=MIN_LEARNING_RATE))
-            keras.utils.set_random_seed(options.seed)
-            started = time.perf_counter()
-            history = wrapped.fit(train_data.sequence(options.batch_size, seed=options.seed),
-                                  validation_data=val_data.arrays(), validation_batch_size=options.batch_size,
-                                  epochs=options.retrain_epochs, callbacks=callbacks + extra,
-                                  verbose=2 if verbose else 0).history
-            val = [float(v) for v in history.get("val_loss", [])]
-            best = int(np.argmin(val)) if val else -1
-            report["retraining"] = {"epochs_run": len(val), "best_epoch": best + 1 if val else 0,
-                                    "best_val_loss": val[best] if val else None,
-                                    "seconds": round(time.perf_counter() - started, 1),
-                                    "loss": _loss_name(wrapped),
-                                    "positive_weight": options.positive_weight,
-                                    "learning_rates": [float(f"{v:.6g}") for v in history.get("lr", [])]}
-
-        pruned = magnitude_prune(base, sparsity, train_fn=train_fn)
-    report["pruned_before_retraining"] = {**model_facts(pruned), **_measure(
-        KerasKeypointModel(pruned, num_threads=options.threads), eval_dataset, eval_indices,
-        "the pruned model before retraining", timing=False)}
-
-    print(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs", flush=True)
-    if options.method == "l1" and options.retrain_epochs > 0:
-        result = fit(pruned, train_data.sequence(options.batch_size, seed=options.seed), val_data.arrays(),
-                     paths["keras"], fit_config, force=force, verbose=2 if verbose else 0,
-                     metadata={"data": str(train_dataset.via_path),
-                               "data_sha256": file_sha256(train_dataset.via_path),
-                               "fold": report["retrain_data"]["fold"], "pruned_from": str(base_path),
-                               "rate": options.rate, "strategy": options.strategy, "input_size": input_size})
-        retrained = load_model(paths["keras"])
-        report["retraining"] = {"epochs_run": result.epochs_run, "best_epoch": result.best_epoch,
-                                "best_val_loss": result.best_val_loss, "seconds": round(result.seconds, 1),
-                                "loss": _loss_name(pruned), "positive_weight": options.positive_weight,
-                                "learning_rates": [float(f"{h['lr']:.6g}") for h in result.history if "lr" in h]}
-    else:
-        retrained = pruned
-        from fcnpose_tf.fileio import atomic_path
-
-        with atomic_path(paths["keras"], force) as tmp:
-            save_for_inference(retrained, tmp)
-
-    print(f"[4/{steps}] measuring the retrained Keras model", flush=True)
-    report["retrained"] = {**model_facts(retrained), **file_sizes(retrained, paths["keras"]), **_measure(
-        KerasKeypointModel(retrained, paths["keras"], num_threads=options.threads), eval_dataset, eval_indices,
-        "the retrained model (Keras)")}
-
-    print(f"[5/{steps}] exporting {options.quantize} TFLite (verified against Keras)", flush=True)
-    from fcnpose_tf.preprocess import preprocess_frame
-
-    samples = np.stack([preprocess_frame(eval_dataset.load_image(int(i)), input_size)
-                        for i in list(eval_indices)[:4]])
-    export = write_tflite(retrained, paths["tflite"], options.quantize, force=force, sample_frames=samples,
-                          num_threads=options.threads)
-    tflite_info = inspect_tflite(paths["tflite"])
-
-    print(f"[6/{steps}] measuring the TFLite model", flush=True)
-    tfl = KeypointModel(paths["tflite"], num_threads=options.threads)
-    report["quantized"] = {
-        "params": report["retrained"]["params"], "macs": report["retrained"]["macs"],
-        "flops": report["retrained"]["flops"], "tflite_size_bytes": export.size_bytes,
-        "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)), "export": export.to_dict(),
-        "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
-        **_measure(tfl, eval_dataset, eval_indices, f"the {options.quantize} TFLite model")}
+    report.update(measure_base(run))
+    say(f"[2/{steps}] pruning: {run.method.describe()}")
+    pruned, entries = prune_step(run, surgery)
+    report.update(entries)
+    say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")
+    retrained, entries = retrain_step(run, pruned)
+    report.update(entries)
+    say(f"[4/{steps}] measuring the retrained Keras model")
+    report.update(measure_retrained(run, retrained))
+    say(f"[5/{steps}] exporting {options.quantize} TFLite (verified against Keras)")
+    export = export_step(run, retrained)
+    say(f"[6/{steps}] measuring the TFLite model")
+    report.update(measure_quantized(run, export, report["retrained"]))
     report["files"] = {k: str(v) for k, v in paths.items()}
     report["seconds"] = round(time.perf_counter() - start, 1)
     write_json(paths["report"], report, force=force)

@@ -17,23 +17,15 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.metrics import conv_macs
+from fcnpose_tf.settings import INPUT_SIZE, INPUT_SIZE_MULTIPLE, check_input_size  # noqa: F401 - re-exported
 
 DEFAULT_WIDTHS: tuple[int, ...] = (128, 64, 32, 16, 8, 8, 16, 32, 64)
-DEFAULT_INPUT_SIZE = 224
+DEFAULT_INPUT_SIZE = INPUT_SIZE.default
 DEFAULT_NUM_MAPS = 9
 UPSAMPLE_FACTORS = (2, 2, 2, 4)
 NUM_POOLS = 5
-SIZE_MULTIPLE = 2**NUM_POOLS
-
-
-def check_input_size(input_size: int) -> int:
-    """Return input_size if the network can take it (a positive multiple of 32), else raise UserError."""
-    if isinstance(input_size, bool) or not isinstance(input_size, int) or input_size <= 0 \
-            or input_size % SIZE_MULTIPLE:
-        raise UserError(
-            f"input size must be a positive multiple of {SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2), "
-            f"got {input_size!r}")
-    return input_size
+SIZE_MULTIPLE = INPUT_SIZE_MULTIPLE
+"""2**NUM_POOLS: an input side the five poolings divide exactly (checked by `check_input_size`)."""
 
 
 def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: int = DEFAULT_INPUT_SIZE,

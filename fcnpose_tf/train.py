@@ -20,43 +20,24 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import tf_keras as keras
 
+from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import atomic_path, check_writable, write_json, write_text
 from fcnpose_tf.model import save_for_inference
 
 
-@dataclass
+@settings.config_class(settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
+                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
 class FitConfig:
-    """Optimisation settings of one training run."""
-
-    epochs: int = 500
-    patience: int = 20
-    batch_size: int = 8
-    learning_rate: float = 1e-3
-    seed: int = 0
-    positive_weight: float = 1.0
-    lr_patience: int = 0
-    """Halve the learning rate after this many epochs without a better validation loss (and again
-    after as many more), down to MIN_LEARNING_RATE; 0 keeps it constant (the paper's plain Adam)."""
-
-    def validate(self) -> None:
-        if self.epochs < 1:
-            raise UserError(f"epochs must be at least 1, got {self.epochs}")
-        if self.patience < 1:
-            raise UserError(f"patience must be at least 1, got {self.patience}")
-        if self.batch_size < 1:
-            raise UserError(f"batch size must be at least 1, got {self.batch_size}")
-        if not (self.learning_rate > 0 and math.isfinite(self.learning_rate)):
-            raise UserError(f"learning rate must be a positive number, got {self.learning_rate}")
-        if not (self.positive_weight >= 1 and math.isfinite(self.positive_weight)):
-            raise UserError(f"positive weight must be a number >= 1, got {self.positive_weight}")
-        if self.lr_patience < 0:
-            raise UserError(f"learning-rate patience must be 0 (off) or more, got {self.lr_patience}")
+    """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
+    positive_weight and lr_patience (halve the learning rate after this many epochs without a better
+    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant). Defaults, checks and meanings:
+    `fcnpose_tf.settings`."""
 
 
 MIN_LEARNING_RATE = 1e-5
@@ -167,7 +148,9 @@ class _CheckpointAndStop(keras.callbacks.Callback):
 
 def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np.ndarray, np.ndarray],
         model_path: str | Path, config: FitConfig, *, resume: bool = False, force: bool = False,
-        metadata: dict[str, Any] | None = None, verbose: int = 1) -> FitResult:
+        metadata: dict[str, Any] | None = None, verbose: int = 1,
+        callbacks: Sequence[keras.callbacks.Callback] = (),
+        inference_model: Callable[[keras.Model], keras.Model] | None = None) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -179,6 +162,11 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         resume: continue an interrupted run from `model_path`'s checkpoint.
         force: replace an existing model file / start over despite a checkpoint.
         metadata: extra facts recorded in NAME_train.json (data, split, input size...).
+        verbose: Keras' fit verbosity (0 silent, 1 progress bar, 2 one line per epoch).
+        callbacks: more Keras callbacks, run before the checkpointing one each epoch (tfmot's
+            UpdatePruningStep, which must mask the weights before they are kept as the best).
+        inference_model: what to save as `model_path` from the trained model (tfmot's
+            strip_pruning for a model wrapped for pruning); default: the model itself.
     Returns:
         FitResult with the epochs run, the best epoch and its validation loss.
     Raises:
@@ -220,7 +208,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     if state["epoch"] < config.epochs and not state["stopped_early"]:
         try:
             model.fit(train_data, validation_data=val_data, validation_batch_size=config.batch_size,
-                      initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[callback],
+                      initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[*callbacks, callback],
                       verbose=verbose)
         except KeyboardInterrupt:
             raise UserError(f"interrupted after {state['epoch']} complete epochs; "
@@ -229,7 +217,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     if paths["ckpt_best"].is_file():
         model.load_weights(paths["ckpt_best"])
     with atomic_path(model_path, force=True) as tmp:
-        save_for_inference(model, tmp)
+        save_for_inference(inference_model(model) if inference_model else model, tmp)
     write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight)
     write_json(paths["train_json"], {
         **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
@@ -239,6 +227,78 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     shutil.rmtree(paths["ckpt_dir"], ignore_errors=True)
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
                      state["stopped_early"], state["history"])
+
+
+def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: int,
+               augment_copies: int, init: str | Path | None = None, resume: bool = False, force: bool = False,
+               metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
+               verbose: int = 1, log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Train one fold's model, measure it on the fold's validation frames and write its record.
+
+    The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
+    build FCN-Pose (or start from `init`'s weights), `fit` it on the fold's training frames with
+    `augment_copies` copies each, then evaluate the best model (Keras, `threads` threads) on the
+    fold's validation frames and add that as "validation" to NAME_train.json.
+
+    Args:
+        dataset: a loaded dataset with its splits (`data.dataset.load_dataset`).
+        fold: K-fold index (0-based), or None for the 80/20 hold-out split.
+        model_path: where the best model goes (.keras or .h5); the run's files go beside it.
+        config: optimisation settings; `config.seed` also seeds the augmentation.
+        input_size: the model's input side (a multiple of 32).
+        augment_copies: offline augmented copies per training frame.
+        init: a model whose weights training starts from (same input size and maps), else a fresh one.
+        resume, force: as for `fit`.
+        metadata: more facts for NAME_train.json; they override the dataset's (e.g. "data" as given).
+        threads: TensorFlow threads of the validation timing (None: all cores).
+        label: prefix of the progress lines (default: the model path).
+        verbose: 1 progress bars, 2 one line per epoch (logs), 0 silent training.
+        log: where progress lines go.
+    Returns:
+        The NAME_train.json record: data, split, sizes, config, epochs, best epoch, seconds, validation.
+    Raises:
+        UserError: an `init` model that does not fit the data or input size, or anything `fit` refuses.
+    """
+    from fcnpose_tf.data.dataset import fold_data
+    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
+    from fcnpose_tf.records import file_sha256
+    from fcnpose_tf.model import build_fcn_pose, load_model
+
+    model_path = Path(model_path)
+    label = label or str(model_path)
+    num_maps = dataset.schema.num_maps
+    if init is not None:
+        model = load_model(init)
+        if tuple(model.input_shape[1:3]) != (input_size, input_size) or model.output_shape[-1] != num_maps:
+            raise UserError(f"{init}: input {model.input_shape[1:3]} and {model.output_shape[-1]} maps do not "
+                            f"match --input-size {input_size} and the data's {num_maps} maps")
+    else:
+        model = build_fcn_pose(input_size=input_size, num_maps=num_maps)
+    folds = dataset.splits.k
+    split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {folds}"
+    train_data, val_data = fold_data(dataset, fold, input_size, augment_copies, config.seed, progress=verbose == 1)
+    log(f"{label}: {'resuming' if resume else 'training'} on {split_name}: {len(train_data)} samples "
+        f"({len(train_data) // (1 + augment_copies)} frames + {augment_copies} augmented copies each), "
+        f"{len(val_data)} validation frames, {input_size}x{input_size}, up to {config.epochs} epochs")
+    facts = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path), "num_frames": len(dataset),
+             "split": split_name, "fold": fold, "folds": folds, "split_seed": dataset.splits.seed,
+             "input_size": input_size, "augment_copies": augment_copies, "train_samples": len(train_data),
+             "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
+    result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
+                 model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
+                 verbose=verbose)
+    log(f"{label}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
+        f"{result.epochs_run}{' (early stop)' if result.stopped_early else ''}; {result.seconds / 60:.1f} min")
+
+    predictor = KerasKeypointModel(load_model(model_path), model_path, num_threads=threads)
+    _, val_idx = dataset.split(fold)
+    log(f"{label}: evaluating on {len(val_idx)} validation frames")
+    report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
+    paths = run_paths(model_path)
+    record = json.loads(paths["train_json"].read_text())
+    record["validation"] = {"metrics": report["metrics"], "timing": report["timing"]}
+    write_json(paths["train_json"], record, force=True)
+    return record
 
 
 def loss_name(positive_weight: float) -> str:
@@ -276,4 +336,3 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
     with atomic_path(png_path, force=True) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
-

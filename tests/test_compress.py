@@ -66,7 +66,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     report = json.loads((out / "base_m50_report.json").read_text())
     retraining = report["retraining"]
     assert retraining["loss"] == "keypoint_bce" and retraining["positive_weight"] == 20
-    assert retraining["epochs_run"] == 2 and len(retraining["learning_rates"]) == 2  # ReduceLROnPlateau ran
+    assert retraining["epochs_run"] == 2 and len(retraining["learning_rates"]) == 2  # fit's per-epoch rates
     assert retraining["learning_rates"][0] == pytest.approx(1e-3)
     assert report["options"]["lr_patience"] == 1 and report["retrained"]["params"] == 131705
 

@@ -608,12 +608,3 @@ def test_smoke_sweep_on_a_local_ray_instance(tmp_path, frames, cli):
     again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
                 "--threads", "1")
     assert again.returncode == 0 and "skipping 6 finished job(s)" in again.stdout
-
-
-def test_defaults_agree_between_the_cli_sweepconfig_and_compress():
-    from fcnpose_tf.cli import build_parser
-    from fcnpose_tf.compress import DEFAULT_RETRAIN_EPOCHS
-
-    args = build_parser().parse_args(["sweep"])
-    assert SweepConfig(out="o", data="d").retrain_epochs == args.retrain_epochs == DEFAULT_RETRAIN_EPOCHS
-    assert SweepConfig(out="o", data="d").lr_patience == args.lr_patience == 0

@@ -25,46 +25,32 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from fcnpose_tf.commands.data import add_data_arguments
-    from fcnpose_tf.compress import DEFAULT_RETRAIN_EPOCHS
+    from fcnpose_tf import settings
+    from fcnpose_tf.data.args import add_data_arguments
 
-    parser.add_argument("--rate", type=float, required=True, help="fraction of filters to remove per layer, in [0, 1)")
+    settings.RATE.add_to(parser)
     parser.add_argument("--model", type=Path, help="the model to compress (default: the bundled baseline)")
     add_data_arguments(parser, positional=False, required=False)
     parser.add_argument("--test-data", type=Path, metavar="DATA",
                         help="frames to measure on (default: --data's validation split; without --data, "
                              "held-out synthetic frames)")
-    parser.add_argument("--retrain-epochs", type=int, default=DEFAULT_RETRAIN_EPOCHS,
-                        help="retraining epochs with early stopping (the paper: up to 100); 0 skips retraining")
-    parser.add_argument("--patience", type=int, default=5, help="early-stopping patience while retraining")
+    settings.RETRAIN_EPOCHS.add_to(parser)
+    settings.RETRAIN_PATIENCE.add_to(parser, "--patience")
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
-    parser.add_argument("--quantize", choices=("float16", "float32", "int8-weights"), default="float16",
-                        help="TFLite post-training quantization")
-    parser.add_argument("--method", choices=("l1", "magnitude"), default="l1",
-                        help="l1: filter surgery (the paper); magnitude: tfmot unstructured sparsity")
-    parser.add_argument("--strategy", choices=("independent", "greedy"), default="independent",
-                        help="L1 ranking on the original kernels, or after removing pruned inputs (Li et al.)")
-    parser.add_argument("--fold", type=int, metavar="k", help="retrain on fold k instead of the base model's split")
-    parser.add_argument("--batch-size", type=int, default=8, help="retraining batch size")
-    parser.add_argument("--learning-rate", type=float, default=1e-3)
-    parser.add_argument("--lr-patience", type=int, default=0, metavar="N",
-                        help="while retraining, halve the learning rate after N epochs without a better validation "
-                             "loss (again after N more; floor 1e-5); 0 keeps it constant, as the paper does")
-    parser.add_argument("--augment-copies", type=int, default=2, metavar="N",
-                        help="offline rotation/padding copies per retraining frame (the paper: 2)")
-    parser.add_argument("--positive-weight", type=float,
-                        help="keypoint-pixel weight of the retraining loss (default: the base model's, "
-                             "from its NAME_train.json; else 1, the paper's plain BCE)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the retraining's shuffling and augmentation")
-    parser.add_argument("--threads", type=int, help="threads for training and timing (default: all cores)")
+    for setting in (settings.QUANTIZE, settings.METHOD, settings.STRATEGY):
+        setting.add_to(parser)
+    settings.RETRAIN_FOLD.add_to(parser)
+    for setting in (settings.BATCH_SIZE, settings.LEARNING_RATE, settings.LR_PATIENCE, settings.AUGMENT_COPIES,
+                    settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS):
+        setting.add_to(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf import synthcache
+    from fcnpose_tf import settings, synthcache
     from fcnpose_tf.bundled import baseline_model
-    from fcnpose_tf.commands.data import load_from_args
     from fcnpose_tf.compress import CompressOptions, compress_model, report_table
+    from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.tfsetup import set_tensorflow_threads
@@ -76,14 +62,8 @@ def run(args: argparse.Namespace) -> int:
         from fcnpose_tf.records import training_record
 
         args.positive_weight = float(((training_record(model_path) or {}).get("config") or {}).get("positive_weight", 1.0))
-    options = CompressOptions(rate=args.rate, positive_weight=args.positive_weight, method=args.method,
-                              strategy=args.strategy, quantize=args.quantize, retrain_epochs=args.retrain_epochs,
-                              patience=args.patience, batch_size=args.batch_size, learning_rate=args.learning_rate,
-                              lr_patience=args.lr_patience, seed=args.seed, fold=args.fold, threads=args.threads,
-                              augment_copies=args.augment_copies)
+    options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
     options.validate()
-    if args.threads is not None and args.threads < 1:
-        raise UserError(f"--threads must be at least 1, got {args.threads}")
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     if args.out_dir.exists() and not args.out_dir.is_dir():

@@ -11,6 +11,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fcnpose_tf.data.args import add_data_arguments, load_from_args
+
 NAME = "data"
 EXAMPLES = """\
   fcnpose-tf data inspect demo                          # counts, drops and folds of a dataset folder
@@ -37,40 +39,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     inspect.add_argument("--augment-copies", type=int, default=2,
                          help="augmented copies per training frame (for the counts; the preview shows one)")
     inspect.add_argument("--seed", type=int, default=0, help="augmentation seed")
-
-
-def add_data_arguments(parser: argparse.ArgumentParser, positional: bool = True, required: bool = True,
-                       folds_option: bool = True) -> None:
-    """The dataset options every data-reading command shares (DATA, --images, labels, drops, splits).
-
-    `positional=False` makes it `--data DATA` (train, evaluate, compress); `folds_option=False`
-    leaves --folds to the command (train uses it for "one model per fold"), K then defaulting to 5.
-    """
-    if positional:
-        parser.add_argument("data", type=Path, metavar="DATA", help="dataset folder or VIA .json file")
-    else:
-        parser.add_argument("--data", type=Path, metavar="DATA", required=required,
-                            help="dataset folder (one VIA .json + its images) or a VIA .json file")
-    parser.add_argument("--images", type=Path, metavar="DIR", help="folder of the images the VIA file names")
-    parser.add_argument("--keypoint-attr", default="keypoint", metavar="NAME",
-                        help="VIA region attribute holding each point's keypoint name")
-    parser.add_argument("--min-visible", type=int, metavar="N",
-                        help="drop frames with fewer annotated keypoints (default: half the schema's, 4 of 8)")
-    parser.add_argument("--skip-bad", action="store_true",
-                        help="skip frames with bad regions or missing images instead of stopping")
-    if folds_option:
-        parser.add_argument("--folds", type=int, default=5, help="K of the K-fold splits")
-    parser.add_argument("--split-seed", type=int, default=0, help="seed of the stored splits")
-    parser.add_argument("--resplit", action="store_true", help="replace the stored splits")
-
-
-def load_from_args(args: argparse.Namespace):
-    """load_dataset with the options of add_data_arguments."""
-    from fcnpose_tf.data.dataset import load_dataset
-
-    return load_dataset(args.data, args.images, attribute=args.keypoint_attr, min_visible=args.min_visible,
-                        skip_bad=args.skip_bad, folds=getattr(args, "folds", None) or 5,
-                        split_seed=args.split_seed, resplit=args.resplit)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -25,7 +25,7 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from fcnpose_tf.commands.data import add_data_arguments
+    from fcnpose_tf.data.args import add_data_arguments
 
     parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
                         help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.bundled import baseline_model
-    from fcnpose_tf.commands.data import load_from_args
+    from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import choose_frames, evaluate_predictor, format_timing, open_model
     from fcnpose_tf.fileio import check_writable, write_json

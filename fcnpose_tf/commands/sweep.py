@@ -31,38 +31,24 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from fcnpose_tf.commands.data import add_data_arguments
-    from fcnpose_tf.compress import DEFAULT_RETRAIN_EPOCHS
+    from fcnpose_tf import settings
+    from fcnpose_tf.data.args import add_data_arguments
     from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC
 
     parser.add_argument("--rates", default=DEFAULT_RATES_SPEC, metavar="SPEC",
                         help="pruning rates: START:STOP:STEP, a comma list, or both; 'full' (= 0) adds the "
                              "unpruned model's TFLite export")
-    parser.add_argument("--folds", type=int, default=5, metavar="K", help="K-fold cross-validation (the paper: 5)")
+    settings.FOLDS.add_to(parser)
     add_data_arguments(parser, positional=False, required=False, folds_option=False)
     parser.add_argument("--out", type=Path, default=Path("results"), metavar="DIR",
                         help="results folder (jobs/, models/, tables/, summary.md, pck_vs_fps.png, results.json)")
     train = parser.add_argument_group("training")
-    train.add_argument("--epochs", type=int, default=60,
-                       help="base-model epochs, with early stopping (the paper: up to 500, converging near 60)")
-    train.add_argument("--patience", type=int, default=20, help="early-stopping patience of the base models")
-    train.add_argument("--retrain-epochs", default=DEFAULT_RETRAIN_EPOCHS, metavar="E[,RATES=E]",
-                       help="retraining epochs after pruning, with early stopping (the paper: up to 100); "
-                            "RATES=E items give some rates their own budget, e.g. 10,0.6:0.9:0.1=40 "
-                            "(heavier pruning needs longer to converge)")
-    train.add_argument("--retrain-patience", type=int, default=5, help="early-stopping patience while retraining")
-    train.add_argument("--input-size", type=int, default=224, help="model input side, a multiple of 32")
-    train.add_argument("--batch-size", type=int, default=8)
-    train.add_argument("--learning-rate", type=float, default=1e-3, help="Adam learning rate")
-    train.add_argument("--lr-patience", type=int, default=0, metavar="N",
-                       help="halve the learning rate after N epochs without a better validation loss (again after "
-                            "N more; floor 1e-5), in training and retraining; 0 keeps it constant, as the paper does")
-    train.add_argument("--positive-weight", type=float, default=1.0,
-                       help="weight of keypoint-disc pixels in the BCE, for training and retraining (1 = the "
-                            "paper's plain BCE)")
-    train.add_argument("--augment-copies", type=int, default=2,
-                       help="offline augmented copies per training frame (the paper: 2)")
-    train.add_argument("--seed", type=int, default=0, help="seed of weights, augmentation and batch order")
+    for setting in (settings.SWEEP_EPOCHS, settings.PATIENCE):
+        setting.add_to(train)
+    settings.RETRAIN_EPOCHS_BY_RATE.add_to(train)
+    for setting in (settings.RETRAIN_PATIENCE, settings.INPUT_SIZE, settings.BATCH_SIZE, settings.LEARNING_RATE,
+                    settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.AUGMENT_COPIES, settings.SEED):
+        setting.add_to(train)
     run = parser.add_argument_group("execution")
     run.add_argument("--executor", choices=("local", "ray"), default="local",
                      help="local: this machine (sequential, or --workers processes); ray: one Ray task per job")
@@ -73,9 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                           "a local Ray instance")
     run.add_argument("--num-cpus", type=int, metavar="N",
                      help="ray executor: CPUs of the local Ray instance (default: all cores)")
-    run.add_argument("--threads", type=int,
-                     help="CPU threads per job for TensorFlow and LiteRT (default: all cores when sequential, "
-                          "cores / workers with --workers, 1 per Ray task); timing figures depend on it")
+    settings.SWEEP_THREADS.add_to(run)
     parser.add_argument("--force", action="store_true",
                         help="redo every job (retraining the base models), also when OUT holds other settings")
     parser.add_argument("--report-only", action="store_true",
@@ -89,13 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def resolve_threads(args: argparse.Namespace) -> int:
     """Threads per job: --threads, else all cores (sequential), cores / workers, or 1 per Ray task."""
-    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.settings import THREADS
     from fcnpose_tf.system import available_cores
 
     if args.threads is not None:
-        if args.threads < 1:
-            raise UserError(f"--threads must be at least 1, got {args.threads}")
-        return args.threads
+        return THREADS.validate(args.threads)
     if args.executor == "ray":
         return 1
     return max(1, available_cores() // max(1, args.workers))
@@ -117,7 +99,7 @@ def make_executor(args: argparse.Namespace, threads: int):
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf import synthcache
+    from fcnpose_tf import settings, synthcache
     from fcnpose_tf.sweep import SweepConfig, parse_rates, run_sweep, write_report
     from fcnpose_tf.sweep.rates import parse_per_rate_epochs
 
@@ -138,18 +120,13 @@ def run(args: argparse.Namespace) -> int:
     parallel = args.workers > 1 or args.executor == "ray"
     if args.data is None:
         args.data = synthcache.default_training_data()
-    config = SweepConfig(
-        out=str(args.out), data=str(args.data), images=str(args.images) if args.images else None,
-        keypoint_attr=args.keypoint_attr, min_visible=args.min_visible, skip_bad=args.skip_bad,
-        split_seed=args.split_seed, folds=args.folds, rates=rates, input_size=args.input_size, epochs=args.epochs,
-        patience=args.patience, retrain_epochs=retrain_epochs,
-        retrain_epochs_by_rate=retrain_epochs_by_rate, retrain_patience=args.retrain_patience,
-        batch_size=args.batch_size, learning_rate=args.learning_rate, lr_patience=args.lr_patience,
-        positive_weight=args.positive_weight,
-        augment_copies=args.augment_copies, seed=args.seed, threads=threads,
-        verbose=2 if (args.quiet or parallel) else 1, force=args.force)
+    config = SweepConfig(**{**settings.values_from_args(args, SweepConfig), "out": str(args.out),
+                            "data": str(args.data), "images": str(args.images) if args.images else None,
+                            "rates": rates, "retrain_epochs": retrain_epochs,
+                            "retrain_epochs_by_rate": retrain_epochs_by_rate, "threads": threads,
+                            "verbose": 2 if (args.quiet or parallel) else 1})
     if args.resplit:  # store new splits first; the sweep then refuses OUT's old jobs unless --force
-        from fcnpose_tf.commands.data import load_from_args
+        from fcnpose_tf.data.args import load_from_args
 
         load_from_args(args)
     outcome = run_sweep(config, executor)

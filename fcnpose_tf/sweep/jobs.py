@@ -25,11 +25,16 @@ import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.records import file_sha256, library_versions, machine_info, training_record
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
+
+if TYPE_CHECKING:
+    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.train import FitConfig
 
 RECORD_VERSION = 1
 JOBS_DIR = "jobs"
@@ -103,25 +108,26 @@ class SweepConfig:
     min_visible: int | None = None
     skip_bad: bool = False
     split_seed: int = 0
-    folds: int = 5
+    folds: int = settings.FOLDS.field()
     rates: tuple[float, ...] = parse_rates(DEFAULT_RATES_SPEC)
-    input_size: int = 224
-    epochs: int = 60
-    patience: int = 20
-    retrain_epochs: int = 25  # = compress.DEFAULT_RETRAIN_EPOCHS, the CLI default (not imported: no numpy here)
+    input_size: int = settings.INPUT_SIZE.field()
+    epochs: int = settings.SWEEP_EPOCHS.field()
+    patience: int = settings.PATIENCE.field()
+    retrain_epochs: int = settings.RETRAIN_EPOCHS.field()
     retrain_epochs_by_rate: tuple[tuple[float, int], ...] = ()
     """(rate, epochs) pairs overriding `retrain_epochs` for those rates (`--retrain-epochs 10,0.6:0.9:0.1=40`):
     heavier pruning may need longer retraining to converge."""
-    retrain_patience: int = 5
-    batch_size: int = 8
-    learning_rate: float = 1e-3
-    lr_patience: int = 0
+    retrain_patience: int = settings.RETRAIN_PATIENCE.field()
+    batch_size: int = settings.BATCH_SIZE.field()
+    learning_rate: float = settings.LEARNING_RATE.field()
+    lr_patience: int = settings.LR_PATIENCE.field()
     """Halve Adam's rate after this many epochs without a better validation loss (base training and
     retraining); 0 keeps it constant (the paper)."""
-    positive_weight: float = 1.0
-    augment_copies: int = 2
-    seed: int = 0
+    positive_weight: float = settings.POSITIVE_WEIGHT.field()
+    augment_copies: int = settings.AUGMENT_COPIES.field()
+    seed: int = settings.SEED.field()
     threads: int = 1
+    """Resolved by the command (`commands.sweep.resolve_threads`): never None here."""
     verbose: int = 1
     """1: Keras progress bars; 2: one line per epoch (logs, parallel workers); 0: silent training."""
     force: bool = False
@@ -140,6 +146,25 @@ class SweepConfig:
     def retrain_epochs_at(self, rate: float) -> int:
         return retrain_epochs_at(rate, self.retrain_epochs, self.retrain_epochs_by_rate)
 
+    def fit_config(self) -> FitConfig:
+        """How the base models are trained."""
+        from fcnpose_tf.train import FitConfig
+
+        return FitConfig(epochs=self.epochs, patience=self.patience, batch_size=self.batch_size,
+                         learning_rate=self.learning_rate, seed=self.seed, positive_weight=self.positive_weight,
+                         lr_patience=self.lr_patience)
+
+    def compress_options(self, job: Job) -> CompressOptions:
+        """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained)."""
+        from fcnpose_tf.compress import CompressOptions
+
+        return CompressOptions(rate=float(job.rate),
+                               retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
+                               patience=self.retrain_patience, batch_size=self.batch_size,
+                               learning_rate=self.learning_rate, augment_copies=self.augment_copies, seed=self.seed,
+                               fold=job.fold, threads=self.threads, positive_weight=self.positive_weight,
+                               lr_patience=self.lr_patience)
+
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
         data["rates"] = list(self.rates)
@@ -148,25 +173,12 @@ class SweepConfig:
 
     def validate(self) -> None:
         """Raise UserError for settings no job could run with."""
-        checks = [(isinstance(self.input_size, int) and self.input_size > 0 and self.input_size % 32 == 0,
-                   f"--input-size must be a positive multiple of 32 (FCN-Pose pools 5 times by 2), "
-                   f"got {self.input_size}"),(self.folds >= 2, f"--folds must be at least 2, got {self.folds}"),
-                  (self.epochs >= 1, f"--epochs must be at least 1, got {self.epochs}"),
-                  (self.patience >= 1, f"--patience must be at least 1, got {self.patience}"),
-                  (self.retrain_epochs >= 0, f"--retrain-epochs must be >= 0, got {self.retrain_epochs}"),
-                  (all(int(e) >= 0 for _, e in self.retrain_epochs_by_rate),
-                   "--retrain-epochs: every per-rate budget must be >= 0"),
-                  (self.retrain_patience >= 1, f"--retrain-patience must be at least 1, got {self.retrain_patience}"),
-                  (self.batch_size >= 1, f"--batch-size must be at least 1, got {self.batch_size}"),
-                  (self.learning_rate > 0, f"--learning-rate must be positive, got {self.learning_rate}"),
-                  (self.lr_patience >= 0, f"--lr-patience must be 0 (off) or more, got {self.lr_patience}"),
-                  (self.positive_weight >= 1, f"--positive-weight must be >= 1, got {self.positive_weight}"),
-                  (self.augment_copies >= 0, f"--augment-copies must be >= 0, got {self.augment_copies}"),
-                  (self.threads >= 1, f"--threads must be at least 1, got {self.threads}"),
-                  (len(self.rates) > 0, "no pruning rates given")]
-        for ok, message in checks:
-            if not ok:
-                raise UserError(message)
+        settings.validate_fields(self)
+        settings.THREADS.validate(self.threads)
+        for _, epochs in self.retrain_epochs_by_rate:
+            settings.RETRAIN_EPOCHS.validate(epochs)
+        if not self.rates:
+            raise UserError("no pruning rates given")
         stray = [r for r, _ in self.retrain_epochs_by_rate
                  if rate_percent(r) not in {rate_percent(x) for x in self.rates}]
         if stray:
@@ -320,26 +332,40 @@ def _strip(step: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in step.items() if k not in ("export", "tflite_ops")}
 
 
+def _log(line: str) -> None:
+    print(line, flush=True)  # a worker's lines reach the driver's log as they happen
+
+
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     from fcnpose_tf.compress import file_sizes, model_facts
     from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.model import load_model
-    from fcnpose_tf.train import run_paths
+    from fcnpose_tf.train import run_paths, train_fold
 
     path = base_model_path(config.out, job.fold)
     _, val_idx = dataset.split(job.fold)
     checkpoint = run_paths(path)["ckpt_state"]
     if path.is_file() and not checkpoint.is_file() and not config.force:
         training = _check_reused_base(config, job, dataset, path)
-        print(f"{job.label}: reusing {path}", flush=True)
+        _log(f"{job.label}: reusing {path}")
+        model = load_model(path)
+        _log(f"{job.label}: evaluating on {len(val_idx)} validation frames")
+        result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads), dataset, val_idx,
+                                    dataset.schema)
+        validation = {"metrics": result["metrics"], "timing": result["timing"]}
     else:
-        training = _train_base(config, job, dataset, path, resume=checkpoint.is_file() and not config.force)
-    model = load_model(path)
-    print(f"{job.label}: evaluating on {len(val_idx)} validation frames", flush=True)
-    result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads), dataset, val_idx,
-                                dataset.schema)
-    keras_step = {**model_facts(model), **file_sizes(model, path), "metrics": result["metrics"],
-                  "timing": result["timing"]}
+        resume = checkpoint.is_file() and not config.force
+        trained = train_fold(dataset, job.fold, path, config.fit_config(), input_size=config.input_size,
+                             augment_copies=config.augment_copies, resume=resume, force=config.force or not resume,
+                             metadata={"data": config.data, "trained_by": "fcnpose-tf sweep"},
+                             threads=config.threads, label=f"{job.label} ({path.name})", verbose=config.verbose,
+                             log=_log)
+        training = {"reused": False, "resumed": resume, "epochs_run": trained["epochs_run"],
+                    "best_epoch": trained["best_epoch"], "best_val_loss": trained["best_val_loss"],
+                    "seconds": trained["train_seconds"], "stopped_early": trained["stopped_early"]}
+        validation = trained["validation"]
+        model = load_model(path)
+    keras_step = {**model_facts(model), **file_sizes(model, path), **validation}
     record = training_record(path) or {}
     return {"eval_frames": len(val_idx), "training": training, "keras": keras_step,
             "files": {"keras": _relative(path, config.out)}, "model_sha256": file_sha256(path),
@@ -359,8 +385,8 @@ def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) 
         raise UserError(f"{path}: {maps} output maps, but the data needs {dataset.schema.num_maps}")
     record = training_record(path)
     if record is None:
-        print(f"warning: {path} has no training record (NAME_train.json); cannot check that it was trained on "
-              f"fold {job.fold}'s training frames only", flush=True)
+        _log(f"warning: {path} has no training record (NAME_train.json); cannot check that it was trained on "
+             f"fold {job.fold}'s training frames only")
         return {"reused": True, "record": False}
     if record.get("data_sha256") not in (None, config.data_sha256) or record.get("fold") != job.fold \
             or record.get("split_seed", config.split_seed) != config.split_seed \
@@ -373,50 +399,17 @@ def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) 
             "seconds": record.get("train_seconds"), "stopped_early": record.get("stopped_early")}
 
 
-def _train_base(config: SweepConfig, job: Job, dataset: Any, path: Path, resume: bool) -> dict[str, Any]:
-    from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.model import build_fcn_pose
-    from fcnpose_tf.train import FitConfig, fit
-
-    train_data, val_data = fold_data(dataset, job.fold, config.input_size, config.augment_copies, config.seed,
-                                     progress=config.verbose == 1)
-    print(f"{job.label}: {'resuming' if resume else 'training'} {path.name} on {len(train_data)} samples "
-          f"({len(train_data) // (1 + config.augment_copies)} frames + {config.augment_copies} augmented copies "
-          f"each), {len(val_data)} validation frames, {config.input_size}x{config.input_size}, "
-          f"up to {config.epochs} epochs", flush=True)
-    fit_config = FitConfig(epochs=config.epochs, patience=config.patience, batch_size=config.batch_size,
-                           learning_rate=config.learning_rate, seed=config.seed,
-                           positive_weight=config.positive_weight, lr_patience=config.lr_patience)
-    metadata = {"data": config.data, "data_sha256": config.data_sha256, "num_frames": len(dataset),
-                "split": f"fold {job.fold} of {config.folds}", "fold": job.fold, "folds": config.folds,
-                "split_seed": config.split_seed, "input_size": config.input_size,
-                "augment_copies": config.augment_copies, "train_samples": len(train_data),
-                "val_frames": len(val_data), "schema": dataset.schema.to_dict(), "trained_by": "fcnpose-tf sweep"}
-    model = build_fcn_pose(input_size=config.input_size, num_maps=dataset.schema.num_maps)
-    result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
-                 path, fit_config, resume=resume, force=config.force or not resume, metadata=metadata,
-                 verbose=config.verbose)
-    return {"reused": False, "resumed": resume, "epochs_run": result.epochs_run, "best_epoch": result.best_epoch,
-            "best_val_loss": result.best_val_loss, "seconds": round(result.seconds, 1),
-            "stopped_early": result.stopped_early}
-
-
 def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
-    from fcnpose_tf.compress import CompressOptions, compress_model
+    from fcnpose_tf.compress import compress_model
 
     base = base_model_path(config.out, job.fold)
     if not base.is_file():
         raise UserError(f"{base}: fold {job.fold}'s base model is missing (its base job must finish first)")
     _, val_idx = dataset.split(job.fold)
     base_sha256 = file_sha256(base)
-    options = CompressOptions(rate=float(job.rate), retrain_epochs=0 if job.rate == 0 else config.retrain_epochs_at(job.rate),
-                              patience=config.retrain_patience, batch_size=config.batch_size,
-                              learning_rate=config.learning_rate, augment_copies=config.augment_copies,
-                              seed=config.seed, fold=job.fold, threads=config.threads,
-                              positive_weight=config.positive_weight, lr_patience=config.lr_patience)
-    print(f"{job.label}: compressing {base.name}", flush=True)
+    _log(f"{job.label}: compressing {base.name}")
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
-                            options, force=True, verbose=config.verbose,
+                            config.compress_options(job), force=True, verbose=config.verbose, log=_log,
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
     return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
             "keras": _strip(report["retrained"]),

@@ -1,0 +1,246 @@
+"""Training, retraining and compression settings, each defined once: name, type, default, check, help.
+
+The `train`, `compress` and `sweep` commands generate their options from these definitions
+(`Setting.add_to`), and `train.FitConfig`, `compress.CompressOptions` and `sweep.jobs.SweepConfig`
+declare their fields with them (`Setting.field`), so a default, its check and its error message
+live here only. Where two commands use the same setting with a different default (base training
+against retraining, one training run against a sweep of many), both variants are defined below,
+each with its reason.
+
+Imports only the standard library: the CLI builds its parser from this module on a Pi without
+TensorFlow or numpy, and `sweep.jobs` (which imports no numpy) embeds it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+from typing import Any, Callable
+
+from fcnpose_tf.errors import UserError
+
+REQUIRED = dataclasses.MISSING
+"""Default of a setting every caller must give (the compression rate)."""
+
+
+class Setting:
+    """One option: its attribute name, type, default, check, help text and the message a bad value gets.
+
+    `variant` derives a setting that differs only in what it overrides (another default, name or
+    help); everything else, the check and its message among it, is read from the original, so a
+    change here reaches every variant.
+    """
+
+    def __init__(self, name: str, type: Callable[[str], Any], default: Any, help: str, *, label: str,
+                 check: Callable[[Any], bool] | None = None, requirement: str = "", metavar: str | None = None,
+                 choices: tuple[Any, ...] | None = None) -> None:
+        self.name = name
+        self.type = type
+        self.default = default
+        self.help = help
+        self.label = label
+        self.check = check
+        self.requirement = requirement
+        self.metavar = metavar
+        self.choices = choices
+
+    def variant(self, **overrides: Any) -> Setting:
+        """This setting with some attributes replaced (e.g. name, default, help); the rest stays shared."""
+        return _Variant(self, overrides)
+
+    @property
+    def flag(self) -> str:
+        """The command-line option: --name-with-dashes."""
+        return "--" + self.name.replace("_", "-")
+
+    def validate(self, value: Any) -> Any:
+        """Return `value` if it is allowed (None too when the default is None), else raise UserError."""
+        if value is None and self.default is None:
+            return value
+        if self.choices is not None:
+            if value not in self.choices:
+                raise UserError(f"{self.label} must be one of {', '.join(map(str, self.choices))}, got {value!r}")
+        elif self.check is not None and not (_is_type(value, self.type) and self.check(value)):
+            raise UserError(f"{self.label} must be {self.requirement}, got {value!r}")
+        return value
+
+    def field(self) -> Any:
+        """A dataclass field holding this setting: its default (read when an instance is made) and the setting."""
+        metadata = {_SETTING: self}
+        if self.default is REQUIRED:
+            return dataclasses.field(metadata=metadata)
+        return dataclasses.field(default_factory=lambda: self.default, metadata=metadata)
+
+    def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup, flag: str | None = None) -> None:
+        """Add this setting as `flag` (default: its own --flag) with its type, default, choices and help."""
+        kwargs: dict[str, Any] = {"help": self.help, "metavar": self.metavar}
+        if self.type is not str:
+            kwargs["type"] = self.type
+        if self.choices is not None:
+            kwargs["choices"] = self.choices
+        if self.default is REQUIRED:
+            kwargs["required"] = True
+        else:
+            kwargs["default"] = self.default
+        parser.add_argument(flag or self.flag, dest=self.name, **kwargs)
+
+
+class _Variant(Setting):
+    """A setting whose attributes are read from `base` unless overridden (see Setting.variant)."""
+
+    def __init__(self, base: Setting, overrides: dict[str, Any]) -> None:  # noqa: D107 - no Setting.__init__
+        self.__dict__.update(overrides)
+        self._base = base
+
+    def __getattr__(self, name: str) -> Any:  # only called for attributes not overridden
+        if name == "_base":
+            raise AttributeError(name)
+        return getattr(self._base, name)
+
+
+_SETTING = "fcnpose_tf.setting"
+
+
+def _is_type(value: Any, kind: Callable) -> bool:
+    if isinstance(value, bool):
+        return False
+    if kind is int:
+        return isinstance(value, int)
+    if kind is float:
+        return isinstance(value, (int, float)) and math.isfinite(value)
+    return True
+
+
+def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], type]:
+    """Class decorator: make `cls` a dataclass whose fields are these settings, in this order.
+
+    Each field takes its name (unless given as a (name, setting) pair), type and default from its
+    setting, so a configuration class states only which settings it holds; `validate` (added
+    unless the class defines one) checks each with its setting's message.
+    """
+    def decorate(cls: type) -> type:
+        annotations: dict[str, str] = {}
+        for entry in entries:
+            name, setting = entry if isinstance(entry, tuple) else (entry.name, entry)
+            kind = getattr(setting.type, "__name__", "Any")
+            annotations[name] = f"{kind} | None" if setting.default is None else kind
+            setattr(cls, name, setting.field())
+        cls.__annotations__ = {**annotations, **cls.__dict__.get("__annotations__", {})}
+        if "validate" not in cls.__dict__:
+            cls.validate = validate_fields
+        return dataclasses.dataclass(cls)
+    return decorate
+
+
+def validate_fields(config: Any) -> None:
+    """Check every field of the dataclass instance `config` declared with `Setting.field`; UserError if bad."""
+    for f in dataclasses.fields(config):
+        setting = f.metadata.get(_SETTING)
+        if setting is not None:
+            setting.validate(getattr(config, f.name))
+
+
+def values_from_args(args: argparse.Namespace, config_type: type, **renamed: str) -> dict[str, Any]:
+    """The fields of dataclass `config_type` that `args` holds, by name (`renamed`: field=attribute)."""
+    names = {f.name: renamed.get(f.name, f.name) for f in dataclasses.fields(config_type)}
+    return {field: getattr(args, attr) for field, attr in names.items() if hasattr(args, attr)}
+
+
+def check_input_size(input_size: int) -> int:
+    """Return input_size if FCN-Pose can take it (a positive multiple of 32), else raise UserError."""
+    return INPUT_SIZE.validate(input_size)
+
+
+INPUT_SIZE_MULTIPLE = 32
+"""FCN-Pose pools 5 times by 2 (model.NUM_POOLS), so its input side is a multiple of 2**5."""
+
+# ------------------------------------------------------------------------------------------
+# Model and data
+# ------------------------------------------------------------------------------------------
+
+INPUT_SIZE = Setting(
+    "input_size", int, 224, f"model input side, a multiple of {INPUT_SIZE_MULTIPLE}", label="input size",
+    check=lambda v: v > 0 and v % INPUT_SIZE_MULTIPLE == 0,
+    requirement=f"a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)")
+FOLDS = Setting("folds", int, 5, "K of the K-fold cross-validation splits (the paper: 5)", label="folds",
+                check=lambda v: v >= 2, requirement="at least 2", metavar="K")
+TRAIN_FOLDS = FOLDS.variant(
+    default=None, help="train one model per fold of K-fold cross-validation (the paper: 5)")
+"""`train` trains on the 80/20 hold-out split unless --folds asks for one model per fold."""
+FOLD = Setting("fold", int, None, "train only fold k (0-based) of the K folds", label="fold",
+               check=lambda v: v >= 0, requirement="a fold index (0-based)", metavar="k")
+RETRAIN_FOLD = FOLD.variant(help="retrain on fold k instead of the base model's split")
+"""`compress` retrains on the base model's own split unless told otherwise."""
+AUGMENT_COPIES = Setting("augment_copies", int, 2, "offline rotation/padding copies per training frame (the paper: 2)",
+                         label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
+SEED = Setting("seed", int, 0, "seed of weights, augmentation and batch order", label="seed",
+               check=lambda v: True, requirement="a whole number")
+
+# ------------------------------------------------------------------------------------------
+# Optimisation (base training and retraining)
+# ------------------------------------------------------------------------------------------
+
+EPOCHS = Setting("epochs", int, 500, "maximum epochs, with early stopping (the paper: 500)", label="epochs",
+                 check=lambda v: v >= 1, requirement="at least 1")
+SWEEP_EPOCHS = EPOCHS.variant(
+    default=60, help="base-model epochs, with early stopping (the paper: up to 500, converging near 60)")
+"""A sweep trains one base model per fold before it prunes anything; its base models converge near
+60 epochs, so 500 would only spend hours on early stopping's patience."""
+PATIENCE = Setting("patience", int, 20, "stop after this many epochs without a lower validation loss",
+                   label="patience", check=lambda v: v >= 1, requirement="at least 1", metavar="N")
+RETRAIN_PATIENCE = PATIENCE.variant(
+    name="retrain_patience", default=5, label="retraining patience",
+    help="early-stopping patience while retraining")
+"""Retraining starts from trained weights and converges within a few epochs; 20 epochs of patience
+would mostly retrain past the best epoch."""
+RETRAIN_EPOCHS = Setting(
+    "retrain_epochs", int, 25, "retraining epochs with early stopping (the paper: up to 100); 0 skips retraining",
+    label="retrain epochs", check=lambda v: v >= 0, requirement=">= 0")
+"""Default retraining budget: keeps `compress --rate 0.7` within ~10 minutes on 2 cores (measured:
+11 min 55 s wall with a sweep job sharing one of the two cores; held-out PCK@0.5 0.946 against the
+base's 0.966, the same as 40 epochs). The paper retrains up to 100 epochs until convergence; pass
+--retrain-epochs 100 for that."""
+RETRAIN_EPOCHS_BY_RATE = RETRAIN_EPOCHS.variant(
+    type=str, check=None, metavar="E[,RATES=E]",
+    help="retraining epochs after pruning, with early stopping (the paper: up to 100); RATES=E items give some "
+         "rates their own budget, e.g. 10,0.6:0.9:0.1=40 (heavier pruning needs longer to converge)")
+"""The sweep's form: one budget, or one per rate (read by `sweep.rates.parse_per_rate_epochs`)."""
+BATCH_SIZE = Setting("batch_size", int, 8, "training batch size", label="batch size",
+                     check=lambda v: v >= 1, requirement="at least 1")
+LEARNING_RATE = Setting("learning_rate", float, 1e-3, "Adam learning rate", label="learning rate",
+                        check=lambda v: v > 0, requirement="a positive number")
+LR_PATIENCE = Setting(
+    "lr_patience", int, 0,
+    "halve the learning rate after N epochs without a better validation loss (again after N more; floor 1e-5); "
+    "0 keeps it constant, as the paper does",
+    label="learning-rate patience", check=lambda v: v >= 0, requirement="0 (off) or more epochs", metavar="N")
+POSITIVE_WEIGHT = Setting(
+    "positive_weight", float, 1.0,
+    "weight of keypoint-disc pixels in the binary cross-entropy (1 = the paper's plain BCE; 20 converges several "
+    "times faster on small discs, see docs/training.md)",
+    label="positive weight", check=lambda v: v >= 1, requirement="a number >= 1")
+INHERITED_POSITIVE_WEIGHT = POSITIVE_WEIGHT.variant(
+    default=None, help="keypoint-pixel weight of the retraining loss (default: the base model's, from its "
+                       "NAME_train.json; else 1, the paper's plain BCE)")
+"""`compress` retrains with the loss the base model was trained with unless told otherwise."""
+THREADS = Setting("threads", int, None, "CPU threads for TensorFlow and LiteRT (default: all cores)",
+                  label="threads", check=lambda v: v >= 1, requirement="at least 1")
+SWEEP_THREADS = THREADS.variant(
+    help="CPU threads per job for TensorFlow and LiteRT (default: all cores when sequential, cores / workers "
+         "with --workers, 1 per Ray task); timing figures depend on it")
+"""Jobs running side by side share the cores, so the sweep's default depends on the executor."""
+
+# ------------------------------------------------------------------------------------------
+# Compression
+# ------------------------------------------------------------------------------------------
+
+RATE = Setting("rate", float, REQUIRED, "fraction of filters to remove per layer, in [0, 1)", label="pruning rate",
+               check=lambda v: 0 <= v < 1, requirement="in [0, 1) (e.g. 0.7 for 70%)")
+METHOD = Setting("method", str, "l1", "l1: filter surgery (the paper); magnitude: tfmot unstructured sparsity",
+                 label="method", choices=("l1", "magnitude"))
+STRATEGY = Setting("strategy", str, "independent",
+                   "L1 ranking on the original kernels, or after removing pruned inputs (Li et al.)",
+                   label="strategy", choices=("independent", "greedy"))
+QUANTIZE = Setting("quantize", str, "float16", "TFLite post-training quantization", label="quantize",
+                   choices=("float16", "float32", "int8-weights"))
