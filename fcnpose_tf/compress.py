@@ -44,11 +44,11 @@ Log = Callable[[str], None]
 
 @settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE, settings.RETRAIN_EPOCHS,
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
-                       settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
+                       ("augment", settings.REPRODUCTION_AUGMENT), settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize, and the retraining's
-    retrain_epochs, patience, batch_size, learning_rate, augment_copies, seed, fold, threads,
+    retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
     positive_weight (use the base model's) and lr_patience. Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
 
@@ -263,7 +263,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     fold = options.fold if options.fold is not None else (
         record.get("fold") if record.get("data_sha256") == data_sha256 else None)
     train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
-                                     progress=run.verbose == 1)
+                                     options.augment, progress=run.verbose == 1)
     entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
                                                 "train_samples": len(train_data), "val_frames": len(val_data)}}
     metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,

@@ -206,6 +206,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
 
     callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience)
     if state["epoch"] < config.epochs and not state["stopped_early"]:
+        if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have drawn
+            train_data.epoch = state["epoch"]
         try:
             model.fit(train_data, validation_data=val_data, validation_batch_size=config.batch_size,
                       initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[*callbacks, callback],
@@ -229,8 +231,33 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                      state["stopped_early"], state["history"])
 
 
+def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model:
+    """FCN-Pose at `input_size` holding the weights of the model file `init` (trained at any input size).
+
+    The convolutions do not depend on the input size, so a model pretrained at 160 starts a run at
+    224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
+    record names other keypoints.
+    """
+    from fcnpose_tf.model import build_fcn_pose, conv_widths, load_model
+    from fcnpose_tf.records import training_record
+
+    source = load_model(init)
+    widths = conv_widths(source)
+    trained_for = ((training_record(init) or {}).get("schema") or {}).get("keypoints")
+    if widths[-1] != schema.num_maps or (trained_for is not None and list(trained_for) != list(schema.keypoints)):
+        names = ", ".join(trained_for) if trained_for else f"{widths[-1] - 1} keypoints"
+        raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
+                        f"{', '.join(schema.keypoints)}; pass --init none to train from scratch, or --init MODEL "
+                        "with a model of this schema")
+    if tuple(source.input_shape[1:3]) == (input_size, input_size):
+        return source
+    model = build_fcn_pose(widths[:-1], input_size, widths[-1])
+    model.set_weights(source.get_weights())
+    return model
+
+
 def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: int,
-               augment_copies: int, init: str | Path | None = None, resume: bool = False, force: bool = False,
+               augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                verbose: int = 1, log: Callable[[str], None] = print) -> dict[str, Any]:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
@@ -246,7 +273,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         model_path: where the best model goes (.keras or .h5); the run's files go beside it.
         config: optimisation settings; `config.seed` also seeds the augmentation.
         input_size: the model's input side (a multiple of 32).
-        augment_copies: offline augmented copies per training frame.
+        augment_copies: offline augmented copies per training frame (augment "paper").
+        augment: "paper" (fixed offline copies) or "online" (fresh random transforms every epoch).
         init: a model whose weights training starts from (same input size and maps), else a fresh one.
         resume, force: as for `fit`.
         metadata: more facts for NAME_train.json; they override the dataset's (e.g. "data" as given).
@@ -267,22 +295,20 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     model_path = Path(model_path)
     label = label or str(model_path)
     num_maps = dataset.schema.num_maps
-    if init is not None:
-        model = load_model(init)
-        if tuple(model.input_shape[1:3]) != (input_size, input_size) or model.output_shape[-1] != num_maps:
-            raise UserError(f"{init}: input {model.input_shape[1:3]} and {model.output_shape[-1]} maps do not "
-                            f"match --input-size {input_size} and the data's {num_maps} maps")
+    if init is not None and not resume:
+        model = initial_model(init, dataset.schema, input_size)
     else:
         model = build_fcn_pose(input_size=input_size, num_maps=num_maps)
     folds = dataset.splits.k
     split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {folds}"
-    train_data, val_data = fold_data(dataset, fold, input_size, augment_copies, config.seed, progress=verbose == 1)
-    log(f"{label}: {'resuming' if resume else 'training'} on {split_name}: {len(train_data)} samples "
-        f"({len(train_data) // (1 + augment_copies)} frames + {augment_copies} augmented copies each), "
+    train_data, val_data = fold_data(dataset, fold, input_size, augment_copies, config.seed, augment,
+                                     progress=verbose == 1)
+    log(f"{label}: {'resuming' if resume else 'training'} on {split_name}: {train_data.describe()}, "
         f"{len(val_data)} validation frames, {input_size}x{input_size}, up to {config.epochs} epochs")
     facts = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path), "num_frames": len(dataset),
              "split": split_name, "fold": fold, "folds": folds, "split_seed": dataset.splits.seed,
-             "input_size": input_size, "augment_copies": augment_copies, "train_samples": len(train_data),
+             "input_size": input_size, "augment": augment,
+             "augment_copies": augment_copies if augment == "paper" else None, "train_samples": len(train_data),
              "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},

@@ -39,7 +39,7 @@ def trained(tmp_path_factory):
     data = make_via_folder(root / "frames")
     out = root / "models" / "arm.keras"
     proc = subprocess.run([sys.executable, "-m", "fcnpose_tf", "train", "--data", str(data), "--out", str(out),
-                           "--epochs", "2", "--input-size", "64", "--augment-copies", "1", "--quiet"],
+                           "--epochs", "2", "--input-size", "64", "--augment", "paper", "--augment-copies", "1", "--quiet"],
                           capture_output=True, text=True, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="3"),
                           timeout=600)
     assert proc.returncode == 0, proc.stdout + proc.stderr
@@ -161,8 +161,19 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
                "--augment-copies", "0", "--init", out, "--quiet")
     assert proc.returncode == 0, proc.stderr
     assert json.loads((tmp_path / "ft_train.json").read_text())["init"] == str(out)
-    proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--epochs", "1", "--init", out)
-    assert proc.returncode == 2 and "do not match --input-size 224" in proc.stderr
+    # the convolutions do not depend on the input size: a 64x64 model starts a 96x96 run
+    proc = cli("train", "--data", data, "--out", tmp_path / "ft96.keras", "--epochs", "1", "--input-size", "96",
+               "--augment-copies", "0", "--augment", "paper", "--init", out, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    # a model of another keypoint schema is refused before any training, saying how to start from scratch
+    from fcnpose_tf.model import build_fcn_pose, save_for_inference
+
+    other = tmp_path / "other_arm.keras"
+    save_for_inference(build_fcn_pose(input_size=64, num_maps=5), other)
+    proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--epochs", "1", "--input-size", "64",
+               "--init", other)
+    assert proc.returncode == 2 and "pass --init none to train from scratch" in proc.stderr
+    assert not (tmp_path / "bad.keras").exists()
 
 
 def test_learning_rate_halves_after_lr_patience_epochs_without_improvement(tmp_path):

@@ -32,13 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
     for setting in (settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                    settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.INPUT_SIZE, settings.AUGMENT_COPIES,
+                    settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES,
                     settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
-    parser.add_argument("--init", type=Path, metavar="MODEL",
-                        help="start from this model's weights (e.g. fine-tune the synthetic baseline on real frames)")
+    parser.add_argument("--init", metavar="MODEL|none",
+                        help="start from this model's weights, trained at any input size for the same keypoints "
+                             "(e.g. fine-tune a bundled model on your frames); none: from scratch, as the paper")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
@@ -62,9 +63,10 @@ def run(args: argparse.Namespace) -> int:
 
     config = FitConfig(**settings.values_from_args(args, FitConfig))
     config.validate()
-    for setting in (settings.INPUT_SIZE, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
+    for setting in (settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
                     settings.THREADS):
         setting.validate(getattr(args, setting.name))
+    init = None if args.init in (None, "none") else Path(args.init)
     if args.out.suffix not in (".keras", ".h5"):
         raise UserError(f"{args.out}: --out must end in .keras or .h5")
     k = args.folds or settings.FOLDS.default
@@ -87,8 +89,8 @@ def run(args: argparse.Namespace) -> int:
     reports = []
     for fold in folds:
         record = train_fold(dataset, fold, fold_model_path(args.out, fold), config, input_size=args.input_size,
-                            augment_copies=args.augment_copies, init=args.init, resume=args.resume,
-                            force=args.force, metadata={"init": str(args.init) if args.init else None},
+                            augment_copies=args.augment_copies, augment=args.augment, init=init, resume=args.resume,
+                            force=args.force, metadata={"init": str(init) if init else None},
                             threads=args.threads, verbose=2 if args.quiet else 1)
         print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         print(format_report(record["validation"]["metrics"]))

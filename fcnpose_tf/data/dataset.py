@@ -224,6 +224,11 @@ class TrainingData:
     def __len__(self) -> int:
         return len(self.images)
 
+    def describe(self) -> str:
+        """What one epoch shows, for progress lines."""
+        frames = len(self) // (1 + self.augment_copies)
+        return f"{len(self)} samples ({frames} frames + {self.augment_copies} augmented copies each)"
+
     def arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """All rows as float32 (images in [0, 1], maps in {0, 1}); for small sets such as validation."""
         return _to_float(self.images), self.maps.astype(np.float32)
@@ -240,16 +245,26 @@ class TrainingData:
 
 
 def fold_data(dataset: Dataset, fold: int | None, input_size: int, augment_copies: int = 2, seed: int = 0,
-              **kwargs) -> tuple[TrainingData, TrainingData]:
-    """(training data with `augment_copies` copies per frame, validation data without) for a fold.
+              augment: str = "paper", *, progress: bool = False, **kwargs):
+    """(training data, validation data without augmentation) for a fold.
 
-    `fold` is a K-fold index (0-based) or None for the 80/20 hold-out split; with the
-    paper's 508 frames and 2 copies: 406 + 812 = 1,218 training rows and 102 validation rows.
-    Extra keyword arguments (augment_config, radius, thickness, progress) go to TrainingData.
+    `fold` is a K-fold index (0-based) or None for the 80/20 hold-out split. `augment` "paper":
+    `augment_copies` fixed offline copies per training frame (with the paper's 508 frames and 2
+    copies: 406 + 812 = 1,218 training rows and 102 validation rows); "online": the training
+    frames drawn with fresh random transforms every epoch (`data.online.OnlineTrainingData`).
+    Extra keyword arguments (augment_config, radius, thickness) go to TrainingData.
     """
     train_idx, val_idx = dataset.split(fold)
-    return (TrainingData(dataset, train_idx, input_size, augment_copies, seed, **kwargs),
-            TrainingData(dataset, val_idx, input_size, 0, seed, **kwargs))
+    if augment == "online":
+        from fcnpose_tf.data.online import OnlineTrainingData
+
+        train = OnlineTrainingData(dataset, train_idx, input_size, seed, radius=kwargs.get("radius"),
+                                   thickness=kwargs.get("thickness"), progress=progress)
+    elif augment == "paper":
+        train = TrainingData(dataset, train_idx, input_size, augment_copies, seed, progress=progress, **kwargs)
+    else:
+        raise UserError(f"augmentation must be online or paper, got {augment!r}")
+    return train, TrainingData(dataset, val_idx, input_size, 0, seed, progress=progress, **kwargs)
 
 
 def _to_float(images: np.ndarray) -> np.ndarray:

@@ -1,0 +1,143 @@
+"""Online augmentation: keypoints follow the pixels through every geometric transform, seeds reproduce."""
+
+import numpy as np
+import pytest
+
+from fcnpose_tf.data.online import OnlineAugmentConfig, OnlineAugmenter, sample_rng, working_frame
+from fcnpose_tf.errors import UserError
+
+W, H, S = 120, 90, 64
+NO_APPEARANCE = dict(color_p=0.0, gamma_p=0.0, shuffle_p=0.0, blur_p=0.0, noise_p=0.0, jpeg_p=0.0, dropout_p=0.0)
+
+
+def dot_image(keypoints, width=W, height=H, sigma=1.5):
+    """A black RGB frame with one bright blob per keypoint, keypoint c in channel c."""
+    image = np.zeros((height, width, 3), np.uint8)
+    yy, xx = np.mgrid[0:height, 0:width]
+    for c, (x, y) in enumerate(keypoints):
+        blob = np.exp(-((xx - x) ** 2 + (yy - y) ** 2) / (2 * sigma ** 2))
+        image[..., c] = np.round(255 * blob).astype(np.uint8)
+    return image
+
+
+def blob_centre(channel):
+    weights = channel.astype(np.float64)
+    weights[weights < 0.15 * weights.max()] = 0
+    yy, xx = np.mgrid[0:channel.shape[0], 0:channel.shape[1]]
+    return np.array([(xx * weights).sum() / weights.sum(), (yy * weights).sum() / weights.sum()])
+
+
+GEOMETRY = {
+    "flip": dict(flip_p=1.0, affine_p=0.0),
+    "rotation": dict(flip_p=0.0, max_rotation_deg=30.0, min_scale=1.0, max_scale=1.0, max_shift=0.0),
+    "zoom in": dict(flip_p=0.0, max_rotation_deg=0.0, min_scale=1.25, max_scale=1.3, max_shift=0.0),
+    "zoom out": dict(flip_p=0.0, max_rotation_deg=0.0, min_scale=0.75, max_scale=0.8, max_shift=0.0),
+    "shift": dict(flip_p=0.0, max_rotation_deg=0.0, min_scale=1.0, max_scale=1.0, max_shift=0.12),
+    "all": dict(),
+}
+
+
+@pytest.mark.parametrize("name", list(GEOMETRY))
+def test_dots_end_up_at_the_transformed_keypoints(name):
+    kps = np.array([[40.0, 30.0], [80.5, 60.25], [60.0, 45.0]])
+    image = dot_image(kps)
+    augment = OnlineAugmenter(S, OnlineAugmentConfig(**GEOMETRY[name], **NO_APPEARANCE))
+    moved_any = False
+    for i in range(12):
+        out, moved = augment(image, kps, sample_rng(0, 0, i))
+        assert out.shape == (S, S, 3) and out.dtype == np.uint8
+        expected_unmoved = (kps + 0.5) * np.array([S / W, S / H]) - 0.5
+        moved_any |= not np.allclose(moved, expected_unmoved)
+        for c in range(3):
+            error = np.hypot(*(blob_centre(out[..., c]) - moved[c]))
+            assert error < 0.35, (name, i, c, error)  # input pixels; the warp itself is exact
+    assert moved_any, f"{name}: no sample was transformed"
+
+
+def test_flip_keeps_identities_and_mirrors_x():
+    kps = np.array([[20.0, 30.0], [100.0, 60.0]])
+    augment = OnlineAugmenter(S, OnlineAugmentConfig(flip_p=1.0, affine_p=0.0, **NO_APPEARANCE))
+    _, moved = augment(dot_image(kps), kps, sample_rng(0, 0, 0))
+    scaled = (kps + 0.5) * np.array([S / W, S / H]) - 0.5
+    np.testing.assert_allclose(moved[:, 0], S - 1 - scaled[:, 0], atol=1e-4)  # keypoint 0 stays keypoint 0
+    np.testing.assert_allclose(moved[:, 1], scaled[:, 1], atol=1e-4)
+
+
+def test_visible_keypoints_stay_in_the_frame_and_missing_ones_stay_missing():
+    kps = np.array([[2.0, 2.0], [W - 3.0, H - 3.0], [np.nan, np.nan]])  # near corners: many draws rejected
+    augment = OnlineAugmenter(S, OnlineAugmentConfig(max_rotation_deg=45, min_scale=1.3, max_scale=1.3))
+    for i in range(20):
+        _, moved = augment(dot_image(kps[:2]), kps, sample_rng(1, 2, i))
+        assert np.isnan(moved[2]).all()
+        assert np.all((moved[:2] >= -0.5) & (moved[:2] <= S - 0.5))
+
+
+def test_same_seed_same_samples_other_seed_other_samples():
+    kps = np.array([[40.0, 30.0], [80.0, 60.0], [60.0, 45.0]])
+    image = dot_image(kps)
+    augment = OnlineAugmenter(S)
+    a = [augment(image, kps, sample_rng(7, 3, i)) for i in range(4)]
+    b = [augment(image, kps, sample_rng(7, 3, i)) for i in reversed(range(4))][::-1]  # any order
+    c = [augment(image, kps, sample_rng(8, 3, i)) for i in range(4)]
+    for (ia, ka), (ib, kb) in zip(a, b):
+        np.testing.assert_array_equal(ia, ib)
+        np.testing.assert_array_equal(ka, kb)
+    assert any(not np.array_equal(ia, ic) for (ia, _), (ic, _) in zip(a, c))
+
+
+def test_working_frame_scales_keypoints_through_pixel_edges():
+    frame = np.zeros((480, 640, 3), np.uint8)
+    rgb, kps = working_frame(frame, np.array([[-0.5, -0.5], [639.5, 479.5]]), 64, 1.5)
+    assert rgb.shape == (96, 128, 3)
+    np.testing.assert_allclose(kps, [[-0.5, -0.5], [127.5, 95.5]])
+
+
+def test_bad_ranges_are_refused():
+    with pytest.raises(UserError, match="probability"):
+        OnlineAugmentConfig(flip_p=1.5)
+    with pytest.raises(UserError, match="min_scale"):
+        OnlineAugmentConfig(min_scale=1.3, max_scale=1.0)
+
+
+def test_online_training_data_follows_seed_and_epoch_and_keeps_keypoints_on_their_discs(tmp_path):
+    from test_train_evaluate import make_via_folder
+
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
+    train, val = fold_data(ds, None, 64, seed=3, augment="online")
+    again, _ = fold_data(ds, None, 64, seed=3, augment="online")
+    other, _ = fold_data(ds, None, 64, seed=4, augment="online")
+    assert len(train) == 3 * train.num_frames and len(val) == len(ds) - train.num_frames
+    seq = train.sequence(4)
+    first = seq[0]
+    np.testing.assert_array_equal(first[0], again.sequence(4)[0][0])  # same seed, same batch
+    assert not np.array_equal(first[0], other.sequence(4)[0][0])
+    seq.on_epoch_end()
+    assert not np.array_equal(first[0], seq[0][0])  # every epoch draws anew
+    resumed = again.sequence(4)
+    resumed.epoch = 1  # what `fit` sets when it resumes after one epoch
+    np.testing.assert_array_equal(seq[1][1], resumed[1][1])
+    images, maps = first
+    assert images.dtype == maps.dtype == np.float32 and images.shape == (4, 64, 64, 3) and maps.shape[-1] == 9
+    assert 0.0 <= images.min() and images.max() <= 1.0 and set(np.unique(maps)) <= {0.0, 1.0}
+
+
+def test_train_cli_online_by_default_and_paper_on_request(tmp_path, cli):
+    import json
+
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=6)
+    proc = cli("train", "--data", data, "--out", tmp_path / "m.keras", "--epochs", "1", "--input-size", "64",
+               "--init", "none", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "15 freshly augmented samples an epoch from 5 frames" in proc.stdout
+    record = json.loads((tmp_path / "m_train.json").read_text())
+    assert record["augment"] == "online" and record["augment_copies"] is None
+    proc = cli("train", "--data", data, "--out", tmp_path / "p.keras", "--epochs", "1", "--input-size", "64",
+               "--init", "none", "--augment", "paper", "--augment-copies", "1", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "10 samples (5 frames + 1 augmented copies each)" in proc.stdout
+    proc = cli("train", "--data", data, "--out", tmp_path / "q.keras", "--augment", "fancy")
+    assert proc.returncode == 2 and "invalid choice: 'fancy'" in proc.stderr
