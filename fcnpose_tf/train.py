@@ -72,6 +72,18 @@ def run_paths(model_path: Path) -> dict[str, Path]:
     }
 
 
+def output_files(model_path: Path) -> list[Path]:
+    """The files a finished run leaves: the model, its loss curves (.csv, .png) and NAME_train.json."""
+    paths = run_paths(Path(model_path))
+    return [paths[key] for key in ("model", "loss_csv", "loss_png", "train_json")]
+
+
+def check_outputs(model_path: Path, force: bool = False) -> None:
+    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
+    for path in output_files(model_path):
+        check_writable(path, force)
+
+
 @keras.utils.register_keras_serializable(package="fcnpose_tf")
 class KeypointBinaryCrossentropy(keras.losses.Loss):
     """Binary cross-entropy over all maps, with the active pixels of the keypoint maps weighted.
@@ -185,7 +197,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         raise UserError(f"{paths['ckpt_dir']}: an interrupted run's checkpoint exists; "
                         "pass --resume to continue it or --force to start over")
     if not resume:
-        check_writable(model_path, force)
+        check_outputs(model_path, force)
         if paths["ckpt_dir"].exists():
             shutil.rmtree(paths["ckpt_dir"])
     try:

@@ -56,9 +56,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import format_timing
     from fcnpose_tf.tfsetup import set_tensorflow_threads
-    from fcnpose_tf.fileio import check_writable
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.train import FitConfig, train_fold
+    from fcnpose_tf.train import FitConfig, check_outputs, train_fold
 
     config = FitConfig(**settings.values_from_args(args, FitConfig))
     config.validate()
@@ -79,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
         folds = [None]
     if not args.resume:
         for fold in folds:  # fail before any training, not after the first fold
-            check_writable(fold_model_path(args.out, fold), args.force)
+            check_outputs(fold_model_path(args.out, fold), args.force)
     args.folds = k
     dataset = load_from_args(args)
 
