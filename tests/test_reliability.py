@@ -1,5 +1,7 @@
 """Failures a user can cause end in one `error:` line, exit 2, and leave nothing half-written."""
 
+import json
+
 import pytest
 
 from fcnpose_tf.cli import build_parser, main
@@ -56,3 +58,56 @@ def test_compress_without_retraining_writes_no_training_side_files():
 
     names = [p.name for p in output_paths("m.keras", "out", CompressOptions(rate=0.5, retrain_epochs=0))]
     assert names == ["m_p50.keras", "m_p50_fp16.tflite", "m_p50_report.json"]
+
+
+def _interrupted_run(tmp_path, monkeypatch):
+    """A training run on 32x32 frames stopped by Ctrl-C after its first epoch: (data folder, model path)."""
+    from test_train_evaluate import make_via_folder
+
+    from fcnpose_tf import train
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.errors import UserError
+
+    data = make_via_folder(tmp_path / "d", n=6)
+    out = tmp_path / "m.keras"
+    original = train._CheckpointAndStop.on_epoch_end
+
+    def interrupt_after_first(self, epoch, logs=None):
+        original(self, epoch, logs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
+    with pytest.raises(UserError, match="interrupted after 1 complete epochs"):
+        train.train_fold(load_dataset(data), None, out, train.FitConfig(epochs=3), input_size=32,
+                         augment_copies=0, verbose=0, log=lambda line: None)
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", original)
+    return data, out
+
+
+def test_resume_refuses_a_checkpoint_of_other_settings_or_data_before_preparing_data(tmp_path, monkeypatch,
+                                                                                        capsys):
+    from fcnpose_tf.data import dataset as dataset_module
+
+    data, out = _interrupted_run(tmp_path, monkeypatch)
+    state = json.loads((tmp_path / "m.ckpt" / "state.json").read_text())
+    assert state["identity"]["input_size"] == 32 and len(state["identity"]["data_sha256"]) == 64
+
+    def no_data_preparation(*args, **kwargs):
+        raise AssertionError("the data was loaded before the checkpoint was checked")
+
+    monkeypatch.setattr(dataset_module, "load_dataset", no_data_preparation)
+    monkeypatch.setattr(dataset_module, "fold_data", no_data_preparation)
+    resume = ["train", "--data", str(data), "--out", str(out), "--resume", "--epochs", "3", "--augment-copies", "0"]
+    assert main([*resume, "--input-size", "64"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{tmp_path / 'm.ckpt'} was started with --input-size 32 on " in err
+    assert ", not with --input-size 64 on " in err and "resume with the same settings or pass --force" in err
+
+    labels = data / "labels.json"
+    project = json.loads(labels.read_text())
+    next(iter(project["_via_img_metadata"].values()))["regions"].pop()  # a label changed since the run started
+    labels.write_text(json.dumps(project))
+    assert main([*resume, "--input-size", "32"]) == 2
+    err = capsys.readouterr().err
+    assert f"was started on {labels} (sha256 {state['identity']['data_sha256'][:12]})" in err
+    assert (tmp_path / "m.ckpt" / "state.json").is_file()  # a refused resume keeps the checkpoint
