@@ -111,3 +111,26 @@ def test_resume_refuses_a_checkpoint_of_other_settings_or_data_before_preparing_
     err = capsys.readouterr().err
     assert f"was started on {labels} (sha256 {state['identity']['data_sha256'][:12]})" in err
     assert (tmp_path / "m.ckpt" / "state.json").is_file()  # a refused resume keeps the checkpoint
+
+
+def test_a_dynamic_input_tflite_is_refused_with_how_to_export_a_fixed_size(tmp_path, capsys):
+    import cv2
+    import numpy as np
+    import tensorflow as tf
+    import tf_keras as keras
+
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.runtime.estimator import KeypointModel
+
+    inputs = keras.Input((None, None, 3))
+    model = keras.Model(inputs, keras.layers.Conv2D(9, 1, activation="sigmoid")(inputs))
+    path = tmp_path / "dynamic.tflite"
+    path.write_bytes(tf.lite.TFLiteConverter.from_keras_model(model).convert())
+    with pytest.raises(UserError, match=r"input size is not fixed \(shape signature \[-1, -1, -1, 3\]\).*input_size="):
+        KeypointModel(path)
+    frame = tmp_path / "frame.png"
+    cv2.imwrite(str(frame), np.zeros((64, 64, 3), np.uint8))
+    assert main(["run", str(path), "--source", str(frame), "--out", str(tmp_path / "k.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert "input size is not fixed" in err and "Traceback" not in err
+    assert not (tmp_path / "k.jsonl").exists()
