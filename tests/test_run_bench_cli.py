@@ -41,7 +41,10 @@ def video(tmp_path_factory) -> Path:
 
 
 def _run(capsys, *args):
-    code = main([str(a) for a in args])
+    try:
+        code = main([str(a) for a in args])
+    except SystemExit as exc:  # argparse refused an option
+        code = exc.code
     out, err = capsys.readouterr()
     return code, out, err
 
@@ -126,7 +129,7 @@ def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
     (["--source", "{video}", "--out", "k.jsonl", "--save-video", "k.jsonl"], "given both as --out and --save-video"),
     (["--source", "{video}", "--out", "k.jsonl", "--out", "k.jsonl"], "given twice"),
     (["--source", "{video}", "--save-video", "o.gif"], "unknown video type"),
-    (["--source", "{video}", "--threads", "0"], "--threads must be at least 1"),
+    (["--source", "{video}", "--threads", "0"], "argument --threads: expected at least 1 thread, got 0"),
     (["--source", "{video}", "--max-frames", "0"], "--max-frames must be at least 1"),
     (["--source", "{video}", "--threshold", "1.5"], "threshold must be between 0 and 1"),
     (["--source", "{video}", "--camera-size", "big"], "expected WIDTHxHEIGHT"),
