@@ -9,11 +9,43 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Iterator
 
 from fcnpose_tf.errors import UserError
+
+
+def os_error_reason(exc: OSError) -> str:
+    """Why an OSError happened, as the end of a one-line error: e.g. `no space left on device`."""
+    text = exc.strerror or str(exc) or type(exc).__name__
+    return text[:1].lower() + text[1:]
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold back SIGINT and SIGTERM during a block; a signal that arrives is re-raised when it ends.
+
+    A step that must not be cut in two by Ctrl-C or a `kill` (a record written and counted) runs
+    inside. Python runs signal handlers in the main thread between bytecodes, so the handlers are
+    swapped for recording ones there (a thread's signal mask would not do: LiteRT's threads would
+    still take the signal); in other threads the block simply runs.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.signal(sig, lambda signum, frame: arrived.append(signum)) for sig in held}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+        for sig in dict.fromkeys(arrived):
+            signal.raise_signal(sig)
 
 
 def check_writable(path: str | os.PathLike, force: bool = False) -> Path:

@@ -1,6 +1,8 @@
 """Failures a user can cause end in one `error:` line, exit 2, and leave nothing half-written."""
 
 import json
+import os
+import signal
 
 import pytest
 
@@ -134,3 +136,52 @@ def test_a_dynamic_input_tflite_is_refused_with_how_to_export_a_fixed_size(tmp_p
     err = capsys.readouterr().err
     assert "input size is not fixed" in err and "Traceback" not in err
     assert not (tmp_path / "k.jsonl").exists()
+
+
+class _SignalAfterEachCall:
+    """A file object that sends this process SIGTERM right after each write or flush it passes on."""
+
+    def __init__(self, fh):
+        self._fh = fh
+
+    def __getattr__(self, name):
+        return getattr(self._fh, name)
+
+    def write(self, data):
+        written = self._fh.write(data)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return written
+
+    def flush(self):
+        self._fh.flush()
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".csv"])
+def test_sigterm_right_after_a_record_is_written_is_counted_with_it(tmp_path, suffix):
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from fcnpose_tf.keypoints import UR5
+    from fcnpose_tf.runtime.sinks import open_record_writer
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt("terminated (SIGTERM)")
+
+    frame = SimpleNamespace(index=0, timestamp=0.0, name="f.png", media_time_s=None, image=np.zeros((4, 4, 3)))
+    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5),
+                                 records=lambda schema: [{"name": n, "x": None, "y": None, "confidence": 0.0}
+                                                         for n in schema.keypoints])
+    writer = open_record_writer(tmp_path / f"k{suffix}", UR5)
+    writer._fh = _SignalAfterEachCall(writer._fh)
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            for _ in range(3):
+                writer.write(frame, prediction)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        writer.close()
+    lines = (tmp_path / f"k{suffix}").read_text().splitlines()
+    assert writer.count == len(lines) - (suffix == ".csv") == 1
