@@ -1,5 +1,6 @@
 """Failures a user can cause end in one `error:` line, exit 2, and leave nothing half-written."""
 
+import errno
 import json
 import os
 import signal
@@ -185,3 +186,52 @@ def test_sigterm_right_after_a_record_is_written_is_counted_with_it(tmp_path, su
         writer.close()
     lines = (tmp_path / f"k{suffix}").read_text().splitlines()
     assert writer.count == len(lines) - (suffix == ".csv") == 1
+
+
+class _DiskFullsAfter:
+    """A file object whose write number `n` (1-based) stores half its data, then fails with ENOSPC."""
+
+    def __init__(self, fh, n):
+        self._fh, self._left = fh, n
+
+    def __getattr__(self, name):
+        return getattr(self._fh, name)
+
+    def write(self, data):
+        self._left -= 1
+        if self._left == 0:
+            self._fh.write(data[:len(data) // 2])
+            self._fh.flush()
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return self._fh.write(data)
+
+
+def _fake_frame_and_prediction():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    frame = SimpleNamespace(index=0, timestamp=0.0, name="f.png", media_time_s=None, image=np.zeros((4, 4, 3)))
+    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5),
+                                 records=lambda schema: [{"name": n, "x": 1.5, "y": None, "confidence": 0.5}
+                                                         for n in schema.keypoints])
+    return frame, prediction
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".csv"])
+def test_a_full_disk_leaves_only_whole_records(tmp_path, suffix):
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.keypoints import UR5
+    from fcnpose_tf.runtime.sinks import open_record_writer
+
+    frame, prediction = _fake_frame_and_prediction()
+    path = tmp_path / f"k{suffix}"
+    writer = open_record_writer(path, UR5)
+    writer._fh = _DiskFullsAfter(writer._fh, 3)  # the third record finds the disk full
+    writer.write(frame, prediction)
+    writer.write(frame, prediction)
+    with pytest.raises(UserError, match=rf"^{path}: no space left on device \(kept its 2 complete records\)$"):
+        writer.write(frame, prediction)
+    writer.close()
+    text = path.read_text()
+    assert text.endswith("\n") and len(text.splitlines()) == 2 + (suffix == ".csv") and writer.count == 2
