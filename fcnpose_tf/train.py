@@ -27,7 +27,7 @@ import tf_keras as keras
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import atomic_path, check_writable, write_json, write_text
+from fcnpose_tf.fileio import atomic_path, check_writable, make_folder, write_json, write_text
 from fcnpose_tf.model import save_for_inference
 
 
@@ -252,10 +252,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         check_outputs(model_path, force)
         if paths["ckpt_dir"].exists():
             shutil.rmtree(paths["ckpt_dir"])
-    try:
-        paths["ckpt_dir"].mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{paths['ckpt_dir']}: cannot create the checkpoint folder ({exc.strerror})") from None
+    make_folder(paths["ckpt_dir"])
 
     keras.utils.set_random_seed(config.seed)
     if resume:

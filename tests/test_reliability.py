@@ -235,3 +235,46 @@ def test_a_full_disk_leaves_only_whole_records(tmp_path, suffix):
     writer.close()
     text = path.read_text()
     assert text.endswith("\n") and len(text.splitlines()) == 2 + (suffix == ".csv") and writer.count == 2
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 200 KB tmpfs folder (root only), unmounted afterwards: a disk that fills up."""
+    import shutil
+    import subprocess
+
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a tmpfs needs root")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    yield disk
+    subprocess.run(["umount", str(disk)], check=True)
+
+
+def _one_line_write_error(status, err, path_part):
+    assert status == 2, err
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and path_part in lines[0] and "no space left on device" in lines[0], err
+    assert "Traceback" not in err
+
+
+def test_synth_on_a_full_disk_leaves_nothing(tiny_disk, capsys):
+    status = main(["synth", "--out", str(tiny_disk / "ds"), "--n", "40", "--width", "160", "--height", "120",
+                   "--workers", "2", "--no-progress"])
+    _one_line_write_error(status, capsys.readouterr().err, str(tiny_disk / "ds"))
+    assert list(tiny_disk.iterdir()) == []
+
+
+def test_data_inspect_preview_on_an_injected_full_disk(tmp_path, capsys, monkeypatch):
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=4)
+    main(["data", "inspect", str(data)])  # the splits file, written before the disk fills
+    capsys.readouterr()
+    monkeypatch.setattr(os, "replace", lambda src, dst: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space")))
+    status = main(["data", "inspect", str(data), "--out", str(tmp_path / "new" / "preview.png")])
+    err = capsys.readouterr().err
+    assert status == 2 and f"{tmp_path / 'new' / 'preview.png'}: no space" in err and "Traceback" not in err
+    assert not (tmp_path / "new").exists()
