@@ -15,6 +15,7 @@ from typing import Sequence
 from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import WriteError, command_outputs
 from fcnpose_tf.tfsetup import import_tensorflow_quietly
 
 
@@ -63,21 +64,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    try:
-        if args._uses_tensorflow:
-            import_tensorflow_quietly()
-        status = args._run(args)
-        return int(status or 0)
-    except UserError as exc:
-        if args.debug:
-            raise
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        if args.debug:
-            raise
-        print("interrupted", file=sys.stderr)
-        return 130
+    with command_outputs() as outputs:
+        try:
+            if args._uses_tensorflow:
+                import_tensorflow_quietly()
+            status = args._run(args)
+            return int(status or 0)
+        except UserError as exc:
+            if args.debug:
+                raise
+            message = str(exc)
+            if isinstance(exc, WriteError):  # what a full disk cut short goes; what was completed stays, named
+                outputs.remove_created_folders()
+                if outputs.completed:
+                    message += f"; kept the files completed before it: {', '.join(map(str, outputs.completed))}"
+            print(f"error: {message}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            if args.debug:
+                raise
+            print("interrupted", file=sys.stderr)
+            return 130
 
 
 if __name__ == "__main__":

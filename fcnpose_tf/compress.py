@@ -70,6 +70,24 @@ def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
             "report": f"{stem}_report.json"}
 
 
+def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
+    """Every file a run writes into `out_dir`: the models, the report and (when retraining) the training side files."""
+    from fcnpose_tf.train import output_files
+
+    names = output_names(Path(base_path).stem, options)
+    paths = [Path(out_dir) / names[key] for key in ("keras", "tflite", "report")]
+    if options.retrain_epochs > 0:
+        paths += [p for p in output_files(paths[0]) if p not in paths]
+    return paths
+
+
+def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions,
+                  force: bool = False) -> None:
+    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
+    for path in output_paths(base_path, out_dir, options):
+        check_writable(path, force)
+
+
 def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
     """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
     from fcnpose_tf.model import save_for_inference
@@ -354,8 +372,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
     surgery = prune_model(base, options.rate, strategy=options.strategy)  # an unsupported layer fails here, first
-    for path in paths.values():
-        check_writable(path, force)
+    check_outputs(base_path, out_dir, options, force)
     run = _Run(base_path, base, pruning_method(options), options, paths, train_dataset, eval_dataset,
                eval_indices, force, verbose, say)
     steps = 6

@@ -9,11 +9,95 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
+import signal
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any, Iterator
 
 from fcnpose_tf.errors import UserError
+
+
+class WriteError(UserError):
+    """Writing an output failed (a full disk, a lost mount): `PATH: reason`, e.g. `no space left on device`."""
+
+
+class CommandOutputs:
+    """What one command wrote through this module: the folders it created and the files it completed.
+
+    `command_outputs()` records them, so a failed command can remove the folders it made (with the
+    temporary files and partial outputs in them) and name the completed files it keeps.
+    """
+
+    def __init__(self) -> None:
+        self.created_folders: list[Path] = []
+        self.completed: list[Path] = []
+
+    def remove_created_folders(self) -> None:
+        """Remove every folder this command created, deepest first, unless it holds a completed file."""
+        kept = [p.resolve() for p in self.completed]
+        for folder in sorted(set(self.created_folders), key=lambda p: len(p.parts), reverse=True):
+            resolved = folder.resolve()
+            if folder.is_dir() and not any(resolved == f or resolved in f.parents for f in kept):
+                shutil.rmtree(folder, ignore_errors=True)
+
+
+_outputs: CommandOutputs | None = None
+
+
+@contextlib.contextmanager
+def command_outputs() -> Iterator[CommandOutputs]:
+    """Record the folders created and files completed by this module while a command runs (see CommandOutputs)."""
+    global _outputs
+    outer, _outputs = _outputs, CommandOutputs()
+    try:
+        yield _outputs
+    finally:
+        _outputs = outer
+
+
+def make_folder(folder: str | os.PathLike) -> Path:
+    """mkdir -p, recording the folders it creates for `command_outputs`; UserError naming the folder and reason."""
+    folder = Path(folder)
+    missing = [p for p in (folder, *folder.parents) if not p.exists()]
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise WriteError(f"{folder}: cannot create output folder ({os_error_reason(exc)})") from None
+    if _outputs is not None:
+        _outputs.created_folders.extend(missing)
+    return folder
+
+
+def os_error_reason(exc: OSError) -> str:
+    """Why an OSError happened, as the end of a one-line error: e.g. `no space left on device`."""
+    text = exc.strerror or str(exc) or type(exc).__name__
+    return text[:1].lower() + text[1:]
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """Hold back SIGINT and SIGTERM during a block; a signal that arrives is re-raised when it ends.
+
+    A step that must not be cut in two by Ctrl-C or a `kill` (a record written and counted) runs
+    inside. Python runs signal handlers in the main thread between bytecodes, so the handlers are
+    swapped for recording ones there (a thread's signal mask would not do: LiteRT's threads would
+    still take the signal); in other threads the block simply runs.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived: list[int] = []
+    held = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.signal(sig, lambda signum, frame: arrived.append(signum)) for sig in held}
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+        for sig in dict.fromkeys(arrived):
+            signal.raise_signal(sig)
 
 
 def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
@@ -23,10 +107,7 @@ def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
         raise UserError(f"{path}: already exists; pass --force to replace it")
     if path.is_dir():
         raise UserError(f"{path}: is a folder, expected a file path")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{path.parent}: cannot create output folder ({exc.strerror})") from None
+    make_folder(path.parent)
     try:  # os.access says yes to root everywhere; only a real file proves the folder takes files
         with tempfile.TemporaryFile(dir=path.parent):
             pass
@@ -56,8 +137,11 @@ def atomic_path(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     format from the extension (Keras .keras/.h5, OpenCV .png) work unchanged.
     """
     path = check_writable(path, force)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{path.suffix}.tmp{path.suffix}", dir=path.parent)
-    os.close(fd)
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{path.suffix}.tmp{path.suffix}", dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise WriteError(f"{path}: {os_error_reason(exc)}") from None
     tmp_path = Path(tmp)
     try:
         yield tmp_path
@@ -66,6 +150,10 @@ def atomic_path(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
             os.umask(umask)
             os.chmod(tmp_path, 0o666 & ~umask)
         os.replace(tmp_path, path)
+        if _outputs is not None and path not in _outputs.completed:
+            _outputs.completed.append(path)
+    except OSError as exc:  # any failure while writing: the path and the reason, one line
+        raise WriteError(f"{path}: {os_error_reason(exc)}") from None
     finally:
         if tmp_path.exists():
             tmp_path.unlink()

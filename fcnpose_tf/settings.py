@@ -34,9 +34,10 @@ class Setting:
 
     def __init__(self, name: str, type: Callable[[str], Any], default: Any, help: str, *, label: str,
                  check: Callable[[Any], bool] | None = None, requirement: str = "", metavar: str | None = None,
-                 choices: tuple[Any, ...] | None = None) -> None:
+                 choices: tuple[Any, ...] | None = None, parse: Callable[[str], Any] | None = None) -> None:
         self.name = name
         self.type = type
+        self.parse = parse
         self.default = default
         self.help = help
         self.label = label
@@ -75,7 +76,9 @@ class Setting:
     def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup, flag: str | None = None) -> None:
         """Add this setting as `flag` (default: its own --flag) with its type, default, choices and help."""
         kwargs: dict[str, Any] = {"help": self.help, "metavar": self.metavar}
-        if self.type is not str:
+        if self.parse is not None:
+            kwargs["type"] = self.parse
+        elif self.type is not str:
             kwargs["type"] = self.type
         if self.choices is not None:
             kwargs["choices"] = self.choices
@@ -145,6 +148,35 @@ def values_from_args(args: argparse.Namespace, config_type: type, **renamed: str
     """The fields of dataclass `config_type` that `args` holds, by name (`renamed`: field=attribute)."""
     names = {f.name: renamed.get(f.name, f.name) for f in dataclasses.fields(config_type)}
     return {field: getattr(args, attr) for field, attr in names.items() if hasattr(args, attr)}
+
+
+def thread_count(text: str) -> int:
+    """argparse type of every command's --threads: a whole number of CPU threads, at least 1.
+
+    Checked while parsing, before TensorFlow or LiteRT sees it: TensorFlow aborts the process on a
+    count below 1, and 0 would be reported as "0 thread(s)".
+    """
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number of threads (at least 1), got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1 thread, got {value}")
+    return value
+
+
+def thread_counts(text: str) -> tuple[int, ...]:
+    """argparse type of a list of thread counts (`bench --threads 1,2,4`): each a `thread_count`, de-duplicated."""
+    counts: list[int] = []
+    for part in str(text).split(","):
+        try:
+            value = thread_count(part.strip())
+        except argparse.ArgumentTypeError:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: expected positive integers separated by commas, e.g. 1,2,4") from None
+        if value not in counts:
+            counts.append(value)
+    return tuple(counts)
 
 
 def check_input_size(input_size: int) -> int:
@@ -236,7 +268,7 @@ INHERITED_POSITIVE_WEIGHT = POSITIVE_WEIGHT.variant(
                        "NAME_train.json; else 1, the paper's plain BCE)")
 """`compress` retrains with the loss the base model was trained with unless told otherwise."""
 THREADS = Setting("threads", int, None, "CPU threads for TensorFlow and LiteRT (default: all cores)",
-                  label="threads", check=lambda v: v >= 1, requirement="at least 1")
+                  label="threads", check=lambda v: v >= 1, requirement="at least 1", parse=thread_count)
 SWEEP_THREADS = THREADS.variant(
     help="CPU threads per job for TensorFlow and LiteRT (default: all cores when sequential, cores / workers "
          "with --workers, 1 per Ray task); timing figures depend on it")

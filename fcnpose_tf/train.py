@@ -27,7 +27,7 @@ import tf_keras as keras
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import atomic_path, check_writable, write_json, write_text
+from fcnpose_tf.fileio import atomic_path, check_writable, make_folder, write_json, write_text
 from fcnpose_tf.model import save_for_inference
 
 
@@ -70,6 +70,73 @@ def run_paths(model_path: Path) -> dict[str, Path]:
         "ckpt_best": ckpt / "best.h5",
         "ckpt_state": ckpt / "state.json",
     }
+
+
+def output_files(model_path: Path) -> list[Path]:
+    """The files a finished run leaves: the model, its loss curves (.csv, .png) and NAME_train.json."""
+    paths = run_paths(Path(model_path))
+    return [paths[key] for key in ("model", "loss_csv", "loss_png", "train_json")]
+
+
+def check_outputs(model_path: Path, force: bool = False) -> None:
+    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
+    for path in output_files(model_path):
+        check_writable(path, force)
+
+
+RESUME_SETTINGS = ("input_size", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
+                   "learning_rate", "positive_weight", "lr_patience")
+"""The settings that change what a run learns: a checkpoint is resumed only with the same ones (and data).
+Epochs and patience may change: continuing a run for longer is what --resume is for."""
+
+
+def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> dict[str, Any]:
+    """What a checkpoint records about its run: the data file, its SHA-256 and the RESUME_SETTINGS.
+
+    `facts` gives the settings that are not in `config` (input_size, augment_copies, fold, folds, split_seed).
+    """
+    from fcnpose_tf.records import file_sha256
+
+    values = {**asdict(config), **facts}
+    return {"data": str(data_path), "data_sha256": file_sha256(data_path),
+            **{name: values.get(name) for name in RESUME_SETTINGS}}
+
+
+def check_checkpoint(model_path: str | Path, *, resume: bool, force: bool,
+                     identity: dict[str, Any] | None = None) -> None:
+    """Refuse (UserError) a resume without a checkpoint, a checkpoint neither resumed nor forced away, and a
+    resume whose data or RESUME_SETTINGS differ from those the checkpoint was started with.
+
+    Cheap (reads state.json only): commands call it before they prepare any data.
+    """
+    paths = run_paths(Path(model_path))
+    has_ckpt = paths["ckpt_state"].is_file() and paths["ckpt_model"].is_file()
+    if resume and not has_ckpt:
+        raise UserError(f"{paths['ckpt_dir']}: no checkpoint to resume from")
+    if has_ckpt and not resume and not force:
+        raise UserError(f"{paths['ckpt_dir']}: an interrupted run's checkpoint exists; "
+                        "pass --resume to continue it or --force to start over")
+    if not (resume and identity):
+        return
+    try:
+        started = json.loads(paths["ckpt_state"].read_text()).get("identity")
+    except (OSError, ValueError, AttributeError):
+        raise UserError(f"{paths['ckpt_state']}: unreadable checkpoint state; pass --force (without --resume) "
+                        "to start over") from None
+    if not started:  # a checkpoint from before identities were recorded
+        return
+    differ = [name for name in RESUME_SETTINGS if name in started and started[name] != identity.get(name)]
+    if differ or started.get("data_sha256") != identity.get("data_sha256"):
+        raise UserError(f"{paths['ckpt_dir']} was started {_describe_run(started, differ)}, not "
+                        f"{_describe_run(identity, differ)}; resume with the same settings or pass --force "
+                        "(without --resume) to start over")
+
+
+def _describe_run(identity: dict[str, Any], names: Sequence[str]) -> str:
+    """`with --input-size 64 on DATA (sha256 0123456789ab)`: the named settings as options, then the data."""
+    flags = " ".join(f"--{name.replace('_', '-')} {identity.get(name)}" for name in names)
+    data = f"on {identity.get('data')} (sha256 {str(identity.get('data_sha256'))[:12]})"
+    return f"with {flags} {data}" if flags else data
 
 
 @keras.utils.register_keras_serializable(package="fcnpose_tf")
@@ -150,7 +217,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         model_path: str | Path, config: FitConfig, *, resume: bool = False, force: bool = False,
         metadata: dict[str, Any] | None = None, verbose: int = 1,
         callbacks: Sequence[keras.callbacks.Callback] = (),
-        inference_model: Callable[[keras.Model], keras.Model] | None = None) -> FitResult:
+        inference_model: Callable[[keras.Model], keras.Model] | None = None,
+        identity: dict[str, Any] | None = None) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -167,31 +235,24 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             UpdatePruningStep, which must mask the weights before they are kept as the best).
         inference_model: what to save as `model_path` from the trained model (tfmot's
             strip_pruning for a model wrapped for pruning); default: the model itself.
+        identity: what a resumed checkpoint must match (`run_identity`); stored in the checkpoint.
     Returns:
         FitResult with the epochs run, the best epoch and its validation loss.
     Raises:
-        UserError: output exists without force, nothing to resume, or a checkpoint exists
-            and neither resume nor force was given.
+        UserError: output exists without force, nothing to resume, a checkpoint exists
+            and neither resume nor force was given, or the checkpoint was started on other data or settings.
     """
     config.validate()
     model_path = Path(model_path)
     if model_path.suffix not in (".keras", ".h5"):
         raise UserError(f"{model_path}: the model file must end in .keras or .h5")
     paths = run_paths(model_path)
-    has_ckpt = paths["ckpt_state"].is_file() and paths["ckpt_model"].is_file()
-    if resume and not has_ckpt:
-        raise UserError(f"{paths['ckpt_dir']}: no checkpoint to resume from")
-    if has_ckpt and not resume and not force:
-        raise UserError(f"{paths['ckpt_dir']}: an interrupted run's checkpoint exists; "
-                        "pass --resume to continue it or --force to start over")
+    check_checkpoint(model_path, resume=resume, force=force, identity=identity)
     if not resume:
-        check_writable(model_path, force)
+        check_outputs(model_path, force)
         if paths["ckpt_dir"].exists():
             shutil.rmtree(paths["ckpt_dir"])
-    try:
-        paths["ckpt_dir"].mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{paths['ckpt_dir']}: cannot create the checkpoint folder ({exc.strerror})") from None
+    make_folder(paths["ckpt_dir"])
 
     keras.utils.set_random_seed(config.seed)
     if resume:
@@ -201,7 +262,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             print(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
     else:
         state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
-                 "history": [], "seconds": 0.0, "config": asdict(config)}
+                 "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
         compile_for_training(model, config.learning_rate, config.positive_weight)
 
     callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience)
@@ -294,6 +355,9 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 
     model_path = Path(model_path)
     label = label or str(model_path)
+    identity = run_identity(dataset.via_path, config, input_size=input_size, augment_copies=augment_copies,
+                            fold=fold, folds=dataset.splits.k, split_seed=dataset.splits.seed)
+    check_checkpoint(model_path, resume=resume, force=force, identity=identity)  # before any frame is prepared
     num_maps = dataset.schema.num_maps
     if init is not None and not resume:
         model = initial_model(init, dataset.schema, input_size)
@@ -312,7 +376,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
              "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
-                 verbose=verbose)
+                 verbose=verbose, identity=identity)
     log(f"{label}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
         f"{result.epochs_run}{' (early stop)' if result.stopped_early else ''}; {result.seconds / 60:.1f} min")
 

@@ -747,10 +747,14 @@ def test_benchmark_report_and_json(random_model):
 
 
 def test_thread_list_parsing():
-    assert rbench.parse_threads("1, 2,4,2") == (1, 2, 4)
+    import argparse
+
+    from fcnpose_tf.settings import thread_counts
+
+    assert thread_counts("1, 2,4,2") == (1, 2, 4)
     for bad in ("0", "a", "1,,2", "-1"):
-        with pytest.raises(UserError):
-            rbench.parse_threads(bad)
+        with pytest.raises(argparse.ArgumentTypeError):
+            thread_counts(bad)
     assert rbench.default_thread_counts(4) == (1, 2, 4)
     assert rbench.default_thread_counts(6) == (1, 2, 4, 6)
     assert rbench.default_thread_counts(1) == (1,)

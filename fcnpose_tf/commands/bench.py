@@ -22,8 +22,10 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf.settings import thread_counts
+
     parser.add_argument("model", type=Path, help="an FCN-Pose .tflite model")
-    parser.add_argument("--threads", default=None, metavar="N,N,...",
+    parser.add_argument("--threads", type=thread_counts, default=None, metavar="N,N,...",
                         help="thread counts to compare (default: 1, 2, 4 ... up to all cores)")
     parser.add_argument("--frames", type=int, default=200, help="timed frames per thread count (>= 50 advised)")
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames first, per thread count")
@@ -40,10 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.fileio import check_writable, write_json
-    from fcnpose_tf.runtime.bench import benchmark, load_frame, parse_threads, print_progress
+    from fcnpose_tf.runtime.bench import benchmark, load_frame, print_progress
     from fcnpose_tf.runtime.sources import parse_size
 
-    threads = parse_threads(args.threads) if args.threads else None
+    threads = args.threads or None
     if args.json is not None:
         check_writable(args.json, args.force)
     frame, label = load_frame(args.image, parse_size(args.frame_size))

@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings, synthcache
     from fcnpose_tf.bundled import baseline_model
-    from fcnpose_tf.compress import CompressOptions, compress_model, report_table
+    from fcnpose_tf.compress import CompressOptions, check_outputs, compress_model, report_table
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
@@ -69,23 +69,26 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{model_path}: model file not found")
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
-    set_tensorflow_threads(args.threads)
-    if args.data is None:
-        args.data = synthcache.default_training_data()
-    train_dataset = load_from_args(args)
-    if args.test_data is not None:
-        eval_dataset = load_dataset(args.test_data)
-        eval_indices, description = list(range(len(eval_dataset))), f"all {len(eval_dataset)} frames of {args.test_data}"
-    elif args.model is None and args.images is None and Path(args.data) == synthcache.default_training_data():
-        eval_dataset = load_dataset(synthcache.heldout_data())
-        eval_indices = list(range(len(eval_dataset)))
-        description = (f"{len(eval_dataset)} held-out synthetic frames (seed {synthcache.HELDOUT_SEED}, "
-                       "never used for training)")
-    else:
-        eval_dataset = train_dataset
-        _, val = train_dataset.split(args.fold)
-        eval_indices, description = [int(i) for i in val], f"{len(val)} validation frames of {train_dataset.via_path}"
-    with removed_if_left_empty(args.out_dir):
+    with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails
+        check_outputs(model_path, args.out_dir, options, args.force)  # before the data is prepared
+        set_tensorflow_threads(args.threads)
+        if args.data is None:
+            args.data = synthcache.default_training_data()
+        train_dataset = load_from_args(args)
+        if args.test_data is not None:
+            eval_dataset = load_dataset(args.test_data)
+            eval_indices = list(range(len(eval_dataset)))
+            description = f"all {len(eval_dataset)} frames of {args.test_data}"
+        elif args.model is None and args.images is None and Path(args.data) == synthcache.default_training_data():
+            eval_dataset = load_dataset(synthcache.heldout_data())
+            eval_indices = list(range(len(eval_dataset)))
+            description = (f"{len(eval_dataset)} held-out synthetic frames (seed {synthcache.HELDOUT_SEED}, "
+                           "never used for training)")
+        else:
+            eval_dataset = train_dataset
+            _, val = train_dataset.split(args.fold)
+            eval_indices = [int(i) for i in val]
+            description = f"{len(val)} validation frames of {train_dataset.via_path}"
         report = compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, options,
                                 force=args.force, eval_description=description)
     threads = args.threads if args.threads is not None else f"all {available_cores()}"

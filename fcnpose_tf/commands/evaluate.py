@@ -26,6 +26,7 @@ EXAMPLES = """\
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.data.args import add_data_arguments
+    from fcnpose_tf.settings import thread_count
 
     parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
                         help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
@@ -33,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", choices=("auto", "val", "all"), default="auto",
                         help="auto: validation frames on the model's own training data, else all frames")
     parser.add_argument("--fold", type=int, metavar="k", help="use the validation frames of fold k")
-    parser.add_argument("--threads", type=int, help="inference threads (default: all cores)")
+    parser.add_argument("--threads", type=thread_count, help="inference threads (default: all cores)")
     parser.add_argument("--threshold", type=float, default=0.5, help="map probability that counts as active")
     parser.add_argument("--json", type=Path, metavar="OUT.json", help="also write the report as JSON")
     parser.add_argument("--force", action="store_true", help="replace an existing --json file")
@@ -47,8 +48,6 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.metrics import format_report
 
-    if args.threads is not None and args.threads < 1:
-        raise UserError(f"--threads must be at least 1, got {args.threads}")
     if args.fold is not None:
         if args.split == "all":
             raise UserError("--fold selects validation frames; it cannot be combined with --split all")

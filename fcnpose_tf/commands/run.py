@@ -23,10 +23,12 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf.settings import thread_count
+
     parser.add_argument("model", type=Path, help="an FCN-Pose .tflite model")
     parser.add_argument("--source", required=True,
                         help="camera index (0), /dev/videoN, stream URL, video file, image folder or image")
-    parser.add_argument("--threads", type=int, default=None,
+    parser.add_argument("--threads", type=thread_count, default=None,
                         help="interpreter threads (default: all cores)")
     parser.add_argument("--out", action="append", default=[], metavar="FILE",
                         help="keypoints per frame, .jsonl or .csv (may be given twice)")
@@ -60,8 +62,6 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.runtime.sinks import VideoSink, open_record_writer, parse_outputs
     from fcnpose_tf.runtime.sources import open_source, parse_size
 
-    if args.threads is not None and args.threads < 1:
-        raise UserError(f"--threads must be at least 1, got {args.threads}")
     if args.max_frames is not None and args.max_frames < 1:
         raise UserError(f"--max-frames must be at least 1, got {args.max_frames}")
     # Every output is checked before the model loads or the camera opens: fail in a second, not after a run.

@@ -54,12 +54,12 @@ def fold_model_path(out: Path, fold: int | None) -> Path:
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data.args import load_from_args
+    from fcnpose_tf.data.dataset import resolve_data
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import format_timing
     from fcnpose_tf.tfsetup import set_tensorflow_threads
-    from fcnpose_tf.fileio import check_writable
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.train import FitConfig, train_fold
+    from fcnpose_tf.train import FitConfig, check_checkpoint, check_outputs, run_identity, train_fold
 
     config = FitConfig(**settings.values_from_args(args, FitConfig))
     config.validate()
@@ -81,7 +81,12 @@ def run(args: argparse.Namespace) -> int:
         folds = [None]
     if not args.resume:
         for fold in folds:  # fail before any training, not after the first fold
-            check_writable(fold_model_path(args.out, fold), args.force)
+            check_outputs(fold_model_path(args.out, fold), args.force)
+    via_path, _ = resolve_data(args.data, args.images)
+    for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
+        check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
+                         identity=run_identity(via_path, config, input_size=args.input_size, fold=fold, folds=k,
+                                               augment_copies=args.augment_copies, split_seed=args.split_seed))
     args.folds = k
     dataset = load_from_args(args)
 

@@ -48,18 +48,6 @@ def synthetic_frame(width: int = 640, height: int = 480, seed: int = 0) -> np.nd
     return img
 
 
-def parse_threads(text: str) -> tuple[int, ...]:
-    """`1,2,4` -> (1, 2, 4): positive, de-duplicated, in the given order; UserError otherwise."""
-    out: list[int] = []
-    for part in str(text).split(","):
-        part = part.strip()
-        if not part.isdigit() or int(part) < 1:
-            raise UserError(f"--threads {text!r}: expected positive integers separated by commas, e.g. 1,2,4")
-        if int(part) not in out:
-            out.append(int(part))
-    return tuple(out)
-
-
 def default_thread_counts(cores: int | None = None) -> tuple[int, ...]:
     """1, 2, 4, ... up to the number of cores, and the core count itself (1,2,4 on a Raspberry Pi)."""
     cores = cores or default_num_threads()

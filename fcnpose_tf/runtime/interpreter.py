@@ -187,6 +187,12 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
         raise UserError(f"{path}: expected one input image and one output of maps, "
                         f"found {len(inputs)} inputs and {len(outputs)} outputs (not an FCN-Pose model)")
     spec_in, spec_out = TensorSpec.from_details(inputs[0]), TensorSpec.from_details(outputs[0])
+    signature = [int(d) for d in inputs[0].get("shape_signature", spec_in.shape)]
+    if any(d < 0 for d in signature[1:]):  # allocated as [1, 1, 1, 3]: keypoints would land at the frame centre
+        raise UserError(f"{path}: the input size is not fixed (shape signature {signature}); the runtime needs "
+                        "a fixed S x S input: export the model with one, e.g. "
+                        "fcnpose_tf.export.write_tflite(model, 'model.tflite', input_size=224), or build it on "
+                        "tf_keras.Input((224, 224, 3))")
     shape = spec_in.shape
     if len(shape) != 4 or shape[0] != 1 or shape[3] != 3:
         raise UserError(f"{path}: input shape {list(shape)}, expected [1, S, S, 3] (one RGB image; "

@@ -11,6 +11,7 @@ replaced by a complete one.
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 import os
@@ -24,7 +25,7 @@ import numpy as np
 
 from fcnpose_tf.draw import draw_keypoints
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import check_writable
+from fcnpose_tf.fileio import check_writable, os_error_reason, signals_deferred
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.runtime.estimator import Prediction
 from fcnpose_tf.runtime.sources import Frame
@@ -48,27 +49,47 @@ def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -
 
 
 class RecordWriter:
-    """Base of the per-frame record writers; a context manager. Subclasses implement `_write`."""
+    """Base of the per-frame record writers; a context manager. Subclasses implement `_line`.
+
+    Each record is one line, written whole in one call and counted while SIGINT and SIGTERM are
+    held back, so `count` always equals the lines in the file. A write that fails (a full disk)
+    truncates the file back to its last complete record and raises UserError naming the path,
+    the reason and the records kept.
+    """
 
     def __init__(self, path: str | os.PathLike, schema: KeypointSchema, force: bool = False):
         self.path = check_writable(path, force)
         self.schema = schema
         self.count = 0
+        self._size = 0  # bytes of the complete records (and header) written so far
         try:
-            # "x": a file that appeared since the check is still not overwritten
-            self._fh = open(self.path, "w" if force else "x", encoding="utf-8", newline="")
+            # "x": a file that appeared since the check is still not overwritten; unbuffered: one write per line
+            self._fh = open(self.path, "wb" if force else "xb", buffering=0)
         except FileExistsError:
             raise UserError(f"{self.path}: already exists; pass --force to replace it") from None
         except OSError as exc:
             raise UserError(f"{self.path}: cannot be written ({exc.strerror})") from None
 
     def write(self, frame: Frame, prediction: Prediction) -> None:
-        """Append one frame's record and flush it to the operating system."""
-        self._write(frame_record(frame, prediction, self.schema))
-        self._fh.flush()
-        self.count += 1
+        """Append one frame's record line and hand it to the operating system."""
+        self._write_line(self._line(frame_record(frame, prediction, self.schema)), counted=True)
 
-    def _write(self, record: dict[str, Any]) -> None:
+    def _write_line(self, line: str, counted: bool) -> None:
+        data = line.encode("utf-8")
+        with signals_deferred():
+            try:
+                view = memoryview(data)
+                while view:  # a short write (a nearly full disk) continues where it stopped, or fails
+                    view = view[self._fh.write(view):]
+            except OSError as exc:
+                self._fh.truncate(self._size)  # no partial line stays behind
+                self._fh.seek(self._size)
+                raise UserError(f"{self.path}: {os_error_reason(exc)} (kept its {self.count} complete "
+                                "records)") from None
+            self._size += len(data)
+            self.count += counted
+
+    def _line(self, record: dict[str, Any]) -> str:
         raise NotImplementedError
 
     def close(self) -> None:
@@ -85,8 +106,8 @@ class RecordWriter:
 class JsonlWriter(RecordWriter):
     """One JSON object per line (JSON Lines); a missing keypoint has x and y null."""
 
-    def _write(self, record: dict[str, Any]) -> None:
-        self._fh.write(json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n")
+    def _line(self, record: dict[str, Any]) -> str:
+        return json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n"
 
 
 class CsvWriter(RecordWriter):
@@ -102,17 +123,21 @@ class CsvWriter(RecordWriter):
         super().__init__(path, schema, force)
         self.columns = list(self.BASE_COLUMNS) + [f"{n}_{f}" for n in schema.keypoints
                                                   for f in ("x", "y", "confidence")]
-        self._csv = csv.writer(self._fh, lineterminator="\n")
-        self._csv.writerow(self.columns)
-        self._fh.flush()
+        self._write_line(self._row(self.columns), counted=False)
 
-    def _write(self, record: dict[str, Any]) -> None:
+    @staticmethod
+    def _row(cells: Sequence[Any]) -> str:
+        text = io.StringIO()
+        csv.writer(text, lineterminator="\n").writerow(cells)
+        return text.getvalue()
+
+    def _line(self, record: dict[str, Any]) -> str:
         row: list[Any] = [record["frame"], record["timestamp"], record["source"], record["width"],
                           record["height"], record.get("media_time_s", ""), record["latency_ms"]["preprocess"],
                           record["latency_ms"]["invoke"], record["latency_ms"]["postprocess"]]
         for kp in record["keypoints"]:
             row += ["" if kp[k] is None else kp[k] for k in ("x", "y", "confidence")]
-        self._csv.writerow(row)
+        return self._row(row)
 
 
 def record_format(path: str | os.PathLike) -> str:

@@ -107,15 +107,14 @@ def default_workers() -> int:
 
 
 def _prepare_output(out_dir: Path, force: bool) -> Path:
+    from fcnpose_tf import fileio
+
     if out_dir.exists() and not out_dir.is_dir():
         raise UserError(f"{out_dir}: exists and is not a folder")
     if out_dir.is_dir() and any(out_dir.iterdir()) and not force:
         raise UserError(f"{out_dir}: folder is not empty; pass --force to write into it (replacing earlier "
                         "synthetic frames)")
-    try:
-        (out_dir / IMAGE_DIR).mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"{out_dir}: cannot create output folder ({exc.strerror})") from None
+    fileio.make_folder(out_dir / IMAGE_DIR)
     for folder in (out_dir, out_dir / IMAGE_DIR):
         if not os.access(folder, os.W_OK | os.X_OK):
             raise UserError(f"{folder}: output folder is not writable")

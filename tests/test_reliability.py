@@ -1,0 +1,280 @@
+"""Failures a user can cause end in one `error:` line, exit 2, and leave nothing half-written."""
+
+import errno
+import json
+import os
+import signal
+
+import pytest
+
+from fcnpose_tf.cli import build_parser, main
+
+
+@pytest.mark.parametrize("command", [
+    ["train", "--data", "d", "--out", "m.keras"],
+    ["compress", "--rate", "0.5"],
+    ["sweep"],
+    ["evaluate", "--data", "d"],
+    ["run", "m.tflite", "--source", "0"],
+    ["bench", "m.tflite"],
+])
+@pytest.mark.parametrize("threads", ["0", "-1", "two"])
+def test_every_threads_option_refuses_counts_below_one_while_parsing(command, threads, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        build_parser().parse_args([*command, "--threads", threads])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: argument --threads:") and threads in err and "Traceback" not in err
+
+
+def test_threads_parse_to_whole_counts():
+    args = build_parser().parse_args(["train", "--data", "d", "--out", "m.keras", "--threads", "3"])
+    assert args.threads == 3
+    assert build_parser().parse_args(["bench", "m.tflite", "--threads", "1,2,2"]).threads == (1, 2)
+
+
+@pytest.mark.parametrize("side_file", ["ow_train.json", "ow_loss.csv", "ow_loss.png"])
+def test_train_refuses_an_existing_side_file_before_any_work(tmp_path, capsys, side_file):
+    (tmp_path / side_file).write_text("mine")
+    status = main(["train", "--data", str(tmp_path / "no_data"), "--out", str(tmp_path / "ow.keras")])
+    assert status == 2
+    assert f"{tmp_path / side_file}: already exists; pass --force" in capsys.readouterr().err
+    assert (tmp_path / side_file).read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [side_file]
+
+
+@pytest.mark.parametrize("side_file", ["m_p50_train.json", "m_p50_loss.csv", "m_p50_loss.png"])
+def test_compress_refuses_an_existing_side_file_before_any_work(tmp_path, capsys, side_file):
+    (tmp_path / "m.keras").write_bytes(b"a model would be read only after the outputs are checked")
+    out_dir = tmp_path / "out"
+    out_dir.mkdir()
+    (out_dir / side_file).write_text("mine")
+    status = main(["compress", "--model", str(tmp_path / "m.keras"), "--rate", "0.5", "--data",
+                   str(tmp_path / "no_data"), "--out-dir", str(out_dir)])
+    assert status == 2
+    assert f"{out_dir / side_file}: already exists; pass --force" in capsys.readouterr().err
+    assert [p.name for p in out_dir.iterdir()] == [side_file]
+
+
+def test_compress_without_retraining_writes_no_training_side_files():
+    from fcnpose_tf.compress import CompressOptions, output_paths
+
+    names = [p.name for p in output_paths("m.keras", "out", CompressOptions(rate=0.5, retrain_epochs=0))]
+    assert names == ["m_p50.keras", "m_p50_fp16.tflite", "m_p50_report.json"]
+
+
+def _interrupted_run(tmp_path, monkeypatch):
+    """A training run on 32x32 frames stopped by Ctrl-C after its first epoch: (data folder, model path)."""
+    from test_train_evaluate import make_via_folder
+
+    from fcnpose_tf import train
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.errors import UserError
+
+    data = make_via_folder(tmp_path / "d", n=6)
+    out = tmp_path / "m.keras"
+    original = train._CheckpointAndStop.on_epoch_end
+
+    def interrupt_after_first(self, epoch, logs=None):
+        original(self, epoch, logs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
+    with pytest.raises(UserError, match="interrupted after 1 complete epochs"):
+        train.train_fold(load_dataset(data), None, out, train.FitConfig(epochs=3), input_size=32,
+                         augment_copies=0, verbose=0, log=lambda line: None)
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", original)
+    return data, out
+
+
+def test_resume_refuses_a_checkpoint_of_other_settings_or_data_before_preparing_data(tmp_path, monkeypatch,
+                                                                                        capsys):
+    from fcnpose_tf.data import dataset as dataset_module
+
+    data, out = _interrupted_run(tmp_path, monkeypatch)
+    state = json.loads((tmp_path / "m.ckpt" / "state.json").read_text())
+    assert state["identity"]["input_size"] == 32 and len(state["identity"]["data_sha256"]) == 64
+
+    def no_data_preparation(*args, **kwargs):
+        raise AssertionError("the data was loaded before the checkpoint was checked")
+
+    monkeypatch.setattr(dataset_module, "load_dataset", no_data_preparation)
+    monkeypatch.setattr(dataset_module, "fold_data", no_data_preparation)
+    resume = ["train", "--data", str(data), "--out", str(out), "--resume", "--epochs", "3", "--augment-copies", "0"]
+    assert main([*resume, "--input-size", "64"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{tmp_path / 'm.ckpt'} was started with --input-size 32 on " in err
+    assert ", not with --input-size 64 on " in err and "resume with the same settings or pass --force" in err
+
+    labels = data / "labels.json"
+    project = json.loads(labels.read_text())
+    next(iter(project["_via_img_metadata"].values()))["regions"].pop()  # a label changed since the run started
+    labels.write_text(json.dumps(project))
+    assert main([*resume, "--input-size", "32"]) == 2
+    err = capsys.readouterr().err
+    assert f"was started on {labels} (sha256 {state['identity']['data_sha256'][:12]})" in err
+    assert (tmp_path / "m.ckpt" / "state.json").is_file()  # a refused resume keeps the checkpoint
+
+
+def test_a_dynamic_input_tflite_is_refused_with_how_to_export_a_fixed_size(tmp_path, capsys):
+    import cv2
+    import numpy as np
+    import tensorflow as tf
+    import tf_keras as keras
+
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.runtime.estimator import KeypointModel
+
+    inputs = keras.Input((None, None, 3))
+    model = keras.Model(inputs, keras.layers.Conv2D(9, 1, activation="sigmoid")(inputs))
+    path = tmp_path / "dynamic.tflite"
+    path.write_bytes(tf.lite.TFLiteConverter.from_keras_model(model).convert())
+    with pytest.raises(UserError, match=r"input size is not fixed \(shape signature \[-1, -1, -1, 3\]\).*input_size="):
+        KeypointModel(path)
+    frame = tmp_path / "frame.png"
+    cv2.imwrite(str(frame), np.zeros((64, 64, 3), np.uint8))
+    assert main(["run", str(path), "--source", str(frame), "--out", str(tmp_path / "k.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert "input size is not fixed" in err and "Traceback" not in err
+    assert not (tmp_path / "k.jsonl").exists()
+
+
+class _SignalAfterEachCall:
+    """A file object that sends this process SIGTERM right after each write or flush it passes on."""
+
+    def __init__(self, fh):
+        self._fh = fh
+
+    def __getattr__(self, name):
+        return getattr(self._fh, name)
+
+    def write(self, data):
+        written = self._fh.write(data)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return written
+
+    def flush(self):
+        self._fh.flush()
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".csv"])
+def test_sigterm_right_after_a_record_is_written_is_counted_with_it(tmp_path, suffix):
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from fcnpose_tf.keypoints import UR5
+    from fcnpose_tf.runtime.sinks import open_record_writer
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt("terminated (SIGTERM)")
+
+    frame = SimpleNamespace(index=0, timestamp=0.0, name="f.png", media_time_s=None, image=np.zeros((4, 4, 3)))
+    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5),
+                                 records=lambda schema: [{"name": n, "x": None, "y": None, "confidence": 0.0}
+                                                         for n in schema.keypoints])
+    writer = open_record_writer(tmp_path / f"k{suffix}", UR5)
+    writer._fh = _SignalAfterEachCall(writer._fh)
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            for _ in range(3):
+                writer.write(frame, prediction)
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        writer.close()
+    lines = (tmp_path / f"k{suffix}").read_text().splitlines()
+    assert writer.count == len(lines) - (suffix == ".csv") == 1
+
+
+class _DiskFullsAfter:
+    """A file object whose write number `n` (1-based) stores half its data, then fails with ENOSPC."""
+
+    def __init__(self, fh, n):
+        self._fh, self._left = fh, n
+
+    def __getattr__(self, name):
+        return getattr(self._fh, name)
+
+    def write(self, data):
+        self._left -= 1
+        if self._left == 0:
+            self._fh.write(data[:len(data) // 2])
+            self._fh.flush()
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return self._fh.write(data)
+
+
+def _fake_frame_and_prediction():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    frame = SimpleNamespace(index=0, timestamp=0.0, name="f.png", media_time_s=None, image=np.zeros((4, 4, 3)))
+    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5),
+                                 records=lambda schema: [{"name": n, "x": 1.5, "y": None, "confidence": 0.5}
+                                                         for n in schema.keypoints])
+    return frame, prediction
+
+
+@pytest.mark.parametrize("suffix", [".jsonl", ".csv"])
+def test_a_full_disk_leaves_only_whole_records(tmp_path, suffix):
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.keypoints import UR5
+    from fcnpose_tf.runtime.sinks import open_record_writer
+
+    frame, prediction = _fake_frame_and_prediction()
+    path = tmp_path / f"k{suffix}"
+    writer = open_record_writer(path, UR5)
+    writer._fh = _DiskFullsAfter(writer._fh, 3)  # the third record finds the disk full
+    writer.write(frame, prediction)
+    writer.write(frame, prediction)
+    with pytest.raises(UserError, match=rf"^{path}: no space left on device \(kept its 2 complete records\)$"):
+        writer.write(frame, prediction)
+    writer.close()
+    text = path.read_text()
+    assert text.endswith("\n") and len(text.splitlines()) == 2 + (suffix == ".csv") and writer.count == 2
+
+
+@pytest.fixture
+def tiny_disk(tmp_path):
+    """A 200 KB tmpfs folder (root only), unmounted afterwards: a disk that fills up."""
+    import shutil
+    import subprocess
+
+    if os.geteuid() != 0 or shutil.which("mount") is None:
+        pytest.skip("mounting a tmpfs needs root")
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    yield disk
+    subprocess.run(["umount", str(disk)], check=True)
+
+
+def _one_line_write_error(status, err, path_part):
+    assert status == 2, err
+    lines = [line for line in err.splitlines() if line.startswith("error:")]
+    assert len(lines) == 1 and path_part in lines[0] and "no space left on device" in lines[0], err
+    assert "Traceback" not in err
+
+
+def test_synth_on_a_full_disk_leaves_nothing(tiny_disk, capsys):
+    status = main(["synth", "--out", str(tiny_disk / "ds"), "--n", "40", "--width", "160", "--height", "120",
+                   "--workers", "2", "--no-progress"])
+    _one_line_write_error(status, capsys.readouterr().err, str(tiny_disk / "ds"))
+    assert list(tiny_disk.iterdir()) == []
+
+
+def test_data_inspect_preview_on_an_injected_full_disk(tmp_path, capsys, monkeypatch):
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=4)
+    main(["data", "inspect", str(data)])  # the splits file, written before the disk fills
+    capsys.readouterr()
+    monkeypatch.setattr(os, "replace", lambda src, dst: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space")))
+    status = main(["data", "inspect", str(data), "--out", str(tmp_path / "new" / "preview.png")])
+    err = capsys.readouterr().err
+    assert status == 2 and f"{tmp_path / 'new' / 'preview.png'}: no space" in err and "Traceback" not in err
+    assert not (tmp_path / "new").exists()
