@@ -84,7 +84,7 @@ def check_outputs(model_path: Path, force: bool = False) -> None:
         check_writable(path, force)
 
 
-RESUME_SETTINGS = ("input_size", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
+RESUME_SETTINGS = ("input_size", "augment", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
                    "learning_rate", "positive_weight", "lr_patience")
 """The settings that change what a run learns: a checkpoint is resumed only with the same ones (and data).
 Epochs and patience may change: continuing a run for longer is what --resume is for."""
@@ -93,7 +93,8 @@ Epochs and patience may change: continuing a run for longer is what --resume is 
 def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> dict[str, Any]:
     """What a checkpoint records about its run: the data file, its SHA-256 and the RESUME_SETTINGS.
 
-    `facts` gives the settings that are not in `config` (input_size, augment_copies, fold, folds, split_seed).
+    `facts` gives the settings that are not in `config` (input_size, augment, augment_copies, fold, folds,
+    split_seed).
     """
     from fcnpose_tf.records import file_sha256
 
@@ -355,7 +356,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 
     model_path = Path(model_path)
     label = label or str(model_path)
-    identity = run_identity(dataset.via_path, config, input_size=input_size, augment_copies=augment_copies,
+    identity = run_identity(dataset.via_path, config, input_size=input_size, augment=augment,
+                            augment_copies=augment_copies,
                             fold=fold, folds=dataset.splits.k, split_seed=dataset.splits.seed)
     check_checkpoint(model_path, resume=resume, force=force, identity=identity)  # before any frame is prepared
     num_maps = dataset.schema.num_maps

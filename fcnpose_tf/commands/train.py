@@ -86,7 +86,8 @@ def run(args: argparse.Namespace) -> int:
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
                          identity=run_identity(via_path, config, input_size=args.input_size, fold=fold, folds=k,
-                                               augment_copies=args.augment_copies, split_seed=args.split_seed))
+                                               augment=args.augment, augment_copies=args.augment_copies,
+                                               split_seed=args.split_seed))
     args.folds = k
     dataset = load_from_args(args)
 
