@@ -232,6 +232,11 @@ SWEEP_EPOCHS = EPOCHS.variant(
 60 epochs, so 500 would only spend hours on early stopping's patience."""
 PATIENCE = Setting("patience", int, 20, "stop after this many epochs without a lower validation loss",
                    label="patience", check=lambda v: v >= 1, requirement="at least 1", metavar="N")
+TRAIN_PATIENCE = PATIENCE.variant(
+    default=12, help="stop after this many epochs without a lower validation loss (default 12; the paper's "
+                     "recipe: 20)")
+"""With the learning rate halved every 4 epochs without progress (TRAIN_LR_PATIENCE), 12 epochs of patience
+allow three halvings before stopping: the bundled baseline's recipe (saved_models/PROVENANCE.md)."""
 RETRAIN_PATIENCE = PATIENCE.variant(
     name="retrain_patience", default=5, label="retraining patience",
     help="early-stopping patience while retraining")
@@ -249,6 +254,16 @@ RETRAIN_EPOCHS_BY_RATE = RETRAIN_EPOCHS.variant(
     help="retraining epochs after pruning, with early stopping (the paper: up to 100); RATES=E items give some "
          "rates their own budget, e.g. 10,0.6:0.9:0.1=40 (heavier pruning needs longer to converge)")
 """The sweep's form: one budget, or one per rate (read by `sweep.rates.parse_per_rate_epochs`)."""
+MAX_MINUTES = Setting(
+    "max_minutes", float, None, "time budget: no new epoch starts after this many minutes of training (default: "
+    "none; the epochs and early stopping decide)", label="time budget", check=lambda v: v > 0,
+    requirement="a positive number of minutes", metavar="MIN")
+TRAIN_MAX_MINUTES = MAX_MINUTES.variant(
+    default=30.0, help="time budget: no new epoch starts after this many minutes of training (default 30; the "
+                       "paper's 500 epochs would take days here)")
+"""`train` sets its budget by time, not by the paper's 500 epochs: 30 minutes on 2 CPU cores fine-tunes a
+bundled model on a few hundred frames (docs/training.md, "Training on your own frames"). Compression and
+the sweep keep epoch budgets (their tables compare rates at equal epochs)."""
 BATCH_SIZE = Setting("batch_size", int, 8, "training batch size", label="batch size",
                      check=lambda v: v >= 1, requirement="at least 1")
 LEARNING_RATE = Setting("learning_rate", float, 1e-3, "Adam learning rate", label="learning rate",
@@ -258,11 +273,21 @@ LR_PATIENCE = Setting(
     "halve the learning rate after N epochs without a better validation loss (again after N more; floor 1e-5); "
     "0 keeps it constant, as the paper does",
     label="learning-rate patience", check=lambda v: v >= 0, requirement="0 (off) or more epochs", metavar="N")
+TRAIN_LR_PATIENCE = LR_PATIENCE.variant(
+    default=4, help="halve the learning rate after N epochs without a better validation loss (again after N "
+                    "more; floor 1e-5); default 4; 0 keeps it constant, as the paper does")
+"""A few hundred frames overfit quickly at a constant rate; halving after 4 stale epochs is the bundled
+baseline's recipe."""
 POSITIVE_WEIGHT = Setting(
     "positive_weight", float, 1.0,
     "weight of keypoint-disc pixels in the binary cross-entropy (1 = the paper's plain BCE; 20 converges several "
     "times faster on small discs, see docs/training.md)",
     label="positive weight", check=lambda v: v >= 1, requirement="a number >= 1")
+TRAIN_POSITIVE_WEIGHT = POSITIVE_WEIGHT.variant(
+    default=20.0, help="weight of keypoint-disc pixels in the binary cross-entropy (default 20; 1 = the paper's "
+                       "plain BCE, with which the keypoint maps stay empty for many epochs; docs/training.md)")
+"""`train` serves a user's frames: with the paper's plain BCE no keypoint map crossed 0.5 after 7 epochs
+at 224 (docs/training.md, "Loss"); 20 removes that plateau. The sweep keeps the paper's 1 unless told."""
 INHERITED_POSITIVE_WEIGHT = POSITIVE_WEIGHT.variant(
     default=None, help="keypoint-pixel weight of the retraining loss (default: the base model's, from its "
                        "NAME_train.json; else 1, the paper's plain BCE)")

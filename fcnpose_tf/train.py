@@ -32,11 +32,12 @@ from fcnpose_tf.model import save_for_inference
 
 
 @settings.config_class(settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
+                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.MAX_MINUTES)
 class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
-    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant). Defaults, checks and meanings:
+    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant) and max_minutes (no new epoch
+    starts once the run has trained this long; None: no time budget). Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
 
 
@@ -181,12 +182,14 @@ def compile_for_training(model: keras.Model, learning_rate: float, positive_weig
 class _CheckpointAndStop(keras.callbacks.Callback):
     """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early."""
 
-    def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0):
+    def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0,
+                 max_minutes: float | None = None):
         super().__init__()
         self.paths = paths
         self.state = state
         self.patience = patience
         self.lr_patience = lr_patience
+        self.max_seconds = None if max_minutes is None else 60.0 * max_minutes
         self.seconds_before = float(state["seconds"])
         self.start = time.perf_counter()
 
@@ -206,11 +209,14 @@ class _CheckpointAndStop(keras.callbacks.Callback):
                 keras.backend.set_value(lr_var, max(lr * 0.5, MIN_LEARNING_RATE))  # saved with the optimizer
         self.state["epoch"] = epoch + 1
         self.state["seconds"] = self.seconds_before + time.perf_counter() - self.start
+        self.state["out_of_time"] = self.max_seconds is not None and self.state["seconds"] >= self.max_seconds
         with atomic_path(self.paths["ckpt_model"], force=True) as tmp:
             self.model.save(tmp)
         write_json(self.paths["ckpt_state"], self.state, force=True)  # written last: marks the epoch complete
         if self.state["wait"] >= self.patience:
             self.state["stopped_early"] = True
+            self.model.stop_training = True
+        if self.state["out_of_time"]:  # a resume with a larger --max-minutes continues
             self.model.stop_training = True
 
 
@@ -266,7 +272,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                  "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
         compile_for_training(model, config.learning_rate, config.positive_weight)
 
-    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience)
+    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes)
     if state["epoch"] < config.epochs and not state["stopped_early"]:
         if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have drawn
             train_data.epoch = state["epoch"]
@@ -286,7 +292,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     write_json(paths["train_json"], {
         **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
         "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
-        "stopped_early": state["stopped_early"], "train_seconds": round(state["seconds"], 1),
+        "stopped_early": state["stopped_early"], "stopped_by_time_budget": bool(state.get("out_of_time")),
+        "train_seconds": round(state["seconds"], 1),
     }, force=True)
     shutil.rmtree(paths["ckpt_dir"], ignore_errors=True)
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
@@ -380,7 +387,9 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
                  verbose=verbose, identity=identity)
     log(f"{label}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
-        f"{result.epochs_run}{' (early stop)' if result.stopped_early else ''}; {result.seconds / 60:.1f} min")
+        f"{result.epochs_run}{' (early stop)' if result.stopped_early else ''}"
+        f"{' (time budget reached)' if config.max_minutes and result.seconds >= 60 * config.max_minutes else ''}; "
+        f"{result.seconds / 60:.1f} min")
 
     predictor = KerasKeypointModel(load_model(model_path), model_path, num_threads=threads)
     _, val_idx = dataset.split(fold)

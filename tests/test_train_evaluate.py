@@ -236,3 +236,20 @@ def test_evaluate_timing_uses_the_runtime_summary_with_sample_std():
     assert timing["fps"] == round(1000 / float(np.mean(invoke + 1.5)), 2)
     assert result["metrics"]["pck@0.5_bbox"] == 1.0
     assert "fake backend" in format_timing(timing)
+
+
+def test_time_budget_ends_training_after_the_epoch_that_reaches_it(tmp_path):
+    from fcnpose_tf import train
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.model import build_fcn_pose
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
+    tr, va = fold_data(ds, None, 32, 0)
+    out = tmp_path / "m.keras"
+    config = train.FitConfig(epochs=5, patience=5, batch_size=4, max_minutes=1e-6)
+    result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, verbose=0)
+    assert result.epochs_run == 1 and not result.stopped_early
+    record = json.loads((tmp_path / "m_train.json").read_text())
+    assert record["stopped_by_time_budget"] is True and record["config"]["max_minutes"] == 1e-6
+    with pytest.raises(UserError, match="time budget must be a positive number of minutes"):
+        train.FitConfig(max_minutes=0).validate()

@@ -31,8 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_data_arguments(parser, positional=False, folds_option=False)
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
-    for setting in (settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                    settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES,
+    for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
+                    settings.TRAIN_LR_PATIENCE, settings.TRAIN_MAX_MINUTES, settings.TRAIN_POSITIVE_WEIGHT, settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES,
                     settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
