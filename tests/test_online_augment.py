@@ -1,5 +1,7 @@
 """Online augmentation: keypoints follow the pixels through every geometric transform, seeds reproduce."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -141,3 +143,29 @@ def test_train_cli_online_by_default_and_paper_on_request(tmp_path, cli):
     assert "10 samples (5 frames + 1 augmented copies each)" in proc.stdout
     proc = cli("train", "--data", data, "--out", tmp_path / "q.keras", "--augment", "fancy")
     assert proc.returncode == 2 and "invalid choice: 'fancy'" in proc.stderr
+
+
+def test_default_init_is_the_bundled_model_and_is_refused_for_another_schema(tmp_path, cli):
+    import cv2
+
+    from fcnpose_tf.data.via import ViaFrame, write_via_project
+    from fcnpose_tf.keypoints import KeypointSchema
+
+    arm = KeypointSchema("arm4", ("base", "elbow", "wrist", "tip"), ((0, 1), (1, 2), (2, 3)))
+    (tmp_path / "d" / "images").mkdir(parents=True)
+    rng = np.random.default_rng(0)
+    frames = []
+    for i in range(5):
+        cv2.imwrite(str(tmp_path / "d" / "images" / f"f{i}.png"), np.full((48, 64, 3), 60, np.uint8))
+        frames.append(ViaFrame(f"f{i}.png", 64, 48, np.c_[rng.uniform(5, 58, 4), rng.uniform(5, 42, 4)]))
+    write_via_project(tmp_path / "d" / "labels.json", frames, arm)
+    proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
+               "--input-size", "32")
+    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith("error: ")
+    assert "fcnpose_ur5.keras: trained for base, shoulder" in proc.stderr
+    assert "pass --init none to train from scratch" in proc.stderr and not (tmp_path / "m.keras").exists()
+    proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
+               "--input-size", "32", "--init", "none", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((tmp_path / "m_train.json").read_text())
+    assert record["init"] is None and record["schema"]["keypoints"] == list(arm.keypoints)

@@ -1,8 +1,11 @@
 """Train FCN-Pose on a dataset: Adam, binary cross-entropy, early stopping, resumable checkpoints.
 
-Without --folds the model trains on the 80/20 hold-out split; --folds K trains one model per
-fold of the dataset's stored K-fold splits (or only --fold k) and reports mean and std. Training
-frames get --augment-copies offline rotation/padding copies each (the paper: 2). Next to the model
+By default it fine-tunes the bundled UR5 model on your frames with fresh online augmentation every
+epoch, keypoint pixels weighted 20, the learning rate halved after 4 epochs without progress and a
+30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe is the last
+example below. Without --folds the model trains on the 80/20 hold-out split; --folds K trains one
+model per fold of the dataset's stored K-fold splits (or only --fold k) and reports mean and std.
+Next to the model
 it writes NAME_loss.csv/.png (loss curves) and NAME_train.json (settings, epochs, validation
 metrics). Ctrl-C or a kill loses at most one epoch: rerun with --resume.
 """
@@ -15,12 +18,13 @@ from pathlib import Path
 NAME = "train"
 USES_TENSORFLOW = True
 EXAMPLES = """\
-  fcnpose-tf synth --out data/ur5 --n 500
-  fcnpose-tf train --data data/ur5 --out saved_models/my_ur5.keras --epochs 60
-  fcnpose-tf train --data data/ur5 --out saved_models/my_ur5.keras --epochs 60 --resume   # after Ctrl-C
-  fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5 --epochs 100         # 5-fold CV
+  fcnpose-tf train --data my_frames/ --out models/arm.keras         # fine-tune the bundled UR5 model, <= 30 min
+  fcnpose-tf train --data my_frames/ --out models/arm.keras --resume                     # after Ctrl-C
+  fcnpose-tf train --data my_frames/ --out models/arm.keras --max-minutes 90             # a longer budget
+  fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5                    # 5-fold CV
   fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
-  fcnpose-tf train --data my_frames/ --out models/arm.keras --init saved_models/fcnpose_ur5.keras  # fine-tune
+  fcnpose-tf train --data data/ur5 --out models/paper.keras --init none --augment paper \\
+      --positive-weight 1 --lr-patience 0 --patience 20 --max-minutes 600                # the paper's recipe
 """
 
 
@@ -37,13 +41,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
-    parser.add_argument("--init", metavar="MODEL|none",
-                        help="start from this model's weights, trained at any input size for the same keypoints "
-                             "(e.g. fine-tune a bundled model on your frames); none: from scratch, as the paper")
+    parser.add_argument("--init", metavar="MODEL|bundled|none", default="bundled",
+                        help="start from this model's weights, trained at any input size for the same keypoints; "
+                             "bundled (default): the bundled UR5 baseline, refused for data of another keypoint "
+                             "schema; none: from scratch, as the paper")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
     parser.add_argument("--quiet", action="store_true", help="one line per epoch instead of a progress bar (for logs)")
+
+
+def initial_weights(init: str) -> Path | None:
+    """The model file --init names: None for "none", the bundled baseline for "bundled", else the path."""
+    if init == "none":
+        return None
+    if init == "bundled":
+        from fcnpose_tf.bundled import baseline_model
+
+        return baseline_model()
+    return Path(init)
 
 
 def fold_model_path(out: Path, fold: int | None) -> Path:
@@ -66,7 +82,7 @@ def run(args: argparse.Namespace) -> int:
     for setting in (settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
                     settings.THREADS):
         setting.validate(getattr(args, setting.name))
-    init = None if args.init in (None, "none") else Path(args.init)
+    init = initial_weights(args.init)
     if args.out.suffix not in (".keras", ".h5"):
         raise UserError(f"{args.out}: --out must end in .keras or .h5")
     k = args.folds or settings.FOLDS.default
