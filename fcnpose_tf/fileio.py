@@ -1,16 +1,25 @@
 """Safe output files: write to a temporary file beside the target, then rename into place.
 
 Nothing a user wrote is overwritten without force=True, and a failed or
-interrupted write leaves no partial file behind. numpy-free, TensorFlow-free.
+interrupted write leaves no partial file behind. A temporary file is named for
+its target and for the process writing it (`.NAME.PID-HOST.XXXXXXXX.tmp.EXT`),
+so one stranded by a kill that no handler sees (SIGKILL, a power cut) is removed
+the next time a temporary for the same target is made, once that process is gone.
+numpy-free, TensorFlow-free.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import glob
+import hashlib
 import json
 import os
+import re
 import shutil
 import signal
+import socket
 import tempfile
 import threading
 from pathlib import Path
@@ -129,26 +138,123 @@ def removed_if_left_empty(folder: str | os.PathLike) -> Iterator[Path]:
         raise
 
 
+def _host_tag() -> str:
+    """Six hex digits naming this host in temporary names (a shared folder may be written from several)."""
+    return hashlib.sha256(socket.gethostname().encode("utf-8", "replace")).hexdigest()[:6]
+
+
+def _temporary_pattern(path: Path) -> re.Pattern[str]:
+    """The names `temporary_path(path)` makes, and only those: `.STEM.PID-HOST.RANDOM.tmp.SUFFIX`."""
+    return re.compile(rf"\.{re.escape(path.stem)}\.(\d+)-([0-9a-f]{{6}})\.[a-z0-9_]+\.tmp{re.escape(path.suffix)}")
+
+
+def _process_alive(pid: int) -> bool:
+    """Whether process `pid` exists on this host (when in doubt: yes, so its file is kept)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: another user's live process
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[Path]:
+    """Delete the temporaries of `path` whose writer (a process on this host) is gone; returns them.
+
+    Only names `temporary_path(path)` makes are considered, so another target's temporaries, a
+    live writer's, and those written from another host are left alone.
+    """
+    path = Path(path)
+    pattern, host = _temporary_pattern(path), _host_tag()
+    removed = []
+    for candidate in path.parent.glob(glob.escape(f".{path.stem}.") + "*" + glob.escape(f".tmp{path.suffix}")):
+        match = pattern.fullmatch(candidate.name)
+        if match and match.group(2) == host and not _process_alive(int(match.group(1))):
+            try:
+                candidate.unlink()
+            except OSError:
+                continue
+            removed.append(candidate)
+    return removed
+
+
+def _new_temporary(path: Path) -> Path:
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.{os.getpid()}-{_host_tag()}.", suffix=f".tmp{path.suffix}",
+                                   dir=path.parent)
+        os.close(fd)
+    except OSError as exc:
+        raise WriteError(f"{path}: {os_error_reason(exc)}") from None
+    return Path(tmp)
+
+
+def temporary_path(path: str | os.PathLike) -> Path:
+    """Create an empty temporary file beside `path` for this process, first removing stale ones of `path`.
+
+    The name keeps the target's suffix, so libraries that pick a format from the extension
+    (Keras .keras/.h5, OpenCV .png/.mp4) work unchanged. The caller renames or deletes it.
+    """
+    path = Path(path)
+    remove_stale_temporaries(path)
+    return _new_temporary(path)
+
+
+def set_default_permissions(path: str | os.PathLike) -> None:
+    """mkstemp makes 0600 files; give an output the permissions of a file the user creates (umask)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(path, 0o666 & ~umask)
+
+
+def full_disk_error(path: str | os.PathLike, quick: bool = False) -> WriteError | None:
+    """The WriteError a write beside `path` meets now (`PATH: no space left on device`), or None.
+
+    Tells a full disk (or any other refusal of the folder to take data) from other failures, such
+    as a codec OpenCV lacks: a probe file of one block is written and removed. `quick=True` skips the
+    probe while the file system reports free blocks for this user, so it can be called per frame.
+    """
+    path = Path(path)
+    if quick:
+        try:
+            if os.statvfs(path.parent).f_bavail > 0:
+                return None
+        except (OSError, AttributeError):
+            pass
+    try:
+        probe = _new_temporary(path)
+    except WriteError as exc:
+        return exc
+    try:
+        with open(probe, "wb", buffering=0) as fh:
+            view = memoryview(bytes(4096))
+            while view:
+                written = fh.write(view)
+                if not written:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                view = view[written:]
+    except OSError as exc:
+        return WriteError(f"{path}: {os_error_reason(exc)}")
+    finally:
+        probe.unlink(missing_ok=True)
+    return None
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
     """Yield a temporary path in the target's folder; on success rename it to `path`, on error delete it.
 
-    The temporary name keeps the target's suffix, so libraries that pick a
-    format from the extension (Keras .keras/.h5, OpenCV .png) work unchanged.
+    The temporary is `temporary_path(path)`'s (target's suffix kept; stale ones of a killed
+    earlier writer removed first).
     """
     path = check_writable(path, force)
-    try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f"{path.suffix}.tmp{path.suffix}", dir=path.parent)
-        os.close(fd)
-    except OSError as exc:
-        raise WriteError(f"{path}: {os_error_reason(exc)}") from None
-    tmp_path = Path(tmp)
+    tmp_path = temporary_path(path)
     try:
         yield tmp_path
-        if tmp_path.exists():  # mkstemp makes 0600 files; give outputs the usual umask permissions
-            umask = os.umask(0)
-            os.umask(umask)
-            os.chmod(tmp_path, 0o666 & ~umask)
+        if tmp_path.exists():
+            set_default_permissions(tmp_path)
         os.replace(tmp_path, path)
         if _outputs is not None and path not in _outputs.completed:
             _outputs.completed.append(path)

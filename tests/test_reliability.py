@@ -279,3 +279,121 @@ def test_data_inspect_preview_on_an_injected_full_disk(tmp_path, capsys, monkeyp
     err = capsys.readouterr().err
     assert status == 2 and f"{tmp_path / 'new' / 'preview.png'}: no space" in err and "Traceback" not in err
     assert not (tmp_path / "new").exists()
+
+
+# -- run --save-video: temporaries stranded by SIGKILL, and a full disk -------------------------------------
+
+@pytest.fixture(scope="module")
+def tflite_model(tmp_path_factory):
+    """The hand-set FCN-Pose of test_runtime as a .tflite file (converted once per module)."""
+    from test_runtime import _convert_plain, _structured_model
+
+    path = tmp_path_factory.mktemp("rel_models") / "structured.tflite"
+    path.write_bytes(_convert_plain(_structured_model()))
+    return path
+
+
+def _noise_video(path, frames=20, size=(320, 240)):
+    """A video of random frames: an mp4 of its overlays outgrows a 200 KB disk."""
+    import numpy as np
+
+    from test_runtime import write_video
+
+    rng = np.random.default_rng(0)
+    return write_video(path, [rng.integers(0, 255, (size[1], size[0], 3), dtype=np.uint8) for _ in range(frames)])
+
+
+def _temporary_made_by_a_process_now_gone(target):
+    """A temporary of `target` made by `fileio.temporary_path` in a child process that then exits (as after SIGKILL)."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = "import sys; from fcnpose_tf.fileio import temporary_path; print(temporary_path(sys.argv[1]))"
+    done = subprocess.run([sys.executable, "-c", code, str(target)], capture_output=True, text=True, check=True,
+                          env=dict(os.environ), timeout=300)
+    return Path(done.stdout.strip())
+
+
+def test_only_a_targets_temporaries_whose_writer_is_gone_are_removed(tmp_path):
+    from fcnpose_tf.fileio import temporary_path
+    from fcnpose_tf.runtime.sinks import VideoSink
+
+    target = tmp_path / "o.mp4"
+    live = temporary_path(target)  # this process's own: still being written
+    stale = _temporary_made_by_a_process_now_gone(target)
+    others = [_temporary_made_by_a_process_now_gone(tmp_path / name) for name in ("o.x.mp4", "o.avi", "o2.mp4")]
+    mine = tmp_path / ".o.mp4.tmp.mp4"  # a user's file that only looks alike
+    mine.write_text("keep")
+    assert stale.is_file() and stale.name.startswith(".o.") and stale.name.endswith(".tmp.mp4")
+    sink = VideoSink(target, fps=5)  # the next run with the same target
+    assert not stale.exists()
+    assert all(p.is_file() for p in [*others, live, mine])
+    sink.discard()
+
+
+def test_a_run_killed_with_sigkill_leaves_no_temporary_after_the_next_run(tmp_path, tflite_model):
+    import subprocess
+    import sys
+    import time
+
+    from test_runtime import RED_CYCLE, quadrant_frame, write_video
+
+    long_video = write_video(tmp_path / "long.avi", [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(4)] * 1500)
+    out, target = tmp_path / "k.jsonl", tmp_path / "o.mp4"
+    proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "run", str(tflite_model), "--source", str(long_video),
+                             "--threads", "1", "--out", str(out), "--save-video", str(target)],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ))
+    deadline = time.monotonic() + 300  # a loaded machine may take long to start the run
+    while time.monotonic() < deadline and proc.poll() is None and not (out.exists() and out.stat().st_size > 0):
+        time.sleep(0.02)
+    assert proc.poll() is None, "the run ended before it could be killed"
+    proc.kill()
+    proc.wait(timeout=300)
+    stranded = list(tmp_path.glob(".o.*.tmp.mp4"))
+    assert len(stranded) == 1  # what SIGKILL leaves behind
+    assert main(["run", str(tflite_model), "--source", str(long_video), "--threads", "1", "--max-frames", "2",
+                 "--save-video", str(target)]) == 0
+    assert not stranded[0].exists() and sorted(p.name for p in tmp_path.iterdir()) == ["k.jsonl", "long.avi", "o.mp4"]
+
+
+@pytest.mark.parametrize("when", ["full before the run", "fills during the run"])
+def test_run_save_video_on_a_full_disk_says_so_and_leaves_no_temporary(tiny_disk, tmp_path, tflite_model, capsys,
+                                                                        when):
+    video = _noise_video(tmp_path / "noise.avi")
+    if when == "full before the run":
+        with pytest.raises(OSError):
+            (tiny_disk / "filler").write_bytes(bytes(400_000))
+    status = main(["run", str(tflite_model), "--source", str(video), "--threads", "1",
+                   "--save-video", str(tiny_disk / "o.mp4")])
+    _one_line_write_error(status, capsys.readouterr().err, str(tiny_disk / "o.mp4"))
+    assert [p.name for p in tiny_disk.iterdir()] == (["filler"] if when == "full before the run" else [])
+
+
+def _fake_writer_that_does_not_open(*args):
+    from types import SimpleNamespace
+
+    return SimpleNamespace(isOpened=lambda: False, release=lambda: None)
+
+
+def test_a_video_writer_that_does_not_open_blames_the_disk_only_when_it_refuses_data(tmp_path, monkeypatch):
+    import numpy as np
+
+    from fcnpose_tf import fileio
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.runtime import sinks
+
+    monkeypatch.setattr(sinks.cv2, "VideoWriter", _fake_writer_that_does_not_open)
+    frame = np.zeros((8, 8, 3), np.uint8)
+    sink = sinks.VideoSink(tmp_path / "o.mp4")
+    with pytest.raises(UserError, match=r"OpenCV cannot write mp4v video here; try an .avi file$"):
+        sink.write(frame)  # the disk takes data: the codec is missing
+
+    def full_disk_open(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(fileio, "open", full_disk_open, raising=False)  # the shared write path finds the disk full
+    sink = sinks.VideoSink(tmp_path / "o.mp4")
+    with pytest.raises(fileio.WriteError, match=rf"^{tmp_path / 'o.mp4'}: no space left on device$"):
+        sink.write(frame)
+    assert list(tmp_path.iterdir()) == []

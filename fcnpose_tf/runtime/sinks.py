@@ -4,8 +4,10 @@ Record files stream: each frame's line is written and flushed before the next
 frame is read, so a crash or kill loses at most the frame in flight. They are
 written directly under their final name (so `tail -f` works) and are never
 replaced unless `force` is given. A saved video is written to a temporary
-name and renamed into place when it is closed, so an existing video is only
-replaced by a complete one.
+name (`fileio.temporary_path`: one a SIGKILL stranded is removed by the next
+run with the same target) and renamed into place when it is closed, so an
+existing video is only replaced by a complete one; a disk that fills up ends
+the run with `PATH: no space left on device` and no video, not a broken one.
 """
 
 from __future__ import annotations
@@ -15,7 +17,6 @@ import io
 import json
 import math
 import os
-import tempfile
 from collections import deque
 from pathlib import Path
 from typing import Any, Sequence
@@ -25,10 +26,11 @@ import numpy as np
 
 from fcnpose_tf.draw import draw_keypoints
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import check_writable, os_error_reason, signals_deferred
+from fcnpose_tf.fileio import (check_writable, full_disk_error, os_error_reason, set_default_permissions,
+                               signals_deferred, temporary_path)
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.runtime.estimator import Prediction
-from fcnpose_tf.runtime.sources import Frame
+from fcnpose_tf.runtime.sources import Frame, quiet_opencv
 
 RECORD_SUFFIXES = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv"}
 VIDEO_CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
@@ -201,7 +203,9 @@ class VideoSink:
     """Writes BGR frames to a video (codec from the file ending), renamed into place on `close()`.
 
     The frame size is fixed by the first frame; later frames of another size
-    (an image folder of mixed sizes) are resized to it.
+    (an image folder of mixed sizes) are resized to it. OpenCV does not report
+    a failed write, so the folder is checked after each frame (`fileio.full_disk_error`,
+    a statvfs call unless the disk looks full) and once more before the rename.
     """
 
     def __init__(self, path: str | os.PathLike, fps: float | None = None, force: bool = False):
@@ -213,56 +217,75 @@ class VideoSink:
         self.force = force
         self.fps = float(fps) if fps and fps > 0 else 10.0
         self.codec = VIDEO_CODECS[suffix]
-        fd, tmp = tempfile.mkstemp(prefix=f".{self.path.stem}.", suffix=f".tmp{suffix}", dir=self.path.parent)
-        os.close(fd)
-        self._tmp = Path(tmp)
-        _chmod_default(self._tmp)  # mkstemp makes 0600 files; give the video the user's usual permissions
+        self._tmp = temporary_path(self.path)  # removes this target's temporaries stranded by a killed run
+        set_default_permissions(self._tmp)
         self._writer: cv2.VideoWriter | None = None
         self.size: tuple[int, int] | None = None
         self.count = 0
 
     def write(self, image: np.ndarray) -> None:
-        """Append a BGR uint8 frame."""
+        """Append a BGR uint8 frame; WriteError (`PATH: no space left on device`) when the disk is full."""
         if self._writer is None:
             h, w = image.shape[:2]
             self.size = (w, h)
-            self._writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps, self.size)
-            if not self._writer.isOpened():
-                self._writer = None
+            with quiet_opencv():
+                writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps, self.size)
+            if not writer.isOpened():
+                with quiet_opencv():
+                    writer.release()
+                error = full_disk_error(self.path)  # the disk refusing data, or OpenCV lacking the codec
                 self._tmp.unlink(missing_ok=True)
+                if error is not None:
+                    raise error
                 raise UserError(f"{self.path}: OpenCV cannot write {self.codec} video here; try an .avi file")
+            self._writer = writer
         if (image.shape[1], image.shape[0]) != self.size:
             image = cv2.resize(image, self.size, interpolation=cv2.INTER_AREA)
-        self._writer.write(np.ascontiguousarray(image))
+        with quiet_opencv(native=False):  # OpenCV's `Failed to write frame` warnings; the check below reports
+            self._writer.write(np.ascontiguousarray(image))
         self.count += 1
+        error = full_disk_error(self.path, quick=True)
+        if error is not None:
+            self.discard()
+            raise error
 
     def close(self) -> Path | None:
         """Finish the file and move it into place; returns its path, or None if no frame was written."""
-        if self._writer is not None:
-            self._writer.release()
-            self._writer = None
+        self._release()
         if not self._tmp.exists():
             return None
         if self.count == 0:
             self._tmp.unlink()
             return None
+        error = full_disk_error(self.path)  # the end of the file may not have fit: no broken video in place
+        if error is not None:
+            self._tmp.unlink(missing_ok=True)
+            raise error
         if self.path.exists() and not self.force:  # appeared while we were recording: keep both
-            raise UserError(f"{self.path}: appeared during the run; the video was kept as {self._tmp}")
+            kept = _unused_name(self.path)
+            os.replace(self._tmp, kept)
+            raise UserError(f"{self.path}: appeared during the run; the video was kept as {kept}")
         os.replace(self._tmp, self.path)
         return self.path
 
     def discard(self) -> None:
         """Drop the partial video (on a failed run)."""
-        if self._writer is not None:
-            self._writer.release()
-            self._writer = None
+        self._release()
         self._tmp.unlink(missing_ok=True)
 
+    def _release(self) -> None:
+        if self._writer is not None:
+            with quiet_opencv():
+                self._writer.release()
+            self._writer = None
 
-def _chmod_default(path: Path) -> None:
-    umask = os.umask(0)
-    os.umask(umask)
-    os.chmod(path, 0o666 & ~umask)
+
+def _unused_name(path: Path) -> Path:
+    """NAME-1.EXT, NAME-2.EXT, ...: the first that does not exist (a name no stale-temporary sweep touches)."""
+    n = 1
+    while path.with_name(f"{path.stem}-{n}{path.suffix}").exists():
+        n += 1
+    return path.with_name(f"{path.stem}-{n}{path.suffix}")
 
 
 def parse_outputs(paths: Sequence[str | os.PathLike]) -> list[Path]:

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.nativelog import NativeOutput, native_stderr_captured
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".pbm"})
 """File name endings read as still images (anything else that exists is tried as a video)."""
@@ -114,10 +115,12 @@ class VideoSource(FrameSource):
     def __init__(self, path: Path, warn: Warn | None = None):
         super().__init__(str(path), warn)
         self.path = path
-        self._cap = cv2.VideoCapture(str(path))
+        with quiet_opencv() as native:
+            self._cap = cv2.VideoCapture(str(path))
         if not self._cap.isOpened():
             self._cap.release()
-            raise UserError(f"{path}: cannot be opened as a video (unknown format or corrupt file)")
+            detail = f": {native.last_line()}" if native.last_line() else ""
+            raise UserError(f"{path}: cannot be opened as a video (unknown format or corrupt file{detail})")
         fps = self._cap.get(cv2.CAP_PROP_FPS)
         self.fps = float(fps) if fps and 0 < fps < 1000 else None
         count = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
@@ -171,7 +174,7 @@ class CameraSource(FrameSource):
         self.device = device
         self.first_frame_timeout_s = first_frame_timeout_s
         self.stall_timeout_s = stall_timeout_s
-        with _quiet_opencv():
+        with quiet_opencv():
             self._cap = cv2.VideoCapture(device)
         if not self._cap.isOpened():
             self._cap.release()
@@ -260,18 +263,20 @@ def _as_bgr(image: np.ndarray) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def _quiet_opencv():
-    """Silence OpenCV's own warnings (e.g. `can't open camera by index`): we report failures ourselves."""
+def quiet_opencv(native: bool = True) -> Iterator[NativeOutput]:
+    """Silence OpenCV's own warnings (e.g. `can't open camera by index`) and, with `native`, what FFmpeg prints.
+
+    We report failures ourselves, in one line; FFmpeg's text is in the yielded NativeOutput for an
+    error to quote. `native=False` (OpenCV's log level only) is cheap enough for every frame.
+    """
     logging = getattr(getattr(cv2, "utils", None), "logging", None)
-    if logging is None:
-        yield
-        return
-    previous = logging.getLogLevel()
-    logging.setLogLevel(logging.LOG_LEVEL_SILENT)
-    try:
-        yield
-    finally:
-        logging.setLogLevel(previous)
+    with contextlib.ExitStack() as stack:
+        output = stack.enter_context(native_stderr_captured()) if native else NativeOutput()
+        if logging is not None:
+            previous = logging.getLogLevel()
+            logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+            stack.callback(logging.setLogLevel, previous)
+        yield output
 
 
 def list_images(folder: Path) -> list[Path]:

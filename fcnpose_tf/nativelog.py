@@ -1,0 +1,74 @@
+"""Native libraries' own log lines kept off the terminal around the calls that print them.
+
+LiteRT prints `INFO: Created TensorFlow Lite XNNPACK delegate for CPU.` when an interpreter is
+made, and FFmpeg (inside OpenCV) lines such as `[mov,mp4,... @ 0x...] moov atom not found` when a
+video does not open; both write straight to file descriptor 2, ahead of the one-line error the CLI
+prints for the same failure. Neither offers a log level that works once loaded (LiteRT has none;
+OpenCV reads OPENCV_FFMPEG_LOGLEVEL once per process, at its first FFmpeg call), so
+`native_stderr_captured()` points descriptor 2 at a temporary file for the duration of such a call
+and hands the text to the caller, which may quote it in its own error. Our own errors are
+exceptions raised inside the block and printed after it, so they are never hidden.
+Standard library only.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import re
+import sys
+import tempfile
+import threading
+from typing import Iterator
+
+_lock = threading.RLock()  # descriptor 2 is process-wide: one capture at a time (nesting in one thread is fine)
+
+
+class NativeOutput:
+    """What native code wrote to descriptor 2 inside `native_stderr_captured()` (filled when the block ends)."""
+
+    def __init__(self) -> None:
+        self.text = ""
+
+    def last_line(self) -> str:
+        """The last non-empty line, without FFmpeg's `[component @ 0x...]` prefix ('' if nothing was printed)."""
+        lines = [line.strip() for line in self.text.splitlines() if line.strip()]
+        return re.sub(r"^\[[^\]]* @ 0x[0-9a-fA-F]+\]\s*", "", lines[-1]) if lines else ""
+
+
+@contextlib.contextmanager
+def native_stderr_captured() -> Iterator[NativeOutput]:
+    """Run a block with file descriptor 2 redirected to a temporary file; yields its NativeOutput.
+
+    Keep the block to the native call: other threads' stderr output is captured too while it runs.
+    If the redirection cannot be set up, the block simply runs with stderr as it was.
+    """
+    output = NativeOutput()
+    with _lock:
+        try:
+            sys.stderr.flush()  # what Python printed before goes out first, where it belongs
+        except (AttributeError, OSError, ValueError):
+            pass
+        try:
+            saved = os.dup(2)
+        except OSError:
+            yield output
+            return
+        try:
+            sink = tempfile.TemporaryFile()
+        except OSError:
+            os.close(saved)
+            yield output
+            return
+        with sink:
+            os.dup2(sink.fileno(), 2)
+            try:
+                yield output
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+                try:
+                    sink.seek(0)
+                    output.text = sink.read().decode("utf-8", "replace")
+                except OSError:
+                    pass
