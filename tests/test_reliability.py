@@ -397,3 +397,17 @@ def test_a_video_writer_that_does_not_open_blames_the_disk_only_when_it_refuses_
     with pytest.raises(fileio.WriteError, match=rf"^{tmp_path / 'o.mp4'}: no space left on device$"):
         sink.write(frame)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_native_libraries_print_nothing_before_the_one_line_error(cli, tmp_path, tflite_model):
+    """LiteRT's `INFO: Created ... XNNPACK delegate` and FFmpeg's `moov atom not found` stay off the terminal.
+
+    A fresh process: LiteRT prints its INFO line once per process, so only a first load shows it.
+    """
+    bad_video = tmp_path / "bad.mp4"
+    bad_video.write_bytes(b"not a video")
+    proc = cli("run", tflite_model, "--source", bad_video, "--threads", "1", "--out", tmp_path / "k.jsonl")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [f"error: {bad_video}: cannot be opened as a video (unknown format or corrupt "
+                                        "file: moov atom not found)"]
+    assert not (tmp_path / "k.jsonl").exists()

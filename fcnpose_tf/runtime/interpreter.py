@@ -19,6 +19,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.metrics import conv_macs
+from fcnpose_tf.nativelog import native_stderr_captured
 from fcnpose_tf.records import distribution_version
 from fcnpose_tf.system import available_cores
 
@@ -120,8 +121,9 @@ def load_interpreter(path: str | os.PathLike, num_threads: int | None = None,
         raise UserError(f"threads must be a positive integer, got {num_threads!r}")
     found = find_backend(backend)
     try:
-        interpreter = found.interpreter_class(model_path=str(path), num_threads=threads)
-        interpreter.allocate_tensors()
+        with native_stderr_captured():  # LiteRT's `INFO: Created ... XNNPACK delegate` and its own error lines
+            interpreter = found.interpreter_class(model_path=str(path), num_threads=threads)
+            interpreter.allocate_tensors()
     except (ValueError, RuntimeError) as exc:
         detail = " ".join(str(exc).split()) or type(exc).__name__
         raise UserError(f"{path}: cannot be loaded as a TFLite model ({detail})") from None
