@@ -411,3 +411,32 @@ def test_native_libraries_print_nothing_before_the_one_line_error(cli, tmp_path,
     assert proc.stderr.splitlines() == [f"error: {bad_video}: cannot be opened as a video (unknown format or corrupt "
                                         "file: moov atom not found)"]
     assert not (tmp_path / "k.jsonl").exists()
+
+
+def test_more_folds_than_frames_is_refused_before_any_split_is_stored(tmp_path, capsys):
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=6)
+    splits = data / "labels.splits.json"
+    expected = f"error: {data / 'labels.json'}: too few frames for 99 folds (6 usable frames, and each fold needs a " \
+               "validation frame); pass --folds 6 or fewer\n"
+    assert main(["data", "inspect", str(data), "--folds", "99", "--resplit"]) == 2
+    assert capsys.readouterr().err == expected and not splits.exists()
+    assert main(["data", "inspect", str(data), "--folds", "3"]) == 0  # stored: 3 folds
+    stored = splits.read_text()
+    capsys.readouterr()
+    assert main(["data", "inspect", str(data), "--folds", "99", "--resplit"]) == 2
+    assert capsys.readouterr().err == expected and splits.read_text() == stored
+    assert main(["train", "--data", str(data), "--out", str(tmp_path / "m.keras"), "--folds", "99", "--resplit",
+                 "--init", "none"]) == 2  # train (as sweep and compress) loads through the same check
+    assert capsys.readouterr().err == expected and splits.read_text() == stored
+
+
+def test_a_dataset_smaller_than_the_default_folds_still_loads_for_the_hold_out_split(tmp_path, capsys):
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=4)
+    assert main(["data", "inspect", str(data)]) == 0
+    assert "(too few frames for 5 folds)" in capsys.readouterr().out
+    assert main(["data", "inspect", str(data), "--folds", "5"]) == 2
+    assert "too few frames for 5 folds (4 usable frames" in capsys.readouterr().err

@@ -47,13 +47,15 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.evaluate import choose_frames, evaluate_predictor, format_timing, open_model
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.metrics import format_report
+    from fcnpose_tf.settings import FOLDS
 
     if args.fold is not None:
         if args.split == "all":
             raise UserError("--fold selects validation frames; it cannot be combined with --split all")
         args.split = "val"
-        if not 0 <= args.fold < args.folds:
-            raise UserError(f"--fold must be between 0 and {args.folds - 1}, got {args.fold}")
+        k = args.folds or FOLDS.default
+        if not 0 <= args.fold < k:
+            raise UserError(f"--fold must be between 0 and {k - 1}, got {args.fold}")
     if args.json is not None:
         check_writable(args.json, args.force)
     model_path = args.model or baseline_model()

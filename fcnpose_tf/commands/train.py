@@ -104,8 +104,7 @@ def run(args: argparse.Namespace) -> int:
                          identity=run_identity(via_path, config, input_size=args.input_size, fold=fold, folds=k,
                                                augment=args.augment, augment_copies=args.augment_copies,
                                                split_seed=args.split_seed))
-    args.folds = k
-    dataset = load_from_args(args)
+    dataset = load_from_args(args)  # --folds K or a --fold: K folds required of the data; else the hold-out split
 
     set_tensorflow_threads(args.threads)
     reports = []

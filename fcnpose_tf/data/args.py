@@ -33,16 +33,23 @@ def add_data_arguments(parser: argparse.ArgumentParser, positional: bool = True,
                         help="drop frames with fewer annotated keypoints (default: half the schema's, 4 of 8)")
     parser.add_argument("--skip-bad", action="store_true",
                         help="skip frames with bad regions or missing images instead of stopping")
-    if folds_option:
-        FOLDS.add_to(parser)
+    if folds_option:  # unset (None): the default K, and no folds on a dataset smaller than that
+        FOLDS.variant(default=None, help=f"{FOLDS.help}; default {FOLDS.default}, refused for fewer frames "
+                      "when given").add_to(parser)
     parser.add_argument("--split-seed", type=int, default=0, help="seed of the stored splits")
     parser.add_argument("--resplit", action="store_true", help="replace the stored splits")
 
 
 def load_from_args(args: argparse.Namespace) -> Any:
-    """load_dataset with the options of add_data_arguments (K: the command's --folds, else the default)."""
+    """load_dataset with the options of add_data_arguments.
+
+    K is the command's --folds, or the default when a --fold index is given (its folds must then
+    exist); with neither, the default K is not required of the data.
+    """
     from fcnpose_tf.data.dataset import load_dataset
 
+    folds = getattr(args, "folds", None)
+    if folds is None and getattr(args, "fold", None) is not None:
+        folds = FOLDS.default
     return load_dataset(args.data, args.images, attribute=args.keypoint_attr, min_visible=args.min_visible,
-                        skip_bad=args.skip_bad, folds=getattr(args, "folds", None) or FOLDS.default,
-                        split_seed=args.split_seed, resplit=args.resplit)
+                        skip_bad=args.skip_bad, folds=folds, split_seed=args.split_seed, resplit=args.resplit)

@@ -22,6 +22,7 @@ import numpy as np
 
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.settings import FOLDS
 
 SPLITS_VERSION = 1
 
@@ -63,12 +64,24 @@ def holdout_split(n: int, val_fraction: float = 0.2, seed: int = 0) -> tuple[np.
     return np.sort(perm[n_val:]), np.sort(perm[:n_val])
 
 
+def check_fold_count(k: int, n: int, source: str = "the dataset") -> int:
+    """Return K if n frames can make K folds (K >= 2, one validation frame per fold at least), else UserError.
+
+    The one check of a K that was asked for (`--folds`, a fold index, a sweep): `load_or_create_splits`
+    runs it before stored splits are read or new ones written, so `data inspect`, `train`, `evaluate`,
+    `compress` and `sweep` refuse the same K with the same message, and no empty K-fold split is stored.
+    """
+    FOLDS.validate(k)
+    if n < k:
+        fix = f"pass {FOLDS.flag} {n} or fewer" if n >= 2 else "K-fold cross-validation needs at least 2"
+        raise UserError(f"{source}: too few frames for {k} folds ({n} usable frame{'s' if n != 1 else ''}, and each "
+                        f"fold needs a validation frame); {fix}")
+    return k
+
+
 def kfold_split(n: int, k: int = 5, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
     """K (train, val) pairs of sorted indices; the validation folds partition range(n), sizes differ by <= 1."""
-    if k < 2:
-        raise UserError(f"number of folds must be at least 2, got {k}")
-    if n < k:
-        raise UserError(f"cannot make {k} folds from {n} frames; need at least {k} frames")
+    check_fold_count(k, n)
     perm = _permutation(n, seed)
     parts = np.array_split(perm, k)
     all_idx = np.arange(n)
@@ -142,15 +155,22 @@ def splits_from_dict(data: dict, names: Sequence[str], source: str = "splits") -
                         "again") from None
 
 
-def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: int = 5, val_fraction: float = 0.2,
-                          seed: int = 0, write: bool = True, resplit: bool = False) -> tuple[Splits, Path, str]:
+def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: int | None = None,
+                          val_fraction: float = 0.2, seed: int = 0, write: bool = True,
+                          resplit: bool = False) -> tuple[Splits, Path, str]:
     """The dataset's stored splits, or new ones saved beside the VIA file (when `write`).
 
-    Returns (splits, path of the splits file, status) with status "loaded",
+    `k`: the K folds asked for, refused (`check_fold_count`) when there are fewer frames; None:
+    the default K (5), whose folds a dataset too small for them simply lacks (the hold-out split
+    still serves). Returns (splits, path of the splits file, status) with status "loaded",
     "created", or "not saved" (folder not writable or write=False). Stored
     splits made with another seed, K or fraction, or for another frame list, are
     an error unless `resplit` replaces them.
     """
+    if k is None:
+        k = FOLDS.default
+    else:
+        check_fold_count(k, len(names), str(via_path))
     path = splits_path(via_path)
     if path.exists() and not resplit:
         try:
