@@ -440,3 +440,15 @@ def test_a_dataset_smaller_than_the_default_folds_still_loads_for_the_hold_out_s
     assert "(too few frames for 5 folds)" in capsys.readouterr().out
     assert main(["data", "inspect", str(data), "--folds", "5"]) == 2
     assert "too few frames for 5 folds (4 usable frames" in capsys.readouterr().err
+
+
+def test_a_keypoint_attribute_no_region_has_is_warned_about_naming_those_that_exist(cli, tmp_path):
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=4)
+    proc = cli("data", "inspect", data, "--keypoint-attr", "kp")
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr.splitlines() == [f"{data / 'labels.json'}: no region has the attribute 'kp' (--keypoint-attr), "
+                                        "so points are taken in schema order; the regions' attributes are: keypoint"]
+    proc = cli("data", "inspect", data)  # the attribute the regions use: no warning
+    assert proc.returncode == 0 and proc.stderr == "", proc.stderr

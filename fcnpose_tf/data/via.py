@@ -232,6 +232,20 @@ def _split_file(path: Path, data) -> tuple[dict, dict]:
     return metadata, {}
 
 
+def _region_attribute_names(metadata: dict) -> set[str]:
+    """Every region attribute name used in the file's regions (malformed entries are left to the parser)."""
+    names: set[str] = set()
+    for meta in metadata.values():
+        regions = meta.get("regions") if isinstance(meta, dict) else None
+        if isinstance(regions, dict):
+            regions = list(regions.values())
+        for region in regions if isinstance(regions, list) else ():
+            attributes = region.get("region_attributes") if isinstance(region, dict) else None
+            if isinstance(attributes, dict):
+                names.update(str(name) for name in attributes)
+    return names
+
+
 def _image_dirs(path: Path, images_dir: str | os.PathLike | None, settings: dict) -> list[Path]:
     if images_dir is not None:
         images_dir = Path(images_dir)
@@ -416,6 +430,10 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
         raise UserError(f"min_visible must be between 0 and {schema.num_keypoints} for schema {schema.name!r}, "
                         f"got {min_visible}")
     dirs = _image_dirs(path, images_dir, settings)
+    present = _region_attribute_names(metadata)
+    if present and attribute not in present:  # labels under another name: schema order would be a silent guess
+        logger.warning("%s: no region has the attribute %r (--keypoint-attr), so points are taken in schema "
+                       "order; the regions' attributes are: %s", path, attribute, ", ".join(sorted(present)))
 
     result = ViaAnnotations(path, schema, [], attribute, min_visible)
     seen: dict[str, str] = {}
