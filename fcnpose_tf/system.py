@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from typing import Iterable
 
 
 def available_cores() -> int:
@@ -11,3 +12,18 @@ def available_cores() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except (AttributeError, OSError):  # pragma: no cover - not Linux
         return max(1, os.cpu_count() or 1)
+
+
+def oversubscription_note(threads: Iterable[int], cores: int | None = None) -> str | None:
+    """The sentence that thread counts above the cores here oversubscribe the CPU, or None if none is.
+
+    The one wording of that warning: `bench` adds it to its report, `run` prints it on stderr.
+    """
+    cores = cores or available_cores()
+    over = [n for n in dict.fromkeys(threads) if n > cores]
+    if not over:
+        return None
+    counts = ", ".join(map(str, over))
+    if len(over) == 1:
+        return f"A thread count above the {cores} cores here ({counts}) oversubscribes the CPU."
+    return f"Thread counts above the {cores} cores here ({counts}) oversubscribe the CPU."

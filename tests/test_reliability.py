@@ -452,3 +452,22 @@ def test_a_keypoint_attribute_no_region_has_is_warned_about_naming_those_that_ex
                                         "so points are taken in schema order; the regions' attributes are: keypoint"]
     proc = cli("data", "inspect", data)  # the attribute the regions use: no warning
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+
+
+def test_run_warns_about_more_threads_than_cores_as_bench_does(tmp_path, tflite_model, capsys):
+    import cv2
+    import numpy as np
+
+    from fcnpose_tf.system import available_cores, oversubscription_note
+
+    over = available_cores() + 1
+    note = oversubscription_note([over])
+    assert note == f"A thread count above the {available_cores()} cores here ({over}) oversubscribes the CPU."
+    frame = tmp_path / "frame.png"
+    cv2.imwrite(str(frame), np.zeros((64, 64, 3), np.uint8))
+    assert main(["run", str(tflite_model), "--source", str(frame), "--threads", str(over)]) == 0
+    assert f"warning: {note}\n" in capsys.readouterr().err
+    assert main(["run", str(tflite_model), "--source", str(frame), "--threads", "1"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert main(["bench", str(tflite_model), "--threads", f"1,{over}", "--frames", "1", "--warmup", "0"]) == 0
+    assert note in capsys.readouterr().out  # the same sentence, from the same function

@@ -61,9 +61,13 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
     from fcnpose_tf.runtime.sinks import VideoSink, open_record_writer, parse_outputs
     from fcnpose_tf.runtime.sources import open_source, parse_size
+    from fcnpose_tf.system import oversubscription_note
 
     if args.max_frames is not None and args.max_frames < 1:
         raise UserError(f"--max-frames must be at least 1, got {args.max_frames}")
+    oversubscribed = oversubscription_note([args.threads]) if args.threads else None
+    if oversubscribed:
+        print(f"warning: {oversubscribed}", file=sys.stderr)
     # Every output is checked before the model loads or the camera opens: fail in a second, not after a run.
     outs = parse_outputs(args.out)
     for path in outs:

@@ -25,6 +25,7 @@ from fcnpose_tf.records import host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
 from fcnpose_tf.runtime.interpreter import check_tflite_file, default_num_threads
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms, fps_from_ms
+from fcnpose_tf.system import oversubscription_note
 from fcnpose_tf.tables import format_table
 
 MIN_FRAMES_FOR_STATS = 50
@@ -158,10 +159,9 @@ class BenchReport:
         """Header, table and the definitions needed to read them."""
         cores = self.host.get("cpu_count")
         notes = [f"E2E = preprocess + invoke + postprocess of one frame; {FPS_DEFINITION}."]
-        over = [r.threads for r in self.results if cores and r.threads > cores]
+        over = oversubscription_note([r.threads for r in self.results], cores) if cores else None
         if over:
-            notes.append(f"Thread counts above the {cores} cores here ({', '.join(map(str, over))}) "
-                         "oversubscribe the CPU.")
+            notes.append(over)
         if self.frames < MIN_FRAMES_FOR_STATS:
             notes.append(f"Fewer than {MIN_FRAMES_FOR_STATS} timed frames: indicative figures only.")
         return "\n".join([self.header(), "", self.table(markdown), ""] + notes)
