@@ -471,3 +471,38 @@ def test_run_warns_about_more_threads_than_cores_as_bench_does(tmp_path, tflite_
     assert "warning" not in capsys.readouterr().err
     assert main(["bench", str(tflite_model), "--threads", f"1,{over}", "--frames", "1", "--warmup", "0"]) == 0
     assert note in capsys.readouterr().out  # the same sentence, from the same function
+
+
+def _json_report_command(command, tmp_path, model, out):
+    if command == "bench":
+        return ["bench", str(model), "--threads", "1", "--frames", "1", "--warmup", "0", "--json", str(out)]
+    from test_train_evaluate import make_via_folder
+
+    from fcnpose_tf.data.dataset import load_dataset
+
+    data = make_via_folder(tmp_path / "d", n=4)
+    load_dataset(data)  # the splits file, stored before the disk fills
+    return ["evaluate", str(model), "--data", str(data), "--threads", "1", "--json", str(out)]
+
+
+@pytest.mark.parametrize("command", ["evaluate", "bench"])
+def test_json_report_on_an_injected_full_disk_is_one_line_and_leaves_nothing(tmp_path, tflite_model, capsys,
+                                                                             monkeypatch, command):
+    out = tmp_path / "new" / "report.json"
+    args = _json_report_command(command, tmp_path, tflite_model, out)
+    enospc = OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    monkeypatch.setattr(os, "replace", lambda src, dst: (_ for _ in ()).throw(enospc))
+    status = main(args)
+    _one_line_write_error(status, capsys.readouterr().err, str(out))
+    assert not (tmp_path / "new").exists()
+
+
+@pytest.mark.parametrize("command", ["evaluate", "bench"])
+def test_json_report_on_a_full_disk_is_one_line_and_leaves_nothing(tiny_disk, tmp_path, tflite_model, capsys,
+                                                                   command):
+    args = _json_report_command(command, tmp_path, tflite_model, tiny_disk / "report.json")
+    with pytest.raises(OSError):
+        (tiny_disk / "filler").write_bytes(bytes(400_000))
+    status = main(args)
+    _one_line_write_error(status, capsys.readouterr().err, str(tiny_disk / "report.json"))
+    assert [p.name for p in tiny_disk.iterdir()] == ["filler"]
