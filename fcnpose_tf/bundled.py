@@ -16,6 +16,10 @@ from fcnpose_tf.errors import UserError
 BASELINE_NAME = "fcnpose_ur5"
 """Stem of the bundled baseline: fcnpose_ur5.keras, its card, and compressed exports."""
 
+GENERALIST_NAME = "fcnpose_ur5_generalist"
+"""Stem of the bundled generalist: the baseline fine-tuned on domain-randomised scenes (random cells,
+cameras, arm looks, tools, light and clutter), a starting point for `train` on a user's own frames."""
+
 
 def models_dir() -> Path:
     """The first existing bundled-models folder (environment, checkout, installed data files)."""
@@ -34,3 +38,8 @@ def models_dir() -> Path:
 def baseline_model() -> Path:
     """Path of the bundled baseline FCN-Pose (.keras)."""
     return models_dir() / f"{BASELINE_NAME}.keras"
+
+
+def generalist_model() -> Path:
+    """Path of the bundled generalist FCN-Pose (.keras), `train`'s starting point for a user's frames."""
+    return models_dir() / f"{GENERALIST_NAME}.keras"

@@ -44,7 +44,7 @@ Log = Callable[[str], None]
 
 @settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE, settings.RETRAIN_EPOCHS,
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
-                       ("augment", settings.REPRODUCTION_AUGMENT), settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
+                       settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize, and the retraining's

@@ -125,27 +125,29 @@ def test_online_training_data_follows_seed_and_epoch_and_keeps_keypoints_on_thei
     assert 0.0 <= images.min() and images.max() <= 1.0 and set(np.unique(maps)) <= {0.0, 1.0}
 
 
-def test_train_cli_online_by_default_and_paper_on_request(tmp_path, cli):
+def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli):
     import json
 
     from test_train_evaluate import make_via_folder
 
     data = make_via_folder(tmp_path / "d", n=6)
+    proc = cli("train", "--data", data, "--out", tmp_path / "p.keras", "--epochs", "1", "--input-size", "64",
+               "--init", "none", "--augment-copies", "1", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "10 samples (5 frames + 1 augmented copies each)" in proc.stdout
+    record = json.loads((tmp_path / "p_train.json").read_text())
+    assert record["augment"] == "paper" and record["augment_copies"] == 1
     proc = cli("train", "--data", data, "--out", tmp_path / "m.keras", "--epochs", "1", "--input-size", "64",
-               "--init", "none", "--quiet")
+               "--init", "none", "--augment", "online", "--quiet")
     assert proc.returncode == 0, proc.stderr
     assert "15 freshly augmented samples an epoch from 5 frames" in proc.stdout
     record = json.loads((tmp_path / "m_train.json").read_text())
     assert record["augment"] == "online" and record["augment_copies"] is None
-    proc = cli("train", "--data", data, "--out", tmp_path / "p.keras", "--epochs", "1", "--input-size", "64",
-               "--init", "none", "--augment", "paper", "--augment-copies", "1", "--quiet")
-    assert proc.returncode == 0, proc.stderr
-    assert "10 samples (5 frames + 1 augmented copies each)" in proc.stdout
     proc = cli("train", "--data", data, "--out", tmp_path / "q.keras", "--augment", "fancy")
     assert proc.returncode == 2 and "invalid choice: 'fancy'" in proc.stderr
 
 
-def test_default_init_is_the_bundled_model_and_is_refused_for_another_schema(tmp_path, cli):
+def test_default_init_is_the_bundled_generalist_and_bundled_inits_are_refused_for_another_schema(tmp_path, cli):
     import cv2
 
     from fcnpose_tf.data.via import ViaFrame, write_via_project
@@ -162,8 +164,11 @@ def test_default_init_is_the_bundled_model_and_is_refused_for_another_schema(tmp
     proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
                "--input-size", "32")
     assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith("error: ")
-    assert "fcnpose_ur5.keras: trained for base, shoulder" in proc.stderr
+    assert "fcnpose_ur5_generalist.keras: trained for base, shoulder" in proc.stderr
     assert "pass --init none to train from scratch" in proc.stderr and not (tmp_path / "m.keras").exists()
+    proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
+               "--input-size", "32", "--init", "workcell")
+    assert proc.returncode == 2 and "fcnpose_ur5.keras: trained for base, shoulder" in proc.stderr
     proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
                "--input-size", "32", "--init", "none", "--quiet")
     assert proc.returncode == 0, proc.stderr

@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for setting in (settings.QUANTIZE, settings.METHOD, settings.STRATEGY):
         setting.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
-    settings.REPRODUCTION_AUGMENT.add_to(parser)
+    settings.AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.LEARNING_RATE, settings.LR_PATIENCE, settings.AUGMENT_COPIES,
                     settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS):
         setting.add_to(parser)

@@ -1,7 +1,7 @@
 """Train FCN-Pose on a dataset: Adam, binary cross-entropy, early stopping, resumable checkpoints.
 
-By default it fine-tunes the bundled UR5 model on your frames with fresh online augmentation every
-epoch, keypoint pixels weighted 20, the learning rate halved after 4 epochs without progress and a
+By default it fine-tunes the bundled UR5 generalist (pretrained on domain-randomised scenes) on your
+frames with the paper's 2 augmented copies per frame, keypoint pixels weighted 20, the learning rate halved after 4 epochs without progress and a
 30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe is the last
 example below. Without --folds the model trains on the 80/20 hold-out split; --folds K trains one
 model per fold of the dataset's stored K-fold splits (or only --fold k) and reports mean and std.
@@ -18,14 +18,21 @@ from pathlib import Path
 NAME = "train"
 USES_TENSORFLOW = True
 EXAMPLES = """\
-  fcnpose-tf train --data my_frames/ --out models/arm.keras         # fine-tune the bundled UR5 model, <= 30 min
+  fcnpose-tf train --data my_frames/ --out models/arm.keras         # fine-tune the bundled generalist, <= 30 min
   fcnpose-tf train --data my_frames/ --out models/arm.keras --resume                     # after Ctrl-C
   fcnpose-tf train --data my_frames/ --out models/arm.keras --max-minutes 90             # a longer budget
   fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5                    # 5-fold CV
   fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
-  fcnpose-tf train --data data/ur5 --out models/paper.keras --init none --augment paper \\
+  fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # views that vary a lot
+  fcnpose-tf train --data data/ur5 --out models/paper.keras --init none \\
       --positive-weight 1 --lr-patience 0 --patience 20 --max-minutes 600                # the paper's recipe
 """
+
+
+BUNDLED_INITS = {"generalist": "generalist_model", "workcell": "baseline_model"}
+"""The bundled models --init takes by name (functions of fcnpose_tf.bundled)."""
+DEFAULT_INIT = "generalist"
+"""Measured on two proxies of a user's frames (docs/training.md, "Training on your own frames")."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -41,10 +48,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
-    parser.add_argument("--init", metavar="MODEL|bundled|none", default="bundled",
-                        help="start from this model's weights, trained at any input size for the same keypoints; "
-                             "bundled (default): the bundled UR5 baseline, refused for data of another keypoint "
-                             "schema; none: from scratch, as the paper")
+    parser.add_argument("--init", metavar="MODEL|" + "|".join(BUNDLED_INITS) + "|none", default=DEFAULT_INIT,
+                        help="start from this model's weights (trained at any input size for the same keypoints): "
+                             "generalist: the bundled UR5 model fine-tuned on domain-randomised scenes; workcell: the "
+                             "bundled paper-reproduction baseline; either is refused for data of another keypoint "
+                             f"schema; none: random weights, as the paper (default: {DEFAULT_INIT})")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
@@ -52,13 +60,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def initial_weights(init: str) -> Path | None:
-    """The model file --init names: None for "none", the bundled baseline for "bundled", else the path."""
+    """The model file --init names: None for "none", a bundled model for its name, else the path."""
     if init == "none":
         return None
-    if init == "bundled":
-        from fcnpose_tf.bundled import baseline_model
+    if init in BUNDLED_INITS:
+        from fcnpose_tf import bundled
 
-        return baseline_model()
+        return getattr(bundled, BUNDLED_INITS[init])()
     return Path(init)
 
 
