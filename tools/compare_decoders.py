@@ -1,0 +1,93 @@
+"""Is fine localisation limited by decoding? Several ways of reading a position from the same maps.
+
+    python tools/compare_decoders.py MODEL.keras --data DATA [--threads 1]
+
+Runs MODEL once per frame of DATA and reads every keypoint map with: Algorithm 1 (the paper's: the
+largest 4-connected cluster above 0.5, its centroid; `fcnpose_tf.postprocess`), the same at
+thresholds 0.3 and 0.7, the cluster's centroid weighted by (p - 0.5) and (p - 0.5)^2, and the
+argmax of the map blurred by a 2-pixel Gaussian. Prints PCK@0.5/0.2/0.05, EPE and the median error
+per decoder, and PCK@0.05 per keypoint. docs/training.md ("Training on your own frames") has its figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import cv2
+import numpy as np
+
+
+def cluster_centroid(maps: np.ndarray, threshold: float, power: float) -> np.ndarray:
+    """Per keypoint map: the largest 4-connected cluster above threshold, its centroid weighted by
+    (p - threshold) ** power (power 0: the plain centroid of Algorithm 1). (K, 2) map pixels, NaN if none."""
+    out = np.full((maps.shape[-1] - 1, 2), np.nan)
+    for k in range(maps.shape[-1] - 1):
+        m = maps[..., k]
+        n, labels = cv2.connectedComponents((m > threshold).astype(np.uint8), connectivity=4)
+        if n < 2:
+            continue
+        counts = np.bincount(labels.ravel(), minlength=n)
+        counts[0] = 0
+        ys, xs = np.nonzero(labels == counts.argmax())
+        weights = (m[ys, xs] - threshold) ** power if power else np.ones(len(xs))
+        out[k] = [np.sum(xs * weights) / weights.sum(), np.sum(ys * weights) / weights.sum()]
+    return out
+
+
+def blurred_argmax(maps: np.ndarray, sigma: float = 2.0) -> np.ndarray:
+    """Per keypoint map: the argmax after a Gaussian blur of `sigma` map pixels. (K, 2) map pixels."""
+    out = np.empty((maps.shape[-1] - 1, 2))
+    for k in range(maps.shape[-1] - 1):
+        blurred = cv2.GaussianBlur(maps[..., k].astype(np.float32), (0, 0), sigma)
+        y, x = np.unravel_index(np.argmax(blurred), blurred.shape)
+        out[k] = [x, y]
+    return out
+
+
+DECODERS = {
+    "Algorithm 1 (above 0.5, centroid)": lambda m: cluster_centroid(m, 0.5, 0),
+    "above 0.3, centroid": lambda m: cluster_centroid(m, 0.3, 0),
+    "above 0.7, centroid": lambda m: cluster_centroid(m, 0.7, 0),
+    "above 0.5, weighted by p-0.5": lambda m: cluster_centroid(m, 0.5, 1),
+    "above 0.5, weighted by (p-0.5)^2": lambda m: cluster_centroid(m, 0.5, 2),
+    "blurred argmax (2 px)": blurred_argmax,
+}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("model")
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--threads", type=int, default=1)
+    args = parser.parse_args()
+
+    from fcnpose_tf import metrics
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.evaluate import open_model
+    from fcnpose_tf.preprocess import keypoints_to_frame
+
+    dataset = load_dataset(args.data)
+    model = open_model(args.model, threads=args.threads)
+    gt = np.stack([s.keypoints for s in dataset.samples])
+    preds: dict[str, list[np.ndarray]] = {name: [] for name in DECODERS}
+    for i in range(len(dataset.samples)):
+        frame = dataset.load_image(i)
+        model.set_input(frame)
+        model.invoke()
+        maps = model.read_maps()
+        maps = maps[0] if maps.ndim == 4 else maps
+        for name, decoder in DECODERS.items():
+            preds[name].append(keypoints_to_frame(decoder(maps), frame.shape, maps.shape[0]))
+    names = dataset.schema.keypoints
+    print(f"{args.model} on {args.data}: {len(gt)} frames; errors in frame pixels")
+    print(f"{'decoder':34s} {'PCK@.5':>7s} {'@.2':>6s} {'@.05':>6s} {'EPE':>6s} {'median':>6s}  PCK@.05: "
+          + " ".join(n[:6] for n in names))
+    for name, p in preds.items():
+        p = np.stack(p)
+        print(f"{name:34s} {metrics.pck(p, gt, .5):7.3f} {metrics.pck(p, gt, .2):6.3f} {metrics.pck(p, gt, .05):6.3f} "
+              f"{metrics.epe(p, gt):6.2f} {np.nanmedian(metrics.errors_px(p, gt)):6.2f}  "
+              + " ".join(f"{v:6.2f}" for v in metrics.pck_per_keypoint(p, gt, .05)))
+
+
+if __name__ == "__main__":
+    main()
