@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start from this model's weights (trained at any input size for the same keypoints): "
                              "generalist: the bundled UR5 model fine-tuned on domain-randomised scenes; workcell: the "
                              "bundled paper-reproduction baseline; either is refused for data of another keypoint "
-                             f"schema; none: random weights, as the paper (default: {DEFAULT_INIT})")
+                             "schema; none: random weights, as the paper")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
