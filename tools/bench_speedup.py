@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Issue 6 point 5: the Pi path's speed against the paper's desktop path, measured in one run.
+"""The Pi path's speed against the paper's desktop path, measured in one run (docs/runtime.md, "Speed targets").
 
 Compares, on the same frames, machine and thread count, interleaved frame by frame (the order
 alternating every frame) so all paths see the same load:
