@@ -3,11 +3,11 @@
 By default it fine-tunes the bundled UR5 generalist (pretrained on domain-randomised scenes) on
 your frames with the paper's 2 augmented copies per frame, keypoint pixels weighted 20, the
 learning rate halved after 4 epochs without progress and a 30-minute budget (docs/training.md,
-"Training on your own frames"); the paper's recipe is the last example below. Without --folds the model trains on the 80/20 hold-out split; --folds K trains one
-model per fold of the dataset's stored K-fold splits (or only --fold k) and reports mean and std.
-Next to the model
-it writes NAME_loss.csv/.png (loss curves) and NAME_train.json (settings, epochs, validation
-metrics). Ctrl-C or a kill loses at most one epoch: rerun with --resume.
+"Training on your own frames"); the paper's recipe is the last example below. Without --folds the
+model trains on the 80/20 hold-out split; --folds K trains one model per fold of the dataset's
+stored K-fold splits (or only --fold k) and reports mean and std. Next to the model it writes
+NAME_loss.csv/.png (loss curves) and NAME_train.json (settings, epochs, validation metrics).
+Ctrl-C or a kill loses at most one epoch: rerun with --resume.
 """
 
 from __future__ import annotations
