@@ -67,6 +67,10 @@ def initial_weights(init: str) -> Path | None:
         from fcnpose_tf import bundled
 
         return getattr(bundled, BUNDLED_INITS[init])()
+    if not Path(init).exists():
+        from fcnpose_tf.errors import UserError
+
+        raise UserError(f"--init {init}: no such model file (or pass one of {', '.join(BUNDLED_INITS)}, none)")
     return Path(init)
 
 
