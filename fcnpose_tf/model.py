@@ -141,7 +141,9 @@ def chain_layers(model: keras.Model, purpose: str, error: type[UserError] = User
 def save_for_inference(model: keras.Model, path) -> None:
     """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count."""
     clone = keras.models.clone_model(model)
-    clone.set_weights(model.get_weights())
+    for source, layer in zip(model.layers, clone.layers):  # per layer: a model's weight order puts frozen ones last
+        layer.set_weights(source.get_weights())
+        layer.trainable = True  # frozen layers are a training-time choice, not part of the model
     clone.save(path)  # an uncompiled clone carries no optimizer
 
 

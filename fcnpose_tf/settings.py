@@ -290,6 +290,19 @@ INHERITED_POSITIVE_WEIGHT = POSITIVE_WEIGHT.variant(
     default=None, help="keypoint-pixel weight of the retraining loss (default: the base model's, from its "
                        "NAME_train.json; else 1, the paper's plain BCE)")
 """`compress` retrains with the loss the base model was trained with unless told otherwise."""
+FREEZE = Setting(
+    "freeze", int, 0,
+    "keep the first N convolutions (conv1..convN) fixed while training: fewer gradients, faster epochs; 0 trains "
+    "every layer, as the paper does", label="frozen layers", check=lambda v: 0 <= v <= 9,
+    requirement="0 to 9 (conv10 always trains)", metavar="N")
+TRAIN_FREEZE = FREEZE.variant(
+    default=None, help="keep the first N convolutions (conv1..convN) fixed while fine-tuning: fewer gradients, "
+                       "faster epochs (default: 2 when starting from a trained model, 0 with --init none)")
+"""`train` fine-tunes a pretrained start: its first layers (colour and edge filters) already fit any frame,
+and their gradients are most of a training step's cost at 224 (conv1 and conv2 frozen: 2.4x faster steps),
+so the time budget buys more epochs of what adapts (docs/training.md, "Training on your own frames")."""
+DEFAULT_FINE_TUNE_FREEZE = 2
+"""conv1..conv2 stay fixed when `train` starts from a trained model and --freeze is not given."""
 THREADS = Setting("threads", int, None, "CPU threads for TensorFlow and LiteRT (default: all cores)",
                   label="threads", check=lambda v: v >= 1, requirement="at least 1", parse=thread_count)
 SWEEP_THREADS = THREADS.variant(

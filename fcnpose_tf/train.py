@@ -32,12 +32,14 @@ from fcnpose_tf.model import save_for_inference
 
 
 @settings.config_class(settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.MAX_MINUTES)
+                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.MAX_MINUTES,
+                       settings.FREEZE)
 class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
-    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant) and max_minutes (no new epoch
-    starts once the run has trained this long; None: no time budget). Defaults, checks and meanings:
+    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant), max_minutes (no new epoch
+    starts once the run has trained this long; None: no time budget) and freeze (conv1..convN keep
+    their weights). Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
 
 
@@ -86,7 +88,7 @@ def check_outputs(model_path: Path, force: bool = False) -> None:
 
 
 RESUME_SETTINGS = ("input_size", "augment", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
-                   "learning_rate", "positive_weight", "lr_patience")
+                   "learning_rate", "positive_weight", "lr_patience", "freeze")
 """The settings that change what a run learns: a checkpoint is resumed only with the same ones (and data).
 Epochs and patience may change: continuing a run for longer is what --resume is for."""
 
@@ -170,6 +172,22 @@ class KeypointBinaryCrossentropy(keras.losses.Loss):
 
     def get_config(self) -> dict:
         return {**super().get_config(), "positive_weight": self.positive_weight}
+
+
+def freeze_first_convolutions(model: keras.Model, count: int) -> None:
+    """Make conv1..conv`count` of `model` untrainable and every other layer trainable (before compiling).
+
+    A checkpoint saved while training keeps these flags, so a resumed run trains the same layers; the
+    model files a run writes have every layer trainable again (`model.save_for_inference`).
+    """
+    convolutions = [layer for layer in model.layers if isinstance(layer, keras.layers.Conv2D)]
+    if count >= len(convolutions):
+        raise UserError(f"--freeze {count} would leave nothing to train: the model has {len(convolutions)} "
+                        "convolutions")
+    for layer in model.layers:
+        layer.trainable = True
+    for layer in convolutions[:count]:
+        layer.trainable = False
 
 
 def compile_for_training(model: keras.Model, learning_rate: float, positive_weight: float = 1.0) -> keras.Model:
@@ -270,6 +288,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     else:
         state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
                  "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
+        freeze_first_convolutions(model, config.freeze)
         compile_for_training(model, config.learning_rate, config.positive_weight)
 
     callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes)

@@ -160,7 +160,23 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
     proc = cli("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1", "--input-size", "64",
                "--augment-copies", "0", "--init", out, "--quiet")
     assert proc.returncode == 0, proc.stderr
-    assert json.loads((tmp_path / "ft_train.json").read_text())["init"] == str(out)
+    record = json.loads((tmp_path / "ft_train.json").read_text())
+    assert record["init"] == str(out) and record["config"]["freeze"] == 2  # a trained start keeps conv1..2
+    from fcnpose_tf.model import load_model
+
+    start, tuned = load_model(out), load_model(tmp_path / "ft.keras")
+    for name, kept in (("conv1", True), ("conv2", True), ("conv3", False), ("conv10", False)):
+        same = all(np.array_equal(a, b) for a, b in zip(start.get_layer(name).get_weights(),
+                                                          tuned.get_layer(name).get_weights()))
+        assert same == kept, name
+    assert all(layer.trainable for layer in tuned.layers)  # the written model is a plain FCN-Pose
+    proc = cli("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1", "--input-size", "64",
+               "--augment-copies", "0", "--init", out, "--freeze", "0", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    tuned = load_model(tmp_path / "ft0.keras")
+    assert not np.array_equal(start.get_layer("conv1").get_weights()[0], tuned.get_layer("conv1").get_weights()[0])
+    proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--init", out, "--freeze", "10")
+    assert proc.returncode == 2 and "error: frozen layers must be 0 to 9" in proc.stderr
     # the convolutions do not depend on the input size: a 64x64 model starts a 96x96 run
     proc = cli("train", "--data", data, "--out", tmp_path / "ft96.keras", "--epochs", "1", "--input-size", "96",
                "--augment-copies", "0", "--augment", "paper", "--init", out, "--quiet")
@@ -253,3 +269,33 @@ def test_time_budget_ends_training_after_the_epoch_that_reaches_it(tmp_path):
     assert record["stopped_by_time_budget"] is True and record["config"]["max_minutes"] == 1e-6
     with pytest.raises(UserError, match="time budget must be a positive number of minutes"):
         train.FitConfig(max_minutes=0).validate()
+
+
+def test_frozen_layers_keep_their_weights_and_the_saved_model_matches_the_trained_one(tmp_path):
+    """fit with freeze=2: conv1..2 unchanged; the file holds each layer's trained weights (frozen ones sort last)."""
+    from fcnpose_tf.model import build_fcn_pose, load_model
+    from fcnpose_tf.train import FitConfig, fit
+
+    rng = np.random.default_rng(0)
+    images = rng.random((8, 32, 32, 3), dtype=np.float32)
+    maps = (rng.random((8, 32, 32, 9)) > 0.9).astype(np.float32)
+    model = build_fcn_pose(input_size=32)
+    before = {layer.name: [w.copy() for w in layer.get_weights()] for layer in model.layers}
+    import tensorflow as tf
+
+    batches = tf.data.Dataset.from_tensor_slices((images, maps)).batch(4)
+    fit(model, batches, (images[:4], maps[:4]), tmp_path / "m.keras",
+        FitConfig(epochs=2, batch_size=4, freeze=2), verbose=0)
+    saved = load_model(tmp_path / "m.keras")
+    for layer in model.layers:
+        for trained, written in zip(layer.get_weights(), saved.get_layer(layer.name).get_weights()):
+            np.testing.assert_array_equal(trained, written)
+        changed = any(not np.array_equal(a, b) for a, b in zip(before[layer.name], layer.get_weights()))
+        if layer.name in ("conv1", "conv2"):
+            assert not changed
+        elif layer.weights:
+            assert changed, layer.name
+    with pytest.raises(UserError, match="nothing to train"):
+        from fcnpose_tf.train import freeze_first_convolutions
+
+        freeze_first_convolutions(build_fcn_pose(input_size=32), 10)

@@ -43,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
     for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                    settings.TRAIN_LR_PATIENCE, settings.TRAIN_MAX_MINUTES, settings.TRAIN_POSITIVE_WEIGHT, settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES,
+                    settings.TRAIN_LR_PATIENCE, settings.TRAIN_MAX_MINUTES, settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES,
                     settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
@@ -89,12 +89,14 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.train import FitConfig, check_checkpoint, check_outputs, run_identity, train_fold
 
+    init = initial_weights(args.init)
+    if args.freeze is None:
+        args.freeze = settings.DEFAULT_FINE_TUNE_FREEZE if init else 0
     config = FitConfig(**settings.values_from_args(args, FitConfig))
     config.validate()
     for setting in (settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
                     settings.THREADS):
         setting.validate(getattr(args, setting.name))
-    init = initial_weights(args.init)
     if args.out.suffix not in (".keras", ".h5"):
         raise UserError(f"{args.out}: --out must end in .keras or .h5")
     k = args.folds or settings.FOLDS.default
