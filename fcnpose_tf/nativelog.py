@@ -19,7 +19,7 @@ import re
 import sys
 import tempfile
 import threading
-from typing import Iterator
+from typing import IO, Iterator
 
 _lock = threading.RLock()  # descriptor 2 is process-wide: one capture at a time (nesting in one thread is fine)
 
@@ -30,18 +30,25 @@ class NativeOutput:
     def __init__(self) -> None:
         self.text = ""
 
+    def lines(self) -> list[str]:
+        """The non-empty lines, without FFmpeg's `[component @ 0x...]` prefix."""
+        return [re.sub(r"^\[[^\]]* @ 0x[0-9a-fA-F]+\]\s*", "", line.strip()) for line in self.text.splitlines()
+                if line.strip()]
+
     def last_line(self) -> str:
-        """The last non-empty line, without FFmpeg's `[component @ 0x...]` prefix ('' if nothing was printed)."""
-        lines = [line.strip() for line in self.text.splitlines() if line.strip()]
-        return re.sub(r"^\[[^\]]* @ 0x[0-9a-fA-F]+\]\s*", "", lines[-1]) if lines else ""
+        """The last non-empty line, without FFmpeg's prefix ('' if nothing was printed)."""
+        lines = self.lines()
+        return lines[-1] if lines else ""
 
 
 @contextlib.contextmanager
-def native_stderr_captured() -> Iterator[NativeOutput]:
+def native_stderr_captured(sink: IO[bytes] | None = None) -> Iterator[NativeOutput]:
     """Run a block with file descriptor 2 redirected to a temporary file; yields its NativeOutput.
 
     Keep the block to the native call: other threads' stderr output is captured too while it runs.
-    If the redirection cannot be set up, the block simply runs with stderr as it was.
+    `sink`: a temporary file (`tempfile.TemporaryFile()`) to reuse, emptied first, for a call made
+    once per frame; by default each block makes its own. If the redirection cannot be set up, the
+    block simply runs with stderr as it was.
     """
     output = NativeOutput()
     with _lock:
@@ -54,13 +61,18 @@ def native_stderr_captured() -> Iterator[NativeOutput]:
         except OSError:
             yield output
             return
+        own = sink is None
         try:
-            sink = tempfile.TemporaryFile()
+            if sink is None:
+                sink = tempfile.TemporaryFile()
+            else:
+                sink.seek(0)
+                sink.truncate()
         except OSError:
             os.close(saved)
             yield output
             return
-        with sink:
+        try:
             os.dup2(sink.fileno(), 2)
             try:
                 yield output
@@ -72,3 +84,6 @@ def native_stderr_captured() -> Iterator[NativeOutput]:
                     output.text = sink.read().decode("utf-8", "replace")
                 except OSError:
                     pass
+        finally:
+            if own:
+                sink.close()

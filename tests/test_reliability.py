@@ -634,3 +634,34 @@ def test_compress_names_the_model_it_completed_before_the_disk_filled(tiny_disk,
                                   f"completed before it: {out / 'base_p70.keras'}"]
     assert "XNNPACK" not in proc.stderr, proc.stderr  # the export's check loads the .tflite quietly
     assert [p.name for p in out.iterdir()] == ["base_p70.keras"]
+
+
+def _damaged_mp4(path):
+    """An mp4v video whose middle third has bytes flipped: it opens, and FFmpeg complains while decoding."""
+    import cv2
+    import numpy as np
+
+    from test_runtime import write_video
+
+    rng = np.random.default_rng(0)
+    frames = [cv2.GaussianBlur(rng.integers(0, 255, (96, 128, 3), dtype=np.uint8), (9, 9), 3) for _ in range(20)]
+    data = bytearray(write_video(path, frames).read_bytes())
+    for offset in range(len(data) // 3, 2 * len(data) // 3, 97):
+        data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_ffmpeg_lines_while_decoding_a_damaged_video_become_one_warning(tmp_path, capfd):
+    from fcnpose_tf.runtime.sources import VideoSource
+
+    video = _damaged_mp4(tmp_path / "bad.mp4")
+    warnings = []
+    with VideoSource(video, warn=warnings.append) as source:
+        frames = list(source)
+    assert capfd.readouterr().err == ""  # nothing reached the terminal past us
+    assert source.damaged_frames >= 1 and len(source.decoder_messages) >= source.damaged_frames
+    summary = f"{video}: FFmpeg reported {len(source.decoder_messages)} decoding problems in {source.damaged_frames} "
+    assert warnings[0].startswith(summary) and warnings[0].endswith(f"the last: {source.decoder_messages[-1]}")
+    assert not any("@ 0x" in line for line in source.decoder_messages)  # FFmpeg's `[mpeg4 @ 0x...]` prefix dropped
+    assert len(frames) + len(warnings) >= 2  # every frame read or its end reported: no frame hidden silently
