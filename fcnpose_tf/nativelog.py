@@ -8,7 +8,7 @@ OpenCV reads OPENCV_FFMPEG_LOGLEVEL once per process, at its first FFmpeg call),
 `native_stderr_captured()` points descriptor 2 at a temporary file for the duration of such a call
 and hands the text to the caller, which may quote it in its own error. Our own errors are
 exceptions raised inside the block and printed after it, so they are never hidden.
-Standard library only.
+Standard library only (and fileio's signals_deferred).
 """
 
 from __future__ import annotations
@@ -20,6 +20,8 @@ import sys
 import tempfile
 import threading
 from typing import IO, Iterator
+
+from fcnpose_tf.fileio import signals_deferred
 
 _lock = threading.RLock()  # descriptor 2 is process-wide: one capture at a time (nesting in one thread is fine)
 
@@ -56,34 +58,32 @@ def native_stderr_captured(sink: IO[bytes] | None = None) -> Iterator[NativeOutp
             sys.stderr.flush()  # what Python printed before goes out first, where it belongs
         except (AttributeError, OSError, ValueError):
             pass
+        own: IO[bytes] | None = None
+        saved: int | None = None
         try:
-            saved = os.dup(2)
-        except OSError:
-            yield output
-            return
-        own = sink is None
-        try:
-            if sink is None:
-                sink = tempfile.TemporaryFile()
-            else:
-                sink.seek(0)
-                sink.truncate()
-        except OSError:
-            os.close(saved)
-            yield output
-            return
-        try:
-            os.dup2(sink.fileno(), 2)
-            try:
-                yield output
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
+            with signals_deferred():  # Ctrl-C or a kill arriving mid-switch must not leave descriptor 2 redirected
                 try:
-                    sink.seek(0)
-                    output.text = sink.read().decode("utf-8", "replace")
-                except OSError:
-                    pass
+                    if sink is None:
+                        sink = own = tempfile.TemporaryFile()
+                    else:
+                        sink.seek(0)
+                        sink.truncate()
+                    saved = os.dup(2)
+                    os.dup2(sink.fileno(), 2)
+                except OSError:  # no redirection: the block runs with stderr as it was
+                    if saved is not None:
+                        os.close(saved)
+                        saved = None
+            yield output
         finally:
-            if own:
-                sink.close()
+            with signals_deferred():
+                if saved is not None:
+                    os.dup2(saved, 2)
+                    os.close(saved)
+                    try:
+                        sink.seek(0)
+                        output.text = sink.read().decode("utf-8", "replace")
+                    except OSError:
+                        pass
+                if own is not None:
+                    own.close()

@@ -665,3 +665,34 @@ def test_ffmpeg_lines_while_decoding_a_damaged_video_become_one_warning(tmp_path
     assert warnings[0].startswith(summary) and warnings[0].endswith(f"the last: {source.decoder_messages[-1]}")
     assert not any("@ 0x" in line for line in source.decoder_messages)  # FFmpeg's `[mpeg4 @ 0x...]` prefix dropped
     assert len(frames) + len(warnings) >= 2  # every frame read or its end reported: no frame hidden silently
+
+
+@pytest.mark.parametrize("call", [1, 2])  # the redirection, the restoring
+def test_sigterm_while_stderr_is_switched_for_a_native_call_leaves_it_restored(monkeypatch, call):
+    """Captured around every video frame's read, descriptor 2 must come back even when a kill lands mid-switch."""
+    from fcnpose_tf import nativelog
+
+    real_dup2, calls = os.dup2, []
+
+    def dup2_then_sigterm(fd, fd2, *args):
+        result = real_dup2(fd, fd2, *args)
+        calls.append(fd2)
+        if len(calls) == call:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return result
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt("terminated (SIGTERM)")
+
+    before = os.fstat(2)
+    monkeypatch.setattr(nativelog.os, "dup2", dup2_then_sigterm)
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with nativelog.native_stderr_captured():
+                pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        monkeypatch.undo()
+    after = os.fstat(2)
+    assert calls == [2, 2] and (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
