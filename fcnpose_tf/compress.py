@@ -287,7 +287,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
         result = fit(model, train_data.sequence(options.batch_size, seed=options.seed), val_data.arrays(),
                      keras_path, options.fit_config(), force=run.force, verbose=2 if run.verbose else 0,
-                     metadata=metadata, callbacks=callbacks, inference_model=inference_model)
+                     metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False)
         entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight)
         return result
 

@@ -246,7 +246,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         metadata: dict[str, Any] | None = None, verbose: int = 1,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
-        identity: dict[str, Any] | None = None) -> FitResult:
+        identity: dict[str, Any] | None = None, resumable: bool = True) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -264,6 +264,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         inference_model: what to save as `model_path` from the trained model (tfmot's
             strip_pruning for a model wrapped for pruning); default: the model itself.
         identity: what a resumed checkpoint must match (`run_identity`); stored in the checkpoint.
+        resumable: whether the caller can resume (`train --resume`); if not (`compress`), a run that
+            fails or is interrupted removes its checkpoint instead of pointing at --resume.
     Returns:
         FitResult with the epochs run, the best epoch and its validation loss.
     Raises:
@@ -302,10 +304,13 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                       initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[*callbacks, callback],
                       verbose=verbose)
         except KeyboardInterrupt:
+            if not resumable:
+                remove_tree(paths["ckpt_dir"])
+                raise UserError(f"interrupted after {state['epoch']} complete epochs") from None
             raise UserError(f"interrupted after {state['epoch']} complete epochs; "
                             f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
         except WriteError as exc:
-            raise _resumable(exc, paths) from None
+            raise _resumable(exc, paths, resumable) from None
 
     best = paths["ckpt_best"] if paths["ckpt_best"].is_file() else paths["ckpt_dir"] / "best.h5"
     if best.is_file():
@@ -321,14 +326,18 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             "train_seconds": round(state["seconds"], 1),
         }, force=True)
     except WriteError as exc:
-        raise _resumable(exc, paths) from None
+        raise _resumable(exc, paths, resumable) from None
     remove_tree(paths["ckpt_dir"])
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
                      state["stopped_early"], state["history"])
 
 
-def _resumable(exc: WriteError, paths: dict[str, Path]) -> WriteError:
-    """A write that failed during a run (a full disk), with how to continue when a complete checkpoint is kept."""
+def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> WriteError:
+    """A write that failed during a run (a full disk), with how to continue when a complete checkpoint is kept
+    (a run that cannot be resumed removes its checkpoint)."""
+    if not resumable:
+        remove_tree(paths["ckpt_dir"])
+        return exc
     try:
         epoch = json.loads(paths["ckpt_state"].read_text())["epoch"]
     except (OSError, ValueError, KeyError):  # no complete checkpoint yet: the run starts over

@@ -611,14 +611,17 @@ def tiny_base(tmp_path):
 
 
 @pytest.mark.slow
-def test_compress_retraining_on_a_full_disk_is_one_line_and_leaves_nothing(tiny_disk, tmp_path, tiny_base, cli):
+def test_compress_retraining_on_a_full_disk_is_one_line_and_leaves_nothing(small_disk, tmp_path, tiny_base, cli):
+    """compress cannot resume: its retraining checkpoint goes too, and no --resume is suggested."""
     data = _frames_with_stored_splits(tmp_path / "d")
-    out = tiny_disk / "out"
-    proc = cli("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "1",
+    disk = small_disk("450k")  # holds the pruned model's first checkpoint (about 300 KB), not a second beside it
+    out = disk / "out"
+    proc = cli("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "3",
                "--out-dir", out, "--threads", "1")
     assert proc.returncode == 2, proc.stderr
+    assert "Epoch 2/3" in proc.stdout  # the disk filled after a complete checkpoint
     assert _error_lines(proc) == [f"error: {out / 'base_p70.ckpt'}: no space left on device"]
-    assert list(tiny_disk.iterdir()) == []
+    assert list(disk.iterdir()) == []
 
 
 @pytest.mark.slow
