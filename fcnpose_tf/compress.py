@@ -90,16 +90,13 @@ def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, opti
 
 def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
     """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
-    from fcnpose_tf.model import save_for_inference
+    from fcnpose_tf.model import h5_bytes, inference_copy, save_for_inference
 
-    sizes: dict[str, int] = {}
+    with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
+        warnings.simplefilter("ignore", UserWarning)
+        h5 = h5_bytes(inference_copy(model))
+    sizes = {"h5_size_bytes": len(h5), "h5_gzip_size_bytes": len(gzip.compress(h5, 9))}
     with tempfile.TemporaryDirectory() as tmp:
-        h5 = Path(tmp) / "m.h5"
-        with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
-            warnings.simplefilter("ignore", UserWarning)
-            save_for_inference(model, h5)
-        sizes["h5_size_bytes"] = h5.stat().st_size
-        sizes["h5_gzip_size_bytes"] = len(gzip.compress(h5.read_bytes(), 9))
         if keras_path is None:
             keras_path = Path(tmp) / "m.keras"
             save_for_inference(model, keras_path)
@@ -290,7 +287,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
         result = fit(model, train_data.sequence(options.batch_size, seed=options.seed), val_data.arrays(),
                      keras_path, options.fit_config(), force=run.force, verbose=2 if run.verbose else 0,
-                     metadata=metadata, callbacks=callbacks, inference_model=inference_model)
+                     metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False)
         entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight)
         return result
 

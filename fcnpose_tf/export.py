@@ -351,11 +351,13 @@ def _sample_frames(frames: np.ndarray | None, input_shape: tuple[int, ...], num_
 
 def _interpreter(data: bytes, num_threads: int | None = None):
     """An allocated interpreter for flatbuffer bytes, from the runtime's backend order (LiteRT first)."""
+    from fcnpose_tf.nativelog import native_stderr_captured
     from fcnpose_tf.runtime.interpreter import find_backend
 
     kwargs: dict[str, Any] = {"num_threads": num_threads} if num_threads else {}
-    interpreter = find_backend().interpreter_class(model_content=bytes(data), **kwargs)
-    interpreter.allocate_tensors()
+    with native_stderr_captured():  # LiteRT's `INFO: Created ... XNNPACK delegate`, as `load_interpreter` does
+        interpreter = find_backend().interpreter_class(model_content=bytes(data), **kwargs)
+        interpreter.allocate_tensors()
     return interpreter
 
 

@@ -23,7 +23,7 @@ import socket
 import tempfile
 import threading
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Sequence
 
 from fcnpose_tf.errors import UserError
 
@@ -44,11 +44,12 @@ class CommandOutputs:
         self.completed: list[Path] = []
 
     def remove_created_folders(self) -> None:
-        """Remove every folder this command created, deepest first, unless it holds a completed file."""
+        """Remove every folder this command created, deepest first, unless it holds or is part of a completed output."""
         kept = [p.resolve() for p in self.completed]
         for folder in sorted(set(self.created_folders), key=lambda p: len(p.parts), reverse=True):
             resolved = folder.resolve()
-            if folder.is_dir() and not any(resolved == f or resolved in f.parents for f in kept):
+            if folder.is_dir() and not any(resolved == f or resolved in f.parents or f in resolved.parents
+                                           for f in kept):
                 shutil.rmtree(folder, ignore_errors=True)
 
 
@@ -66,6 +67,42 @@ def command_outputs() -> Iterator[CommandOutputs]:
         _outputs = outer
 
 
+def _record_completed(path: Path) -> None:
+    if _outputs is not None and path not in _outputs.completed:
+        _outputs.completed.append(path)
+
+
+@contextlib.contextmanager
+def parts_of(output: str | os.PathLike) -> Iterator[None]:
+    """Run a block whose files are parts of one output (a dataset's frames, a checkpoint's files).
+
+    Files completed inside are not kept as outputs of their own: if the block fails, none of them
+    is named or keeps its folder from the failed command's cleanup; if it ends well, `output` (the
+    whole) is recorded as completed. Folders made inside are recorded as usual.
+    """
+    global _outputs
+    outer = _outputs
+    if outer is None:
+        yield
+        return
+    _outputs = CommandOutputs()
+    try:
+        yield
+    finally:
+        inner, _outputs = _outputs, outer
+        outer.created_folders.extend(inner.created_folders)
+    _record_completed(Path(output))
+
+
+def remove_tree(folder: str | os.PathLike) -> None:
+    """Delete a folder this command wrote (a finished run's checkpoint) and forget it and its files as outputs."""
+    folder = Path(folder)
+    shutil.rmtree(folder, ignore_errors=True)
+    if _outputs is not None:
+        gone = folder.resolve()
+        _outputs.completed = [p for p in _outputs.completed if gone != p.resolve() and gone not in p.resolve().parents]
+
+
 def make_folder(folder: str | os.PathLike) -> Path:
     """mkdir -p, recording the folders it creates for `command_outputs`; UserError naming the folder and reason."""
     folder = Path(folder)
@@ -81,7 +118,14 @@ def make_folder(folder: str | os.PathLike) -> Path:
 
 def os_error_reason(exc: OSError) -> str:
     """Why an OSError happened, as the end of a one-line error: e.g. `no space left on device`."""
-    text = exc.strerror or str(exc) or type(exc).__name__
+    if exc.strerror:
+        text = exc.strerror
+    elif exc.errno:
+        text = os.strerror(exc.errno)
+    else:  # a library's own text (HDF5's runs over several lines and names the errno inside)
+        found = re.search(r"\berrno = (\d+)", str(exc))
+        text = os.strerror(int(found.group(1))) if found else (str(exc).strip().splitlines() or [""])[0]
+    text = text or type(exc).__name__
     return text[:1].lower() + text[1:]
 
 
@@ -243,26 +287,48 @@ def full_disk_error(path: str | os.PathLike, quick: bool = False) -> WriteError 
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
-    """Yield a temporary path in the target's folder; on success rename it to `path`, on error delete it.
+def atomic_paths(paths: Sequence[str | os.PathLike], force: bool = False) -> Iterator[list[Path]]:
+    """Yield temporary paths for files written as one: renamed into place (in the given order) only once
+    the block has written every one of them; on any error all are deleted and no target is touched.
 
-    The temporary is `temporary_path(path)`'s (target's suffix kept; stale ones of a killed
-    earlier writer removed first).
+    Each temporary is `temporary_path(target)`'s (target's suffix kept; stale ones of a killed earlier
+    writer removed first). The renames run with Ctrl-C and SIGTERM held back (`signals_deferred`), so
+    an interrupt does not split the set. An OSError becomes a WriteError naming the target it hit (the
+    targets' common folder when that is unknown) and the reason, e.g. `no space left on device`.
     """
-    path = check_writable(path, force)
-    tmp_path = temporary_path(path)
+    targets = [check_writable(path, force) for path in paths]
+    temporaries: list[Path] = []
+    current: Path | None = None
     try:
-        yield tmp_path
-        if tmp_path.exists():
-            set_default_permissions(tmp_path)
-        os.replace(tmp_path, path)
-        if _outputs is not None and path not in _outputs.completed:
-            _outputs.completed.append(path)
+        for target in targets:
+            temporaries.append(temporary_path(target))
+        yield list(temporaries)
+        with signals_deferred():
+            for tmp, target in zip(temporaries, targets):
+                current = target
+                if tmp.exists():
+                    set_default_permissions(tmp)
+                os.replace(tmp, target)
+                _record_completed(target)
     except OSError as exc:  # any failure while writing: the path and the reason, one line
-        raise WriteError(f"{path}: {os_error_reason(exc)}") from None
+        if current is None:
+            named = {os.fspath(t): target for t, target in zip(temporaries, targets)}
+            current = named.get(os.fspath(exc.filename)) if isinstance(exc.filename, (str, os.PathLike)) else None
+        if current is None:
+            current = targets[0] if len(targets) == 1 else Path(os.path.commonpath(targets))
+        raise WriteError(f"{current}: {os_error_reason(exc)}") from None
     finally:
-        if tmp_path.exists():
-            tmp_path.unlink()
+        for tmp in temporaries:
+            if tmp.exists():
+                tmp.unlink()
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, force: bool = False) -> Iterator[Path]:
+    """Yield a temporary path in the target's folder; on success rename it to `path`, on error delete it
+    (`atomic_paths` for one file)."""
+    with atomic_paths([path], force) as (tmp_path,):
+        yield tmp_path
 
 
 def write_bytes(path: str | os.PathLike, data: bytes, force: bool = False) -> Path:
@@ -277,9 +343,14 @@ def write_text(path: str | os.PathLike, text: str, force: bool = False) -> Path:
     return write_bytes(path, text.encode("utf-8"), force)
 
 
+def json_text(data: Any) -> str:
+    """The text `write_json` writes: indented JSON, keys in the given order, no NaN, numpy values converted."""
+    return json.dumps(data, indent=2, allow_nan=False, default=json_default) + "\n"
+
+
 def write_json(path: str | os.PathLike, data: Any, force: bool = False) -> Path:
     """Atomically write JSON (indented, keys in the given order) to path."""
-    return write_text(path, json.dumps(data, indent=2, allow_nan=False, default=json_default) + "\n", force)
+    return write_text(path, json_text(data), force)
 
 
 def json_default(value: Any) -> Any:

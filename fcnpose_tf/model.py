@@ -138,13 +138,40 @@ def chain_layers(model: keras.Model, purpose: str, error: type[UserError] = User
     return layers
 
 
-def save_for_inference(model: keras.Model, path) -> None:
-    """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count."""
+def h5_bytes(model: keras.Model) -> bytes:
+    """`model` as it is (architecture, weights, any optimizer state) as the bytes of an .h5 file, made in memory.
+
+    HDF5 writing straight to a file kills the process (h5py segfaults closing it) when the disk fills
+    mid-write; written by Python instead, a full disk is a plain OSError (`fileio.atomic_path` names it).
+    """
+    import io
+
+    import h5py
+
+    buffer = io.BytesIO()
+    with h5py.File(buffer, "w") as h5:
+        model.save(h5, save_format="h5")
+    return buffer.getvalue()
+
+
+def inference_copy(model: keras.Model) -> keras.Model:
+    """An uncompiled clone with `model`'s weights: saved, it carries no optimizer state."""
     clone = keras.models.clone_model(model)
     for source, layer in zip(model.layers, clone.layers):  # per layer: a model's weight order puts frozen ones last
         layer.set_weights(source.get_weights())
         layer.trainable = True  # frozen layers are a training-time choice, not part of the model
-    clone.save(path)  # an uncompiled clone carries no optimizer
+    return clone
+
+
+def save_for_inference(model: keras.Model, path) -> None:
+    """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count."""
+    from pathlib import Path
+
+    clone = inference_copy(model)
+    if Path(path).suffix == ".h5":
+        Path(path).write_bytes(h5_bytes(clone))
+    else:
+        clone.save(path)  # .keras: a zip written by Python (HDF5 only in memory inside it)
 
 
 def load_model(path) -> keras.Model:

@@ -8,7 +8,7 @@ OpenCV reads OPENCV_FFMPEG_LOGLEVEL once per process, at its first FFmpeg call),
 `native_stderr_captured()` points descriptor 2 at a temporary file for the duration of such a call
 and hands the text to the caller, which may quote it in its own error. Our own errors are
 exceptions raised inside the block and printed after it, so they are never hidden.
-Standard library only.
+Standard library only (and fileio's signals_deferred).
 """
 
 from __future__ import annotations
@@ -19,7 +19,9 @@ import re
 import sys
 import tempfile
 import threading
-from typing import Iterator
+from typing import IO, Iterator
+
+from fcnpose_tf.fileio import signals_deferred
 
 _lock = threading.RLock()  # descriptor 2 is process-wide: one capture at a time (nesting in one thread is fine)
 
@@ -30,18 +32,25 @@ class NativeOutput:
     def __init__(self) -> None:
         self.text = ""
 
+    def lines(self) -> list[str]:
+        """The non-empty lines, without FFmpeg's `[component @ 0x...]` prefix."""
+        return [re.sub(r"^\[[^\]]* @ 0x[0-9a-fA-F]+\]\s*", "", line.strip()) for line in self.text.splitlines()
+                if line.strip()]
+
     def last_line(self) -> str:
-        """The last non-empty line, without FFmpeg's `[component @ 0x...]` prefix ('' if nothing was printed)."""
-        lines = [line.strip() for line in self.text.splitlines() if line.strip()]
-        return re.sub(r"^\[[^\]]* @ 0x[0-9a-fA-F]+\]\s*", "", lines[-1]) if lines else ""
+        """The last non-empty line, without FFmpeg's prefix ('' if nothing was printed)."""
+        lines = self.lines()
+        return lines[-1] if lines else ""
 
 
 @contextlib.contextmanager
-def native_stderr_captured() -> Iterator[NativeOutput]:
+def native_stderr_captured(sink: IO[bytes] | None = None) -> Iterator[NativeOutput]:
     """Run a block with file descriptor 2 redirected to a temporary file; yields its NativeOutput.
 
     Keep the block to the native call: other threads' stderr output is captured too while it runs.
-    If the redirection cannot be set up, the block simply runs with stderr as it was.
+    `sink`: a temporary file (`tempfile.TemporaryFile()`) to reuse, emptied first, for a call made
+    once per frame; by default each block makes its own. If the redirection cannot be set up, the
+    block simply runs with stderr as it was.
     """
     output = NativeOutput()
     with _lock:
@@ -49,26 +58,32 @@ def native_stderr_captured() -> Iterator[NativeOutput]:
             sys.stderr.flush()  # what Python printed before goes out first, where it belongs
         except (AttributeError, OSError, ValueError):
             pass
+        own: IO[bytes] | None = None
+        saved: int | None = None
         try:
-            saved = os.dup(2)
-        except OSError:
-            yield output
-            return
-        try:
-            sink = tempfile.TemporaryFile()
-        except OSError:
-            os.close(saved)
-            yield output
-            return
-        with sink:
-            os.dup2(sink.fileno(), 2)
-            try:
-                yield output
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
+            with signals_deferred():  # Ctrl-C or a kill arriving mid-switch must not leave descriptor 2 redirected
                 try:
-                    sink.seek(0)
-                    output.text = sink.read().decode("utf-8", "replace")
-                except OSError:
-                    pass
+                    if sink is None:
+                        sink = own = tempfile.TemporaryFile()
+                    else:
+                        sink.seek(0)
+                        sink.truncate()
+                    saved = os.dup(2)
+                    os.dup2(sink.fileno(), 2)
+                except OSError:  # no redirection: the block runs with stderr as it was
+                    if saved is not None:
+                        os.close(saved)
+                        saved = None
+            yield output
+        finally:
+            with signals_deferred():
+                if saved is not None:
+                    os.dup2(saved, 2)
+                    os.close(saved)
+                    try:
+                        sink.seek(0)
+                        output.text = sink.read().decode("utf-8", "replace")
+                    except OSError:
+                        pass
+                if own is not None:
+                    own.close()

@@ -8,8 +8,9 @@ A run writes, next to the model file NAME.keras:
     NAME.ckpt/             while running: the last epoch's model with optimizer state, the best
                            weights so far and the early-stopping state; removed when the run ends
 
-Every checkpoint file is written atomically after each epoch, so an interrupted run (Ctrl-C,
-kill) loses at most the epoch in flight, and `resume=True` continues it.
+After each epoch the checkpoint's files are written as one (`fileio.atomic_paths`: all renamed
+into place only once every one is written), so an interrupted run (Ctrl-C, kill, a full disk)
+loses at most the epoch in flight, never the last good checkpoint, and `resume=True` continues it.
 """
 
 from __future__ import annotations
@@ -27,7 +28,8 @@ import tf_keras as keras
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import atomic_path, check_writable, make_folder, write_json, write_text
+from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
+                               remove_tree, write_json, write_text)
 from fcnpose_tf.model import save_for_inference
 
 
@@ -70,7 +72,7 @@ def run_paths(model_path: Path) -> dict[str, Path]:
         "train_json": Path(f"{stem}_train.json"),
         "ckpt_dir": ckpt,
         "ckpt_model": ckpt / "last.keras",
-        "ckpt_best": ckpt / "best.h5",
+        "ckpt_best": ckpt / "best.npz",
         "ckpt_state": ckpt / "state.json",
     }
 
@@ -217,10 +219,9 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         lr = float(keras.backend.get_value(lr_var))
         row = {"epoch": epoch + 1, "loss": float(logs["loss"]), "val_loss": float(logs["val_loss"]), "lr": lr}
         self.state["history"].append(row)
-        if row["val_loss"] < self.state["best_val_loss"]:
+        improved = row["val_loss"] < self.state["best_val_loss"]
+        if improved:
             self.state.update(best_val_loss=row["val_loss"], best_epoch=epoch + 1, wait=0)
-            with atomic_path(self.paths["ckpt_best"], force=True) as tmp:
-                self.model.save_weights(tmp)
         else:
             self.state["wait"] += 1
             if self.lr_patience and self.state["wait"] % self.lr_patience == 0 and lr > MIN_LEARNING_RATE:
@@ -228,9 +229,13 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         self.state["epoch"] = epoch + 1
         self.state["seconds"] = self.seconds_before + time.perf_counter() - self.start
         self.state["out_of_time"] = self.max_seconds is not None and self.state["seconds"] >= self.max_seconds
-        with atomic_path(self.paths["ckpt_model"], force=True) as tmp:
-            self.model.save(tmp)
-        write_json(self.paths["ckpt_state"], self.state, force=True)  # written last: marks the epoch complete
+        files = [self.paths["ckpt_best"]] if improved else []
+        files += [self.paths["ckpt_model"], self.paths["ckpt_state"]]  # the state renamed last: the epoch is complete
+        with parts_of(self.paths["ckpt_dir"]), atomic_paths(files, force=True) as temporaries:
+            if improved:
+                _save_weights(self.model, temporaries[0])
+            self.model.save(temporaries[-2])
+            temporaries[-1].write_text(json_text(self.state))
         if self.state["wait"] >= self.patience:
             self.state["stopped_early"] = True
             self.model.stop_training = True
@@ -238,12 +243,30 @@ class _CheckpointAndStop(keras.callbacks.Callback):
             self.model.stop_training = True
 
 
+def _save_weights(model: keras.Model, path: Path) -> None:
+    """The model's weights as .npz: numpy writes them with Python I/O, where a full disk is an OSError (an .h5
+    written by HDF5 can kill the process instead, see `model.h5_bytes`)."""
+    with open(path, "wb") as fh:  # in layer order: a model's own order puts frozen layers last
+        np.savez(fh, *[weight for layer in model.layers for weight in layer.get_weights()])
+
+
+def _load_weights(model: keras.Model, path: Path) -> None:
+    """Weights written by `_save_weights` (or an .h5 of `save_weights`, in checkpoints of earlier versions)."""
+    if path.suffix == ".h5":
+        model.load_weights(path)
+        return
+    with np.load(path) as saved:
+        weights = iter(saved[f"arr_{i}"] for i in range(len(saved.files)))
+        for layer in model.layers:
+            layer.set_weights([next(weights) for _ in layer.get_weights()])
+
+
 def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np.ndarray, np.ndarray],
         model_path: str | Path, config: FitConfig, *, resume: bool = False, force: bool = False,
         metadata: dict[str, Any] | None = None, verbose: int = 1,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
-        identity: dict[str, Any] | None = None) -> FitResult:
+        identity: dict[str, Any] | None = None, resumable: bool = True) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -261,6 +284,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         inference_model: what to save as `model_path` from the trained model (tfmot's
             strip_pruning for a model wrapped for pruning); default: the model itself.
         identity: what a resumed checkpoint must match (`run_identity`); stored in the checkpoint.
+        resumable: whether the caller can resume (`train --resume`); if not (`compress`), a run that
+            fails or is interrupted removes its checkpoint instead of pointing at --resume.
     Returns:
         FitResult with the epochs run, the best epoch and its validation loss.
     Raises:
@@ -300,23 +325,46 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                       initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[*callbacks, callback],
                       verbose=verbose)
         except KeyboardInterrupt:
+            if not resumable:
+                remove_tree(paths["ckpt_dir"])
+                raise UserError(f"interrupted after {state['epoch']} complete epochs") from None
             raise UserError(f"interrupted after {state['epoch']} complete epochs; "
                             f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
+        except WriteError as exc:
+            raise _resumable(exc, paths, resumable) from None
 
-    if paths["ckpt_best"].is_file():
-        model.load_weights(paths["ckpt_best"])
-    with atomic_path(model_path, force=True) as tmp:
-        save_for_inference(inference_model(model) if inference_model else model, tmp)
-    write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight)
-    write_json(paths["train_json"], {
-        **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
-        "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
-        "stopped_early": state["stopped_early"], "stopped_by_time_budget": bool(state.get("out_of_time")),
-        "train_seconds": round(state["seconds"], 1),
-    }, force=True)
-    shutil.rmtree(paths["ckpt_dir"], ignore_errors=True)
+    best = paths["ckpt_best"] if paths["ckpt_best"].is_file() else paths["ckpt_dir"] / "best.h5"
+    if best.is_file():
+        _load_weights(model, best)
+    try:
+        with atomic_path(model_path, force=True) as tmp:
+            save_for_inference(inference_model(model) if inference_model else model, tmp)
+        write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight)
+        write_json(paths["train_json"], {
+            **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
+            "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
+            "stopped_early": state["stopped_early"], "stopped_by_time_budget": bool(state.get("out_of_time")),
+            "train_seconds": round(state["seconds"], 1),
+        }, force=True)
+    except WriteError as exc:
+        raise _resumable(exc, paths, resumable) from None
+    remove_tree(paths["ckpt_dir"])
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
                      state["stopped_early"], state["history"])
+
+
+def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> WriteError:
+    """A write that failed during a run (a full disk), with how to continue when a complete checkpoint is kept
+    (a run that cannot be resumed removes its checkpoint)."""
+    if not resumable:
+        remove_tree(paths["ckpt_dir"])
+        return exc
+    try:
+        epoch = json.loads(paths["ckpt_state"].read_text())["epoch"]
+    except (OSError, ValueError, KeyError):  # no complete checkpoint yet: the run starts over
+        return exc
+    return WriteError(f"{exc}; the checkpoint of epoch {epoch} is intact: free some space, "
+                      "then continue with --resume")
 
 
 def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model:

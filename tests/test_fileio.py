@@ -62,3 +62,54 @@ def test_a_folder_a_failed_block_created_is_removed_only_when_left_empty(tmp_pat
         with removed_if_left_empty(mine):
             raise RuntimeError("x")
     assert mine.is_dir()
+
+
+def test_files_written_as_one_replace_nothing_unless_every_one_is_written(tmp_path):
+    import errno
+    import os
+
+    from fcnpose_tf.fileio import WriteError, atomic_paths
+
+    old = {name: f"epoch 1 {name}" for name in ("best.npz", "last.keras", "state.json")}
+    for name, text in old.items():
+        (tmp_path / name).write_text(text)
+    with pytest.raises(WriteError, match=rf"^{tmp_path}: no space left on device$"):
+        with atomic_paths([tmp_path / name for name in old], force=True) as temporaries:
+            temporaries[0].write_text("epoch 2 best")
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # the second file finds the disk full
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == old  # no temporary left, no target touched
+    with atomic_paths([tmp_path / name for name in old], force=True) as temporaries:
+        for tmp, name in zip(temporaries, old):
+            tmp.write_text(f"epoch 2 {name}")
+    assert {p.name: p.read_text() for p in tmp_path.iterdir()} == {name: f"epoch 2 {name}" for name in old}
+
+
+def test_a_libraries_multi_line_os_error_is_reduced_to_its_reason():
+    from fcnpose_tf.fileio import os_error_reason
+
+    hdf5 = OSError("Can't close file (file write failed: time = Tue Nov 24 12:28:03 2026\n, filename = '/d/x.h5', "
+                   "file descriptor = 3, errno = 28, error message = 'No space left on device', buf = 0x55ed)")
+    assert os_error_reason(hdf5) == "no space left on device"
+    assert os_error_reason(OSError(28, "No space left on device")) == "no space left on device"
+    assert os_error_reason(OSError("first line\nsecond")) == "first line"
+
+
+def test_parts_of_one_output_are_kept_and_named_only_as_the_whole(tmp_path):
+    from fcnpose_tf.fileio import command_outputs, make_folder, parts_of, remove_tree
+
+    with command_outputs() as outputs:
+        with pytest.raises(RuntimeError):
+            with parts_of(tmp_path / "set"):
+                write_text(make_folder(tmp_path / "set" / "images") / "frame0.png", "a frame")
+                raise RuntimeError("the disk filled before the set's index was written")
+        assert outputs.completed == []
+        outputs.remove_created_folders()
+        assert list(tmp_path.iterdir()) == []
+        with parts_of(tmp_path / "set"):
+            write_text(make_folder(tmp_path / "set" / "images") / "frame0.png", "a frame")
+            write_text(tmp_path / "set" / "index.json", "{}")
+        assert outputs.completed == [tmp_path / "set"]
+        outputs.remove_created_folders()  # a later failure keeps the whole set, its subfolders too
+        assert (tmp_path / "set" / "images" / "frame0.png").is_file()
+        remove_tree(tmp_path / "set")  # e.g. a finished run's checkpoint: gone, and no longer named
+        assert outputs.completed == [] and list(tmp_path.iterdir()) == []

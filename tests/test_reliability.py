@@ -240,19 +240,38 @@ def test_a_full_disk_leaves_only_whole_records(tmp_path, suffix):
 
 
 @pytest.fixture
-def tiny_disk(tmp_path):
-    """A 200 KB tmpfs folder (root only), unmounted afterwards: a disk that fills up."""
+def small_disk(tmp_path):
+    """`small_disk(size)`: a tmpfs folder of `size` ("200k", "3m"; root only), unmounted afterwards."""
     import shutil
     import subprocess
 
     if os.geteuid() != 0 or shutil.which("mount") is None:
         pytest.skip("mounting a tmpfs needs root")
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(disk)]).returncode != 0:
-        pytest.skip("cannot mount a tmpfs here")
-    yield disk
-    subprocess.run(["umount", str(disk)], check=True)
+    mounted = []
+
+    def mount(size):
+        disk = tmp_path / f"disk{len(mounted) or ''}"
+        disk.mkdir()
+        if subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(disk)]).returncode != 0:
+            pytest.skip("cannot mount a tmpfs here")
+        mounted.append(disk)
+        return disk
+
+    yield mount
+    for disk in mounted:
+        subprocess.run(["umount", str(disk)], check=True)
+
+
+@pytest.fixture
+def tiny_disk(small_disk):
+    """A 200 KB tmpfs folder (root only), unmounted afterwards: a disk that fills up."""
+    return small_disk("200k")
+
+
+def _fill(disk, leave_kb):
+    """Fill `disk` with a file `filler` until only `leave_kb` KB are free."""
+    free = os.statvfs(disk).f_bavail * os.statvfs(disk).f_frsize
+    (disk / "filler").write_bytes(bytes(free - leave_kb * 1024))
 
 
 def _one_line_write_error(status, err, path_part):
@@ -262,11 +281,25 @@ def _one_line_write_error(status, err, path_part):
     assert "Traceback" not in err
 
 
-def test_synth_on_a_full_disk_leaves_nothing(tiny_disk, capsys):
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_synth_on_a_full_disk_leaves_nothing(tiny_disk, capsys, workers):
     status = main(["synth", "--out", str(tiny_disk / "ds"), "--n", "40", "--width", "160", "--height", "120",
-                   "--workers", "2", "--no-progress"])
-    _one_line_write_error(status, capsys.readouterr().err, str(tiny_disk / "ds"))
-    assert list(tiny_disk.iterdir()) == []
+                   "--workers", workers, "--no-progress"])
+    err = capsys.readouterr().err
+    _one_line_write_error(status, err, str(tiny_disk / "ds"))
+    assert "kept" not in err and list(tiny_disk.iterdir()) == []  # frames without their VIA file are no output
+
+
+def test_synth_preview_on_a_full_disk_keeps_the_whole_set_and_names_it(tiny_disk, capsys):
+    ds = tiny_disk / "ds"
+    status = main(["synth", "--out", str(ds), "--n", "3", "--width", "64", "--height", "64", "--workers", "2",
+                   "--no-progress", "--preview", str(tiny_disk / "preview.png")])
+    err = capsys.readouterr().err
+    _one_line_write_error(status, err, str(tiny_disk / "preview.png"))
+    assert err.rstrip().endswith(f"; kept the files completed before it: {ds}")
+    assert sorted(p.name for p in tiny_disk.iterdir()) == ["ds"]
+    names = [f["filename"] for f in json.loads((ds / "ur5_synth.json").read_text())["_via_img_metadata"].values()]
+    assert len(names) == 3 and all((ds / "images" / name).is_file() for name in names)  # the set is whole
 
 
 def test_data_inspect_preview_on_an_injected_full_disk(tmp_path, capsys, monkeypatch):
@@ -507,3 +540,163 @@ def test_json_report_on_a_full_disk_is_one_line_and_leaves_nothing(tiny_disk, tm
     status = main(args)
     _one_line_write_error(status, capsys.readouterr().err, str(tiny_disk / "report.json"))
     assert [p.name for p in tiny_disk.iterdir()] == ["filler"]
+
+
+# -- train and compress on a full disk: one line, no debris, the last good checkpoint kept -----------------
+
+def _frames_with_stored_splits(folder):
+    """A small VIA folder whose splits file is written before the disk fills (so no failure names it)."""
+    from test_train_evaluate import make_via_folder
+
+    from fcnpose_tf.data.dataset import load_dataset
+
+    data = make_via_folder(folder, n=6)
+    load_dataset(data)
+    return data
+
+
+TINY_TRAIN = ["--input-size", "64", "--init", "none", "--augment-copies", "0", "--threads", "1", "--quiet"]
+
+
+def _error_lines(proc):
+    assert "Traceback" not in proc.stderr, proc.stderr
+    return [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("free_kb", [None, 4])  # an empty 200 KB disk; 4 KB free, where HDF5 used to segfault
+def test_train_on_a_full_disk_is_one_line_and_leaves_nothing(tiny_disk, tmp_path, cli, free_kb):
+    data = _frames_with_stored_splits(tmp_path / "d")
+    if free_kb is not None:
+        _fill(tiny_disk, free_kb)
+    proc = cli("train", "--data", data, "--out", tiny_disk / "m.keras", "--epochs", "2", *TINY_TRAIN)
+    assert proc.returncode == 2, proc.stderr
+    assert _error_lines(proc) == [f"error: {tiny_disk / 'm.ckpt'}: no space left on device"]
+    assert [p.name for p in tiny_disk.iterdir()] == ([] if free_kb is None else ["filler"])
+
+
+@pytest.mark.slow
+def test_a_checkpoint_the_disk_cannot_take_keeps_the_last_good_one_and_resume_continues(small_disk, tmp_path, cli):
+    import subprocess
+
+    import numpy as np
+
+    data = _frames_with_stored_splits(tmp_path / "d")
+    disk = small_disk("3m")  # holds epoch 1's checkpoint (2.2 MB at 64x64), not epoch 2's beside it
+    train = ["train", "--data", data, "--out", disk / "m.keras", "--epochs", "3", *TINY_TRAIN]
+    proc = cli(*train)
+    assert proc.returncode == 2, proc.stderr
+    ckpt = disk / "m.ckpt"
+    assert _error_lines(proc) == [f"error: {ckpt}: no space left on device; the checkpoint of epoch 1 is intact: "
+                                  f"free some space, then continue with --resume; kept the files completed before "
+                                  f"it: {ckpt}"]
+    assert [p.name for p in disk.iterdir()] == ["m.ckpt"]
+    assert sorted(p.name for p in ckpt.iterdir()) == ["best.npz", "last.keras", "state.json"]  # no temporary
+    assert json.loads((ckpt / "state.json").read_text())["epoch"] == 1
+    assert len(np.load(ckpt / "best.npz").files) > 0
+
+    subprocess.run(["mount", "-o", "remount,size=20m", str(disk)], check=True)  # space freed
+    proc = cli(*train, "--resume")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((disk / "m_train.json").read_text())["epochs_run"] == 3
+    assert sorted(p.name for p in disk.iterdir()) == ["m.keras", "m_loss.csv", "m_loss.png", "m_train.json"]
+
+
+@pytest.fixture
+def tiny_base(tmp_path):
+    from fcnpose_tf.model import build_fcn_pose
+
+    base = tmp_path / "base.keras"
+    build_fcn_pose(input_size=64).save(base)
+    return base
+
+
+@pytest.mark.slow
+def test_compress_retraining_on_a_full_disk_is_one_line_and_leaves_nothing(small_disk, tmp_path, tiny_base, cli):
+    """compress cannot resume: its retraining checkpoint goes too, and no --resume is suggested."""
+    data = _frames_with_stored_splits(tmp_path / "d")
+    disk = small_disk("450k")  # holds the pruned model's first checkpoint (about 300 KB), not a second beside it
+    out = disk / "out"
+    proc = cli("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "3",
+               "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 2, proc.stderr
+    assert "Epoch 2/3" in proc.stdout  # the disk filled after a complete checkpoint
+    assert _error_lines(proc) == [f"error: {out / 'base_p70.ckpt'}: no space left on device"]
+    assert list(disk.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_compress_names_the_model_it_completed_before_the_disk_filled(tiny_disk, tmp_path, tiny_base, cli):
+    """Room for the pruned model (116 KB), not for the .tflite (37 KB) after it; LiteRT's INFO line stays quiet."""
+    data = _frames_with_stored_splits(tmp_path / "d")
+    out = tiny_disk / "out"
+    _fill(tiny_disk, 136)
+    proc = cli("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "0",
+               "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 2, proc.stderr
+    assert _error_lines(proc) == [f"error: {out / 'base_p70_fp16.tflite'}: no space left on device; kept the files "
+                                  f"completed before it: {out / 'base_p70.keras'}"]
+    assert "XNNPACK" not in proc.stderr, proc.stderr  # the export's check loads the .tflite quietly
+    assert [p.name for p in out.iterdir()] == ["base_p70.keras"]
+
+
+def _damaged_mp4(path):
+    """An mp4v video whose middle third has bytes flipped: it opens, and FFmpeg complains while decoding."""
+    import cv2
+    import numpy as np
+
+    from test_runtime import write_video
+
+    rng = np.random.default_rng(0)
+    frames = [cv2.GaussianBlur(rng.integers(0, 255, (96, 128, 3), dtype=np.uint8), (9, 9), 3) for _ in range(20)]
+    data = bytearray(write_video(path, frames).read_bytes())
+    for offset in range(len(data) // 3, 2 * len(data) // 3, 97):
+        data[offset] ^= 0xFF
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_ffmpeg_lines_while_decoding_a_damaged_video_become_one_warning(tmp_path, capfd):
+    from fcnpose_tf.runtime.sources import VideoSource
+
+    video = _damaged_mp4(tmp_path / "bad.mp4")
+    warnings = []
+    with VideoSource(video, warn=warnings.append) as source:
+        frames = list(source)
+    assert capfd.readouterr().err == ""  # nothing reached the terminal past us
+    assert source.damaged_frames >= 1 and len(source.decoder_messages) >= source.damaged_frames
+    summary = f"{video}: FFmpeg reported {len(source.decoder_messages)} decoding problems in {source.damaged_frames} "
+    assert warnings[0].startswith(summary) and warnings[0].endswith(f"the last: {source.decoder_messages[-1]}")
+    assert not any("@ 0x" in line for line in source.decoder_messages)  # FFmpeg's `[mpeg4 @ 0x...]` prefix dropped
+    assert len(frames) + len(warnings) >= 2  # every frame read or its end reported: no frame hidden silently
+
+
+@pytest.mark.parametrize("call", [1, 2])  # the redirection, the restoring
+def test_sigterm_while_stderr_is_switched_for_a_native_call_leaves_it_restored(monkeypatch, call):
+    """Captured around every video frame's read, descriptor 2 must come back even when a kill lands mid-switch."""
+    from fcnpose_tf import nativelog
+
+    real_dup2, calls = os.dup2, []
+
+    def dup2_then_sigterm(fd, fd2, *args):
+        result = real_dup2(fd, fd2, *args)
+        calls.append(fd2)
+        if len(calls) == call:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return result
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt("terminated (SIGTERM)")
+
+    before = os.fstat(2)
+    monkeypatch.setattr(nativelog.os, "dup2", dup2_then_sigterm)
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            with nativelog.native_stderr_captured():
+                pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        monkeypatch.undo()
+    after = os.fstat(2)
+    assert calls == [2, 2] and (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)

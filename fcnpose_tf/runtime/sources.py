@@ -14,11 +14,12 @@ import contextlib
 import os
 import re
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import IO, Callable, Iterator
 
 import cv2
 import numpy as np
@@ -108,15 +109,25 @@ class ImageSource(FrameSource):
 
 
 class VideoSource(FrameSource):
-    """A video file, decoded frame by frame; ends at the last readable frame and says if that was early."""
+    """A video file, decoded frame by frame; ends at the last readable frame and says if that was early.
+
+    What FFmpeg prints while decoding a damaged file (`[mpeg4 @ 0x...] ac-tex damaged at 2 5`, often
+    several lines per frame) is captured per frame and summarised in one warning when reading ends.
+    The file is decoded on one thread (DECODE_PARAMS): FFmpeg's own decoding threads print whenever
+    they get to a frame, outside the read being captured, and would compete with the model's threads.
+    """
+
+    DECODE_PARAMS = [cv2.CAP_PROP_N_THREADS, 1] if hasattr(cv2, "CAP_PROP_N_THREADS") else []  # OpenCV >= 4.6
 
     kind = "video"
 
     def __init__(self, path: Path, warn: Warn | None = None):
         super().__init__(str(path), warn)
         self.path = path
+        self.decoder_messages: list[str] = []  # FFmpeg's lines while frames were read
+        self.damaged_frames = 0  # reads during which FFmpeg printed something
         with quiet_opencv() as native:
-            self._cap = cv2.VideoCapture(str(path))
+            self._cap = cv2.VideoCapture(str(path), cv2.CAP_ANY, self.DECODE_PARAMS)
         if not self._cap.isOpened():
             self._cap.release()
             detail = f": {native.last_line()}" if native.last_line() else ""
@@ -125,21 +136,37 @@ class VideoSource(FrameSource):
         self.fps = float(fps) if fps and 0 < fps < 1000 else None
         count = self._cap.get(cv2.CAP_PROP_FRAME_COUNT)
         self.frame_count = int(count) if count and count > 0 else None
+        try:
+            self._native_sink: IO[bytes] | None = tempfile.TemporaryFile()  # reused for every frame's capture
+        except OSError:
+            self._native_sink = None
 
     def __iter__(self) -> Iterator[Frame]:
         self.end_reason = "running"
+        self.decoder_messages, self.damaged_frames = [], 0
         index = 0
-        while True:
-            try:
-                ok, image = self._cap.read()
-            except cv2.error as exc:  # a decoder failure on a damaged file
-                self.warn(f"{self.path}: frame {index} cannot be decoded ({' '.join(str(exc).split())[:120]})")
-                ok, image = False, None
-            if not ok or image is None:
-                break
-            media = self._cap.get(cv2.CAP_PROP_POS_MSEC)
-            yield Frame(index, _as_bgr(image), time.time(), self.name, media / 1e3 if media >= 0 else None)
-            index += 1
+        try:
+            while True:
+                with quiet_opencv(sink=self._native_sink) as native:
+                    try:
+                        ok, image = self._cap.read()
+                    except cv2.error as exc:  # a decoder failure on a damaged file
+                        ok, image, failure = False, None, " ".join(str(exc).split())[:120]
+                    else:
+                        failure = None
+                lines = native.lines()
+                if lines:
+                    self.decoder_messages += lines
+                    self.damaged_frames += 1
+                if failure is not None:
+                    self.warn(f"{self.path}: frame {index} cannot be decoded ({failure})")
+                if not ok or image is None:
+                    break
+                media = self._cap.get(cv2.CAP_PROP_POS_MSEC)
+                yield Frame(index, _as_bgr(image), time.time(), self.name, media / 1e3 if media >= 0 else None)
+                index += 1
+        finally:  # also when the reader stops early (--max-frames, Ctrl-C)
+            self._summarise_decoder_messages()
         if self.frame_count is not None and index < self.frame_count:
             self.end_reason = (f"video ended after {index} of {self.frame_count} frames "
                                "(truncated file or unreadable frame)")
@@ -147,8 +174,19 @@ class VideoSource(FrameSource):
         else:
             self.end_reason = f"end of video ({index} frames)"
 
+    def _summarise_decoder_messages(self) -> None:
+        """One warning for what FFmpeg printed while decoding (nothing if it printed nothing)."""
+        if self.decoder_messages:
+            count = len(self.decoder_messages)
+            self.warn(f"{self.path}: FFmpeg reported {count} decoding problem{'s' if count != 1 else ''} in "
+                      f"{self.damaged_frames} frame{'s' if self.damaged_frames != 1 else ''} (damaged file?); "
+                      f"the last: {self.decoder_messages[-1]}")
+
     def close(self) -> None:
         self._cap.release()
+        if self._native_sink is not None:
+            self._native_sink.close()
+            self._native_sink = None
 
     def describe(self) -> str:
         n = f"{self.frame_count} frames" if self.frame_count else "unknown length"
@@ -263,15 +301,16 @@ def _as_bgr(image: np.ndarray) -> np.ndarray:
 
 
 @contextlib.contextmanager
-def quiet_opencv(native: bool = True) -> Iterator[NativeOutput]:
+def quiet_opencv(native: bool = True, sink: IO[bytes] | None = None) -> Iterator[NativeOutput]:
     """Silence OpenCV's own warnings (e.g. `can't open camera by index`) and, with `native`, what FFmpeg prints.
 
     We report failures ourselves, in one line; FFmpeg's text is in the yielded NativeOutput for an
-    error to quote. `native=False` (OpenCV's log level only) is cheap enough for every frame.
+    error to quote or a summary to count. `native=False` (OpenCV's log level only) is the cheapest;
+    a reused `sink` (see `native_stderr_captured`) makes the capture cheap enough for every frame.
     """
     logging = getattr(getattr(cv2, "utils", None), "logging", None)
     with contextlib.ExitStack() as stack:
-        output = stack.enter_context(native_stderr_captured()) if native else NativeOutput()
+        output = stack.enter_context(native_stderr_captured(sink)) if native else NativeOutput()
         if logging is not None:
             previous = logging.getLogLevel()
             logging.setLogLevel(logging.LOG_LEVEL_SILENT)

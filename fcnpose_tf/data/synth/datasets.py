@@ -138,6 +138,7 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
             [0, 1], or an output folder that is not empty (without force), not a folder, or not writable.
             Every option is checked before anything in out_dir is touched.
     """
+    from fcnpose_tf import fileio
     from fcnpose_tf.data.splits import splits_path
     from fcnpose_tf.data.via import ViaFrame, write_via_project
 
@@ -168,7 +169,10 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
              for i in range(n)]
     workers = min(workers, n)
     records: list[FrameRecord] = []
-    with tqdm(total=n, unit="frame", desc="synth", disable=not progress, dynamic_ncols=True) as bar:
+    # the frames are parts of the set: a failure before its VIA file is written keeps none of them as an
+    # output of its own, whether a worker process or this one wrote it
+    with fileio.parts_of(out_dir), tqdm(total=n, unit="frame", desc="synth", disable=not progress,
+                                        dynamic_ncols=True) as bar:
         if workers == 1:
             for task in tasks:
                 records.append(_render_and_write(task))
@@ -181,9 +185,9 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
                 for record in pool.imap_unordered(_render_and_write, tasks, chunksize=4):
                     records.append(record)
                     bar.update()
-    records.sort(key=lambda r: r.index)
-    frames = [ViaFrame(r.filename, width, height, r.keypoints, size=r.size) for r in records]
-    via_path = write_via_project(out_dir / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)
+        records.sort(key=lambda r: r.index)
+        frames = [ViaFrame(r.filename, width, height, r.keypoints, size=r.size) for r in records]
+        via_path = write_via_project(out_dir / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)
     return SynthReport(Path(via_path), records, time.perf_counter() - start, workers, int(width), int(height))
 
 
