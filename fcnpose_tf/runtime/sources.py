@@ -195,6 +195,9 @@ class LiveSource(FrameSource):
     def _release(self) -> None:
         """Close the device (called once the grab thread has stopped or given up)."""
 
+    def _interrupt(self) -> None:
+        """Make a read that is waiting for a frame return (called by close() before it joins the thread)."""
+
     def _start_grabbing(self) -> None:
         self._thread.start()
 
@@ -204,6 +207,8 @@ class LiveSource(FrameSource):
             try:
                 image = self._read()
             except CaptureError as exc:
+                if self._stop.is_set():  # the read was cut short by close()
+                    break
                 with self._cond:
                     self._failure = str(exc)
                     self._cond.notify_all()
@@ -256,6 +261,7 @@ class LiveSource(FrameSource):
     def close(self) -> None:
         self._stop.set()
         if self._thread.is_alive():
+            self._interrupt()
             self._thread.join(timeout=2.0)
         self._release()
 
@@ -407,6 +413,12 @@ class Picamera2Source(LiveSource):
             return self._camera.capture_array("main")
         except Exception as exc:  # noqa: BLE001 - whatever libcamera raised: the camera is gone
             raise CaptureError(f"{self.name} failed: {_one_line(exc)}") from None
+
+    def _interrupt(self) -> None:
+        try:
+            self._camera.stop()  # Picamera2 cancels the capture a stopped camera would never complete
+        except Exception:  # noqa: BLE001 - _release tries again and closes
+            pass
 
     def _release(self) -> None:
         for step in (self._camera.stop, self._camera.close):  # both safe to call twice in Picamera2
