@@ -153,6 +153,18 @@ def test_numpy_mismatch_is_detected_and_explained(standin, monkeypatch, capfd, f
     assert "compiled using NumPy 1.x" not in capfd.readouterr().err  # numpy's own essay kept off the terminal
 
 
+def test_a_numpy2_build_in_a_numpy1_venv_is_explained(standin, monkeypatch):
+    import numpy
+
+    for name in ("picamera2", "simplejpeg"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    monkeypatch.setattr(numpy, "__version__", "1.26.4")  # as in a venv made with the pi-camera extra
+    monkeypatch.setenv("SIMPLEJPEG_STANDIN_BUILT_FOR", "numpy2")
+    with pytest.raises(UserError, match=r"cannot be imported with numpy 1\.26\.4 .* `pip uninstall simplejpeg "
+                                        r"picamera2` in the venv"):
+        rsources.open_source("picamera2")
+
+
 def test_run_cli_on_the_camera_module(capsys, tmp_path, standin, model_path):
     out = tmp_path / "k.jsonl"
     code, stdout, err = _run(capsys, "run", model_path, "--source", "picamera2", "--camera-size", "320x240",

@@ -6,7 +6,9 @@ numpy 2 its import fails as the real one's does (raspberrypi/picamera2 issues 10
 by default with Cython's `ValueError: numpy.dtype size changed ...`; with
 SIMPLEJPEG_STANDIN_FAILURE=import_array the way an extension calling numpy's import_array() fails
 (numpy writes its explanation to stderr, then `ImportError: numpy.core.multiarray failed to import`).
-Unset, it imports everywhere (a simplejpeg built for the numpy in use).
+With SIMPLEJPEG_STANDIN_BUILT_FOR=numpy2 it is a pip wheel built for numpy 2 that a numpy 1.x venv
+cannot load (numpy 1.x's words: "module compiled against ABI version 0x2000000 but this version of
+numpy is 0x1000009", then the ImportError). Unset, it imports everywhere (built for the numpy in use).
 """
 
 import os
@@ -23,6 +25,11 @@ if os.environ.get("SIMPLEJPEG_STANDIN_BUILT_FOR") == "numpy1" and int(numpy.__ve
         raise ImportError("numpy.core.multiarray failed to import")
     raise ValueError("numpy.dtype size changed, may indicate binary incompatibility. Expected 96 from C header, "
                      "got 88 from PyObject")
+
+if os.environ.get("SIMPLEJPEG_STANDIN_BUILT_FOR") == "numpy2" and int(numpy.__version__.split(".")[0]) < 2:
+    sys.stderr.write("RuntimeError: module compiled against ABI version 0x2000000 but this version of numpy is "
+                     "0x1000009\n")
+    raise ImportError("numpy.core.multiarray failed to import")
 
 
 def encode_jpeg(*args, **kwargs):
