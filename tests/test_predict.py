@@ -156,16 +156,18 @@ def test_user_errors(capsys, tmp_path, monkeypatch, model_path, quadrant_images,
     assert not (tmp_path / "o.json").exists()
 
 
-def test_missing_model_and_camera_sources(capsys, tmp_path, model_path, quadrant_images, monkeypatch):
+def test_missing_model_and_cameras_refused(capsys, tmp_path, model_path, quadrant_images, monkeypatch):
     code, _, err = _run(capsys, "predict", tmp_path / "nope.tflite", "--source", quadrant_images,
                         "--via", tmp_path / "o.json")
     _one_line_error(code, err, "nope.tflite: model file not found")
-    monkeypatch.syspath_prepend(str(Path(__file__).parent / "standins"))
-    for name in ("picamera2", "simplejpeg"):
-        monkeypatch.delitem(sys.modules, name, raising=False)
-    code, _, err = _run(capsys, "predict", model_path, "--source", "picamera2", "--via", tmp_path / "o.json")
-    _one_line_error(code, err, "predict reads image folders, images and videos; for a camera use `fcnpose-tf run")
-    assert not (tmp_path / "o.json").exists()
+    opened = []
+    monkeypatch.setattr("fcnpose_tf.runtime.sources.cv2.VideoCapture", lambda *a: opened.append(a))
+    monkeypatch.setattr("fcnpose_tf.runtime.sources.import_picamera2", lambda: opened.append("picamera2"))
+    for spec in ("0", "/dev/video0", "rtsp://127.0.0.1:8554/cam", "picamera2"):
+        code, _, err = _run(capsys, "predict", model_path, "--source", spec, "--via", tmp_path / "o.json")
+        _one_line_error(code, err, f"--source {spec}: predict reads image folders, images and videos; for a "
+                                   "camera use `fcnpose-tf run")
+    assert opened == [] and not (tmp_path / "o.json").exists()  # refused before anything was opened
 
 
 def test_predict_with_a_tflite_needs_no_tensorflow(no_tf_env, model_path, quadrant_images, tmp_path):

@@ -65,12 +65,10 @@ def run(args: argparse.Namespace) -> int:
 
         import_tensorflow_quietly()
     predictor = open_model(model_path, args.threads, args.threshold)
-    source = open_source(args.source)
+    source = open_source(args.source, refuse_cameras="predict reads image folders, images and videos; for a "
+                         "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
     collected = None
     try:
-        if source.live:
-            raise UserError(f"--source {args.source}: predict reads image folders, images and videos; for a "
-                            "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
         collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence)
         print(f"{predictor.describe()}; {source.describe()}", file=sys.stderr, flush=True)
         summary = run_stream(predictor, source, max_frames=args.max_frames, progress=ProgressLine(),

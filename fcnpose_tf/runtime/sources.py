@@ -474,20 +474,26 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | None = None,
-                warn: Warn | None = None) -> FrameSource:
+                warn: Warn | None = None, refuse_cameras: str | None = None) -> FrameSource:
     """Open a frame source from a command-line spec.
 
     `0`, `1`, ... -> camera index; `/dev/videoN` -> that camera; `rtsp://...`/`http://...` -> a stream
     (read like a camera); `picamera2` / `picamera2:N` -> the Raspberry Pi camera module through
     Picamera2; an existing folder -> its images; an existing image file -> that image; any other
-    existing file -> a video.
+    existing file -> a video. With `refuse_cameras` (the reason, for the error) only files are
+    accepted: a camera spec is refused before anything is opened.
 
     Raises:
-        UserError: nothing at that path, a camera that cannot be opened, an unreadable video or image,
-            a folder without images, picamera2 missing or unimportable.
+        UserError: nothing at that path, a camera that cannot be opened (or is not accepted), an
+            unreadable video or image, a folder without images, picamera2 missing or unimportable.
     """
     text = os.fspath(spec) if not isinstance(spec, int) else str(spec)
-    if text.startswith("picamera2"):
+    picamera2 = text.startswith("picamera2")
+    if picamera2 or isinstance(spec, int) or text.strip().isdigit() or text.startswith("/dev/") \
+            or re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text):
+        if refuse_cameras:
+            raise UserError(f"--source {text}: {refuse_cameras}")
+    if picamera2:
         match = PICAMERA2_SPEC.fullmatch(text)
         if match is None:
             raise UserError(f"--source {text}: expected picamera2 or picamera2:N (N = camera number, e.g. picamera2:1)")
@@ -507,8 +513,8 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
             raise UserError(f"{path}: folder has no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
         return ImageSource(images, str(path), warn)
     if not path.exists():
-        raise UserError(f"{path}: no such file or folder (expected a camera index, /dev/videoN, "
-                        "a video file, an image folder or an image)")
+        expected = "a video file" if refuse_cameras else "a camera index, /dev/videoN, picamera2, a video file"
+        raise UserError(f"{path}: no such file or folder (expected {expected}, an image folder or an image)")
     if path.suffix.lower() in IMAGE_SUFFIXES:
         if cv2.imread(str(path), cv2.IMREAD_COLOR) is None:
             raise UserError(f"{path}: cannot be read as an image")
