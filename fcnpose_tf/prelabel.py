@@ -80,7 +80,14 @@ class ViaPredictions:
                                 "replace them, or write the VIA file to another folder")
 
     def add(self, frame: Frame, prediction: Prediction) -> None:
-        """Add one frame: its found keypoints (confident enough) as points; save the frame if it has no file."""
+        """Add one frame: its found keypoints (confident enough) as points; save the frame if it has no file.
+
+        Ctrl-C or SIGTERM during the call takes effect after it, so a saved frame is always in the project.
+        """
+        with fileio.signals_deferred():
+            self._add(frame, prediction)
+
+    def _add(self, frame: Frame, prediction: Prediction) -> None:
         if self.reference_files:
             image_path = Path(frame.name)
             folder = image_path.parent

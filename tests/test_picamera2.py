@@ -214,8 +214,9 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
                                                                          sig, reason):
     out = tmp_path / "k.jsonl"
     proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "run", str(model_path), "--source", "picamera2",
-                             "--threads", "1", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, env=no_tf_camera_env, cwd=tmp_path)
+                             "--threads", "1", "--out", str(out), "--via", "hard/frames.json"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=no_tf_camera_env,
+                            cwd=tmp_path)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None and not (out.exists() and out.stat().st_size > 0):
         time.sleep(0.02)
@@ -229,6 +230,11 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
     assert "Traceback" not in stderr
     log = (tmp_path / "camera.log").read_text().splitlines()
     assert log[0] == "open 0" and log[1] == "configure RGB888 640x480" and log[-2:] == ["stop", "close"]
+    from fcnpose_tf.data.via import read_via
+
+    saved = sorted((tmp_path / "hard" / "images").glob("*.png"))
+    via_frames = read_via(tmp_path / "hard" / "frames.json", min_visible=0).frames
+    assert len(via_frames) == len(saved) == len(lines) > 0  # every saved frame is in the project and the records
 
 
 def test_numpy_mismatch_is_one_line_from_the_command(tmp_path, model_path, no_tf_camera_env):
