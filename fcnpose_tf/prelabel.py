@@ -82,12 +82,8 @@ class ViaPredictions:
     def add(self, frame: Frame, prediction: Prediction) -> None:
         """Add one frame: its found keypoints (confident enough) as points; save the frame if it has no file.
 
-        Ctrl-C or SIGTERM during the call takes effect after it, so a saved frame is always in the project.
+        `run_stream` calls it with Ctrl-C and SIGTERM held back, so a saved frame is always in the project.
         """
-        with fileio.signals_deferred():
-            self._add(frame, prediction)
-
-    def _add(self, frame: Frame, prediction: Prediction) -> None:
         if self.reference_files:
             image_path = Path(frame.name)
             folder = image_path.parent

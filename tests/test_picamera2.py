@@ -223,7 +223,7 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
     assert proc.poll() is None and out.stat().st_size > 0, proc.communicate()[1]
     proc.send_signal(sig)
     stdout, stderr = proc.communicate(timeout=120)
-    assert proc.returncode == 0, stderr
+    assert proc.returncode == 0, stdout + stderr
     assert f"stopped: {reason}" in stdout and "Latency: capture to keypoints written" in stdout
     lines = out.read_text().splitlines()
     assert f"Wrote:   {out} ({len(lines)} records)" in stdout

@@ -3,7 +3,9 @@
 Ends cleanly at the end of the source, after `max_frames`, on `q`/Esc in the
 window, or on Ctrl-C / SIGTERM (handled by the caller turning them into
 KeyboardInterrupt): the frames processed so far are written, the video is
-finalised and the summary reports why the run stopped.
+finalised and the summary reports why the run stopped. A signal never splits a
+frame: its records, the `on_frame` hook (a VIA project's entry) and its count
+are done with Ctrl-C and SIGTERM held back (`fileio.signals_deferred`).
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Callable, Sequence, TextIO
 import cv2
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import signals_deferred
 from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction
 from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
 from fcnpose_tf.runtime.sources import Frame, FrameSource
@@ -150,10 +153,14 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
                 continue
             summary.latency.add(prediction.times)
             rolling.add(prediction.times.total_ms)
-            for writer in writers:
-                writer.write(frame, prediction)
-            if source.live:
-                summary.capture_to_keypoints_ms.append((time.time() - frame.timestamp) * 1e3)
+            with signals_deferred():  # Ctrl-C/SIGTERM take effect after a frame's records, hook and count
+                for writer in writers:
+                    writer.write(frame, prediction)
+                if source.live:
+                    summary.capture_to_keypoints_ms.append((time.time() - frame.timestamp) * 1e3)
+                if on_frame is not None:
+                    on_frame(frame, prediction)
+                summary.frames += 1
             if video is not None or show:
                 overlay = draw_overlay(frame.image, prediction, model.schema, rolling.fps)
                 if video is not None:
@@ -163,9 +170,6 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
                     if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
                         summary.end_reason = "stopped from the window (q/Esc)"
                         break
-            if on_frame is not None:
-                on_frame(frame, prediction)
-            summary.frames += 1
             if progress is not None:
                 elapsed = time.perf_counter() - start
                 progress.update(summary.frames, rolling.fps, summary.frames / elapsed if elapsed > 0 else 0.0,
