@@ -31,13 +31,16 @@ FRAMES_FOLDER = "images"
 """Where frames without an image file of their own are saved, beside the VIA file (read_via looks there)."""
 
 
-def check_via_output(via_path: str | os.PathLike, force: bool = False, min_confidence: float = 0.0) -> Path:
-    """The VIA output checked before any work: a .json path that may be written, a usable --min-confidence."""
+def check_via_output(via_path: str | os.PathLike, force: bool = False, min_confidence: float = 0.0,
+                     every: int = 1) -> Path:
+    """The VIA output checked before any work: a .json path that may be written, usable options."""
     via_path = Path(via_path)
     if via_path.suffix.lower() != ".json":
         raise UserError(f"{via_path}: a VIA project is a .json file")
     if not min_confidence >= 0:
         raise UserError(f"--min-confidence must be at least 0, got {min_confidence}")
+    if every < 1:
+        raise UserError(f"--via-every must be at least 1, got {every}")
     return fileio.check_writable(via_path, force)
 
 
@@ -50,14 +53,17 @@ class ViaPredictions:
         source: the opened source; image sources are referenced, the others' frames saved as PNGs.
         force: replace an existing project and existing frame PNGs of the same names.
         min_confidence: keypoints with a lower confidence get no point (counted).
+        every: keep one frame in this many of those offered to `add` (the first, then every Nth).
     Raises:
         UserError: a path that is not .json, an existing output without `force`, an image source
             whose images are not all in one folder.
     """
 
     def __init__(self, via_path: str | os.PathLike, schema: KeypointSchema, source: FrameSource,
-                 force: bool = False, min_confidence: float = 0.0):
-        self.via_path = check_via_output(via_path, force, min_confidence)
+                 force: bool = False, min_confidence: float = 0.0, every: int = 1):
+        self.via_path = check_via_output(via_path, force, min_confidence, every)
+        self.every = every
+        self.offered = 0
         self.schema = schema
         self.force = force
         self.min_confidence = float(min_confidence)
@@ -84,6 +90,9 @@ class ViaPredictions:
 
         `run_stream` calls it with Ctrl-C and SIGTERM held back, so a saved frame is always in the project.
         """
+        self.offered += 1
+        if (self.offered - 1) % self.every:
+            return
         if self.reference_files:
             image_path = Path(frame.name)
             folder = image_path.parent

@@ -168,7 +168,8 @@ def test_a_numpy2_build_in_a_numpy1_venv_is_explained(standin, monkeypatch):
 def test_run_cli_on_the_camera_module(capsys, tmp_path, standin, model_path):
     out = tmp_path / "k.jsonl"
     code, stdout, err = _run(capsys, "run", model_path, "--source", "picamera2", "--camera-size", "320x240",
-                             "--out", out, "--max-frames", 6, "--threads", 1, "--via", tmp_path / "via" / "cam.json")
+                             "--out", out, "--max-frames", 6, "--threads", 1, "--via", tmp_path / "via" / "cam.json",
+                             "--via-every", 2)
     assert code == 0, err
     records = [json.loads(line) for line in out.read_text().splitlines()]
     assert len(records) == 6
@@ -182,7 +183,8 @@ def test_run_cli_on_the_camera_module(capsys, tmp_path, standin, model_path):
     assert "Source:  picamera2 camera 0 (320x240 RGB888 = BGR bytes); stopped: reached --max-frames 6" in stdout
     assert "Latency: capture to keypoints written" in stdout and "p95" in stdout
     saved = sorted((tmp_path / "via" / "images").glob("picamera2-camera-0_*.png"))
-    assert len(saved) == 6 and "cam.json: 6 frames" in stdout
+    assert [int(p.stem[-6:]) for p in saved] == [r["frame"] for r in records[::2]]  # processed frames 1, 3, 5
+    assert "cam.json: 3 frames" in stdout
     assert _events(standin)[-2:] == ["stop", "close"]
 
 

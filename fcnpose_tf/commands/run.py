@@ -25,7 +25,7 @@ EXAMPLES = """\
   fcnpose-tf run model.tflite --source frame.png --out k.jsonl --force
   fcnpose-tf run model.tflite --source picamera2 --out k.jsonl         # Pi camera module (Picamera2)
   fcnpose-tf run model.tflite --source picamera2:1 --camera-size 1280x720 --out k.jsonl
-  fcnpose-tf run model.tflite --source 0 --max-frames 200 --via hard/frames.json  # frames to correct in VIA
+  fcnpose-tf run model.tflite --source 0 --via hard/frames.json --via-every 30  # 1 frame/s to correct in VIA
 """
 
 
@@ -51,6 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--via", type=Path, metavar="OUT.json",
                         help="also write a VIA project of the processed frames (saved as PNGs in images/ "
                              "beside it, image files referenced) with their keypoints, to correct in VIA")
+    parser.add_argument("--via-every", type=int, default=1, metavar="N",
+                        help="with --via: keep every Nth processed frame (a camera's frames add up fast)")
     add_backend_argument(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
 
@@ -90,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"{args.save_video}: given both as --out and --save-video")
         check_writable(args.save_video, args.force)
     if args.via is not None:
-        check_via_output(args.via, args.force)
+        check_via_output(args.via, args.force, every=args.via_every)
     camera_size = parse_size(args.camera_size) if args.camera_size else None
     if args.show:
         check_display()
@@ -114,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         if args.save_video is not None:
             video = VideoSink(args.save_video, source.fps, args.force)
         if args.via is not None:
-            collected = ViaPredictions(args.via, model.schema, source, args.force)
+            collected = ViaPredictions(args.via, model.schema, source, args.force, every=args.via_every)
         print(f"{model.describe()}; {source.describe()}", file=sys.stderr, flush=True)
         signal.signal(signal.SIGTERM, on_term)
         summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine(),
