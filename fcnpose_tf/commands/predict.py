@@ -80,8 +80,9 @@ def run(args: argparse.Namespace) -> int:
         raise
     finally:
         source.close()
+    if written is not None:
+        summary.outputs.append(f"{written}: {collected.describe()}")
     print(summary.report(predictor, source))
     if written is None:
         raise UserError(f"{args.source}: no frame was processed ({summary.end_reason}); no VIA file written")
-    print(f"VIA:     {written}: {collected.describe()}")
     return 0
