@@ -118,9 +118,11 @@ def test_cameras_that_cannot_be_opened(standin):
     with rsources.open_source("picamera2:0"):
         with pytest.raises(UserError, match="picamera2 camera 0: cannot be opened"):  # held by the first
             rsources.open_source("picamera2")
-    for spec in ("picamera2:x", "picamera2:", "picamera2-1"):
+    for spec in ("picamera2:x", "picamera2:", "picamera2:-1"):
         with pytest.raises(UserError, match="expected picamera2 or picamera2:N"):
             rsources.open_source(spec)
+    with pytest.raises(UserError, match="picamera2-1: no such file or folder"):  # other names are paths
+        rsources.open_source("picamera2-1")
 
 
 def test_missing_picamera2_names_the_install(monkeypatch):

@@ -488,19 +488,18 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
             unreadable video or image, a folder without images, picamera2 missing or unimportable.
     """
     text = os.fspath(spec) if not isinstance(spec, int) else str(spec)
-    picamera2 = text.startswith("picamera2")
-    if picamera2 or isinstance(spec, int) or text.strip().isdigit() or text.startswith("/dev/") \
-            or re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text):
-        if refuse_cameras:
-            raise UserError(f"--source {text}: {refuse_cameras}")
+    picamera2 = PICAMERA2_SPEC.fullmatch(text)
+    index = isinstance(spec, int) or text.strip().isdigit()
+    url = re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text) is not None
+    if refuse_cameras and (picamera2 or text.startswith("picamera2:") or index or url or text.startswith("/dev/")):
+        raise UserError(f"--source {text}: {refuse_cameras}")
     if picamera2:
-        match = PICAMERA2_SPEC.fullmatch(text)
-        if match is None:
-            raise UserError(f"--source {text}: expected picamera2 or picamera2:N (N = camera number, e.g. picamera2:1)")
-        return Picamera2Source(int(match.group(1) or 0), camera_size, warn)
-    if isinstance(spec, int) or text.strip().isdigit():
+        return Picamera2Source(int(picamera2.group(1) or 0), camera_size, warn)
+    if text.startswith("picamera2:"):
+        raise UserError(f"--source {text}: expected picamera2 or picamera2:N (N = camera number, e.g. picamera2:1)")
+    if index:
         return CameraSource(int(text), camera_size, warn)
-    if re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text):
+    if url:
         return CameraSource(text, camera_size, warn)
     path = Path(text).expanduser()
     if text.startswith("/dev/"):
