@@ -21,7 +21,7 @@ from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.metrics import keypoint_report
 from fcnpose_tf.preprocess import preprocess_frame
 from fcnpose_tf.records import file_sha256, training_record
-from fcnpose_tf.runtime.estimator import KeypointPredictor
+from fcnpose_tf.runtime.estimator import KeypointPredictor, schema_for_maps
 from fcnpose_tf.runtime.timing import LatencyLog, fps_from_ms
 
 MIN_TIMED_FRAMES = 50
@@ -77,6 +77,7 @@ class KerasKeypointModel(KeypointPredictor):
         self.num_threads = num_threads
         self.input_size = int(shape[1])
         self.num_maps = int(model.output_shape[-1])
+        self.schema = schema_for_maps(self.num_maps)
         self._x = np.empty((1, self.input_size, self.input_size, 3), np.float32)
         self._maps: np.ndarray | None = None
 

@@ -134,6 +134,9 @@ def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
     (["--source", "{video}", "--threshold", "1.5"], "threshold must be between 0 and 1"),
     (["--source", "{video}", "--camera-size", "big"], "expected WIDTHxHEIGHT"),
     (["--source", "{video}", "--show"], "--show needs OpenCV with GUI support"),
+    (["--source", "{video}", "--out", "k.jsonl", "--via", "v.txt"], "v.txt: a VIA project is a .json file"),
+    (["--source", "{video}", "--out", "k.jsonl", "--via", "v.json", "--via-every", "0"],
+     "--via-every must be at least 1"),
 ])
 def test_run_user_errors(capsys, tmp_path, monkeypatch, model_path, video, args, message):
     monkeypatch.chdir(tmp_path)

@@ -574,6 +574,25 @@ def test_camera_that_never_opens(monkeypatch):
         rsources.CameraSource("/dev/video0")
 
 
+def test_camera_runs_report_capture_to_keypoints_latency(monkeypatch, structured, clip):
+    monkeypatch.setattr(rsources.cv2, "VideoCapture", lambda device: FakeCapture(device, period=0.01))
+    model = KeypointModel(structured[1], 1)
+    src = open_source("0")
+    try:
+        summary = run_stream(model, src, max_frames=5)
+    finally:
+        src.close()
+    latency = np.array(summary.capture_to_keypoints_ms)
+    model_ms = summary.latency.values("end_to_end")
+    assert len(latency) == 5 and (latency < 5000).all()
+    assert (latency >= model_ms - 1.0).all()  # from capture: at least the frame's own model time
+    assert "Latency: capture to keypoints written" in summary.report(model, src)
+    video = open_source(clip)  # a file's timestamps are read times, not capture times: no such line
+    summary = run_stream(model, video, max_frames=3)
+    video.close()
+    assert len(summary.capture_to_keypoints_ms) == 0 and "Latency:" not in summary.report(model, video)
+
+
 # --------------------------------------------------------------------------------------------------
 # sinks and the loop
 # --------------------------------------------------------------------------------------------------
@@ -810,7 +829,8 @@ def test_runtime_modules_import_without_tensorflow(no_tf_env):
                 raise SystemExit(f"{blocked} should be blocked")
         import fcnpose_tf.runtime as rt
         names = [m.name for m in pkgutil.iter_modules(rt.__path__, "fcnpose_tf.runtime.")]
-        for name in names + ["fcnpose_tf.commands.run", "fcnpose_tf.commands.bench", "fcnpose_tf.cli"]:
+        for name in names + ["fcnpose_tf.commands.run", "fcnpose_tf.commands.bench", "fcnpose_tf.commands.predict",
+                             "fcnpose_tf.prelabel", "fcnpose_tf.evaluate", "fcnpose_tf.cli"]:
             importlib.import_module(name)
         for attr in rt.__all__:
             getattr(rt, attr)

@@ -3,8 +3,12 @@
 Needs only numpy, OpenCV and the LiteRT interpreter (`pip install 'fcnpose-tf[pi]'`).
 Each frame's keypoints are written and flushed at once (--out .jsonl or .csv),
 optionally drawn on a saved video (--save-video) or a window (--show), with a
-rolling FPS on the terminal and a summary of per-stage latencies at the end.
-Stop a camera run with Ctrl-C (or q/Esc in the window); what was processed is kept.
+rolling FPS on the terminal and a summary of per-stage latencies at the end (for a
+camera, also the latency from capture to keypoints written). --via saves the frames
+with their keypoints as a VIA project, to correct and train on (docs/data.md).
+The Raspberry Pi camera module is read through Picamera2 (--source picamera2; see
+docs/raspberry-pi.md for the install). Stop a camera run with Ctrl-C (or q/Esc in the
+window); what was processed is kept.
 """
 
 from __future__ import annotations
@@ -19,6 +23,9 @@ EXAMPLES = """\
   fcnpose-tf run model.tflite --source clip.mp4 --out k.jsonl --save-video overlay.mp4
   fcnpose-tf run model.tflite --source frames/ --out k.csv             # every image in a folder
   fcnpose-tf run model.tflite --source frame.png --out k.jsonl --force
+  fcnpose-tf run model.tflite --source picamera2 --out k.jsonl         # Pi camera module (Picamera2)
+  fcnpose-tf run model.tflite --source picamera2:1 --camera-size 1280x720 --out k.jsonl
+  fcnpose-tf run model.tflite --source 0 --via hard/frames.json --via-every 30  # 1 frame/s to correct in VIA
 """
 
 
@@ -27,7 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("model", type=Path, help="an FCN-Pose .tflite model")
     parser.add_argument("--source", required=True,
-                        help="camera index (0), /dev/videoN, stream URL, video file, image folder or image")
+                        help="camera index (0), /dev/videoN, stream URL, picamera2[:N] (Pi camera module), "
+                             "video file, image folder or image")
     parser.add_argument("--threads", type=thread_count, default=None,
                         help="interpreter threads (default: all cores)")
     parser.add_argument("--out", action="append", default=[], metavar="FILE",
@@ -38,7 +46,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
     parser.add_argument("--threshold", type=float, default=0.5,
                         help="map probability above which a pixel belongs to a keypoint")
-    parser.add_argument("--camera-size", metavar="WxH", help="ask the camera for this resolution, e.g. 640x480")
+    parser.add_argument("--camera-size", metavar="WxH",
+                        help="ask the camera for this resolution, e.g. 640x480 (picamera2's default: 640x480)")
+    parser.add_argument("--via", type=Path, metavar="OUT.json",
+                        help="also write a VIA project of the processed frames (saved as PNGs in images/ "
+                             "beside it, image files referenced) with their keypoints, to correct in VIA")
+    parser.add_argument("--via-every", type=int, default=1, metavar="N",
+                        help="with --via: keep every Nth processed frame (a camera's frames add up fast)")
     add_backend_argument(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
 
@@ -57,6 +71,7 @@ def run(args: argparse.Namespace) -> int:
 
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable
+    from fcnpose_tf.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
     from fcnpose_tf.runtime.sinks import VideoSink, open_record_writer, parse_outputs
@@ -76,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
         if args.save_video.resolve() in {p.resolve() for p in outs}:
             raise UserError(f"{args.save_video}: given both as --out and --save-video")
         check_writable(args.save_video, args.force)
+    if args.via is not None:
+        check_via_output(args.via, args.force, every=args.via_every)
     camera_size = parse_size(args.camera_size) if args.camera_size else None
     if args.show:
         check_display()
@@ -91,15 +108,19 @@ def run(args: argparse.Namespace) -> int:
     def on_term(signum, frame):  # a `kill` ends the run like Ctrl-C: outputs closed, summary printed
         raise KeyboardInterrupt("terminated (SIGTERM)")
 
+    collected = None
     finished = False
     try:
         for path in outs:
             writers.append(open_record_writer(path, model.schema, args.force))
         if args.save_video is not None:
             video = VideoSink(args.save_video, source.fps, args.force)
+        if args.via is not None:
+            collected = ViaPredictions(args.via, model.schema, source, args.force, every=args.via_every)
         print(f"{model.describe()}; {source.describe()}", file=sys.stderr, flush=True)
         signal.signal(signal.SIGTERM, on_term)
-        summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine())
+        summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine(),
+                             on_frame=collected.add if collected is not None else None)
         finished = True
     finally:
         signal.signal(signal.SIGTERM, previous_term)
@@ -108,6 +129,12 @@ def run(args: argparse.Namespace) -> int:
             writer.close()
         if video is not None and not finished:
             video.discard()
+        if collected is not None and not finished:
+            collected.discard()
+    if collected is not None:
+        written_via = collected.close()
+        summary.outputs.append(f"{written_via}: {collected.describe()}" if written_via else
+                               f"{args.via}: not written (no frames)")
     if video is not None:
         written = video.close()
         summary.outputs.append(f"{written} ({video.count} frames)" if written else

@@ -61,19 +61,29 @@ def _number(value: float) -> int | float:
 
 
 def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, attribute: str = "keypoint",
-                     base_dir: str | os.PathLike | None = None, project_name: str = "fcnpose") -> dict:
+                     base_dir: str | os.PathLike | None = None, project_name: str = "fcnpose",
+                     image_dir: str | os.PathLike | None = None) -> dict:
     """The VIA 2.x project (as a dict) holding `frames`' keypoints as named point regions.
 
-    Frames with size -1 get their byte size from the image file in `base_dir` or `base_dir/images`.
+    `image_dir`, the folder of the images when it is neither `base_dir` (the project file's
+    folder) nor its `images/`, is stored as VIA's default path, relative to `base_dir` where given.
+    Frames with size -1 get their byte size from the image file in `image_dir`, `base_dir` or
+    `base_dir/images`.
     """
+    default_filepath = ""
+    folders = [Path(base_dir), Path(base_dir) / "images"] if base_dir is not None else []
+    if image_dir is not None:
+        folders.insert(0, Path(image_dir))
+        default_filepath = os.path.relpath(image_dir, base_dir) if base_dir is not None else os.fspath(image_dir)
+        default_filepath = "" if default_filepath == "." else default_filepath.rstrip("/") + "/"
     metadata: dict[str, dict] = {}
     for frame in frames:
         if frame.keypoints.shape != (schema.num_keypoints, 2):
             raise UserError(f"frame {frame.filename!r}: expected {schema.num_keypoints} x 2 keypoints "
                              f"for schema {schema.name!r}, got {frame.keypoints.shape}")
         size = int(frame.size)
-        if size < 0 and base_dir is not None:
-            for folder in (Path(base_dir), Path(base_dir) / "images"):
+        if size < 0:
+            for folder in folders:
                 if (folder / frame.filename).is_file():
                     size = (folder / frame.filename).stat().st_size
                     break
@@ -94,7 +104,7 @@ def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, a
                                   "show_region_shape": True, "show_image_policy": "all"},
                    "image": {"region_label": attribute, "region_color": attribute,
                              "region_label_font": "10px Sans", "on_image_annotation_editor_placement": "NEAR_REGION"}},
-            "core": {"buffer_size": 18, "filepath": {}, "default_filepath": ""},
+            "core": {"buffer_size": 18, "filepath": {}, "default_filepath": default_filepath},
             "project": {"name": project_name},
         },
         "_via_img_metadata": metadata,
@@ -111,17 +121,21 @@ def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, a
 
 
 def write_via_project(path: str | os.PathLike, frames: Sequence[ViaFrame], schema: KeypointSchema = UR5,
-                      attribute: str = "keypoint", force: bool = False) -> Path:
+                      attribute: str = "keypoint", force: bool = False,
+                      image_dir: str | os.PathLike | None = None) -> Path:
     """Atomically write a VIA 2.x project file with `frames`' keypoints as named point regions.
 
     Image byte sizes (VIA's frame key) unknown in a frame (size -1) are read from
-    the image file, looked up in the project file's folder and its `images/`
-    subfolder (-1 when not found, as VIA does for remote images). Opening the
-    file in VIA (Project > Load) shows the points labelled with their keypoint name.
+    the image file, looked up in `image_dir`, the project file's folder and its `images/`
+    subfolder (-1 when not found, as VIA does for remote images). An `image_dir`
+    elsewhere is stored as the project's default path (relative to the project file),
+    where `read_via` looks too. Opening the file in VIA (Project > Load) shows the
+    points labelled with their keypoint name.
     Raises UserError if `path` exists and not `force`.
     """
     path = Path(path)
-    data = via_project_dict(frames, schema, attribute, base_dir=path.parent, project_name=path.stem)
+    data = via_project_dict(frames, schema, attribute, base_dir=path.parent, project_name=path.stem,
+                            image_dir=image_dir)
     return fileio.write_json(path, data, force=force)
 
 

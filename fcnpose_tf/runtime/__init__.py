@@ -28,7 +28,7 @@ _EXPORTS = {
     "KeypointModel": "estimator", "Prediction": "estimator", "StageTimes": "estimator",
     "schema_for_maps": "estimator",
     "Frame": "sources", "FrameSource": "sources", "CameraSource": "sources", "VideoSource": "sources",
-    "ImageSource": "sources", "open_source": "sources",
+    "ImageSource": "sources", "LiveSource": "sources", "Picamera2Source": "sources", "open_source": "sources",
     "JsonlWriter": "sinks", "CsvWriter": "sinks", "VideoSink": "sinks", "open_record_writer": "sinks",
     "draw_overlay": "sinks", "frame_record": "sinks", "RollingFps": "sinks",
     "LatencyLog": "timing", "describe_ms": "timing", "FPS_DEFINITION": "timing",

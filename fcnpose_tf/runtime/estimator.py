@@ -102,6 +102,8 @@ class KeypointPredictor(abc.ABC):
     """Probability above which a map pixel belongs to a keypoint (post-processing)."""
     num_threads: int | None
     """Threads of the forward pass (None: the library's default)."""
+    schema: KeypointSchema
+    """Keypoint names and skeleton of the output maps (`schema_for_maps` unless given)."""
 
     @property
     @abc.abstractmethod
@@ -123,6 +125,14 @@ class KeypointPredictor(abc.ABC):
         With copy=False the result may be a view of a buffer the next invoke overwrites; drop it
         before then.
         """
+
+    def describe(self) -> str:
+        """One line: model, shapes, backend and threads."""
+        threads = "default threads" if self.num_threads is None else \
+            f"{self.num_threads} thread{'s' if self.num_threads != 1 else ''}"
+        name = getattr(self, "path", None)
+        return (f"{Path(name).name if name else 'model'} ({self.input_size}x{self.input_size}x3 -> "
+                f"{self.num_maps} maps), {self.backend_label}, {threads}")
 
     def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""

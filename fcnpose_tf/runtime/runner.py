@@ -3,25 +3,32 @@
 Ends cleanly at the end of the source, after `max_frames`, on `q`/Esc in the
 window, or on Ctrl-C / SIGTERM (handled by the caller turning them into
 KeyboardInterrupt): the frames processed so far are written, the video is
-finalised and the summary reports why the run stopped.
+finalised and the summary reports why the run stopped. A signal never splits a
+frame: its records, the `on_frame` hook (a VIA project's entry) and its count
+are done with Ctrl-C and SIGTERM held back (`fileio.signals_deferred`).
 """
 
 from __future__ import annotations
 
 import sys
 import time
+from array import array
 from dataclasses import dataclass, field
 from typing import Callable, Sequence, TextIO
 
 import cv2
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.runtime.estimator import KeypointModel, Prediction
+from fcnpose_tf.fileio import signals_deferred
+from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction
 from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
 from fcnpose_tf.runtime.sources import Frame, FrameSource
-from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog
+from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms
 
 WINDOW_NAME = "fcnpose-tf"
+
+CAPTURE_LATENCY_DEFINITION = ("from the grab thread receiving the frame to its records written; time spent "
+                              "in the camera, its driver and libcamera before that is not included")
 
 
 def check_display() -> None:
@@ -43,6 +50,8 @@ class RunSummary:
     end_reason: str = ""
     wall_s: float = 0.0
     latency: LatencyLog = field(default_factory=LatencyLog)
+    capture_to_keypoints_ms: array = field(default_factory=lambda: array("d"))
+    """Live sources only: per frame, from its capture timestamp to its records written (ms)."""
     outputs: list[str] = field(default_factory=list)
 
     @property
@@ -50,7 +59,7 @@ class RunSummary:
         """Frames per wall-clock second, including capture, drawing and writing."""
         return self.frames / self.wall_s if self.wall_s > 0 else float("nan")
 
-    def report(self, model: KeypointModel, source: FrameSource) -> str:
+    def report(self, model: KeypointPredictor, source: FrameSource) -> str:
         """Multi-line summary: counts, the per-stage latency table, FPS with its definition, outputs."""
         fps = self.latency.fps()
         lines = [f"Model:   {model.describe()}",
@@ -60,11 +69,19 @@ class RunSummary:
         if self.frames:
             lines += ["", self.latency.table(), "",
                       f"FPS:     {fps['end_to_end']:.1f} end-to-end, {fps['invoke']:.1f} invoke-only "
-                      f"({model.num_threads} thread{'s' if model.num_threads != 1 else ''}; {FPS_DEFINITION})",
+                      f"({_threads(model.num_threads)}; {FPS_DEFINITION})",
                       f"Loop:    {self.loop_fps:.1f} frames/s wall clock (with capture, drawing and writing)"]
+        if len(self.capture_to_keypoints_ms):
+            d = describe_ms(self.capture_to_keypoints_ms)
+            lines.append(f"Latency: capture to keypoints written {d['median']:.1f} ms p50, {d['p95']:.1f} ms p95, "
+                         f"{d['max']:.1f} ms max ({CAPTURE_LATENCY_DEFINITION})")
         for out in self.outputs:
             lines.append(f"Wrote:   {out}")
         return "\n".join(lines)
+
+
+def _threads(count: int | None) -> str:
+    return "default threads" if count is None else f"{count} thread{'s' if count != 1 else ''}"
 
 
 class ProgressLine:
@@ -95,10 +112,10 @@ class ProgressLine:
             self._width = 0
 
 
-def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[RecordWriter] = (),
+def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[RecordWriter] = (),
                video: VideoSink | None = None, show: bool = False, max_frames: int | None = None,
                progress: ProgressLine | None = None, fps_window: int = 30,
-               on_frame: Callable[[Frame, Prediction], None] | None = None) -> RunSummary:
+               on_frame: Callable[[Frame, Prediction], None] | None = None, every: int = 1) -> RunSummary:
     """Run the model on every frame of `source`, writing each frame's record before reading the next.
 
     Args:
@@ -110,7 +127,8 @@ def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[Reco
         max_frames: stop after this many processed frames.
         progress: a ProgressLine for the terminal, or None.
         fps_window: frames averaged for the FPS drawn on the overlay and shown on the terminal.
-        on_frame: called with each frame and its prediction (API users).
+        on_frame: called with each frame and its prediction (API users, `predict`'s VIA project).
+        every: process only the frames whose index is a multiple of this (every Nth frame of a video).
     Returns:
         The RunSummary; `end_reason` says why the loop ended (Ctrl-C included: KeyboardInterrupt
         during the loop ends it cleanly).
@@ -122,6 +140,8 @@ def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[Reco
     frames_iter = iter(source)
     try:
         for frame in frames_iter:
+            if frame.index % every:
+                continue
             if not warm:  # one untimed frame of the source's size: start-up costs stay out of the figures
                 model.warmup(frame.image.shape)
                 warm = True
@@ -133,8 +153,14 @@ def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[Reco
                 continue
             summary.latency.add(prediction.times)
             rolling.add(prediction.times.total_ms)
-            for writer in writers:
-                writer.write(frame, prediction)
+            with signals_deferred():  # Ctrl-C/SIGTERM take effect after a frame's records, hook and count
+                for writer in writers:
+                    writer.write(frame, prediction)
+                if source.live:
+                    summary.capture_to_keypoints_ms.append((time.time() - frame.timestamp) * 1e3)
+                if on_frame is not None:
+                    on_frame(frame, prediction)
+                summary.frames += 1
             if video is not None or show:
                 overlay = draw_overlay(frame.image, prediction, model.schema, rolling.fps)
                 if video is not None:
@@ -144,9 +170,6 @@ def run_stream(model: KeypointModel, source: FrameSource, writers: Sequence[Reco
                     if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
                         summary.end_reason = "stopped from the window (q/Esc)"
                         break
-            if on_frame is not None:
-                on_frame(frame, prediction)
-            summary.frames += 1
             if progress is not None:
                 elapsed = time.perf_counter() - start
                 progress.update(summary.frames, rolling.fps, summary.frames / elapsed if elapsed > 0 else 0.0,

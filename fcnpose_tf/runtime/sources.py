@@ -1,4 +1,4 @@
-"""Frame sources: a camera (index, /dev/videoN or stream URL), a video file, an image folder or one image.
+"""Frame sources: a camera (index, /dev/videoN, stream URL, Picamera2), a video file, an image folder or an image.
 
 `open_source(spec)` picks the kind from the spec. Every source yields `Frame`s
 and ends cleanly: the end of a video, a camera that stops delivering, an
@@ -11,12 +11,14 @@ were overwritten before being used are counted as `dropped`.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import re
 import sys
 import tempfile
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Callable, Iterator
@@ -59,6 +61,8 @@ class FrameSource:
     """Base class: iterate for frames; `end_reason` says why iteration stopped; use as a context manager."""
 
     kind: str = "source"
+    live: bool = False
+    """A camera or stream: frames are captured as they happen (timestamps are capture times)."""
 
     def __init__(self, name: str, warn: Warn | None = None):
         self.name = name
@@ -194,53 +198,61 @@ class VideoSource(FrameSource):
         return f"video {self.name} ({n}{rate})"
 
 
-class CameraSource(FrameSource):
-    """A live camera read by a background thread that keeps only the newest frame.
+class CaptureError(Exception):
+    """A live source's device failed for good (the message says how); ends the run."""
 
-    Args:
-        device: a camera index, a /dev/videoN path or a stream URL (rtsp://, http://).
-        size: requested (width, height); the camera may choose another.
-        first_frame_timeout_s: give up if the camera sends nothing for this long after opening.
-        stall_timeout_s: end the run if no new frame arrives for this long (camera unplugged).
+
+class LiveSource(FrameSource):
+    """A live source read by a background thread that keeps only the newest frame.
+
+    A subclass opens its device, implements `_read` (one frame, or None when none came this
+    time) and `_release`, and calls `_start_grabbing()` last in its constructor. Reads that
+    return None for longer than `stall_timeout_s` end the run ("stopped delivering frames");
+    a read that raises `CaptureError` ends it at once with that message.
     """
 
     kind = "camera"
+    live = True
 
-    def __init__(self, device: int | str, size: tuple[int, int] | None = None, warn: Warn | None = None,
-                 first_frame_timeout_s: float = 10.0, stall_timeout_s: float = 5.0):
-        super().__init__(f"camera {device}" if isinstance(device, int) else str(device), warn)
-        self.device = device
+    def __init__(self, name: str, warn: Warn | None = None, first_frame_timeout_s: float = 10.0,
+                 stall_timeout_s: float = 5.0):
+        super().__init__(name, warn)
         self.first_frame_timeout_s = first_frame_timeout_s
         self.stall_timeout_s = stall_timeout_s
-        with quiet_opencv():
-            self._cap = cv2.VideoCapture(device)
-        if not self._cap.isOpened():
-            self._cap.release()
-            raise UserError(f"{self.name}: cannot be opened (not connected, in use by another program, "
-                            "or no permission; list cameras with `v4l2-ctl --list-devices`)")
-        if size is not None:
-            self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
-            self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
-        self._cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # where supported (V4L2): no driver-side backlog either
-        fps = self._cap.get(cv2.CAP_PROP_FPS)
-        self.fps = float(fps) if fps and 0 < fps < 1000 else None
         self._cond = threading.Condition()
         self._latest: tuple[np.ndarray, float] | None = None
         self._captured = 0  # frames grabbed by the thread
         self._failure: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._grab_loop, name=f"grab-{self.name}", daemon=True)
+
+    def _read(self) -> np.ndarray | None:
+        """One frame from the device, or None if none came this time; CaptureError if the device failed."""
+        raise NotImplementedError
+
+    def _release(self) -> None:
+        """Close the device (called once the grab thread has stopped or given up)."""
+
+    def _interrupt(self) -> None:
+        """Make a read that is waiting for a frame return (called by close() before it joins the thread)."""
+
+    def _start_grabbing(self) -> None:
         self._thread.start()
 
     def _grab_loop(self) -> None:
         failed_since = None
         while not self._stop.is_set():
             try:
-                ok, image = self._cap.read()
-            except cv2.error:
-                ok, image = False, None
+                image = self._read()
+            except CaptureError as exc:
+                if self._stop.is_set():  # the read was cut short by close()
+                    break
+                with self._cond:
+                    self._failure = str(exc)
+                    self._cond.notify_all()
+                return
             now = time.time()
-            if not ok or image is None:
+            if image is None:
                 failed_since = failed_since or now
                 if now - failed_since > self.stall_timeout_s:
                     with self._cond:
@@ -263,7 +275,7 @@ class CameraSource(FrameSource):
         used = 0
         while True:
             # Twice the grab thread's limit: its own verdict (reads failing) comes first; this one
-            # catches a read() that blocks forever (some USB cameras when unplugged).
+            # catches a read that blocks forever (some USB cameras when unplugged).
             timeout = self.first_frame_timeout_s if used == 0 else 2 * self.stall_timeout_s
             with self._cond:
                 arrived = self._cond.wait_for(lambda: self._captured > used or self._failure is not None, timeout)
@@ -287,8 +299,174 @@ class CameraSource(FrameSource):
     def close(self) -> None:
         self._stop.set()
         if self._thread.is_alive():
+            self._interrupt()
             self._thread.join(timeout=2.0)
+        self._release()
+
+
+class CameraSource(LiveSource):
+    """A camera or stream that OpenCV opens (index, /dev/videoN, URL), read by LiveSource's thread.
+
+    Args:
+        device: a camera index, a /dev/videoN path or a stream URL (rtsp://, http://, tcp://).
+        size: requested (width, height); the camera may choose another.
+        first_frame_timeout_s: give up if the camera sends nothing for this long after opening.
+        stall_timeout_s: end the run if no new frame arrives for this long (camera unplugged).
+    """
+
+    def __init__(self, device: int | str, size: tuple[int, int] | None = None, warn: Warn | None = None,
+                 first_frame_timeout_s: float = 10.0, stall_timeout_s: float = 5.0):
+        super().__init__(f"camera {device}" if isinstance(device, int) else str(device), warn,
+                         first_frame_timeout_s, stall_timeout_s)
+        self.device = device
+        with quiet_opencv():
+            self._cap = cv2.VideoCapture(device)
+        if not self._cap.isOpened():
+            self._cap.release()
+            raise UserError(f"{self.name}: cannot be opened (not connected, in use by another program, "
+                            "or no permission; list cameras with `v4l2-ctl --list-devices`)")
+        if size is not None:
+            self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
+            self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
+        self._cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # where supported (V4L2): no driver-side backlog either
+        fps = self._cap.get(cv2.CAP_PROP_FPS)
+        self.fps = float(fps) if fps and 0 < fps < 1000 else None
+        self._start_grabbing()
+
+    def _read(self) -> np.ndarray | None:
+        try:
+            ok, image = self._cap.read()
+        except cv2.error:
+            return None
+        return image if ok and image is not None else None
+
+    def _release(self) -> None:
         self._cap.release()
+
+
+PICAMERA2_SPEC = re.compile(r"picamera2(?::(\d+))?")
+"""`--source picamera2` or `picamera2:N` (camera number N, as `rpicam-hello --list-cameras` numbers them)."""
+
+PICAMERA2_DEFAULT_SIZE = (640, 480)
+
+PICAMERA2_INSTALL = ("on Raspberry Pi OS: `sudo apt install -y python3-picamera2`, a venv made with "
+                     "`python3 -m venv --system-site-packages`, and `pip install 'fcnpose-tf[pi-camera]'` in it "
+                     "(docs/raspberry-pi.md, Raspberry Pi Camera Module)")
+
+_NUMPY_ABI_ERROR = re.compile(r"numpy\.(dtype|ndarray) size changed|compiled using NumPy \d|"
+                              r"numpy\.core\.multiarray failed to import|_ARRAY_API not found|"
+                              r"compiled against (ABI|API) version", re.IGNORECASE)
+"""What importing a compiled extension built for the other numpy major version raises (or prints)."""
+
+
+def _one_line(exc: BaseException, limit: int = 160) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def import_picamera2():
+    """The `Picamera2` class, imported on first use; UserError with the fix when it cannot be imported.
+
+    Tells apart: no picamera2 at all, picamera2 without libcamera's Python bindings (a pip
+    install in a venv that does not see the system packages), and the numpy trap: apt's
+    picamera2 pulls in compiled modules (simplejpeg) built for Debian's numpy 1.x, which fail
+    to import under numpy 2 (and the other way round). What numpy prints while failing is kept
+    off the terminal; the one error line says what to do.
+    """
+    printed = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(printed):
+            from picamera2 import Picamera2
+    except Exception as exc:  # noqa: BLE001 - every import failure becomes one line with the fix
+        missing = exc.name if isinstance(exc, ModuleNotFoundError) else None
+        if missing == "picamera2":
+            raise UserError(f"--source picamera2 needs the picamera2 package, which {sys.executable} cannot "
+                            f"import: {PICAMERA2_INSTALL}") from None
+        if missing is not None and missing.split(".")[0] in ("libcamera", "pykms", "kms"):
+            raise UserError(f"--source picamera2: picamera2 is installed but libcamera's Python bindings "
+                            f"({missing}) are not visible to {sys.executable}; {PICAMERA2_INSTALL}") from None
+        if _NUMPY_ABI_ERROR.search(f"{exc}\n{printed.getvalue()}"):
+            import numpy
+
+            frames = traceback.extract_tb(exc.__traceback__)
+            where = f" (in {frames[-1].filename})" if frames else ""
+            if int(numpy.__version__.split(".")[0]) >= 2:
+                fix = ("apt's python3-picamera2 and its simplejpeg are built for Debian's numpy 1.x: install "
+                       "numpy < 2 into the venv with `pip install 'fcnpose-tf[pi-camera]'`")
+            else:
+                fix = ("a module built for numpy 2 shadows apt's: `pip uninstall simplejpeg picamera2` in the "
+                       "venv, so the apt packages (built for numpy 1.x) are used")
+            raise UserError(f"--source picamera2: picamera2 cannot be imported with numpy {numpy.__version__} "
+                            f"in this environment: a compiled module was built for another numpy{where}: "
+                            f"{_one_line(exc, 100)}; {fix} (docs/raspberry-pi.md, Raspberry Pi Camera "
+                            "Module)") from None
+        raise UserError(f"--source picamera2: picamera2 cannot be imported ({type(exc).__name__}: "
+                        f"{_one_line(exc)}); {PICAMERA2_INSTALL}") from None
+    return Picamera2
+
+
+class Picamera2Source(LiveSource):
+    """The Raspberry Pi camera module through Picamera2 (libcamera), read by LiveSource's thread.
+
+    The camera runs a video configuration whose main stream is "RGB888" at `size` (default
+    640x480). Picamera2 names formats as libcamera/DRM do, so "RGB888" delivers B, G, R bytes per
+    pixel: OpenCV's BGR, no conversion. `capture_array` waits for the next completed frame; an
+    exception from it (the camera failed) ends the run with its message.
+
+    Args:
+        camera_num: the camera's number (`rpicam-hello --list-cameras`).
+        size: (width, height) of the frames.
+        first_frame_timeout_s, stall_timeout_s: as for CameraSource.
+    """
+
+    kind = "picamera2"
+
+    def __init__(self, camera_num: int = 0, size: tuple[int, int] | None = None, warn: Warn | None = None,
+                 first_frame_timeout_s: float = 10.0, stall_timeout_s: float = 5.0):
+        super().__init__(f"picamera2 camera {camera_num}", warn, first_frame_timeout_s, stall_timeout_s)
+        picamera2_class = import_picamera2()
+        self.camera_num = camera_num
+        self.size = tuple(size or PICAMERA2_DEFAULT_SIZE)
+        try:
+            self._camera = picamera2_class(camera_num)
+        except (RuntimeError, OSError, IndexError) as exc:  # Picamera2's own: "Camera __init__ sequence ..."
+            raise UserError(f"{self.name}: cannot be opened ({_one_line(exc)}); is it connected, enabled and "
+                            "not in use by another program? list cameras with `rpicam-hello --list-cameras`"
+                            ) from None
+        try:
+            config = self._camera.create_video_configuration(main={"size": self.size, "format": "RGB888"})
+            self._camera.configure(config)
+            self._camera.start()
+        except Exception as exc:  # noqa: BLE001 - libcamera refusing the mode: one line, camera released
+            self._release()
+            raise UserError(f"{self.name}: cannot be started at {self.size[0]}x{self.size[1]} "
+                            f"({_one_line(exc)})") from None
+        limits = (config.get("controls") or {}).get("FrameDurationLimits") if isinstance(config, dict) else None
+        if limits and limits[0] > 0:  # microseconds per frame
+            self.fps = 1e6 / float(limits[0])
+        self._start_grabbing()
+
+    def _read(self) -> np.ndarray | None:
+        try:
+            return self._camera.capture_array("main")
+        except Exception as exc:  # noqa: BLE001 - whatever libcamera raised: the camera is gone
+            raise CaptureError(f"{self.name} failed: {_one_line(exc)}") from None
+
+    def _interrupt(self) -> None:
+        try:
+            self._camera.stop()  # Picamera2 cancels the capture a stopped camera would never complete
+        except Exception:  # noqa: BLE001 - _release tries again and closes
+            pass
+
+    def _release(self) -> None:
+        for step in (self._camera.stop, self._camera.close):  # both safe to call twice in Picamera2
+            try:
+                step()
+            except Exception:  # noqa: BLE001 - closing a failed camera must not hide why it failed
+                pass
+
+    def describe(self) -> str:
+        return f"{self.name} ({self.size[0]}x{self.size[1]} RGB888 = BGR bytes)"
 
 
 def _as_bgr(image: np.ndarray) -> np.ndarray:
@@ -335,21 +513,32 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | None = None,
-                warn: Warn | None = None) -> FrameSource:
+                warn: Warn | None = None, refuse_cameras: str | None = None) -> FrameSource:
     """Open a frame source from a command-line spec.
 
     `0`, `1`, ... -> camera index; `/dev/videoN` -> that camera; `rtsp://...`/`http://...` -> a stream
-    (read like a camera); an existing folder -> its images; an existing image file -> that image;
-    any other existing file -> a video.
+    (read like a camera); `picamera2` / `picamera2:N` -> the Raspberry Pi camera module through
+    Picamera2; an existing folder -> its images; an existing image file -> that image; any other
+    existing file -> a video. With `refuse_cameras` (the reason, for the error) only files are
+    accepted: a camera spec is refused before anything is opened.
 
     Raises:
-        UserError: nothing at that path, a camera that cannot be opened, an unreadable video or image,
-            a folder without images.
+        UserError: nothing at that path, a camera that cannot be opened (or is not accepted), an
+            unreadable video or image, a folder without images, picamera2 missing or unimportable.
     """
     text = os.fspath(spec) if not isinstance(spec, int) else str(spec)
-    if isinstance(spec, int) or text.strip().isdigit():
+    picamera2 = PICAMERA2_SPEC.fullmatch(text)
+    index = isinstance(spec, int) or text.strip().isdigit()
+    url = re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text) is not None
+    if refuse_cameras and (picamera2 or text.startswith("picamera2:") or index or url or text.startswith("/dev/")):
+        raise UserError(f"--source {text}: {refuse_cameras}")
+    if picamera2:
+        return Picamera2Source(int(picamera2.group(1) or 0), camera_size, warn)
+    if text.startswith("picamera2:"):
+        raise UserError(f"--source {text}: expected picamera2 or picamera2:N (N = camera number, e.g. picamera2:1)")
+    if index:
         return CameraSource(int(text), camera_size, warn)
-    if re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text):
+    if url:
         return CameraSource(text, camera_size, warn)
     path = Path(text).expanduser()
     if text.startswith("/dev/"):
@@ -362,8 +551,8 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
             raise UserError(f"{path}: folder has no images ({', '.join(sorted(IMAGE_SUFFIXES))})")
         return ImageSource(images, str(path), warn)
     if not path.exists():
-        raise UserError(f"{path}: no such file or folder (expected a camera index, /dev/videoN, "
-                        "a video file, an image folder or an image)")
+        expected = "a video file" if refuse_cameras else "a camera index, /dev/videoN, picamera2, a video file"
+        raise UserError(f"{path}: no such file or folder (expected {expected}, an image folder or an image)")
     if path.suffix.lower() in IMAGE_SUFFIXES:
         if cv2.imread(str(path), cv2.IMREAD_COLOR) is None:
             raise UserError(f"{path}: cannot be read as an image")

@@ -1,0 +1,88 @@
+"""Pre-annotate frames: a model's keypoints written as a VIA project, to correct in VIA and train on.
+
+Runs a .keras or .tflite FCN-Pose (a .tflite needs only LiteRT, no TensorFlow) over the images
+of a folder, one image, or every Nth frame of a video, and writes a VIA 2.x project with one
+named `point` region per keypoint found. Keypoints not found, or found with a confidence (pixels
+of the keypoint's cluster in the output map) below --min-confidence, get no point and are counted.
+Image files are referenced where they are; video frames are saved as PNGs in images/ beside the
+VIA file. Open the project in VIA 2 (Project > Load), move, add or delete points, save the
+project, and train on it: `fcnpose-tf train --data out.json`. See docs/data.md, "Pre-annotation".
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "predict"
+EXAMPLES = """\
+  fcnpose-tf predict saved_models/fcnpose_ur5_p70_fp16.tflite --source frames/ --via frames/pre.json
+  fcnpose-tf predict models/arm.keras --source clip.mp4 --every 10 --via clip_labels/pre.json
+  fcnpose-tf predict model.tflite --source frames/ --via pre.json --min-confidence 20 --force
+  fcnpose-tf data inspect frames/pre.json                  # what the project holds, as training sees it
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf.settings import thread_count
+
+    parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
+                        help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
+    parser.add_argument("--source", required=True, help="image folder, image file or video file")
+    parser.add_argument("--via", type=Path, required=True, metavar="OUT.json",
+                        help="the VIA 2.x project to write (video frames go to images/ beside it)")
+    parser.add_argument("--every", type=int, default=1, metavar="N",
+                        help="use every Nth frame of the video or image folder")
+    parser.add_argument("--min-confidence", type=float, default=0.0, metavar="C",
+                        help="leave out keypoints whose map cluster has fewer than C pixels")
+    parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
+    parser.add_argument("--threads", type=thread_count, default=None,
+                        help="inference threads (default: all cores)")
+    parser.add_argument("--threshold", type=float, default=0.5,
+                        help="map probability above which a pixel belongs to a keypoint")
+    parser.add_argument("--force", action="store_true",
+                        help="replace an existing VIA file and earlier saved frames of the same names")
+
+
+def run(args: argparse.Namespace) -> int:
+    import sys
+
+    from fcnpose_tf.bundled import baseline_model
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.evaluate import open_model
+    from fcnpose_tf.prelabel import ViaPredictions, check_via_output
+    from fcnpose_tf.runtime.runner import ProgressLine, run_stream
+    from fcnpose_tf.runtime.sources import open_source
+
+    if args.every < 1:
+        raise UserError(f"--every must be at least 1, got {args.every}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise UserError(f"--max-frames must be at least 1, got {args.max_frames}")
+    check_via_output(args.via, args.force, args.min_confidence)  # before the model loads: fail in a second
+    model_path = args.model or baseline_model()
+    if Path(model_path).suffix in (".keras", ".h5"):
+        from fcnpose_tf.tfsetup import import_tensorflow_quietly
+
+        import_tensorflow_quietly()
+    predictor = open_model(model_path, args.threads, args.threshold)
+    source = open_source(args.source, refuse_cameras="predict reads image folders, images and videos; for a "
+                         "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
+    collected = None
+    try:
+        collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence)
+        print(f"{predictor.describe()}; {source.describe()}", file=sys.stderr, flush=True)
+        summary = run_stream(predictor, source, max_frames=args.max_frames, progress=ProgressLine(),
+                             on_frame=collected.add, every=args.every)
+        written = collected.close()
+    except BaseException:
+        if collected is not None:
+            collected.discard()
+        raise
+    finally:
+        source.close()
+    if written is not None:
+        summary.outputs.append(f"{written}: {collected.describe()}")
+    print(summary.report(predictor, source))
+    if written is None:
+        raise UserError(f"{args.source}: no frame was processed ({summary.end_reason}); no VIA file written")
+    return 0
