@@ -46,11 +46,11 @@ import numpy as np
 
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.settings import QUANTIZE_MODES
 
 if TYPE_CHECKING:  # TensorFlow is imported only when converting
     import tf_keras as keras
 
-QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8")
 DEFAULT_QUANTIZE = "float16"
 FULL_INTEGER = "int8"
 """The full-integer mode: calibrated on real frames, integer input and output."""
