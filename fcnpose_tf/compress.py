@@ -333,26 +333,13 @@ def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
 
 
 def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
-    """Write one TFLite file, verified against Keras on real frames; the export result.
+    """Write one TFLite file, verified against Keras on real frames (`export.export_frames`: the
+    first evaluation frames; int8 calibrated on the retraining split's training frames); the export result."""
+    from fcnpose_tf.export import export_frames, write_tflite
 
-    Verified on the first `MIN_FRAMES_BY_MODE` evaluation frames (16; topped up with training
-    frames when there are fewer). int8 is calibrated on up to `options.calibration_frames` frames
-    drawn (seeded) from the training frames of the retraining split `fold`, never on evaluation
-    frames.
-    """
-    from fcnpose_tf.export import FULL_INTEGER, MIN_FRAMES_BY_MODE, calibration_frames, write_tflite
-    from fcnpose_tf.preprocess import preprocess_frame
-
-    count = max(MIN_FRAMES_BY_MODE.values())
-    train_indices = _training_frames(run, fold)
-    chosen = [(run.eval_dataset, int(i)) for i in list(run.eval_indices)[:count]]
-    chosen += [(run.train_dataset, int(i)) for i in train_indices[:count - len(chosen)]]
-    samples = np.stack([preprocess_frame(dataset.load_image(i), run.input_size) for dataset, i in chosen])
-    calibration = None
-    if quantize == FULL_INTEGER:
-        calibration = calibration_frames(run.train_dataset, train_indices,
-                                         min(run.options.calibration_frames, len(train_indices)),
-                                         run.input_size, seed=run.options.seed)
+    samples, calibration = export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold),
+                                         run.eval_dataset, run.eval_indices, run.options.calibration_frames,
+                                         run.options.seed)
     return write_tflite(retrained, run.paths[tflite_key(quantize)], quantize, force=run.force,
                         sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
 

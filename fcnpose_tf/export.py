@@ -268,6 +268,29 @@ def _pixel_scaled_input(data: bytes) -> bytes:
     return bytes(builder.Output())
 
 
+def export_frames(quantize: str, input_size: int, train_dataset: Any, train_indices: Sequence[int],
+                  check_dataset: Any, check_indices: Sequence[int], calibration_count: int,
+                  seed: int = CALIBRATION_SEED) -> tuple[np.ndarray, np.ndarray | None]:
+    """Real frames for `export_tflite`: (sample_frames, calibration_frames or None).
+
+    The file is verified on the first `MIN_FRAMES_BY_MODE` frames of `check_indices` (16, topped
+    up with training frames when there are fewer); an int8 file is calibrated on up to
+    `calibration_count` frames drawn (seeded) from `train_indices`, which should hold no frame a
+    result is measured on.
+    """
+    from fcnpose_tf.preprocess import preprocess_frame
+
+    count = max(MIN_FRAMES_BY_MODE.values())
+    chosen = [(check_dataset, int(i)) for i in list(check_indices)[:count]]
+    chosen += [(train_dataset, int(i)) for i in list(train_indices)[:count - len(chosen)]]
+    samples = np.stack([preprocess_frame(dataset.load_image(i), input_size) for dataset, i in chosen])
+    calibration = None
+    if quantize == FULL_INTEGER:
+        calibration = calibration_frames(train_dataset, train_indices, min(calibration_count, len(train_indices)),
+                                         input_size, seed)
+    return samples, calibration
+
+
 def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_size: int,
                        seed: int = CALIBRATION_SEED) -> np.ndarray:
     """`count` frames drawn (seeded, without replacement) from `indices` of `dataset`, preprocessed as
