@@ -455,8 +455,9 @@ def report_table(report: dict[str, Any], markdown: bool = False) -> str:
     rows = [row("unpruned (Keras, .h5)", report["base"], "h5_size_bytes"),
             row("pruned, before retraining", report["pruned_before_retraining"], ""),
             row("pruned + retrained (Keras, .h5)", report["retrained"], "h5_size_bytes")]
-    rows += [row(f"{step['quantize']} TFLite (.tflite)", step, "tflite_size_bytes")
-             for step in [report["quantized"], *report.get("other_quantized", [])]]
+    # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
+    rows += [row(f"{step.get('quantize') or report['options']['quantize']} TFLite (.tflite)", step,
+                 "tflite_size_bytes") for step in [report["quantized"], *report.get("other_quantized", [])]]
     return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
                          "infer ms", "FPS e2e"], rows, markdown=markdown,
                         digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])

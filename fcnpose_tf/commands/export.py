@@ -30,7 +30,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.SEED, settings.THREADS):
         setting.add_to(parser)
-    parser.add_argument("--force", action="store_true", help="replace existing .tflite files")
+    parser.add_argument("--json", type=Path, metavar="OUT.json",
+                        help="also write what was exported: per file its format, size, calibration, verification "
+                             "gate and graph rewrites")
+    parser.add_argument("--force", action="store_true", help="replace existing .tflite (and --json) files")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -39,7 +42,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.export import export_frames, write_tflite
-    from fcnpose_tf.fileio import check_writable
+    from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.model import load_model
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.tfsetup import set_tensorflow_threads
@@ -50,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"{args.model}: model file not found")
     out_dir = args.out_dir or args.model.parent
     paths = {q: out_dir / f"{args.model.stem}_{FILE_TAGS[q]}.tflite" for q in args.quantize}
-    for path in paths.values():  # before anything is converted
+    for path in [*paths.values(), *([args.json] if args.json else [])]:  # before anything is converted
         check_writable(path, args.force)
     set_tensorflow_threads(args.threads)
     model = load_model(args.model)
@@ -59,12 +62,13 @@ def run(args: argparse.Namespace) -> int:
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     size = int(model.input_shape[1])
-    rows = []
+    rows, records = [], []
     for quantize, path in paths.items():
         samples, calibration = export_frames(quantize, size, dataset, train, dataset, val, args.calibration_frames,
                                              args.seed)
         export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
                               calibration_frames=calibration, num_threads=args.threads)
+        records.append({"file": str(path), **export.to_dict()})
         p = export.parity
         rows.append([path.name, export.size_bytes / 1e3, export.calibration_frames or None, p.frames,
                      f"{p.keypoints_within_px}/{p.keypoints_compared}", p.keypoints_lost_or_gained,
@@ -73,6 +77,11 @@ def run(args: argparse.Namespace) -> int:
           f"(keypoints in map px; int8 gate: >= 95 % within 2 px, none lost or gained)")
     print(format_table(["file", "size KB", "calibrated on", "frames", "kp within", "lost/gained", "max kp px",
                         "max map diff", "upsampling"], rows, digits=[None, 1, None, None, None, None, 2, 3, None]))
-    for path in paths.values():
+    if args.json:
+        write_json(args.json, {"model": str(args.model), "data": str(dataset.via_path),
+                               "verification_frames": f"the first {len(samples)} of the validation split",
+                               "calibration": f"seeded choice (seed {args.seed}) of the training split's "
+                                              f"{len(train)} frames", "files": records}, force=args.force)
+    for path in [*paths.values(), *([args.json] if args.json else [])]:
         print(f"wrote {path}")
     return 0
