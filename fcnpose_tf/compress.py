@@ -63,13 +63,9 @@ class CompressOptions:
                          lr_patience=self.lr_patience)
 
 
-FILE_TAGS = {"float16": "fp16", "float32": "fp32", "int8-weights": "int8w", "int8": "int8"}
-"""The TFLite file name's suffix per format: NAME_p70_fp16.tflite, NAME_p70_int8.tflite."""
-
-
 def tflite_key(quantize: str) -> str:
     """The key of a TFLite file in a run's names and paths (and the report's "files"): tflite_fp16, tflite_int8."""
-    return f"tflite_{FILE_TAGS[quantize]}"
+    return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
 
 
 def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
@@ -78,7 +74,7 @@ def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
     tag = f"{pruning_method(options).tag}{round(options.rate * 100):02d}"
     stem = f"{base_name}_{tag}"
     return {"stem": stem, "keras": f"{stem}.keras",
-            **{tflite_key(q): f"{stem}_{FILE_TAGS[q]}.tflite" for q in options.quantize},
+            **{tflite_key(q): f"{stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize},
             "report": f"{stem}_report.json"}
 
 

@@ -311,6 +311,8 @@ STRATEGY = Setting("strategy", str, "independent",
 QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8")
 """TFLite formats (fcnpose_tf.export): float32, float16 weights (the paper's), dynamic-range int8 weights,
 and full-integer int8 (int8 weights and activations, uint8 pixel input; the fastest on a Pi 3/4)."""
+QUANTIZE_FILE_TAGS = {"float32": "fp32", "float16": "fp16", "int8-weights": "int8w", "int8": "int8"}
+"""A TFLite file name's suffix per format: NAME_p70_fp16.tflite, NAME_p70_int8.tflite."""
 
 
 def quantize_modes(text: str) -> tuple[str, ...]:

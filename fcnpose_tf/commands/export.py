@@ -38,7 +38,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings, synthcache
-    from fcnpose_tf.compress import FILE_TAGS
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.export import export_frames, write_tflite
@@ -52,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     if not args.model.is_file():
         raise UserError(f"{args.model}: model file not found")
     out_dir = args.out_dir or args.model.parent
-    paths = {q: out_dir / f"{args.model.stem}_{FILE_TAGS[q]}.tflite" for q in args.quantize}
+    paths = {q: out_dir / f"{args.model.stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in args.quantize}
     for path in [*paths.values(), *([args.json] if args.json else [])]:  # before anything is converted
         check_writable(path, args.force)
     set_tensorflow_threads(args.threads)
