@@ -532,9 +532,9 @@ def _check_interface(interpreter, frames: np.ndarray, keras_shape: tuple[int, ..
         in_ok, in_type = spec_in.dtype == np.float32, "float32"
         out_ok, out_type = spec_out.dtype == np.float32, "float32"
     if list(spec_in.shape) != expected_in or not in_ok:
-        raise ExportVerificationError(
-            f"{what} takes {spec_in.dtype.name} {list(spec_in.shape)} (scale {spec_in.scale:.6g}, zero point "
-            f"{spec_in.zero_point}), expected {in_type} {expected_in}; nothing written")
+        scale = f" (scale {spec_in.scale:.6g}, zero point {spec_in.zero_point})" if spec_in.quantized else ""
+        raise ExportVerificationError(f"{what} takes {spec_in.dtype.name} {list(spec_in.shape)}{scale}, "
+                                      f"expected {in_type} {expected_in}; nothing written")
     if list(spec_out.shape) != expected_out or not out_ok:
         raise ExportVerificationError(f"{what} gives {spec_out.dtype.name} {list(spec_out.shape)}, "
                                       f"expected {out_type} {expected_out}; nothing written")

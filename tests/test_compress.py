@@ -49,6 +49,8 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert 0 < int8["export"]["calibration_frames"] <= 100 and int8["export"]["parity"]["frames"] >= 16
     int8_row = next(line for line in proc.stdout.splitlines() if line.startswith("int8 TFLite (.tflite)"))
     assert f"{int8['metrics']['pck@0.05_bbox']:.3f}" in int8_row
+    assert f"calibrated on {int8['export']['calibration_frames']} training frames; verified on" in proc.stdout
+    assert "upsampling folded" in proc.stdout and "upsampling not folded" in proc.stdout  # int8, float16
     # --lr-patience reaches the retraining's FitConfig; the base model has no record: plain BCE
     assert report["options"]["lr_patience"] == 3
     assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 3

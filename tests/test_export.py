@@ -214,7 +214,7 @@ def test_bad_arguments(fcn64, kwargs, message):
 
 def _substitute(monkeypatch, data):
     """Make the converter return `data`, whatever it is given."""
-    monkeypatch.setattr(export_module, "_convert", lambda model, quantize, shape: data)
+    monkeypatch.setattr(export_module, "_convert", lambda model, quantize, shape, calibration=None: data)
 
 
 def test_other_weights_are_refused_and_nothing_written(fcn64, tmp_path, monkeypatch):
@@ -370,6 +370,15 @@ def test_int8_input_scale_is_pinned_whatever_the_calibration_range(fcn64):
 def test_int8_needs_real_frames(fcn64, kwargs, message):
     with pytest.raises(UserError, match=message):
         export_tflite(fcn64, "int8", **kwargs)
+
+
+def test_int8_file_with_a_float_interface_is_refused(fcn64, monkeypatch):
+    """A file that would need float input is not what the runtime's int8 path feeds bytes to."""
+    _substitute(monkeypatch, to_tflite(fcn64, "float32"))
+    with pytest.raises(ExportVerificationError, match=r"takes float32 \[1, 64, 64, 3\], expected uint8 "
+                                                      r"\(scale 1/255, zero point 0\)"):
+        export_tflite(fcn64, "int8", sample_frames=frames(64, n=16), calibration_frames=frames(64, n=2),
+                      check_keypoints=False)
 
 
 @pytest.fixture(scope="module")

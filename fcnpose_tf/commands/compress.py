@@ -107,6 +107,13 @@ def run(args: argparse.Namespace) -> int:
               f"FPS {base['timing']['fps']:.1f} (Keras) -> {final['timing']['fps']:.1f} (TFLite); "
               f"PCK@0.5 {base['metrics']['pck@0.5_bbox']:.3f} -> {final['metrics']['pck@0.5_bbox']:.3f} "
               f"({final['metrics']['pck@0.5_bbox'] - base['metrics']['pck@0.5_bbox']:+.4f})")
+        export, parity = final["export"], final["export"]["parity"]
+        calibration = f"calibrated on {export['calibration_frames']} training frames; " \
+            if export["calibration_frames"] else ""
+        print(f"  {calibration}verified on {parity['frames']} frames: {parity['keypoints_within_px']} of "
+              f"{parity['keypoints_compared']} keypoints within {parity['keypoint_px']:g} map px of Keras "
+              f"({parity['min_keypoint_share']:.0%} required), {parity['keypoints_lost_or_gained']} lost or gained; "
+              f"upsampling {'folded' if export['graph_rewrites'] else 'not folded'}")
     for key, path in report["files"].items():
         print(f"wrote {path}")
     return 0
