@@ -34,6 +34,7 @@ centroid from the kept cluster's binary image moments
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -75,6 +76,7 @@ def dequantize(values: np.ndarray, scale: float, zero_point: int, out: np.ndarra
     return out
 
 
+@functools.lru_cache(maxsize=64)  # a runtime asks for the same cut every frame
 def quantized_cut(threshold: float, scale: float, zero_point: int, dtype: np.dtype | type) -> int:
     """The integer cut for thresholding quantized maps without dequantizing them.
 
