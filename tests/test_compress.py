@@ -122,3 +122,24 @@ def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
     blocker.write_text("x")
     proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--out-dir", blocker)
     assert proc.returncode == 2 and "not a folder" in proc.stderr
+
+
+@pytest.mark.slow
+def test_export_command_writes_verified_files_next_to_the_model(setup, cli, tmp_path):
+    """`fcnpose-tf export`: one file per format, the int8 one calibrated on the data's training split."""
+    import shutil
+
+    root, data, base = setup
+    model = tmp_path / "arm.keras"
+    shutil.copy(base, model)
+    proc = cli("export", model, "--data", data, "--json", tmp_path / "export.json", "--threads", "1")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (tmp_path / "arm_fp16.tflite").is_file() and (tmp_path / "arm_int8.tflite").is_file()
+    record = json.loads((tmp_path / "export.json").read_text())
+    fp16, int8 = record["files"]
+    assert fp16["quantize"] == "float16" and fp16["calibration_frames"] == 0 and not fp16["graph_rewrites"]
+    assert int8["quantize"] == "int8" and int8["calibration_frames"] == 16 and int8["graph_rewrites"]
+    assert int8["parity"]["frames"] == 16 and int8["parity"]["min_keypoint_share"] == 0.95
+    assert "arm_int8.tflite" in proc.stdout and "folded" in proc.stdout
+    again = cli("export", model, "--data", data, "--quantize", "int8")
+    assert again.returncode == 2 and "already exists; pass --force" in again.stderr
