@@ -341,3 +341,6 @@ CALIBRATION_FRAMES = Setting(
     "calibration_frames", int, 100, "int8: training frames (seeded choice, never the measured frames) the "
     "activation ranges are calibrated on", label="calibration frames", check=lambda v: v >= 1,
     requirement="at least 1", metavar="N")
+CALIBRATION_SEED = SEED.variant(help="seed of the choice of int8 calibration frames")
+"""`export` trains nothing: its only random choice is which training frames calibrate an int8 file
+(`compress` draws them with its --seed)."""

@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", type=Path, metavar="MODEL", help="a trained .keras/.h5 FCN-Pose")
     add_data_arguments(parser, positional=False, required=False)
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
-    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.SEED, settings.THREADS):
+    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS):
         setting.add_to(parser)
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write what was exported: per file its format, size, calibration, verification "
@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.tfsetup import set_tensorflow_threads
 
-    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.SEED):
+    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED):
         setting.validate(getattr(args, setting.name))
     if not args.model.is_file():
         raise UserError(f"{args.model}: model file not found")
