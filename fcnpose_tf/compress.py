@@ -42,12 +42,14 @@ METHODS = settings.METHOD.choices
 Log = Callable[[str], None]
 
 
-@settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE, settings.RETRAIN_EPOCHS,
+@settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
+                       settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
                        settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
 class CompressOptions:
-    """Settings of one compression run: rate, method, strategy, quantize, and the retraining's
+    """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
+    calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
     positive_weight (use the base model's) and lr_patience. Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
@@ -61,12 +63,18 @@ class CompressOptions:
                          lr_patience=self.lr_patience)
 
 
+def tflite_key(quantize: str) -> str:
+    """The key of a TFLite file in a run's names and paths (and the report's "files"): tflite_fp16, tflite_int8."""
+    return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
+
+
 def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
-    """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite, NAME_p70_report.json (m70 for magnitude)."""
+    """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite (one per --quantize format, key
+    `tflite_key`), NAME_p70_report.json (m70 for magnitude)."""
     tag = f"{pruning_method(options).tag}{round(options.rate * 100):02d}"
-    quant = {"float16": "fp16", "float32": "fp32", "int8-weights": "int8w"}[options.quantize]
     stem = f"{base_name}_{tag}"
-    return {"stem": stem, "keras": f"{stem}.keras", "tflite": f"{stem}_{quant}.tflite",
+    return {"stem": stem, "keras": f"{stem}.keras",
+            **{tflite_key(q): f"{stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize},
             "report": f"{stem}_report.json"}
 
 
@@ -75,7 +83,7 @@ def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, optio
     from fcnpose_tf.train import output_files
 
     names = output_names(Path(base_path).stem, options)
-    paths = [Path(out_dir) / names[key] for key in ("keras", "tflite", "report")]
+    paths = [Path(out_dir) / name for key, name in names.items() if key != "stem"]
     if options.retrain_epochs > 0:
         paths += [p for p in output_files(paths[0]) if p not in paths]
     return paths
@@ -309,29 +317,39 @@ def measure_retrained(run: _Run, retrained: keras.Model) -> dict[str, Any]:
                           **run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)")}}
 
 
-def export_step(run: _Run, retrained: keras.Model) -> Any:
-    """Write the TFLite file, verified against Keras on the first evaluation frames; the export result."""
-    from fcnpose_tf.export import write_tflite
-    from fcnpose_tf.preprocess import preprocess_frame
+def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
+    """Indices of the retraining split's training frames that are not evaluation frames."""
+    train_indices, _ = run.train_dataset.split(fold)
+    if run.train_dataset is run.eval_dataset:
+        train_indices = np.setdiff1d(train_indices, np.asarray(run.eval_indices, dtype=np.int64))
+    return np.asarray(train_indices, dtype=np.int64)
 
-    samples = np.stack([preprocess_frame(run.eval_dataset.load_image(int(i)), run.input_size)
-                        for i in list(run.eval_indices)[:4]])
-    return write_tflite(retrained, run.paths["tflite"], run.options.quantize, force=run.force,
-                        sample_frames=samples, num_threads=run.options.threads)
+
+def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
+    """Write one TFLite file, verified against Keras on real frames (`export.export_frames`: the
+    first evaluation frames; int8 calibrated on the retraining split's training frames); the export result."""
+    from fcnpose_tf.export import export_frames, write_tflite
+
+    samples, calibration = export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold),
+                                         run.eval_dataset, run.eval_indices, run.options.calibration_frames,
+                                         run.options.seed)
+    return write_tflite(retrained, run.paths[tflite_key(quantize)], quantize, force=run.force,
+                        sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
 
 
 def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any]) -> dict[str, Any]:
-    """The TFLite model: its size (plain and gzip), export facts, operators, metrics and timing."""
+    """One TFLite file: its format, size (plain and gzip), export facts, operators, metrics and timing."""
     from fcnpose_tf.export import inspect_tflite
     from fcnpose_tf.runtime.estimator import KeypointModel
 
-    tflite_info = inspect_tflite(run.paths["tflite"])
-    tfl = KeypointModel(run.paths["tflite"], num_threads=run.options.threads)
-    return {"quantized": {
-        "params": retrained_facts["params"], "macs": retrained_facts["macs"], "flops": retrained_facts["flops"],
-        "tflite_size_bytes": export.size_bytes, "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)),
-        "export": export.to_dict(), "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
-        **run.measure(tfl, f"the {run.options.quantize} TFLite model")}}
+    path = run.paths[tflite_key(export.quantize)]
+    tflite_info = inspect_tflite(path)
+    tfl = KeypointModel(path, num_threads=run.options.threads)
+    return {"quantize": export.quantize,
+            "params": retrained_facts["params"], "macs": retrained_facts["macs"], "flops": retrained_facts["flops"],
+            "tflite_size_bytes": export.size_bytes, "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)),
+            "export": export.to_dict(), "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
+            **run.measure(tfl, f"the {export.quantize} TFLite model")}
 
 
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
@@ -343,14 +361,16 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         base_path: the unpruned (or any) .keras/.h5 FCN-Pose.
         train_dataset: dataset to retrain on (its hold-out split, or `options.fold`).
         eval_dataset, eval_indices: the frames every step is measured on.
-        out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite and NAME_p70_report.json go.
-        options: rate, method, strategy, quantize, retraining settings, threads.
+        out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite (one file per `options.quantize` format) and
+            NAME_p70_report.json go.
+        options: rate, method, strategy, quantize, calibration frames, retraining settings, threads.
         force: replace existing output files.
         verbose: 0 silent (no progress lines either); 1 progress bars while preparing data and one line
             per epoch; 2 one line per epoch without progress bars (logs: `sweep --quiet`).
         log: where the progress lines go.
     Returns:
-        The report dict (also written as NAME_pXX_report.json).
+        The report dict (also written as NAME_pXX_report.json). Its "quantized" entry is the first
+        TFLite file's (the paper's float16 by default), "other_quantized" a list of the others'.
     Raises:
         UserError: bad options, existing outputs without force, unwritable folder, a model whose
             maps do not match the dataset, or an export that fails verification (nothing written).
@@ -372,7 +392,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     check_outputs(base_path, out_dir, options, force)
     run = _Run(base_path, base, pruning_method(options), options, paths, train_dataset, eval_dataset,
                eval_indices, force, verbose, say)
-    steps = 6
+    steps = 4 + 2 * len(options.quantize)
     say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size})")
     report: dict[str, Any] = {
         "base_model": str(base_path), "method": options.method, "options": asdict(options),
@@ -389,10 +409,14 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     report.update(entries)
     say(f"[4/{steps}] measuring the retrained Keras model")
     report.update(measure_retrained(run, retrained))
-    say(f"[5/{steps}] exporting {options.quantize} TFLite (verified against Keras)")
-    export = export_step(run, retrained)
-    say(f"[6/{steps}] measuring the TFLite model")
-    report.update(measure_quantized(run, export, report["retrained"]))
+    fold = report.get("retrain_data", {}).get("fold", options.fold)
+    files = []
+    for i, quantize in enumerate(options.quantize):
+        say(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
+        export = export_step(run, retrained, quantize, fold)
+        say(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
+        files.append(measure_quantized(run, export, report["retrained"]))
+    report["quantized"], report["other_quantized"] = files[0], files[1:]
     report["files"] = {k: str(v) for k, v in paths.items()}
     report["seconds"] = round(time.perf_counter() - start, 1)
     write_json(paths["report"], report, force=force)
@@ -421,11 +445,12 @@ def report_table(report: dict[str, Any], markdown: bool = False) -> str:
                 m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
                 t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
 
-    quantize = report["options"]["quantize"]
     rows = [row("unpruned (Keras, .h5)", report["base"], "h5_size_bytes"),
             row("pruned, before retraining", report["pruned_before_retraining"], ""),
-            row("pruned + retrained (Keras, .h5)", report["retrained"], "h5_size_bytes"),
-            row(f"{quantize} TFLite (.tflite)", report["quantized"], "tflite_size_bytes")]
+            row("pruned + retrained (Keras, .h5)", report["retrained"], "h5_size_bytes")]
+    # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
+    rows += [row(f"{step.get('quantize') or report['options']['quantize']} TFLite (.tflite)", step,
+                 "tflite_size_bytes") for step in [report["quantized"], *report.get("other_quantized", [])]]
     return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
                          "infer ms", "FPS e2e"], rows, markdown=markdown,
                         digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])

@@ -34,6 +34,7 @@ centroid from the kept cluster's binary image moments
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -42,7 +43,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import keypoints_to_frame
 
-__all__ = ["maps_to_keypoints", "decode", "largest_cluster", "probability_to_logit"]
+__all__ = ["maps_to_keypoints", "decode", "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut"]
 
 
 def probability_to_logit(threshold: float) -> float:
@@ -62,6 +63,43 @@ def probability_to_logit(threshold: float) -> float:
     if not 0.0 < t < 1.0:
         raise UserError(f"threshold for logit maps must be a probability strictly between 0 and 1, got {threshold!r}")
     return math.log(t) - math.log1p(-t)
+
+
+def dequantize(values: np.ndarray, scale: float, zero_point: int, out: np.ndarray | None = None) -> np.ndarray:
+    """Real values of affine-quantized integers: (q - zero_point) * scale, in float32.
+
+    The one dequantization of maps in this package (the runtime's `read_maps`, the exporter's
+    check), so that `quantized_cut` finds exactly the pixels thresholding these values finds.
+    """
+    out = np.subtract(values, zero_point, out=out, dtype=np.float32)
+    out *= np.float32(scale)
+    return out
+
+
+@functools.lru_cache(maxsize=64)  # a runtime asks for the same cut every frame
+def quantized_cut(threshold: float, scale: float, zero_point: int, dtype: np.dtype | type) -> int:
+    """The integer cut for thresholding quantized maps without dequantizing them.
+
+    ``q > quantized_cut(t, scale, zp, dtype)`` selects exactly the integers q whose
+    `dequantize` (float32) value is ``> t``: every level of the dtype is dequantized and compared,
+    so float rounding at the threshold cannot make the two tests differ.
+
+    Args:
+        threshold: the probability threshold (strict: a pixel is active above it).
+        scale, zero_point: the maps' affine quantization (scale > 0).
+        dtype: the maps' integer type (int8 or uint8).
+    Returns:
+        The largest level that is not active (the type's minimum - 1 when every level is active).
+    Example:
+        >>> quantized_cut(0.5, 1 / 256, -128, np.int8)   # the int8 sigmoid output: q > 0 is above 0.5
+        0
+    """
+    info = np.iinfo(dtype)
+    if not scale > 0:
+        raise UserError(f"quantized maps need a positive scale, got {scale!r}")
+    levels = np.arange(info.min, info.max + 1, dtype=np.int64).astype(dtype)
+    inactive = np.flatnonzero(~(dequantize(levels, scale, zero_point) > _cut(threshold, False)))
+    return int(info.min) - 1 if inactive.size == 0 else int(levels[inactive[-1]])
 
 
 def largest_cluster(mask: np.ndarray, min_size: int = 1) -> tuple[float, float, int]:
@@ -207,6 +245,7 @@ def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
 
 
 def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool = False,
+                      quantization: tuple[float, int] | None = None,
                       min_size: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints from FCN-Pose output maps by Expansion Clustering (the paper's Algorithm 1, M = 1).
 
@@ -219,6 +258,10 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
             compared as logit(threshold) (0 for 0.5). Same pixels as thresholding the sigmoid,
             except logits within float rounding of the cut (|z| < ~3e-8 at 0.5 in float32),
             where the float sigmoid itself rounds onto the threshold.
+        quantization: (scale, zero_point) of integer maps straight from a quantized model (the
+            int8 export); ``threshold`` stays a probability and is compared as the integer
+            `quantized_cut`: the same pixels as thresholding ``dequantize(maps)``, without
+            making a float copy of the maps.
         min_size: a largest cluster of fewer pixels is reported missing. The default 1 is the
             paper's algorithm; a larger value rejects lone speckles.
 
@@ -239,7 +282,13 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
         ([5.5, 2.5], 4, True, 0)
     """
     arr = _check_maps(maps)
-    cut = _cut(threshold, logits)
+    if quantization is None:
+        cut: float | int = _cut(threshold, logits)
+    elif logits or not np.issubdtype(arr.dtype, np.integer):
+        raise UserError(f"quantized maps are integers holding probabilities, got {arr.dtype} maps"
+                        + (" with logits=True" if logits else ""))
+    else:
+        cut = quantized_cut(threshold, quantization[0], quantization[1], arr.dtype)
     min_size = int(min_size)
     if min_size < 1:
         raise UserError(f"min_size must be at least 1, got {min_size}")
@@ -254,7 +303,8 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
 
 
 def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.5, *,
-           logits: bool = False, min_size: int = 1) -> tuple[np.ndarray, np.ndarray]:
+           logits: bool = False, quantization: tuple[float, int] | None = None,
+           min_size: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 
@@ -264,7 +314,7 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     Args:
         maps: H x W x C or N x H x W x C maps with H == W (see :func:`maps_to_keypoints`).
         frame_shape: the original frame's shape, (height, width[, channels]).
-        threshold, logits, min_size: as in :func:`maps_to_keypoints`.
+        threshold, logits, quantization, min_size: as in :func:`maps_to_keypoints`.
 
     Returns:
         (keypoints, confidence): keypoints (C-1, 2) or (N, C-1, 2) float64, (x, y) in frame pixels
@@ -282,5 +332,6 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
         raise UserError(f"expected square maps (H == W) to map keypoints back to the frame, got {h} x {w}")
     if len(frame_shape) < 2 or min(frame_shape[:2]) < 1:
         raise UserError(f"expected a frame shape (height, width[, channels]), got {tuple(frame_shape)}")
-    keypoints, confidence = maps_to_keypoints(arr, threshold, logits=logits, min_size=min_size)
+    keypoints, confidence = maps_to_keypoints(arr, threshold, logits=logits, quantization=quantization,
+                                              min_size=min_size)
     return keypoints_to_frame(keypoints, tuple(frame_shape), h), confidence

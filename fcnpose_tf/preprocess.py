@@ -38,16 +38,34 @@ def preprocess_frame(frame_bgr: np.ndarray, input_size: int, out: np.ndarray | N
 
     `out` (input_size x input_size x 3 float32) may be given to reuse a buffer.
     """
+    if out is None:
+        out = np.empty((input_size, input_size, 3), np.float32)
+    np.multiply(preprocess_frame_bytes(frame_bgr, input_size), np.float32(1.0 / 255.0), out=out, casting="unsafe")
+    return out
+
+
+def preprocess_frame_bytes(frame_bgr: np.ndarray, input_size: int, out: np.ndarray | None = None) -> np.ndarray:
+    """The resized RGB frame as uint8 bytes: `preprocess_frame` before its scaling to [0, 1].
+
+    ``preprocess_frame(f, s) == preprocess_frame_bytes(f, s) / 255`` exactly, so a model whose
+    input is uint8 with scale 1/255 and zero point 0 (the int8 export) takes these bytes as they
+    are. `out` (input_size x input_size x 3 uint8, C-contiguous, e.g. the interpreter's input
+    tensor) receives them without a copy.
+    """
     if frame_bgr is None or frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3:
         shape = None if frame_bgr is None else frame_bgr.shape
         raise UserError(f"expected a colour frame of shape H x W x 3, got {shape}")
-    if out is None:
-        out = np.empty((input_size, input_size, 3), np.float32)
     small = box_reduce(frame_bgr, input_size)
     if small.shape[:2] != (input_size, input_size):
         small = cv2.resize(small, (input_size, input_size), interpolation=cv2.INTER_LINEAR_EXACT)
-    rgb = cv2.cvtColor(small, cv2.COLOR_BGR2RGB)
-    np.multiply(rgb, np.float32(1.0 / 255.0), out=out, casting="unsafe")
+    if out is None:
+        return cv2.cvtColor(small, cv2.COLOR_BGR2RGB)
+    if out.shape != (input_size, input_size, 3) or out.dtype != np.uint8 or not out.flags.c_contiguous:
+        raise UserError(f"expected a C-contiguous {input_size} x {input_size} x 3 uint8 buffer, "
+                        f"got {out.dtype} {out.shape}")
+    result = cv2.cvtColor(small, cv2.COLOR_BGR2RGB, dst=out)
+    if result is not out and not np.shares_memory(result, out):  # OpenCV allocated instead of filling `out`
+        out[...] = result
     return out
 
 

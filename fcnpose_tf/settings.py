@@ -321,5 +321,39 @@ METHOD = Setting("method", str, "l1", "l1: filter surgery (the paper); magnitude
 STRATEGY = Setting("strategy", str, "independent",
                    "L1 ranking on the original kernels, or after removing pruned inputs (Li et al.)",
                    label="strategy", choices=("independent", "greedy"))
-QUANTIZE = Setting("quantize", str, "float16", "TFLite post-training quantization", label="quantize",
-                   choices=("float16", "float32", "int8-weights"))
+QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8")
+"""TFLite formats (fcnpose_tf.export): float32, float16 weights (the paper's), dynamic-range int8 weights,
+and full-integer int8 (int8 weights and activations, uint8 pixel input; the fastest on a Pi 3/4)."""
+QUANTIZE_FILE_TAGS = {"float32": "fp32", "float16": "fp16", "int8-weights": "int8w", "int8": "int8"}
+"""A TFLite file name's suffix per format: NAME_p70_fp16.tflite, NAME_p70_int8.tflite."""
+
+
+def quantize_modes(text: str) -> tuple[str, ...]:
+    """argparse type of `compress --quantize`: one or more of QUANTIZE_MODES separated by commas, one file each."""
+    modes: list[str] = []
+    for part in str(text).split(","):
+        mode = part.strip()
+        if mode not in QUANTIZE_MODES:
+            raise argparse.ArgumentTypeError(
+                f"{text!r}: expected one or more of {', '.join(QUANTIZE_MODES)} separated by commas, e.g. float16,int8")
+        if mode not in modes:
+            modes.append(mode)
+    return tuple(modes)
+
+
+QUANTIZE = Setting(
+    "quantize", tuple, ("float16", "int8"),
+    "TFLite files to write, one per format, comma-separated: float16 (the paper's), int8 (full integer, calibrated "
+    "on training frames; the fastest on a Raspberry Pi 3/4), float32, int8-weights (dynamic range); "
+    "default float16,int8", label="quantize", metavar="MODE[,MODE]", parse=quantize_modes,
+    check=lambda v: isinstance(v, (tuple, list)) and len(v) > 0 and all(m in QUANTIZE_MODES for m in v)
+    and len(set(v)) == len(v),
+    requirement=f"a non-empty list of distinct formats out of {', '.join(QUANTIZE_MODES)}")
+"""`compress` writes the paper's float16 file and the int8 file, so its table puts both in front of the user."""
+CALIBRATION_FRAMES = Setting(
+    "calibration_frames", int, 100, "int8: training frames (seeded choice, never the measured frames) the "
+    "activation ranges are calibrated on", label="calibration frames", check=lambda v: v >= 1,
+    requirement="at least 1", metavar="N")
+CALIBRATION_SEED = SEED.variant(help="seed of the choice of int8 calibration frames")
+"""`export` trains nothing: its only random choice is which training frames calibrate an int8 file
+(`compress` draws them with its --seed)."""

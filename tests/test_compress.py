@@ -12,7 +12,7 @@ def setup(tmp_path_factory):
     from fcnpose_tf.model import build_fcn_pose
 
     root = tmp_path_factory.mktemp("compress")
-    data = make_via_folder(root / "frames", n=10)
+    data = make_via_folder(root / "frames", n=20)  # 16 real frames for the int8 keypoint gate
     base = root / "base.keras"
     build_fcn_pose(input_size=64).save(base)
     return root, data, base
@@ -25,7 +25,7 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "1",
                "--out-dir", out, "--threads", "1", "--lr-patience", "3")
     assert proc.returncode == 0, proc.stdout + proc.stderr
-    names = {"base_p70.keras", "base_p70_fp16.tflite", "base_p70_report.json"}
+    names = {"base_p70.keras", "base_p70_fp16.tflite", "base_p70_int8.tflite", "base_p70_report.json"}
     assert names <= {p.name for p in out.iterdir()}
     report = json.loads((out / "base_p70_report.json").read_text())
     assert report["base"]["params"] == 131705
@@ -42,6 +42,15 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     tflite_row = next(line for line in proc.stdout.splitlines() if line.startswith("float16 TFLite (.tflite)"))
     assert f"{report['quantized']['tflite_size_bytes'] / 1e3:.1f}" in tflite_row
     assert f"{report['quantized']['metrics']['pck@0.05_bbox']:.3f}" in tflite_row
+    # the default --quantize float16,int8: a second file with its own row, calibrated on training frames only
+    (int8,) = report["other_quantized"]
+    assert int8["quantize"] == "int8" and report["quantized"]["quantize"] == "float16"
+    assert int8["tflite_size_bytes"] == (out / "base_p70_int8.tflite").stat().st_size
+    assert 0 < int8["export"]["calibration_frames"] <= 100 and int8["export"]["parity"]["frames"] >= 16
+    int8_row = next(line for line in proc.stdout.splitlines() if line.startswith("int8 TFLite (.tflite)"))
+    assert f"{int8['metrics']['pck@0.05_bbox']:.3f}" in int8_row
+    assert f"calibrated on {int8['export']['calibration_frames']} training frames; verified on" in proc.stdout
+    assert "upsampling folded" in proc.stdout and "upsampling not folded" in proc.stdout  # int8, float16
     # --lr-patience reaches the retraining's FitConfig; the base model has no record: plain BCE
     assert report["options"]["lr_patience"] == 3
     assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 3
@@ -78,6 +87,8 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     (["--rate", "1.2"], "pruning rate must be in [0, 1)"),
     (["--rate", "-0.1"], "pruning rate must be in [0, 1)"),
     (["--rate", "0.5", "--data", "MISSING"], "MISSING: not found"),
+    (["--rate", "0.5", "--quantize", "float16,int4"], "expected one or more of float32, float16, int8-weights, int8"),
+    (["--rate", "0.5", "--calibration-frames", "0"], "calibration frames must be at least 1"),
 ])
 def test_bad_input_leaves_nothing(setup, cli, extra, message):
     root, data, base = setup
@@ -105,9 +116,30 @@ def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
     out = tmp_path / "out"
     proc = cli("compress", "--rate", "0.5", "--model", odd, "--data", data, "--retrain-epochs", "0", "--out-dir", out)
     assert proc.returncode == 2 and "unsupported layer" in proc.stderr and "Traceback" not in proc.stderr
-    assert "[1/6]" not in proc.stdout  # refused before measuring or preparing anything
+    assert "[1/" not in proc.stdout  # refused before measuring or preparing anything
     assert not out.exists()
     blocker = tmp_path / "file"
     blocker.write_text("x")
     proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--out-dir", blocker)
     assert proc.returncode == 2 and "not a folder" in proc.stderr
+
+
+@pytest.mark.slow
+def test_export_command_writes_verified_files_next_to_the_model(setup, cli, tmp_path):
+    """`fcnpose-tf export`: one file per format, the int8 one calibrated on the data's training split."""
+    import shutil
+
+    root, data, base = setup
+    model = tmp_path / "arm.keras"
+    shutil.copy(base, model)
+    proc = cli("export", model, "--data", data, "--json", tmp_path / "export.json", "--threads", "1")
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (tmp_path / "arm_fp16.tflite").is_file() and (tmp_path / "arm_int8.tflite").is_file()
+    record = json.loads((tmp_path / "export.json").read_text())
+    fp16, int8 = record["files"]
+    assert fp16["quantize"] == "float16" and fp16["calibration_frames"] == 0 and not fp16["graph_rewrites"]
+    assert int8["quantize"] == "int8" and int8["calibration_frames"] == 16 and int8["graph_rewrites"]
+    assert int8["parity"]["frames"] == 16 and int8["parity"]["min_keypoint_share"] == 0.95
+    assert "arm_int8.tflite" in proc.stdout and "folded" in proc.stdout
+    again = cli("export", model, "--data", data, "--quantize", "int8")
+    assert again.returncode == 2 and "already exists; pass --force" in again.stderr

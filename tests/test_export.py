@@ -214,7 +214,7 @@ def test_bad_arguments(fcn64, kwargs, message):
 
 def _substitute(monkeypatch, data):
     """Make the converter return `data`, whatever it is given."""
-    monkeypatch.setattr(export_module, "_convert", lambda model, quantize, shape: data)
+    monkeypatch.setattr(export_module, "_convert", lambda model, quantize, shape, calibration=None: data)
 
 
 def test_other_weights_are_refused_and_nothing_written(fcn64, tmp_path, monkeypatch):
@@ -315,3 +315,103 @@ def test_inspect_rejects_what_is_not_tflite(tmp_path):
     (tmp_path / "x.tflite").write_bytes(b"PK\x03\x04 not a flatbuffer")
     with pytest.raises(UserError, match="not a TFLite flatbuffer"):
         inspect_tflite(tmp_path / "x.tflite")
+
+
+# --------------------------------------------------------------------------------------------
+# Full-integer int8
+# --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def fcn64_int8(fcn64):
+    """The random-weight 64 x 64 FCN-Pose as full-integer int8 (interface and storage only: its maps
+    are not keypoints, so the keypoint check is off here; the trained model's tests below use it)."""
+    calibration = frames(64, n=8, seed=4)
+    return export_tflite(fcn64, "int8", sample_frames=frames(64, n=16, seed=5), calibration_frames=calibration,
+                         check_keypoints=False)
+
+
+def test_int8_is_full_integer_with_a_pixel_byte_input(fcn64_int8):
+    info = inspect_tflite(fcn64_int8.data)
+    assert info["builtin_only"] and not info["flex_ops"]
+    # every convolution consumes int8 weights stored as int8 (no DEQUANTIZE, no float kernel left)
+    assert len(info["convolutions"]) == 10
+    for conv in info["convolutions"]:
+        assert conv["filter_dtype"] == conv["stored_dtype"] == "INT8" and not conv["dequantized"]
+    assert "FLOAT32" not in info["tensor_dtypes"] and "FLOAT16" not in info["tensor_dtypes"]
+    assert "DEQUANTIZE" not in info["op_counts"]
+    (inp,), (out,) = info["inputs"], info["outputs"]
+    assert inp["dtype"] == "UINT8" and inp["shape"] == [1, 64, 64, 3]
+    assert out["dtype"] == "INT8" and out["shape"] == [1, 64, 64, 9]
+    interpreter = export_module._interpreter(fcn64_int8.data)
+    scale, zero_point = interpreter.get_input_details()[0]["quantization"]
+    assert scale == pytest.approx(1 / 255, rel=1e-7) and zero_point == 0
+    assert interpreter.get_output_details()[0]["quantization"] == (pytest.approx(1 / 256), -128)  # the sigmoid's
+    # the mode's graph rewrite: upsampling folded (measured faster for int8), and said so
+    assert fcn64_int8.graph_rewrites and "DEPTH_TO_SPACE" in info["op_counts"]
+    assert fcn64_int8.to_dict()["calibration_frames"] == 8
+
+
+def test_int8_input_scale_is_pinned_whatever_the_calibration_range(fcn64):
+    """Calibration frames that never reach black or white would give the uint8 input another scale;
+    the exporter declares the input as pixel / 255 regardless, and the file still matches Keras."""
+    dim = 0.25 + 0.5 * frames(64, n=8, seed=6)  # pixels in [0.25, 0.75)
+    data = export_tflite(fcn64, "int8", sample_frames=dim[:1].repeat(16, 0), calibration_frames=dim,
+                         check_keypoints=False).data
+    scale, zero_point = export_module._interpreter(data).get_input_details()[0]["quantization"]
+    assert scale == pytest.approx(1 / 255, rel=1e-7) and zero_point == 0
+
+
+@pytest.mark.parametrize("kwargs,message", [
+    ({"sample_frames": frames(64, n=16)}, "int8 \\(full-integer\\) export needs real preprocessed frames"),
+    ({"calibration_frames": frames(64, n=4)}, "int8 \\(full-integer\\) export needs real preprocessed frames"),
+    ({"sample_frames": frames(64, n=15), "calibration_frames": frames(64, n=4)}, "at least 16 real frames"),
+    ({"sample_frames": frames(64, n=16), "calibration_frames": frames(32, n=4)}, "calibration frames must be N x 64"),
+])
+def test_int8_needs_real_frames(fcn64, kwargs, message):
+    with pytest.raises(UserError, match=message):
+        export_tflite(fcn64, "int8", **kwargs)
+
+
+def test_int8_file_with_a_float_interface_is_refused(fcn64, monkeypatch):
+    """A file that would need float input is not what the runtime's int8 path feeds bytes to."""
+    _substitute(monkeypatch, to_tflite(fcn64, "float32"))
+    with pytest.raises(ExportVerificationError, match=r"takes float32 \[1, 64, 64, 3\], expected uint8 "
+                                                      r"\(scale 1/255, zero point 0\)"):
+        export_tflite(fcn64, "int8", sample_frames=frames(64, n=16), calibration_frames=frames(64, n=2),
+                      check_keypoints=False)
+
+
+@pytest.fixture(scope="module")
+def trained_p70_frames():
+    """The bundled trained 70% model and real synthetic frames: 16 to calibrate on, 16 to verify on."""
+    from fcnpose_tf.bundled import models_dir
+    from fcnpose_tf.data.synth.frame import render_frame
+    from fcnpose_tf.model import load_model
+    from fcnpose_tf.preprocess import preprocess_frame
+
+    model = load_model(models_dir() / "fcnpose_ur5_p70.keras")
+    real = np.stack([preprocess_frame(render_frame(0, i)[0], 224) for i in range(32)])
+    return model, real[:16], real[16:]
+
+
+@pytest.mark.slow
+def test_int8_of_the_trained_model_passes_the_keypoint_gate(trained_p70_frames, tmp_path):
+    model, calibration, verification = trained_p70_frames
+    export = write_tflite(model, tmp_path / "p70_int8.tflite", "int8", sample_frames=verification,
+                          calibration_frames=calibration)
+    parity = export.parity
+    assert parity.frames == 16 and parity.keypoints_compared >= 0.9 * 16 * 8
+    assert parity.keypoints_lost_or_gained == 0 and parity.min_keypoint_share == 0.95
+    assert parity.keypoints_within_px >= 0.95 * parity.keypoints_compared and parity.keypoint_px == 2.0
+    assert (tmp_path / "p70_int8.tflite").read_bytes() == export.data
+
+
+@pytest.mark.slow
+def test_int8_gate_refuses_a_broken_calibration_and_writes_nothing(trained_p70_frames, tmp_path):
+    """Calibrated on black frames, the activation ranges are wrong for every real frame: keypoints are
+    lost, the file is refused."""
+    model, calibration, verification = trained_p70_frames
+    path = tmp_path / "broken_int8.tflite"
+    with pytest.raises(ExportVerificationError, match=r"lost or gained|keypoints within 2 px"):
+        write_tflite(model, path, "int8", sample_frames=verification, calibration_frames=np.zeros_like(calibration))
+    assert not path.exists()

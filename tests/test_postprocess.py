@@ -422,3 +422,51 @@ def test_benchmark_tool_runs_and_checks_its_variants(tmp_path):
     report = json.loads(out.read_text())
     assert {r["scenario"] for r in report["results"]} == {"clean", "speckled", "noisy", "empty", "full", "random50"}
     assert report["threads"] == 1 and all(r["median_us"] > 0 for r in report["results"])
+
+
+# --------------------------------------------------------------------------------------------
+# Quantized maps (the int8 export's output) thresholded as integers
+# --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype,scale,zero_point", [
+    (np.int8, 1 / 256, -128),     # the int8 export's sigmoid output
+    (np.uint8, 1 / 256, 0),
+    (np.int8, 0.0047, -3),
+    (np.uint8, 1 / 255, 7),
+])
+@pytest.mark.parametrize("threshold", [0.5, 0.3, 0.5 + 1 / 512, 0.9])
+def test_quantized_thresholding_finds_the_keypoints_of_the_dequantized_maps(dtype, scale, zero_point, threshold):
+    info = np.iinfo(dtype)
+    rng = np.random.default_rng(3)
+    raw = rng.integers(info.min, info.max + 1, size=(3, 40, 40, 9)).astype(dtype)
+    # blobs and pixels exactly at and one level around the cut, where rounding could differ
+    cut = pp.quantized_cut(threshold, scale, zero_point, dtype)
+    for level in (cut - 1, cut, cut + 1):
+        if info.min <= level <= info.max:
+            raw[:, rng.integers(0, 40, 200), rng.integers(0, 40, 200), :] = level
+    raw[:, 10:16, 20:25, :] = info.max
+    maps = pp.dequantize(raw, scale, zero_point)
+    expected = maps_to_keypoints(maps, threshold)
+    got = maps_to_keypoints(raw, threshold, quantization=(scale, zero_point))
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+    frame_kp, frame_conf = decode(raw[0], (480, 640, 3), threshold, quantization=(scale, zero_point))
+    np.testing.assert_array_equal(frame_kp, decode(maps[0], (480, 640, 3), threshold)[0])
+
+
+def test_quantized_cut_is_the_last_level_at_or_below_the_threshold():
+    assert pp.quantized_cut(0.5, 1 / 256, -128, np.int8) == 0          # (0 + 128) / 256 = 0.5 is not above it
+    levels = np.arange(-128, 128).astype(np.int8)
+    values = pp.dequantize(levels, 0.01, 5)
+    for t in (-5.0, 0.0, 0.333, 1.2, 9.0):
+        cut = pp.quantized_cut(t, 0.01, 5, np.int8)
+        assert np.array_equal(levels > cut, values > np.float32(t))
+    assert pp.quantized_cut(-10.0, 0.01, 5, np.int8) == -129          # every level active
+    assert pp.quantized_cut(10.0, 0.01, 5, np.int8) == 127            # none
+
+
+def test_quantized_maps_must_be_integers():
+    with pytest.raises(UserError, match="quantized maps are integers"):
+        maps_to_keypoints(np.zeros((4, 4, 2), np.float32), quantization=(1 / 256, -128))
+    with pytest.raises(UserError, match="with logits=True"):
+        maps_to_keypoints(np.zeros((4, 4, 2), np.int8), logits=True, quantization=(1 / 256, -128))

@@ -78,3 +78,19 @@ def test_output_buffer_is_filled_in_place():
 def test_frame_already_at_input_size_is_only_scaled():
     frame = np.random.default_rng(2).integers(0, 256, (64, 64, 3), dtype=np.uint8)
     np.testing.assert_array_equal(preprocess_frame(frame, 64), frame[..., ::-1] * np.float32(1.0 / 255.0))
+
+
+def test_pixel_bytes_are_the_float_input_before_scaling_and_fill_a_buffer_in_place():
+    """The int8 export's uint8 input (scale 1/255, zero point 0) takes these bytes as they are."""
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.preprocess import preprocess_frame_bytes
+
+    frame = np.random.default_rng(3).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    pixels = preprocess_frame_bytes(frame, 224)
+    assert pixels.dtype == np.uint8 and pixels.shape == (224, 224, 3)
+    np.testing.assert_array_equal(pixels * np.float32(1.0 / 255.0), preprocess_frame(frame, 224))
+    buffer = np.zeros((1, 224, 224, 3), np.uint8)  # as an interpreter's input tensor
+    assert preprocess_frame_bytes(frame, 224, out=buffer[0]).base is buffer
+    np.testing.assert_array_equal(buffer[0], pixels)
+    with pytest.raises(UserError, match="C-contiguous 224 x 224 x 3 uint8 buffer"):
+        preprocess_frame_bytes(frame, 224, out=np.zeros((224, 224, 3), np.float32))

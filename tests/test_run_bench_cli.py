@@ -174,6 +174,22 @@ def test_bench_table_markdown_and_json(capsys, tmp_path, model_path):
     _one_line_error(code, err, "already exists")
 
 
+def test_bench_several_models_one_table_each(capsys, tmp_path, model_path):
+    """`bench INT8 FP16`: the bundled int8 file beside another, each with its own header and table."""
+    from fcnpose_tf.bundled import models_dir
+
+    int8 = models_dir() / "fcnpose_ur5_p70_int8.tflite"
+    out = tmp_path / "both.json"
+    code, stdout, err = _run(capsys, "bench", int8, model_path, "--threads", "1", "--frames", 3, "--warmup", 1,
+                             "--json", out)
+    assert code == 0, err
+    assert stdout.count("Model:   ") == 2 and stdout.index(int8.name) < stdout.index(str(model_path))
+    assert "224x224x3 uint8 -> 224x224x9 int8" in stdout
+    data = json.loads(out.read_text())
+    assert [Path(m["model"]).name for m in data["models"]] == [int8.name, Path(model_path).name]
+    assert all(m["results"][0]["threads"] == 1 for m in data["models"])
+
+
 def test_bench_on_a_real_image(capsys, tmp_path, model_path):
     image = tmp_path / "frame.png"
     cv2.imwrite(str(image), quadrant_frame(320, 240, "tr"))

@@ -587,6 +587,7 @@ def test_camera_runs_report_capture_to_keypoints_latency(monkeypatch, structured
     assert len(latency) == 5 and (latency < 5000).all()
     assert (latency >= model_ms - 1.0).all()  # from capture: at least the frame's own model time
     assert "Latency: capture to keypoints written" in summary.report(model, src)
+    monkeypatch.undo()  # the clip is read by OpenCV itself
     video = open_source(clip)  # a file's timestamps are read times, not capture times: no such line
     summary = run_stream(model, video, max_frames=3)
     video.close()
@@ -884,3 +885,27 @@ def test_run_and_bench_work_without_tensorflow(no_tf_env, structured, random_mod
     data = json.loads((tmp_path / "bench.json").read_text())
     assert data["backend"] == "ai_edge_litert" and [r["threads"] for r in data["results"]] == [1, 2]
     assert data["params"] == random_model[0].count_params()
+
+
+def test_bundled_int8_file_takes_pixel_bytes_and_thresholds_its_maps_as_integers():
+    """The full-integer file: preprocessing writes the resized RGB bytes into its uint8 input, and the
+    keypoints decoded from its raw int8 maps equal those of its dequantized maps, on real frames."""
+    from fcnpose_tf.bundled import models_dir
+    from fcnpose_tf.data.synth.frame import render_frame
+    from fcnpose_tf.postprocess import decode
+    from fcnpose_tf.preprocess import preprocess_frame_bytes
+
+    model = KeypointModel(models_dir() / "fcnpose_ur5_p70_int8.tflite", 1)
+    assert model.io.input.holds_pixel_bytes and model.io.output.dtype == np.int8
+    assert model.stats().params == 14668  # the folded file counts as the 70 % network
+    found = 0
+    for index in range(4):
+        frame = render_frame(1, index)[0]
+        pred = model.predict(frame)
+        np.testing.assert_array_equal(model.interpreter.get_tensor(model.io.input.index)[0],
+                                      preprocess_frame_bytes(frame, 224))
+        keypoints, confidence = decode(model.read_maps(), frame.shape, model.threshold)
+        np.testing.assert_array_equal(pred.keypoints, keypoints)
+        np.testing.assert_array_equal(pred.confidence, confidence)
+        found += int(pred.found.sum())
+    assert found >= 30  # a trained model on frames like its training data: keypoints, not an empty check

@@ -176,6 +176,14 @@ def frames(tmp_path_factory):
     return make_via_folder(tmp_path_factory.mktemp("sweepdata") / "frames", n=10)
 
 
+@pytest.fixture(scope="module")
+def smoke_frames(tmp_path_factory):
+    """Frames for real sweeps: 20, so each fold's int8 export has the 16 real frames its keypoint gate needs."""
+    from test_train_evaluate import make_via_folder
+
+    return make_via_folder(tmp_path_factory.mktemp("smokedata") / "frames", n=20)
+
+
 def _config(out, data, rates="0.5,0.7", folds=2, **kwargs) -> SweepConfig:
     settings = {"input_size": 64, "epochs": 1, "retrain_epochs": 1, "threads": 1, **kwargs}
     return SweepConfig(out=str(out), data=str(data), rates=parse_rates(rates), folds=folds, **settings)
@@ -536,24 +544,28 @@ def _check_smoke_outputs(out: Path, threads: int) -> None:
     for k in (0, 1):
         assert (out / "models" / f"base_fold{k}.keras").is_file()
         assert (out / "models" / f"base_fold{k}_p70_fp16.tflite").is_file()
+        assert (out / "models" / f"base_fold{k}_p70_int8.tflite").is_file()
     results = json.loads((out / "results.json").read_text())
     assert results["complete"] and len(results["jobs"]) == 6
     rows = {r["rate"]: r for r in results["tables"]["requirements"]["rows"]}
     assert rows[0.0]["params"] == 131705 and rows[0.5]["params"] == 35185 and rows[0.7]["params"] == 14668
-    quant = {r["rate"]: r for r in results["tables"]["quantization"]["rows"]}
-    assert quant[0.7]["folds"] == 2 and quant[0.7]["fps"]["mean"] > 0 and quant[0.7]["tflite_size_mb"] < 0.05
+    quant = {(r["rate"], r["quantize"]): r for r in results["tables"]["quantization"]["rows"]}
+    assert [key for key in quant if key[0] == 0.7] == [(0.7, "float16"), (0.7, "int8")]  # a row per file
+    for key in ((0.7, "float16"), (0.7, "int8")):
+        assert quant[key]["folds"] == 2 and quant[key]["fps"]["mean"] > 0 and quant[key]["tflite_size_mb"] < 0.07
     assert results["config"]["lr_patience"] == 3  # reached both trainings' FitConfig:
     for k in (0, 1):
         assert json.loads((out / "models" / f"base_fold{k}_train.json").read_text())["config"]["lr_patience"] == 3
         assert json.loads((out / "models" / f"base_fold{k}_p70_train.json").read_text())["config"]["lr_patience"] == 3
     for job in results["jobs"]:
         assert job["machine"]["threads"] == threads and job["tensorflow_threads"]["intra_op"] == threads
-        section = job["keras"] if job["kind"] == "base" else job["tflite"]
-        assert section["timing"]["threads"] == threads and section["metrics"]["num_frames"] == 5
+        for section in [job["keras"]] if job["kind"] == "base" else [job["tflite"], job["tflite_int8"]]:
+            assert section["timing"]["threads"] == threads and section["metrics"]["num_frames"] == 10
 
 
 @pytest.mark.slow
-def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
+def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, cli):
+    frames = smoke_frames
     out = tmp_path / "res"
     proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -580,14 +592,16 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
         {k: v for k, v in stamps.items() if not k.endswith(".json")}
     for name, raw in jobs.items():
         old, new = json.loads(raw), json.loads((out / "jobs" / name).read_text())
-        for section in ("keras", "tflite"):
+        for section in ("keras", "tflite", "tflite_int8"):
             if section in old:
                 assert new[section]["metrics"] == old[section]["metrics"]
                 assert new[section]["timing"]["threads"] == 2
                 assert new[section]["timing"]["total_ms"] != old[section]["timing"]["total_ms"]
         assert new["retimed"]["tensorflow_threads"]["intra_op"] == 2
     report = json.loads((out / "models" / "base_fold0_p70_report.json").read_text())
-    assert report["quantized"]["timing"] == json.loads((out / "jobs" / "fold0_p70.json").read_text())["tflite"]["timing"]
+    job = json.loads((out / "jobs" / "fold0_p70.json").read_text())
+    assert report["quantized"]["timing"] == job["tflite"]["timing"]
+    assert report["other_quantized"][0]["timing"] == job["tflite_int8"]["timing"]
     assert "re-measured with `--retime` for every job" in (out / "summary.md").read_text()
     moved = tmp_path / "moved"
     out.rename(moved)
@@ -596,8 +610,9 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, frames, cli):
 
 
 @pytest.mark.slow
-def test_smoke_sweep_on_a_local_ray_instance(tmp_path, frames, cli):
+def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, cli):
     pytest.importorskip("ray")
+    frames = smoke_frames
     out = tmp_path / "res"
     proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
                "--threads", "1", env={"RAY_USAGE_STATS_ENABLED": "0"})

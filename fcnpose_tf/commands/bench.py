@@ -1,11 +1,13 @@
-"""Benchmark a .tflite model: invoke-only and end-to-end latency and FPS per thread count.
+"""Benchmark .tflite models: invoke-only and end-to-end latency and FPS per thread count.
 
 Prints the model's parameters, MACs and file size, then one row per thread
 count: invoke and end-to-end (preprocess + invoke + postprocess) median and
 p95 latency, mean ± std, the share of pre/post-processing, and FPS
 (1000 / mean end-to-end ms) next to the invoke-only rate. Needs only the `pi`
 extra. The frame is synthetic unless --image is given (post-processing time
-depends on what the model sees: use a real frame for a trained model).
+depends on what the model sees: use a real frame for a trained model). Several models are
+measured one after the other on the same frame, each with its own table (the bundled int8 file
+beside the float16 one, for instance); compare them with the same thread count.
 """
 
 from __future__ import annotations
@@ -18,13 +20,14 @@ EXAMPLES = """\
   fcnpose-tf bench model.tflite                              # 1, 2, 4 ... up to all cores
   fcnpose-tf bench model.tflite --threads 1,2,4 --frames 200 --json bench.json
   fcnpose-tf bench model.tflite --image frame.png --markdown # a real frame; a table for docs
+  fcnpose-tf bench saved_models/fcnpose_ur5_p70_int8.tflite saved_models/fcnpose_ur5_p70_fp16.tflite --threads 1
 """
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.settings import thread_counts
 
-    parser.add_argument("model", type=Path, help="an FCN-Pose .tflite model")
+    parser.add_argument("model", type=Path, nargs="+", help="one or more FCN-Pose .tflite models")
     parser.add_argument("--threads", type=thread_counts, default=None, metavar="N,N,...",
                         help="thread counts to compare (default: 1, 2, 4 ... up to all cores)")
     parser.add_argument("--frames", type=int, default=200, help="timed frames per thread count (>= 50 advised)")
@@ -32,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--image", type=Path, help="benchmark on this image instead of a synthetic frame")
     parser.add_argument("--frame-size", default="640x480", metavar="WxH", help="size of the synthetic frame")
     parser.add_argument("--threshold", type=float, default=0.5, help="post-processing threshold")
-    parser.add_argument("--json", type=Path, metavar="FILE", help="also write the results as JSON")
+    parser.add_argument("--json", type=Path, metavar="FILE",
+                        help="also write the results as JSON (several models: {\"models\": [one result each]})")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     from fcnpose_tf.commands.run import add_backend_argument
 
@@ -49,10 +53,13 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         check_writable(args.json, args.force)
     frame, label = load_frame(args.image, parse_size(args.frame_size))
-    report = benchmark(args.model, threads, args.frames, args.warmup, frame, label, args.backend,
-                       args.threshold, progress=print_progress)
-    print(report.report(markdown=args.markdown))
+    reports = []
+    for i, model in enumerate(args.model):
+        reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
+                                 args.threshold, progress=print_progress))
+        print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
     if args.json is not None:
-        write_json(args.json, report.to_dict(), force=args.force)
+        data = reports[0].to_dict() if len(reports) == 1 else {"models": [r.to_dict() for r in reports]}
+        write_json(args.json, data, force=args.force)
         print(f"Wrote:   {args.json}")
-    return 0 if all(r.ok for r in report.results) else 1
+    return 0 if all(r.ok for report in reports for r in report.results) else 1

@@ -23,7 +23,8 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema
 from fcnpose_tf.postprocess import decode as decode_maps
-from fcnpose_tf.preprocess import preprocess_frame
+from fcnpose_tf.postprocess import dequantize
+from fcnpose_tf.preprocess import preprocess_frame, preprocess_frame_bytes
 from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
                                             load_interpreter, model_stats)
 
@@ -195,8 +196,10 @@ class KeypointModel(KeypointPredictor):
         size = self.io.input_size
         self._input = self.interpreter.tensor(self.io.input.index)
         self._output = self.interpreter.tensor(self.io.output.index)
-        # Float32 input: preprocess writes into the interpreter's buffer. Otherwise via one float32 scratch.
-        self._scratch_in = None if self.io.input.dtype == np.float32 else np.empty((size, size, 3), np.float32)
+        # Float32 input, or uint8 holding pixel / 255 (the int8 export): preprocessing writes straight into
+        # the interpreter's buffer. Any other input type goes through one float32 scratch buffer.
+        direct = self.io.input.dtype == np.float32 or self.io.input.holds_pixel_bytes
+        self._scratch_in = None if direct else np.empty((size, size, 3), np.float32)
         self._scratch_out = (np.empty(self.io.output.shape[1:], np.float32)
                              if self.io.output.quantized else None)
         self._stats: ModelStats | None = None
@@ -237,17 +240,14 @@ class KeypointModel(KeypointPredictor):
         """Preprocess a BGR uint8 frame into the interpreter's input tensor (the training preprocessing)."""
         size = self.io.input_size
         view = self._input()
-        if self._scratch_in is None:
+        spec = self.io.input
+        if spec.holds_pixel_bytes:
+            preprocess_frame_bytes(frame_bgr, size, out=view[0])
+        elif self._scratch_in is None:
             preprocess_frame(frame_bgr, size, out=view[0])
         else:
             preprocess_frame(frame_bgr, size, out=self._scratch_in)
-            spec = self.io.input
-            if spec.quantized:
-                info = np.iinfo(spec.dtype)
-                q = np.rint(self._scratch_in / spec.scale + spec.zero_point)
-                view[0] = np.clip(q, info.min, info.max).astype(spec.dtype)
-            else:
-                view[0] = self._scratch_in
+            view[0] = spec.quantize(self._scratch_in) if spec.quantized else self._scratch_in
         del view  # the interpreter refuses to invoke while a view of its buffers is alive
 
     def invoke(self) -> None:
@@ -263,15 +263,26 @@ class KeypointModel(KeypointPredictor):
         view = self._output()[0]
         spec = self.io.output
         if self._scratch_out is not None:
-            np.subtract(view, spec.zero_point, out=self._scratch_out, dtype=np.float32)
-            self._scratch_out *= np.float32(spec.scale)
-            maps = self._scratch_out
+            maps = dequantize(view, spec.scale, spec.zero_point, out=self._scratch_out)
         elif view.dtype != np.float32:
             maps = view.astype(np.float32)
         else:
             maps = view
         del view
         return maps.copy() if copy else maps
+
+    def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Post-process the last output; quantized maps are thresholded as the integers they are
+        (`postprocess.quantized_cut`: the same keypoints as thresholding `read_maps`, without
+        dequantizing M x M x C values)."""
+        spec = self.io.output
+        if not spec.quantized:
+            return super().decode(frame_shape)
+        view = self._output()[0]
+        keypoints, confidence = decode_maps(view, frame_shape, self.threshold,
+                                            quantization=(spec.scale, spec.zero_point))
+        del view  # the interpreter refuses to invoke while a view of its buffers is alive
+        return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:
         """The raw output maps for a frame (a copy): for debugging and parity checks."""

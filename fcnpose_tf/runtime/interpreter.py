@@ -146,6 +146,17 @@ class TensorSpec:
         """True for integer tensors carrying a real value as (q - zero_point) * scale."""
         return np.issubdtype(self.dtype, np.integer) and self.scale > 0
 
+    @property
+    def holds_pixel_bytes(self) -> bool:
+        """True for a uint8 input with scale 1/255 and zero point 0: the resized frame's RGB bytes as they are."""
+        return self.dtype == np.uint8 and self.zero_point == 0 and bool(np.isclose(self.scale, 1 / 255, rtol=1e-6))
+
+    def quantize(self, values: np.ndarray) -> np.ndarray:
+        """Real values as this integer tensor holds them: round(v / scale) + zero_point, saturated."""
+        info = np.iinfo(self.dtype)
+        return np.clip(np.rint(np.asarray(values, np.float32) / self.scale) + self.zero_point,
+                       info.min, info.max).astype(self.dtype)
+
     @classmethod
     def from_details(cls, details: dict) -> "TensorSpec":
         scale, zero = details.get("quantization", (0.0, 0)) or (0.0, 0)

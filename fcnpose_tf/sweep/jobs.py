@@ -327,6 +327,17 @@ def _relative(path: str | os.PathLike, out: str | os.PathLike) -> str:
         return str(path)
 
 
+def tflite_section(quantize: str) -> str:
+    """A rate job's record section for a TFLite file other than the first: tflite_int8 (the first, the
+    paper's float16, is "tflite")."""
+    return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
+
+
+def tflite_sections(record: dict[str, Any]) -> list[str]:
+    """The record's TFLite sections, the first file's ("tflite") first."""
+    return [s for s in record if s == "tflite" or (s.startswith("tflite_") and isinstance(record[s], dict))]
+
+
 def _strip(step: dict[str, Any]) -> dict[str, Any]:
     """A compress report step without what the tables never need (kept in the NAME_report.json)."""
     return {k: v for k, v in step.items() if k not in ("export", "tflite_ops")}
@@ -414,6 +425,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
             "keras": _strip(report["retrained"]),
             "tflite": _strip(report["quantized"]),
+            **{tflite_section(step["quantize"]): _strip(step) for step in report["other_quantized"]},
             "pruned_before_retraining": report["pruned_before_retraining"],
             "base_remeasured": {"timing": report["base"].get("timing")},
             "retraining": report.get("retraining"),

@@ -29,7 +29,7 @@ from typing import Any, Iterable, Sequence
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import atomic_path, write_json, write_text
 from fcnpose_tf.records import library_versions, machine_info
-from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, plan_jobs, read_record
+from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, plan_jobs, read_record, tflite_sections
 from fcnpose_tf.sweep.rates import describe_per_rate, rate_label
 
 SWEEP_FILE = "sweep.json"
@@ -365,25 +365,32 @@ def requirements_table(results: SweepResults) -> Table:
 
 
 def quantization_table(results: SweepResults) -> Table:
-    """The paper's "Pruning and Quantization": the float16 TFLite models (LiteRT) per rate."""
-    columns = [Column("rate", "rate", align="left", rate=True), Column("folds", "folds", "d"), *PCK_COLUMNS,
+    """The paper's "Pruning and Quantization": the TFLite models (LiteRT) per rate, one row per format
+    (the paper's float16, then full-integer int8 when the jobs wrote it)."""
+    columns = [Column("rate", "rate", align="left", rate=True), Column("format", "quantize", align="left"),
+               Column("folds", "folds", "d"), *PCK_COLUMNS,
                Column("ΔPCK@0.5 vs Keras", "pck@0.5_bbox_delta_vs_keras", "+.3f"),
                Column("inference ms", "inference_ms", ".2f"), Column("FPS", "fps", ".1f"),
                Column("size MB (.tflite)", "tflite_size_mb", ".3f"), Column("params", "params", ",d")]
-    table = Table("quantization", 'Pruning and float16 quantization, TFLite — the paper\'s "Pruning and '
-                  'Quantization"', "Each retrained model exported to float16 TFLite (verified against Keras before "
-                  "it is written) and run by the LiteRT interpreter on the same frames; ΔPCK: TFLite minus Keras, "
-                  "per fold. The full row appears when the sweep includes rate 0 (`--rates full,...`).", columns)
+    table = Table("quantization", 'Pruning and quantization, TFLite — the paper\'s "Pruning and Quantization"',
+                  "Each retrained model exported to TFLite, float16 (the paper's) and full-integer int8 (calibrated on "
+                  "the fold's training frames), each verified against Keras before it is written, and run by the "
+                  "LiteRT interpreter on the same frames; ΔPCK: TFLite minus Keras, per fold. The full row appears "
+                  "when the sweep includes rate 0 (`--rates full,...`).", columns)
     for rate in sorted(results.rates):
         recs = list(results.rates[rate].values())
-        delta = stat(None if _metric(r, "tflite", "pck@0.5_bbox") is None or _metric(r, "keras", "pck@0.5_bbox")
-                     is None else _metric(r, "tflite", "pck@0.5_bbox") - _metric(r, "keras", "pck@0.5_bbox")
-                     for r in recs)
-        table.rows.append([rate, len(recs), *[_over(recs, _metric, "tflite", k)
-                                                         for k in (*PCK_KEYS, "epe_px")],
-                           delta, _over(recs, _timing, "tflite", "inference_ms"), _over(recs, _timing, "tflite", "fps"),
-                           _mb(_over(recs, _value, "tflite", "tflite_size_bytes").mean),
-                           _over(recs, _value, "tflite", "params").mean])
+        sections = list(dict.fromkeys(s for r in recs for s in tflite_sections(r)))
+        for section in sections:
+            delta = stat(None if _metric(r, section, "pck@0.5_bbox") is None or _metric(r, "keras", "pck@0.5_bbox")
+                         is None else _metric(r, section, "pck@0.5_bbox") - _metric(r, "keras", "pck@0.5_bbox")
+                         for r in recs)
+            formats = {(r.get(section) or {}).get("quantize") for r in recs} - {None}
+            table.rows.append([rate, "/".join(sorted(formats)) or "float16",
+                               sum(1 for r in recs if r.get(section)),
+                               *[_over(recs, _metric, section, k) for k in (*PCK_KEYS, "epe_px")],
+                               delta, _over(recs, _timing, section, "inference_ms"), _over(recs, _timing, section, "fps"),
+                               _mb(_over(recs, _value, section, "tflite_size_bytes").mean),
+                               _over(recs, _value, section, "params").mean])
     return table
 
 

@@ -9,6 +9,7 @@ fields of every finished job record:
     base job   keras.timing                      models/base_fold{K}.keras, Keras direct call
     rate job   keras.timing                      models/base_fold{K}_p{RR}.keras
                tflite.timing                     models/base_fold{K}_p{RR}_fp16.tflite, LiteRT
+               tflite_int8.timing                models/base_fold{K}_p{RR}_int8.tflite, LiteRT
                base_remeasured.timing            the fold's base model, as the compression measured it
 
 The keypoint metrics of every measurement must come out identical to the recorded ones (same
@@ -33,7 +34,7 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import json_default, write_json
 from fcnpose_tf.records import file_sha256, library_versions, machine_info
 from fcnpose_tf.sweep import report as _report
-from fcnpose_tf.sweep.jobs import JOBS_DIR, SweepConfig, base_model_path, load_data
+from fcnpose_tf.sweep.jobs import JOBS_DIR, SweepConfig, base_model_path, load_data, tflite_section, tflite_sections
 
 RETIME_KIND = "retime"
 
@@ -123,9 +124,14 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
     keras_path = _checked_file(out, files.get("keras"), "the compressed Keras model")
     measured["keras"] = _measure(KerasKeypointModel(load_model(keras_path), keras_path, num_threads=threads),
                                  dataset, indices)
-    tflite_path = _checked_file(out, files.get("tflite"), "the TFLite export")
-    tfl = KeypointModel(tflite_path, num_threads=threads)
-    measured["tflite"] = _measure(tfl, dataset, indices)
+    from fcnpose_tf.compress import tflite_key
+
+    for section in tflite_sections(record):
+        quantize = record[section].get("quantize")
+        # records written before one file per format name the (float16) file "tflite"
+        name = files.get(tflite_key(quantize)) if quantize else files.get("tflite")
+        tflite_path = _checked_file(out, name, f"the {quantize or 'float16'} TFLite export")
+        measured[section] = _measure(KeypointModel(tflite_path, num_threads=threads), dataset, indices)
     return measured
 
 
@@ -256,6 +262,10 @@ def _update_compress_report(out: Path, record: dict[str, Any], measured: dict[st
     for section, key in (("base_remeasured", "base"), ("keras", "retrained"), ("tflite", "quantized")):
         if section in measured and isinstance(report.get(key), dict):
             report[key]["timing"] = measured[section]["timing"]
+    for step in report.get("other_quantized") or []:
+        section = tflite_section(step.get("quantize"))
+        if section in measured:
+            step["timing"] = measured[section]["timing"]
     report["retimed"] = {k: v for k, v in record["retimed"].items() if k != "original_timing"}
     write_json(path, report, force=True)
 

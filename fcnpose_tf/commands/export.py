@@ -1,0 +1,86 @@
+"""Export a trained .keras/.h5 FCN-Pose to TFLite files, each verified on keypoints before it is written.
+
+One file per --quantize format, next to the model unless --out-dir says otherwise: NAME_fp16.tflite
+(the paper's float16), NAME_int8.tflite (full integer: int8 weights and activations calibrated on
+--calibration-frames training frames, a uint8 pixel input; the fastest file on a Raspberry Pi 3/4),
+NAME_fp32.tflite, NAME_int8w.tflite. Frames come from --data (default: the synthetic frames the
+bundled models were trained on): int8 is calibrated on the training split's frames and every file
+is verified on the validation split's first 16 frames, never calibrated on them.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+NAME = "export"
+USES_TENSORFLOW = True
+EXAMPLES = """\
+  fcnpose-tf export saved_models/fcnpose_ur5_p70.keras --quantize int8     # -> saved_models/fcnpose_ur5_p70_int8.tflite
+  fcnpose-tf export models/arm_p70.keras --data my_frames/ --out-dir models/  # float16 and int8 files
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf import settings
+    from fcnpose_tf.data.args import add_data_arguments
+
+    parser.add_argument("model", type=Path, metavar="MODEL", help="a trained .keras/.h5 FCN-Pose")
+    add_data_arguments(parser, positional=False, required=False)
+    parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
+    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS):
+        setting.add_to(parser)
+    parser.add_argument("--json", type=Path, metavar="OUT.json",
+                        help="also write what was exported: per file its format, size, calibration, verification "
+                             "gate and graph rewrites")
+    parser.add_argument("--force", action="store_true", help="replace existing .tflite (and --json) files")
+
+
+def run(args: argparse.Namespace) -> int:
+    from fcnpose_tf import settings, synthcache
+    from fcnpose_tf.data.args import load_from_args
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.export import export_frames, write_tflite
+    from fcnpose_tf.fileio import check_writable, write_json
+    from fcnpose_tf.model import load_model
+    from fcnpose_tf.tables import format_table
+    from fcnpose_tf.tfsetup import set_tensorflow_threads
+
+    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED):
+        setting.validate(getattr(args, setting.name))
+    if not args.model.is_file():
+        raise UserError(f"{args.model}: model file not found")
+    out_dir = args.out_dir or args.model.parent
+    paths = {q: out_dir / f"{args.model.stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in args.quantize}
+    for path in [*paths.values(), *([args.json] if args.json else [])]:  # before anything is converted
+        check_writable(path, args.force)
+    set_tensorflow_threads(args.threads)
+    model = load_model(args.model)
+    if args.data is None:
+        args.data = synthcache.default_training_data()
+    dataset = load_from_args(args)
+    train, val = dataset.split(None)
+    size = int(model.input_shape[1])
+    rows, records = [], []
+    for quantize, path in paths.items():
+        samples, calibration = export_frames(quantize, size, dataset, train, dataset, val, args.calibration_frames,
+                                             args.seed)
+        export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
+                              calibration_frames=calibration, num_threads=args.threads)
+        records.append({"file": str(path), **export.to_dict()})
+        p = export.parity
+        rows.append([path.name, export.size_bytes / 1e3, export.calibration_frames or None, p.frames,
+                     f"{p.keypoints_within_px}/{p.keypoints_compared}", p.keypoints_lost_or_gained,
+                     p.max_keypoint_px, p.max_abs_diff, "folded" if export.graph_rewrites else "plain"])
+    print(f"Verified against {args.model} on {len(samples)} real frames of {dataset.via_path} "
+          f"(keypoints in map px; int8 gate: >= 95 % within 2 px, none lost or gained)")
+    print(format_table(["file", "size KB", "calibrated on", "frames", "kp within", "lost/gained", "max kp px",
+                        "max map diff", "upsampling"], rows, digits=[None, 1, None, None, None, None, 2, 3, None]))
+    if args.json:
+        write_json(args.json, {"model": str(args.model), "data": str(dataset.via_path),
+                               "verification_frames": f"the first {len(samples)} of the validation split",
+                               "calibration": f"seeded choice (seed {args.seed}) of the training split's "
+                                              f"{len(train)} frames", "files": records}, force=args.force)
+    for path in [*paths.values(), *([args.json] if args.json else [])]:
+        print(f"wrote {path}")
+    return 0
