@@ -1,0 +1,65 @@
+#!/usr/bin/env python
+"""Time one FCN-Pose training step (Adam, keypoint-weighted BCE) with conv1..convN frozen, N = 0..3.
+
+Usage:
+    python tools/bench_train_step.py                         # 224 x 224, batch 8, 1 thread, 6 rounds
+    python tools/bench_train_step.py --threads 2 --rounds 10 --input-size 160
+
+All variants train on the same random batch, interleaved round by round, so load from other
+processes hits them alike; the table gives the median seconds per batch and the speed-up over
+training every layer (what `train --freeze` buys per step; docs/training.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--input-size", type=int, default=224)
+    parser.add_argument("--batch-size", type=int, default=8)
+    parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--rounds", type=int, default=6)
+    parser.add_argument("--max-frozen", type=int, default=3, help="time --freeze 0..N (default 3)")
+    args = parser.parse_args()
+
+    from fcnpose_tf.tfsetup import set_tensorflow_threads
+
+    set_tensorflow_threads(args.threads)
+    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.train import compile_for_training, freeze_first_convolutions
+
+    rng = np.random.default_rng(0)
+    size, batch = args.input_size, args.batch_size
+    images = rng.random((batch, size, size, 3), dtype=np.float32)
+    maps = (rng.random((batch, size, size, 9)) > 0.97).astype(np.float32)
+    models = {}
+    for frozen in range(args.max_frozen + 1):
+        model = build_fcn_pose(input_size=size)
+        freeze_first_convolutions(model, frozen)
+        compile_for_training(model, 1e-3, 20.0)
+        for _ in range(2):  # trace and warm up
+            model.train_on_batch(images, maps)
+        models[frozen] = model
+    seconds = {frozen: [] for frozen in models}
+    for _ in range(args.rounds):
+        for frozen, model in models.items():
+            start = time.perf_counter()
+            model.train_on_batch(images, maps)
+            seconds[frozen].append(time.perf_counter() - start)
+    every_layer = float(np.median(seconds[0]))
+    print(f"{size}x{size}, batch {batch}, {args.threads} thread(s), {args.rounds} interleaved rounds, medians")
+    print("| --freeze | s/batch | s/image | speed-up |")
+    print("|---|---|---|---|")
+    for frozen, values in seconds.items():
+        median = float(np.median(values))
+        print(f"| {frozen} | {median:.3f} | {median / batch:.4f} | {every_layer / median:.2f}x |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
