@@ -162,6 +162,18 @@ def test_blobs_and_speckles_in_wide_windows_equal_algorithm_1():
     assert ties >= 8, ties
 
 
+def test_large_windows_more_than_half_active_equal_algorithm_1():
+    """Windows over 1024 px that are more than half active skip the search for empty lines (it could
+    never squeeze them): labelled as they are, many clusters and ties included."""
+    rng = np.random.default_rng(31)
+    for density in (0.55, 0.7, 0.85):
+        for _ in range(3):
+            mask = rng.random((36, 37)) < density
+            mask[0, 0] = mask[-1, -1] = True                       # the window is the whole mask
+            assert 2 * np.count_nonzero(mask) > mask.size > 1024
+            assert largest_cluster(mask) == reference_keypoint(mask), density
+
+
 def test_squeezing_keeps_one_separator_line():
     mask = np.zeros((60, 60), bool)
     mask[10, 10:13] = True

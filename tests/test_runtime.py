@@ -909,3 +909,21 @@ def test_bundled_int8_file_takes_pixel_bytes_and_thresholds_its_maps_as_integers
         np.testing.assert_array_equal(pred.confidence, confidence)
         found += int(pred.found.sum())
     assert found >= 30  # a trained model on frames like its training data: keypoints, not an empty check
+
+
+def test_frame_path_does_not_recompute_the_tensor_specs(monkeypatch):
+    """`holds_pixel_bytes` (np.isclose) and `quantized` are asked on every frame; computed once per model,
+    they cost the int8 file's preprocessing ~0.07 ms less per frame (docs/runtime.md, "Frame path")."""
+    from fcnpose_tf.bundled import models_dir
+
+    model = KeypointModel(models_dir() / "fcnpose_ur5_p70_int8.tflite", 1)
+    frame = quadrant_frame(640, 480, RED_CYCLE[0])
+    expected = model.predict(frame)
+    calls = []
+    monkeypatch.setattr(np, "isclose", lambda *a, **k: calls.append(a) or True)
+    for _ in range(3):
+        pred = model.predict(frame)
+        np.testing.assert_array_equal(pred.keypoints, expected.keypoints)
+    assert calls == []
+    assert {"holds_pixel_bytes", "quantized"} <= model.io.input.__dict__.keys()  # cached on the spec
+    assert "quantized" in model.io.output.__dict__

@@ -9,6 +9,7 @@ TensorFlow unless the first two are unavailable.
 
 from __future__ import annotations
 
+import functools
 import importlib
 import os
 from dataclasses import dataclass, field
@@ -141,12 +142,14 @@ class TensorSpec:
     scale: float = 0.0
     zero_point: int = 0
 
-    @property
+    # Cached: the runtime asks for both on every frame, and np.isclose alone costs tens of microseconds
+    # there (the frame path's budget is a few hundred; docs/runtime.md, "Frame path").
+    @functools.cached_property
     def quantized(self) -> bool:
         """True for integer tensors carrying a real value as (q - zero_point) * scale."""
-        return np.issubdtype(self.dtype, np.integer) and self.scale > 0
+        return bool(np.issubdtype(self.dtype, np.integer) and self.scale > 0)
 
-    @property
+    @functools.cached_property
     def holds_pixel_bytes(self) -> bool:
         """True for a uint8 input with scale 1/255 and zero point 0: the resized frame's RGB bytes as they are."""
         return self.dtype == np.uint8 and self.zero_point == 0 and bool(np.isclose(self.scale, 1 / 255, rtol=1e-6))
