@@ -153,6 +153,23 @@ def signals_deferred() -> Iterator[None]:
             signal.raise_signal(sig)
 
 
+@contextlib.contextmanager
+def sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block a `kill` (SIGTERM) ends the work like Ctrl-C: KeyboardInterrupt("terminated (SIGTERM)").
+
+    A command that finalises its outputs on Ctrl-C (`run`'s records and video, `predict`'s VIA file)
+    does the same for a kill; the previous handler comes back when the block ends.
+    """
+    def on_term(signum, frame):
+        raise KeyboardInterrupt("terminated (SIGTERM)")
+
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+
+
 def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
     """Raise UserError if `path` exists (and not force) or its folder cannot be created or written."""
     path = Path(path)

@@ -176,3 +176,31 @@ def test_predict_with_a_tflite_needs_no_tensorflow(no_tf_env, model_path, quadra
                             capture_output=True, text=True, timeout=300)
     assert result.returncode == 0, result.stderr
     assert len(read_via(tmp_path / "pre.json").frames) == 4
+
+
+def test_sigterm_keeps_the_frames_done_as_a_project(tmp_path, model_path):
+    """`kill` during predict on a video: exit 0, and every saved frame is in the VIA file (none without it)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    frames = [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(4)] * 1500
+    long_video = write_video(tmp_path / "long.avi", frames, fps=30)
+    via = tmp_path / "out" / "pre.json"
+    images = tmp_path / "out" / "images"
+    proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "predict", str(model_path), "--source",
+                             str(long_video), "--threads", "1", "--via", str(via)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2"))
+    deadline = time.monotonic() + 300  # a loaded machine may take long to start
+    while time.monotonic() < deadline and proc.poll() is None and not (images.is_dir() and any(images.iterdir())):
+        time.sleep(0.02)
+    assert proc.poll() is None and any(images.iterdir()), "predict did not start saving frames in time"
+    proc.send_signal(signal.SIGTERM)
+    stdout, stderr = proc.communicate(timeout=300)
+    assert proc.returncode == 0, stderr
+    assert "terminated (SIGTERM)" in stdout
+    saved = sorted(p.name for p in images.iterdir())
+    named = sorted(Path(frame.filename).name for frame in read_via(via).frames)
+    assert 0 < len(saved) < 6000 and saved == named

@@ -66,11 +66,10 @@ def add_backend_argument(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import signal
     import sys
 
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.fileio import check_writable
+    from fcnpose_tf.fileio import check_writable, sigterm_as_interrupt
     from fcnpose_tf.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
@@ -103,11 +102,6 @@ def run(args: argparse.Namespace) -> int:
     writers = []
     video = None
     source = open_source(args.source, camera_size)
-    previous_term = signal.getsignal(signal.SIGTERM)
-
-    def on_term(signum, frame):  # a `kill` ends the run like Ctrl-C: outputs closed, summary printed
-        raise KeyboardInterrupt("terminated (SIGTERM)")
-
     collected = None
     finished = False
     try:
@@ -118,12 +112,11 @@ def run(args: argparse.Namespace) -> int:
         if args.via is not None:
             collected = ViaPredictions(args.via, model.schema, source, args.force, every=args.via_every)
         print(f"{model.describe()}; {source.describe()}", file=sys.stderr, flush=True)
-        signal.signal(signal.SIGTERM, on_term)
-        summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine(),
-                             on_frame=collected.add if collected is not None else None)
+        with sigterm_as_interrupt():  # a `kill` ends the run like Ctrl-C: outputs closed, summary printed
+            summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine(),
+                                 on_frame=collected.add if collected is not None else None)
         finished = True
     finally:
-        signal.signal(signal.SIGTERM, previous_term)
         source.close()
         for writer in writers:
             writer.close()
