@@ -204,7 +204,8 @@ def no_tf_camera_env(tmp_path) -> dict:
     """This Python with TensorFlow unimportable (as on a Pi) and the stand-in picamera2 on the path."""
     folder = tmp_path / "no_tf"
     folder.mkdir()
-    (folder / "sitecustomize.py").write_text(BLOCKER)
+    (folder / "sitecustomize.py").write_text(BLOCKER + "\nimport faulthandler, signal\n"
+                                             "faulthandler.register(signal.SIGUSR1, all_threads=True)\n")
     scene = tmp_path / "scene.png"
     cv2.imwrite(str(scene), quadrant_frame(640, 480, "tl"))
     paths = [str(folder), str(STANDINS)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
@@ -226,7 +227,14 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
         time.sleep(0.02)
     assert proc.poll() is None and out.stat().st_size > 0, proc.communicate()[1]
     proc.send_signal(sig)
-    stdout, stderr = proc.communicate(timeout=120)
+    try:
+        stdout, stderr = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:  # seen once under heavy load: show where every thread is, then fail
+        proc.send_signal(signal.SIGUSR1)
+        time.sleep(2)
+        proc.kill()
+        stdout, stderr = proc.communicate()
+        pytest.fail(f"the run did not end within 120 s of the signal; its threads:\n{stderr[-8000:]}")
     assert proc.returncode == 0, stdout + stderr
     assert f"stopped: {reason}" in stdout and "Latency: capture to keypoints written" in stdout
     lines = out.read_text().splitlines()
