@@ -213,6 +213,15 @@ def no_tf_camera_env(tmp_path) -> dict:
                 PICAMERA2_STANDIN=json.dumps({"scene": str(scene), "log": str(tmp_path / "camera.log")}))
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """In the child before exec: SIGINT's default action, as a command started in a terminal has it.
+
+    A test suite started in the background (`pytest &` in a script) inherits an ignored SIGINT, and so
+    would the command under test: Ctrl-C would then be ignored as the shell intends, and the run never end.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("sig, reason", [(signal.SIGINT, "interrupted (Ctrl-C)"),
                                          (signal.SIGTERM, "terminated (SIGTERM)")])
 def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path, model_path, no_tf_camera_env,
@@ -221,7 +230,7 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
     proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "run", str(model_path), "--source", "picamera2",
                              "--threads", "1", "--out", str(out), "--via", "hard/frames.json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=no_tf_camera_env,
-                            cwd=tmp_path)
+                            cwd=tmp_path, preexec_fn=_ctrl_c_as_in_a_terminal)
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline and proc.poll() is None and not (out.exists() and out.stat().st_size > 0):
         time.sleep(0.02)
