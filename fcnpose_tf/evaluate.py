@@ -19,6 +19,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.metrics import keypoint_report
+from fcnpose_tf.postprocess import check_fallback
 from fcnpose_tf.preprocess import preprocess_frame
 from fcnpose_tf.records import file_sha256, training_record
 from fcnpose_tf.runtime.estimator import KeypointPredictor, schema_for_maps
@@ -62,7 +63,7 @@ class KerasKeypointModel(KeypointPredictor):
     backend_label = "tf_keras (direct call)"
 
     def __init__(self, model: Any, path: str | os.PathLike | None = None, threshold: float = 0.5,
-                 num_threads: int | None = None):
+                 num_threads: int | None = None, fallback: float | None = None):
         if isinstance(model, (str, os.PathLike)):
             from fcnpose_tf.model import load_model
 
@@ -74,6 +75,7 @@ class KerasKeypointModel(KeypointPredictor):
         self.model = model
         self.path = Path(path) if path else None
         self.threshold = threshold
+        self.fallback = check_fallback(threshold, fallback)
         self.num_threads = num_threads
         self.input_size = int(shape[1])
         self.num_maps = int(model.output_shape[-1])
@@ -96,20 +98,22 @@ class KerasKeypointModel(KeypointPredictor):
         return self._maps.copy() if copy else self._maps
 
 
-def open_model(path: str | os.PathLike, threads: int | None = None, threshold: float = 0.5):
-    """A predictor for a .keras/.h5 (tf_keras) or .tflite (LiteRT) file, by its extension."""
+def open_model(path: str | os.PathLike, threads: int | None = None, threshold: float = 0.5,
+               fallback: float | None = None):
+    """A predictor for a .keras/.h5 (tf_keras) or .tflite (LiteRT) file, by its extension (decoding with
+    `threshold` and `fallback`, as `postprocess.maps_to_keypoints`)."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: model file not found")
     if path.suffix == ".tflite":
         from fcnpose_tf.runtime.estimator import KeypointModel
 
-        return KeypointModel(path, num_threads=threads, threshold=threshold)
+        return KeypointModel(path, num_threads=threads, threshold=threshold, fallback=fallback)
     if path.suffix in (".keras", ".h5"):
         from fcnpose_tf.tfsetup import set_tensorflow_threads
 
         set_tensorflow_threads(threads)
-        return KerasKeypointModel(path, path, threshold, threads)
+        return KerasKeypointModel(path, path, threshold, threads, fallback)
     raise UserError(f"{path}: unknown model format; expected .keras, .h5 or .tflite")
 
 

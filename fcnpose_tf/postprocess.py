@@ -43,7 +43,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import keypoints_to_frame
 
-__all__ = ["maps_to_keypoints", "decode", "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut"]
+__all__ = ["maps_to_keypoints", "decode", "check_fallback", "describe_decoding", "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut"]
 
 
 def probability_to_logit(threshold: float) -> float:
@@ -233,23 +233,42 @@ def _cut(threshold: float, logits: bool) -> float:
 
 
 def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
-                     out_kp: np.ndarray, out_conf: np.ndarray) -> None:
+                     out_kp: np.ndarray, out_conf: np.ndarray, fallback_cut: float | None = None) -> None:
     h, w, c = maps3.shape
     k = c - 1
     # One contiguous comparison over all maps, then one transpose to K planes: far cheaper
     # than comparing each strided channel slice (see tools/bench_postprocess.py).
-    active = np.greater(np.ascontiguousarray(maps3), cut)
+    maps3 = np.ascontiguousarray(maps3)
+    active = np.greater(maps3, cut)
     planes = cv2.transpose(active.view(np.uint8).reshape(h * w, c))
     for i in range(k):
         x, y, size = _largest_cluster(planes[i].reshape(h, w), min_size)
+        if size == 0 and fallback_cut is not None:  # nothing above the threshold: read the map above the fallback
+            x, y, size = _largest_cluster(np.greater(maps3[..., i], fallback_cut).view(np.uint8), min_size)
         out_kp[i, 0] = x
         out_kp[i, 1] = y
         out_conf[i] = size
 
 
+def describe_decoding(threshold: float, fallback: float | None) -> str:
+    """One line naming the decoding, for reports."""
+    text = f"Algorithm 1 (largest cluster above {threshold:g}, its centroid)"
+    return text if fallback is None else f"{text}; a map with none: above {fallback:g} (--fallback)"
+
+
+def check_fallback(threshold: float, fallback: float | None) -> float | None:
+    """`fallback` as a float (None: no fallback), refused (UserError) unless 0 < fallback < threshold."""
+    if fallback is None:
+        return None
+    f = float(fallback)
+    if not 0.0 < f < float(threshold):
+        raise UserError(f"the fallback threshold must be above 0 and below the threshold {threshold}, got {fallback}")
+    return f
+
+
 def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool = False,
                       quantization: tuple[float, int] | None = None,
-                      min_size: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                      min_size: int = 1, fallback: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints from FCN-Pose output maps by Expansion Clustering (the paper's Algorithm 1, M = 1).
 
     Args:
@@ -267,6 +286,10 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
             making a float copy of the maps.
         min_size: a largest cluster of fewer pixels is reported missing. The default 1 is the
             paper's algorithm; a larger value rejects lone speckles.
+        fallback: None (the paper's algorithm) or a probability below ``threshold``: a keypoint
+            missing at ``threshold`` is read by the same algorithm above ``fallback`` instead (its
+            confidence is then that cluster's pixel count). Finds keypoints whose map stays under
+            ``threshold`` on unfamiliar views; docs/postprocess.md has the measurements.
 
     Returns:
         (keypoints, confidence): keypoints float64 of shape (C-1, 2), or (N, C-1, 2), holding
@@ -292,6 +315,13 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
                         + (" with logits=True" if logits else ""))
     else:
         cut = quantized_cut(threshold, quantization[0], quantization[1], arr.dtype)
+    fallback = check_fallback(threshold, fallback)
+    if fallback is None:
+        fallback_cut = None
+    elif quantization is None:
+        fallback_cut = _cut(fallback, logits)
+    else:
+        fallback_cut = quantized_cut(fallback, quantization[0], quantization[1], arr.dtype)
     min_size = int(min_size)
     if min_size < 1:
         raise UserError(f"min_size must be at least 1, got {min_size}")
@@ -301,13 +331,13 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
     keypoints = np.empty((n, k, 2), np.float64)
     confidence = np.empty((n, k), np.int64)
     for j in range(n):
-        _frame_keypoints(frames[j], cut, min_size, keypoints[j], confidence[j])
+        _frame_keypoints(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut)
     return (keypoints, confidence) if batch else (keypoints[0], confidence[0])
 
 
 def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.5, *,
            logits: bool = False, quantization: tuple[float, int] | None = None,
-           min_size: int = 1) -> tuple[np.ndarray, np.ndarray]:
+           min_size: int = 1, fallback: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 
@@ -317,7 +347,7 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     Args:
         maps: H x W x C or N x H x W x C maps with H == W (see :func:`maps_to_keypoints`).
         frame_shape: the original frame's shape, (height, width[, channels]).
-        threshold, logits, quantization, min_size: as in :func:`maps_to_keypoints`.
+        threshold, logits, quantization, min_size, fallback: as in :func:`maps_to_keypoints`.
 
     Returns:
         (keypoints, confidence): keypoints (C-1, 2) or (N, C-1, 2) float64, (x, y) in frame pixels
@@ -336,5 +366,5 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     if len(frame_shape) < 2 or min(frame_shape[:2]) < 1:
         raise UserError(f"expected a frame shape (height, width[, channels]), got {tuple(frame_shape)}")
     keypoints, confidence = maps_to_keypoints(arr, threshold, logits=logits, quantization=quantization,
-                                              min_size=min_size)
+                                              min_size=min_size, fallback=fallback)
     return keypoints_to_frame(keypoints, tuple(frame_shape), h), confidence

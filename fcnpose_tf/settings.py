@@ -313,6 +313,26 @@ SWEEP_THREADS = THREADS.variant(
 """Jobs running side by side share the cores, so the sweep's default depends on the executor."""
 
 # ------------------------------------------------------------------------------------------
+# Decoding (maps to keypoints), shared by evaluate, run, predict and bench
+# ------------------------------------------------------------------------------------------
+
+THRESHOLD = Setting("threshold", float, 0.5, "map probability above which a pixel belongs to a keypoint "
+                    "(Algorithm 1; the paper: 0.5)", label="threshold", check=lambda v: 0 < v < 1,
+                    requirement="between 0 and 1 (exclusive)", metavar="P")
+FALLBACK = Setting(
+    "fallback", float, None, "read a keypoint whose map has no pixel above --threshold from its pixels above P "
+    "instead of reporting it missing (e.g. 0.2: finds keypoints a model is unsure of on unfamiliar views; "
+    "default: missing, as the paper; docs/postprocess.md)", label="fallback threshold",
+    check=lambda v: 0 < v < 1, requirement="between 0 and 1 (exclusive), below --threshold", metavar="P")
+
+
+def add_decoding_arguments(parser: argparse.ArgumentParser, fallback: bool = True) -> None:
+    """--threshold (and --fallback) for a command that decodes maps into keypoints."""
+    THRESHOLD.add_to(parser)
+    if fallback:
+        FALLBACK.add_to(parser)
+
+# ------------------------------------------------------------------------------------------
 # Compression
 # ------------------------------------------------------------------------------------------
 

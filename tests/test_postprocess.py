@@ -482,3 +482,62 @@ def test_quantized_maps_must_be_integers():
         maps_to_keypoints(np.zeros((4, 4, 2), np.float32), quantization=(1 / 256, -128))
     with pytest.raises(UserError, match="with logits=True"):
         maps_to_keypoints(np.zeros((4, 4, 2), np.int8), logits=True, quantization=(1 / 256, -128))
+
+
+# --------------------------------------------------------------------------------------------
+# --fallback: a map with nothing above the threshold is read above a lower one
+# --------------------------------------------------------------------------------------------
+
+def reference_with_fallback(maps: np.ndarray, threshold: float, fallback: float) -> tuple[np.ndarray, np.ndarray]:
+    """Algorithm 1 at `threshold`; keypoints it misses, Algorithm 1 at `fallback` (the reference above)."""
+    kp, conf = reference_maps_to_keypoints(maps, threshold)
+    low_kp, low_conf = reference_maps_to_keypoints(maps, fallback)
+    missing = conf == 0
+    kp[missing], conf[missing] = low_kp[missing], low_conf[missing]
+    return kp, conf
+
+
+def test_fallback_reads_only_maps_empty_at_the_threshold():
+    maps = np.zeros((12, 12, 4), np.float32)
+    maps[2:4, 2:4, 0] = 0.9           # found at 0.5; a larger faint cluster must not replace it
+    maps[6:11, 6:11, 0] = 0.3
+    maps[5:8, 1:3, 1] = 0.3           # nothing above 0.5: the fallback reads this cluster
+    maps[0, 11, 1] = 0.25
+    maps[..., 2] = 0.1                # below both: still missing
+    plain = maps_to_keypoints(maps)
+    kp, conf = maps_to_keypoints(maps, fallback=0.2)
+    assert_same((kp, conf), reference_with_fallback(maps, 0.5, 0.2))
+    np.testing.assert_array_equal(kp[0], plain[0][0])
+    assert conf[0] == plain[1][0] == 4
+    assert np.isnan(plain[0][1]).all() and kp[1].tolist() == [1.5, 6.0] and conf[1] == 6
+    assert np.isnan(kp[2]).all() and conf[2] == 0
+
+
+def test_fallback_equals_the_reference_on_random_maps():
+    rng = np.random.default_rng(11)
+    for _ in range(20):
+        maps = (rng.random((16, 16, 5)) * rng.choice([0.55, 0.8, 1.0], size=5)).astype(np.float32)
+        assert_same(maps_to_keypoints(maps, 0.5, fallback=0.3), reference_with_fallback(maps, 0.5, 0.3))
+
+
+def test_fallback_is_the_same_on_logits_and_quantized_maps():
+    rng = np.random.default_rng(5)
+    raw = rng.integers(-128, 128, size=(2, 24, 24, 6)).astype(np.int8)
+    raw[..., :3] //= 4                  # maps that never reach 0.5 (q <= 31 -> at most 0.62; most below)
+    raw[0, :, :, 1] = np.minimum(raw[0, :, :, 1], -1)  # strictly below 0.5 everywhere
+    probs = pp.dequantize(raw, 1 / 256, -128)
+    expected = maps_to_keypoints(probs, 0.5, fallback=0.4)
+    got = maps_to_keypoints(raw, 0.5, quantization=(1 / 256, -128), fallback=0.4)
+    np.testing.assert_array_equal(got[0], expected[0])
+    np.testing.assert_array_equal(got[1], expected[1])
+    assert not np.isnan(expected[0][0, 1]).any()     # found by the fallback only
+    with np.errstate(divide="ignore"):  # q = -128 is probability 0: logit -inf, below every cut
+        logits = np.log(probs.astype(np.float64)) - np.log1p(-probs.astype(np.float64))
+    by_logits = maps_to_keypoints(logits, 0.5, logits=True, fallback=0.4)
+    np.testing.assert_array_equal(by_logits[1], expected[1])
+
+
+@pytest.mark.parametrize("fallback", [0.5, 0.7, 0.0, -0.1, float("nan")])
+def test_fallback_must_be_between_zero_and_the_threshold(fallback):
+    with pytest.raises(UserError, match="fallback threshold must be above 0 and below the threshold 0.5"):
+        maps_to_keypoints(np.zeros((4, 4, 2), np.float32), 0.5, fallback=fallback)

@@ -132,6 +132,7 @@ def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
     (["--source", "{video}", "--threads", "0"], "argument --threads: expected at least 1 thread, got 0"),
     (["--source", "{video}", "--max-frames", "0"], "--max-frames must be at least 1"),
     (["--source", "{video}", "--threshold", "1.5"], "threshold must be between 0 and 1"),
+    (["--source", "{video}", "--fallback", "0.6"], "fallback threshold must be above 0 and below the threshold 0.5"),
     (["--source", "{video}", "--camera-size", "big"], "expected WIDTHxHEIGHT"),
     (["--source", "{video}", "--show"], "--show needs OpenCV with GUI support"),
     (["--source", "{video}", "--out", "k.jsonl", "--via", "v.txt"], "v.txt: a VIA project is a .json file"),

@@ -34,6 +34,15 @@ def cluster_centroid(maps: np.ndarray, threshold: float, power: float) -> np.nda
     return out
 
 
+def with_fallback(maps: np.ndarray, threshold: float, floor: float) -> np.ndarray:
+    """Algorithm 1 above `threshold`; a map with no cluster there is read above `floor` instead."""
+    out = cluster_centroid(maps, threshold, 0)
+    empty = np.isnan(out[:, 0])
+    if empty.any():
+        out[empty] = cluster_centroid(maps, floor, 0)[empty]
+    return out
+
+
 def blurred_argmax(maps: np.ndarray, sigma: float = 2.0) -> np.ndarray:
     """Per keypoint map: the argmax after a Gaussian blur of `sigma` map pixels. (K, 2) map pixels."""
     out = np.empty((maps.shape[-1] - 1, 2))
@@ -51,6 +60,8 @@ DECODERS = {
     "above 0.5, weighted by p-0.5": lambda m: cluster_centroid(m, 0.5, 1),
     "above 0.5, weighted by (p-0.5)^2": lambda m: cluster_centroid(m, 0.5, 2),
     "blurred argmax (2 px)": blurred_argmax,
+    "above 0.5, else above 0.2": lambda m: with_fallback(m, 0.5, 0.2),
+    "above 0.5, else above 0.1": lambda m: with_fallback(m, 0.5, 0.1),
 }
 
 

@@ -15,6 +15,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fcnpose_tf.settings import add_decoding_arguments
+
 NAME = "bench"
 EXAMPLES = """\
   fcnpose-tf bench model.tflite                              # 1, 2, 4 ... up to all cores
@@ -34,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames first, per thread count")
     parser.add_argument("--image", type=Path, help="benchmark on this image instead of a synthetic frame")
     parser.add_argument("--frame-size", default="640x480", metavar="WxH", help="size of the synthetic frame")
-    parser.add_argument("--threshold", type=float, default=0.5, help="post-processing threshold")
+    add_decoding_arguments(parser, fallback=False)
     parser.add_argument("--json", type=Path, metavar="FILE",
                         help="also write the results as JSON (several models: {\"models\": [one result each]})")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")

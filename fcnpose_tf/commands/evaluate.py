@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fcnpose_tf.settings import add_decoding_arguments
+
 NAME = "evaluate"
 USES_TENSORFLOW = True
 EXAMPLES = """\
@@ -35,7 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="auto: validation frames on the model's own training data, else all frames")
     parser.add_argument("--fold", type=int, metavar="k", help="use the validation frames of fold k")
     parser.add_argument("--threads", type=thread_count, help="inference threads (default: all cores)")
-    parser.add_argument("--threshold", type=float, default=0.5, help="map probability that counts as active")
+    add_decoding_arguments(parser, fallback=True)
     parser.add_argument("--json", type=Path, metavar="OUT.json", help="also write the report as JSON")
     parser.add_argument("--force", action="store_true", help="replace an existing --json file")
 
@@ -58,19 +60,23 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--fold must be between 0 and {k - 1}, got {args.fold}")
     if args.json is not None:
         check_writable(args.json, args.force)
+    from fcnpose_tf.postprocess import describe_decoding
+
     model_path = args.model or baseline_model()
-    predictor = open_model(model_path, args.threads, args.threshold)
+    predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
     dataset = load_from_args(args)
     indices, description = choose_frames(dataset, model_path, args.split, args.fold)
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema, progress=True)
     print(f"Model: {model_path} ({Path(model_path).stat().st_size:,} bytes)")
     print(f"Data:  {dataset.via_path}, {description}")
+    print(f"Decoding: {describe_decoding(predictor.threshold, predictor.fallback)}")
     print("PCK normalised by max(bbox w, h) of the ground-truth keypoints; EPE in frame pixels")
     print(format_report(result["metrics"]))
     print(format_timing(result["timing"]))
     if args.json is not None:
         write_json(args.json, {"model": str(model_path), "size_bytes": Path(model_path).stat().st_size,
                                "data": str(dataset.via_path), "frames": description,
+                               "decoding": {"threshold": predictor.threshold, "fallback": predictor.fallback},
                                "metrics": result["metrics"], "timing": result["timing"]}, force=args.force)
         print(f"Report: {args.json}")
     return 0

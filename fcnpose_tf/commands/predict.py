@@ -14,6 +14,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fcnpose_tf.settings import add_decoding_arguments
+
 NAME = "predict"
 EXAMPLES = """\
   fcnpose-tf predict saved_models/fcnpose_ur5_p70_fp16.tflite --source frames/ --via frames/pre.json
@@ -38,8 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
     parser.add_argument("--threads", type=thread_count, default=None,
                         help="inference threads (default: all cores)")
-    parser.add_argument("--threshold", type=float, default=0.5,
-                        help="map probability above which a pixel belongs to a keypoint")
+    add_decoding_arguments(parser, fallback=True)
     parser.add_argument("--force", action="store_true",
                         help="replace an existing VIA file and earlier saved frames of the same names")
 
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         from fcnpose_tf.tfsetup import import_tensorflow_quietly
 
         import_tensorflow_quietly()
-    predictor = open_model(model_path, args.threads, args.threshold)
+    predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
     source = open_source(args.source, refuse_cameras="predict reads image folders, images and videos; for a "
                          "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
     collected = None

@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fcnpose_tf.settings import add_decoding_arguments
+
 NAME = "run"
 EXAMPLES = """\
   fcnpose-tf run model.tflite --source 0 --show                        # camera 0 in a window
@@ -44,8 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="video with keypoints, skeleton and FPS drawn (.mp4, .avi, .mkv, .mov)")
     parser.add_argument("--show", action="store_true", help="show the overlay in a window (q/Esc to stop)")
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
-    parser.add_argument("--threshold", type=float, default=0.5,
-                        help="map probability above which a pixel belongs to a keypoint")
+    add_decoding_arguments(parser, fallback=True)
     parser.add_argument("--camera-size", metavar="WxH",
                         help="ask the camera for this resolution, e.g. 640x480 (picamera2's default: 640x480)")
     parser.add_argument("--via", type=Path, metavar="OUT.json",
@@ -96,7 +97,7 @@ def run(args: argparse.Namespace) -> int:
     if args.show:
         check_display()
 
-    model = KeypointModel(args.model, args.threads, args.threshold, backend=args.backend)
+    model = KeypointModel(args.model, args.threads, args.threshold, backend=args.backend, fallback=args.fallback)
     if model.backend.skipped:
         print(f"note: using {model.backend.label} ({'; '.join(model.backend.skipped)})", file=sys.stderr)
     writers = []

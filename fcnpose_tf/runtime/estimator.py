@@ -22,6 +22,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema
+from fcnpose_tf.postprocess import check_fallback
 from fcnpose_tf.postprocess import decode as decode_maps
 from fcnpose_tf.postprocess import dequantize
 from fcnpose_tf.preprocess import preprocess_frame, preprocess_frame_bytes
@@ -101,6 +102,9 @@ class KeypointPredictor(abc.ABC):
     """Output maps: one per keypoint, then the skeleton map."""
     threshold: float
     """Probability above which a map pixel belongs to a keypoint (post-processing)."""
+    fallback: float | None = None
+    """None (the paper's decoding), or the probability above which a map with nothing above `threshold`
+    is read instead (`postprocess.maps_to_keypoints`)."""
     num_threads: int | None
     """Threads of the forward pass (None: the library's default)."""
     schema: KeypointSchema
@@ -138,7 +142,7 @@ class KeypointPredictor(abc.ABC):
     def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
         maps = self.read_maps(copy=False)
-        keypoints, confidence = decode_maps(maps, frame_shape, self.threshold)
+        keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback)
         del maps
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
@@ -171,6 +175,7 @@ class KeypointModel(KeypointPredictor):
         threshold: probability above which a map pixel belongs to a keypoint (post-processing).
         schema: keypoint names; default UR5 for 9 maps, kp0..kpN otherwise.
         backend: `auto`, `ai_edge_litert`, `tflite_runtime` or `tensorflow`.
+        fallback: None, or the probability above which a map empty at `threshold` is read instead.
     Raises:
         UserError: missing, corrupt or non-FCN-Pose file; no interpreter installed.
     Example:
@@ -180,9 +185,10 @@ class KeypointModel(KeypointPredictor):
     """
 
     def __init__(self, model_path: str | os.PathLike, num_threads: int | None = None, threshold: float = 0.5,
-                 schema: KeypointSchema | None = None, backend: str = "auto"):
+                 schema: KeypointSchema | None = None, backend: str = "auto", fallback: float | None = None):
         if not 0.0 < float(threshold) < 1.0:
             raise UserError(f"threshold must be between 0 and 1 (exclusive), got {threshold}")
+        self.fallback = check_fallback(threshold, fallback)
         self.path = Path(model_path)
         self.num_threads: int = default_num_threads() if num_threads is None else num_threads
         self.backend: Backend
@@ -279,7 +285,7 @@ class KeypointModel(KeypointPredictor):
         if not spec.quantized:
             return super().decode(frame_shape)
         view = self._output()[0]
-        keypoints, confidence = decode_maps(view, frame_shape, self.threshold,
+        keypoints, confidence = decode_maps(view, frame_shape, self.threshold, fallback=self.fallback,
                                             quantization=(spec.scale, spec.zero_point))
         del view  # the interpreter refuses to invoke while a view of its buffers is alive
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
