@@ -154,20 +154,30 @@ def signals_deferred() -> Iterator[None]:
 
 
 @contextlib.contextmanager
-def sigterm_as_interrupt() -> Iterator[None]:
-    """Within the block a `kill` (SIGTERM) ends the work like Ctrl-C: KeyboardInterrupt("terminated (SIGTERM)").
+def stop_signals_as_interrupt() -> Iterator[None]:
+    """Within the block Ctrl-C (SIGINT) and a `kill` (SIGTERM) end the work with KeyboardInterrupt.
 
-    A command that finalises its outputs on Ctrl-C (`run`'s records and video, `predict`'s VIA file)
-    does the same for a kill; the previous handler comes back when the block ends.
+    A command that finalises its outputs when stopped (`run`'s records and video, `predict`'s VIA
+    file) installs both handlers itself rather than relying on what it inherited: a command started
+    in the background from a script (`cmd &` in `sh -c`, or a test suite started so) inherits an
+    ignored SIGINT, and a camera run would then ignore Ctrl-C and `kill -INT` for ever. SIGTERM
+    raises KeyboardInterrupt("terminated (SIGTERM)"); the previous handlers come back when the block ends.
     """
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+        yield
+        return
+
     def on_term(signum, frame):
         raise KeyboardInterrupt("terminated (SIGTERM)")
 
-    previous = signal.signal(signal.SIGTERM, on_term)
+    previous = {signal.SIGINT: signal.getsignal(signal.SIGINT), signal.SIGTERM: signal.getsignal(signal.SIGTERM)}
     try:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, on_term)
         yield
     finally:
-        signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
 
 
 def check_writable(path: str | os.PathLike, force: bool = False) -> Path:

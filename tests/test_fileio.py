@@ -1,7 +1,9 @@
+import signal
+
 import pytest
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import atomic_path, write_json, write_text
+from fcnpose_tf.fileio import atomic_path, stop_signals_as_interrupt, write_json, write_text
 
 
 def test_existing_file_needs_force(tmp_path):
@@ -113,3 +115,21 @@ def test_parts_of_one_output_are_kept_and_named_only_as_the_whole(tmp_path):
         assert (tmp_path / "set" / "images" / "frame0.png").is_file()
         remove_tree(tmp_path / "set")  # e.g. a finished run's checkpoint: gone, and no longer named
         assert outputs.completed == [] and list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("inherited", [signal.default_int_handler, signal.SIG_IGN],
+                         ids=["python-default", "ignored-in-the-background"])
+def test_ctrl_c_and_a_kill_stop_the_block_whatever_sigint_was_inherited_as(inherited):
+    """A command started with `cmd &` from a script inherits an ignored SIGINT; Ctrl-C must still stop its run."""
+    previous = signal.signal(signal.SIGINT, inherited)
+    term_before = signal.getsignal(signal.SIGTERM)
+    try:
+        for sig, message in ((signal.SIGINT, ""), (signal.SIGTERM, "terminated (SIGTERM)")):
+            with pytest.raises(KeyboardInterrupt) as exc:
+                with stop_signals_as_interrupt():
+                    signal.raise_signal(sig)
+            assert str(exc.value) == message
+        assert signal.getsignal(signal.SIGINT) == inherited  # the inherited action is back after the block
+        assert signal.getsignal(signal.SIGTERM) == term_before
+    finally:
+        signal.signal(signal.SIGINT, previous)

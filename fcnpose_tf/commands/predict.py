@@ -51,7 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.bundled import baseline_model
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import open_model
-    from fcnpose_tf.fileio import sigterm_as_interrupt
+    from fcnpose_tf.fileio import stop_signals_as_interrupt
     from fcnpose_tf.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence)
         print(f"{predictor.describe()}; {source.describe()}", file=sys.stderr, flush=True)
-        with sigterm_as_interrupt():  # a `kill` ends it like Ctrl-C: the frames done so far, in the VIA file
+        with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends it: the frames done so far, in the VIA file
             summary = run_stream(predictor, source, max_frames=args.max_frames, progress=ProgressLine(),
                                  on_frame=collected.add, every=args.every)
         written = collected.close()

@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.fileio import check_writable, sigterm_as_interrupt
+    from fcnpose_tf.fileio import check_writable, stop_signals_as_interrupt
     from fcnpose_tf.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         if args.via is not None:
             collected = ViaPredictions(args.via, model.schema, source, args.force, every=args.via_every)
         print(f"{model.describe()}; {source.describe()}", file=sys.stderr, flush=True)
-        with sigterm_as_interrupt():  # a `kill` ends the run like Ctrl-C: outputs closed, summary printed
+        with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends the run: outputs closed, summary printed
             summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine(),
                                  on_frame=collected.add if collected is not None else None)
         finished = True
