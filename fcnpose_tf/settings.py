@@ -214,6 +214,15 @@ fixed-camera cell (docs/training.md, "Training on your own frames": from the gen
 against 0.752 and EPE 9.1 against 10.6 px; from the workcell baseline 0.700 against 0.494), and
 they reproduce the paper's tables in `compress` and `sweep`. Online augmentation is the option for views
 that vary (a third party measured it ahead on random cameras after 40 epochs)."""
+TRAIN_AUGMENT = AUGMENT.variant(
+    default="auto", choices=("auto", "paper", "online"),
+    help="auto: paper for frames of one fixed camera, online when the views vary (measured on the frames: "
+         "docs/training.md); paper: the paper's fixed offline rotation/padding copies (--augment-copies); "
+         "online: fresh keypoint-aware random transforms for every sample of every epoch (flip, rotation, zoom, "
+         "shift, colour, blur, noise, JPEG, occluding patches; docs/data.md)")
+"""`train` serves a user's frames, whichever camera set-up they come from: on the new fixed cell the paper's
+copies measured ahead, on random views online augmentation (docs/training.md, "Training on your own frames");
+`data.views` tells the two apart from the frames themselves."""
 AUGMENT_COPIES = Setting("augment_copies", int, 2, "with --augment paper: offline rotation/padding copies per training frame (the paper: 2)",
                          label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
 SEED = Setting("seed", int, 0, "seed of weights, augmentation and batch order", label="seed",

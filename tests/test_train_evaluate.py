@@ -162,6 +162,8 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
     assert proc.returncode == 0, proc.stderr
     record = json.loads((tmp_path / "ft_train.json").read_text())
     assert record["init"] == str(out) and record["config"]["freeze"] == 2  # a trained start keeps conv1..2
+    assert record["augment"] == "paper" and record["augment_auto"]["chose"] == "paper"  # one fixed "camera"
+    assert "Augmentation: auto -> paper (one fixed camera" in proc.stdout
     from fcnpose_tf.model import load_model
 
     start, tuned = load_model(out), load_model(tmp_path / "ft.keras")

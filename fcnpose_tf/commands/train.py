@@ -23,7 +23,7 @@ EXAMPLES = """\
   fcnpose-tf train --data my_frames/ --out models/arm.keras --max-minutes 90             # a longer budget
   fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5                    # 5-fold CV
   fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
-  fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # views that vary a lot
+  fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # fresh transforms, whatever the views
   fcnpose-tf train --data data/ur5 --out models/paper.keras --init none \\
       --positive-weight 1 --lr-patience 0 --patience 20 --max-minutes 600                # the paper's recipe
 """
@@ -44,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
     for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
                     settings.TRAIN_LR_PATIENCE, settings.TRAIN_MAX_MINUTES, settings.TRAIN_POSITIVE_WEIGHT,
-                    settings.TRAIN_FREEZE, settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES,
+                    settings.TRAIN_FREEZE, settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
                     settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> int:
         args.freeze = settings.DEFAULT_FINE_TUNE_FREEZE if init else 0
     config = FitConfig(**settings.values_from_args(args, FitConfig))
     config.validate()
-    for setting in (settings.INPUT_SIZE, settings.AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
+    for setting in (settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
                     settings.THREADS):
         setting.validate(getattr(args, setting.name))
     if args.out.suffix not in (".keras", ".h5"):
@@ -113,7 +113,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.resume:
         for fold in folds:  # fail before any training, not after the first fold
             check_outputs(fold_model_path(args.out, fold), args.force)
-    via_path, _ = resolve_data(args.data, args.images)
+    via_path, images_dir = resolve_data(args.data, args.images)
+    metadata: dict = {"init": str(init) if init else None}
+    if args.augment == "auto":  # resolved before the checkpoint check: a checkpoint records what ran
+        args.augment, metadata["augment_auto"] = _choose_augment(via_path, images_dir, args)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
                          identity=run_identity(via_path, config, input_size=args.input_size, fold=fold, folds=k,
@@ -126,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     for fold in folds:
         record = train_fold(dataset, fold, fold_model_path(args.out, fold), config, input_size=args.input_size,
                             augment_copies=args.augment_copies, augment=args.augment, init=init, resume=args.resume,
-                            force=args.force, metadata={"init": str(init) if init else None},
+                            force=args.force, metadata=metadata,
                             threads=args.threads, verbose=2 if args.quiet else 1)
         print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         print(format_report(record["validation"]["metrics"]))
@@ -135,6 +138,23 @@ def run(args: argparse.Namespace) -> int:
     if len(reports) > 1:
         _print_fold_summary(reports)
     return 0
+
+
+def _choose_augment(via_path: Path, images_dir: Path | None, args: argparse.Namespace) -> tuple[str, dict]:
+    """--augment auto: the paper's copies for one fixed camera, online when the views vary (`data.views`);
+    the choice and what it was based on, for NAME_train.json."""
+    from fcnpose_tf.data.via import read_via
+    from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
+
+    frames = read_via(via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible,
+                      skip_bad=args.skip_bad).frames
+    variation = view_variation([f.image_path for f in frames])
+    augment = choose_augment(variation)
+    camera = "one fixed camera" if augment == "paper" else "views that vary"
+    print(f"Augmentation: auto -> {augment} ({camera}: the frames differ from their median by {variation:.2f} "
+          f"std; a fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION})")
+    return augment, {"view_variation": round(variation, 4), "fixed_camera_max": FIXED_CAMERA_MAX_VARIATION,
+                     "chose": augment}
 
 
 def _print_fold_summary(reports: list) -> None:
