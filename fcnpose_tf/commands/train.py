@@ -1,7 +1,8 @@
 """Train FCN-Pose on a dataset: Adam, binary cross-entropy, early stopping, resumable checkpoints.
 
 By default it fine-tunes the bundled UR5 generalist (pretrained on domain-randomised scenes) on
-your frames with the paper's 2 augmented copies per frame, keypoint pixels weighted 20, the
+your frames (augmentation chosen from the frames: the paper's 2 fixed copies per frame for one fixed
+camera, fresh random transforms every epoch when the views vary), keypoint pixels weighted 20, the
 learning rate halved after 4 epochs without progress and a 30-minute budget (docs/training.md,
 "Training on your own frames"); the paper's recipe is the last example below. Without --folds the
 model trains on the 80/20 hold-out split; --folds K trains one model per fold of the dataset's
@@ -24,7 +25,7 @@ EXAMPLES = """\
   fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5                    # 5-fold CV
   fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
   fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # fresh transforms, whatever the views
-  fcnpose-tf train --data data/ur5 --out models/paper.keras --init none \\
+  fcnpose-tf train --data data/ur5 --out models/paper.keras --init none --augment paper \\
       --positive-weight 1 --lr-patience 0 --patience 20 --max-minutes 600                # the paper's recipe
 """
 
