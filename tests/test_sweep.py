@@ -607,6 +607,8 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, cli):
     assert "frames at 64x64" not in proc.stdout + proc.stderr  # --quiet: no progress bars in logs
     stamps = {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir()}
     jobs = {p.name: p.read_bytes() for p in (out / "jobs").iterdir()}
+    record = json.loads(jobs["fold0_p70.json"])
+    assert record["pruning"]["importance"] == "l1" and record["distillation"] is None  # the paper's recipe
 
     again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]

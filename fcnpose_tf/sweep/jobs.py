@@ -437,6 +437,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
             "pruned_before_retraining": report["pruned_before_retraining"],
             "base_remeasured": {"timing": report["base"].get("timing")},
             "retraining": report.get("retraining"),
+            "pruning": report.get("pruning"), "distillation": report.get("distillation"),
             "verification": report["quantized"].get("export", {}).get("parity"),
             "files": {k: _relative(v, config.out) for k, v in report["files"].items()}}
 
