@@ -7,8 +7,8 @@
     parameters, MACs, file sizes, inference time and FPS (Keras and TFLite, thread count stated).
 
 `compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
-the steps below in order (measure_base, prune_step, retrain_step, measure_retrained, export_step,
-measure_quantized), each returning its part of the report. A pruning method is a `PruningMethod`
+the steps below in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
+export_step, measure_quantized), each returning its part of the report. A pruning method is a `PruningMethod`
 object (`FilterPruning` with an importance criterion from `fcnpose_tf.importance`, `MagnitudePruning`);
 both retrain through `train.fit`.
 """
