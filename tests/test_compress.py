@@ -55,6 +55,9 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert report["options"]["lr_patience"] == 3
     assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 3
     assert report["retraining"]["loss"] == "binary_crossentropy" and report["retraining"]["learning_rates"] == [0.001]
+    # the default criterion: first-order Taylor on (at most 256) training frames, never the measured ones
+    assert report["pruning"]["importance"] == "taylor" and report["options"]["importance"] == "taylor"
+    assert report["pruning"]["importance_frames"] == 16 and report["options"]["distill"] == 0.0
 
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     again = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "0",
@@ -102,6 +105,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     assert retraining["epochs_run"] == 2 and len(retraining["learning_rates"]) == 2  # fit's per-epoch rates
     assert retraining["learning_rates"][0] == pytest.approx(1e-3)
     assert report["options"]["lr_patience"] == 1 and report["retrained"]["params"] == 131705
+    assert report["options"]["importance"] == "l1" and "pruning" not in report  # no criterion: smallest weights go
 
 
 @pytest.mark.slow
