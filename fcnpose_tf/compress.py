@@ -1,14 +1,16 @@
 """The paper's whole compression for one rate: prune, retrain, quantize, and measure every step.
 
-    base model ──► L1 filter surgery at rate r (or tfmot magnitude pruning) ──► retrain
-               ──► TFLite export (float16 by default), verified against Keras
+    base model ──► filter surgery at rate r, filters ranked by an importance criterion (L1 by
+                   default; or tfmot magnitude pruning) ──► retrain (optionally distilled from
+                   the base model's maps) ──► TFLite export (float16 by default), verified against Keras
     measured at each step on the same frames: PCK@0.5/0.2/0.05 (bbox), EPE, PCK-AUC,
     parameters, MACs, file sizes, inference time and FPS (Keras and TFLite, thread count stated).
 
 `compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
-the steps below in order (measure_base, prune_step, retrain_step, measure_retrained, export_step,
-measure_quantized), each returning its part of the report. A pruning method is a `PruningMethod`
-object (`L1FilterPruning`, `MagnitudePruning`); both retrain through `train.fit`.
+the steps below in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
+export_step, measure_quantized), each returning its part of the report. A pruning method is a `PruningMethod`
+object (`FilterPruning` with an importance criterion from `fcnpose_tf.importance`, `MagnitudePruning`);
+both retrain through `train.fit`.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from fcnpose_tf.records import file_sha256, training_record
 if TYPE_CHECKING:
     import tf_keras as keras
 
+    from fcnpose_tf.importance import Importance
     from fcnpose_tf.train import FitConfig, FitResult
 
 # TensorFlow is imported inside the functions: `sweep.jobs` and the CLI import this module (or
@@ -46,13 +49,40 @@ Log = Callable[[str], None]
                        settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
                        settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
-                       settings.POSITIVE_WEIGHT, settings.LR_PATIENCE)
+                       settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.IMPORTANCE, settings.IMPORTANCE_FRAMES,
+                       settings.DISTILL)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
-    positive_weight (use the base model's) and lr_patience. Defaults, checks and meanings:
-    `fcnpose_tf.settings`."""
+    positive_weight (use the base model's) and lr_patience; importance (the filter criterion) with
+    importance_frames (data-aware criteria), and distill (the base model's weight as a teacher while
+    retraining). Defaults, checks and meanings: `fcnpose_tf.settings`."""
+
+    def validate(self) -> None:
+        """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
+        from fcnpose_tf.importance import DATA_AWARE
+
+        settings.validate_fields(self)
+        if self.method == "magnitude" and self.importance != "l1":
+            raise UserError(f"--importance {self.importance} ranks filters for filter surgery (--method l1); "
+                            "magnitude pruning zeroes the smallest weights")
+        if self.strategy == "greedy" and self.importance in DATA_AWARE:
+            raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
+                            f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
+
+    def recipe(self) -> str:
+        """One line naming how the file was made: criterion, strategy, distillation, loss."""
+        from fcnpose_tf.train import loss_name
+
+        pruned = (f"magnitude pruning at {self.rate:g}" if self.method == "magnitude" else
+                  f"filter surgery at {self.rate:g}, filters ranked by {self.importance} ({self.strategy}"
+                  + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
+                     else "") + ")")
+        if self.retrain_epochs == 0:
+            return f"{pruned}, not retrained"
+        epochs = f"{self.retrain_epochs} epoch{'s' if self.retrain_epochs > 1 else ''}"
+        return f"{pruned}, retrained up to {epochs} on {loss_name(self.positive_weight or 1.0, self.distill)}"
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
@@ -60,7 +90,7 @@ class CompressOptions:
 
         return FitConfig(epochs=max(self.retrain_epochs, 1), patience=self.patience, batch_size=self.batch_size,
                          learning_rate=self.learning_rate, seed=self.seed, positive_weight=self.positive_weight,
-                         lr_patience=self.lr_patience)
+                         lr_patience=self.lr_patience, distill=self.distill)
 
 
 def tflite_key(quantize: str) -> str:
@@ -151,7 +181,7 @@ class PruningMethod(Protocol):
     def describe(self) -> str:
         """The progress line's words for what is pruned."""
 
-    def prune(self, base: keras.Model, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+    def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
         """The pruned model before retraining, and the report entries the method adds."""
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
@@ -161,25 +191,34 @@ class PruningMethod(Protocol):
         """What the retraining's NAME_train.json says about the method."""
 
 
-class L1FilterPruning:
-    """The paper's method: remove the filters with the smallest L1 norms (exact layer surgery)."""
+class FilterPruning:
+    """The paper's method: remove the least important filters (exact layer surgery); the paper ranks them by
+    L1 norm, `fcnpose_tf.importance` holds the other criteria. The method is named "l1" in reports and
+    options for that reason; the criterion is recorded beside it."""
 
     name, tag = "l1", "p"
 
-    def __init__(self, rate: float, strategy: str) -> None:
-        self.rate, self.strategy = rate, strategy
+    def __init__(self, rate: float, strategy: str, importance: str = "l1") -> None:
+        self.rate, self.strategy, self.importance = rate, strategy, importance
+        self.criterion_facts: dict[str, Any] = {"importance": importance}
 
     def describe(self) -> str:
-        return f"l1 at rate {self.rate:g} ({self.strategy})"
+        return f"filter surgery at rate {self.rate:g}, filters ranked by {self.importance} ({self.strategy})"
 
-    def prune(self, base: keras.Model, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
-        return surgery, {}
+    def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
+        from fcnpose_tf.prune import prune_model
+
+        start = time.perf_counter()
+        pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance)
+        self.criterion_facts = importance.describe()
+        return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
+                                    "ranking_seconds": round(time.perf_counter() - start, 1)}}
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         fit_fn(pruned)
 
     def training_record(self) -> dict[str, Any]:
-        return {"rate": self.rate, "strategy": self.strategy}
+        return {"rate": self.rate, "strategy": self.strategy, **self.criterion_facts}
 
 
 class MagnitudePruning:
@@ -194,9 +233,10 @@ class MagnitudePruning:
     def describe(self) -> str:
         return f"magnitude at rate {self.rate:g}"
 
-    def prune(self, base: keras.Model, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.prune import magnitude_prune
+    def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
+        from fcnpose_tf.prune import magnitude_prune, prune_model
 
+        surgery = prune_model(base, self.rate)  # only its parameter count: the same reduction as filter surgery
         self.sparsity = 1.0 - model_facts(surgery)["params"] / model_facts(base)["params"]
         return magnitude_prune(base, self.sparsity), {"magnitude_sparsity": round(self.sparsity, 6)}
 
@@ -217,7 +257,7 @@ def pruning_method(options: CompressOptions) -> PruningMethod:
     """The pruning method `options.method` names."""
     if options.method == "magnitude":
         return MagnitudePruning(options.rate)
-    return L1FilterPruning(options.rate, options.strategy)
+    return FilterPruning(options.rate, options.strategy, options.importance)
 
 
 # ------------------------------------------------------------------------------------------
@@ -261,9 +301,44 @@ def measure_base(run: _Run) -> dict[str, Any]:
                      **run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)")}}
 
 
-def prune_step(run: _Run, surgery: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
-    """Prune with the run's method; measure the result before any retraining."""
-    pruned, entries = run.method.prune(run.base, surgery)
+def retrain_fold(run: _Run) -> int | None:
+    """The fold the run retrains on: --fold, else the base model's own (its record, same data), else the hold-out split."""
+    if run.options.fold is not None:
+        return run.options.fold
+    record = training_record(run.base_path) or {}
+    return record.get("fold") if record.get("data_sha256") == file_sha256(run.train_dataset.via_path) else None
+
+
+def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """(images, target maps) of `options.importance_frames` training frames (seeded choice from the
+    retraining split's training frames, never the measured ones), unaugmented, as float32."""
+    from fcnpose_tf.data.dataset import TrainingData
+
+    candidates = _training_frames(run, fold)
+    if not len(candidates):
+        raise UserError(f"no training frames to score filters with in {run.train_dataset.via_path}")
+    count = min(run.options.importance_frames, len(candidates))
+    chosen = np.sort(np.random.default_rng(run.options.seed).choice(candidates, count, replace=False))
+    return TrainingData(run.train_dataset, chosen, run.input_size, 0, run.options.seed).arrays()
+
+
+def importance_step(run: _Run, fold: int | None) -> Importance:
+    """The run's filter importance criterion, with its frames when it is data-aware."""
+    from fcnpose_tf.importance import DATA_AWARE, make_importance
+    from fcnpose_tf.train import ground_truth_loss
+
+    name = run.options.importance
+    if name not in DATA_AWARE:
+        return make_importance(name)
+    run.log(f"  scoring filters by {name} on up to {run.options.importance_frames} training frames ...")
+    images, maps = importance_frames(run, fold)
+    return make_importance(name, images=images, maps=maps, loss=ground_truth_loss(run.options.positive_weight or 1.0),
+                           batch_size=run.options.batch_size)
+
+
+def prune_step(run: _Run, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
+    """Prune with the run's method (filters ranked by `importance`); measure the result before any retraining."""
+    pruned, entries = run.method.prune(run.base, importance)
     entries["pruned_before_retraining"] = {**model_facts(pruned), **run.measure(
         run.keras_predictor(pruned), "the pruned model before retraining", timing=False)}
     return pruned, entries
@@ -281,32 +356,40 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
         with atomic_path(keras_path, run.force) as tmp:
             save_for_inference(pruned, tmp)
         return pruned, {}
-    record = training_record(run.base_path) or {}
     data_sha256 = file_sha256(run.train_dataset.via_path)
-    fold = options.fold if options.fold is not None else (
-        record.get("fold") if record.get("data_sha256") == data_sha256 else None)
+    fold = retrain_fold(run)
     train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
                                      options.augment, progress=run.verbose == 1)
     entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
                                                 "train_samples": len(train_data), "val_frames": len(val_data)}}
     metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
-                "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size}
+                "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size,
+                "recipe": options.recipe()}
+    sequence = train_data.sequence(options.batch_size, seed=options.seed)
+    if options.distill > 0:
+        from fcnpose_tf.distill import with_teacher_maps
+
+        run.log(f"  distillation: the base model's maps weigh {options.distill:g} in the retraining loss")
+        sequence, facts = with_teacher_maps(train_data, sequence, run.base, options.batch_size)
+        entries["distillation"] = {"weight": options.distill, **facts}
+        metadata["distillation"] = entries["distillation"]
 
     def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
-        result = fit(model, train_data.sequence(options.batch_size, seed=options.seed), val_data.arrays(),
+        result = fit(model, sequence, val_data.arrays(),
                      keras_path, options.fit_config(), force=run.force, verbose=2 if run.verbose else 0,
                      metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False)
-        entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight)
+        entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
         return result
 
     run.method.retrain(run.base, pruned, fit_fn)
     return load_model(keras_path), entries
 
 
-def retraining_report(result: FitResult, loss: str, positive_weight: float) -> dict[str, Any]:
-    """The report's "retraining" part: epochs, best epoch and loss, time, loss function, learning rates."""
+def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> dict[str, Any]:
+    """The report's "retraining" part: epochs, best epoch and loss (validation: against the ground truth), time,
+    loss function, positive and teacher weights, learning rates."""
     return {"epochs_run": result.epochs_run, "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
-            "seconds": round(result.seconds, 1), "loss": loss, "positive_weight": positive_weight,
+            "seconds": round(result.seconds, 1), "loss": loss, "positive_weight": positive_weight, "distill": distill,
             "learning_rates": [float(f"{h['lr']:.6g}") for h in result.history if "lr" in h]}
 
 
@@ -376,7 +459,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps do not match the dataset, or an export that fails verification (nothing written).
     """
     from fcnpose_tf.model import load_model
-    from fcnpose_tf.prune import prune_model
+    from fcnpose_tf.prune import prune_plan
 
     options.validate()
     start = time.perf_counter()
@@ -388,21 +471,21 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
-    surgery = prune_model(base, options.rate, strategy=options.strategy)  # an unsupported layer fails here, first
+    prune_plan(base, options.rate, strategy=options.strategy)  # an unsupported layer fails here, first
     check_outputs(base_path, out_dir, options, force)
     run = _Run(base_path, base, pruning_method(options), options, paths, train_dataset, eval_dataset,
                eval_indices, force, verbose, say)
     steps = 4 + 2 * len(options.quantize)
     say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size})")
     report: dict[str, Any] = {
-        "base_model": str(base_path), "method": options.method, "options": asdict(options),
+        "base_model": str(base_path), "method": options.method, "recipe": options.recipe(), "options": asdict(options),
         "evaluation_frames": eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
         "pck_normalisation": "max(w, h) of the ground-truth keypoints' bounding box",
         "threads": options.threads,
     }
     report.update(measure_base(run))
     say(f"[2/{steps}] pruning: {run.method.describe()}")
-    pruned, entries = prune_step(run, surgery)
+    pruned, entries = prune_step(run, importance_step(run, retrain_fold(run)))
     report.update(entries)
     say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")
     retrained, entries = retrain_step(run, pruned)

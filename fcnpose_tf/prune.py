@@ -1,8 +1,9 @@
-"""Filter pruning by L1 norm with layer surgery (Li et al. 2017, as FCN-Pose applies it), and
-unstructured magnitude pruning with tensorflow-model-optimization for comparison.
+"""Filter pruning with layer surgery (Li et al. 2017, as FCN-Pose applies it), and unstructured
+magnitude pruning with tensorflow-model-optimization for comparison.
 
 Structured pruning (`prune_model`) removes whole filters: every Conv2D except the output layer
-keeps its ``n - floor(n * rate)`` filters with the largest L1 norms, the network is rebuilt with
+keeps its ``n - floor(n * rate)`` filters that an importance criterion scores highest (default:
+the L1 norm of the kernel, the paper's; `fcnpose_tf.importance` holds the others), the network is rebuilt with
 the narrower layers (``from_config`` plus sliced weights, as keras-surgeon does), and the next
 Conv2D's kernel loses the matching input channels. Parameters, MACs, file size and latency all
 shrink. Before retraining, the pruned model computes exactly what the original computes with the
@@ -29,6 +30,7 @@ import numpy as np
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.importance import Importance, WeightNorm
 from fcnpose_tf.model import chain_layers
 
 Rate = Union[float, int, Fraction, Decimal, str]
@@ -142,12 +144,7 @@ def filter_l1_norms(kernel: np.ndarray, input_channels: Sequence[int] | None = N
     Returns:
         A float64 array of length cout.
     """
-    kernel = np.asarray(kernel)
-    if kernel.ndim != 4:
-        raise UserError(f"expected a Conv2D kernel of shape (kh, kw, cin, cout), got shape {kernel.shape}")
-    if input_channels is not None:
-        kernel = kernel[:, :, np.asarray(input_channels, dtype=np.int64), :]
-    return np.abs(kernel.astype(np.float64)).sum(axis=(0, 1, 2))
+    return WeightNorm(1).filter_scores(kernel, input_channels)
 
 
 def kept_filters(kernel: np.ndarray, rate: Rate, input_channels: Sequence[int] | None = None) -> np.ndarray:
@@ -168,10 +165,24 @@ def kept_filters(kernel: np.ndarray, rate: Rate, input_channels: Sequence[int] |
         >>> kept_filters(k, 0.5).tolist()
         [0, 1]
     """
-    norms = filter_l1_norms(kernel, input_channels)
-    keep = keep_count(len(norms), rate)
-    # Stable sort on the negated norms: largest first, equal norms in index order.
-    order = np.argsort(-norms, kind="stable")
+    return kept_by_score(filter_l1_norms(kernel, input_channels), rate)
+
+
+def kept_by_score(scores: np.ndarray, rate: Rate) -> np.ndarray:
+    """Indices of the ``keep_count(len(scores), rate)`` highest scores, in their original order.
+
+    Ties go to the lower index, so the choice is deterministic.
+
+    Example:
+        >>> kept_by_score(np.array([0.2, 0.9, 0.2, 0.5]), 0.5).tolist()
+        [1, 3]
+    """
+    scores = np.asarray(scores, dtype=np.float64)
+    if scores.ndim != 1 or not np.all(np.isfinite(scores)):
+        raise UserError(f"filter scores must be a finite 1-D array, got shape {scores.shape}")
+    keep = keep_count(len(scores), rate)
+    # Stable sort on the negated scores: largest first, equal scores in index order.
+    order = np.argsort(-scores, kind="stable")
     return np.sort(order[:keep]).astype(np.int64)
 
 
@@ -222,7 +233,8 @@ def _mixes_channels(layer: keras.layers.Layer) -> bool:
     return False
 
 
-def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent") -> dict[str, np.ndarray]:
+def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
+               importance: Importance | None = None) -> dict[str, np.ndarray]:
     """Which filters every Conv2D keeps at `rate`, without changing the model.
 
     Args:
@@ -230,26 +242,35 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent")
         rate: fraction of filters to remove per layer, in [0, 1).
         strategy: ``"independent"`` ranks each layer on its whole kernel; ``"greedy"`` ranks a layer
             after taking the input channels the previous Conv2D lost out of its kernel
-            (Li et al. 2017, section 3.2).
+            (Li et al. 2017, section 3.2; weight criteria only).
+        importance: the criterion scoring each filter (`fcnpose_tf.importance`); default the L1 norm.
     Returns:
         Layer name -> sorted kept filter indices, for every Conv2D in order. The output layer (the
         last Conv2D) keeps all its filters.
     Raises:
-        UserError: for a bad rate or strategy, or a model that is not a plain chain of supported layers.
+        UserError: for a bad rate or strategy, a greedy strategy with a data-aware criterion, or a
+            model that is not a plain chain of supported layers.
     """
     if strategy not in STRATEGIES:
         raise UserError(f"pruning strategy must be one of {', '.join(STRATEGIES)}, got {strategy!r}")
+    importance = importance if importance is not None else WeightNorm(1)
+    greedy = strategy == "greedy"
+    if greedy and not hasattr(importance, "filter_scores"):
+        raise UserError(f"the greedy strategy ranks kernels without the removed input channels; the "
+                        f"{importance.name} criterion does not rank kernels (use --strategy independent)")
     _exact_rate(rate)
     layers = _chain(model)
     convs = [layer for layer in layers if type(layer) is keras.layers.Conv2D]
+    scores = None if greedy else importance(model)
     plan: dict[str, np.ndarray] = {}
     kept_in: np.ndarray | None = None  # input channels of the next Conv2D that survive
     for i, conv in enumerate(convs):
-        kernel = conv.get_weights()[0]
         if i == len(convs) - 1:
-            kept = np.arange(kernel.shape[3], dtype=np.int64)
+            kept = np.arange(conv.filters, dtype=np.int64)
+        elif greedy:
+            kept = kept_by_score(importance.filter_scores(conv.get_weights()[0], kept_in), rate)
         else:
-            kept = kept_filters(kernel, rate, kept_in if strategy == "greedy" else None)
+            kept = kept_by_score(scores[conv.name], rate)
         plan[conv.name] = kept
         kept_in = kept
     return plan
@@ -259,11 +280,13 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent")
 # Surgery
 # --------------------------------------------------------------------------------------------
 
-def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent") -> keras.Model:
-    """Remove the filters with the smallest L1 norms from every Conv2D but the output layer.
+def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent",
+                importance: Importance | None = None) -> keras.Model:
+    """Remove the least important filters (default: smallest L1 norms) from every Conv2D but the output layer.
 
-    Every Conv2D except the last keeps ``n - floor(n * rate)`` filters (the largest L1 norms of
-    their kernels, ties to the lower index, in their original order). The network is rebuilt with
+    Every Conv2D except the last keeps ``n - floor(n * rate)`` filters (the highest scores of
+    `importance`, by default the L1 norms of their kernels, ties to the lower index, in their
+    original order). The network is rebuilt with
     narrower layers and the kept weights: each Conv2D's kernel and bias lose the removed filters,
     the next Conv2D's kernel loses the matching input channels, and a BatchNormalization between
     them loses the same channels. Layer names, activations and all other settings are kept; the
@@ -279,6 +302,8 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
         strategy: ``"independent"`` (default; each layer ranked on its original kernel) or
             ``"greedy"`` (a layer ranked without the input channels the previous layer lost),
             the two strategies Li et al. 2017 compare.
+        importance: the criterion ranking the filters (`fcnpose_tf.importance.make_importance`);
+            None is the L1 norm, the paper's.
     Returns:
         A new, uncompiled tf_keras model (Sequential if the input was) with the same layer names.
     Raises:
@@ -290,7 +315,7 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
         >>> conv_widths(small), small.count_params()
         ((39, 20, 10, 5, 3, 3, 5, 10, 20, 9), 14668)
     """
-    plan = prune_plan(model, rate, strategy=strategy)
+    plan = prune_plan(model, rate, strategy=strategy, importance=importance)
     layers = _chain(model)
     source = model.inputs[0]
     new_layers: list[keras.layers.Layer] = []

@@ -352,6 +352,35 @@ METHOD = Setting("method", str, "l1", "l1: filter surgery (the paper); magnitude
 STRATEGY = Setting("strategy", str, "independent",
                    "L1 ranking on the original kernels, or after removing pruned inputs (Li et al.)",
                    label="strategy", choices=("independent", "greedy"))
+IMPORTANCE = Setting(
+    "importance", str, "l1",
+    "how filters are ranked before surgery: l1 (kernel L1 norm, the paper's), l2 (kernel L2 norm), activation "
+    "(mean |output| over training frames), taylor (|output x gradient| of the training loss over training frames; "
+    "docs/compression.md)", label="importance criterion", choices=("l1", "l2", "activation", "taylor"))
+"""The library's (`prune_model`, `CompressOptions`) and the sweep's default: the paper's L1 norm, so the
+sweep reproduces the paper's tables."""
+COMPRESS_IMPORTANCE = IMPORTANCE.variant(
+    default=None,
+    help="how filters are ranked before surgery: taylor (default with the independent strategy: |output x gradient| "
+         "of the training loss on training frames), l1 (kernel L1 norm, the paper's; the default with --strategy "
+         "greedy or --method magnitude), l2 (kernel L2 norm), activation (mean |output| on training frames); "
+         "docs/compression.md")
+"""`compress` serves a user's model: at 70 % on the bundled baseline Taylor ranking kept PCK@0.05 0.670 and EPE
+12.2 px against L1's 0.580 and 14.5 px, PCK@0.5 0.994 against 0.991, for about one retraining epoch of
+scoring (docs/compression.md, "Importance criteria and distillation"). `--importance l1` is the paper's."""
+DEFAULT_COMPRESS_IMPORTANCE = "taylor"
+"""What `compress --importance` resolves to for filter surgery with the independent strategy."""
+IMPORTANCE_FRAMES = Setting(
+    "importance_frames", int, 256, "with --importance activation or taylor: training frames (seeded choice, never "
+    "the measured frames) the unpruned model is run on to score its filters", label="importance frames",
+    check=lambda v: v >= 1, requirement="at least 1", metavar="N")
+DISTILL = Setting(
+    "distill", float, 0.0,
+    "weight W of the unpruned model's maps while retraining: loss = (1 - W) x loss against the ground-truth maps "
+    "+ W x loss against the teacher's maps on the same augmented frames; 0 (default) retrains on the ground truth "
+    "alone, as the paper does", label="distillation weight", check=lambda v: 0 <= v <= 1,
+    requirement="a number in [0, 1]", metavar="W")
+"""0 keeps the paper's retraining loss exactly; docs/compression.md measures other weights."""
 QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8")
 """TFLite formats (fcnpose_tf.export): float32, float16 weights (the paper's), dynamic-range int8 weights,
 and full-integer int8 (int8 weights and activations, uint8 pixel input; the fastest on a Pi 3/4)."""

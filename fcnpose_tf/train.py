@@ -35,13 +35,14 @@ from fcnpose_tf.model import save_for_inference
 
 @settings.config_class(settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
                        settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.MAX_MINUTES,
-                       settings.FREEZE)
+                       settings.FREEZE, settings.DISTILL)
 class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
     validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant), max_minutes (no new epoch
-    starts once the run has trained this long; None: no time budget) and freeze (conv1..convN keep
-    their weights). Defaults, checks and meanings:
+    starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
+    their weights) and distill (weight of a teacher's maps in the loss; the training batches must
+    carry them, `fcnpose_tf.distill`). Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
 
 
@@ -192,10 +193,56 @@ def freeze_first_convolutions(model: keras.Model, count: int) -> None:
         layer.trainable = False
 
 
-def compile_for_training(model: keras.Model, learning_rate: float, positive_weight: float = 1.0) -> keras.Model:
-    """Adam and binary cross-entropy over all maps (the paper's), optionally weighting keypoint pixels."""
-    loss = keras.losses.BinaryCrossentropy() if positive_weight == 1.0 else KeypointBinaryCrossentropy(positive_weight)
-    model.compile(optimizer=keras.optimizers.Adam(learning_rate), loss=loss, jit_compile=False)
+@keras.utils.register_keras_serializable(package="fcnpose_tf")
+class DistillationLoss(keras.losses.Loss):
+    """(1 - W) x the training loss against the ground-truth maps + W x the same loss against a teacher's maps.
+
+    Training targets carry both, concatenated on the channel axis (C ground-truth maps, then the
+    teacher's C maps of the same augmented frame; `fcnpose_tf.distill`). Targets with only C channels
+    (the validation data) get the ground-truth term alone, so the validation loss, and with it early
+    stopping and the best epoch, is measured against the truth at every W.
+    """
+
+    def __init__(self, weight: float, positive_weight: float = 1.0, name: str = "distillation", **kwargs):
+        super().__init__(name=name, **kwargs)
+        self.weight = float(weight)
+        self.positive_weight = float(positive_weight)
+        self.base = ground_truth_loss(self.positive_weight)
+
+    def call(self, y_true, y_pred):
+        channels = y_pred.shape[-1]
+        if y_true.shape[-1] == channels:
+            return self.base.call(y_true, y_pred)
+        truth, teacher = y_true[..., :channels], y_true[..., channels:]
+        return (1.0 - self.weight) * self.base.call(truth, y_pred) + self.weight * self.base.call(teacher, y_pred)
+
+    def get_config(self) -> dict:
+        return {**super().get_config(), "weight": self.weight, "positive_weight": self.positive_weight}
+
+
+def ground_truth_loss(positive_weight: float = 1.0) -> keras.losses.Loss:
+    """Binary cross-entropy over all maps (the paper's), or with keypoint pixels weighted."""
+    if positive_weight == 1.0:
+        return keras.losses.BinaryCrossentropy()
+    return KeypointBinaryCrossentropy(positive_weight)
+
+
+def training_loss(positive_weight: float = 1.0, distill: float = 0.0) -> keras.losses.Loss:
+    """The one training loss: `ground_truth_loss`, or with distill W > 0 a `DistillationLoss` around it.
+
+    With distill 0 it is exactly the ground-truth loss (the same object type and values).
+    """
+    if distill == 0:
+        return ground_truth_loss(positive_weight)
+    return DistillationLoss(distill, positive_weight)
+
+
+def compile_for_training(model: keras.Model, learning_rate: float, positive_weight: float = 1.0,
+                         distill: float = 0.0) -> keras.Model:
+    """Adam and `training_loss`: binary cross-entropy over all maps (the paper's), optionally weighting keypoint
+    pixels and mixing in a teacher's maps."""
+    model.compile(optimizer=keras.optimizers.Adam(learning_rate), loss=training_loss(positive_weight, distill),
+                  jit_compile=False)
     return model
 
 
@@ -293,6 +340,9 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             and neither resume nor force was given, or the checkpoint was started on other data or settings.
     """
     config.validate()
+    if config.distill and not getattr(train_data, "carries_teacher_maps", False):
+        raise ValueError("distillation needs training batches that carry the teacher's maps "
+                         "(fcnpose_tf.distill.with_teacher_maps)")
     model_path = Path(model_path)
     if model_path.suffix not in (".keras", ".h5"):
         raise UserError(f"{model_path}: the model file must end in .keras or .h5")
@@ -314,7 +364,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
                  "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
         freeze_first_convolutions(model, config.freeze)
-        compile_for_training(model, config.learning_rate, config.positive_weight)
+        compile_for_training(model, config.learning_rate, config.positive_weight, config.distill)
 
     callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes)
     if state["epoch"] < config.epochs and not state["stopped_early"]:
@@ -339,7 +389,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     try:
         with atomic_path(model_path, force=True) as tmp:
             save_for_inference(inference_model(model) if inference_model else model, tmp)
-        write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight)
+        write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight,
+                          config.distill)
         write_json(paths["train_json"], {
             **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
             "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
@@ -469,15 +520,16 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     return record
 
 
-def loss_name(positive_weight: float) -> str:
-    """What the training loss is, for labels: the paper's BCE, or BCE with keypoint pixels weighted."""
-    if positive_weight == 1:
-        return "binary cross-entropy"
-    return f"binary cross-entropy, keypoint pixels weighted {positive_weight:g}"
+def loss_name(positive_weight: float, distill: float = 0.0) -> str:
+    """What the training loss is, for labels: the paper's BCE, or BCE with keypoint pixels weighted (and a
+    teacher's maps mixed in)."""
+    name = "binary cross-entropy" if positive_weight == 1 else \
+        f"binary cross-entropy, keypoint pixels weighted {positive_weight:g}"
+    return name if not distill else f"{name}, teacher weight {distill:g}"
 
 
 def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path,
-                      positive_weight: float = 1.0) -> None:
+                      positive_weight: float = 1.0, distill: float = 0.0) -> None:
     """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss)."""
     lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
@@ -495,7 +547,7 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
     best = min(history, key=lambda h: h["val_loss"])
     ax.axvline(best["epoch"], color="grey", linestyle=":", label=f"best (epoch {best['epoch']})")
     ax.set_xlabel("epoch")
-    ax.set_ylabel(loss_name(positive_weight))
+    ax.set_ylabel(loss_name(positive_weight, distill))
     ax.set_yscale("log")
     ax.set_title("FCN-Pose training loss")
     ax.grid(alpha=0.3)

@@ -55,12 +55,39 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert report["options"]["lr_patience"] == 3
     assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 3
     assert report["retraining"]["loss"] == "binary_crossentropy" and report["retraining"]["learning_rates"] == [0.001]
+    # the default criterion: first-order Taylor on (at most 256) training frames, never the measured ones
+    assert report["pruning"]["importance"] == "taylor" and report["options"]["importance"] == "taylor"
+    assert report["pruning"]["importance_frames"] == 16 and report["options"]["distill"] == 0.0
 
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     again = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "0",
                 "--out-dir", out)
     assert again.returncode == 2 and "already exists; pass --force" in again.stderr
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@pytest.mark.slow
+def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
+    """--importance taylor --distill 0.5: filters ranked on training frames, retrained against the base model's
+    maps too; the report, its table line and NAME_train.json name the recipe."""
+    root, data, base = setup
+    out = root / "taylor"
+    proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--retrain-epochs", "1",
+               "--importance", "taylor", "--importance-frames", "6", "--distill", "0.5", "--quantize", "float16",
+               "--positive-weight", "20", "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = json.loads((out / "base_p50_report.json").read_text())
+    assert report["pruning"]["importance"] == "taylor" and report["pruning"]["importance_frames"] == 6
+    assert report["options"]["importance"] == "taylor" and report["options"]["distill"] == 0.5
+    assert report["distillation"]["weight"] == 0.5 and report["distillation"]["teacher_maps"] == "cached"
+    assert report["retraining"]["loss"] == "distillation" and report["retraining"]["distill"] == 0.5
+    assert report["retrained"]["params"] == 35185
+    recipe = ("filter surgery at 0.5, filters ranked by taylor (independent, 6 training frames), retrained up to 1 "
+              "epoch on binary cross-entropy, keypoint pixels weighted 20, teacher weight 0.5")
+    assert report["recipe"] == recipe and recipe in proc.stdout
+    record = json.loads((out / "base_p50_train.json").read_text())
+    assert record["importance"] == "taylor" and record["importance_frames"] == 6 and record["recipe"] == recipe
+    assert record["config"]["distill"] == 0.5 and record["distillation"]["teacher_maps"] == "cached"
 
 
 @pytest.mark.slow
@@ -78,6 +105,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     assert retraining["epochs_run"] == 2 and len(retraining["learning_rates"]) == 2  # fit's per-epoch rates
     assert retraining["learning_rates"][0] == pytest.approx(1e-3)
     assert report["options"]["lr_patience"] == 1 and report["retrained"]["params"] == 131705
+    assert report["options"]["importance"] == "l1" and "pruning" not in report  # no criterion: smallest weights go
 
 
 @pytest.mark.slow
@@ -89,6 +117,13 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     (["--rate", "0.5", "--data", "MISSING"], "MISSING: not found"),
     (["--rate", "0.5", "--quantize", "float16,int4"], "expected one or more of float32, float16, int8-weights, int8"),
     (["--rate", "0.5", "--calibration-frames", "0"], "calibration frames must be at least 1"),
+    (["--rate", "0.5", "--importance", "l3"], "argument --importance: invalid choice: 'l3'"),
+    (["--rate", "0.5", "--importance-frames", "0"], "importance frames must be at least 1"),
+    (["--rate", "0.5", "--distill", "1.5"], "distillation weight must be a number in [0, 1], got 1.5"),
+    (["--rate", "0.5", "--distill", "-0.1"], "distillation weight must be a number in [0, 1]"),
+    (["--rate", "0.5", "--distill", "half"], "argument --distill: invalid float value: 'half'"),
+    (["--rate", "0.5", "--method", "magnitude", "--importance", "taylor"], "--importance taylor ranks filters for"),
+    (["--rate", "0.5", "--strategy", "greedy", "--importance", "activation"], "--strategy greedy re-ranks kernels"),
 ])
 def test_bad_input_leaves_nothing(setup, cli, extra, message):
     root, data, base = setup
@@ -98,6 +133,7 @@ def test_bad_input_leaves_nothing(setup, cli, extra, message):
         args += ["--data", data]
     proc = cli(*args)
     assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
+    assert len([line for line in proc.stderr.splitlines() if line.startswith("error:")]) == 1
     assert not out.exists()  # not even an empty folder
 
 
@@ -143,3 +179,18 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli, tmp_
     assert "arm_int8.tflite" in proc.stdout and "folded" in proc.stdout
     again = cli("export", model, "--data", data, "--quantize", "int8")
     assert again.returncode == 2 and "already exists; pass --force" in again.stderr
+
+
+def test_compress_options_refuse_combinations_no_run_can_do():
+    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.errors import UserError
+
+    with pytest.raises(UserError, match="--importance taylor ranks filters for filter surgery"):
+        CompressOptions(rate=0.5, method="magnitude", importance="taylor").validate()
+    with pytest.raises(UserError, match="--strategy greedy re-ranks kernels"):
+        CompressOptions(rate=0.5, strategy="greedy", importance="activation").validate()
+    with pytest.raises(UserError, match="importance criterion must be one of l1, l2, activation, taylor"):
+        CompressOptions(rate=0.5, importance="random").validate()
+    with pytest.raises(UserError, match=r"distillation weight must be a number in \[0, 1\], got 1.5"):
+        CompressOptions(rate=0.5, distill=1.5).validate()
+    CompressOptions(rate=0.5, strategy="greedy", importance="l2", distill=1.0).validate()

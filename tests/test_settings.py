@@ -62,6 +62,9 @@ def test_commands_that_differ_use_their_own_variant():
     assert compress.positive_weight is None and (train.positive_weight, sweep.positive_weight) == (20.0, 1.0)
     assert (train.lr_patience, sweep.lr_patience) == (4, 0) and (train.max_minutes, sweep.__dict__.get("max_minutes")) == (30.0, None)
     assert train.augment == compress.augment == "paper"
+    # compress resolves its criterion per run (taylor for independent filter surgery); the sweep keeps the paper's
+    assert compress.importance is None and sweep.importance == settings.IMPORTANCE.default == "l1"
+    assert compress.distill == sweep.distill == 0.0
     assert settings.TRAIN_PATIENCE.check is settings.PATIENCE.check  # a variant shares its check and message
     assert train.folds is None and sweep.folds == 5
 

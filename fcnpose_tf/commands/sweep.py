@@ -22,6 +22,7 @@ EXAMPLES = """\
   fcnpose-tf sweep --rates full,0.5,0.7 --epochs 30 --retrain-epochs 10  # plus the unpruned TFLite row
   fcnpose-tf sweep --rates 0.5,0.7 --folds 2 --epochs 2 --retrain-epochs 1 --input-size 64   # a smoke test
   fcnpose-tf sweep --retrain-epochs 10,0.6:0.9:0.1=40                     # 40 retraining epochs from 60% up
+  fcnpose-tf sweep --importance taylor --distill 0.5 --out results_taylor/ # another criterion, distilled retraining
   fcnpose-tf sweep --workers 2 --out results/                             # 2 local processes, 1 thread each
   fcnpose-tf sweep --executor ray --num-cpus 8 --threads 2                # a local Ray instance, 4 tasks at once
   fcnpose-tf sweep --executor ray --address auto --data /shared/ur5 --out /shared/results   # a Ray cluster
@@ -47,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         setting.add_to(train)
     settings.RETRAIN_EPOCHS_BY_RATE.add_to(train)
     for setting in (settings.RETRAIN_PATIENCE, settings.INPUT_SIZE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                    settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.AUGMENT_COPIES, settings.SEED):
+                    settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.AUGMENT_COPIES, settings.SEED,
+                    settings.IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL):
         setting.add_to(train)
     run = parser.add_argument_group("execution")
     run.add_argument("--executor", choices=("local", "ray"), default="local",

@@ -305,10 +305,14 @@ def _sequence_class():
         def __len__(self) -> int:
             return math.ceil(len(self.data) / self.batch_size)
 
-        def __getitem__(self, batch: int):
+        def rows(self, batch: int) -> np.ndarray:
+            """The TrainingData rows of batch `batch` of the current epoch."""
             if not 0 <= batch < len(self):
                 raise IndexError(f"batch {batch} out of range (0..{len(self) - 1})")
-            rows = self.order[batch * self.batch_size:(batch + 1) * self.batch_size]
+            return self.order[batch * self.batch_size:(batch + 1) * self.batch_size]
+
+        def __getitem__(self, batch: int):
+            rows = self.rows(batch)
             return _to_float(self.data.images[rows]), self.data.maps[rows].astype(np.float32)
 
         def on_epoch_end(self) -> None:

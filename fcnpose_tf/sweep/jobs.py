@@ -42,13 +42,14 @@ MODELS_DIR = "models"
 
 KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "patience", "retrain_epochs",
               "retrain_patience", "batch_size", "learning_rate", "lr_patience", "positive_weight", "augment_copies",
-              "seed", "threads")
+              "seed", "threads", "importance", "importance_frames", "distill")
 """Settings that change a job's results: a results folder holds jobs of one value of each."""
 
-KEY_DEFAULTS = {"lr_patience": 0}
+KEY_DEFAULTS = {"lr_patience": 0, "importance": "l1", "importance_frames": settings.IMPORTANCE_FRAMES.default,
+                "distill": 0.0}
 """Key fields added after results folders existed, with the value older folders were made with."""
 
-RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience")
+RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience", "importance", "importance_frames", "distill")
 """Key fields that only matter to jobs that retrain (a rate above 0): a base job or the unpruned export
 keeps its record when they change."""
 
@@ -126,6 +127,11 @@ class SweepConfig:
     positive_weight: float = settings.POSITIVE_WEIGHT.field()
     augment_copies: int = settings.AUGMENT_COPIES.field()
     seed: int = settings.SEED.field()
+    importance: str = settings.IMPORTANCE.field()
+    """How a rate job ranks the filters it removes (l1: the paper's)."""
+    importance_frames: int = settings.IMPORTANCE_FRAMES.field()
+    distill: float = settings.DISTILL.field()
+    """Weight of the fold's base model's maps in a rate job's retraining loss (0: the paper's)."""
     threads: int = 1
     """Resolved by the command (`commands.sweep.resolve_threads`): never None here."""
     verbose: int = 1
@@ -163,7 +169,9 @@ class SweepConfig:
                                patience=self.retrain_patience, batch_size=self.batch_size,
                                learning_rate=self.learning_rate, augment_copies=self.augment_copies, seed=self.seed,
                                fold=job.fold, threads=self.threads, positive_weight=self.positive_weight,
-                               lr_patience=self.lr_patience)
+                               lr_patience=self.lr_patience, importance=self.importance,
+                               importance_frames=self.importance_frames,
+                               distill=0.0 if job.rate == 0 else self.distill)
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
@@ -429,6 +437,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
             "pruned_before_retraining": report["pruned_before_retraining"],
             "base_remeasured": {"timing": report["base"].get("timing")},
             "retraining": report.get("retraining"),
+            "pruning": report.get("pruning"), "distillation": report.get("distillation"),
             "verification": report["quantized"].get("export", {}).get("parity"),
             "files": {k: _relative(v, config.out) for k, v in report["files"].items()}}
 

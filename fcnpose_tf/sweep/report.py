@@ -572,6 +572,14 @@ def _timing_line(source: dict[str, Any]) -> str:
             "the keypoint metrics of every re-measurement were identical to the jobs'")
 
 
+def _importance(cfg: dict[str, Any]) -> str:
+    """The sweep's filter criterion in words (folders from before criteria were selectable used the L1 norm)."""
+    name = cfg.get("importance") or "l1"
+    words = {"l1": "L1 norm", "l2": "L2 norm", "activation": "mean activation", "taylor": "first-order Taylor"}
+    frames = f" on {cfg.get('importance_frames')} training frames" if name in ("activation", "taylor") else ""
+    return f"{words.get(name, name)}{frames}"
+
+
 def _epochs(n: int) -> str:
     return f"{n} epoch" + ("" if n == 1 else "s")
 
@@ -595,9 +603,11 @@ def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: d
         + (f" halved after {_epochs(cfg['lr_patience'])} without a better validation loss (floor 1e-5)"
            if cfg.get("lr_patience") else "") + ", "
         + ("binary cross-entropy" if cfg["positive_weight"] == 1 else
-           f"binary cross-entropy with keypoint pixels weighted {cfg['positive_weight']:g}") + f", seed {cfg['seed']}",
-        f"- **Rates**: {', '.join(rate_label(r) for r in cfg['rates'])}; L1 filter pruning keeping n - floor(n·rate) "
-        "filters per layer (output layer untouched), float16 TFLite",
+           f"binary cross-entropy with keypoint pixels weighted {cfg['positive_weight']:g}")
+        + (f", retraining distilled from the base model's maps (teacher weight {cfg['distill']:g})"
+           if cfg.get("distill") else "") + f", seed {cfg['seed']}",
+        f"- **Rates**: {', '.join(rate_label(r) for r in cfg['rates'])}; filter pruning keeping n - floor(n·rate) "
+        f"filters per layer ranked by {_importance(cfg)} (output layer untouched), float16 TFLite",
         f"- **Machine**: {machine.get('cpu_model')}, {machine.get('cpu_cores')} cores; timing on {cfg['threads']} "
         f"thread(s) per job" + (f"; jobs ran on {len(_hosts(results.records))} hosts"
                                 if len(_hosts(results.records)) > 1 else ""),

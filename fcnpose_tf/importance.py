@@ -1,0 +1,217 @@
+"""Filter importance criteria: a score for every output filter of every Conv2D, higher = keep.
+
+Filter surgery (`fcnpose_tf.prune`) keeps, in each Conv2D but the output layer, the filters a
+criterion scores highest; the criterion is a callable object kept apart from the surgery (as in
+Torch-Pruning's ``importance=`` and keras-surgeon), so every criterion goes through the same surgery:
+
+    l1          sum of |w| of the filter's kernel (Li et al. 2017; the paper's)
+    l2          sqrt of the sum of w**2 of the filter's kernel
+    activation  mean |output| of the filter over training frames (data-aware)
+    taylor      mean over frames of |spatial mean of output x d loss / d output| (first-order
+                Taylor expansion of the loss, Molchanov et al. 2017; data-aware)
+
+The weight criteria look at the kernel only and can rank a layer without the input channels the
+previous layer lost (the greedy strategy). The data-aware criteria run the unpruned model on a
+few hundred frames once (taylor also back-propagates the training loss), then rank every layer.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Protocol, Sequence
+
+import numpy as np
+import tf_keras as keras
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.model import chain_layers
+
+CRITERIA = ("l1", "l2", "activation", "taylor")
+DATA_AWARE = ("activation", "taylor")
+"""Criteria that need frames (and, for taylor, their target maps)."""
+
+
+class Importance(Protocol):
+    """A filter importance criterion."""
+
+    name: str
+
+    def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
+        """Layer name -> float64 score of each output filter, for every Conv2D of `model` in order (the output
+        layer, which surgery never prunes, may be left out)."""
+
+    def describe(self) -> dict[str, Any]:
+        """What reports record about the criterion ({"importance": name, ...})."""
+
+
+def _convolutions(model: keras.Model) -> list[keras.layers.Layer]:
+    return [layer for layer in model.layers if type(layer) is keras.layers.Conv2D]
+
+
+class WeightNorm:
+    """The Lp norm of each filter's kernel over height, width and input channels (bias excluded).
+
+    Args:
+        p: 1 (L1, the paper's criterion) or 2 (L2).
+    """
+
+    def __init__(self, p: int = 1) -> None:
+        if p not in (1, 2):
+            raise UserError(f"weight norm order must be 1 or 2, got {p!r}")
+        self.p = p
+        self.name = f"l{p}"
+
+    def filter_scores(self, kernel: np.ndarray, input_channels: Sequence[int] | None = None) -> np.ndarray:
+        """Scores of a kernel (kh, kw, cin, cout)'s filters; only `input_channels` count if given (greedy)."""
+        kernel = np.asarray(kernel)
+        if kernel.ndim != 4:
+            raise UserError(f"expected a Conv2D kernel of shape (kh, kw, cin, cout), got shape {kernel.shape}")
+        if input_channels is not None:
+            kernel = kernel[:, :, np.asarray(input_channels, dtype=np.int64), :]
+        kernel = kernel.astype(np.float64)
+        if self.p == 1:
+            return np.abs(kernel).sum(axis=(0, 1, 2))
+        return np.sqrt(np.square(kernel).sum(axis=(0, 1, 2)))
+
+    def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
+        return {conv.name: self.filter_scores(conv.get_weights()[0]) for conv in _convolutions(model)}
+
+    def describe(self) -> dict[str, Any]:
+        """What the report records about the criterion."""
+        return {"importance": self.name}
+
+
+class _DataAware:
+    """Shared part of the criteria that run the model on frames, a batch at a time."""
+
+    name = ""
+
+    def __init__(self, images: np.ndarray, batch_size: int = 8) -> None:
+        images = np.asarray(images)
+        if images.ndim != 4 or len(images) == 0:
+            raise UserError(f"the {self.name} criterion needs frames (N x H x W x C), got shape {images.shape}")
+        if batch_size < 1:
+            raise UserError(f"batch size must be positive, got {batch_size}")
+        self.images = images
+        self.batch_size = int(batch_size)
+
+    def _layers(self, model: keras.Model) -> list[keras.layers.Layer]:
+        layers = chain_layers(model, f"the {self.name} importance criterion")
+        if not any(type(layer) is keras.layers.Conv2D for layer in layers):
+            raise UserError(f"model {model.name} has no Conv2D layer to score")
+        return layers
+
+    def _batches(self):
+        for start in range(0, len(self.images), self.batch_size):
+            yield slice(start, start + self.batch_size)
+
+    def describe(self) -> dict[str, Any]:
+        """What the report records about the criterion."""
+        return {"importance": self.name, "importance_frames": int(len(self.images))}
+
+
+def _forward(layers: Sequence[keras.layers.Layer], x: Any) -> tuple[Any, dict[str, Any]]:
+    """Run the chain on `x` (inference mode); the output and every Conv2D's output by layer name."""
+    outputs = {}
+    for layer in layers:
+        x = layer(x, training=False)
+        if type(layer) is keras.layers.Conv2D:
+            outputs[layer.name] = x
+    return x, outputs
+
+
+class MeanActivation(_DataAware):
+    """Mean absolute output of each filter (after the layer's own activation) over frames and positions.
+
+    score_k = (1 / (N H W)) * sum over frames n and positions (h, w) of |a[n, h, w, k]|.
+
+    Args:
+        images: N x H x W x 3 float32 frames as the model takes them (preprocessed, in [0, 1]).
+        batch_size: frames per forward pass.
+    """
+
+    name = "activation"
+
+    def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
+        import tensorflow as tf
+
+        layers = self._layers(model)
+        sums: dict[str, np.ndarray] = {}
+        for batch in self._batches():
+            x = tf.convert_to_tensor(self.images[batch], dtype=tf.float32)
+            _, outputs = _forward(layers, x)
+            for name, a in outputs.items():
+                per_frame = tf.reduce_mean(tf.abs(a), axis=[1, 2]).numpy().astype(np.float64)  # N x K
+                sums[name] = sums.get(name, 0.0) + per_frame.sum(axis=0)
+        return {name: total / len(self.images) for name, total in sums.items()}
+
+
+class FirstOrderTaylor(_DataAware):
+    """First-order Taylor importance of each filter for the training loss (Molchanov et al. 2017).
+
+    With L the sum over frames of each frame's training loss (so the batch size does not matter),
+    a the filter's output and g = dL/da:
+
+        score_k = (1 / N) * sum over frames n of |mean over positions (h, w) of a[n, h, w, k] * g[n, h, w, k]|
+
+    the first-order estimate of how much the loss changes when the filter's output is removed. Every
+    Conv2D but the output layer is scored (surgery never prunes that one).
+
+    Args:
+        images: N x H x W x 3 float32 frames as the model takes them.
+        maps: N x H x W x C float32 target maps of those frames.
+        loss: the training loss (`train.training_loss`); its per-pixel values (`loss.call`) are averaged per frame.
+        batch_size: frames per forward and backward pass.
+    """
+
+    name = "taylor"
+
+    def __init__(self, images: np.ndarray, maps: np.ndarray, loss: keras.losses.Loss, batch_size: int = 8) -> None:
+        super().__init__(images, batch_size)
+        maps = np.asarray(maps)
+        if len(maps) != len(self.images):
+            raise UserError(f"the taylor criterion needs one target map per frame, got {len(maps)} maps for "
+                            f"{len(self.images)} frames")
+        self.maps = maps
+        self.loss = loss
+
+    def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
+        import tensorflow as tf
+
+        layers = self._layers(model)
+        sums: dict[str, np.ndarray] = {}
+        for batch in self._batches():
+            x = tf.convert_to_tensor(self.images[batch], dtype=tf.float32)
+            y = tf.convert_to_tensor(self.maps[batch], dtype=tf.float32)
+            with tf.GradientTape() as tape:
+                prediction, outputs = _forward(layers, x)
+                per_pixel = self.loss.call(y, prediction)  # N x H x W
+                loss = tf.reduce_sum(tf.reduce_mean(per_pixel, axis=list(range(1, len(per_pixel.shape)))))
+            names = list(outputs)[:-1]  # not the output layer: never pruned, and the loss may read its logits
+            grads = tape.gradient(loss, [outputs[name] for name in names])
+            for name, g in zip(names, grads):
+                a = outputs[name]
+                per_frame = tf.abs(tf.reduce_mean(a * g, axis=[1, 2])).numpy().astype(np.float64)  # N x K
+                sums[name] = sums.get(name, 0.0) + per_frame.sum(axis=0)
+        return {name: total / len(self.images) for name, total in sums.items()}
+
+
+def make_importance(name: str, *, images: np.ndarray | None = None, maps: np.ndarray | None = None,
+                    loss: keras.losses.Loss | None = None, batch_size: int = 8) -> Importance:
+    """The criterion `name` names (one of CRITERIA); the data-aware ones need `images` (taylor: `maps`, `loss`).
+
+    Raises:
+        UserError: an unknown name, or a data-aware criterion without its frames.
+    """
+    if name == "l1":
+        return WeightNorm(1)
+    if name == "l2":
+        return WeightNorm(2)
+    if name in DATA_AWARE and images is None:
+        raise UserError(f"the {name} importance criterion needs training frames")
+    if name == "activation":
+        return MeanActivation(images, batch_size)
+    if name == "taylor":
+        if maps is None or loss is None:
+            raise UserError("the taylor importance criterion needs the frames' target maps and the training loss")
+        return FirstOrderTaylor(images, maps, loss, batch_size)
+    raise UserError(f"importance criterion must be one of {', '.join(CRITERIA)}, got {name!r}")
