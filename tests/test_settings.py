@@ -61,7 +61,7 @@ def test_commands_that_differ_use_their_own_variant():
     # train serves a user's frames; compress and sweep reproduce the paper's tables
     assert compress.positive_weight is None and (train.positive_weight, sweep.positive_weight) == (20.0, 1.0)
     assert (train.lr_patience, sweep.lr_patience) == (4, 0) and (train.max_minutes, sweep.__dict__.get("max_minutes")) == (30.0, None)
-    assert train.augment == compress.augment == "paper"
+    assert (train.augment, compress.augment) == ("auto", "paper")  # train picks per dataset (data.views)
     # compress resolves its criterion per run (taylor for independent filter surgery); the sweep keeps the paper's
     assert compress.importance is None and sweep.importance == settings.IMPORTANCE.default == "l1"
     assert compress.distill == sweep.distill == 0.0
