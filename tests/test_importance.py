@@ -53,18 +53,6 @@ def test_l1_and_l2_rank_differently_where_they_should():
     assert WeightNorm(2).filter_scores(kernel, input_channels=[1, 2]).tolist() == [math.sqrt(2), 0.0]
 
 
-def test_greedy_l2_ranks_without_the_removed_input_channels():
-    inputs = keras.Input((8, 8, 1))
-    x = keras.layers.Conv2D(2, 1, name="a")(inputs)
-    x = keras.layers.Conv2D(2, 1, name="b")(x)
-    model = keras.Model(inputs, keras.layers.Conv2D(1, 1, name="out")(x))
-    model.get_layer("a").set_weights([np.array([[[[5.0, 1.0]]]], np.float32), np.zeros(2, np.float32)])
-    model.get_layer("b").set_weights([np.array([[[[0.1, 2.0], [9.0, 0.0]]]], np.float32), np.zeros(2, np.float32)])
-    l2 = WeightNorm(2)
-    assert prune_plan(model, 0.5, importance=l2)["b"].tolist() == [0]
-    assert prune_plan(model, 0.5, strategy="greedy", importance=l2)["b"].tolist() == [1]
-
-
 # ------------------------------------------------------------------------------------------
 # data-aware criteria on a hand-built tiny model, against numpy
 # ------------------------------------------------------------------------------------------

@@ -182,7 +182,11 @@ def test_plan_ranks_on_l1_norm_of_original_kernels():
             assert kept.tolist() == reference_kept(kernel, 0.7)
 
 
-def test_greedy_ranks_without_the_removed_input_channels():
+@pytest.mark.parametrize("norm", [None, 1, 2])  # the default (L1), and each weight norm given as importance=
+def test_greedy_ranks_without_the_removed_input_channels(norm):
+    from fcnpose_tf.importance import WeightNorm
+
+    extra = {} if norm is None else {"importance": WeightNorm(norm)}
     inputs = keras.Input((8, 8, 1))
     x = keras.layers.Conv2D(2, 1, name="a")(inputs)
     x = keras.layers.Conv2D(2, 1, name="b")(x)
@@ -190,10 +194,10 @@ def test_greedy_ranks_without_the_removed_input_channels():
     model.get_layer("a").set_weights([np.array([[[[5.0, 1.0]]]], np.float32), np.zeros(2, np.float32)])
     # b's filter 0 is heavy only on input channel 1, which `a` loses; filter 1 is moderate on channel 0
     model.get_layer("b").set_weights([np.array([[[[0.1, 2.0], [9.0, 0.0]]]], np.float32), np.zeros(2, np.float32)])
-    assert prune_plan(model, 0.5)["b"].tolist() == [0]
-    assert prune_plan(model, 0.5, strategy="greedy")["b"].tolist() == [1]
-    assert prune_plan(model, 0.5, strategy="greedy")["a"].tolist() == [0]  # first layer: same as independent
-    assert prune_model(model, 0.5, strategy="greedy").get_layer("b").get_weights()[0].ravel().tolist() == \
+    assert prune_plan(model, 0.5, **extra)["b"].tolist() == [0]
+    assert prune_plan(model, 0.5, strategy="greedy", **extra)["b"].tolist() == [1]
+    assert prune_plan(model, 0.5, strategy="greedy", **extra)["a"].tolist() == [0]  # first layer: as independent
+    assert prune_model(model, 0.5, strategy="greedy", **extra).get_layer("b").get_weights()[0].ravel().tolist() == \
         pytest.approx([2.0])
 
 
