@@ -5,7 +5,8 @@
 Runs MODEL once per frame of DATA and reads every keypoint map with: Algorithm 1 (the paper's: the
 largest 4-connected cluster above 0.5, its centroid; `fcnpose_tf.postprocess`), the same at
 thresholds 0.3 and 0.7, the cluster's centroid weighted by (p - 0.5) and (p - 0.5)^2, and the
-argmax of the map blurred by a 2-pixel Gaussian. Prints PCK@0.5/0.2/0.05, EPE and the median error
+argmax of the map blurred by a 2-pixel Gaussian, and Algorithm 1 with a fallback (a map with nothing
+above 0.5 read above 0.2 or 0.1: `--fallback`, docs/postprocess.md). Prints PCK@0.5/0.2/0.05, EPE and the median error
 per decoder, and PCK@0.05 per keypoint. docs/training.md ("Training on your own frames") has its figures.
 """
 
