@@ -43,7 +43,8 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import keypoints_to_frame
 
-__all__ = ["maps_to_keypoints", "decode", "check_fallback", "describe_decoding", "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut"]
+__all__ = ["maps_to_keypoints", "decode", "check_fallback", "describe_decoding", "largest_cluster",
+           "probability_to_logit", "dequantize", "quantized_cut"]
 
 
 def probability_to_logit(threshold: float) -> float:

@@ -331,8 +331,8 @@ THRESHOLD = Setting("threshold", float, 0.5, "map probability above which a pixe
 FALLBACK = Setting(
     "fallback", float, None, "read a keypoint whose map has no pixel above --threshold from its pixels above P "
     "instead of reporting it missing (e.g. 0.2: finds keypoints a model is unsure of on unfamiliar views; "
-    "default: missing, as the paper; docs/postprocess.md)", label="fallback threshold",
-    check=lambda v: 0 < v < 1, requirement="between 0 and 1 (exclusive), below --threshold", metavar="P")
+    "default: missing, as the paper; docs/postprocess.md)", label="fallback threshold", metavar="P")
+"""Checked against --threshold by `postprocess.check_fallback`, where every decoder takes it."""
 
 
 def add_decoding_arguments(parser: argparse.ArgumentParser, fallback: bool = True) -> None:
