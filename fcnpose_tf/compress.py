@@ -49,13 +49,13 @@ Log = Callable[[str], None]
                        settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
                        settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
-                       settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.IMPORTANCE, settings.IMPORTANCE_FRAMES,
-                       settings.DISTILL)
+                       settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.LR_SCHEDULE, settings.IMPORTANCE,
+                       settings.IMPORTANCE_FRAMES, settings.DISTILL)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
-    positive_weight (use the base model's) and lr_patience; importance (the filter criterion) with
+    positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
     importance_frames (data-aware criteria), and distill (the base model's weight as a teacher while
     retraining). Defaults, checks and meanings: `fcnpose_tf.settings`."""
 
@@ -64,6 +64,7 @@ class CompressOptions:
         from fcnpose_tf.importance import DATA_AWARE
 
         settings.validate_fields(self)
+        settings.check_lr_schedule(self.lr_schedule, self.lr_patience)
         if self.method == "magnitude" and self.importance != "l1":
             raise UserError(f"--importance {self.importance} ranks filters for filter surgery (--method l1); "
                             "magnitude pruning zeroes the smallest weights")
@@ -82,7 +83,11 @@ class CompressOptions:
         if self.retrain_epochs == 0:
             return f"{pruned}, not retrained"
         epochs = f"{self.retrain_epochs} epoch{'s' if self.retrain_epochs > 1 else ''}"
-        return f"{pruned}, retrained up to {epochs} on {loss_name(self.positive_weight or 1.0, self.distill)}"
+        rate = (f"learning rate {self.learning_rate:g} on a cosine" if self.lr_schedule == "cosine" else
+                f"learning rate {self.learning_rate:g}, halved after {self.lr_patience} stale epochs"
+                if self.lr_patience else f"learning rate {self.learning_rate:g}")
+        return (f"{pruned}, retrained up to {epochs} on {loss_name(self.positive_weight or 1.0, self.distill)}, "
+                f"{rate}")
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
@@ -90,7 +95,7 @@ class CompressOptions:
 
         return FitConfig(epochs=max(self.retrain_epochs, 1), patience=self.patience, batch_size=self.batch_size,
                          learning_rate=self.learning_rate, seed=self.seed, positive_weight=self.positive_weight,
-                         lr_patience=self.lr_patience, distill=self.distill)
+                         lr_patience=self.lr_patience, lr_schedule=self.lr_schedule, distill=self.distill)
 
 
 def tflite_key(quantize: str) -> str:

@@ -281,6 +281,21 @@ LR_PATIENCE = Setting(
     "halve the learning rate after N epochs without a better validation loss (again after N more; floor 1e-5); "
     "0 keeps it constant, as the paper does",
     label="learning-rate patience", check=lambda v: v >= 0, requirement="0 (off) or more epochs", metavar="N")
+LR_SCHEDULE = Setting(
+    "lr_schedule", str, "plateau",
+    "plateau: the rate stays at --learning-rate, halved after --lr-patience epochs without a better validation "
+    "loss (0: never, the paper's); cosine: from --learning-rate down to 1e-5 along a half cosine over the epoch "
+    "budget (needs --lr-patience 0)", label="learning-rate schedule", choices=("plateau", "cosine"))
+"""An epoch budget with a rate that ends small: retraining a pruned model at a constant rate was still
+improving (and its validation loss jumping) at its last epoch (docs/compression.md, "Retraining budget")."""
+
+
+def check_lr_schedule(lr_schedule: str, lr_patience: int) -> None:
+    """UserError if a cosine schedule is also asked to halve the rate on plateaus (both would set it)."""
+    if lr_schedule == "cosine" and lr_patience:
+        raise UserError("--lr-schedule cosine sets every epoch's learning rate itself; "
+                        f"--lr-patience {lr_patience} would halve it too (use --lr-patience 0)")
+
 TRAIN_LR_PATIENCE = LR_PATIENCE.variant(
     default=4, help="halve the learning rate after N epochs without a better validation loss (again after N "
                     "more; floor 1e-5); default 4; 0 keeps it constant, as the paper does")

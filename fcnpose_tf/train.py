@@ -15,6 +15,7 @@ loses at most the epoch in flight, never the last good checkpoint, and `resume=T
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import shutil
@@ -34,19 +35,32 @@ from fcnpose_tf.model import save_for_inference
 
 
 @settings.config_class(settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.MAX_MINUTES,
-                       settings.FREEZE, settings.DISTILL)
+                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.LR_SCHEDULE,
+                       settings.MAX_MINUTES, settings.FREEZE, settings.DISTILL)
 class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
-    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant), max_minutes (no new epoch
+    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant), lr_schedule ("cosine": the rate
+    of each epoch is `cosine_rate` instead, lr_patience 0), max_minutes (no new epoch
     starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
     their weights) and distill (weight of a teacher's maps in the loss; the training batches must
     carry them, `fcnpose_tf.distill`). Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
 
+    def validate(self) -> None:
+        """Check every setting and that a cosine schedule is not also asked to halve on plateaus; UserError if bad."""
+        settings.validate_fields(self)
+        settings.check_lr_schedule(self.lr_schedule, self.lr_patience)
+
 
 MIN_LEARNING_RATE = 1e-5
+
+
+def cosine_rate(epoch: int, epochs: int, learning_rate: float) -> float:
+    """The learning rate of epoch `epoch` (0-based) of `epochs` on a half cosine from `learning_rate` (epoch 0)
+    towards MIN_LEARNING_RATE (reached after the last epoch): lr_min + (lr - lr_min)(1 + cos(pi e / E)) / 2."""
+    low = min(MIN_LEARNING_RATE, learning_rate)
+    return low + (learning_rate - low) * 0.5 * (1.0 + math.cos(math.pi * epoch / max(epochs, 1)))
 
 
 @dataclass
@@ -91,7 +105,7 @@ def check_outputs(model_path: Path, force: bool = False) -> None:
 
 
 RESUME_SETTINGS = ("input_size", "augment", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
-                   "learning_rate", "positive_weight", "lr_patience", "freeze")
+                   "learning_rate", "positive_weight", "lr_patience", "lr_schedule", "freeze")
 """The settings that change what a run learns: a checkpoint is resumed only with the same ones (and data).
 Epochs and patience may change: continuing a run for longer is what --resume is for."""
 
@@ -250,15 +264,20 @@ class _CheckpointAndStop(keras.callbacks.Callback):
     """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early."""
 
     def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0,
-                 max_minutes: float | None = None):
+                 max_minutes: float | None = None, rate_of_epoch: Callable[[int], float] | None = None):
         super().__init__()
         self.paths = paths
         self.state = state
         self.patience = patience
         self.lr_patience = lr_patience
+        self.rate_of_epoch = rate_of_epoch
         self.max_seconds = None if max_minutes is None else 60.0 * max_minutes
         self.seconds_before = float(state["seconds"])
         self.start = time.perf_counter()
+
+    def on_epoch_begin(self, epoch: int, logs: dict | None = None) -> None:
+        if self.rate_of_epoch is not None:
+            keras.backend.set_value(self.model.optimizer.learning_rate, self.rate_of_epoch(epoch))
 
     def on_epoch_end(self, epoch: int, logs: dict | None = None) -> None:
         logs = logs or {}
@@ -366,7 +385,10 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         freeze_first_convolutions(model, config.freeze)
         compile_for_training(model, config.learning_rate, config.positive_weight, config.distill)
 
-    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes)
+    schedule = None
+    if config.lr_schedule == "cosine":
+        schedule = functools.partial(cosine_rate, epochs=config.epochs, learning_rate=config.learning_rate)
+    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes, schedule)
     if state["epoch"] < config.epochs and not state["stopped_early"]:
         if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have drawn
             train_data.epoch = state["epoch"]

@@ -74,7 +74,7 @@ def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
     out = root / "taylor"
     proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--retrain-epochs", "1",
                "--importance", "taylor", "--importance-frames", "6", "--distill", "0.5", "--quantize", "float16",
-               "--positive-weight", "20", "--out-dir", out, "--threads", "1")
+               "--positive-weight", "20", "--lr-schedule", "cosine", "--out-dir", out, "--threads", "1")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     report = json.loads((out / "base_p50_report.json").read_text())
     assert report["pruning"]["importance"] == "taylor" and report["pruning"]["importance_frames"] == 6
@@ -83,11 +83,13 @@ def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
     assert report["retraining"]["loss"] == "distillation" and report["retraining"]["distill"] == 0.5
     assert report["retrained"]["params"] == 35185
     recipe = ("filter surgery at 0.5, filters ranked by taylor (independent, 6 training frames), retrained up to 1 "
-              "epoch on binary cross-entropy, keypoint pixels weighted 20, teacher weight 0.5")
+              "epoch on binary cross-entropy, keypoint pixels weighted 20, teacher weight 0.5, learning rate 0.001 on a "
+              "cosine")
     assert report["recipe"] == recipe and recipe in proc.stdout
     record = json.loads((out / "base_p50_train.json").read_text())
     assert record["importance"] == "taylor" and record["importance_frames"] == 6 and record["recipe"] == recipe
     assert record["config"]["distill"] == 0.5 and record["distillation"]["teacher_maps"] == "cached"
+    assert record["config"]["lr_schedule"] == "cosine" and report["options"]["lr_schedule"] == "cosine"
 
 
 @pytest.mark.slow
@@ -124,6 +126,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     (["--rate", "0.5", "--distill", "half"], "argument --distill: invalid float value: 'half'"),
     (["--rate", "0.5", "--method", "magnitude", "--importance", "taylor"], "--importance taylor ranks filters for"),
     (["--rate", "0.5", "--strategy", "greedy", "--importance", "activation"], "--strategy greedy re-ranks kernels"),
+    (["--rate", "0.5", "--lr-schedule", "cosine", "--lr-patience", "2"], "--lr-schedule cosine sets every epoch"),
 ])
 def test_bad_input_leaves_nothing(setup, cli, extra, message):
     root, data, base = setup

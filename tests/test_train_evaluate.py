@@ -216,6 +216,38 @@ def test_learning_rate_halves_after_lr_patience_epochs_without_improvement(tmp_p
     assert state["best_epoch"] == 7
 
 
+def test_cosine_schedule_sets_every_epochs_rate_and_refuses_plateau_halving_too(tmp_path):
+    """--lr-schedule cosine: epoch e of E trains at 1e-5 + (lr - 1e-5)(1 + cos(pi e / E)) / 2 whatever the
+    validation loss does; combined with --lr-patience it is refused before any work."""
+    import math
+
+    import tf_keras as keras
+
+    from fcnpose_tf.train import FitConfig, _CheckpointAndStop, compile_for_training, cosine_rate, run_paths
+
+    expected = [1e-5 + (2e-3 - 1e-5) * (1 + math.cos(math.pi * e / 4)) / 2 for e in range(4)]
+    assert [cosine_rate(e, 4, 2e-3) for e in range(4)] == pytest.approx(expected, rel=1e-12)
+    assert expected[0] == pytest.approx(2e-3) and expected[2] == pytest.approx((2e-3 + 1e-5) / 2)
+    model = keras.Sequential([keras.Input((4, 4, 3)), keras.layers.Conv2D(9, 1, activation="sigmoid")])
+    compile_for_training(model, 2e-3)
+    paths = run_paths(tmp_path / "m.keras")
+    paths["ckpt_dir"].mkdir()
+    state = {"epoch": 0, "best_val_loss": float("inf"), "best_epoch": 0, "wait": 0, "stopped_early": False,
+             "history": [], "seconds": 0.0}
+    callback = _CheckpointAndStop(paths, state, patience=10,
+                                  rate_of_epoch=lambda e: cosine_rate(e, epochs=4, learning_rate=2e-3))
+    callback.set_model(model)
+    for epoch, val_loss in enumerate([1.0, 1.5, 2.0, 0.5]):  # stale epochs change nothing
+        callback.on_epoch_begin(epoch)
+        callback.on_epoch_end(epoch, {"loss": 1.0, "val_loss": val_loss})
+    assert [row["lr"] for row in state["history"]] == pytest.approx(expected, rel=1e-6)  # float32 variable
+    FitConfig(lr_schedule="cosine").validate()
+    with pytest.raises(UserError, match="--lr-schedule cosine sets every epoch's learning rate itself"):
+        FitConfig(lr_schedule="cosine", lr_patience=4).validate()
+    with pytest.raises(UserError, match="learning-rate schedule must be one of plateau, cosine"):
+        FitConfig(lr_schedule="step").validate()
+
+
 def test_loss_label_names_the_weighting():
     from fcnpose_tf.train import loss_name
 

@@ -50,7 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         setting.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.AUGMENT.add_to(parser)
-    for setting in (settings.BATCH_SIZE, settings.LEARNING_RATE, settings.LR_PATIENCE, settings.AUGMENT_COPIES,
+    for setting in (settings.BATCH_SIZE, settings.LEARNING_RATE, settings.LR_PATIENCE, settings.LR_SCHEDULE,
+                    settings.AUGMENT_COPIES,
                     settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS):
         setting.add_to(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
