@@ -194,22 +194,29 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
     assert not (tmp_path / "bad.keras").exists()
 
 
-def test_learning_rate_halves_after_lr_patience_epochs_without_improvement(tmp_path):
-    """--lr-patience N: the rate halves after N epochs with no better validation loss, again after N more."""
+def _run_epoch_callback(tmp_path, learning_rate, val_losses, **schedule):
+    """`fit`'s per-epoch callback on a one-layer model fed these validation losses; its state afterwards."""
     import tf_keras as keras
 
     from fcnpose_tf.train import _CheckpointAndStop, compile_for_training, run_paths
 
     model = keras.Sequential([keras.Input((4, 4, 3)), keras.layers.Conv2D(9, 1, activation="sigmoid")])
-    compile_for_training(model, 1e-3)
+    compile_for_training(model, learning_rate)
     paths = run_paths(tmp_path / "m.keras")
     paths["ckpt_dir"].mkdir()
     state = {"epoch": 0, "best_val_loss": float("inf"), "best_epoch": 0, "wait": 0, "stopped_early": False,
              "history": [], "seconds": 0.0}
-    callback = _CheckpointAndStop(paths, state, patience=10, lr_patience=2)
+    callback = _CheckpointAndStop(paths, state, patience=10, **schedule)
     callback.set_model(model)
-    for epoch, val_loss in enumerate([1.0, 0.5, 0.6, 0.7, 0.8, 0.9, 0.4, 0.45]):
+    for epoch, val_loss in enumerate(val_losses):
+        callback.on_epoch_begin(epoch)
         callback.on_epoch_end(epoch, {"loss": 1.0, "val_loss": val_loss})
+    return state
+
+
+def test_learning_rate_halves_after_lr_patience_epochs_without_improvement(tmp_path):
+    """--lr-patience N: the rate halves after N epochs with no better validation loss, again after N more."""
+    state = _run_epoch_callback(tmp_path, 1e-3, [1.0, 0.5, 0.6, 0.7, 0.8, 0.9, 0.4, 0.45], lr_patience=2)
     rates = [round(row["lr"], 8) for row in state["history"]]
     # epochs 3-4 no better than 0.5 -> halve after epoch 4; epochs 5-6 -> halve again; 0.4 improves
     assert rates == [1e-3, 1e-3, 1e-3, 1e-3, 5e-4, 5e-4, 2.5e-4, 2.5e-4]
@@ -221,25 +228,13 @@ def test_cosine_schedule_sets_every_epochs_rate_and_refuses_plateau_halving_too(
     validation loss does; combined with --lr-patience it is refused before any work."""
     import math
 
-    import tf_keras as keras
-
-    from fcnpose_tf.train import FitConfig, _CheckpointAndStop, compile_for_training, cosine_rate, run_paths
+    from fcnpose_tf.train import FitConfig, cosine_rate
 
     expected = [1e-5 + (2e-3 - 1e-5) * (1 + math.cos(math.pi * e / 4)) / 2 for e in range(4)]
     assert [cosine_rate(e, 4, 2e-3) for e in range(4)] == pytest.approx(expected, rel=1e-12)
     assert expected[0] == pytest.approx(2e-3) and expected[2] == pytest.approx((2e-3 + 1e-5) / 2)
-    model = keras.Sequential([keras.Input((4, 4, 3)), keras.layers.Conv2D(9, 1, activation="sigmoid")])
-    compile_for_training(model, 2e-3)
-    paths = run_paths(tmp_path / "m.keras")
-    paths["ckpt_dir"].mkdir()
-    state = {"epoch": 0, "best_val_loss": float("inf"), "best_epoch": 0, "wait": 0, "stopped_early": False,
-             "history": [], "seconds": 0.0}
-    callback = _CheckpointAndStop(paths, state, patience=10,
-                                  rate_of_epoch=lambda e: cosine_rate(e, epochs=4, learning_rate=2e-3))
-    callback.set_model(model)
-    for epoch, val_loss in enumerate([1.0, 1.5, 2.0, 0.5]):  # stale epochs change nothing
-        callback.on_epoch_begin(epoch)
-        callback.on_epoch_end(epoch, {"loss": 1.0, "val_loss": val_loss})
+    state = _run_epoch_callback(tmp_path, 2e-3, [1.0, 1.5, 2.0, 0.5],  # stale epochs change nothing
+                                rate_of_epoch=lambda e: cosine_rate(e, epochs=4, learning_rate=2e-3))
     assert [row["lr"] for row in state["history"]] == pytest.approx(expected, rel=1e-6)  # float32 variable
     FitConfig(lr_schedule="cosine").validate()
     with pytest.raises(UserError, match="--lr-schedule cosine sets every epoch's learning rate itself"):
