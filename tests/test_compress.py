@@ -23,7 +23,7 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     root, data, base = setup
     out = root / "out"
     proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "1",
-               "--out-dir", out, "--threads", "1", "--lr-patience", "3")
+               "--out-dir", out, "--threads", "1", "--lr-patience", "2")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     names = {"base_p70.keras", "base_p70_fp16.tflite", "base_p70_int8.tflite", "base_p70_report.json"}
     assert names <= {p.name for p in out.iterdir()}
@@ -52,9 +52,10 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert f"calibrated on {int8['export']['calibration_frames']} training frames; verified on" in proc.stdout
     assert "upsampling folded" in proc.stdout and "upsampling not folded" in proc.stdout  # int8, float16
     # --lr-patience reaches the retraining's FitConfig; the base model has no record: plain BCE
-    assert report["options"]["lr_patience"] == 3
-    assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 3
-    assert report["retraining"]["loss"] == "binary_crossentropy" and report["retraining"]["learning_rates"] == [0.001]
+    assert report["options"]["lr_patience"] == 2
+    assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 2
+    assert report["retraining"]["loss"] == "binary_crossentropy"
+    assert report["retraining"]["learning_rates"] == [pytest.approx(3e-3)]  # compress's default rate
     # the default criterion: first-order Taylor on (at most 256) training frames, never the measured ones
     assert report["pruning"]["importance"] == "taylor" and report["options"]["importance"] == "taylor"
     assert report["pruning"]["importance_frames"] == 16 and report["options"]["distill"] == 0.0
@@ -83,7 +84,7 @@ def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
     assert report["retraining"]["loss"] == "distillation" and report["retraining"]["distill"] == 0.5
     assert report["retrained"]["params"] == 35185
     recipe = ("filter surgery at 0.5, filters ranked by taylor (independent, 6 training frames), retrained up to 1 "
-              "epoch on binary cross-entropy, keypoint pixels weighted 20, teacher weight 0.5, learning rate 0.001 on a "
+              "epoch on binary cross-entropy, keypoint pixels weighted 20, teacher weight 0.5, learning rate 0.003 on a "
               "cosine")
     assert report["recipe"] == recipe and recipe in proc.stdout
     record = json.loads((out / "base_p50_train.json").read_text())
@@ -105,7 +106,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     retraining = report["retraining"]
     assert retraining["loss"] == "keypoint_bce" and retraining["positive_weight"] == 20
     assert retraining["epochs_run"] == 2 and len(retraining["learning_rates"]) == 2  # fit's per-epoch rates
-    assert retraining["learning_rates"][0] == pytest.approx(1e-3)
+    assert retraining["learning_rates"][0] == pytest.approx(3e-3)
     assert report["options"]["lr_patience"] == 1 and report["retrained"]["params"] == 131705
     assert report["options"]["importance"] == "l1" and "pruning" not in report  # no criterion: smallest weights go
 

@@ -35,12 +35,13 @@ def test_a_default_changed_in_settings_reaches_every_command_and_config(monkeypa
     train, compress, sweep = _parsed(*TRAIN), _parsed("compress", "--rate", "0.5"), _parsed("sweep")
     for args in (train, compress, sweep):
         assert args.batch_size == 3
-    assert compress.lr_patience == sweep.lr_patience == 7 and train.lr_patience == settings.TRAIN_LR_PATIENCE.default
+    assert sweep.lr_patience == 7 and train.lr_patience == settings.TRAIN_LR_PATIENCE.default
+    assert compress.lr_patience is None  # resolved per run (COMPRESS_LR_PATIENCE, below)
     assert compress.retrain_epochs == sweep.retrain_epochs == 11  # the sweep's per-rate form shares the default
     for command in ("train", "compress", "sweep"):
         text = " ".join(_help(command).split())
         assert "--batch-size BATCH_SIZE training batch size (default: 3)" in text
-        assert "(default: 7)" in text or command == "train"  # train's own variant (below)
+        assert "(default: 7)" in text or command in ("train", "compress")  # their own variants (below)
     for command in ("compress", "sweep"):
         assert "(default: 11)" in " ".join(_help(command).split())
     assert "patience help changed in one place" in _help("sweep")  # train has its own variant (TRAIN_PATIENCE)
@@ -60,6 +61,10 @@ def test_commands_that_differ_use_their_own_variant():
     assert CompressOptions(rate=0.5).patience == SweepConfig("o", "d").retrain_patience == 5
     # train serves a user's frames; compress and sweep reproduce the paper's tables
     assert compress.positive_weight is None and (train.positive_weight, sweep.positive_weight) == (20.0, 1.0)
+    # compress retrains at 3e-3 halved after 3 stale epochs (0 on the cosine schedule); the sweep keeps the paper's
+    assert compress.lr_patience is None and settings.DEFAULT_COMPRESS_LR_PATIENCE == 3
+    assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, 1e-3, 1e-3)
+    assert CompressOptions(rate=0.5).learning_rate == 1e-3 and CompressOptions(rate=0.5).lr_patience == 0
     assert (train.lr_patience, sweep.lr_patience) == (4, 0) and (train.max_minutes, sweep.__dict__.get("max_minutes")) == (30.0, None)
     assert (train.augment, compress.augment) == ("auto", "paper")  # train picks per dataset (data.views)
     # compress resolves its criterion per run (taylor for independent filter surgery); the sweep keeps the paper's

@@ -50,8 +50,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         setting.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.AUGMENT.add_to(parser)
-    for setting in (settings.BATCH_SIZE, settings.LEARNING_RATE, settings.LR_PATIENCE, settings.LR_SCHEDULE,
-                    settings.AUGMENT_COPIES,
+    for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
+                    settings.LR_SCHEDULE, settings.AUGMENT_COPIES,
                     settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS):
         setting.add_to(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
@@ -76,6 +76,8 @@ def run(args: argparse.Namespace) -> int:
     if args.importance is None:  # Taylor where it applies; the paper's L1 norm for greedy ranking (kernels only)
         independent_surgery = args.method == "l1" and args.strategy == "independent"
         args.importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
+    if args.lr_patience is None:  # a cosine schedule sets every epoch's rate itself
+        args.lr_patience = 0 if args.lr_schedule == "cosine" else settings.DEFAULT_COMPRESS_LR_PATIENCE
     options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
     options.validate()
     if not Path(model_path).is_file():
