@@ -294,6 +294,14 @@ LR_SCHEDULE = Setting(
 """An epoch budget with a rate that ends small: retraining a pruned model at a constant rate was still
 improving (and its validation loss jumping) at its last epoch (docs/compression.md, "Retraining budget")."""
 
+DEFAULT_COMPRESS_LR_PATIENCE = 3
+"""What `compress --lr-patience` resolves to on the plateau schedule: with COMPRESS_LEARNING_RATE it measured
+ahead of every other schedule at 70 % within the 25-epoch budget (docs/compression.md, "Retraining budget")."""
+COMPRESS_LR_PATIENCE = LR_PATIENCE.variant(
+    default=None, help="halve the retraining's learning rate after N epochs without a better validation loss (again "
+                       f"after N more; floor 1e-5); default {DEFAULT_COMPRESS_LR_PATIENCE} (0 with --lr-schedule "
+                       "cosine); 0 keeps it constant, as the paper does")
+
 
 def check_lr_schedule(lr_schedule: str, lr_patience: int) -> None:
     """UserError if a cosine schedule is also asked to halve the rate on plateaus (both would set it)."""
@@ -301,13 +309,7 @@ def check_lr_schedule(lr_schedule: str, lr_patience: int) -> None:
         raise UserError("--lr-schedule cosine sets every epoch's learning rate itself; "
                         f"--lr-patience {lr_patience} would halve it too (use --lr-patience 0)")
 
-COMPRESS_LR_PATIENCE = LR_PATIENCE.variant(
-    default=None, help="halve the retraining's learning rate after N epochs without a better validation loss (again "
-                       "after N more; floor 1e-5); default 3 (0 with --lr-schedule cosine); 0 keeps it constant, as "
-                       "the paper does")
-DEFAULT_COMPRESS_LR_PATIENCE = 3
-"""What `compress --lr-patience` resolves to on the plateau schedule: with COMPRESS_LEARNING_RATE it measured
-ahead of every other schedule at 70 % within the 25-epoch budget (docs/compression.md, "Retraining budget")."""
+
 TRAIN_LR_PATIENCE = LR_PATIENCE.variant(
     default=4, help="halve the learning rate after N epochs without a better validation loss (again after N "
                     "more; floor 1e-5); default 4; 0 keeps it constant, as the paper does")
