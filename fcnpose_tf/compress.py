@@ -50,14 +50,15 @@ Log = Callable[[str], None]
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
                        settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.LR_SCHEDULE, settings.IMPORTANCE,
-                       settings.IMPORTANCE_FRAMES, settings.DISTILL)
+                       settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.FREEZE)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
     positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
-    importance_frames (data-aware criteria), and distill (the base model's weight as a teacher while
-    retraining). Defaults, checks and meanings: `fcnpose_tf.settings`."""
+    importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
+    retraining) and freeze (conv1..convN keep their pruned weights while retraining). Defaults, checks
+    and meanings: `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
         """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
@@ -68,6 +69,9 @@ class CompressOptions:
         if self.method == "magnitude" and self.importance != "l1":
             raise UserError(f"--importance {self.importance} ranks filters for filter surgery (--method l1); "
                             "magnitude pruning zeroes the smallest weights")
+        if self.method == "magnitude" and self.freeze:
+            raise UserError(f"--freeze {self.freeze} keeps the first convolutions of filter surgery's model fixed; "
+                            "magnitude pruning retrains every weight it masks (use --freeze 0)")
         if self.strategy == "greedy" and self.importance in DATA_AWARE:
             raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
                             f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
@@ -86,8 +90,9 @@ class CompressOptions:
         rate = (f"learning rate {self.learning_rate:g} on a cosine" if self.lr_schedule == "cosine" else
                 f"learning rate {self.learning_rate:g}, halved after {self.lr_patience} stale epochs"
                 if self.lr_patience else f"learning rate {self.learning_rate:g}")
+        frozen = f", conv1-{self.freeze} fixed" if self.freeze > 1 else ", conv1 fixed" if self.freeze else ""
         return (f"{pruned}, retrained up to {epochs} on {loss_name(self.positive_weight or 1.0, self.distill)}, "
-                f"{rate}")
+                f"{rate}{frozen}")
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
@@ -95,7 +100,8 @@ class CompressOptions:
 
         return FitConfig(epochs=max(self.retrain_epochs, 1), patience=self.patience, batch_size=self.batch_size,
                          learning_rate=self.learning_rate, seed=self.seed, positive_weight=self.positive_weight,
-                         lr_patience=self.lr_patience, lr_schedule=self.lr_schedule, distill=self.distill)
+                         lr_patience=self.lr_patience, lr_schedule=self.lr_schedule, distill=self.distill,
+                         freeze=self.freeze)
 
 
 def tflite_key(quantize: str) -> str:

@@ -94,6 +94,28 @@ def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
 
 
 @pytest.mark.slow
+def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli):
+    """--freeze 2: conv1 and conv2 come out of retraining exactly as surgery left them (at rate 0 surgery keeps
+    every filter, so they equal the base model's), conv3 is trained; the recipe says so."""
+    import numpy as np
+    from fcnpose_tf.model import load_model
+
+    root, data, base = setup
+    out = root / "frozen"
+    proc = cli("compress", "--rate", "0", "--model", base, "--data", data, "--retrain-epochs", "1", "--importance",
+               "l1", "--freeze", "2", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    before, after = load_model(base), load_model(next(out.glob("*.keras")))
+    for name in ("conv1", "conv2"):
+        for w0, w1 in zip(before.get_layer(name).get_weights(), after.get_layer(name).get_weights()):
+            np.testing.assert_array_equal(w0, w1)
+    assert not np.array_equal(before.get_layer("conv3").get_weights()[0], after.get_layer("conv3").get_weights()[0])
+    assert all(layer.trainable for layer in after.layers)  # the file fine-tunes like any other
+    report = json.loads(next(out.glob("*_report.json")).read_text())
+    assert report["options"]["freeze"] == 2 and report["recipe"].endswith(", conv1-2 fixed")
+
+
+@pytest.mark.slow
 def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli):
     """--method magnitude retrains with the same loss as the l1 path (compile_for_training), not plain BCE."""
     root, data, base = setup
@@ -128,6 +150,8 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     (["--rate", "0.5", "--method", "magnitude", "--importance", "taylor"], "--importance taylor ranks filters for"),
     (["--rate", "0.5", "--strategy", "greedy", "--importance", "activation"], "--strategy greedy re-ranks kernels"),
     (["--rate", "0.5", "--lr-schedule", "cosine", "--lr-patience", "2"], "--lr-schedule cosine sets every epoch"),
+    (["--rate", "0.5", "--method", "magnitude", "--freeze", "1"], "--freeze 1 keeps the first convolutions"),
+    (["--rate", "0.5", "--freeze", "10"], "frozen layers must be 0 to 9"),
 ])
 def test_bad_input_leaves_nothing(setup, cli, extra, message):
     root, data, base = setup

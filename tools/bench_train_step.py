@@ -4,6 +4,7 @@
 Usage:
     python tools/bench_train_step.py                         # 224 x 224, batch 8, 1 thread, 6 rounds
     python tools/bench_train_step.py --threads 2 --rounds 10 --input-size 160
+    python tools/bench_train_step.py --rate 0.7              # the 70 %-pruned network (compress's retraining)
 
 All variants train on the same random batch, interleaved round by round, so load from other
 processes hits them alike; the table gives the median seconds per batch and the speed-up over
@@ -25,12 +26,15 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--rounds", type=int, default=6)
     parser.add_argument("--max-frozen", type=int, default=3, help="time --freeze 0..N (default 3)")
+    parser.add_argument("--rate", type=float, default=0.0,
+                        help="time the network pruned at this rate (the keep rule's widths; default 0: unpruned)")
     args = parser.parse_args()
 
     from fcnpose_tf.tfsetup import set_tensorflow_threads
 
     set_tensorflow_threads(args.threads)
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.model import DEFAULT_WIDTHS, build_fcn_pose
+    from fcnpose_tf.prune import pruned_widths
     from fcnpose_tf.train import compile_for_training, freeze_first_convolutions
 
     rng = np.random.default_rng(0)
@@ -39,7 +43,7 @@ def main() -> int:
     maps = (rng.random((batch, size, size, 9)) > 0.97).astype(np.float32)
     models = {}
     for frozen in range(args.max_frozen + 1):
-        model = build_fcn_pose(input_size=size)
+        model = build_fcn_pose(pruned_widths(DEFAULT_WIDTHS, args.rate), input_size=size)
         freeze_first_convolutions(model, frozen)
         compile_for_training(model, 1e-3, 20.0)
         for _ in range(2):  # trace and warm up
@@ -52,7 +56,8 @@ def main() -> int:
             model.train_on_batch(images, maps)
             seconds[frozen].append(time.perf_counter() - start)
     every_layer = float(np.median(seconds[0]))
-    print(f"{size}x{size}, batch {batch}, {args.threads} thread(s), {args.rounds} interleaved rounds, medians")
+    print(f"{size}x{size}, widths {pruned_widths(DEFAULT_WIDTHS, args.rate)}, batch {batch}, {args.threads} "
+          f"thread(s), {args.rounds} interleaved rounds, medians")
     print("| --freeze | s/batch | s/image | speed-up |")
     print("|---|---|---|---|")
     for frozen, values in seconds.items():
