@@ -69,7 +69,7 @@ def test_commands_that_differ_use_their_own_variant():
     assert (train.augment, compress.augment) == ("auto", "paper")  # train picks per dataset (data.views)
     # compress resolves its criterion per run (taylor for independent filter surgery); the sweep keeps the paper's
     assert compress.importance is None and sweep.importance == settings.IMPORTANCE.default == "l1"
-    assert compress.distill == sweep.distill == 0.0
+    assert compress.distill == sweep.distill == 0.0 and compress.freeze == 0  # compress retrains every layer
     assert settings.TRAIN_PATIENCE.check is settings.PATIENCE.check  # a variant shares its check and message
     assert train.folds is None and sweep.folds == 5
 
