@@ -138,6 +138,7 @@ def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli):
     record = json.loads((tmp_path / "p_train.json").read_text())
     assert record["augment"] == "paper" and record["augment_copies"] == 1
     assert record["config"]["freeze"] == 0  # from scratch every layer trains
+    assert record["config"]["positive_weight"] == 20.0  # random weights need the large keypoint weight
     proc = cli("train", "--data", data, "--out", tmp_path / "m.keras", "--epochs", "1", "--input-size", "64",
                "--init", "none", "--augment", "online", "--quiet")
     assert proc.returncode == 0, proc.stderr

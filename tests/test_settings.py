@@ -50,6 +50,12 @@ def test_a_default_changed_in_settings_reaches_every_command_and_config(monkeypa
     assert FitConfig().lr_patience == CompressOptions(rate=0.5).lr_patience == SweepConfig("o", "d").lr_patience == 7
 
 
+@pytest.mark.parametrize("trained_start, augment, weight", [(True, "paper", 8.0), (True, "online", 20.0),
+                                                           (False, "paper", 20.0), (False, "online", 20.0)])
+def test_train_weights_keypoints_less_when_fine_tuning_on_one_fixed_camera(trained_start, augment, weight):
+    assert settings.train_positive_weight(trained_start=trained_start, augment=augment) == weight
+
+
 def test_commands_that_differ_use_their_own_variant():
     from fcnpose_tf.compress import CompressOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
@@ -60,7 +66,9 @@ def test_commands_that_differ_use_their_own_variant():
     assert (train.patience, compress.retrain_patience, sweep.patience, sweep.retrain_patience) == (12, 5, 20, 5)
     assert CompressOptions(rate=0.5).patience == SweepConfig("o", "d").retrain_patience == 5
     # train serves a user's frames; compress and sweep reproduce the paper's tables
-    assert compress.positive_weight is None and (train.positive_weight, sweep.positive_weight) == (20.0, 1.0)
+    assert compress.positive_weight is None and (train.positive_weight, sweep.positive_weight) == (None, 1.0)
+    # train resolves its weight per run: 8 from a trained start, 20 from scratch (commands/train.py)
+    assert (settings.DEFAULT_FINE_TUNE_POSITIVE_WEIGHT, settings.DEFAULT_FROM_SCRATCH_POSITIVE_WEIGHT) == (8.0, 20.0)
     # compress retrains at 3e-3 halved after 3 stale epochs (0 on the cosine schedule); the sweep keeps the paper's
     assert compress.lr_patience is None and settings.DEFAULT_COMPRESS_LR_PATIENCE == 3
     assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, 1e-3, 1e-3)

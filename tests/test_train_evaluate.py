@@ -162,8 +162,10 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
     assert proc.returncode == 0, proc.stderr
     record = json.loads((tmp_path / "ft_train.json").read_text())
     assert record["init"] == str(out) and record["config"]["freeze"] == 2  # a trained start keeps conv1..2
+    assert record["config"]["positive_weight"] == 8.0  # and draws tighter discs than training from scratch
     assert record["augment"] == "paper" and record["augment_auto"]["chose"] == "paper"  # one fixed "camera"
     assert "Augmentation: auto -> paper (one fixed camera" in proc.stdout
+    assert "Keypoint weight: 8 (fine-tuning a trained model on the paper's copies" in proc.stdout
     from fcnpose_tf.model import load_model
 
     start, tuned = load_model(out), load_model(tmp_path / "ft.keras")
@@ -173,8 +175,9 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
         assert same == kept, name
     assert all(layer.trainable for layer in tuned.layers)  # the written model is a plain FCN-Pose
     proc = cli("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1", "--input-size", "64",
-               "--augment-copies", "0", "--init", out, "--freeze", "0", "--quiet")
+               "--augment-copies", "0", "--init", out, "--freeze", "0", "--positive-weight", "20", "--quiet")
     assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "ft0_train.json").read_text())["config"]["positive_weight"] == 20.0
     tuned = load_model(tmp_path / "ft0.keras")
     assert not np.array_equal(start.get_layer("conv1").get_weights()[0], tuned.get_layer("conv1").get_weights()[0])
     proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--init", out, "--freeze", "10")

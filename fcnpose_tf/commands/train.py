@@ -2,9 +2,9 @@
 
 By default it fine-tunes the bundled UR5 generalist (pretrained on domain-randomised scenes) on
 your frames (augmentation chosen from the frames: the paper's 2 fixed copies per frame for one fixed
-camera, fresh random transforms every epoch when the views vary), keypoint pixels weighted 20, the
-learning rate halved after 4 epochs without progress and a 30-minute budget (docs/training.md,
-"Training on your own frames"); the paper's recipe is the last example below. Without --folds the
+camera, fresh random transforms every epoch when the views vary), keypoint pixels weighted 8 on one
+fixed camera (20 when the views vary or from scratch), the learning rate halved after 4 epochs without
+progress and a 30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe is the last example below. Without --folds the
 model trains on the 80/20 hold-out split; --folds K trains one model per fold of the dataset's
 stored K-fold splits (or only --fold k) and reports mean and std. Next to the model it writes
 NAME_loss.csv/.png (loss curves) and NAME_train.json (settings, epochs, validation metrics).
@@ -94,8 +94,10 @@ def run(args: argparse.Namespace) -> int:
     init = initial_weights(args.init)
     if args.freeze is None:
         args.freeze = settings.DEFAULT_FINE_TUNE_FREEZE if init else 0
-    config = FitConfig(**settings.values_from_args(args, FitConfig))
-    config.validate()
+    given = settings.values_from_args(args, FitConfig)
+    if given["positive_weight"] is None:  # resolved with the augmentation (below); every other setting checked now
+        given["positive_weight"] = settings.DEFAULT_FROM_SCRATCH_POSITIVE_WEIGHT
+    FitConfig(**given).validate()
     for setting in (settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
                     settings.THREADS):
         setting.validate(getattr(args, setting.name))
@@ -118,6 +120,13 @@ def run(args: argparse.Namespace) -> int:
     metadata: dict = {"init": str(init) if init else None}
     if args.augment == "auto":  # resolved before the checkpoint check: a checkpoint records what ran
         args.augment, metadata["augment_auto"] = _choose_augment(via_path, images_dir, args)
+    if args.positive_weight is None:
+        args.positive_weight = settings.train_positive_weight(trained_start=init is not None, augment=args.augment)
+        print(f"Keypoint weight: {args.positive_weight:g} ("
+              + ("fine-tuning a trained model on the paper's copies" if args.positive_weight
+                 == settings.DEFAULT_FINE_TUNE_POSITIVE_WEIGHT else "random weights or online augmentation")
+              + "; --positive-weight sets it)")
+    config = FitConfig(**settings.values_from_args(args, FitConfig))
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
                          identity=run_identity(via_path, config, input_size=args.input_size, fold=fold, folds=k,
