@@ -5,8 +5,9 @@ your frames (augmentation chosen from the frames: the paper's 2 fixed copies per
 camera, fresh random transforms every epoch when the views vary), keypoint pixels weighted 8 on one
 fixed camera (20 when the views vary or from scratch), the learning rate halved after 4 epochs without
 progress and a 30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe
-is the last example below. Without --folds the model trains on the 80/20 hold-out split; --folds K trains one model per fold of the dataset's
-stored K-fold splits (or only --fold k) and reports mean and std. Next to the model it writes
+is the last example below. Without --folds the model trains on the 80/20 hold-out split; --folds K
+trains one model per fold of the dataset's stored K-fold splits (or only --fold k) and reports mean
+and std. Next to the model it writes
 NAME_loss.csv/.png (loss curves) and NAME_train.json (settings, epochs, validation metrics).
 Ctrl-C or a kill loses at most one epoch: rerun with --resume.
 """
