@@ -67,8 +67,7 @@ def test_commands_that_differ_use_their_own_variant():
     assert CompressOptions(rate=0.5).patience == SweepConfig("o", "d").retrain_patience == 5
     # train serves a user's frames; compress and sweep reproduce the paper's tables
     assert compress.positive_weight is None and (train.positive_weight, sweep.positive_weight) == (None, 1.0)
-    # train resolves its weight per run: 8 from a trained start, 20 from scratch (commands/train.py)
-    assert (settings.DEFAULT_FINE_TUNE_POSITIVE_WEIGHT, settings.DEFAULT_FROM_SCRATCH_POSITIVE_WEIGHT) == (8.0, 20.0)
+    # train resolves its weight per run from its start and augmentation (settings.train_positive_weight, above)
     # compress retrains at 3e-3 halved after 3 stale epochs (0 on the cosine schedule); the sweep keeps the paper's
     assert compress.lr_patience is None and settings.DEFAULT_COMPRESS_LR_PATIENCE == 3
     assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, 1e-3, 1e-3)
