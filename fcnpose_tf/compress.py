@@ -50,15 +50,16 @@ Log = Callable[[str], None]
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
                        settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.LR_SCHEDULE, settings.IMPORTANCE,
-                       settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.FREEZE)
+                       settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.FREEZE, settings.MIN_FILTERS)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
     positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
-    retraining) and freeze (conv1..convN keep their pruned weights while retraining). Defaults, checks
-    and meanings: `fcnpose_tf.settings`."""
+    retraining), freeze (conv1..convN keep their pruned weights while retraining) and min_filters (the
+    narrowest a pruned layer may become at the same parameter budget). Defaults, checks and meanings:
+    `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
         """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
@@ -72,6 +73,9 @@ class CompressOptions:
         if self.method == "magnitude" and self.freeze:
             raise UserError(f"--freeze {self.freeze} keeps the first convolutions of filter surgery's model fixed; "
                             "magnitude pruning retrains every weight it masks (use --freeze 0)")
+        if self.method == "magnitude" and self.min_filters:
+            raise UserError(f"--min-filters {self.min_filters} sets the widths of filter surgery's layers (--method "
+                            "l1); magnitude pruning keeps every filter (use --min-filters 0)")
         if self.strategy == "greedy" and self.importance in DATA_AWARE:
             raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
                             f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
@@ -80,8 +84,9 @@ class CompressOptions:
         """One line naming how the file was made: criterion, strategy, distillation, loss."""
         from fcnpose_tf.train import loss_name
 
+        floor = f" (no layer under {self.min_filters} filters, same parameter budget)" if self.min_filters > 1 else ""
         pruned = (f"magnitude pruning at {self.rate:g}" if self.method == "magnitude" else
-                  f"filter surgery at {self.rate:g}, filters ranked by {self.importance} ({self.strategy}"
+                  f"filter surgery at {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy}"
                   + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
                      else "") + ")")
         if self.retrain_epochs == 0:
@@ -209,27 +214,32 @@ class FilterPruning:
 
     name, tag = "l1", "p"
 
-    def __init__(self, rate: float, strategy: str, importance: str = "l1") -> None:
-        self.rate, self.strategy, self.importance = rate, strategy, importance
+    def __init__(self, rate: float, strategy: str, importance: str = "l1", min_filters: int = 0) -> None:
+        self.rate, self.strategy, self.importance, self.min_filters = rate, strategy, importance, min_filters
         self.criterion_facts: dict[str, Any] = {"importance": importance}
 
     def describe(self) -> str:
-        return f"filter surgery at rate {self.rate:g}, filters ranked by {self.importance} ({self.strategy})"
+        floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
+        return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
 
     def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.prune import prune_model
+        from fcnpose_tf.prune import prune_model, prune_widths
 
         start = time.perf_counter()
-        pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance)
+        widths, floor = prune_widths(base, self.rate, self.min_filters)
+        pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
+                             min_filters=self.min_filters)
         self.criterion_facts = importance.describe()
         return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
+                                    "min_filters": self.min_filters, "min_filters_used": floor,
+                                    "kept_widths": list(widths),
                                     "ranking_seconds": round(time.perf_counter() - start, 1)}}
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         fit_fn(pruned)
 
     def training_record(self) -> dict[str, Any]:
-        return {"rate": self.rate, "strategy": self.strategy, **self.criterion_facts}
+        return {"rate": self.rate, "strategy": self.strategy, "min_filters": self.min_filters, **self.criterion_facts}
 
 
 class MagnitudePruning:
@@ -268,7 +278,7 @@ def pruning_method(options: CompressOptions) -> PruningMethod:
     """The pruning method `options.method` names."""
     if options.method == "magnitude":
         return MagnitudePruning(options.rate)
-    return FilterPruning(options.rate, options.strategy, options.importance)
+    return FilterPruning(options.rate, options.strategy, options.importance, options.min_filters)
 
 
 # ------------------------------------------------------------------------------------------
@@ -482,7 +492,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
-    prune_plan(base, options.rate, strategy=options.strategy)  # an unsupported layer fails here, first
+    prune_plan(base, options.rate, strategy=options.strategy, min_filters=options.min_filters)  # a bad model fails first
     check_outputs(base_path, out_dir, options, force)
     run = _Run(base_path, base, pruning_method(options), options, paths, train_dataset, eval_dataset,
                eval_indices, force, verbose, say)

@@ -177,13 +177,64 @@ def kept_by_score(scores: np.ndarray, rate: Rate) -> np.ndarray:
         >>> kept_by_score(np.array([0.2, 0.9, 0.2, 0.5]), 0.5).tolist()
         [1, 3]
     """
+    return kept_top(scores, keep_count(len(np.atleast_1d(scores)), rate))
+
+
+def kept_top(scores: np.ndarray, count: int) -> np.ndarray:
+    """Indices of the `count` highest scores, in their original order; ties go to the lower index.
+
+    Example:
+        >>> kept_top(np.array([0.2, 0.9, 0.2, 0.5]), 3).tolist()
+        [0, 1, 3]
+    """
     scores = np.asarray(scores, dtype=np.float64)
     if scores.ndim != 1 or not np.all(np.isfinite(scores)):
         raise UserError(f"filter scores must be a finite 1-D array, got shape {scores.shape}")
-    keep = keep_count(len(scores), rate)
+    if not 1 <= count <= len(scores):
+        raise UserError(f"a layer of {len(scores)} filters cannot keep {count}")
     # Stable sort on the negated scores: largest first, equal scores in index order.
     order = np.argsort(-scores, kind="stable")
-    return np.sort(order[:keep]).astype(np.int64)
+    return np.sort(order[:count]).astype(np.int64)
+
+
+def floored_widths(widths: Sequence[int], rate: Rate, min_filters: int,
+                   param_count: Callable[[tuple[int, ...]], int]) -> tuple[tuple[int, ...], int]:
+    """Kept filter counts that leave no layer narrower than `min_filters`, at no more parameters than the keep rule's.
+
+    The keep rule at `rate` leaves the narrow layers of an hourglass network (FCN-Pose's conv5 and conv6: 8
+    filters) with 3 filters at 0.7, through which every keypoint's position has to pass. Here every layer keeps
+    at least ``min(n, min_filters)`` filters and the others are pruned at the smallest rate >= `rate` at which the
+    whole network has no more parameters than ``pruned_widths(widths, rate)`` gives it: the budget moves from the
+    wide, high-resolution layers to the bottleneck. If no rate fits the budget with that floor (high rates), the
+    floor is lowered one filter at a time; a floor of 1 is the keep rule itself.
+
+    Args:
+        widths: filter counts of the layers that are pruned, in order.
+        rate: fraction of filters to remove, in [0, 1); sets the parameter budget.
+        min_filters: the narrowest a layer may become (0 or 1: the plain keep rule).
+        param_count: the network's parameter count for a tuple of kept counts (`chain_param_count`).
+    Returns:
+        (kept counts, the floor used).
+    Example:
+        >>> count = lambda kept: sum(kept)  # a toy cost: one parameter per filter
+        >>> floored_widths((128, 64, 8), 0.7, 4, count)
+        ((38, 19, 4), 4)
+    """
+    uniform = pruned_widths(widths, rate)
+    if isinstance(min_filters, bool) or not isinstance(min_filters, numbers.Integral) or min_filters < 0:
+        raise UserError(f"the narrowest layer width must be a whole number >= 0, got {min_filters!r}")
+    if all(k >= min(n, min_filters) for n, k in zip(widths, uniform)):  # always so for a floor of 0 or 1
+        return uniform, int(min_filters)
+    budget = param_count(uniform)
+    start = _exact_rate(rate)
+    # Keep counts only change at rates m/n, so these are all the rates worth trying, in increasing order.
+    rates = sorted({start} | {Fraction(m, n) for n in set(widths) for m in range(1, n) if Fraction(m, n) > start})
+    for floor in range(int(min_filters), 1, -1):
+        for candidate in rates:
+            kept = tuple(max(keep_count(n, candidate), min(n, floor)) for n in widths)
+            if param_count(kept) <= budget:
+                return kept, floor
+    return uniform, 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -233,8 +284,54 @@ def _mixes_channels(layer: keras.layers.Layer) -> bool:
     return False
 
 
+def chain_param_count(model: keras.Model, kept: Sequence[int]) -> int:
+    """Parameters of `model` after its Conv2D layers but the last keep `kept` filters (no surgery done).
+
+    Counts what the surgery leaves: each Conv2D's kernel (and bias) on the channels that reach it, and a
+    BatchNormalization's per-channel weights on the channels that pass it; other layers have none here.
+    """
+    return _param_counter(model)(kept)
+
+
+def _param_counter(model: keras.Model) -> Callable[[Sequence[int]], int]:
+    """`chain_param_count` for one model, its chain read once."""
+    layers = _chain(model)
+    pruned = sum(type(layer) is keras.layers.Conv2D for layer in layers) - 1
+    steps = []  # (kernel area or None for BatchNormalization, bias?, output width or None, weights per channel)
+    for layer in layers:
+        if type(layer) is keras.layers.Conv2D:
+            steps.append((layer.kernel_size[0] * layer.kernel_size[1], layer.use_bias, layer.filters, 0))
+        elif isinstance(layer, keras.layers.BatchNormalization):
+            steps.append((None, False, None, len(layer.get_weights())))
+    channels_in = int(model.inputs[0].shape[-1])
+
+    def count(kept: Sequence[int]) -> int:
+        if len(kept) != pruned:
+            raise UserError(f"model {model.name} prunes {pruned} Conv2D layers, got {len(kept)} widths")
+        widths, channels, total = iter(kept), channels_in, 0
+        for area, bias, filters, per_channel in steps:
+            if area is None:
+                total += per_channel * channels
+                continue
+            width = next(widths, filters)  # the output layer keeps its filters
+            total += area * channels * width + (width if bias else 0)
+            channels = width
+        return total
+
+    return count
+
+
+def prune_widths(model: keras.Model, rate: Rate, min_filters: int = 0) -> tuple[tuple[int, ...], int]:
+    """How many filters each Conv2D but the last keeps at `rate`, and the floor used (`floored_widths`).
+
+    With ``min_filters`` 0 (the paper's rule) every layer keeps ``n - floor(n * rate)``.
+    """
+    convs = [layer for layer in _chain(model) if type(layer) is keras.layers.Conv2D]
+    return floored_widths([conv.filters for conv in convs[:-1]], rate, min_filters, _param_counter(model))
+
+
 def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
-               importance: Importance | None = None) -> dict[str, np.ndarray]:
+               importance: Importance | None = None, min_filters: int = 0) -> dict[str, np.ndarray]:
     """Which filters every Conv2D keeps at `rate`, without changing the model.
 
     Args:
@@ -244,6 +341,8 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
             after taking the input channels the previous Conv2D lost out of its kernel
             (Li et al. 2017, section 3.2; weight criteria only).
         importance: the criterion scoring each filter (`fcnpose_tf.importance`); default the L1 norm.
+        min_filters: no layer narrower than this (all its filters if it has fewer), the parameter budget
+            of `rate` kept by pruning the other layers harder (`floored_widths`); 0 is the paper's rule.
     Returns:
         Layer name -> sorted kept filter indices, for every Conv2D in order. The output layer (the
         last Conv2D) keeps all its filters.
@@ -258,7 +357,7 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
     if greedy and not hasattr(importance, "filter_scores"):
         raise UserError(f"the greedy strategy ranks kernels without the removed input channels; the "
                         f"{importance.name} criterion does not rank kernels (use --strategy independent)")
-    _exact_rate(rate)
+    counts, _ = prune_widths(model, rate, min_filters)
     layers = _chain(model)
     convs = [layer for layer in layers if type(layer) is keras.layers.Conv2D]
     scores = None if greedy else importance(model)
@@ -268,9 +367,9 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
         if i == len(convs) - 1:
             kept = np.arange(conv.filters, dtype=np.int64)
         elif greedy:
-            kept = kept_by_score(importance.filter_scores(conv.get_weights()[0], kept_in), rate)
+            kept = kept_top(importance.filter_scores(conv.get_weights()[0], kept_in), counts[i])
         else:
-            kept = kept_by_score(scores[conv.name], rate)
+            kept = kept_top(scores[conv.name], counts[i])
         plan[conv.name] = kept
         kept_in = kept
     return plan
@@ -281,7 +380,7 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
 # --------------------------------------------------------------------------------------------
 
 def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent",
-                importance: Importance | None = None) -> keras.Model:
+                importance: Importance | None = None, min_filters: int = 0) -> keras.Model:
     """Remove the least important filters (default: smallest L1 norms) from every Conv2D but the output layer.
 
     Every Conv2D except the last keeps ``n - floor(n * rate)`` filters (the highest scores of
@@ -304,6 +403,8 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
             the two strategies Li et al. 2017 compare.
         importance: the criterion ranking the filters (`fcnpose_tf.importance.make_importance`);
             None is the L1 norm, the paper's.
+        min_filters: the narrowest a layer may become, the parameter budget of `rate` kept
+            (`floored_widths`); 0 (default) is the paper's keep rule.
     Returns:
         A new, uncompiled tf_keras model (Sequential if the input was) with the same layer names.
     Raises:
@@ -315,7 +416,7 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
         >>> conv_widths(small), small.count_params()
         ((39, 20, 10, 5, 3, 3, 5, 10, 20, 9), 14668)
     """
-    plan = prune_plan(model, rate, strategy=strategy, importance=importance)
+    plan = prune_plan(model, rate, strategy=strategy, importance=importance, min_filters=min_filters)
     layers = _chain(model)
     source = model.inputs[0]
     new_layers: list[keras.layers.Layer] = []

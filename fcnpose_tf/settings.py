@@ -418,6 +418,25 @@ COMPRESS_IMPORTANCE = IMPORTANCE.variant(
 scoring (docs/compression.md, "Importance criteria and distillation"). `--importance l1` is the paper's."""
 DEFAULT_COMPRESS_IMPORTANCE = "taylor"
 """What `compress --importance` resolves to for filter surgery with the independent strategy."""
+MIN_FILTERS = Setting(
+    "min_filters", int, 0,
+    "no pruned layer narrower than N filters (all of a layer that has fewer); the other layers are pruned harder so "
+    "the network has no more parameters than at --rate with the paper's per-layer rule; 0 is the paper's rule",
+    label="narrowest layer", check=lambda v: v >= 0, requirement="a whole number >= 0", metavar="N")
+"""The library's (`prune_model`, `CompressOptions`) and the sweep's default: every layer keeps n - floor(n x rate)
+filters, the paper's widths and parameter counts."""
+DEFAULT_COMPRESS_MIN_FILTERS = 12
+"""What `compress --min-filters` resolves to for filter surgery (magnitude pruning keeps every filter). The keep
+rule leaves FCN-Pose's conv5 and conv6 with 3 filters at 0.7, through which every keypoint's position passes; with
+no layer under 12 filters the same parameter budget (14,344 of 14,668) goes to the bottleneck and conv1/conv2 get
+narrower (30 MACs fewer in 100): docs/compression.md, "The narrowest layer"."""
+COMPRESS_MIN_FILTERS = MIN_FILTERS.variant(
+    default=None,
+    help=f"no pruned layer narrower than N filters (all of a layer that has fewer), the other layers pruned harder "
+         f"so the network has no more parameters than the paper's per-layer rule gives at --rate (default: "
+         f"{DEFAULT_COMPRESS_MIN_FILTERS} for filter surgery; 0 is the paper's rule, with which FCN-Pose's conv5 and "
+         f"conv6 keep 3 filters at 0.7; docs/compression.md)")
+"""`compress` moves the parameter budget from the wide high-resolution layers to the hourglass's bottleneck."""
 IMPORTANCE_FRAMES = Setting(
     "importance_frames", int, 256, "with --importance activation or taylor: training frames (seeded choice, never "
     "the measured frames) the unpruned model is run on to score its filters", label="importance frames",

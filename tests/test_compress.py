@@ -29,13 +29,18 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert names <= {p.name for p in out.iterdir()}
     report = json.loads((out / "base_p70_report.json").read_text())
     assert report["base"]["params"] == 131705
-    assert report["retrained"]["params"] == 14668 == report["quantized"]["params"]
-    assert report["retrained"]["widths"] == [39, 20, 10, 5, 3, 3, 5, 10, 20, 9]
+    # the default --min-filters 12: no layer under 12 filters (conv5/conv6 keep all 8) within the keep rule's
+    # 14,668 parameters, instead of the paper's widths (39, 20, 10, 5, 3, 3, 5, 10, 20)
+    assert report["retrained"]["params"] == 14344 == report["quantized"]["params"]
+    assert report["retrained"]["widths"] == [30, 15, 12, 12, 8, 8, 12, 12, 15, 9]
+    assert report["pruning"]["kept_widths"] == [30, 15, 12, 12, 8, 8, 12, 12, 15]
+    assert report["pruning"]["min_filters"] == report["pruning"]["min_filters_used"] == 12
+    assert report["recipe"].startswith("filter surgery at 0.7 (no layer under 12 filters, same parameter budget), ")
     assert report["quantized"]["tflite_size_bytes"] == (out / "base_p70_fp16.tflite").stat().st_size < 45_000
     for step in ("base", "pruned_before_retraining", "retrained", "quantized"):
         assert "pck@0.05_bbox" in report[step]["metrics"]
     assert report["quantized"]["timing"]["threads"] == 1
-    assert "14,668" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
+    assert "14,344" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
     # the table: sizes of each row's own file in KB, PCK always with 3 decimals, FPS labelled end to end
     header = next(line for line in proc.stdout.splitlines() if line.startswith("model "))
     assert "size KB" in header and "FPS e2e" in header
@@ -75,7 +80,8 @@ def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
     out = root / "taylor"
     proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--retrain-epochs", "1",
                "--importance", "taylor", "--importance-frames", "6", "--distill", "0.5", "--quantize", "float16",
-               "--positive-weight", "20", "--lr-schedule", "cosine", "--out-dir", out, "--threads", "1")
+               "--positive-weight", "20", "--lr-schedule", "cosine", "--min-filters", "0", "--out-dir", out,
+               "--threads", "1")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     report = json.loads((out / "base_p50_report.json").read_text())
     assert report["pruning"]["importance"] == "taylor" and report["pruning"]["importance_frames"] == 6
@@ -152,6 +158,9 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     (["--rate", "0.5", "--lr-schedule", "cosine", "--lr-patience", "2"], "--lr-schedule cosine sets every epoch"),
     (["--rate", "0.5", "--method", "magnitude", "--freeze", "1"], "--freeze 1 keeps the first convolutions"),
     (["--rate", "0.5", "--freeze", "10"], "frozen layers must be 0 to 9"),
+    (["--rate", "0.5", "--method", "magnitude", "--min-filters", "8"], "--min-filters 8 sets the widths of filter"),
+    (["--rate", "0.5", "--min-filters", "-1"], "narrowest layer must be a whole number >= 0, got -1"),
+    (["--rate", "0.5", "--min-filters", "wide"], "argument --min-filters: invalid int value: 'wide'"),
 ])
 def test_bad_input_leaves_nothing(setup, cli, extra, message):
     root, data, base = setup

@@ -1,5 +1,6 @@
 """Filter pruning: the keep rule, the L1 ranking, exact surgery, unsupported layers, magnitude pruning."""
 
+import functools
 import gzip
 import io
 import math
@@ -12,8 +13,8 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
-from fcnpose_tf.prune import (filter_l1_norms, keep_count, kept_filters, magnitude_prune, prune_model, prune_plan,
-                              pruned_widths, weight_sparsity)
+from fcnpose_tf.prune import (chain_param_count, filter_l1_norms, floored_widths, keep_count, kept_filters,
+                              magnitude_prune, prune_model, prune_plan, prune_widths, pruned_widths, weight_sparsity)
 
 # tfmot 0.8.1 still imports distutils' LooseVersion
 pytestmark = pytest.mark.filterwarnings("ignore:distutils Version classes are deprecated:DeprecationWarning")
@@ -211,6 +212,82 @@ def test_greedy_matches_reference_on_fcn_pose():
             kernel = kernel[:, :, previous, :]
         assert plan[f"conv{i}"].tolist() == reference_kept(kernel, 0.5)
         previous = plan[f"conv{i}"]
+
+
+# ------------------------------------------------------------------------------------------
+# the narrowest layer (--min-filters): the same parameter budget, moved to the bottleneck
+# ------------------------------------------------------------------------------------------
+
+@functools.lru_cache(maxsize=None)
+def built_params(widths):
+    return build_fcn_pose(widths, input_size=32).count_params()
+
+
+def reference_floored_widths(rate, floor):
+    """An independent reading of the rule on FCN-Pose: try every rate k/128 >= rate (FCN-Pose's widths all divide
+    128, so these are all the rates at which a keep count changes) with integer arithmetic, count parameters by
+    building the network, and lower the floor until one fits the keep rule's budget."""
+    budget = built_params(pruned_widths(DEFAULT_WIDTHS, rate))
+    first = math.ceil(Fraction(str(rate)) * 128)
+    for f in range(floor, 1, -1):
+        for k in range(first, 128):
+            widths = tuple(max(n - (n * k) // 128, min(n, f)) for n in DEFAULT_WIDTHS)
+            if built_params(widths) <= budget:
+                return widths, f
+    return pruned_widths(DEFAULT_WIDTHS, rate), 1
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate", [0.5, 0.7, 0.8, 0.9])
+@pytest.mark.parametrize("floor", [6, 8, 12])
+def test_min_filters_widths_match_an_independent_search(rate, floor):
+    model = build_fcn_pose(input_size=32)
+    widths, used = prune_widths(model, rate, floor)
+    assert (widths, used) == reference_floored_widths(rate, floor)
+    assert all(w >= min(n, used) for n, w in zip(DEFAULT_WIDTHS, widths))
+    assert chain_param_count(model, widths) == built_params(widths) <= built_params(pruned_widths(DEFAULT_WIDTHS, rate))
+
+
+def test_min_filters_known_widths():
+    model = build_fcn_pose(input_size=32)
+    assert prune_widths(model, 0.7, 12) == ((30, 15, 12, 12, 8, 8, 12, 12, 15), 12)  # 14,344 parameters
+    assert prune_widths(model, 0.7, 8) == ((36, 18, 9, 8, 8, 8, 8, 9, 18), 8)
+    assert prune_widths(model, 0.9, 8)[1] == 5  # 2,480 parameters cannot hold five layers of 8: floor lowered
+    for floor in (0, 1, 3):  # a floor the keep rule already meets changes nothing
+        assert prune_widths(model, 0.7, floor) == (pruned_widths(DEFAULT_WIDTHS, 0.7), floor)
+    assert floored_widths((128, 64, 8), 0.7, 4, sum) == ((38, 19, 4), 4)
+
+
+@pytest.mark.parametrize("floor", [-1, 1.5, True, "8"])
+def test_bad_min_filters(floor):
+    with pytest.raises(UserError, match="narrowest layer width"):
+        prune_widths(build_fcn_pose(input_size=32), 0.7, floor)
+
+
+def test_chain_param_count_counts_batchnorm_and_biases():
+    for use_bias in (True, False):
+        model = bn_chain(use_bias=use_bias)
+        for rate, floor in ((0.5, 0), (0.5, 5), (0.7, 0)):
+            plan = prune_plan(model, rate, min_filters=floor)
+            kept = [len(plan[name]) for name in ("conv1", "conv2", "conv3")]
+            assert chain_param_count(model, kept) == prune_model(model, rate, min_filters=floor).count_params()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("strategy", ["independent", "greedy"])
+def test_surgery_with_min_filters_is_exact(strategy):
+    model = randomize(build_fcn_pose(input_size=32), seed=8)
+    pruned = prune_model(model, 0.7, strategy=strategy, min_filters=12)
+    assert conv_widths(pruned) == (30, 15, 12, 12, 8, 8, 12, 12, 15, 9) and pruned.count_params() == 14_344
+    plan = prune_plan(model, 0.7, strategy=strategy, min_filters=12)
+    uniform = prune_plan(model, 0.7, strategy=strategy)
+    # the kept filters are the best-ranked ones: a layer kept wider keeps everything the keep rule kept
+    assert set(uniform["conv4"].tolist()) <= set(plan["conv4"].tolist())
+    reference = zeroed_reference(model, plan)
+    x = frames(32)
+    got, want, original = (np.asarray(m(x, training=False)) for m in (pruned, reference, model))
+    np.testing.assert_allclose(got, want, atol=1e-5, rtol=0)
+    assert np.abs(got - original).max() > 1e-3
 
 
 # ------------------------------------------------------------------------------------------

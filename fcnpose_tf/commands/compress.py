@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.RETRAIN_PATIENCE.add_to(parser, "--patience")
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.METHOD, settings.STRATEGY,
-                    settings.COMPRESS_IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL):
+                    settings.COMPRESS_MIN_FILTERS, settings.COMPRESS_IMPORTANCE, settings.IMPORTANCE_FRAMES,
+                    settings.DISTILL):
         setting.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.AUGMENT.add_to(parser)
@@ -76,6 +77,8 @@ def run(args: argparse.Namespace) -> int:
     if args.importance is None:  # Taylor where it applies; the paper's L1 norm for greedy ranking (kernels only)
         independent_surgery = args.method == "l1" and args.strategy == "independent"
         args.importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
+    if args.min_filters is None:  # filter surgery's widths; magnitude pruning keeps every filter
+        args.min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if args.method == "l1" else 0
     if args.lr_patience is None:  # a cosine schedule sets every epoch's rate itself
         args.lr_patience = 0 if args.lr_schedule == "cosine" else settings.DEFAULT_COMPRESS_LR_PATIENCE
     options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
