@@ -429,7 +429,8 @@ DEFAULT_COMPRESS_MIN_FILTERS = 12
 """What `compress --min-filters` resolves to for filter surgery (magnitude pruning keeps every filter). The keep
 rule leaves FCN-Pose's conv5 and conv6 with 3 filters at 0.7, through which every keypoint's position passes; with
 no layer under 12 filters the same parameter budget (14,344 of 14,668) goes to the bottleneck and conv1/conv2 get
-narrower (30 MACs fewer in 100): docs/compression.md, "The narrowest layer"."""
+narrower (165 M MACs instead of 234 M). At 70 % on the default data: PCK@0.05 0.715 -> 0.850, EPE 11.4 -> 7.2 px,
+PCK@0.5 0.989 -> 1.000 (docs/compression.md, "The narrowest layer")."""
 COMPRESS_MIN_FILTERS = MIN_FILTERS.variant(
     default=None,
     help=f"no pruned layer narrower than N filters (all of a layer that has fewer), the other layers pruned harder "
