@@ -11,7 +11,9 @@ held-out synthetic frames (both sets generated once into a cache). --method magn
 tfmot's unstructured pruning to the same parameter reduction instead, for comparison. --importance
 chooses how filters are ranked: first-order Taylor on 256 training frames by default (measured ahead of
 the paper's L1 norm on fine localisation), --importance l1 for the paper's, l2, or mean activation;
---distill W mixes the unpruned model's maps into the retraining loss.
+--min-filters N keeps every layer at least N filters wide within the parameter budget the paper's
+per-layer rule gives at --rate (default 12: FCN-Pose's bottleneck keeps 8 filters instead of 3 at 0.7;
+--min-filters 0 is the paper's widths); --distill W mixes the unpruned model's maps into the retraining loss.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ EXAMPLES = """\
   fcnpose-tf compress --rate 0.7 --method magnitude    # tfmot unstructured sparsity, for comparison
   fcnpose-tf compress --rate 0.7 --quantize float16    # the paper's file only
   fcnpose-tf compress --rate 0.7 --importance l1       # the paper's L1-norm ranking (default: taylor)
+  fcnpose-tf compress --rate 0.7 --min-filters 0       # the paper's widths (default: no layer under 12)
   fcnpose-tf compress --rate 0.7 --distill 0.5         # retrain half on the unpruned model's maps
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/
 """
