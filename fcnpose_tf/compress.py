@@ -80,11 +80,16 @@ class CompressOptions:
             raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
                             f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
 
-    def recipe(self) -> str:
-        """One line naming how the file was made: criterion, strategy, distillation, loss."""
+    def recipe(self, min_filters_used: int | None = None) -> str:
+        """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
+
+        `min_filters_used` is the floor the surgery could keep (`prune.prune_widths`) when lower than asked."""
         from fcnpose_tf.train import loss_name
 
-        floor = f" (no layer under {self.min_filters} filters, same parameter budget)" if self.min_filters > 1 else ""
+        used = self.min_filters if min_filters_used is None else min_filters_used
+        floor = "" if used <= 1 else (
+            f" (no layer under {used} filters, same parameter budget)" if used == self.min_filters else
+            f" (no layer under {used} filters: --min-filters {self.min_filters} lowered to fit the parameter budget)")
         pruned = (f"magnitude pruning at {self.rate:g}" if self.method == "magnitude" else
                   f"filter surgery at {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy}"
                   + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
@@ -226,13 +231,12 @@ class FilterPruning:
         from fcnpose_tf.prune import prune_model, prune_widths
 
         start = time.perf_counter()
-        widths, floor = prune_widths(base, self.rate, self.min_filters)
+        widths, _ = prune_widths(base, self.rate, self.min_filters)
         pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
                              min_filters=self.min_filters)
         self.criterion_facts = importance.describe()
         return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
-                                    "min_filters": self.min_filters, "min_filters_used": floor,
-                                    "kept_widths": list(widths),
+                                    "min_filters": self.min_filters, "kept_widths": list(widths),
                                     "ranking_seconds": round(time.perf_counter() - start, 1)}}
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
@@ -274,11 +278,13 @@ class MagnitudePruning:
         return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
 
 
-def pruning_method(options: CompressOptions) -> PruningMethod:
-    """The pruning method `options.method` names."""
+def pruning_method(options: CompressOptions, min_filters: int | None = None) -> PruningMethod:
+    """The pruning method `options.method` names; filter surgery keeps no layer under `min_filters` (default
+    options.min_filters; `compress_model` passes the floor that fits the rate's parameter budget)."""
     if options.method == "magnitude":
         return MagnitudePruning(options.rate)
-    return FilterPruning(options.rate, options.strategy, options.importance, options.min_filters)
+    floor = options.min_filters if min_filters is None else min_filters
+    return FilterPruning(options.rate, options.strategy, options.importance, floor)
 
 
 # ------------------------------------------------------------------------------------------
@@ -300,6 +306,7 @@ class _Run:
     force: bool
     verbose: int
     log: Log
+    recipe: str
 
     @property
     def input_size(self) -> int:
@@ -385,7 +392,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
                                                 "train_samples": len(train_data), "val_frames": len(val_data)}}
     metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
                 "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size,
-                "recipe": options.recipe()}
+                "recipe": run.recipe}
     sequence = train_data.sequence(options.batch_size, seed=options.seed)
     if options.distill > 0:
         from fcnpose_tf.distill import with_teacher_maps
@@ -480,7 +487,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps do not match the dataset, or an export that fails verification (nothing written).
     """
     from fcnpose_tf.model import load_model
-    from fcnpose_tf.prune import prune_plan
+    from fcnpose_tf.prune import prune_plan, prune_widths
 
     options.validate()
     start = time.perf_counter()
@@ -492,14 +499,18 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
-    prune_plan(base, options.rate, strategy=options.strategy, min_filters=options.min_filters)  # a bad model fails first
+    prune_plan(base, options.rate, strategy=options.strategy)  # a model that is not a plain chain fails here, first
+    floor = prune_widths(base, options.rate, options.min_filters)[1] if options.method == "l1" else 0
     check_outputs(base_path, out_dir, options, force)
-    run = _Run(base_path, base, pruning_method(options), options, paths, train_dataset, eval_dataset,
-               eval_indices, force, verbose, say)
+    run = _Run(base_path, base, pruning_method(options, floor), options, paths, train_dataset, eval_dataset,
+               eval_indices, force, verbose, say, options.recipe(floor))
     steps = 4 + 2 * len(options.quantize)
     say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size})")
+    if floor < options.min_filters:
+        say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
+            f"no layer under {floor} filters")
     report: dict[str, Any] = {
-        "base_model": str(base_path), "method": options.method, "recipe": options.recipe(), "options": asdict(options),
+        "base_model": str(base_path), "method": options.method, "recipe": run.recipe, "options": asdict(options),
         "evaluation_frames": eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
         "pck_normalisation": "max(w, h) of the ground-truth keypoints' bounding box",
         "threads": options.threads,

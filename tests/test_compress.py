@@ -34,7 +34,7 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert report["retrained"]["params"] == 14344 == report["quantized"]["params"]
     assert report["retrained"]["widths"] == [30, 15, 12, 12, 8, 8, 12, 12, 15, 9]
     assert report["pruning"]["kept_widths"] == [30, 15, 12, 12, 8, 8, 12, 12, 15]
-    assert report["pruning"]["min_filters"] == report["pruning"]["min_filters_used"] == 12
+    assert report["pruning"]["min_filters"] == report["options"]["min_filters"] == 12
     assert report["recipe"].startswith("filter surgery at 0.7 (no layer under 12 filters, same parameter budget), ")
     assert report["quantized"]["tflite_size_bytes"] == (out / "base_p70_fp16.tflite").stat().st_size < 45_000
     for step in ("base", "pruned_before_retraining", "retrained", "quantized"):
@@ -119,6 +119,31 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli):
     assert all(layer.trainable for layer in after.layers)  # the file fine-tunes like any other
     report = json.loads(next(out.glob("*_report.json")).read_text())
     assert report["options"]["freeze"] == 2 and report["recipe"].endswith(", conv1-2 fixed")
+
+
+def test_recipe_names_the_floor_and_a_lowered_one():
+    from fcnpose_tf.compress import CompressOptions
+
+    options = CompressOptions(rate=0.9, min_filters=12, importance="taylor", retrain_epochs=0)
+    assert options.recipe().startswith("filter surgery at 0.9 (no layer under 12 filters, same parameter budget), ")
+    assert options.recipe(5).startswith("filter surgery at 0.9 (no layer under 5 filters: --min-filters 12 lowered "
+                                        "to fit the parameter budget), filters ranked by taylor")
+    assert CompressOptions(rate=0.7).recipe(0).startswith("filter surgery at 0.7, filters ranked by l1")
+
+
+@pytest.mark.slow
+def test_a_floor_that_does_not_fit_is_lowered_and_said(setup, cli):
+    """At 0.9 FCN-Pose has 2,480 parameters: five layers of 12 do not fit, so compress keeps no layer under 5."""
+    root, data, base = setup
+    out = root / "floor"
+    proc = cli("compress", "--rate", "0.9", "--model", base, "--data", data, "--retrain-epochs", "0",
+               "--importance", "l1", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "--min-filters 12 does not fit the parameter budget of rate 0.9: no layer under 5 filters" in proc.stdout
+    report = json.loads((out / "base_p90_report.json").read_text())
+    assert report["retrained"]["widths"] == [6, 5, 5, 5, 5, 5, 5, 5, 5, 9] and report["retrained"]["params"] <= 2480
+    assert report["pruning"]["min_filters"] == 5 and report["options"]["min_filters"] == 12
+    assert "(no layer under 5 filters: --min-filters 12 lowered to fit the parameter budget)" in report["recipe"]
 
 
 @pytest.mark.slow
