@@ -228,15 +228,14 @@ class FilterPruning:
         return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
 
     def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.prune import prune_model, prune_widths
+        from fcnpose_tf.prune import prune_model
 
         start = time.perf_counter()
-        widths, _ = prune_widths(base, self.rate, self.min_filters)
         pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
                              min_filters=self.min_filters)
         self.criterion_facts = importance.describe()
         return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
-                                    "min_filters": self.min_filters, "kept_widths": list(widths),
+                                    "min_filters": self.min_filters,
                                     "ranking_seconds": round(time.perf_counter() - start, 1)}}
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:

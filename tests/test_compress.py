@@ -33,7 +33,7 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     # 14,668 parameters, instead of the paper's widths (39, 20, 10, 5, 3, 3, 5, 10, 20)
     assert report["retrained"]["params"] == 14344 == report["quantized"]["params"]
     assert report["retrained"]["widths"] == [30, 15, 12, 12, 8, 8, 12, 12, 15, 9]
-    assert report["pruning"]["kept_widths"] == [30, 15, 12, 12, 8, 8, 12, 12, 15]
+    assert report["pruned_before_retraining"]["widths"] == report["retrained"]["widths"]
     assert report["pruning"]["min_filters"] == report["options"]["min_filters"] == 12
     assert report["recipe"].startswith("filter surgery at 0.7 (no layer under 12 filters, same parameter budget), ")
     assert report["quantized"]["tflite_size_bytes"] == (out / "base_p70_fp16.tflite").stat().st_size < 45_000
