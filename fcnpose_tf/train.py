@@ -41,7 +41,7 @@ class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
     validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant), lr_schedule ("cosine": the rate
-    of each epoch is `cosine_rate` instead, lr_patience 0), max_minutes (no new epoch
+    of each epoch is `cosine_rate` of the budget spent, epochs or time, instead; lr_patience 0), max_minutes (no new epoch
     starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
     their weights) and distill (weight of a teacher's maps in the loss; the training batches must
     carry them, `fcnpose_tf.distill`). Defaults, checks and meanings:
@@ -56,11 +56,18 @@ class FitConfig:
 MIN_LEARNING_RATE = 1e-5
 
 
-def cosine_rate(epoch: int, epochs: int, learning_rate: float) -> float:
-    """The learning rate of epoch `epoch` (0-based) of `epochs` on a half cosine from `learning_rate` (epoch 0)
-    towards MIN_LEARNING_RATE (reached after the last epoch): lr_min + (lr - lr_min)(1 + cos(pi e / E)) / 2."""
+def cosine_rate(progress: float, learning_rate: float) -> float:
+    """The learning rate once `progress` (0 at the start, 1 at the end) of the run's budget is spent, on a half
+    cosine from `learning_rate` towards MIN_LEARNING_RATE: lr_min + (lr - lr_min)(1 + cos(pi p)) / 2."""
     low = min(MIN_LEARNING_RATE, learning_rate)
-    return low + (learning_rate - low) * 0.5 * (1.0 + math.cos(math.pi * epoch / max(epochs, 1)))
+    return low + (learning_rate - low) * 0.5 * (1.0 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
+
+
+def budget_progress(epoch: int, epochs: int, seconds: float, max_seconds: float | None) -> float:
+    """The share of a run's budget spent when epoch `epoch` (0-based) of `epochs` begins after `seconds` of
+    training: the larger of the epoch and the time shares, so a cosine ends with whichever budget ends first."""
+    spent = epoch / max(epochs, 1)
+    return max(spent, seconds / max_seconds) if max_seconds else spent
 
 
 @dataclass
@@ -264,20 +271,24 @@ class _CheckpointAndStop(keras.callbacks.Callback):
     """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early."""
 
     def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0,
-                 max_minutes: float | None = None, rate_of_epoch: Callable[[int], float] | None = None):
+                 max_minutes: float | None = None, rate_of_progress: Callable[[float], float] | None = None,
+                 epochs: int = 1):
         super().__init__()
         self.paths = paths
         self.state = state
         self.patience = patience
         self.lr_patience = lr_patience
-        self.rate_of_epoch = rate_of_epoch
+        self.rate_of_progress = rate_of_progress
+        self.epochs = epochs
         self.max_seconds = None if max_minutes is None else 60.0 * max_minutes
         self.seconds_before = float(state["seconds"])
         self.start = time.perf_counter()
 
     def on_epoch_begin(self, epoch: int, logs: dict | None = None) -> None:
-        if self.rate_of_epoch is not None:
-            keras.backend.set_value(self.model.optimizer.learning_rate, self.rate_of_epoch(epoch))
+        if self.rate_of_progress is not None:
+            seconds = self.seconds_before + time.perf_counter() - self.start
+            progress = budget_progress(epoch, self.epochs, seconds, self.max_seconds)
+            keras.backend.set_value(self.model.optimizer.learning_rate, self.rate_of_progress(progress))
 
     def on_epoch_end(self, epoch: int, logs: dict | None = None) -> None:
         logs = logs or {}
@@ -387,8 +398,9 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
 
     schedule = None
     if config.lr_schedule == "cosine":
-        schedule = functools.partial(cosine_rate, epochs=config.epochs, learning_rate=config.learning_rate)
-    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes, schedule)
+        schedule = functools.partial(cosine_rate, learning_rate=config.learning_rate)
+    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes, schedule,
+                                  epochs=config.epochs)
     if state["epoch"] < config.epochs and not state["stopped_early"]:
         if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have drawn
             train_data.epoch = state["epoch"]

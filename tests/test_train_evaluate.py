@@ -197,8 +197,9 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
     assert not (tmp_path / "bad.keras").exists()
 
 
-def _run_epoch_callback(tmp_path, learning_rate, val_losses, **schedule):
-    """`fit`'s per-epoch callback on a one-layer model fed these validation losses; its state afterwards."""
+def _run_epoch_callback(tmp_path, learning_rate, val_losses, seconds=0.0, **schedule):
+    """`fit`'s per-epoch callback on a one-layer model fed these validation losses, `seconds` of training already
+    behind it; its state afterwards."""
     import tf_keras as keras
 
     from fcnpose_tf.train import _CheckpointAndStop, compile_for_training, run_paths
@@ -208,7 +209,7 @@ def _run_epoch_callback(tmp_path, learning_rate, val_losses, **schedule):
     paths = run_paths(tmp_path / "m.keras")
     paths["ckpt_dir"].mkdir()
     state = {"epoch": 0, "best_val_loss": float("inf"), "best_epoch": 0, "wait": 0, "stopped_early": False,
-             "history": [], "seconds": 0.0}
+             "history": [], "seconds": seconds}
     callback = _CheckpointAndStop(paths, state, patience=10, **schedule)
     callback.set_model(model)
     for epoch, val_loss in enumerate(val_losses):
@@ -228,22 +229,42 @@ def test_learning_rate_halves_after_lr_patience_epochs_without_improvement(tmp_p
 
 def test_cosine_schedule_sets_every_epochs_rate_and_refuses_plateau_halving_too(tmp_path):
     """--lr-schedule cosine: epoch e of E trains at 1e-5 + (lr - 1e-5)(1 + cos(pi e / E)) / 2 whatever the
-    validation loss does; combined with --lr-patience it is refused before any work."""
+    validation loss does (no time budget); combined with --lr-patience it is refused before any work."""
     import math
 
     from fcnpose_tf.train import FitConfig, cosine_rate
 
     expected = [1e-5 + (2e-3 - 1e-5) * (1 + math.cos(math.pi * e / 4)) / 2 for e in range(4)]
-    assert [cosine_rate(e, 4, 2e-3) for e in range(4)] == pytest.approx(expected, rel=1e-12)
+    assert [cosine_rate(e / 4, 2e-3) for e in range(4)] == pytest.approx(expected, rel=1e-12)
     assert expected[0] == pytest.approx(2e-3) and expected[2] == pytest.approx((2e-3 + 1e-5) / 2)
     state = _run_epoch_callback(tmp_path, 2e-3, [1.0, 1.5, 2.0, 0.5],  # stale epochs change nothing
-                                rate_of_epoch=lambda e: cosine_rate(e, epochs=4, learning_rate=2e-3))
+                                rate_of_progress=lambda p: cosine_rate(p, learning_rate=2e-3), epochs=4)
     assert [row["lr"] for row in state["history"]] == pytest.approx(expected, rel=1e-6)  # float32 variable
     FitConfig(lr_schedule="cosine").validate()
     with pytest.raises(UserError, match="--lr-schedule cosine sets every epoch's learning rate itself"):
         FitConfig(lr_schedule="cosine", lr_patience=4).validate()
     with pytest.raises(UserError, match="learning-rate schedule must be one of plateau, cosine"):
         FitConfig(lr_schedule="step").validate()
+
+
+def test_cosine_follows_whichever_budget_ends_first(tmp_path):
+    """With a time budget the cosine's progress is the larger of the epochs' and the minutes' share: `train`'s
+    500-epoch, 30-minute budget ends by time, so the rate reaches its floor with the minutes."""
+    import math
+
+    from fcnpose_tf.train import budget_progress, cosine_rate
+
+    assert budget_progress(2, 4, seconds=10.0, max_seconds=None) == 0.5
+    assert budget_progress(2, 500, seconds=1350.0, max_seconds=1800.0) == 0.75  # time ends first
+    assert budget_progress(3, 4, seconds=60.0, max_seconds=1800.0) == 0.75      # epochs end first
+    assert cosine_rate(1.0, 1e-3) == pytest.approx(1e-5) and cosine_rate(1.7, 1e-3) == pytest.approx(1e-5)
+    assert cosine_rate(-0.1, 1e-3) == pytest.approx(1e-3)
+    # 45 of 60 seconds spent when the first epoch of 500 begins: the rate of progress 0.75
+    state = _run_epoch_callback(tmp_path, 1e-3, [1.0], seconds=45.0, max_minutes=1.0, epochs=500,
+                                rate_of_progress=lambda p: cosine_rate(p, learning_rate=1e-3))
+    expected = 1e-5 + (1e-3 - 1e-5) * (1 + math.cos(math.pi * 0.75)) / 2
+    later = 1e-5 + (1e-3 - 1e-5) * (1 + math.cos(math.pi * (45.0 + 5.0) / 60.0)) / 2  # the test's own seconds add
+    assert later * (1 - 1e-6) <= state["history"][0]["lr"] <= expected * (1 + 1e-6)
 
 
 def test_loss_label_names_the_weighting():
