@@ -303,6 +303,14 @@ COMPRESS_LR_PATIENCE = LR_PATIENCE.variant(
                        "cosine); 0 keeps it constant, as the paper does")
 
 
+def resolved_lr_patience(lr_patience: int | None, lr_schedule: str, plateau_default: int) -> int:
+    """An --lr-patience left unset: 0 on the cosine schedule (it sets every epoch's rate itself), else the
+    command's default for the plateau schedule."""
+    if lr_patience is not None:
+        return lr_patience
+    return 0 if lr_schedule == "cosine" else plateau_default
+
+
 def check_lr_schedule(lr_schedule: str, lr_patience: int) -> None:
     """UserError if a cosine schedule is also asked to halve the rate on plateaus (both would set it)."""
     if lr_schedule == "cosine" and lr_patience:
@@ -310,11 +318,13 @@ def check_lr_schedule(lr_schedule: str, lr_patience: int) -> None:
                         f"--lr-patience {lr_patience} would halve it too (use --lr-patience 0)")
 
 
+DEFAULT_TRAIN_LR_PATIENCE = 4
+"""What `train --lr-patience` resolves to on the plateau schedule: a few hundred frames overfit quickly at a
+constant rate; halving after 4 stale epochs is the bundled baseline's recipe."""
 TRAIN_LR_PATIENCE = LR_PATIENCE.variant(
-    default=4, help="halve the learning rate after N epochs without a better validation loss (again after N "
-                    "more; floor 1e-5); default 4; 0 keeps it constant, as the paper does")
-"""A few hundred frames overfit quickly at a constant rate; halving after 4 stale epochs is the bundled
-baseline's recipe."""
+    default=None, help="halve the learning rate after N epochs without a better validation loss (again after N "
+                       f"more; floor 1e-5); default {DEFAULT_TRAIN_LR_PATIENCE} (0 with --lr-schedule cosine); 0 keeps "
+                       "it constant, as the paper does")
 POSITIVE_WEIGHT = Setting(
     "positive_weight", float, 1.0,
     "weight of keypoint-disc pixels in the binary cross-entropy (1 = the paper's plain BCE; 20 converges several "

@@ -139,12 +139,15 @@ def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli):
     assert record["augment"] == "paper" and record["augment_copies"] == 1
     assert record["config"]["freeze"] == 0  # from scratch every layer trains
     assert record["config"]["positive_weight"] == 20.0  # random weights need the large keypoint weight
+    assert (record["config"]["lr_schedule"], record["config"]["lr_patience"]) == ("plateau", 4)
     proc = cli("train", "--data", data, "--out", tmp_path / "m.keras", "--epochs", "1", "--input-size", "64",
-               "--init", "none", "--augment", "online", "--quiet")
+               "--init", "none", "--augment", "online", "--lr-schedule", "cosine", "--quiet")
     assert proc.returncode == 0, proc.stderr
     assert "15 freshly augmented samples an epoch from 5 frames" in proc.stdout
     record = json.loads((tmp_path / "m_train.json").read_text())
     assert record["augment"] == "online" and record["augment_copies"] is None
+    # the cosine sets every epoch's rate itself: an unset --lr-patience resolves to 0 instead of being refused
+    assert (record["config"]["lr_schedule"], record["config"]["lr_patience"]) == ("cosine", 0)
     proc = cli("train", "--data", data, "--out", tmp_path / "q.keras", "--augment", "fancy")
     assert proc.returncode == 2 and "invalid choice: 'fancy'" in proc.stderr
 

@@ -35,7 +35,7 @@ def test_a_default_changed_in_settings_reaches_every_command_and_config(monkeypa
     train, compress, sweep = _parsed(*TRAIN), _parsed("compress", "--rate", "0.5"), _parsed("sweep")
     for args in (train, compress, sweep):
         assert args.batch_size == 3
-    assert sweep.lr_patience == 7 and train.lr_patience == settings.TRAIN_LR_PATIENCE.default
+    assert sweep.lr_patience == 7 and train.lr_patience is None  # resolved per run (DEFAULT_TRAIN_LR_PATIENCE)
     assert compress.lr_patience is None  # resolved per run (COMPRESS_LR_PATIENCE, below)
     assert compress.retrain_epochs == sweep.retrain_epochs == 11  # the sweep's per-rate form shares the default
     for command in ("train", "compress", "sweep"):
@@ -72,7 +72,7 @@ def test_commands_that_differ_use_their_own_variant():
     assert compress.lr_patience is None and settings.DEFAULT_COMPRESS_LR_PATIENCE == 3
     assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, 1e-3, 1e-3)
     assert CompressOptions(rate=0.5).learning_rate == 1e-3 and CompressOptions(rate=0.5).lr_patience == 0
-    assert (train.lr_patience, sweep.lr_patience) == (4, 0) and (train.max_minutes, sweep.__dict__.get("max_minutes")) == (30.0, None)
+    assert (train.lr_patience, settings.DEFAULT_TRAIN_LR_PATIENCE, sweep.lr_patience) == (None, 4, 0) and (train.max_minutes, sweep.__dict__.get("max_minutes")) == (30.0, None)
     assert (train.augment, compress.augment) == ("auto", "paper")  # train picks per dataset (data.views)
     # compress resolves its criterion per run (taylor for independent filter surgery); the sweep keeps the paper's
     assert compress.importance is None and sweep.importance == settings.IMPORTANCE.default == "l1"

@@ -82,8 +82,8 @@ def run(args: argparse.Namespace) -> int:
         args.importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
     if args.min_filters is None:  # filter surgery's widths; magnitude pruning keeps every filter
         args.min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if args.method == "l1" else 0
-    if args.lr_patience is None:  # a cosine schedule sets every epoch's rate itself
-        args.lr_patience = 0 if args.lr_schedule == "cosine" else settings.DEFAULT_COMPRESS_LR_PATIENCE
+    args.lr_patience = settings.resolved_lr_patience(args.lr_patience, args.lr_schedule,
+                                                     settings.DEFAULT_COMPRESS_LR_PATIENCE)
     options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
     options.validate()
     if not Path(model_path).is_file():

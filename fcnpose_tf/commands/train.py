@@ -95,6 +95,8 @@ def run(args: argparse.Namespace) -> int:
     init = initial_weights(args.init)
     if args.freeze is None:
         args.freeze = settings.DEFAULT_FINE_TUNE_FREEZE if init else 0
+    args.lr_patience = settings.resolved_lr_patience(args.lr_patience, args.lr_schedule,
+                                                     settings.DEFAULT_TRAIN_LR_PATIENCE)
     given = settings.values_from_args(args, FitConfig)
     if given["positive_weight"] is None:  # resolved with the augmentation (below); every other setting checked now
         given["positive_weight"] = settings.DEFAULT_FROM_SCRATCH_POSITIVE_WEIGHT
