@@ -395,37 +395,46 @@ def test_lr_patience_is_a_result_setting_and_folders_older_than_it_still_match(t
         run_sweep(_config(old, frames, lr_patience=2), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
 
 
-def test_importance_and_distillation_reach_rate_jobs_and_older_folders_still_match(tmp_path, frames):
+def test_importance_distillation_and_floor_reach_rate_jobs_and_older_folders_still_match(tmp_path, frames):
     out = tmp_path / "res"
-    config = _config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32, distill=0.5)
+    config = _config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32, distill=0.5,
+                     min_filters=12)
     options = config.compress_options(Job(0, 0.7))
     assert (options.importance, options.importance_frames, options.distill) == ("taylor", 32, 0.5)
+    assert options.min_filters == 12 and "no layer under 12 filters" in options.recipe()
     assert config.compress_options(Job(0, 0.0)).distill == 0.0  # the unpruned export is not retrained
     run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
     keys = {p.stem: json.loads(p.read_text())["config_key"] for p in (out / "jobs").glob("*.json")}
-    assert (keys["fold0_p70"]["importance"], keys["fold0_p70"]["distill"]) == ("taylor", 0.5)
+    assert (keys["fold0_p70"]["importance"], keys["fold0_p70"]["distill"], keys["fold0_p70"]["min_filters"]) == \
+        ("taylor", 0.5, 12)
     assert "importance" not in keys["fold0_base"] and "distill" not in keys["fold1_p00"]  # they do not retrain
+    assert "min_filters" not in keys["fold0_base"]
     summary = (out / "summary.md").read_text()
     assert "ranked by first-order Taylor on 32 training frames" in summary and "teacher weight 0.5" in summary
+    assert "filter pruning with no layer under 12 filters" in summary
     with pytest.raises(UserError, match=r"other settings \(distill 0.5 -> 0.0\)"):
-        run_sweep(_config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32), LocalExecutor(),
-                  job_fn=fake_job, log=lambda s: None)
+        run_sweep(_config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32, min_filters=12),
+                  LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    with pytest.raises(UserError, match=r"other settings \(min_filters 12 -> 8\)"):
+        run_sweep(_config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32, distill=0.5,
+                          min_filters=8), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
 
     # A folder written before criteria and distillation existed: the paper's L1 norm and no teacher
     old = tmp_path / "old"
     run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
     sweep = json.loads((old / "sweep.json").read_text())
-    for name in ("importance", "importance_frames", "distill"):
+    for name in ("importance", "importance_frames", "distill", "min_filters"):
         del sweep["config"][name]
     write_json(old / "sweep.json", sweep, force=True)
     for path in (old / "jobs").glob("*.json"):
         record = json.loads(path.read_text())
-        for name in ("importance", "importance_frames", "distill"):
+        for name in ("importance", "importance_frames", "distill", "min_filters"):
             record["config_key"].pop(name, None)
         write_json(path, record, force=True)
     again = run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
     assert again.done == [] and len(again.skipped) == 6
-    assert "ranked by L1 norm (output layer untouched)" in (old / "summary.md").read_text()
+    assert "keeping n - floor(n·rate) filters per layer ranked by L1 norm (output layer untouched)" in \
+        (old / "summary.md").read_text()
 
 
 def _fake_measure(factor: float, spoil: str | None = None):

@@ -49,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.RETRAIN_EPOCHS_BY_RATE.add_to(train)
     for setting in (settings.RETRAIN_PATIENCE, settings.INPUT_SIZE, settings.BATCH_SIZE, settings.LEARNING_RATE,
                     settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.AUGMENT_COPIES, settings.SEED,
-                    settings.IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL):
+                    settings.IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.MIN_FILTERS):
         setting.add_to(train)
     run = parser.add_argument_group("execution")
     run.add_argument("--executor", choices=("local", "ray"), default="local",

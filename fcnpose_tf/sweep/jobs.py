@@ -42,14 +42,14 @@ MODELS_DIR = "models"
 
 KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "patience", "retrain_epochs",
               "retrain_patience", "batch_size", "learning_rate", "lr_patience", "positive_weight", "augment_copies",
-              "seed", "threads", "importance", "importance_frames", "distill")
+              "seed", "threads", "importance", "importance_frames", "distill", "min_filters")
 """Settings that change a job's results: a results folder holds jobs of one value of each."""
 
 KEY_DEFAULTS = {"lr_patience": 0, "importance": "l1", "importance_frames": settings.IMPORTANCE_FRAMES.default,
-                "distill": 0.0}
+                "distill": 0.0, "min_filters": 0}
 """Key fields added after results folders existed, with the value older folders were made with."""
 
-RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience", "importance", "importance_frames", "distill")
+RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience", "importance", "importance_frames", "distill", "min_filters")
 """Key fields that only matter to jobs that retrain (a rate above 0): a base job or the unpruned export
 keeps its record when they change."""
 
@@ -132,6 +132,8 @@ class SweepConfig:
     importance_frames: int = settings.IMPORTANCE_FRAMES.field()
     distill: float = settings.DISTILL.field()
     """Weight of the fold's base model's maps in a rate job's retraining loss (0: the paper's)."""
+    min_filters: int = settings.MIN_FILTERS.field()
+    """No pruned layer under this many filters, within the keep rule's parameter budget (0: the paper's widths)."""
     threads: int = 1
     """Resolved by the command (`commands.sweep.resolve_threads`): never None here."""
     verbose: int = 1
@@ -170,7 +172,7 @@ class SweepConfig:
                                learning_rate=self.learning_rate, augment_copies=self.augment_copies, seed=self.seed,
                                fold=job.fold, threads=self.threads, positive_weight=self.positive_weight,
                                lr_patience=self.lr_patience, importance=self.importance,
-                               importance_frames=self.importance_frames,
+                               importance_frames=self.importance_frames, min_filters=self.min_filters,
                                distill=0.0 if job.rate == 0 else self.distill)
 
     def to_dict(self) -> dict[str, Any]:

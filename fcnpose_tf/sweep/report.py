@@ -580,6 +580,16 @@ def _importance(cfg: dict[str, Any]) -> str:
     return f"{words.get(name, name)}{frames}"
 
 
+def _widths(cfg: dict[str, Any]) -> str:
+    """How the sweep's rates set each layer's width, in words (folders from before --min-filters: the keep rule)."""
+    rule = "n - floor(n·rate) filters per layer"
+    floor = cfg.get("min_filters") or 0
+    if floor <= 1:
+        return f"keeping {rule}"
+    return (f"with no layer under {floor} filters (lowered where that does not fit), the others narrower, within the "
+            f"parameters of {rule}")
+
+
 def _epochs(n: int) -> str:
     return f"{n} epoch" + ("" if n == 1 else "s")
 
@@ -606,8 +616,8 @@ def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: d
            f"binary cross-entropy with keypoint pixels weighted {cfg['positive_weight']:g}")
         + (f", retraining distilled from the base model's maps (teacher weight {cfg['distill']:g})"
            if cfg.get("distill") else "") + f", seed {cfg['seed']}",
-        f"- **Rates**: {', '.join(rate_label(r) for r in cfg['rates'])}; filter pruning keeping n - floor(n·rate) "
-        f"filters per layer ranked by {_importance(cfg)} (output layer untouched), float16 TFLite",
+        f"- **Rates**: {', '.join(rate_label(r) for r in cfg['rates'])}; filter pruning {_widths(cfg)} ranked by "
+        f"{_importance(cfg)} (output layer untouched), float16 TFLite",
         f"- **Machine**: {machine.get('cpu_model')}, {machine.get('cpu_cores')} cores; timing on {cfg['threads']} "
         f"thread(s) per job" + (f"; jobs ran on {len(_hosts(results.records))} hosts"
                                 if len(_hosts(results.records)) > 1 else ""),
