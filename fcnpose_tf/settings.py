@@ -290,7 +290,8 @@ LR_SCHEDULE = Setting(
     "lr_schedule", str, "plateau",
     "plateau: the rate stays at --learning-rate, halved after --lr-patience epochs without a better validation "
     "loss (0: never, the paper's); cosine: from --learning-rate down to 1e-5 along a half cosine over the budget, "
-    "epochs or --max-minutes, whichever ends first (needs --lr-patience 0)", label="learning-rate schedule", choices=("plateau", "cosine"))
+    "epochs or --max-minutes, whichever ends first (needs --lr-patience 0)", label="learning-rate schedule",
+    choices=("plateau", "cosine"))
 """An epoch budget with a rate that ends small: retraining a pruned model at a constant rate was still
 improving (and its validation loss jumping) at its last epoch (docs/compression.md, "Retraining budget")."""
 

@@ -41,8 +41,8 @@ class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
     validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant), lr_schedule ("cosine": the rate
-    of each epoch is `cosine_rate` of the budget spent, epochs or time, instead; lr_patience 0), max_minutes (no new epoch
-    starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
+    of each epoch is `cosine_rate` of the budget spent, epochs or time, instead; lr_patience 0), max_minutes
+    (no new epoch starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
     their weights) and distill (weight of a teacher's maps in the loss; the training batches must
     carry them, `fcnpose_tf.distill`). Defaults, checks and meanings:
     `fcnpose_tf.settings`."""

@@ -45,8 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
     for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                    settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES, settings.TRAIN_POSITIVE_WEIGHT,
-                    settings.TRAIN_FREEZE, settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
+                    settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
+                    settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
                     settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
