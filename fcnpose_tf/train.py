@@ -284,10 +284,13 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         self.seconds_before = float(state["seconds"])
         self.start = time.perf_counter()
 
+    def trained_seconds(self) -> float:
+        """Seconds of training in this run, those before a resume included."""
+        return self.seconds_before + time.perf_counter() - self.start
+
     def on_epoch_begin(self, epoch: int, logs: dict | None = None) -> None:
         if self.rate_of_progress is not None:
-            seconds = self.seconds_before + time.perf_counter() - self.start
-            progress = budget_progress(epoch, self.epochs, seconds, self.max_seconds)
+            progress = budget_progress(epoch, self.epochs, self.trained_seconds(), self.max_seconds)
             keras.backend.set_value(self.model.optimizer.learning_rate, self.rate_of_progress(progress))
 
     def on_epoch_end(self, epoch: int, logs: dict | None = None) -> None:
@@ -304,7 +307,7 @@ class _CheckpointAndStop(keras.callbacks.Callback):
             if self.lr_patience and self.state["wait"] % self.lr_patience == 0 and lr > MIN_LEARNING_RATE:
                 keras.backend.set_value(lr_var, max(lr * 0.5, MIN_LEARNING_RATE))  # saved with the optimizer
         self.state["epoch"] = epoch + 1
-        self.state["seconds"] = self.seconds_before + time.perf_counter() - self.start
+        self.state["seconds"] = self.trained_seconds()
         self.state["out_of_time"] = self.max_seconds is not None and self.state["seconds"] >= self.max_seconds
         files = [self.paths["ckpt_best"]] if improved else []
         files += [self.paths["ckpt_model"], self.paths["ckpt_state"]]  # the state renamed last: the epoch is complete
