@@ -58,6 +58,7 @@ def test_train_writes_model_curves_and_record(trained):
     record = json.loads((stem.parent / f"{stem.name}_train.json").read_text())
     assert record["epochs_run"] == 2 and record["train_samples"] == 16 and record["val_frames"] == 2
     assert "pck@0.5_bbox" in record["validation"]["metrics"]
+    assert record["init"] == "generalist"  # the default start, by its name: its path is this machine's
     assert "16 samples (8 frames + 1 augmented copies each)" in stdout
     assert "PCK normalised by max(bbox w, h)" in stdout
 

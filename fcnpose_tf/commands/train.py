@@ -120,7 +120,8 @@ def run(args: argparse.Namespace) -> int:
         for fold in folds:  # fail before any training, not after the first fold
             check_outputs(fold_model_path(args.out, fold), args.force)
     via_path, images_dir = resolve_data(args.data, args.images)
-    metadata: dict = {"init": str(init) if init else None}
+    # a bundled start is recorded by its name (its path is this machine's), a user's model by the path given
+    metadata: dict = {"init": args.init if args.init in BUNDLED_INITS else (str(init) if init else None)}
     if args.augment == "auto":  # resolved before the checkpoint check: a checkpoint records what ran
         args.augment, metadata["augment_auto"] = _choose_augment(via_path, images_dir, args)
     if args.positive_weight is None:
