@@ -346,7 +346,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         metadata: dict[str, Any] | None = None, verbose: int = 1,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
-        identity: dict[str, Any] | None = None, resumable: bool = True) -> FitResult:
+        identity: dict[str, Any] | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -366,6 +366,9 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         identity: what a resumed checkpoint must match (`run_identity`); stored in the checkpoint.
         resumable: whether the caller can resume (`train --resume`); if not (`compress`), a run that
             fails or is interrupted removes its checkpoint instead of pointing at --resume.
+        start_is_candidate: `model` holds trained weights: its validation loss before the first epoch is the one
+            to beat (epoch 0), and if no epoch beats it the saved model is the start, unchanged. Fine-tuning a
+            model that already fits the frames' kind can only drift from it on a few hundred frames.
     Returns:
         FitResult with the epochs run, the best epoch and its validation loss.
     Raises:
@@ -398,6 +401,10 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                  "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
         freeze_first_convolutions(model, config.freeze)
         compile_for_training(model, config.learning_rate, config.positive_weight, config.distill)
+        if start_is_candidate:
+            state["start_val_loss"] = state["best_val_loss"] = _validation_loss(model, val_data, config.batch_size)
+            with parts_of(paths["ckpt_dir"]), atomic_path(paths["ckpt_best"], force=True) as tmp:
+                _save_weights(model, tmp)
 
     schedule = None
     if config.lr_schedule == "cosine":
@@ -427,9 +434,10 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         with atomic_path(model_path, force=True) as tmp:
             save_for_inference(inference_model(model) if inference_model else model, tmp)
         write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight,
-                          config.distill)
+                          config.distill, start_val_loss=state.get("start_val_loss"))
         write_json(paths["train_json"], {
             **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
+            "start_val_loss": state.get("start_val_loss"),
             "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
             "stopped_early": state["stopped_early"], "stopped_by_time_budget": bool(state.get("out_of_time")),
             "train_seconds": round(state["seconds"], 1),
@@ -439,6 +447,11 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     remove_tree(paths["ckpt_dir"])
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
                      state["stopped_early"], state["history"])
+
+
+def _validation_loss(model: keras.Model, val_data: tuple[np.ndarray, ...], batch_size: int) -> float:
+    """The compiled model's loss on the validation frames, as `fit` measures it after each epoch."""
+    return float(model.evaluate(*val_data, batch_size=batch_size, verbose=0))
 
 
 def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> WriteError:
@@ -487,7 +500,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
-    build FCN-Pose (or start from `init`'s weights), `fit` it on the fold's training frames with
+    build FCN-Pose (or start from `init`'s weights, which are then the model to beat: epoch 0), `fit` it on the
+    fold's training frames with
     `augment_copies` copies each, then evaluate the best model (Keras, `threads` threads) on the
     fold's validation frames and add that as "validation" to NAME_train.json.
 
@@ -540,9 +554,10 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
              "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
-                 verbose=verbose, identity=identity)
+                 verbose=verbose, identity=identity, start_is_candidate=init is not None)
     log(f"{label}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
-        f"{result.epochs_run}{' (early stop)' if result.stopped_early else ''}"
+        f"{result.epochs_run}{' (the starting model: no epoch improved on it)' if result.best_epoch == 0 else ''}"
+        f"{' (early stop)' if result.stopped_early else ''}"
         f"{' (time budget reached)' if config.max_minutes and result.seconds >= 60 * config.max_minutes else ''}; "
         f"{result.seconds / 60:.1f} min")
 
@@ -566,8 +581,9 @@ def loss_name(positive_weight: float, distill: float = 0.0) -> str:
 
 
 def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path,
-                      positive_weight: float = 1.0, distill: float = 0.0) -> None:
-    """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss)."""
+                      positive_weight: float = 1.0, distill: float = 0.0, start_val_loss: float | None = None) -> None:
+    """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss; with `start_val_loss`,
+    the starting model's validation loss as epoch 0)."""
     lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
     if not history:
@@ -582,6 +598,10 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
     ax.plot(epochs, [h["loss"] for h in history], label="training")
     ax.plot(epochs, [h["val_loss"] for h in history], label="validation")
     best = min(history, key=lambda h: h["val_loss"])
+    if start_val_loss is not None:
+        ax.plot([0], [start_val_loss], marker="o", linestyle="none", color="C1", label="validation, starting model")
+        if start_val_loss <= best["val_loss"]:
+            best = {"epoch": 0}
     ax.axvline(best["epoch"], color="grey", linestyle=":", label=f"best (epoch {best['epoch']})")
     ax.set_xlabel("epoch")
     ax.set_ylabel(loss_name(positive_weight, distill))

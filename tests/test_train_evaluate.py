@@ -157,11 +157,13 @@ def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
 
 @pytest.mark.slow
 def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_path):
-    data, out, _ = trained
+    data, trained_out, _ = trained
+    out = _poor_start(trained_out, tmp_path / "poor_start.keras")
     proc = cli("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1", "--input-size", "64",
                "--augment-copies", "0", "--init", out, "--quiet")
     assert proc.returncode == 0, proc.stderr
     record = json.loads((tmp_path / "ft_train.json").read_text())
+    assert record["best_epoch"] == 1 and record["best_val_loss"] < record["start_val_loss"]
     assert record["init"] == str(out) and record["config"]["freeze"] == 2  # a trained start keeps conv1..2
     assert record["config"]["positive_weight"] == 8.0  # and draws tighter discs than training from scratch
     assert record["augment"] == "paper" and record["augment_auto"]["chose"] == "paper"  # one fixed "camera"
@@ -196,6 +198,38 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
                "--init", other)
     assert proc.returncode == 2 and "pass --init none to train from scratch" in proc.stderr
     assert not (tmp_path / "bad.keras").exists()
+
+
+def _poor_start(model_path, path):
+    """`model_path`'s model with its maps pushed towards 1 everywhere (conv10's bias +3): the first epoch of
+    training beats it on any frames, so what fine-tuning changed is in the saved model."""
+    from fcnpose_tf.model import load_model, save_for_inference
+
+    model = load_model(model_path)
+    kernel, bias = model.get_layer("conv10").get_weights()
+    model.get_layer("conv10").set_weights([kernel, bias + 3.0])
+    save_for_inference(model, path)
+    return path
+
+
+@pytest.mark.slow
+def test_a_start_no_epoch_beats_is_the_model_written(trained, cli, tmp_path):
+    data, out, _ = trained
+    # a rate of 5 wrecks the last layer in one step: no epoch comes near the start's validation loss
+    proc = cli("train", "--data", data, "--out", tmp_path / "kept.keras", "--epochs", "2", "--input-size", "64",
+               "--augment-copies", "0", "--init", out, "--freeze", "9", "--learning-rate", "5", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert "at epoch 0 of 2 (the starting model: no epoch improved on it)" in proc.stdout
+    record = json.loads((tmp_path / "kept_train.json").read_text())
+    assert record["best_epoch"] == 0 and record["best_val_loss"] == record["start_val_loss"]
+    header, *rows = (tmp_path / "kept_loss.csv").read_text().splitlines()
+    assert header == "epoch,loss,val_loss" and len(rows) == 2
+    assert all(float(row.split(",")[2]) > record["start_val_loss"] for row in rows)
+    from fcnpose_tf.model import load_model
+
+    start, kept = load_model(out), load_model(tmp_path / "kept.keras")
+    assert all(np.array_equal(a, b) for a, b in zip(start.get_weights(), kept.get_weights()))
+    assert cv2.imread(str(tmp_path / "kept_loss.png")) is not None
 
 
 def _run_epoch_callback(tmp_path, learning_rate, val_losses, seconds=0.0, **schedule):
