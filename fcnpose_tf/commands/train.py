@@ -55,7 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start from this model's weights (trained at any input size for the same keypoints): "
                              "generalist: the bundled UR5 model fine-tuned on domain-randomised scenes; workcell: the "
                              "bundled paper-reproduction baseline; either is refused for data of another keypoint "
-                             "schema; none: random weights, as the paper")
+                             "schema; none: random weights, as the paper. A trained start is the model to beat: "
+                             "if no epoch improves on its validation loss, it is written unchanged")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
