@@ -367,8 +367,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         resumable: whether the caller can resume (`train --resume`); if not (`compress`), a run that
             fails or is interrupted removes its checkpoint instead of pointing at --resume.
         start_is_candidate: `model` holds trained weights: its validation loss before the first epoch is the one
-            to beat (epoch 0), and if no epoch beats it the saved model is the start, unchanged. Fine-tuning a
-            model that already fits the frames' kind can only drift from it on a few hundred frames.
+            to beat (epoch 0), and if no epoch beats it the saved model is the start, unchanged: a few hundred
+            frames of a kind the start already knows well can make it worse.
     Returns:
         FitResult with the epochs run, the best epoch and its validation loss.
     Raises:
@@ -556,7 +556,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
                  verbose=verbose, identity=identity, start_is_candidate=init is not None)
     log(f"{label}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
-        f"{result.epochs_run}{' (the starting model: no epoch improved on it)' if result.best_epoch == 0 else ''}"
+        f"{result.epochs_run}{' (the starting model: no epoch improved on it)' if init is not None and result.best_epoch == 0 else ''}"
         f"{' (early stop)' if result.stopped_early else ''}"
         f"{' (time budget reached)' if config.max_minutes and result.seconds >= 60 * config.max_minutes else ''}; "
         f"{result.seconds / 60:.1f} min")
