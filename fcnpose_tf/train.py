@@ -433,8 +433,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     try:
         with atomic_path(model_path, force=True) as tmp:
             save_for_inference(inference_model(model) if inference_model else model, tmp)
-        write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], config.positive_weight,
-                          config.distill, start_val_loss=state.get("start_val_loss"))
+        write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], state["best_epoch"],
+                          config.positive_weight, config.distill, start_val_loss=state.get("start_val_loss"))
         write_json(paths["train_json"], {
             **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
             "start_val_loss": state.get("start_val_loss"),
@@ -580,10 +580,10 @@ def loss_name(positive_weight: float, distill: float = 0.0) -> str:
     return name if not distill else f"{name}, teacher weight {distill:g}"
 
 
-def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path,
+def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path, best_epoch: int,
                       positive_weight: float = 1.0, distill: float = 0.0, start_val_loss: float | None = None) -> None:
-    """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss; with `start_val_loss`,
-    the starting model's validation loss as epoch 0)."""
+    """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss, the kept `best_epoch`
+    marked; with `start_val_loss`, the starting model's validation loss as epoch 0)."""
     lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
     if not history:
@@ -597,12 +597,9 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     ax.plot(epochs, [h["loss"] for h in history], label="training")
     ax.plot(epochs, [h["val_loss"] for h in history], label="validation")
-    best = min(history, key=lambda h: h["val_loss"])
     if start_val_loss is not None:
         ax.plot([0], [start_val_loss], marker="o", linestyle="none", color="C1", label="validation, starting model")
-        if start_val_loss <= best["val_loss"]:
-            best = {"epoch": 0}
-    ax.axvline(best["epoch"], color="grey", linestyle=":", label=f"best (epoch {best['epoch']})")
+    ax.axvline(best_epoch, color="grey", linestyle=":", label=f"best (epoch {best_epoch})")
     ax.set_xlabel("epoch")
     ax.set_ylabel(loss_name(positive_weight, distill))
     ax.set_yscale("log")
