@@ -20,10 +20,14 @@ EXAMPLES = """\
   fcnpose-tf synth --out demo --n 50 --preview demo_preview.png
   fcnpose-tf synth --out data/synth --n 500 --force --workers 1
   fcnpose-tf synth --out data/random --n 500 --scene random   # a new room and camera per frame
+  fcnpose-tf synth --out data/varied --n 4000 --scene random --looks varied    # the generalist's variety
+  fcnpose-tf synth --out data/unseen --n 300 --looks heldout --labels kinematic  # a look never pretrained on
 """
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf.data.synth.looks import DEFAULT_LABELS, DEFAULT_LOOKS, LABEL_CONVENTIONS, LOOKS
+
     parser.add_argument("--out", type=Path, required=True, metavar="DIR",
                         help="output folder (created; must be empty unless --force)")
     parser.add_argument("--n", type=int, default=500, help="number of frames")
@@ -43,6 +47,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene-seed", type=int, default=0, metavar="S",
                         help="which workcell (robot look, mount, room, light, camera); frames of every --seed "
                              "share it, so a held-out set is the same cell in new poses (default: 0)")
+    parser.add_argument("--looks", choices=LOOKS, default=DEFAULT_LOOKS,
+                        help="look family: classic (a silver UR5 with blue-grey caps, a webcam: the default), "
+                             "varied (UR3/5/10/16 and e-series arms, any paint, grippers, vacuum cups, spindles, "
+                             "lenses, lights and sensors: what the generalist is pretrained on), heldout (a look "
+                             "pretraining never draws: a UR5e with dark housings and coloured caps, an adaptive "
+                             "gripper, a wide-angle distorting lens, overhead light, a clean render)")
+    parser.add_argument("--labels", choices=LABEL_CONVENTIONS, default=DEFAULT_LABELS,
+                        help="keypoint convention: housing (the centre of each joint housing, where an annotator "
+                             "clicks; the default) or kinematic (the URDF joint frames on the joint axes, as DREAM "
+                             "and robot simulators define them)")
     parser.add_argument("--tight-framing", type=float, default=0.0, metavar="RATE",
                         help="share of frames framed so tightly that 1-2 keypoints fall outside (unannotated)")
 
@@ -57,7 +71,8 @@ def run(args: argparse.Namespace) -> int:
         check_writable(args.preview, force=args.force)  # fail before rendering, not after
     report = generate_dataset(args.out, n=args.n, seed=args.seed, width=args.width, height=args.height,
                               workers=args.workers, force=args.force, progress=not args.no_progress,
-                              tight_framing=args.tight_framing, scene=args.scene, scene_seed=args.scene_seed)
+                              tight_framing=args.tight_framing, scene=args.scene, scene_seed=args.scene_seed,
+                              looks=args.looks, labels=args.labels)
     print(format_table(["Synthetic UR5 set", "Value"], report.summary_rows()))
     print(f"VIA project: {report.via_path}")
     if args.preview is not None:

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.data.synth.frame import render_sample
+from fcnpose_tf.data.synth.looks import DEFAULT_LABELS, DEFAULT_LOOKS, check_labels, look_family
 from fcnpose_tf.data.synth.scene import DEFAULT_SCENE, DEFAULT_TIGHT_FRAMING, SCENES
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
@@ -39,6 +40,7 @@ class FrameRecord:
     person: str
     mount: str
     tool: str
+    arm: str = "ur5"
 
 
 @dataclass
@@ -51,6 +53,8 @@ class SynthReport:
     workers: int
     width: int
     height: int
+    looks: str = DEFAULT_LOOKS
+    labels: str = DEFAULT_LABELS
 
     def summary_rows(self) -> list[tuple[str, object]]:
         """(quantity, value) rows for the CLI's closing table."""
@@ -67,6 +71,10 @@ class SynthReport:
         return [
             ("frames", n),
             ("frame size (px)", f"{self.width}x{self.height}"),
+            ("look family / keypoint labels", f"{self.looks} / {self.labels}"),
+            ("arms", ", ".join(f"{a} {sum(f.arm == a for f in self.frames)}"
+                               for a in sorted({f.arm for f in self.frames}))),
+            ("end effectors", ", ".join(f"{t} {count('tool', t)}" for t in sorted({f.tool for f in self.frames}))),
             ("keypoints annotated (in frame)", f"{int(visible.sum())} of {visible.size}"),
             ("frames with all 8 keypoints", int(visible.all(1).sum())),
             ("frames with the person hiding part of the arm", int(occluded.any(1).sum())),
@@ -85,12 +93,12 @@ def _init_worker() -> None:
     cv2.setNumThreads(1)  # one process per core; OpenCV's own threads would only compete
 
 
-def _render_and_write(task: tuple[int, int, int, int, str, float, str, int]) -> FrameRecord:
+def _render_and_write(task: tuple[int, int, int, int, str, float, str, int, str, str]) -> FrameRecord:
     """Worker: render frame `index`, write it as PNG atomically, return its record."""
     from fcnpose_tf import fileio
 
-    seed, index, width, height, image_dir, tight_framing, scene, scene_seed = task
-    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed)
+    seed, index, width, height, image_dir, tight_framing, scene, scene_seed, looks, labels = task
+    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed, looks, labels)
     ok, buf = cv2.imencode(".png", sample.image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 BGR image
         raise RuntimeError("PNG encoding failed")
@@ -98,7 +106,7 @@ def _render_and_write(task: tuple[int, int, int, int, str, float, str, int]) -> 
     data = buf.tobytes()
     fileio.write_bytes(Path(image_dir) / name, data, force=True)
     return FrameRecord(index, name, len(data), sample.keypoints, sample.occluded, sample.person, sample.mount,
-                       sample.tool)
+                       sample.tool, sample.arm)
 
 
 def default_workers() -> int:
@@ -124,17 +132,19 @@ def _prepare_output(out_dir: Path, force: bool) -> Path:
 def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
                      workers: int | None = None, force: bool = False, progress: bool = True,
                      tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
-                     scene_seed: int = 0) -> SynthReport:
+                     scene_seed: int = 0, looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS) -> SynthReport:
     """Render n frames into out_dir/images/*.png and write out_dir/ur5_synth.json (VIA 2.x project).
 
     Frames are rendered by a pool of `workers` processes (default: one per core);
     the files are the same for any number of workers. `scene` and `scene_seed` choose one fixed
-    workcell or a new random cell per frame (see DEFAULT_SCENE). A non-empty out_dir is refused
+    workcell or a new random cell per frame (see DEFAULT_SCENE); `looks` the look family and `labels`
+    the keypoint convention (`looks.FAMILIES`, `looks.LABEL_CONVENTIONS`). A non-empty out_dir is refused
     unless force, which also removes what belonged to the set being replaced: synth_*.png
     frames beyond n and the stored folds (ur5_synth.splits.json).
 
     Raises:
-        UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, tight_framing outside
+        UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, look family or label
+            convention, tight_framing outside
             [0, 1], or an output folder that is not empty (without force), not a folder, or not writable.
             Every option is checked before anything in out_dir is touched.
     """
@@ -148,6 +158,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
         raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
     if scene not in SCENES:
         raise UserError(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}")
+    look_family(looks)
+    check_labels(labels)
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
@@ -165,8 +177,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     (out_dir / VIA_FILENAME).unlink(missing_ok=True)  # written again last: no VIA file while frames change
 
     start = time.perf_counter()
-    tasks = [(int(seed), i, int(width), int(height), str(image_dir), float(tight_framing), scene, int(scene_seed))
-             for i in range(n)]
+    tasks = [(int(seed), i, int(width), int(height), str(image_dir), float(tight_framing), scene, int(scene_seed),
+              looks, labels) for i in range(n)]
     workers = min(workers, n)
     records: list[FrameRecord] = []
     # the frames are parts of the set: a failure before its VIA file is written keeps none of them as an
@@ -188,16 +200,18 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
         records.sort(key=lambda r: r.index)
         frames = [ViaFrame(r.filename, width, height, r.keypoints, size=r.size) for r in records]
         via_path = write_via_project(out_dir / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)
-    return SynthReport(Path(via_path), records, time.perf_counter() - start, workers, int(width), int(height))
+    return SynthReport(Path(via_path), records, time.perf_counter() - start, workers, int(width), int(height), looks,
+                       labels)
 
 
 def generate(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
              workers: int | None = None, force: bool = False, progress: bool = True,
-             tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE, scene_seed: int = 0) -> Path:
+             tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE, scene_seed: int = 0,
+             looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS) -> Path:
     """Render a synthetic UR5 dataset into out_dir (see `generate_dataset`); returns the VIA file's path.
 
     Example:
         >>> via = generate("data/synth", n=500, seed=0)   # data/synth/images/*.png + ur5_synth.json
     """
     return generate_dataset(out_dir, n, seed, width, height, workers, force, progress, tight_framing, scene,
-                            scene_seed).via_path
+                            scene_seed, looks, labels).via_path

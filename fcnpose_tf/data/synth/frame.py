@@ -15,6 +15,7 @@ import numpy as np
 
 from fcnpose_tf.data.synth.camera import Camera
 from fcnpose_tf.data.synth.kinematics import segment_distance, ur5_keypoints_3d
+from fcnpose_tf.data.synth.looks import DEFAULT_LABELS, DEFAULT_LOOKS, check_labels, look_family
 from fcnpose_tf.data.synth.person import person_parts
 from fcnpose_tf.data.synth.primitives import LABEL_PERSON, Light, Part, part_points
 from fcnpose_tf.data.synth.rendering import Painter, Room, render_background, shadow_mask
@@ -46,6 +47,9 @@ class SynthSample:
     mount: str
     tool: str
     tool_length: float
+    arm: str = "ur5"
+    looks: str = DEFAULT_LOOKS
+    label_convention: str = DEFAULT_LABELS
 
 
 def _frame_rng(seed: int, index: int) -> np.random.Generator:
@@ -54,51 +58,60 @@ def _frame_rng(seed: int, index: int) -> np.random.Generator:
 
 def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
                   height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
-                  scene_seed: int = 0) -> SynthSample:
+                  scene_seed: int = 0, looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS) -> SynthSample:
     """Render frame `index` of the synthetic set `seed` (or draw from a given Generator) at width x height.
 
-    `scene` is "workcell" (the fixed cell of `scene_seed`) or "random" (see DEFAULT_SCENE).
+    `scene` is "workcell" (the fixed cell of `scene_seed`) or "random" (see DEFAULT_SCENE); `looks` the
+    look family (`looks.FAMILIES`); `labels` the keypoint convention (`looks.LABEL_CONVENTIONS`).
     """
     if width < 32 or height < 32:
         raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
     if scene not in SCENES:
         raise UserError(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}")
+    family = look_family(looks)
+    check_labels(labels)
     rng = seed if isinstance(seed, np.random.Generator) else _frame_rng(seed, index)
     if scene == "workcell":
-        cell = workcell(scene_seed, width, height)
+        cell = workcell(scene_seed, width, height, looks)
         q = pose_in_view(rng, cell, tight_framing)
     else:
-        cell, q = random_scene(rng, width, height, tight_framing)
-    style, cam, base_z = cell.style, cell.camera, cell.base_z
-    kp3d = ur5_keypoints_3d(q, style.tool_length, base_z)
+        cell, q = random_scene(rng, width, height, tight_framing, looks)
+    style, lens_cam, base_z = cell.style, cell.camera, cell.base_z
+    cam = lens_cam.render_camera()  # painted as a pinhole; a distorting lens resamples the picture at the end
+    kp3d = ur5_keypoints_3d(q, style.tool_length, base_z, style.arm, labels)
     robot = ur5_parts(q, style, base_z)
     robot_pts = np.vstack([part_points(p) for p in robot])
     kp_uv, kp_z = cam.project(kp3d)
     person, _ = _place_person(rng, cam, kp3d, kp_uv, kp_z, cell.mount_radius, cell.keepout[2:],
                               PERSON_ODDS[scene])
 
-    keypoints = kp_uv.copy()
-    inside = (kp_z > 0) & (kp_uv[:, 0] >= 0) & (kp_uv[:, 0] <= width - 1) & (kp_uv[:, 1] >= 0) & \
-             (kp_uv[:, 1] <= height - 1)
+    keypoints = lens_cam.project(kp3d)[0] if lens_cam.k1 else kp_uv.copy()
+    inside = (kp_z > 0) & (keypoints[:, 0] >= 0) & (keypoints[:, 0] <= width - 1) & (keypoints[:, 1] >= 0) & \
+             (keypoints[:, 1] <= height - 1)
     keypoints[~inside] = np.nan
+    painted_uv = np.where(inside[:, None], kp_uv, np.nan)  # where the keypoints are on the painted canvas
     state = rng.bit_generator.state
     ss = 2
     while True:
         room_rng = None if cell.room_seed is None else np.random.default_rng(cell.room_seed)
-        canvas, labels, depth = _paint(rng, cam, ss, cell.room, cell.light, cell.lamp, robot, cell.mount_parts,
+        canvas, label_map, depth = _paint(rng, cam, ss, cell.room, cell.light, cell.lamp, robot, cell.mount_parts,
                                        person, cell.objects, robot_depth_far=float(cam.to_camera(robot_pts)[:, 2].max()),
                                        room_rng=room_rng)
-        occluded = _person_in_front(labels, depth, (keypoints + 0.5) * ss - 0.5, kp_z)
+        occluded = _person_in_front(label_map, depth, (painted_uv + 0.5) * ss - 0.5, kp_z)
         if occluded.sum() <= MAX_HIDDEN_BY_PERSON or not person:
             break
         rng.bit_generator.state = state  # the person would hide most of the arm: the same frame without them
         person = []
     person_mode = "none" if not person else "occluding" if occluded.any() else "beside"
     img = cv2.resize(canvas, (width, height), interpolation=cv2.INTER_AREA)
-    labels_1x = cv2.resize(labels, (width, height), interpolation=cv2.INTER_NEAREST)
-    img = _camera_effects(rng, img)
-    return SynthSample(img, keypoints, kp3d, q, cam, occluded, labels_1x, person_mode, cell.mount, style.tool,
-                       style.tool_length)
+    labels_1x = cv2.resize(label_map, (width, height), interpolation=cv2.INTER_NEAREST)
+    if lens_cam.k1:
+        map_x, map_y = lens_cam.distortion_maps()
+        img = cv2.remap(img, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        labels_1x = cv2.remap(labels_1x, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_REPLICATE)
+    img = _camera_effects(rng, img, SENSORS[family.sensor])
+    return SynthSample(img, keypoints, kp3d, q, lens_cam, occluded, labels_1x, person_mode, cell.mount, style.tool,
+                       style.tool_length, style.arm.name, looks, labels)
 
 
 MAX_HIDDEN_BY_PERSON = 3
@@ -223,29 +236,60 @@ def _covered(parts: Sequence[Part], cam: Camera, kp_uv: np.ndarray, kp_z: np.nda
     return hidden
 
 
-def _camera_effects(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
+@dataclass(frozen=True)
+class Sensor:
+    """Ranges of a camera's processing (`_camera_effects`); `clean` skips noise, shake, gamma and JPEG."""
+
+    exposure: tuple[float, float] = (0.36, 0.55)
+    white_balance: float = 0.04
+    vignette: float = 0.25
+    shake: float = 0.12
+    blur: tuple[float, float] = (0.25, 1.1)
+    noise: tuple[float, float] = (0.004, 0.022)
+    gamma: tuple[float, float] = (0.85, 1.15)
+    jpeg: float = 0.5
+    jpeg_quality: tuple[int, int] = (60, 96)
+    clean: bool = False
+
+
+SENSORS = {
+    "webcam": Sensor(),
+    "varied": Sensor(exposure=(0.3, 0.6), white_balance=0.12, vignette=0.4, shake=0.12, blur=(0.2, 1.6),
+                     noise=(0.0, 0.03), gamma=(0.8, 1.25), jpeg=0.6, jpeg_quality=(35, 96)),
+    "clean": Sensor(exposure=(0.42, 0.5), white_balance=0.0, vignette=0.0, shake=0.0, blur=(0.35, 0.35), clean=True),
+}
+"""`webcam`: the classic look (a USB webcam); `varied`: wider white balance, noise, blur and JPEG for
+pretraining; `clean` (held out): a render engine's output, sharp and noiseless."""
+
+
+def _camera_effects(rng: np.random.Generator, img: np.ndarray, sensor: Sensor = SENSORS["webcam"]) -> np.ndarray:
     """Exposure, white balance, vignetting, blur, sensor noise, gamma and (sometimes) JPEG: float RGB -> uint8 BGR."""
     h, w = img.shape[:2]
     scale = w / 640.0
+    if sensor.clean:  # a renderer's output: exposure, a little anti-aliasing blur, nothing else
+        img *= np.float32(rng.uniform(*sensor.exposure) / max(float(img.mean()), 1e-3))
+        img = cv2.GaussianBlur(img, (0, 0), sensor.blur[0] * scale)
+        np.clip(img, 0.0, 1.0, out=img)
+        return cv2.cvtColor(cv2.convertScaleAbs(img, alpha=255.0), cv2.COLOR_RGB2BGR)
     # auto-exposure as a webcam does it: bring the mean level to a target, within the sensor's gain range
-    exposure = float(np.clip(rng.uniform(0.36, 0.55) / max(float(img.mean()), 1e-3), 0.6, 2.6))
-    gain = np.float32(exposure) * (1 + rng.normal(0, 0.04, 3)).astype(np.float32)
-    vignette = np.float32(rng.uniform(0.0, 0.25) / 2)
+    exposure = float(np.clip(rng.uniform(*sensor.exposure) / max(float(img.mean()), 1e-3), 0.6, 2.6))
+    gain = np.float32(exposure) * (1 + rng.normal(0, sensor.white_balance, 3)).astype(np.float32)
+    vignette = np.float32(rng.uniform(0.0, sensor.vignette) / 2)
     vx = ((np.arange(w, dtype=np.float32) - w / 2) / (w / 2)) ** 2
     vy = ((np.arange(h, dtype=np.float32) - h / 2) / (h / 2)) ** 2
     img *= (1.0 - vignette * (vx[None, :] + vy[:, None]))[..., None]
     img *= gain
-    if rng.random() < 0.12:  # camera shake
+    if rng.random() < sensor.shake:  # camera shake
         n = int(rng.integers(3, 8) * scale) | 1
         kernel = np.zeros((n, n), np.float32)
         kernel[n // 2, :] = 1.0 / n
         rot = cv2.getRotationMatrix2D(((n - 1) / 2, (n - 1) / 2), rng.uniform(0, 180), 1.0)
         kernel = cv2.warpAffine(kernel, rot, (n, n))
         img = cv2.filter2D(img, -1, kernel / max(float(kernel.sum()), 1e-6))
-    img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.25, 1.1) * scale)
+    img = cv2.GaussianBlur(img, (0, 0), rng.uniform(*sensor.blur) * scale)
     # sensor noise after the camera's processing: mostly luminance, shot-noise-like (grows with sqrt of the
     # level), plus coarser colour noise
-    sigma = np.float32(1.6 * rng.uniform(0.004, 0.022))
+    sigma = np.float32(1.6 * rng.uniform(*sensor.noise))
     lum = rng.standard_normal((h, w), dtype=np.float32)
     lum *= np.sqrt(np.clip(cv2.cvtColor(img, cv2.COLOR_RGB2GRAY), 0.02, 1.0))
     lum *= sigma
@@ -255,18 +299,19 @@ def _camera_effects(rng: np.random.Generator, img: np.ndarray) -> np.ndarray:
     img += cv2.resize(chroma, (w, h), interpolation=cv2.INTER_LINEAR)
     np.clip(img, 0.0, 1.0, out=img)
     out = cv2.cvtColor(cv2.convertScaleAbs(img, alpha=255.0), cv2.COLOR_RGB2BGR)
-    gamma = rng.uniform(0.85, 1.15)
+    gamma = rng.uniform(*sensor.gamma)
     lut = np.clip(255.0 * (np.arange(256) / 255.0) ** gamma + 0.5, 0, 255).astype(np.uint8)
     out = cv2.LUT(out, lut)
-    if rng.random() < 0.5:  # webcam MJPEG compression
-        _, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(60, 96))])
+    if rng.random() < sensor.jpeg:  # webcam MJPEG compression
+        _, buf = cv2.imencode(".jpg", out, [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(*sensor.jpeg_quality))])
         out = cv2.imdecode(buf, cv2.IMREAD_COLOR)
     return out
 
 
 def render_frame(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
                  height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
-                 scene_seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                 scene_seed: int = 0, looks: str = DEFAULT_LOOKS,
+                 labels: str = DEFAULT_LABELS) -> tuple[np.ndarray, np.ndarray]:
     """(H x W x 3 uint8 BGR image, 8 x 2 keypoints in UR5 order, NaN outside the frame) of one frame."""
-    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed)
+    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed, looks, labels)
     return sample.image, sample.keypoints

@@ -21,12 +21,16 @@ class Material:
 
 @dataclass
 class Light:
-    """A directional key light (unit vector toward the light) plus hemispheric ambient light."""
+    """A directional key light (unit vector toward the light) plus hemispheric ambient light, and an
+    optional second directional light (`fill` > 0) of another colour that casts no shadow."""
 
     direction: np.ndarray
     color: np.ndarray
     diffuse: float
     ambient: float
+    fill_direction: np.ndarray | None = None
+    fill_color: np.ndarray | None = None
+    fill: float = 0.0
 
 
 @dataclass

@@ -28,6 +28,9 @@ def _shade(material: Material, normals: np.ndarray, points: np.ndarray, light: L
     rim = np.clip(1.0 - (normals * view).sum(-1), 0.0, 1.0) ** 3  # a faint environment reflection at grazing
     col = material.rgb * (light.ambient * hemi + light.diffuse * ndl)[..., None] * light.color
     col = col + (material.specular * spec * light.diffuse)[..., None] * light.color + 0.08 * material.specular * rim[..., None]
+    if light.fill > 0.0:
+        fill = np.clip(normals @ light.fill_direction, 0.0, None)
+        col = col + material.rgb * (light.fill * fill)[..., None] * light.fill_color
     return np.clip(col, 0.0, 1.5)
 
 
@@ -249,8 +252,14 @@ def render_background(rng: np.random.Generator, cam: Camera, room: Room, light: 
     corner = np.minimum(corner, np.where(floor > 0, big, p[2]))
     ao = 1.0 - 0.3 * np.exp(-np.clip(corner, 0, None) / 0.3)
     shade = per_surface.astype(np.float32)[surf] * (0.55 + 0.8 * lamp_term) * ao
+    filled = None
+    if light.fill > 0.0:  # the fill light's share per surface, in its own colour
+        fill = (light.fill * 0.8 * np.clip(normals @ light.fill_direction.astype(np.float32), 0, None))[surf] * ao
+        filled = out * fill[..., None] * light.fill_color.astype(np.float32)
     out *= shade[..., None]
     out *= light.color.astype(np.float32)
+    if filled is not None:
+        out += filled
     return out, floor.astype(np.float32)
 
 

@@ -13,10 +13,11 @@ import numpy as np
 
 from fcnpose_tf.data.synth.camera import Camera
 from fcnpose_tf.data.synth.kinematics import PI, WorkTask, sample_joints, ur5_keypoints_3d
+from fcnpose_tf.data.synth.looks import DEFAULT_LOOKS, LookFamily, look_family
 from fcnpose_tf.data.synth.primitives import (LABEL_CLUTTER, LABEL_MOUNT, Light, Material, Part, Tube, box_part,
                                               part_points)
 from fcnpose_tf.data.synth.rendering import Room
-from fcnpose_tf.data.synth.robot import RobotStyle, robot_style, ur5_parts
+from fcnpose_tf.data.synth.robot import RobotStyle, robot_style_for, ur5_parts
 
 
 def _keypoint_bbox_fraction(uv: np.ndarray, width: int, height: int) -> float:
@@ -31,31 +32,33 @@ unannotated); `--tight-framing 0.04` gives 1 frame in 25, to exercise partly ann
 
 def _place_camera(rng: np.random.Generator, kp3d: np.ndarray, robot_pts: np.ndarray, width: int, height: int,
                   min_eye_z: float, tight_framing: float = DEFAULT_TIGHT_FRAMING,
-                  frac_range: tuple[float, float] = (0.38, 0.72)) -> Camera:
-    """A webcam-like camera around the robot framing the arm at a random size and image position.
+                  frac_range: tuple[float, float] = (0.38, 0.72), fov_deg: tuple[float, float] = (55.0, 78.0),
+                  roll_deg: float = 2.5) -> Camera:
+    """A camera around the robot framing the arm at a random size and image position.
 
-    In `tight_framing` of the frames the framing is tight and one or two keypoints fall outside
-    the image. The draw is made whatever the rate, so other frames do not depend on it.
+    `fov_deg`: range of the diagonal field of view (default: common webcams); `roll_deg`: standard
+    deviation of the roll. In `tight_framing` of the frames the framing is tight and one or two
+    keypoints fall outside the image. The draw is made whatever the rate, so other frames do not depend on it.
     """
     diag = math.hypot(width, height)
     centre = 0.5 * (kp3d.min(0) + kp3d.max(0))
     size = np.array([width, height]) - 1.0
     if rng.random() < tight_framing:
         for _ in range(100):
-            focal = 0.5 * diag / math.tan(math.radians(rng.uniform(55.0, 78.0)) / 2)
+            focal = 0.5 * diag / math.tan(math.radians(rng.uniform(*fov_deg)) / 2)
             yaw, elev = rng.uniform(-PI, PI), math.radians(rng.uniform(0.0, 35.0))
             direction = np.array([math.cos(yaw) * math.cos(elev), math.sin(yaw) * math.cos(elev), math.sin(elev)])
             eye = centre + rng.uniform(1.4, 2.2) * direction
             if not (0.3 <= eye[2] <= 2.5) or eye[2] < min_eye_z:
                 continue
             target = centre + rng.normal(0.0, 0.25, 3)
-            cam = Camera.look_at(eye, target, focal, width, height, roll=math.radians(rng.normal(0.0, 2.5)))
+            cam = Camera.look_at(eye, target, focal, width, height, roll=math.radians(rng.normal(0.0, roll_deg)))
             uv, z = cam.project(kp3d)
             inside = (z > 0.2) & (uv >= 0).all(1) & (uv <= size).all(1)
             if 6 <= inside.sum() <= 7 and cam.project(robot_pts)[1].min() > 0.2:
                 return cam
     for _ in range(100):
-        fov = math.radians(rng.uniform(55.0, 78.0))  # diagonal field of view of common webcams
+        fov = math.radians(rng.uniform(*fov_deg))  # diagonal field of view
         focal = 0.5 * diag / math.tan(fov / 2)
         yaw = rng.uniform(-PI, PI)
         elev = math.radians(rng.uniform(-8.0, 42.0))
@@ -84,7 +87,7 @@ def _place_camera(rng: np.random.Generator, kp3d: np.ndarray, robot_pts: np.ndar
         if (slack_lo > slack_hi).any():
             continue
         shift = rng.uniform(np.minimum(slack_lo, 0) * 0.9, np.maximum(slack_hi, 0) * 0.9)
-        roll = math.radians(rng.normal(0.0, 2.5))
+        roll = math.radians(rng.normal(0.0, roll_deg))
         for _ in range(4):
             ct = cam.to_camera(target[None])[0]
             moved = target - (shift[0] * ct[2] / focal) * cam.R[0] - (shift[1] * ct[2] / focal) * cam.R[1]
@@ -293,6 +296,43 @@ def _light(rng: np.random.Generator) -> Light:
                  rng.uniform(0.35, 0.6))
 
 
+def _direction(azimuth: float, elevation_deg: float) -> np.ndarray:
+    el = math.radians(elevation_deg)
+    return np.array([math.cos(azimuth) * math.cos(el), math.sin(azimuth) * math.cos(el), math.sin(el)])
+
+
+def _tint(rng: np.random.Generator, spread: float) -> np.ndarray:
+    warmth = rng.uniform(-spread, spread)
+    return np.array([1 + 0.07 * warmth, 1.0, 1 - 0.09 * warmth])
+
+
+def light_for(rng: np.random.Generator, family: LookFamily) -> Light:
+    """The light of a look family. `classic`: one key light 35-78 degrees high plus ambient (as always).
+    `key`: the same with a wider colour range and 25-80 degrees; `key+fill`: plus a coloured fill light
+    from another side; `overcast`: soft (weak key, strong ambient). `overhead` (held out): a key light
+    82-90 degrees high, cool, with a warm fill from low on one side."""
+    model = family.lights[0] if len(family.lights) == 1 else str(rng.choice(family.lights))
+    if model == "classic":
+        return _light(rng)
+    if model == "overhead":
+        key = Light(_direction(rng.uniform(-PI, PI), rng.uniform(82, 90)), _tint(rng, 0.3) * (0.95, 1.0, 1.08),
+                    rng.uniform(0.6, 0.85), rng.uniform(0.3, 0.45))
+        key.fill_direction = _direction(rng.uniform(-PI, PI), rng.uniform(5, 20))
+        key.fill_color = np.array([1.15, 0.95, 0.75])
+        key.fill = float(rng.uniform(0.25, 0.4))
+        return key
+    if model == "overcast":
+        return Light(_direction(rng.uniform(-PI, PI), rng.uniform(40, 80)), _tint(rng, 1.2), rng.uniform(0.12, 0.3),
+                     rng.uniform(0.65, 0.9))
+    key = Light(_direction(rng.uniform(-PI, PI), rng.uniform(25, 80)), _tint(rng, 2.0), rng.uniform(0.4, 0.85),
+                rng.uniform(0.3, 0.6))
+    if model == "key+fill":
+        key.fill_direction = _direction(rng.uniform(-PI, PI), rng.uniform(10, 60))
+        key.fill_color = 0.75 + 0.5 * rng.random(3)
+        key.fill = float(rng.uniform(0.12, 0.35))
+    return key
+
+
 def _room(rng: np.random.Generator, cam: Camera) -> tuple[Room, np.ndarray]:
     """A room around the robot (at the origin) and the camera, and its ceiling lamp."""
     ex, ey = cam.eye[0], cam.eye[1]
@@ -327,7 +367,7 @@ def _scene_rng(scene_seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence([int(scene_seed) & 0xFFFFFFFF, 0xCE11]))
 
 
-_WORKCELLS: dict[tuple[int, int, int], Scene] = {}
+_WORKCELLS: dict[tuple[int, int, int, str], Scene] = {}
 
 
 WORKCELL_FRAMING = (0.85, 0.95)
@@ -335,19 +375,23 @@ WORKCELL_FRAMING = (0.85, 0.95)
 WORKSPACE_POSES sampled poses)."""
 
 
-def workcell(scene_seed: int = 0, width: int = 640, height: int = 480) -> Scene:
-    """The fixed cell of `scene_seed`: an arm at one task (`WorkTask`: a 90-degree sector, elbow on
-    one side, tool down) and a camera framing that task's workspace (many sampled poses)."""
-    key = (int(scene_seed), int(width), int(height))
+def workcell(scene_seed: int = 0, width: int = 640, height: int = 480, looks: str = DEFAULT_LOOKS) -> Scene:
+    """The fixed cell of `scene_seed` in look family `looks`: an arm at one task (`WorkTask`: a 90-degree
+    sector, elbow on one side, tool down) and a camera framing that task's workspace (many sampled poses)."""
+    key = (int(scene_seed), int(width), int(height), looks)
     if key not in _WORKCELLS:
-        rng = _scene_rng(scene_seed)
+        family = look_family(looks)
+        rng = _scene_rng(scene_seed) if looks == DEFAULT_LOOKS else np.random.default_rng(
+            np.random.SeedSequence([int(scene_seed) & 0xFFFFFFFF, 0xCE11, sum(map(ord, looks))]))
         task = WorkTask(yaw=float(rng.uniform(-PI, PI)), elbow=1.0 if rng.random() < 0.5 else -1.0)
-        style = robot_style(rng)
+        style = robot_style_for(rng, family)
         mount, base_z, mount_parts, mount_radius = _mount_parts(rng)
-        reach = np.vstack([ur5_keypoints_3d(sample_joints(rng, style.tool_length, task), style.tool_length, base_z)
-                           for _ in range(WORKSPACE_POSES)])
-        cam = _place_camera(rng, reach, reach, width, height, min_eye_z=base_z + 0.15, frac_range=WORKCELL_FRAMING)
-        light = _light(rng)
+        reach = np.vstack([ur5_keypoints_3d(sample_joints(rng, style.tool_length, task, style.arm), style.tool_length,
+                                            base_z, style.arm) for _ in range(WORKSPACE_POSES)])
+        cam = _place_camera(rng, reach, reach, width, height, min_eye_z=base_z + 0.15, frac_range=WORKCELL_FRAMING,
+                            fov_deg=family.fov_deg, roll_deg=family.roll_deg)
+        cam = _lens(rng, cam, family)
+        light = light_for(rng, family)
         room, lamp = _room(rng, cam)
         keepout = [(np.zeros(2), mount_radius + 1.0), (cam.eye[:2], 0.7)]
         far = float(cam.to_camera(reach)[:, 2].max())
@@ -357,6 +401,18 @@ def workcell(scene_seed: int = 0, width: int = 640, height: int = 480) -> Scene:
     return _WORKCELLS[key]
 
 
+def _lens(rng: np.random.Generator, cam: Camera, family: LookFamily) -> Camera:
+    """The camera with the family's lens distortion (classic: a pinhole, no draw)."""
+    if family.distorted_share <= 0.0:
+        return cam
+    if rng.random() >= family.distorted_share:
+        return cam
+    pull = float(rng.uniform(*family.corner_distortion))  # 1 - r_d / r_u at the picture's corner
+    r_d = math.hypot(cam.width - 1, cam.height - 1) / 2 / cam.K[0, 0]
+    r_u = r_d / (1.0 - pull)
+    return Camera(cam.K, cam.R, cam.eye, cam.width, cam.height, -pull / (r_u * r_u))
+
+
 def pose_in_view(rng: np.random.Generator, scene: Scene, tight_framing: float) -> np.ndarray:
     """Joint angles of a plausible pose whose 8 keypoints the scene's camera sees (6-7 when tightly framed)."""
     cam, style = scene.camera, scene.style
@@ -364,8 +420,8 @@ def pose_in_view(rng: np.random.Generator, scene: Scene, tight_framing: float) -
     tight = rng.random() < tight_framing
     q = None
     for _ in range(400):
-        q = sample_joints(rng, style.tool_length, scene.task)
-        kp3d = ur5_keypoints_3d(q, style.tool_length, scene.base_z)
+        q = sample_joints(rng, style.tool_length, scene.task, style.arm)
+        kp3d = ur5_keypoints_3d(q, style.tool_length, scene.base_z, style.arm)
         uv, z = cam.project(kp3d)
         if z.min() < 0.3:
             continue
@@ -379,15 +435,18 @@ def pose_in_view(rng: np.random.Generator, scene: Scene, tight_framing: float) -
 
 
 def random_scene(rng: np.random.Generator, width: int, height: int,
-                  tight_framing: float) -> tuple[Scene, np.ndarray]:
-    """A new cell and camera framing the arm in a random pose: (scene, joint angles)."""
-    style = robot_style(rng)
+                 tight_framing: float, looks: str = DEFAULT_LOOKS) -> tuple[Scene, np.ndarray]:
+    """A new cell and camera of look family `looks` framing the arm in a random pose: (scene, joint angles)."""
+    family = look_family(looks)
+    style = robot_style_for(rng, family)
     mount, base_z, mount_parts, mount_radius = _mount_parts(rng)
-    q = sample_joints(rng, style.tool_length)
-    kp3d = ur5_keypoints_3d(q, style.tool_length, base_z)
+    q = sample_joints(rng, style.tool_length, arm=style.arm)
+    kp3d = ur5_keypoints_3d(q, style.tool_length, base_z, style.arm)
     robot_pts = np.vstack([part_points(p) for p in ur5_parts(q, style, base_z)])
-    cam = _place_camera(rng, kp3d, robot_pts, width, height, min_eye_z=base_z + 0.15, tight_framing=tight_framing)
-    light = _light(rng)
+    cam = _place_camera(rng, kp3d, robot_pts, width, height, min_eye_z=base_z + 0.15, tight_framing=tight_framing,
+                        frac_range=family.framing, fov_deg=family.fov_deg, roll_deg=family.roll_deg)
+    cam = _lens(rng, cam, family)
+    light = light_for(rng, family)
     room, lamp = _room(rng, cam)
     keepout = [(np.zeros(2), mount_radius + 1.0), (cam.eye[:2], 0.7)]
     far = float(cam.to_camera(np.vstack([robot_pts] + [part_points(p) for p in mount_parts]))[:, 2].max())

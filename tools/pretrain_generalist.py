@@ -1,0 +1,68 @@
+#!/usr/bin/env python3
+"""Continue pretraining the bundled generalist on fresh domain-randomised frames (maintainers only).
+
+The generalist's data command: renders `--n` frames of a *pretraining* look family (`varied` by
+default; a held-out family such as `heldout` is refused, so the looks that measure unseen arms never
+reach pretraining), then continues training the bundled generalist on them with the recipe of
+saved_models/PROVENANCE.md (online augmentation, conv1-2 fixed, a half-cosine rate over the time
+budget). Takes `--minutes` plus a few minutes of rendering on 2 cores. Run from the repository root
+in an environment with '.[train]'; copy the result over saved_models/fcnpose_ur5_generalist.keras
+(with its _train.json, _loss.csv and _loss.png) only if it measures better on the proxies of
+docs/training.md, and record the run in saved_models/PROVENANCE.md.
+
+    python tools/pretrain_generalist.py --work runs/gen --n 4000 --seed 9000 --minutes 60
+    python tools/pretrain_generalist.py --work runs/gen --dry-run      # print the commands only
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from fcnpose_tf.data.synth.looks import PRETRAINING_LOOKS, check_pretraining_looks  # noqa: E402
+from fcnpose_tf.errors import UserError  # noqa: E402
+
+
+def commands(args: argparse.Namespace) -> list[list[str]]:
+    data, out = args.work / "frames", args.work / "generalist.keras"
+    exe = [sys.executable, "-m", "fcnpose_tf"]
+    return [exe + ["synth", "--out", str(data), "--scene", "random", "--looks", args.looks, "--n", str(args.n),
+                   "--seed", str(args.seed), "--workers", str(args.threads), "--no-progress"],
+            exe + ["train", "--data", str(data), "--out", str(out), "--init", args.init, "--augment", "online",
+                   "--freeze", "2", "--lr-schedule", "cosine", "--learning-rate", str(args.learning_rate),
+                   "--max-minutes", str(args.minutes), "--patience", "60", "--threads", str(args.threads)]]
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--work", type=Path, required=True, help="folder for the frames and the model (new)")
+    parser.add_argument("--looks", default="varied",
+                        help=f"look family to pretrain on (one of {', '.join(PRETRAINING_LOOKS)}; default varied)")
+    parser.add_argument("--n", type=int, default=4000, help="frames to render (default 4000)")
+    parser.add_argument("--seed", type=int, default=9000, help="frame seed; use one no earlier run used")
+    parser.add_argument("--minutes", type=float, default=60.0, help="training budget in minutes (default 60)")
+    parser.add_argument("--learning-rate", type=float, default=7e-4, help="start of the half cosine (default 7e-4)")
+    parser.add_argument("--init", default="generalist", help="model to continue from (default: the bundled one)")
+    parser.add_argument("--threads", type=int, default=2, help="cores for rendering and training (default 2)")
+    parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
+    args = parser.parse_args(argv)
+    try:
+        check_pretraining_looks(args.looks)
+    except UserError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for command in commands(args):
+        print(shlex.join(command), flush=True)
+        if not args.dry_run:
+            subprocess.run(command, check=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
