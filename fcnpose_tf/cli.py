@@ -7,16 +7,26 @@ needs when it runs, so `run` and `bench` work on a Pi with only the `pi` extra.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import os
+import signal
 import sys
 from typing import Sequence
 
 from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
+from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import WriteError, command_outputs
 from fcnpose_tf.tfsetup import import_tensorflow_quietly
+
+EXIT_USER_ERROR = 2
+"""Bad input, a refused or failed output (a full disk, a name too long): one `error:` line."""
+EXIT_SIGNAL = {sig: status for sig, (_, status) in fileio.STOP_SIGNALS.items()}
+"""Ctrl-C (SIGINT) ends a command with 130, a `kill` (SIGTERM) with 143, after the same clean-up."""
+
+OWNERS_OUTPUTS = {"compress": ("out_dir",), "export": ("out_dir", "json")}
+"""The output options of command modules that do not declare OUTPUTS themselves."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -52,39 +62,91 @@ def build_parser() -> argparse.ArgumentParser:
         cmd.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                          help="show full tracebacks for errors")
         module.add_arguments(cmd)
-        cmd.set_defaults(_run=module.run, _uses_tensorflow=getattr(module, "USES_TENSORFLOW", False))
+        cmd.set_defaults(_run=module.run, _uses_tensorflow=getattr(module, "USES_TENSORFLOW", False),
+                         _outputs=getattr(module, "OUTPUTS", OWNERS_OUTPUTS.get(module.NAME, ())),
+                         _resumable=getattr(module, "RESUMABLE_OUTPUTS", ()),
+                         _private_temp=getattr(module, "PRIVATE_TEMP", True))
     return parser
 
 
+def plan_outputs(args: argparse.Namespace) -> None:
+    """Register up front the files and folders the command's output options name (`fileio.plan_output`)."""
+    for names, resumable in ((args._outputs, False), (args._resumable, True)):
+        for name in names:
+            value = getattr(args, name, None)
+            for path in value if isinstance(value, (list, tuple)) else [value]:
+                if path is not None and os.fspath(path) != "":
+                    fileio.plan_output(path, resumable=resumable)
+
+
+def _kept(outputs: fileio.CommandOutputs) -> str:
+    kept = outputs.kept()
+    return f"; kept the files completed before it: {', '.join(map(str, kept))}" if kept else ""
+
+
+def _end(outputs: fileio.CommandOutputs, message: str | None, status: int) -> int:
+    """The one exit path of a command that did not finish: remove what it created and did not complete,
+    print one line naming what it completed, return the exit status (a stop signal's, if one came)."""
+    signum = fileio.stop_signal()
+    with fileio.stop_signals_ignored():
+        outputs.clean_up()
+        if signum is not None:
+            reason, status = fileio.STOP_SIGNALS[signum]
+            line = reason + (f": {message}" if message else "")
+        else:
+            line = f"error: {message}"
+        print(line + _kept(outputs), file=sys.stderr, flush=True)
+    return status
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    """Parse arguments and run a subcommand; user errors print `error: ...` and return 2."""
+    """Parse arguments and run a subcommand.
+
+    One exit path for every command: a user error (or any OSError, e.g. a full disk or a name too long)
+    prints one `error: ...` line and returns 2; Ctrl-C returns 130 and SIGTERM 143, each after one line.
+    However it ends, what the command created and did not complete is removed (the outputs its
+    options name, the folders it made, its private temporary folder) and what it completed is named.
+    """
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # keep TensorFlow's C++ start-up chatter (CUDA probing) off the terminal
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
-    with command_outputs() as outputs:
+    with fileio.command_outputs() as outputs, fileio.stop_signals_handled(), \
+            (fileio.private_temporary_folder() if args._private_temp else contextlib.nullcontext()):
         try:
+            plan_outputs(args)
             if args._uses_tensorflow:
                 import_tensorflow_quietly()
-            status = args._run(args)
-            return int(status or 0)
+            status = int(args._run(args) or 0)
         except UserError as exc:
             if args.debug:
+                outputs.clean_up()
                 raise
-            message = str(exc)
-            if isinstance(exc, WriteError):  # what a full disk cut short goes; what was completed stays, named
-                outputs.remove_created_folders()
-                if outputs.completed:
-                    message += f"; kept the files completed before it: {', '.join(map(str, outputs.completed))}"
-            print(f"error: {message}", file=sys.stderr)
-            return 2
-        except KeyboardInterrupt:
+            return _end(outputs, str(exc), EXIT_USER_ERROR)
+        except OSError as exc:  # a path the file system refused (a name too long, a full disk, no permission)
             if args.debug:
+                outputs.clean_up()
                 raise
-            print("interrupted", file=sys.stderr)
-            return 130
+            where = f"{os.fsdecode(exc.filename)}: " if isinstance(exc.filename, (str, bytes, os.PathLike)) else ""
+            return _end(outputs, where + fileio.os_error_reason(exc), EXIT_USER_ERROR)
+        except KeyboardInterrupt as exc:
+            if args.debug:
+                outputs.clean_up()
+                raise
+            if fileio.stop_signal() is None:  # raised without a signal seen here (a library's own handler)
+                fileio.note_stop_signal(signal.SIGTERM if "SIGTERM" in str(exc) else signal.SIGINT)
+            return _end(outputs, None, EXIT_USER_ERROR)
+        except BaseException:  # a defect: its traceback follows, but nothing half-made stays behind
+            outputs.clean_up()
+            raise
+        signum = fileio.stop_signal()
+        if signum is not None:  # a command that finalised its outputs when stopped (run, predict)
+            reason, stop_status = fileio.STOP_SIGNALS[signum]
+            print(reason + _kept(outputs), file=sys.stderr, flush=True)
+            return stop_status
+        return status
 
 
 if __name__ == "__main__":

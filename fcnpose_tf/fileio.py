@@ -33,24 +33,83 @@ class WriteError(UserError):
 
 
 class CommandOutputs:
-    """What one command wrote through this module: the folders it created and the files it completed.
+    """What one command creates: the paths it planned up front, the folders it made, the files it completed.
 
-    `command_outputs()` records them, so a failed command can remove the folders it made (with the
-    temporary files and partial outputs in them) and name the completed files it keeps.
+    `command_outputs()` records them while a command runs, so its one exit path (`clean_up`) can remove
+    what the command created and did not complete, and name the completed files it keeps.
     """
 
     def __init__(self) -> None:
         self.created_folders: list[Path] = []
         self.completed: list[Path] = []
+        self.planned: list[Path] = []
+        self.resumable: list[Path] = []
+
+    def plan(self, path: str | os.PathLike, resumable: bool = False) -> None:
+        """Register a file or folder the command will create (and the folders above it not there yet).
+
+        Those that do not exist now are removed by `clean_up` unless completed; a `resumable` folder (a
+        sweep's results) is kept as it is once it holds anything. UserError for a path the file system
+        refuses to look at (a name too long, a file used as a folder): `PATH: reason`.
+        """
+        path = Path(path)
+        missing = []
+        for candidate in (path, *path.parents):
+            try:
+                os.lstat(candidate)
+                break
+            except FileNotFoundError:
+                missing.append(candidate)
+                continue
+            except OSError as exc:  # a name too long, a file where a folder should be, no permission
+                raise UserError(f"{candidate}: {os_error_reason(exc)}") from None
+        for candidate in missing:  # the walk stops at the first missing folder: check the names below it too
+            if len(os.fsencode(candidate.name)) > _name_max(candidate.parent):
+                raise UserError(f"{candidate}: {os_error_reason(OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG)))}")
+        self.planned.extend(missing)
+        if resumable:
+            self.resumable.append(path)
+
+    def kept(self) -> list[Path]:
+        """The completed outputs, then the resumable folders that hold anything: what a failed command keeps."""
+        resumable = [p for p in self.resumable if p.is_dir() and any(p.iterdir())]
+        completed = [p for p in self.completed if os.path.lexists(p)]  # not one moved away or discarded since
+        return [*completed, *(p for p in resumable if p not in completed)]
+
+    def clean_up(self) -> None:
+        """Remove every planned path and created folder that exists, deepest first, unless it is, holds or is
+        part of a completed output (or a resumable folder that holds anything). Never raises."""
+        kept = []
+        for path in self.kept():
+            with contextlib.suppress(OSError):
+                kept.append(path.resolve())
+        for path in sorted(set(self.created_folders + self.planned), key=lambda p: len(p.parts), reverse=True):
+            try:
+                if not os.path.lexists(path):
+                    continue
+                resolved = path.parent.resolve() / path.name
+                if any(resolved == f or resolved in f.parents or f in resolved.parents for f in kept):
+                    continue
+                if path.is_dir() and not path.is_symlink():
+                    shutil.rmtree(path, ignore_errors=True)
+                else:
+                    path.unlink()
+            except OSError:
+                continue
 
     def remove_created_folders(self) -> None:
-        """Remove every folder this command created, deepest first, unless it holds or is part of a completed output."""
-        kept = [p.resolve() for p in self.completed]
-        for folder in sorted(set(self.created_folders), key=lambda p: len(p.parts), reverse=True):
-            resolved = folder.resolve()
-            if folder.is_dir() and not any(resolved == f or resolved in f.parents or f in resolved.parents
-                                           for f in kept):
-                shutil.rmtree(folder, ignore_errors=True)
+        """`clean_up` (the name the full-disk path used first)."""
+        self.clean_up()
+
+
+def _name_max(folder: Path) -> int:
+    """The longest file name (bytes) the file system of `folder`, or of its nearest existing parent, takes."""
+    for candidate in (folder, *folder.parents):
+        try:
+            return os.pathconf(candidate if str(candidate) else ".", "PC_NAME_MAX")
+        except (OSError, ValueError, AttributeError):
+            continue
+    return 255
 
 
 _outputs: CommandOutputs | None = None
@@ -58,7 +117,7 @@ _outputs: CommandOutputs | None = None
 
 @contextlib.contextmanager
 def command_outputs() -> Iterator[CommandOutputs]:
-    """Record the folders created and files completed by this module while a command runs (see CommandOutputs)."""
+    """Record the paths planned, folders created and files completed while a command runs (see CommandOutputs)."""
     global _outputs
     outer, _outputs = _outputs, CommandOutputs()
     try:
@@ -67,18 +126,31 @@ def command_outputs() -> Iterator[CommandOutputs]:
         _outputs = outer
 
 
+def plan_output(path: str | os.PathLike, resumable: bool = False) -> None:
+    """Register with the running command a file or folder it will create (`CommandOutputs.plan`)."""
+    if _outputs is not None:
+        _outputs.plan(path, resumable)
+
+
+def record_completed(path: str | os.PathLike) -> None:
+    """Name `path` as a completed output of the running command: kept, and named, however the command ends
+    (a stream of records written under its final name, once it holds a complete one)."""
+    _record_completed(Path(path))
+
+
 def _record_completed(path: Path) -> None:
     if _outputs is not None and path not in _outputs.completed:
         _outputs.completed.append(path)
 
 
 @contextlib.contextmanager
-def parts_of(output: str | os.PathLike) -> Iterator[None]:
+def parts_of(output: str | os.PathLike | None) -> Iterator[None]:
     """Run a block whose files are parts of one output (a dataset's frames, a checkpoint's files).
 
     Files completed inside are not kept as outputs of their own: if the block fails, none of them
     is named or keeps its folder from the failed command's cleanup; if it ends well, `output` (the
-    whole) is recorded as completed. Folders made inside are recorded as usual.
+    whole) is recorded as completed (None: not yet, the caller records the whole when it is).
+    Folders made inside are recorded as usual.
     """
     global _outputs
     outer = _outputs
@@ -91,7 +163,8 @@ def parts_of(output: str | os.PathLike) -> Iterator[None]:
     finally:
         inner, _outputs = _outputs, outer
         outer.created_folders.extend(inner.created_folders)
-    _record_completed(Path(output))
+    if output is not None:
+        _record_completed(Path(output))
 
 
 def remove_tree(folder: str | os.PathLike) -> None:
@@ -153,31 +226,115 @@ def signals_deferred() -> Iterator[None]:
             signal.raise_signal(sig)
 
 
+STOP_SIGNALS = {signal.SIGINT: ("interrupted (Ctrl-C)", 130), signal.SIGTERM: ("terminated (SIGTERM)", 143)}
+"""What each stop signal ends a command with: the line it prints and its exit status (128 + the signal's number)."""
+
+_stopped_by: list[int] = []
+
+
+def _on_stop_signal(signum, frame):
+    """SIGINT and SIGTERM: remembered for the exit status, then KeyboardInterrupt ("terminated (SIGTERM)")."""
+    _stopped_by.append(signum)
+    raise KeyboardInterrupt("" if signum == signal.SIGINT else STOP_SIGNALS[signum][0])
+
+
+def note_stop_signal(signum: int) -> None:
+    """Remember a stop signal another handler took (a sweep's executor), for the exit line and status."""
+    _stopped_by.append(signum)
+
+
+def stop_signal() -> int | None:
+    """The first SIGINT or SIGTERM received since `stop_signals_handled` began (None: none)."""
+    return _stopped_by[0] if _stopped_by else None
+
+
+@contextlib.contextmanager
+def _stop_handlers(handler) -> Iterator[None]:
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+        yield
+        return
+    previous = {sig: signal.getsignal(sig) for sig in STOP_SIGNALS}
+    try:
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, handler)
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+
+
 @contextlib.contextmanager
 def stop_signals_as_interrupt() -> Iterator[None]:
     """Within the block Ctrl-C (SIGINT) and a `kill` (SIGTERM) end the work with KeyboardInterrupt.
 
-    A command that finalises its outputs when stopped (`run`'s records and video, `predict`'s VIA
-    file) installs both handlers itself rather than relying on what it inherited: a command started
-    in the background from a script (`cmd &` in `sh -c`, or a test suite started so) inherits an
-    ignored SIGINT, and a camera run would then ignore Ctrl-C and `kill -INT` for ever. SIGTERM
-    raises KeyboardInterrupt("terminated (SIGTERM)"); the previous handlers come back when the block ends.
+    The CLI runs every command so (`stop_signals_handled`); a block that finalises its outputs when
+    stopped (`run`'s records and video, `predict`'s VIA file) also installs both handlers itself rather
+    than relying on what it inherited: a command started in the background from a script (`cmd &` in
+    `sh -c`, or a test suite started so) inherits an ignored SIGINT, and a camera run would then ignore
+    Ctrl-C and `kill -INT` for ever. SIGTERM raises KeyboardInterrupt("terminated (SIGTERM)"); the
+    signal is remembered (`stop_signal`) for the exit status; the previous handlers come back when the
+    block ends.
     """
-    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+    with _stop_handlers(_on_stop_signal):
         yield
-        return
 
-    def on_term(signum, frame):
-        raise KeyboardInterrupt("terminated (SIGTERM)")
 
-    previous = {signal.SIGINT: signal.getsignal(signal.SIGINT), signal.SIGTERM: signal.getsignal(signal.SIGTERM)}
+@contextlib.contextmanager
+def stop_signals_handled() -> Iterator[None]:
+    """A command's whole run: SIGINT and SIGTERM raise KeyboardInterrupt and are remembered (`stop_signal`)."""
+    del _stopped_by[:]
     try:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, on_term)
-        yield
+        with _stop_handlers(_on_stop_signal):
+            yield
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        del _stopped_by[:]
+
+
+@contextlib.contextmanager
+def stop_signals_ignored() -> Iterator[None]:
+    """A command's exit path: a further Ctrl-C or `kill` is remembered but does not cut the clean-up short."""
+    def remember(signum, frame):
+        _stopped_by.append(signum)
+
+    with _stop_handlers(remember):
+        yield
+
+
+_TEMPORARY_PREFIX = "fcnpose-tf."
+
+
+@contextlib.contextmanager
+def private_temporary_folder() -> Iterator[Path | None]:
+    """Run a block with Python's (and child processes') temporary folder set to one this process owns,
+    removed when the block ends, however it ends: what libraries leave in $TMPDIR (the TFLite
+    converter's SavedModel, autograph's modules) goes with it. Folders a killed (SIGKILL) earlier
+    command left are removed first, once their process is gone. Yields None (and changes nothing)
+    where the temporary folder takes no new folder.
+    """
+    base = Path(tempfile.gettempdir())
+    host = _host_tag()
+    pattern = re.compile(rf"{re.escape(_TEMPORARY_PREFIX)}(\d+)-([0-9a-f]{{6}})\.[a-z0-9_]+")
+    with contextlib.suppress(OSError):
+        for stale in base.glob(glob.escape(_TEMPORARY_PREFIX) + "*"):
+            match = pattern.fullmatch(stale.name)
+            if match and match.group(2) == host and not _process_alive(int(match.group(1))):
+                shutil.rmtree(stale, ignore_errors=True)
+    try:
+        folder = Path(tempfile.mkdtemp(prefix=f"{_TEMPORARY_PREFIX}{os.getpid()}-{host}.", dir=base))
+    except OSError:
+        yield None
+        return
+    saved_tempdir, saved_env = tempfile.tempdir, os.environ.get("TMPDIR")
+    tempfile.tempdir = os.environ["TMPDIR"] = str(folder)
+    try:
+        yield folder
+    finally:
+        tempfile.tempdir = saved_tempdir
+        if saved_env is None:
+            os.environ.pop("TMPDIR", None)
+        else:
+            os.environ["TMPDIR"] = saved_env
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 def check_writable(path: str | os.PathLike, force: bool = False) -> Path:

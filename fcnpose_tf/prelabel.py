@@ -105,7 +105,8 @@ class ViaPredictions:
             ok, png = cv2.imencode(".png", frame.image)
             if not ok:
                 raise UserError(f"{image_path}: OpenCV cannot encode the frame as PNG")
-            fileio.write_bytes(image_path, png.tobytes(), force=self.force)
+            with fileio.parts_of(None):  # parts of the project: kept and named with it, never alone
+                fileio.write_bytes(image_path, png.tobytes(), force=self.force)
             self.saved.append(image_path)
         keypoints = np.array(prediction.keypoints, np.float64, copy=True)
         found = prediction.found
@@ -121,8 +122,11 @@ class ViaPredictions:
         """Write the VIA project (atomically); None when no frame was added."""
         if not self.frames:
             return None
-        return write_via_project(self.via_path, self.frames, self.schema, force=self.force,
-                                 image_dir=self.image_dir if self.reference_files else None)
+        written = write_via_project(self.via_path, self.frames, self.schema, force=self.force,
+                                    image_dir=self.image_dir if self.reference_files else None)
+        if self.saved:
+            fileio.record_completed(self.frames_dir)
+        return written
 
     def discard(self) -> None:
         """Remove the frames saved so far (a run that failed writes no project)."""

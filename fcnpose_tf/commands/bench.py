@@ -18,6 +18,7 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "bench"
+OUTPUTS = ("json",)
 EXAMPLES = """\
   fcnpose-tf bench model.tflite                              # 1, 2, 4 ... up to all cores
   fcnpose-tf bench model.tflite --threads 1,2,4 --frames 200 --json bench.json

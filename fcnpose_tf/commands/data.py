@@ -14,6 +14,7 @@ from pathlib import Path
 from fcnpose_tf.data.args import add_data_arguments, load_from_args
 
 NAME = "data"
+OUTPUTS = ("out",)
 EXAMPLES = """\
   fcnpose-tf data inspect demo                          # counts, drops and folds of a dataset folder
   fcnpose-tf data inspect demo --out preview.png        # plus frames with keypoints, skeleton and maps

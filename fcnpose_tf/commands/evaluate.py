@@ -17,6 +17,7 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "evaluate"
+OUTPUTS = ("json",)
 USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf synth --out heldout --n 100 --seed 1

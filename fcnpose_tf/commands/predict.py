@@ -17,6 +17,7 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "predict"
+OUTPUTS = ("via",)
 EXAMPLES = """\
   fcnpose-tf predict saved_models/fcnpose_ur5_p70_fp16.tflite --source frames/ --via frames/pre.json
   fcnpose-tf predict models/arm.keras --source clip.mp4 --every 10 --via clip_labels/pre.json

@@ -19,6 +19,7 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "run"
+OUTPUTS = ("out", "save_video", "via")
 EXAMPLES = """\
   fcnpose-tf run model.tflite --source 0 --show                        # camera 0 in a window
   fcnpose-tf run model.tflite --source /dev/video0 --out k.jsonl --threads 4

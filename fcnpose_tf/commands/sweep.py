@@ -16,6 +16,10 @@ import argparse
 from pathlib import Path
 
 NAME = "sweep"
+RESUMABLE_OUTPUTS = ("out",)
+"""Kept as it is when the sweep stops: its finished jobs, which a rerun skips."""
+PRIVATE_TEMP = False
+"""Its jobs run in worker processes and Ray tasks that manage their own temporary files."""
 USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf sweep --rates 0.1:0.9:0.1 --folds 5 --out results/          # the paper's nine rates, 5-fold CV

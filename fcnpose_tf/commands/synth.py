@@ -14,6 +14,8 @@ import argparse
 from pathlib import Path
 
 NAME = "synth"
+OUTPUTS = ("out", "preview")
+"""Options naming what the command creates: removed again if it fails or is stopped before completing them."""
 EXAMPLES = """\
   fcnpose-tf synth --out data/synth --n 500 --seed 0          # training frames, 640x480
   fcnpose-tf synth --out data/synth_test --n 100 --seed 1     # a held-out set from another seed

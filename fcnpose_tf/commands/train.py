@@ -18,6 +18,7 @@ import argparse
 from pathlib import Path
 
 NAME = "train"
+OUTPUTS = ("out",)
 USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf train --data my_frames/ --out models/arm.keras         # fine-tune the bundled generalist, <= 30 min

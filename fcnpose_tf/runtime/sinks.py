@@ -26,8 +26,8 @@ import numpy as np
 
 from fcnpose_tf.draw import draw_keypoints
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import (check_writable, full_disk_error, os_error_reason, set_default_permissions,
-                               signals_deferred, temporary_path)
+from fcnpose_tf.fileio import (check_writable, full_disk_error, os_error_reason, record_completed,
+                               set_default_permissions, signals_deferred, temporary_path)
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.runtime.estimator import Prediction
 from fcnpose_tf.runtime.sources import Frame, quiet_opencv
@@ -95,8 +95,11 @@ class RecordWriter:
         raise NotImplementedError
 
     def close(self) -> None:
+        """Close the file; one that holds a complete record is a completed output (named however the command ends)."""
         if not self._fh.closed:
             self._fh.close()
+        if self.count:
+            record_completed(self.path)
 
     def __enter__(self) -> "RecordWriter":
         return self
@@ -264,8 +267,10 @@ class VideoSink:
         if self.path.exists() and not self.force:  # appeared while we were recording: keep both
             kept = _unused_name(self.path)
             os.replace(self._tmp, kept)
+            record_completed(kept)
             raise UserError(f"{self.path}: appeared during the run; the video was kept as {kept}")
         os.replace(self._tmp, self.path)
+        record_completed(self.path)
         return self.path
 
     def discard(self) -> None:
