@@ -27,6 +27,8 @@ platforms to ~1e-5, but its output is off the 1/255 grid.
 
 from __future__ import annotations
 
+import os
+
 import cv2
 import numpy as np
 
@@ -101,3 +103,19 @@ def keypoints_to_input(keypoints: np.ndarray, frame_shape: tuple[int, ...], inpu
 def keypoints_to_frame(keypoints: np.ndarray, frame_shape: tuple[int, ...], map_size: int) -> np.ndarray:
     """Scale K x 2 keypoints from map/model-input pixels back to frame pixels (NaN stays NaN)."""
     return (np.asarray(keypoints, np.float64) + 0.5) / frame_to_input_scale(frame_shape, map_size) - 0.5
+
+
+def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.ndarray | None:
+    """An image file as `cv2.imread(path, flags)` reads it, None if it is not a readable image.
+
+    The bytes are read by numpy and decoded from memory, so any file name the file system holds works
+    (`cv2.imread` passes the name as UTF-8 and crashes the process on a name that is not); an OSError
+    (missing, a folder, no permission) reads as None, as with `cv2.imread`.
+    """
+    try:
+        data = np.fromfile(os.fspath(path), dtype=np.uint8)
+    except (OSError, ValueError):
+        return None
+    if data.size == 0:
+        return None
+    return cv2.imdecode(data, flags)

@@ -47,7 +47,7 @@ def training_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
         if candidate.is_file():
             try:
                 return json.loads(candidate.read_text())
-            except ValueError:
+            except (OSError, ValueError, RecursionError):  # unreadable, not JSON, nested beyond Python's parser
                 return None
     return None
 

@@ -19,6 +19,8 @@ from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "bench"
 OUTPUTS = ("json",)
+MAX_FRAME_SIDE = 8192
+"""The largest synthetic frame side --frame-size takes (8192x8192 is 200 MB of pixels)."""
 EXAMPLES = """\
   fcnpose-tf bench model.tflite                              # 1, 2, 4 ... up to all cores
   fcnpose-tf bench model.tflite --threads 1,2,4 --frames 200 --json bench.json
@@ -48,6 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.runtime.bench import benchmark, load_frame, print_progress
     from fcnpose_tf.runtime.sources import parse_size
@@ -55,7 +58,11 @@ def run(args: argparse.Namespace) -> int:
     threads = args.threads or None
     if args.json is not None:
         check_writable(args.json, args.force)
-    frame, label = load_frame(args.image, parse_size(args.frame_size))
+    frame_size = parse_size(args.frame_size)
+    if max(frame_size) > MAX_FRAME_SIDE:  # 30000x30000 would be 2.7 GB of pixels before the first frame
+        raise UserError(f"--frame-size {args.frame_size}: at most {MAX_FRAME_SIDE} pixels a side (an 8K frame is "
+                        "7680x4320); for a real camera's frame pass --image")
+    frame, label = load_frame(args.image, frame_size)
     reports = []
     for i, model in enumerate(args.model):
         reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,

@@ -32,7 +32,7 @@ from fcnpose_tf.data.splits import Splits, load_or_create_splits
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
-from fcnpose_tf.preprocess import keypoints_to_input, preprocess_frame
+from fcnpose_tf.preprocess import keypoints_to_input, preprocess_frame, read_image
 
 
 @dataclass
@@ -88,10 +88,8 @@ class Dataset:
 
     def load_image(self, index: int) -> np.ndarray:
         """Frame `index` as OpenCV reads it (H x W x 3 uint8, BGR); UserError if unreadable or resized."""
-        import cv2
-
         sample = self.samples[index]
-        image = cv2.imread(str(sample.image_path), cv2.IMREAD_COLOR)
+        image = read_image(sample.image_path)
         if image is None:
             raise UserError(f"{sample.image_path}: cannot read image (missing, not an image or corrupt)")
         if image.shape[:2] != (sample.height, sample.width):

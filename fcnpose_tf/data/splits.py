@@ -175,8 +175,9 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
     if path.exists() and not resplit:
         try:
             data = json.loads(path.read_text("utf-8"))
-        except (OSError, ValueError) as exc:
-            raise UserError(f"{path}: cannot read splits file ({exc}); delete it to split again") from None
+        except (OSError, ValueError, RecursionError) as exc:
+            reason = "JSON nested too deeply to read" if isinstance(exc, RecursionError) else exc
+            raise UserError(f"{path}: cannot read splits file ({reason}); delete it to split again") from None
         splits = splits_from_dict(data, names, str(path))
         if (splits.seed, splits.k) != (seed, k) or abs(splits.val_fraction - val_fraction) > 1e-9:
             raise UserError(f"{path}: stored splits use seed {splits.seed}, {splits.k} folds, validation fraction "

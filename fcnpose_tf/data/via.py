@@ -197,6 +197,8 @@ def _load_json(path: Path):
         raise UserError(f"{path}: empty file; expected a VIA project or region-data export (JSON)")
     try:
         return json.loads(text)
+    except RecursionError:  # [[[[...]]]]: Python's parser gives up; no VIA project is nested so deep
+        raise UserError(f"{path}: not a VIA project (JSON nested too deeply to read)") from None
     except json.JSONDecodeError as exc:
         hint = " (the file looks truncated)" if exc.pos >= len(text.rstrip()) else ""
         raise UserError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}{hint}") from None
@@ -309,7 +311,9 @@ def image_size(path: Path) -> tuple[int, int]:
             pass
     import cv2
 
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    from fcnpose_tf.preprocess import read_image
+
+    img = read_image(path, cv2.IMREAD_UNCHANGED)
     if img is None:
         raise _FrameProblem(f"cannot read image {path} (not an image, or corrupt)")
     return int(img.shape[1]), int(img.shape[0])

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.preprocess import read_image
 
 THUMBNAIL_SIZE = (32, 24)
 """Width x height of the grey thumbnails compared: the background's layout, not its detail or noise."""
@@ -45,7 +46,7 @@ def view_variation(image_paths: Sequence[str | os.PathLike], sample: int = SAMPL
     picks = np.unique(np.linspace(0, len(paths) - 1, min(sample, len(paths))).round().astype(int))
     thumbs = []
     for i in picks:
-        image = cv2.imread(str(paths[i]), cv2.IMREAD_REDUCED_GRAYSCALE_4)
+        image = read_image(paths[i], cv2.IMREAD_REDUCED_GRAYSCALE_4)
         if image is None:
             raise UserError(f"{paths[i]}: cannot be read as an image")
         thumb = cv2.resize(image, THUMBNAIL_SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.preprocess import read_image
 from fcnpose_tf.records import host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
 from fcnpose_tf.runtime.interpreter import check_tflite_file, default_num_threads
@@ -183,7 +184,7 @@ def load_frame(path: str | os.PathLike | None, size: tuple[int, int] = (640, 480
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: image not found")
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    image = read_image(path)
     if image is None:
         raise UserError(f"{path}: cannot be read as an image")
     return np.ascontiguousarray(image), f"{path} ({image.shape[1]}x{image.shape[0]})"

@@ -77,7 +77,7 @@ class RecordWriter:
         self._write_line(self._line(frame_record(frame, prediction, self.schema)), counted=True)
 
     def _write_line(self, line: str, counted: bool) -> None:
-        data = line.encode("utf-8")
+        data = line.encode("utf-8", "surrogateescape")  # a file name that is not UTF-8 keeps its bytes
         with signals_deferred():
             try:
                 view = memoryview(data)

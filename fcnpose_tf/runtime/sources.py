@@ -28,6 +28,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.nativelog import NativeOutput, native_stderr_captured
+from fcnpose_tf.preprocess import read_image
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".pbm"})
 """File name endings read as still images (anything else that exists is tried as a video)."""
@@ -100,7 +101,7 @@ class ImageSource(FrameSource):
     def __iter__(self) -> Iterator[Frame]:
         self.end_reason = "running"
         for i, path in enumerate(self.paths):
-            image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            image = read_image(path)
             if image is None:
                 self.skipped += 1
                 self.warn(f"skipped {path}: not a readable image")
@@ -554,7 +555,7 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
         expected = "a video file" if refuse_cameras else "a camera index, /dev/videoN, picamera2, a video file"
         raise UserError(f"{path}: no such file or folder (expected {expected}, an image folder or an image)")
     if path.suffix.lower() in IMAGE_SUFFIXES:
-        if cv2.imread(str(path), cv2.IMREAD_COLOR) is None:
+        if read_image(path) is None:
             raise UserError(f"{path}: cannot be read as an image")
         return ImageSource([path], str(path), warn)
     return VideoSource(path, warn)

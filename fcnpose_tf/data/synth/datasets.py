@@ -25,6 +25,8 @@ VIA_FILENAME = "ur5_synth.json"
 """Name of the VIA project file `generate` writes in the output folder."""
 IMAGE_DIR = "images"
 IMAGE_NAME = "synth_{index:05d}.png"
+STAGING_PREFIX = ".synth-new."
+"""A new set is rendered into OUT/.synth-new.PID/ and replaces the earlier one only once it is complete."""
 PNG_COMPRESSION = 1  # fast; level 3 saves only ~4 % on noisy frames
 
 
@@ -90,7 +92,10 @@ class SynthReport:
 
 
 def _init_worker() -> None:
+    import signal
+
     cv2.setNumThreads(1)  # one process per core; OpenCV's own threads would only compete
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the main process ends the pool
 
 
 def _render_and_write(task: tuple[int, int, int, int, str, float, str, int, str, str]) -> FrameRecord:
@@ -129,6 +134,19 @@ def _prepare_output(out_dir: Path, force: bool) -> Path:
     return out_dir / IMAGE_DIR
 
 
+def _staging_folder(out_dir: Path) -> Path:
+    """OUT/.synth-new.PID/, made for this process; those a killed (SIGKILL) earlier run left are removed first."""
+    import shutil
+
+    from fcnpose_tf import fileio
+
+    for stale in out_dir.glob(STAGING_PREFIX + "*"):
+        pid = stale.name[len(STAGING_PREFIX):]
+        if pid.isdigit() and (int(pid) == os.getpid() or not fileio._process_alive(int(pid))):
+            shutil.rmtree(stale, ignore_errors=True)
+    return fileio.make_folder(out_dir / f"{STAGING_PREFIX}{os.getpid()}")
+
+
 def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
                      workers: int | None = None, force: bool = False, progress: bool = True,
                      tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
@@ -140,7 +158,9 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     workcell or a new random cell per frame (see DEFAULT_SCENE); `looks` the look family and `labels`
     the keypoint convention (`looks.FAMILIES`, `looks.LABEL_CONVENTIONS`). A non-empty out_dir is refused
     unless force, which also removes what belonged to the set being replaced: synth_*.png
-    frames beyond n and the stored folds (ur5_synth.splits.json).
+    frames beyond n and the stored folds (ur5_synth.splits.json). The new set is rendered beside the
+    old one (OUT/.synth-new.PID/) and replaces it only once complete: a full disk or a stop signal
+    leaves the earlier set as it was.
 
     Raises:
         UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, look family or label
@@ -167,17 +187,12 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
         raise UserError(f"--tight-framing must be between 0 and 1, got {tight_framing}")
     from tqdm import tqdm  # a missing package is also found before anything is touched
 
-    out_dir = Path(out_dir)  # every option checked: only now is an earlier set replaced
+    out_dir = Path(out_dir)  # every option checked
     image_dir = _prepare_output(out_dir, force)
-    keep = {IMAGE_NAME.format(index=i) for i in range(n)}
-    for stale in image_dir.glob("synth_*.png"):
-        if stale.name not in keep:
-            stale.unlink()
-    splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
-    (out_dir / VIA_FILENAME).unlink(missing_ok=True)  # written again last: no VIA file while frames change
+    staging = _staging_folder(out_dir)
 
     start = time.perf_counter()
-    tasks = [(int(seed), i, int(width), int(height), str(image_dir), float(tight_framing), scene, int(scene_seed),
+    tasks = [(int(seed), i, int(width), int(height), str(staging), float(tight_framing), scene, int(scene_seed),
               looks, labels) for i in range(n)]
     workers = min(workers, n)
     records: list[FrameRecord] = []
@@ -199,7 +214,18 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
                     bar.update()
         records.sort(key=lambda r: r.index)
         frames = [ViaFrame(r.filename, width, height, r.keypoints, size=r.size) for r in records]
-        via_path = write_via_project(out_dir / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)
+        with fileio.signals_deferred():  # the earlier set is replaced whole, or not at all
+            write_via_project(staging / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)  # a full disk fails here
+            keep = {r.filename for r in records}
+            for stale in image_dir.glob("synth_*.png"):  # what belonged to the set being replaced
+                if stale.name not in keep:
+                    stale.unlink()
+            splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
+            for record in records:
+                os.replace(staging / record.filename, image_dir / record.filename)
+            via_path = out_dir / VIA_FILENAME
+            os.replace(staging / VIA_FILENAME, via_path)
+            staging.rmdir()
     return SynthReport(Path(via_path), records, time.perf_counter() - start, workers, int(width), int(height), looks,
                        labels)
 
