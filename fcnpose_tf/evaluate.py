@@ -68,11 +68,10 @@ class KerasKeypointModel(KeypointPredictor):
             from fcnpose_tf.model import load_model
 
             path, model = model, load_model(model)
+        from fcnpose_tf.model import check_fixed_input
+
+        check_fixed_input(model, path)
         shape = model.input_shape
-        if isinstance(shape, tuple) and len(shape) == 4 and (shape[1] is None or shape[2] is None):
-            raise UserError(f"{path or model.name}: the input size is not fixed (input shape {shape}); FCN-Pose runs "
-                            "at one S x S size: rebuild the model on tf_keras.Input((S, S, 3)) (S a multiple of 32, "
-                            "e.g. 224), copy the weights over (new.set_weights(old.get_weights())) and save that")
         if len(shape) != 4 or shape[1] != shape[2] or shape[3] != 3 or len(model.output_shape) != 4:
             raise UserError(f"{path or model.name}: not an FCN-Pose model (input {shape}, output "
                             f"{model.output_shape}); expected S x S x 3 in, S x S x C maps out")

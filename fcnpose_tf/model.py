@@ -175,7 +175,8 @@ def save_for_inference(model: keras.Model, path) -> None:
 
 
 def load_model(path) -> keras.Model:
-    """Load a .keras or .h5 model file for inference, with a clear error for missing or broken files."""
+    """Load a .keras or .h5 model file for inference, with a clear error for missing or broken files
+    and for a model whose input size is not fixed (`check_fixed_input`)."""
     from pathlib import Path
 
     path = Path(path)
@@ -185,7 +186,21 @@ def load_model(path) -> keras.Model:
         raise UserError(f"{path}: expected a Keras model file (.keras or .h5)"
                         + ("; use a .tflite with `run`, `bench` or `evaluate`" if path.suffix == ".tflite" else ""))
     try:
-        return keras.models.load_model(path, compile=False)
+        model = keras.models.load_model(path, compile=False)
     except Exception as exc:  # keras raises many types for a corrupt file
         raise UserError(f"{path}: cannot be read as a Keras model ({type(exc).__name__}: "
                         f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from exc
+    check_fixed_input(model, path)
+    return model
+
+
+def check_fixed_input(model: keras.Model, path=None) -> None:
+    """UserError, saying how to fix it, for a model whose input height or width is not fixed (None).
+
+    Every command runs FCN-Pose at one S x S size (preprocessing, target maps, the static TFLite input).
+    """
+    shape = model.input_shape
+    if isinstance(shape, tuple) and len(shape) == 4 and (shape[1] is None or shape[2] is None):
+        raise UserError(f"{path or model.name}: the input size is not fixed (input shape {shape}); FCN-Pose runs "
+                        "at one S x S size: rebuild the model on tf_keras.Input((S, S, 3)) (S a multiple of 32, "
+                        "e.g. 224), copy the weights over (new.set_weights(old.get_weights())) and save that")

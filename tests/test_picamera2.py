@@ -243,8 +243,9 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
         proc.kill()
         stdout, stderr = proc.communicate()
         pytest.fail(f"the run did not end within 120 s of the signal; its threads:\n{stderr[-8000:]}")
-    assert proc.returncode == 0, stdout + stderr
+    assert proc.returncode == {signal.SIGINT: 130, signal.SIGTERM: 143}[sig], stdout + stderr
     assert f"stopped: {reason}" in stdout and "Latency: capture to keypoints written" in stdout
+    assert stderr.splitlines()[-1].startswith(f"{reason}; kept the files completed before it: {out}")
     lines = out.read_text().splitlines()
     assert f"Wrote:   {out} ({len(lines)} records)" in stdout
     assert "Traceback" not in stderr

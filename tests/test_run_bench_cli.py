@@ -213,7 +213,7 @@ def test_bench_user_errors(capsys, tmp_path, model_path, args, message):
 
 
 def test_sigterm_ends_a_run_cleanly(tmp_path, model_path):
-    """`kill` during a run: exit 0, summary printed, every record written so far is complete."""
+    """`kill` during a run: exit 143, summary printed, every record written so far is complete and named."""
     import os
     import signal
     import subprocess
@@ -232,8 +232,9 @@ def test_sigterm_ends_a_run_cleanly(tmp_path, model_path):
     assert proc.poll() is None and out.stat().st_size > 0, "the run did not start writing records in time"
     proc.send_signal(signal.SIGTERM)
     stdout, stderr = proc.communicate(timeout=300)
-    assert proc.returncode == 0, stderr
+    assert proc.returncode == 143, stderr
     assert "stopped: terminated (SIGTERM)" in stdout
+    assert stderr.splitlines()[-1] == f"terminated (SIGTERM); kept the files completed before it: {out}"
     lines = out.read_text().splitlines()
     assert 0 < len(lines) < 6000 and f"Wrote:   {out} ({len(lines)} records)" in stdout
     assert [json.loads(line)["frame"] for line in lines] == list(range(len(lines)))

@@ -1,0 +1,426 @@
+"""One exit path for every command: however a command ends (a user error, an OSError, Ctrl-C, SIGTERM),
+what it created and did not complete is gone, what it completed is named, in one line with a documented
+exit status (2; 130 for SIGINT, 143 for SIGTERM)."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+
+from fcnpose_tf.cli import main
+
+LONG = "n" * 300  # longer than any file system's file name limit (255 bytes)
+STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}
+LINE = {signal.SIGINT: "interrupted (Ctrl-C)", signal.SIGTERM: "terminated (SIGTERM)"}
+
+
+@pytest.fixture(scope="module")
+def tflite_model(tmp_path_factory):
+    """The hand-set FCN-Pose of test_runtime as a .tflite file (converted once per module)."""
+    from test_runtime import _convert_plain, _structured_model
+
+    path = tmp_path_factory.mktemp("exit_models") / "structured.tflite"
+    path.write_bytes(_convert_plain(_structured_model()))
+    return path
+
+
+def _one_error_line(status, err, *parts):
+    assert status == 2, err
+    assert "Traceback" not in err, err
+    lines = [line for line in err.strip().splitlines() if line.startswith("error: ")]
+    assert len(lines) == 1 and err.strip().splitlines()[-1] == lines[0], err  # the last line, the only error
+    for part in parts:
+        assert part in lines[0], err
+    return lines[0]
+
+
+# -- 1. what a failed command created up front goes ------------------------------------------------------
+
+def _empty_folder(tmp_path):
+    folder = tmp_path / "empty"
+    folder.mkdir()
+    return folder
+
+
+USER_ERRORS = {
+    "predict --via": lambda t, m: ["predict", m, "--source", _empty_folder(t), "--via", t / "out" / "p.json"],
+    "run --out": lambda t, m: ["run", m, "--source", _empty_folder(t), "--out", t / "out" / "k.jsonl"],
+    "run --save-video": lambda t, m: ["run", m, "--source", _empty_folder(t), "--save-video", t / "out" / "v.avi"],
+    "run --via": lambda t, m: ["run", m, "--source", _empty_folder(t), "--via", t / "out" / "sub" / "p.json"],
+    "bench --json": lambda t, m: ["bench", m, "--image", t / "missing.png", "--json", t / "out" / "b.json"],
+    "evaluate --json": lambda t, m: ["evaluate", m, "--data", _empty_folder(t), "--json", t / "out" / "e.json"],
+    "data inspect --out": lambda t, m: ["data", "inspect", _empty_folder(t), "--out", t / "out" / "p.png"],
+}
+
+
+@pytest.mark.parametrize("case", USER_ERRORS)
+def test_a_user_error_leaves_no_folder_the_command_created(tmp_path, tflite_model, capsys, case):
+    args = USER_ERRORS[case](tmp_path, tflite_model)
+    status = main(list(map(str, args)))
+    _one_error_line(status, capsys.readouterr().err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_train_with_bad_data_leaves_no_output_folder(tmp_path, capsys):
+    status = main(["train", "--data", str(_empty_folder(tmp_path)), "--out", str(tmp_path / "models" / "m.keras"),
+                   "--init", "none", "--augment", "paper"])
+    _one_error_line(status, capsys.readouterr().err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
+
+
+def test_ctrl_c_removes_what_the_command_made_and_exits_130(tmp_path, tflite_model, capsys, monkeypatch):
+    from fcnpose_tf.runtime import bench
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(bench, "benchmark", interrupted)
+    status = main(["bench", str(tflite_model), "--json", str(tmp_path / "out" / "deeper" / "b.json")])
+    assert status == 130
+    assert capsys.readouterr().err.splitlines() == ["interrupted (Ctrl-C)"]
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_failed_command_names_what_it_completed_and_removes_the_rest(tmp_path, capsys):
+    from fcnpose_tf import fileio
+    from fcnpose_tf.commands import bench as bench_command
+    from fcnpose_tf.errors import UserError
+
+    def run(args):
+        fileio.write_text(tmp_path / "out" / "done.txt", "kept")
+        fileio.make_folder(tmp_path / "out" / "half" / "made")
+        (tmp_path / "out" / "half" / "made" / "part").write_text("not completed")
+        raise UserError("it went wrong")
+
+    original = bench_command.run
+    bench_command.run = run
+    try:
+        status = main(["bench", "m.tflite", "--json", str(tmp_path / "out" / "b.json")])
+    finally:
+        bench_command.run = original
+    line = _one_error_line(status, capsys.readouterr().err)
+    assert line == f"error: it went wrong; kept the files completed before it: {tmp_path / 'out' / 'done.txt'}"
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["done.txt"]
+
+
+# -- 2. a name longer than the file system takes: one line naming it ---------------------------------------
+
+LONG_NAMES = {
+    "bench --json": lambda t, m: ["bench", m, "--json", t / LONG / "b.json"],
+    "bench model": lambda t, m: ["bench", t / f"{LONG}.tflite"],
+    "run --source": lambda t, m: ["run", m, "--source", t / f"{LONG}.mp4"],
+    "run --out": lambda t, m: ["run", m, "--source", t / "x.mp4", "--out", t / f"{LONG}.jsonl"],
+    "predict --via": lambda t, m: ["predict", m, "--source", t, "--via", t / f"{LONG}.json"],
+    "predict --source": lambda t, m: ["predict", m, "--source", t / LONG, "--via", t / "p.json"],
+    "evaluate --data": lambda t, m: ["evaluate", m, "--data", t / LONG],
+    "evaluate --json": lambda t, m: ["evaluate", m, "--data", t, "--json", t / "o" / f"{LONG}.json"],
+    "data inspect": lambda t, m: ["data", "inspect", t / f"{LONG}.json"],
+    "synth --out": lambda t, m: ["synth", "--out", t / LONG, "--n", "1"],
+    "train --out": lambda t, m: ["train", "--data", t, "--out", t / f"{LONG}.keras"],
+    "export --out-dir": lambda t, m: ["export", t / "m.keras", "--out-dir", t / LONG],
+    "compress --out-dir": lambda t, m: ["compress", "--rate", "0.5", "--out-dir", t / LONG],
+    "sweep --out": lambda t, m: ["sweep", "--out", t / LONG, "--report-only"],
+}
+
+
+@pytest.mark.parametrize("case", LONG_NAMES)
+def test_a_file_name_too_long_is_one_line_naming_it(tmp_path, tflite_model, capsys, case):
+    status = main(list(map(str, LONG_NAMES[case](tmp_path, tflite_model))))
+    _one_error_line(status, capsys.readouterr().err, LONG, "file name too long")
+    assert not any(LONG in p.name for p in tmp_path.rglob("*"))
+
+
+# -- 3. an image file name that is not UTF-8 --------------------------------------------------------------
+
+@pytest.fixture
+def odd_name_folder(tmp_path):
+    """A folder with two frames, one named `im\\xe9.png` (Latin-1 bytes, not UTF-8)."""
+    import cv2
+    import numpy as np
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    frame = np.zeros((64, 64, 3), np.uint8)
+    frame[:32, :32] = 255
+    cv2.imwrite(str(folder / "a.png"), frame)
+    odd = os.path.join(os.fsencode(folder), b"im\xe9.png")
+    os.rename(os.fsencode(folder / "a.png"), odd)
+    cv2.imwrite(str(folder / "b.png"), frame)
+    return folder, os.fsdecode(odd)
+
+
+def test_image_names_that_are_not_utf8_are_read(cli, tmp_path, tflite_model, odd_name_folder):
+    folder, odd = odd_name_folder
+    proc = cli("run", tflite_model, "--source", folder, "--threads", "1", "--out", tmp_path / "k.jsonl")
+    assert proc.returncode == 0, proc.stderr
+    assert "Traceback" not in proc.stderr and "skipped" not in proc.stderr
+    assert len((tmp_path / "k.jsonl").read_text().splitlines()) == 2
+    proc = cli("predict", tflite_model, "--source", folder, "--threads", "1", "--via", folder / "pre.json")
+    assert proc.returncode == 0, proc.stderr
+    from fcnpose_tf.data.via import read_via
+
+    assert sorted(f.image_path.name for f in read_via(folder / "pre.json", min_visible=0).frames) == \
+        sorted(["b.png", os.path.basename(odd)])
+    proc = cli("bench", tflite_model, "--image", odd, "--frames", "2", "--warmup", "0", "--threads", "1")
+    assert proc.returncode == 0, proc.stderr
+
+
+def test_read_image_takes_any_name_and_reads_what_imread_reads(odd_name_folder):
+    import cv2
+    import numpy as np
+
+    from fcnpose_tf.preprocess import read_image
+
+    folder, odd = odd_name_folder
+    assert np.array_equal(read_image(odd), cv2.imread(str(folder / "b.png")))
+    assert read_image(folder) is None and read_image(folder / "missing.png") is None
+
+
+# -- 4. SIGTERM and SIGINT end every command the same way ----------------------------------------------------
+
+def _start(tmp_path, *args, env=None):
+    """`python -m fcnpose_tf ARGS` in the background, its output in files (no pipe to fill and block it)."""
+    out, err = open(tmp_path / "stdout.txt", "w"), open(tmp_path / "stderr.txt", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", *map(str, args)], stdout=out, stderr=err,
+                            cwd=tmp_path, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", **(env or {})))
+    out.close()
+    err.close()
+    return proc
+
+
+def _exists(test):
+    try:
+        return bool(test())
+    except OSError:  # a folder renamed or removed while it was looked at
+        return False
+
+
+def _signal_once_started(proc, sig, started, what, timeout=600):
+    """Poll (no fixed sleep) until `started()` holds, send `sig`, and wait for the end; returns (stdout, stderr)."""
+    deadline = time.monotonic() + timeout  # generous: a loaded machine may take minutes to import TensorFlow
+    while time.monotonic() < deadline and proc.poll() is None and not _exists(started):
+        time.sleep(0.05)
+    assert proc.poll() is None, f"the command ended before {what}"
+    assert _exists(started), f"{what} did not happen within {timeout} s"
+    proc.send_signal(sig)
+    try:
+        proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        pytest.fail(f"the command did not end within {timeout} s of the signal")
+    return proc.returncode
+
+
+def _outputs(tmp_path):
+    return (tmp_path / "stdout.txt").read_text(), (tmp_path / "stderr.txt").read_text()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_synth_stopped_leaves_nothing_and_a_rerun_works(tmp_path, sig):
+    ds = tmp_path / "ds"
+    proc = _start(tmp_path, "synth", "--out", ds, "--n", "3000", "--width", "64", "--height", "64",
+                  "--workers", "1", "--no-progress")
+    status = _signal_once_started(proc, sig, lambda: any(ds.rglob("*.png")), "the first frame")
+    stdout, stderr = _outputs(tmp_path)
+    assert status == STATUS[sig], stderr
+    assert stderr.splitlines() == [LINE[sig]]
+    assert not ds.exists()
+    assert main(["synth", "--out", str(ds), "--n", "2", "--width", "64", "--height", "64", "--no-progress"]) == 0
+
+
+def test_synth_force_stopped_keeps_the_earlier_set_whole(tmp_path):
+    ds = tmp_path / "ds"
+    assert main(["synth", "--out", str(ds), "--n", "3", "--width", "64", "--height", "64", "--workers", "1",
+                 "--no-progress"]) == 0
+    before = {p.relative_to(ds): p.read_bytes() for p in ds.rglob("*") if p.is_file()}
+    proc = _start(tmp_path, "synth", "--out", ds, "--n", "3000", "--seed", "1", "--width", "64", "--height", "64",
+                  "--workers", "1", "--no-progress", "--force")
+    new_frame = lambda: any(p.name.endswith(".png") and p.relative_to(ds) not in before for p in ds.rglob("*"))  # noqa: E731
+    status = _signal_once_started(proc, signal.SIGTERM, new_frame, "the first new frame")
+    assert status == 143, _outputs(tmp_path)[1]
+    after = {p.relative_to(ds): p.read_bytes() for p in ds.rglob("*") if p.is_file()}
+    assert after == before and sorted(p.name for p in ds.iterdir()) == ["images", "ur5_synth.json"]
+
+
+def _tmpdir_holds_a_file(tmpdir):
+    return any(p.is_file() for p in tmpdir.rglob("*"))
+
+
+@pytest.mark.slow
+def test_export_stopped_leaves_no_out_dir_and_nothing_in_tmpdir(tmp_path):
+    from fcnpose_tf.model import build_fcn_pose
+
+    model = tmp_path / "m.keras"
+    build_fcn_pose(input_size=64).save(model)
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    proc = _start(tmp_path, "export", model, "--out-dir", tmp_path / "out", "--quantize", "float16",
+                  env={"TMPDIR": str(tmpdir)})
+    status = _signal_once_started(proc, signal.SIGTERM, lambda: _tmpdir_holds_a_file(tmpdir),
+                                  "the converter's first temporary file")
+    stdout, stderr = _outputs(tmp_path)
+    assert status == 143, stderr
+    assert "Traceback" not in stderr and stderr.strip().splitlines()[-1] == "terminated (SIGTERM)"
+    assert not (tmp_path / "out").exists()
+    assert list(tmpdir.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_train_stopped_says_so_in_one_line_with_the_signal_status(tmp_path):
+    from test_reliability import TINY_TRAIN, _frames_with_stored_splits
+
+    data = _frames_with_stored_splits(tmp_path / "d")
+    out = tmp_path / "models" / "m.keras"
+    proc = _start(tmp_path, "train", "--data", data, "--out", out, "--epochs", "500", *TINY_TRAIN)
+    status = _signal_once_started(proc, signal.SIGTERM, lambda: (out.parent / "m.ckpt" / "state.json").is_file(),
+                                  "the first epoch's checkpoint")
+    stdout, stderr = _outputs(tmp_path)
+    assert status == 143, stderr
+    assert "Traceback" not in stderr
+    last = stderr.strip().splitlines()[-1]
+    assert last.startswith("terminated (SIGTERM): interrupted after ") and "--resume" in last, stderr
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_bench_stopped_removes_its_json_folder(tmp_path, tflite_model, sig):
+    out = tmp_path / "out" / "b.json"
+    proc = _start(tmp_path, "bench", tflite_model, "--threads", "1", "--frames", "100000000", "--warmup", "0",
+                  "--json", out)
+    status = _signal_once_started(proc, sig, lambda: (tmp_path / "stdout.txt").stat().st_size > 0
+                                  or (tmp_path / "stderr.txt").stat().st_size > 0, "the first line of output")
+    stdout, stderr = _outputs(tmp_path)
+    assert status == STATUS[sig], stderr
+    assert stderr.strip().splitlines()[-1] == LINE[sig] and "Traceback" not in stderr
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_private_temporary_folder_is_removed_and_a_killed_ones_later(tmp_path, monkeypatch, capsys):
+    import tempfile
+
+    from fcnpose_tf import fileio
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    seen = []
+
+    def run(args):
+        seen.append(tempfile.gettempdir())
+        open(os.path.join(tempfile.mkdtemp(), "x"), "w").close()  # what a library leaves in $TMPDIR
+        return 0
+
+    from fcnpose_tf.commands import bench as bench_command
+
+    stranded = tmp_path / f"fcnpose-tf.999999999-{fileio._host_tag()}.abcdefgh"  # a process that is gone
+    stranded.mkdir()
+    monkeypatch.setattr(bench_command, "run", run)
+    assert main(["bench", "m.tflite"]) == 0
+    assert seen and seen[0] != str(tmp_path) and os.path.dirname(seen[0]) == str(tmp_path)
+    assert list(tmp_path.iterdir()) == [] and tempfile.gettempdir() == str(tmp_path)
+
+
+# -- 5. JSON nested deeper than Python's parser goes ----------------------------------------------------------
+
+@pytest.fixture
+def nested(tmp_path):
+    path = tmp_path / "deep" / "labels.json"
+    path.parent.mkdir()
+    path.write_text("[" * 200_000 + "]" * 200_000)
+    return path
+
+
+@pytest.mark.parametrize("command", ["data", "evaluate", "train"])
+def test_deeply_nested_json_is_not_a_via_project(tmp_path, tflite_model, nested, capsys, command):
+    args = {"data": ["data", "inspect", nested],
+            "evaluate": ["evaluate", tflite_model, "--data", nested],
+            "train": ["train", "--data", nested, "--out", tmp_path / "m.keras", "--init", "none", "--augment",
+                      "paper"]}[command]
+    status = main(list(map(str, args)))
+    _one_error_line(status, capsys.readouterr().err, str(nested), "not a VIA project")
+
+
+def test_a_deeply_nested_training_record_reads_as_none(tmp_path):
+    from fcnpose_tf.records import training_record
+
+    (tmp_path / "m_train.json").write_text("[" * 200_000 + "]" * 200_000)
+    assert training_record(tmp_path / "m.keras") is None
+
+
+# -- 6. a Keras model whose input size is not fixed -----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def dynamic_keras(tmp_path_factory):
+    import tf_keras as keras
+
+    inputs = keras.Input((None, None, 3))
+    outputs = keras.layers.Conv2D(9, 3, padding="same", activation="sigmoid")(inputs)
+    path = tmp_path_factory.mktemp("dynamic") / "dyn.keras"
+    keras.Model(inputs, outputs).save(path)
+    return path
+
+
+@pytest.mark.parametrize("command", ["predict", "evaluate", "export"])
+def test_a_keras_model_without_a_fixed_input_size_is_refused_with_how_to_fix_it(tmp_path, dynamic_keras, capsys,
+                                                                               odd_name_folder, command):
+    folder, _ = odd_name_folder
+    args = {"predict": ["predict", dynamic_keras, "--source", folder, "--via", tmp_path / "out" / "p.json"],
+            "evaluate": ["evaluate", dynamic_keras, "--data", tmp_path / "nothing"],
+            "export": ["export", dynamic_keras, "--out-dir", tmp_path / "out"]}[command]
+    status = main(list(map(str, args)))
+    _one_error_line(status, capsys.readouterr().err, str(dynamic_keras), "input size is not fixed")
+    assert not (tmp_path / "out").exists()
+
+
+# -- 8. the smaller ones -------------------------------------------------------------------------------------
+
+def test_bench_frame_size_is_bounded(capsys):
+    status = main(["bench", "m.tflite", "--frame-size", "30000x30000"])
+    _one_error_line(status, capsys.readouterr().err, "--frame-size 30000x30000", "at most 8192")
+
+
+def test_predict_on_a_full_disk_names_no_frame_and_leaves_no_folder(tmp_path, tflite_model, capsys, monkeypatch):
+    """The third saved frame finds the disk full: the frames saved are parts of a project never written."""
+    from fcnpose_tf import fileio
+    from test_runtime import RED_CYCLE, quadrant_frame, write_video
+
+    video = write_video(tmp_path / "clip.avi", [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(8)])
+    original, calls = fileio.write_bytes, []
+
+    def write_bytes(path, data, force=False):
+        calls.append(path)
+        if len(calls) == 3:
+            raise fileio.WriteError(f"{path}: no space left on device")
+        return original(path, data, force)
+
+    monkeypatch.setattr(fileio, "write_bytes", write_bytes)
+    status = main(["predict", str(tflite_model), "--source", str(video), "--threads", "1",
+                   "--via", str(tmp_path / "p" / "pre.json")])
+    line = _one_error_line(status, capsys.readouterr().err, "no space left on device")
+    assert "kept" not in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.avi"]
+
+
+def test_records_kept_after_a_failure_are_named(tmp_path, tflite_model, capsys, monkeypatch):
+    """A run that fails after writing records keeps them (a stream of complete lines) and says so."""
+    from fcnpose_tf.runtime import sinks
+    from test_runtime import RED_CYCLE, quadrant_frame, write_video
+
+    video = write_video(tmp_path / "clip.avi", [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(8)])
+    original, calls = sinks.JsonlWriter.write, []
+
+    def write(self, frame, prediction):
+        calls.append(frame.index)
+        if len(calls) == 3:
+            raise OSError(28, "No space left on device", str(self.path))
+        return original(self, frame, prediction)
+
+    monkeypatch.setattr(sinks.JsonlWriter, "write", write)
+    out = tmp_path / "o" / "k.jsonl"
+    status = main(["run", str(tflite_model), "--source", str(video), "--threads", "1", "--out", str(out)])
+    line = _one_error_line(status, capsys.readouterr().err)
+    assert line == f"error: {out}: no space left on device; kept the files completed before it: {out}"
+    assert len(out.read_text().splitlines()) == 2
+    assert [json.loads(x)["frame"] for x in out.read_text().splitlines()] == [0, 1]
