@@ -26,6 +26,7 @@ from abc import ABC, abstractmethod
 from typing import Any, Callable, Iterator, Sequence
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import note_stop_signal
 from fcnpose_tf.sweep.jobs import Job, JobEvent
 
 JobFunction = Callable[[Any, Job], dict]
@@ -58,6 +59,7 @@ def stop_on_signals() -> Iterator[threading.Event]:
 
     def handler(signum, frame):
         event.set()
+        note_stop_signal(signum)  # the CLI's one line and exit status (130 or 143) name the signal
         raise KeyboardInterrupt
 
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
