@@ -424,3 +424,23 @@ def test_records_kept_after_a_failure_are_named(tmp_path, tflite_model, capsys, 
     assert line == f"error: {out}: no space left on device; kept the files completed before it: {out}"
     assert len(out.read_text().splitlines()) == 2
     assert [json.loads(x)["frame"] for x in out.read_text().splitlines()] == [0, 1]
+
+
+@pytest.mark.slow
+def test_compress_stopped_while_retraining_leaves_nothing_and_suggests_no_resume(tmp_path):
+    from fcnpose_tf.model import build_fcn_pose
+    from test_reliability import _frames_with_stored_splits
+
+    data = _frames_with_stored_splits(tmp_path / "d")
+    base = tmp_path / "base.keras"
+    build_fcn_pose(input_size=64).save(base)
+    out = tmp_path / "out"
+    proc = _start(tmp_path, "compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "500",
+                  "--out-dir", out, "--threads", "1")
+    status = _signal_once_started(proc, signal.SIGTERM, lambda: (out / "base_p70.ckpt" / "state.json").is_file(),
+                                  "the first retraining checkpoint")
+    stdout, stderr = _outputs(tmp_path)
+    assert status == 143, stderr
+    assert "Traceback" not in stderr and "--resume" not in stderr
+    assert stderr.strip().splitlines()[-1].startswith("terminated (SIGTERM)"), stderr
+    assert not out.exists()
