@@ -169,6 +169,20 @@ def test_image_names_that_are_not_utf8_are_read(cli, tmp_path, tflite_model, odd
     assert proc.returncode == 0, proc.stderr
 
 
+def test_video_names_that_are_not_utf8_are_read_and_written(cli, tmp_path, tflite_model):
+    from test_runtime import RED_CYCLE, quadrant_frame, write_video
+
+    video = write_video(tmp_path / "clip.avi", [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(4)])
+    odd = os.fsdecode(os.path.join(os.fsencode(tmp_path), b"clip\xe9.avi"))
+    os.rename(video, odd)
+    overlay = os.fsdecode(os.path.join(os.fsencode(tmp_path), b"overlay\xe9.avi"))
+    proc = cli("run", tflite_model, "--source", odd, "--threads", "1", "--save-video", overlay,
+               "--out", tmp_path / "k.csv")
+    assert proc.returncode == 0, proc.stderr
+    rows = (tmp_path / "k.csv").read_text("utf-8").splitlines()  # still UTF-8 text, the name escaped
+    assert os.path.getsize(overlay) > 0 and len(rows) == 5 and "clip\\udce9.avi" in rows[1]
+
+
 def test_read_image_takes_any_name_and_reads_what_imread_reads(odd_name_folder):
     import cv2
     import numpy as np

@@ -29,6 +29,7 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import (check_writable, full_disk_error, os_error_reason, record_completed,
                                set_default_permissions, signals_deferred, temporary_path)
 from fcnpose_tf.keypoints import KeypointSchema
+from fcnpose_tf.preprocess import opencv_name
 from fcnpose_tf.runtime.estimator import Prediction
 from fcnpose_tf.runtime.sources import Frame, quiet_opencv
 
@@ -77,7 +78,7 @@ class RecordWriter:
         self._write_line(self._line(frame_record(frame, prediction, self.schema)), counted=True)
 
     def _write_line(self, line: str, counted: bool) -> None:
-        data = line.encode("utf-8", "surrogateescape")  # a file name that is not UTF-8 keeps its bytes
+        data = line.encode("utf-8", "backslashreplace")  # a file name that is not UTF-8: \udce9, still UTF-8 text
         with signals_deferred():
             try:
                 view = memoryview(data)
@@ -232,7 +233,8 @@ class VideoSink:
             h, w = image.shape[:2]
             self.size = (w, h)
             with quiet_opencv():
-                writer = cv2.VideoWriter(str(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps, self.size)
+                writer = cv2.VideoWriter(opencv_name(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps,
+                                         self.size)
             if not writer.isOpened():
                 with quiet_opencv():
                     writer.release()
