@@ -8,7 +8,7 @@ camera, also the latency from capture to keypoints written). --via saves the fra
 with their keypoints as a VIA project, to correct and train on (docs/data.md).
 The Raspberry Pi camera module is read through Picamera2 (--source picamera2; see
 docs/raspberry-pi.md for the install). Stop a camera run with Ctrl-C (or q/Esc in the
-window); what was processed is kept.
+window); what was processed is kept and named (exit status 130 for Ctrl-C, 143 for SIGTERM, 0 for q/Esc).
 """
 
 from __future__ import annotations
