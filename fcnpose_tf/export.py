@@ -98,7 +98,26 @@ THRESHOLD_MARGIN = 1e-2
 
 
 class ExportVerificationError(UserError):
-    """A converted model disagrees with its Keras model (or does not load); nothing was written."""
+    """A converted model disagrees with its Keras model (or does not load); nothing was written.
+
+    Attributes:
+        facts: what the gate measured before it refused, JSON-ready (e.g. ``max_abs_diff``,
+            ``keypoints_compared``, ``keypoints_within_px``, ``keypoints_lost_or_gained``); empty when the
+            file was refused before its maps were compared (it did not load, wrong interface).
+    """
+
+    def __init__(self, message: str, facts: dict[str, Any] | None = None) -> None:
+        super().__init__(message)
+        self.facts = dict(facts or {})
+
+    @property
+    def reason(self) -> str:
+        """The gate's reason without the trailing "; nothing written": a refused format's row says it."""
+        text = str(self)
+        return text[:-len(NOTHING_WRITTEN)] if text.endswith(NOTHING_WRITTEN) else text
+
+
+NOTHING_WRITTEN = "; nothing written"
 
 
 @dataclass(frozen=True)
@@ -316,11 +335,14 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
                   map_atol: float | None = None, keypoint_px: float | None = None, threshold: float = 0.5,
                   check_keypoints: bool = True, num_threads: int | None = None,
                   fold_upsampling: bool | None = None,
-                  calibration_frames: np.ndarray | None = None) -> TFLiteExport:
+                  calibration_frames: np.ndarray | None = None,
+                  reference: keras.Model | None = None) -> TFLiteExport:
     """Convert a tf_keras model to TFLite and verify the result by running it.
 
     Same as `to_tflite`, but returns the bytes together with the conversion time, the parity
-    report and the graph rewrites (for `compress` reports).
+    report and the graph rewrites (for `compress` reports). `reference` is the model the file is
+    verified against (default: `model` itself): a quantization-aware copy of a model
+    (`fcnpose_tf.qat`) is converted, and its file is held to the model it was trained from.
 
     Returns:
         A `TFLiteExport`.
@@ -350,7 +372,7 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
     convert_seconds = time.perf_counter() - start
     start = time.perf_counter()
     # Always against the original model: the rewrite is checked together with the conversion.
-    parity = verify_tflite(model, data, frames, map_atol=map_atol, keypoint_px=keypoint_px, threshold=threshold,
+    parity = verify_tflite(model if reference is None else reference, data, frames, map_atol=map_atol, keypoint_px=keypoint_px, threshold=threshold,
                            check_keypoints=check_keypoints, num_threads=num_threads, label=quantize,
                            keypoint_share=KEYPOINT_SHARE_BY_MODE[quantize],
                            pixel_input=quantize == FULL_INTEGER)
@@ -595,7 +617,8 @@ def verify_tflite(model: keras.Model, tflite: bytes, frames: np.ndarray, *, map_
             else f"index {tuple(int(i) for i in where)}"
         raise ExportVerificationError(
             f"{what} disagrees with the Keras model: max abs map difference {max_diff:.3g} > {map_atol:g} "
-            f"at {place} (Keras {keras_maps[where]:.4g}, TFLite {tflite_maps[where]:.4g}); nothing written")
+            f"at {place} (Keras {keras_maps[where]:.4g}, TFLite {tflite_maps[where]:.4g}); nothing written",
+            {"frames": len(frames), "max_abs_diff": max_diff, "map_atol": float(map_atol)})
     agreement = _KeypointAgreement(0, 0, 0.0, 0, 0)
     if check_keypoints and keras_maps.ndim == 4 and keras_maps.shape[-1] >= 2:
         agreement = _compare_keypoints(keras_maps, tflite_maps, max_diff, threshold, keypoint_px,
@@ -651,7 +674,10 @@ def _compare_keypoints(keras_maps: np.ndarray, tflite_maps: np.ndarray, max_diff
                 f"{compared - within} keypoint(s) disagree")
         raise ExportVerificationError(
             f"{what} decodes keypoint {k} of frame {n} at {show(got[n, k])}, the Keras model at {show(ref[n, k])}"
-            f"{distance} ({gate}; max abs map difference {max_diff:.3g}); nothing written")
+            f"{distance} ({gate}; max abs map difference {max_diff:.3g}); nothing written",
+            {"frames": len(keras_maps), "max_abs_diff": max_diff, "keypoints_compared": compared,
+             "keypoints_within_px": within, "keypoints_lost_or_gained": int(lost_or_gained.sum()),
+             "keypoint_px": float(keypoint_px), "min_keypoint_share": float(keypoint_share)})
     both = stable & ~np.isnan(ref).any(-1) & ~np.isnan(got).any(-1)
     max_px = float(np.linalg.norm(ref[both] - got[both], axis=-1).max()) if both.any() else 0.0
     return _KeypointAgreement(compared, int((~stable).sum()), max_px, within, int(lost_or_gained.sum()))
