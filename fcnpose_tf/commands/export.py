@@ -6,6 +6,17 @@ One file per --quantize format, next to the model unless --out-dir says otherwis
 NAME_fp32.tflite, NAME_int8w.tflite. Frames come from --data (default: the synthetic frames the
 bundled models were trained on): int8 is calibrated on the training split's frames and every file
 is verified on the validation split's first 16 frames, never calibrated on them.
+
+A format whose file fails its keypoint gate is a row, not a failure: the others are still written,
+the table (and --json's "refused") shows it as REFUSED with the gate's reason, and the last lines
+name every file written. export trains nothing, so a refused int8 gets no quantization-aware
+training here: `fcnpose-tf compress --rate 0 --retrain-epochs 0 --model MODEL --data DIR` gives
+the same model's int8 file through compress's QAT fallback.
+
+Exit status: 0 when every format was written, and also when a format of the default --quantize
+(float16,int8) was refused but at least one file was written; 2 (after the table, with an `error:`
+line naming the refused format and the files kept) when a format named with --quantize was refused
+or no file could be written; 2 for bad input, before any work.
 """
 
 from __future__ import annotations
@@ -18,6 +29,7 @@ USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf export saved_models/fcnpose_ur5_p70.keras --quantize int8     # -> saved_models/fcnpose_ur5_p70_int8.tflite
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --out-dir models/  # float16 and int8 files
+  fcnpose-tf export models/arm_p70.keras --data my_frames/ --quantize float16,int8  # exit 2 if either is refused
 """
 
 
@@ -30,6 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS):
         setting.add_to(parser)
+    parser.set_defaults(quantize=None)  # None: not named (the default formats), see the exit status
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write what was exported: per file its format, size, calibration, verification "
                              "gate and graph rewrites")
@@ -40,12 +53,15 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings, synthcache
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.export import export_frames, write_tflite
+    from fcnpose_tf.export import ExportVerificationError, export_frames, write_tflite
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.model import load_model
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.tfsetup import set_tensorflow_threads
 
+    named = args.quantize is not None  # formats the user named: refusing one is an error (exit status 2)
+    if not named:
+        args.quantize = settings.QUANTIZE.default
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED):
         setting.validate(getattr(args, setting.name))
     if not args.model.is_file():
@@ -61,13 +77,22 @@ def run(args: argparse.Namespace) -> int:
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     size = int(model.input_shape[1])
-    rows, records = [], []
+    rows, records, refused = [], [], []
     for quantize, path in paths.items():
         samples, calibration = export_frames(quantize, size, dataset, train, dataset, val, args.calibration_frames,
                                              args.seed)
-        export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
-                              calibration_frames=calibration, num_threads=args.threads)
-        records.append({"file": str(path), **export.to_dict()})
+        try:
+            export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
+                                  calibration_frames=calibration, num_threads=args.threads)
+        except ExportVerificationError as exc:  # a row, not the end of the run
+            refused.append({"file": str(path), "quantize": quantize, "status": "refused", "reason": exc.reason,
+                            **({"parity": exc.facts} if exc.facts else {})})
+            rows.append([f"{path.name}: REFUSED"] + [None] * 8)
+            if args.force and path.is_file():  # an earlier file of this name is not this model's
+                path.unlink()
+                print(f"removed {path}: an earlier file of the format this run refused")
+            continue
+        records.append({"file": str(path), "status": "written", **export.to_dict()})
         p = export.parity
         rows.append([path.name, export.size_bytes / 1e3, export.calibration_frames or None, p.frames,
                      f"{p.keypoints_within_px}/{p.keypoints_compared}", p.keypoints_lost_or_gained,
@@ -76,11 +101,25 @@ def run(args: argparse.Namespace) -> int:
           f"(keypoints in map px; int8 gate: >= 95 % within 2 px, none lost or gained)")
     print(format_table(["file", "size KB", "calibrated on", "frames", "kp within", "lost/gained", "max kp px",
                         "max map diff", "upsampling"], rows, digits=[None, 1, None, None, None, None, 2, 3, None]))
+    for entry in refused:
+        print(f"{entry['quantize']}: REFUSED, no file written: {entry['reason']}")
     if args.json:
         write_json(args.json, {"model": str(args.model), "data": str(dataset.via_path),
                                "verification_frames": f"the first {len(samples)} of the validation split",
                                "calibration": f"seeded choice (seed {args.seed}) of the training split's "
-                                              f"{len(train)} frames", "files": records}, force=args.force)
-    for path in [*paths.values(), *([args.json] if args.json else [])]:
+                                              f"{len(train)} frames", "files": records, "refused": refused},
+                   force=args.force)
+    written = [Path(r["file"]) for r in records] + ([args.json] if args.json else [])
+    for path in written:
         print(f"wrote {path}")
+    names = ", ".join(entry["quantize"] for entry in refused)
+    kept = f"kept {', '.join(map(str, written))}" if written else "nothing written"
+    if not records:
+        raise UserError(f"no TFLite file written: {names} refused by the keypoint gate (the table above gives the "
+                        f"reasons); {kept}")
+    if named and refused:
+        raise UserError(f"{names} (named with --quantize) refused by the keypoint gate (the table above gives the "
+                        f"reason); {kept}")
+    if refused:
+        print(f"note: {names} refused by the keypoint gate (see above); the other formats were written")
     return 0
