@@ -496,3 +496,13 @@ CALIBRATION_FRAMES = Setting(
 CALIBRATION_SEED = SEED.variant(help="seed of the choice of int8 calibration frames")
 """`export` trains nothing: its only random choice is which training frames calibrate an int8 file
 (`compress` draws them with its --seed)."""
+
+# Quantization-aware training: compress's int8 fallback (fcnpose_tf.qat; docs/compression.md, "int8 on a user's model").
+QAT_EPOCHS = Setting(
+    "qat_epochs", int, 4, "when post-training int8 is refused by its keypoint gate: at most N epochs of "
+    "quantization-aware training (tfmot) from the retrained model on the same training frames, the int8 file "
+    "converted and verified after each; 0 = no fallback (the int8 row shows the refusal)", label="QAT epochs",
+    check=lambda v: v >= 0, requirement="a whole number >= 0", metavar="N")
+QAT_LEARNING_RATE = Setting(
+    "qat_learning_rate", float, 1e-4, "Adam's learning rate of quantization-aware training",
+    label="QAT learning rate", check=lambda v: 0 < v < 1, requirement="a number in (0, 1)", metavar="LR")
