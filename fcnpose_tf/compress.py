@@ -50,16 +50,18 @@ Log = Callable[[str], None]
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
                        settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.LR_SCHEDULE, settings.IMPORTANCE,
-                       settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.FREEZE, settings.MIN_FILTERS)
+                       settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.FREEZE, settings.MIN_FILTERS,
+                       settings.QAT_EPOCHS, settings.QAT_LEARNING_RATE)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
     positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
-    retraining), freeze (conv1..convN keep their pruned weights while retraining) and min_filters (the
-    narrowest a pruned layer may become at the same parameter budget). Defaults, checks and meanings:
-    `fcnpose_tf.settings`."""
+    retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
+    narrowest a pruned layer may become at the same parameter budget), and qat_epochs / qat_learning_rate
+    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback). Defaults,
+    checks and meanings: `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
         """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
@@ -306,6 +308,8 @@ class _Run:
     verbose: int
     log: Log
     recipe: str
+    fit_data: Any = None
+    """The retraining's training data (`data.dataset.fold_data`), kept for quantization-aware training."""
 
     @property
     def input_size(self) -> int:
@@ -387,6 +391,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     fold = retrain_fold(run)
     train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
                                      options.augment, progress=run.verbose == 1)
+    run.fit_data = train_data
     entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
                                                 "train_samples": len(train_data), "val_frames": len(val_data)}}
     metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
@@ -435,27 +440,69 @@ def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
     return np.asarray(train_indices, dtype=np.int64)
 
 
+def _export_frames(run: _Run, quantize: str, fold: int | None) -> tuple[np.ndarray, np.ndarray | None]:
+    from fcnpose_tf.export import export_frames
+
+    return export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold), run.eval_dataset,
+                         run.eval_indices, run.options.calibration_frames, run.options.seed)
+
+
 def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
     """Write one TFLite file, verified against Keras on real frames (`export.export_frames`: the
-    first evaluation frames; int8 calibrated on the retraining split's training frames); the export result."""
-    from fcnpose_tf.export import export_frames, write_tflite
+    first evaluation frames; int8 calibrated on the retraining split's training frames); the export result.
 
-    samples, calibration = export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold),
-                                         run.eval_dataset, run.eval_indices, run.options.calibration_frames,
-                                         run.options.seed)
+    Raises:
+        ExportVerificationError: the file failed its gate (nothing written).
+    """
+    from fcnpose_tf.export import write_tflite
+
+    samples, calibration = _export_frames(run, quantize, fold)
     return write_tflite(retrained, run.paths[tflite_key(quantize)], quantize, force=run.force,
                         sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
 
 
-def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any]) -> dict[str, Any]:
-    """One TFLite file: its format, size (plain and gzip), export facts, operators, metrics and timing."""
+def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
+    """Quantization-aware training from the retrained model on the retraining's training frames, until its int8
+    file passes the same gate against the retrained model (`fcnpose_tf.qat`); the file is written when one
+    passes. Returns the `qat.QATResult` (its export None when every epoch's file was refused)."""
+    from fcnpose_tf.data.dataset import fold_data
+    from fcnpose_tf.export import export_tflite
+    from fcnpose_tf.fileio import write_bytes
+    from fcnpose_tf.qat import train_until_gate
+
+    options = run.options
+    if run.fit_data is None:  # not retrained in this run (--retrain-epochs 0): the same split's frames
+        run.fit_data, _ = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
+                                    options.augment, progress=run.verbose == 1)
+    samples, calibration = _export_frames(run, "int8", fold)
+
+    def convert(qat_model: keras.Model) -> Any:
+        return export_tflite(qat_model, "int8", sample_frames=samples, calibration_frames=calibration,
+                             num_threads=options.threads, fold_upsampling=False, reference=retrained)
+
+    result = train_until_gate(retrained, run.fit_data.sequence(options.batch_size, seed=options.seed), calibration,
+                              convert,
+                              epochs=options.qat_epochs, learning_rate=options.qat_learning_rate,
+                              positive_weight=options.positive_weight or 1.0, seed=options.seed,
+                              verbose=2 if run.verbose else 0, log=run.log)
+    if result.export is not None:
+        write_bytes(run.paths[tflite_key("int8")], result.export.data, run.force)
+    return result
+
+
+def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any],
+                      qat: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One TFLite file: its format, how it was quantized, size (plain and gzip), export facts, operators, metrics and
+    timing (`qat`: the quantization-aware training that made it, with the post-training refusal it replaced)."""
     from fcnpose_tf.export import inspect_tflite
     from fcnpose_tf.runtime.estimator import KeypointModel
 
     path = run.paths[tflite_key(export.quantize)]
     tflite_info = inspect_tflite(path)
     tfl = KeypointModel(path, num_threads=run.options.threads)
-    return {"quantize": export.quantize,
+    return {"quantize": export.quantize, "status": "written",
+            "quantization": "quantization-aware training" if qat else "post-training",
+            **({"qat": qat} if qat else {}),
             "params": retrained_facts["params"], "macs": retrained_facts["macs"], "flops": retrained_facts["flops"],
             "tflite_size_bytes": export.size_bytes, "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)),
             "export": export.to_dict(), "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
@@ -480,10 +527,14 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         log: where the progress lines go.
     Returns:
         The report dict (also written as NAME_pXX_report.json). Its "quantized" entry is the first
-        TFLite file's (the paper's float16 by default), "other_quantized" a list of the others'.
+        TFLite file written (the paper's float16 by default; None if every format was refused),
+        "other_quantized" a list of the other files written, "refused" a list of the formats whose
+        file failed its gate: {"quantize", "status": "refused", "reason", "post_training": the gate's
+        facts, "qat": quantization-aware training's facts when it was tried}. A refused format
+        writes no file and does not end the run; "files" names the files written.
     Raises:
-        UserError: bad options, existing outputs without force, unwritable folder, a model whose
-            maps do not match the dataset, or an export that fails verification (nothing written).
+        UserError: bad options, existing outputs without force, unwritable folder, or a model whose
+            maps do not match the dataset.
     """
     from fcnpose_tf.model import load_model
     from fcnpose_tf.prune import prune_plan, prune_widths
@@ -524,17 +575,62 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     say(f"[4/{steps}] measuring the retrained Keras model")
     report.update(measure_retrained(run, retrained))
     fold = report.get("retrain_data", {}).get("fold", options.fold)
-    files = []
+    files, refused = [], []
     for i, quantize in enumerate(options.quantize):
         say(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
-        export = export_step(run, retrained, quantize, fold)
+        export, qat = _export_or_refusal(run, retrained, quantize, fold, refused)
+        if export is None:
+            _remove_stale(run, quantize)
+            continue
         say(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
-        files.append(measure_quantized(run, export, report["retrained"]))
-    report["quantized"], report["other_quantized"] = files[0], files[1:]
-    report["files"] = {k: str(v) for k, v in paths.items()}
+        files.append(measure_quantized(run, export, report["retrained"], qat))
+    # "quantized": the first file written (the paper's float16 by default), None when every format was refused
+    report["quantized"], report["other_quantized"] = (files[0] if files else None), files[1:]
+    report["refused"] = refused
+    written = {tflite_key(f["quantize"]) for f in files}
+    report["files"] = {k: str(v) for k, v in paths.items() if not k.startswith("tflite_") or k in written}
     report["seconds"] = round(time.perf_counter() - start, 1)
     write_json(paths["report"], report, force=force)
     return report
+
+
+def _export_or_refusal(run: _Run, retrained: keras.Model, quantize: str, fold: int | None,
+                       refused: list[dict[str, Any]]) -> tuple[Any, dict[str, Any] | None]:
+    """(the written export, the QAT facts if QAT made it), or (None, None) with the refusal appended to `refused`.
+
+    A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
+    falls back to quantization-aware training (`options.qat_epochs` > 0)."""
+    from fcnpose_tf.export import FULL_INTEGER, ExportVerificationError
+
+    try:
+        return export_step(run, retrained, quantize, fold), None
+    except ExportVerificationError as exc:
+        ptq = {"reason": exc.reason, **exc.facts}
+    run.log(f"  {quantize} refused by its gate: {ptq['reason']}")
+    entry: dict[str, Any] = {"quantize": quantize, "status": "refused", "reason": ptq["reason"],
+                             "post_training": ptq}
+    if quantize == FULL_INTEGER and run.options.qat_epochs > 0:
+        run.log(f"  post-training int8 refused: quantization-aware training (tfmot), up to {run.options.qat_epochs} "
+                f"epoch(s) from the retrained model on the same training frames, the gate after each")
+        result = qat_step(run, retrained, fold)
+        qat = {**result.to_dict(), "learning_rate": run.options.qat_learning_rate, "post_training_refused": ptq}
+        if result.export is not None:
+            run.log(f"  quantization-aware int8 passes the gate after {result.epochs_run} epoch(s), "
+                    f"{result.seconds / 60:.1f} min")
+            return result.export, qat
+        entry["reason"] = f"after {result.epochs_run} epoch(s) of quantization-aware training: {result.reason}"
+        entry["qat"] = qat
+        run.log(f"  quantization-aware int8 refused too ({result.seconds / 60:.1f} min): {result.reason}")
+    refused.append(entry)
+    return None, None
+
+
+def _remove_stale(run: _Run, quantize: str) -> None:
+    """With --force, an earlier run's file of a format this run refused goes: it is not this model's."""
+    path = run.paths[tflite_key(quantize)]
+    if run.force and path.is_file():
+        path.unlink()
+        run.log(f"  removed {path}: an earlier file of the format this run refused")
 
 
 def _loss_name(model: Any) -> str:
@@ -563,8 +659,17 @@ def report_table(report: dict[str, Any], markdown: bool = False) -> str:
             row("pruned, before retraining", report["pruned_before_retraining"], ""),
             row("pruned + retrained (Keras, .h5)", report["retrained"], "h5_size_bytes")]
     # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
-    rows += [row(f"{step.get('quantize') or report['options']['quantize']} TFLite (.tflite)", step,
-                 "tflite_size_bytes") for step in [report["quantized"], *report.get("other_quantized", [])]]
+    steps = [step for step in [report["quantized"], *report.get("other_quantized", [])] if step]
+    steps += report.get("refused", [])
+    order = list(report["options"]["quantize"]) if isinstance(report["options"]["quantize"], (list, tuple)) else []
+    steps.sort(key=lambda step: order.index(step["quantize"]) if step.get("quantize") in order else len(order))
+    for step in steps:
+        name = step.get("quantize") or report["options"]["quantize"]
+        if step.get("status") == "refused":
+            rows.append([f"{name} TFLite: REFUSED (gate)"] + [None] * 9)
+        else:
+            qat = " QAT" if step.get("quantization") == "quantization-aware training" else ""
+            rows.append(row(f"{name}{qat} TFLite (.tflite)", step, "tflite_size_bytes"))
     return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
                          "infer ms", "FPS e2e"], rows, markdown=markdown,
                         digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])

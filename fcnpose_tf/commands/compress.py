@@ -14,6 +14,18 @@ the paper's L1 norm on fine localisation), --importance l1 for the paper's, l2, 
 --min-filters N keeps every layer at least N filters wide within the parameter budget the paper's
 per-layer rule gives at --rate (default 12: FCN-Pose's bottleneck keeps 8 filters instead of 3 at 0.7;
 --min-filters 0 is the paper's widths); --distill W mixes the unpruned model's maps into the retraining loss.
+
+A format whose file fails its keypoint gate is a row, not a failure: the run goes on, the table and
+NAME_p70_report.json ("refused") show the format as REFUSED with the gate's reason, and the last
+lines name every file written. When post-training int8 is refused, compress falls back to
+quantization-aware training (tfmot; up to --qat-epochs epochs from the retrained model on the same
+training frames, the int8 file converted and held to the same gate after each epoch) and says so;
+its minutes and result are in the report (--qat-epochs 0: no fallback).
+
+Exit status: 0 when every format was written, and also when a format of the default --quantize
+(float16,int8) was refused but at least one .tflite file was written; 2 (after the table, with an
+`error:` line naming the refused format and the files kept) when a format named with --quantize was
+refused or no .tflite file could be written; 2 for bad input, before any work.
 """
 
 from __future__ import annotations
@@ -32,6 +44,7 @@ EXAMPLES = """\
   fcnpose-tf compress --rate 0.7 --min-filters 0       # the paper's widths (default: no layer under 12)
   fcnpose-tf compress --rate 0.7 --distill 0.5         # retrain half on the unpruned model's maps
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/
+  fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --qat-epochs 0  # no QAT fallback
 """
 
 
@@ -48,10 +61,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.RETRAIN_EPOCHS.add_to(parser)
     settings.RETRAIN_PATIENCE.add_to(parser, "--patience")
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
-    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.METHOD, settings.STRATEGY,
-                    settings.COMPRESS_MIN_FILTERS, settings.COMPRESS_IMPORTANCE, settings.IMPORTANCE_FRAMES,
-                    settings.DISTILL):
+    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.QAT_EPOCHS, settings.QAT_LEARNING_RATE,
+                    settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.COMPRESS_IMPORTANCE,
+                    settings.IMPORTANCE_FRAMES, settings.DISTILL):
         setting.add_to(parser)
+    parser.set_defaults(quantize=None)  # None: not named (the default formats), see the exit status
     settings.RETRAIN_FOLD.add_to(parser)
     settings.AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
@@ -72,6 +86,9 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.fileio import removed_if_left_empty
     from fcnpose_tf.system import available_cores
 
+    named = args.quantize is not None  # formats the user named: refusing one is an error (exit status 2)
+    if not named:
+        args.quantize = settings.QUANTIZE.default
     model_path = args.model or baseline_model()
     if args.positive_weight is None:
         from fcnpose_tf.records import training_record
@@ -117,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
           f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
     print(report_table(report))
     base = report["base"]
-    for final in [report["quantized"], *report["other_quantized"]]:
+    for final in [step for step in [report["quantized"], *report["other_quantized"]] if step]:
         print(f"{final['quantize']}: parameters {base['params']:,} -> {final['params']:,} "
               f"({100 * (1 - final['params'] / base['params']):.1f}% fewer); "
               f"MACs {base['macs'] / 1e6:.1f} M -> {final['macs'] / 1e6:.1f} M; "
@@ -132,6 +149,39 @@ def run(args: argparse.Namespace) -> int:
               f"{parity['keypoints_compared']} keypoints within {parity['keypoint_px']:g} map px of Keras "
               f"({parity['min_keypoint_share']:.0%} required), {parity['keypoints_lost_or_gained']} lost or gained; "
               f"upsampling {'folded' if export['graph_rewrites'] else 'not folded'}")
-    for key, path in report["files"].items():
+        if final.get("qat"):
+            qat = final["qat"]
+            print(f"  quantization-aware training: post-training int8 was refused "
+                  f"({qat['post_training_refused']['reason']}); {qat['epochs_run']} QAT epoch(s), "
+                  f"{qat['minutes']:.1f} min, gave this file")
+    for entry in report["refused"]:
+        print(f"{entry['quantize']}: REFUSED, no file written: {entry['reason']}")
+        if entry.get("qat"):
+            print(f"  (post-training: {entry['post_training']['reason']}; quantization-aware training "
+                  f"{entry['qat']['epochs_run']} epoch(s), {entry['qat']['minutes']:.1f} min)")
+    return _finish(report, model_path, args.out_dir, options, named)
+
+
+def _finish(report: dict, model_path: Path, out_dir: Path, options, named: bool) -> int:
+    """Name every file written; the exit status (see the module doc): 2 when a named format was refused or no
+    .tflite file was written, else 0."""
+    from fcnpose_tf.compress import output_paths
+    from fcnpose_tf.errors import UserError
+
+    written = [Path(p) for p in report["files"].values()]
+    written += [p for p in output_paths(model_path, out_dir, options) if p.is_file() and p not in written
+                and p.suffix != ".tflite"]  # the retraining's record and loss curves
+    for path in written:
         print(f"wrote {path}")
+    refused = [entry["quantize"] for entry in report["refused"]]
+    kept = f"kept {', '.join(map(str, written))}"
+    if not report["quantized"]:
+        raise UserError(f"no TFLite file written: {', '.join(refused)} refused by the keypoint gate (the table above "
+                        f"gives the reasons); {kept}")
+    if named and refused:
+        raise UserError(f"{', '.join(refused)} (named with --quantize) refused by the keypoint gate (the table above "
+                        f"gives the reason); {kept}")
+    if refused:
+        print(f"note: {', '.join(refused)} refused by the keypoint gate (see above); the other formats were written")
     return 0
+
