@@ -390,7 +390,13 @@ def test_a_keras_model_without_a_fixed_input_size_is_refused_with_how_to_fix_it(
 
 # -- 8. the smaller ones -------------------------------------------------------------------------------------
 
-def test_bench_frame_size_is_bounded(capsys):
+def test_bench_frame_size_is_bounded(capsys, monkeypatch):
+    from fcnpose_tf.runtime import bench
+
+    def load_frame(*args):  # a regression must fail here, not allocate 2.7 GB (and its copies) on the test machine
+        raise AssertionError(f"a frame of {args[1]} was about to be made")
+
+    monkeypatch.setattr(bench, "load_frame", load_frame)
     status = main(["bench", "m.tflite", "--frame-size", "30000x30000"])
     _one_error_line(status, capsys.readouterr().err, "--frame-size 30000x30000", "at most 8192")
 
