@@ -116,8 +116,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not getattr(args, "command", None):
         parser.print_help()
         return 2
+    private_temp = args._private_temp(args) if callable(args._private_temp) else args._private_temp
     with fileio.command_outputs() as outputs, fileio.stop_signals_handled(), \
-            (fileio.private_temporary_folder() if args._private_temp else contextlib.nullcontext()):
+            (fileio.private_temporary_folder() if private_temp else contextlib.nullcontext()):
         try:
             plan_outputs(args)
             if args._uses_tensorflow:

@@ -65,7 +65,8 @@ class CommandOutputs:
                 raise UserError(f"{candidate}: {os_error_reason(exc)}") from None
         for candidate in missing:  # the walk stops at the first missing folder: check the names below it too
             if len(os.fsencode(candidate.name)) > _name_max(candidate.parent):
-                raise UserError(f"{candidate}: {os_error_reason(OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG)))}")
+                too_long = OSError(errno.ENAMETOOLONG, os.strerror(errno.ENAMETOOLONG))
+                raise UserError(f"{candidate}: {os_error_reason(too_long)}")
         self.planned.extend(missing)
         if resumable:
             self.resumable.append(path)

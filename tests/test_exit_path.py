@@ -254,7 +254,10 @@ def test_synth_force_stopped_keeps_the_earlier_set_whole(tmp_path):
     before = {p.relative_to(ds): p.read_bytes() for p in ds.rglob("*") if p.is_file()}
     proc = _start(tmp_path, "synth", "--out", ds, "--n", "3000", "--seed", "1", "--width", "64", "--height", "64",
                   "--workers", "1", "--no-progress", "--force")
-    new_frame = lambda: any(p.name.endswith(".png") and p.relative_to(ds) not in before for p in ds.rglob("*"))  # noqa: E731
+
+    def new_frame():
+        return any(p.name.endswith(".png") and p.relative_to(ds) not in before for p in ds.rglob("*"))
+
     status = _signal_once_started(proc, signal.SIGTERM, new_frame, "the first new frame")
     assert status == 143, _outputs(tmp_path)[1]
     after = {p.relative_to(ds): p.read_bytes() for p in ds.rglob("*") if p.is_file()}

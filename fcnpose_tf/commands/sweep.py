@@ -18,8 +18,6 @@ from pathlib import Path
 NAME = "sweep"
 RESUMABLE_OUTPUTS = ("out",)
 """Kept as it is when the sweep stops: its finished jobs, which a rerun skips."""
-PRIVATE_TEMP = False
-"""Its jobs run in worker processes and Ray tasks that manage their own temporary files."""
 USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf sweep --rates 0.1:0.9:0.1 --folds 5 --out results/          # the paper's nine rates, 5-fold CV
@@ -33,6 +31,11 @@ EXAMPLES = """\
   fcnpose-tf sweep --out results/ --report-only                           # rebuild tables and plot only
   fcnpose-tf sweep --out results/ --retime                                # re-measure timings on this idle machine
 """
+
+
+def PRIVATE_TEMP(args: argparse.Namespace) -> bool:  # noqa: N802 - the CLI reads it like the other commands' flag
+    """A private temporary folder for the local executor (its workers inherit it); Ray tasks manage their own."""
+    return args.executor == "local"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
