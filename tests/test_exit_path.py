@@ -467,3 +467,15 @@ def test_compress_stopped_while_retraining_leaves_nothing_and_suggests_no_resume
     assert "Traceback" not in stderr and "--resume" not in stderr
     assert stderr.strip().splitlines()[-1].startswith("terminated (SIGTERM)"), stderr
     assert not out.exists()
+
+
+def test_a_sweep_stopped_by_sigterm_is_named_as_such():
+    """The sweep's executor takes the signals while jobs run; the CLI still learns which one came (143, not 130)."""
+    from fcnpose_tf import fileio
+    from fcnpose_tf.sweep.executors import stop_on_signals
+
+    with fileio.stop_signals_handled():
+        with pytest.raises(KeyboardInterrupt):
+            with stop_on_signals():
+                signal.raise_signal(signal.SIGTERM)
+        assert fileio.stop_signal() == signal.SIGTERM
