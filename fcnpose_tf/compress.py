@@ -8,7 +8,9 @@
 
 `compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
 the steps below in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
-export_step, measure_quantized), each returning its part of the report. A pruning method is a `PruningMethod`
+export_step, measure_quantized), each returning its part of the report. A format whose file fails its gate is a
+"refused" entry of the report, not the end of the run; post-training int8 refused falls back to
+quantization-aware training (`qat_step`, `fcnpose_tf.qat`). A pruning method is a `PruningMethod`
 object (`FilterPruning` with an importance criterion from `fcnpose_tf.importance`, `MagnitudePruning`);
 both retrain through `train.fit`.
 """
