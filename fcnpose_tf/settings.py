@@ -501,7 +501,8 @@ CALIBRATION_SEED = SEED.variant(help="seed of the choice of int8 calibration fra
 QAT_EPOCHS = Setting(
     "qat_epochs", int, 4, "when post-training int8 is refused by its keypoint gate: at most N epochs of "
     "quantization-aware training (tfmot) from the retrained model on the same training frames, the int8 file "
-    "converted and verified after each; 0 = no fallback (the int8 row shows the refusal)", label="QAT epochs",
+    "converted and verified before the first (calibrated ranges) and after each; 0 = no fallback (the int8 row "
+    "shows the refusal)", label="QAT epochs",
     check=lambda v: v >= 0, requirement="a whole number >= 0", metavar="N")
 QAT_LEARNING_RATE = Setting(
     "qat_learning_rate", float, 1e-4, "Adam's learning rate of quantization-aware training",
