@@ -361,3 +361,62 @@ def format_report(report: dict[str, Any], markdown: bool = False) -> str:
 
 def _round(value: Any) -> Any:
     return round(value, 4) if isinstance(value, float) else value
+
+
+# ----------------------------------------------------------------------------------------- sequences
+
+SEQUENCE_DEFINITIONS = (
+    "jitter: RMS over keypoints and consecutive frame pairs of the change of the error vector (prediction - "
+    "ground truth) from one frame to the next, px; lag: the shift (frames) that best aligns the predicted "
+    "track's frame-to-frame motion with the ground truth's (normalised cross-correlation pooled over keypoints, "
+    "parabolic sub-frame peak; positive: the prediction trails)")
+"""How `jitter_px` and `lag_frames` are defined (printed next to the figures)."""
+
+
+def jitter_px(pred: Any, gt: Any) -> float:
+    """RMS of the frame-to-frame change of the error vector (px) over N consecutive frames (N x K x 2).
+
+    A steady offset adds nothing; a prediction that shakes around the truth does. Pairs where either
+    frame misses the prediction or the ground truth are left out; NaN if none is left.
+    """
+    p, g = _pair(pred, gt)
+    err = p - g
+    step = err[1:] - err[:-1]
+    ok = np.isfinite(step).all(-1)
+    if not ok.any():
+        return float("nan")
+    return float(np.sqrt(np.mean(np.sum(step[ok] ** 2, axis=-1))))
+
+
+def lag_frames(pred: Any, gt: Any, max_lag: int = 8) -> float:
+    """Frames by which the predicted tracks trail the ground truth (negative: lead), within +-max_lag.
+
+    The frame-to-frame motion of prediction and ground truth is cross-correlated (normalised, pooled
+    over keypoints and both axes) at every integer shift; the peak is refined by a parabola through
+    it and its neighbours. NaN when nothing moves or too few frames are valid.
+    """
+    p, g = _pair(pred, gt)
+    vp, vg = p[1:] - p[:-1], g[1:] - g[:-1]
+    n = len(vp)
+    shifts = np.arange(-max_lag, max_lag + 1)
+    score = np.full(len(shifts), np.nan)
+    for i, s in enumerate(shifts):
+        if abs(s) >= n - 1:
+            continue
+        a = vp[s:] if s >= 0 else vp[:s]  # prediction at t
+        b = vg[:n - s] if s >= 0 else vg[-s:]  # ground truth at t - s
+        ok = np.isfinite(a).all(-1) & np.isfinite(b).all(-1)
+        if ok.sum() < 3:
+            continue
+        den = math.sqrt(float(np.sum(a[ok] ** 2)) * float(np.sum(b[ok] ** 2)))
+        if den > 0:
+            score[i] = float(np.sum(a[ok] * b[ok])) / den
+    if not np.isfinite(score).any():
+        return float("nan")
+    best = int(np.nanargmax(score))
+    if 0 < best < len(shifts) - 1 and np.isfinite(score[best - 1]) and np.isfinite(score[best + 1]):
+        y0, y1, y2 = score[best - 1], score[best], score[best + 1]
+        den = y0 - 2 * y1 + y2
+        offset = 0.5 * (y0 - y2) / den if den < 0 else 0.0
+        return float(shifts[best] + np.clip(offset, -0.5, 0.5))
+    return float(shifts[best])

@@ -24,6 +24,7 @@ EXAMPLES = """\
   fcnpose-tf synth --out data/random --n 500 --scene random   # a new room and camera per frame
   fcnpose-tf synth --out data/varied --n 4000 --scene random --looks varied    # the generalist's variety
   fcnpose-tf synth --out data/unseen --n 300 --looks heldout --labels kinematic  # a look never pretrained on
+  fcnpose-tf synth --out data/seq --n 300 --motion 30         # 10 s of the arm at work, 30 FPS, + motion.mp4
 """
 
 
@@ -59,6 +60,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keypoint convention: housing (the centre of each joint housing, where an annotator "
                              "clicks; the default) or kinematic (the URDF joint frames on the joint axes, as DREAM "
                              "and robot simulators define them)")
+    parser.add_argument("--motion", type=float, metavar="FPS",
+                        help="a motion sequence: consecutive frames of the workcell's arm moving smoothly through "
+                             "its task at this frame rate (nobody beside it), also written as OUT/motion.mp4; "
+                             "for smoothing and jitter measurements (docs/runtime.md)")
     parser.add_argument("--tight-framing", type=float, default=0.0, metavar="RATE",
                         help="share of frames framed so tightly that 1-2 keypoints fall outside (unannotated)")
 
@@ -74,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     report = generate_dataset(args.out, n=args.n, seed=args.seed, width=args.width, height=args.height,
                               workers=args.workers, force=args.force, progress=not args.no_progress,
                               tight_framing=args.tight_framing, scene=args.scene, scene_seed=args.scene_seed,
-                              looks=args.looks, labels=args.labels)
+                              looks=args.looks, labels=args.labels, motion_fps=args.motion)
     print(format_table(["Synthetic UR5 set", "Value"], report.summary_rows()))
     print(f"VIA project: {report.via_path}")
     if args.preview is not None:

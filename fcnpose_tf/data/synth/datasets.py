@@ -57,6 +57,7 @@ class SynthReport:
     height: int
     looks: str = DEFAULT_LOOKS
     labels: str = DEFAULT_LABELS
+    motion_fps: float | None = None
 
     def summary_rows(self) -> list[tuple[str, object]]:
         """(quantity, value) rows for the CLI's closing table."""
@@ -74,6 +75,8 @@ class SynthReport:
             ("frames", n),
             ("frame size (px)", f"{self.width}x{self.height}"),
             ("look family / keypoint labels", f"{self.looks} / {self.labels}"),
+            ("motion sequence", "no" if self.motion_fps is None else
+             f"{self.motion_fps:g} FPS, {n / self.motion_fps:.1f} s, {MOTION_VIDEO}"),
             ("arms", ", ".join(f"{a} {sum(f.arm == a for f in self.frames)}"
                                for a in sorted({f.arm for f in self.frames}))),
             ("end effectors", ", ".join(f"{t} {count('tool', t)}" for t in sorted({f.tool for f in self.frames}))),
@@ -98,12 +101,13 @@ def _init_worker() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole group: the main process ends the pool
 
 
-def _render_and_write(task: tuple[int, int, int, int, str, float, str, int, str, str]) -> FrameRecord:
+def _render_and_write(task: tuple) -> FrameRecord:
     """Worker: render frame `index`, write it as PNG atomically, return its record."""
     from fcnpose_tf import fileio
 
-    seed, index, width, height, image_dir, tight_framing, scene, scene_seed, looks, labels = task
-    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed, looks, labels)
+    seed, index, width, height, image_dir, tight_framing, scene, scene_seed, looks, labels, joints = task
+    sample = render_sample(seed, index, width, height, tight_framing, scene, scene_seed, looks, labels,
+                           joints=None if joints is None else np.array(joints), person=joints is None)
     ok, buf = cv2.imencode(".png", sample.image, [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION])
     if not ok:  # pragma: no cover - OpenCV encodes any uint8 BGR image
         raise RuntimeError("PNG encoding failed")
@@ -150,7 +154,8 @@ def _staging_folder(out_dir: Path) -> Path:
 def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
                      workers: int | None = None, force: bool = False, progress: bool = True,
                      tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
-                     scene_seed: int = 0, looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS) -> SynthReport:
+                     scene_seed: int = 0, looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS,
+                     motion_fps: float | None = None) -> SynthReport:
     """Render n frames into out_dir/images/*.png and write out_dir/ur5_synth.json (VIA 2.x project).
 
     Frames are rendered by a pool of `workers` processes (default: one per core);
@@ -160,7 +165,9 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     unless force, which also removes what belonged to the set being replaced: synth_*.png
     frames beyond n and the stored folds (ur5_synth.splits.json). The new set is rendered beside the
     old one (OUT/.synth-new.PID/) and replaces it only once complete: a full disk or a stop signal
-    leaves the earlier set as it was.
+    leaves the earlier set as it was. With `motion_fps` (workcell only) the frames are a sequence: the
+    arm moving smoothly through its task at that frame rate (`motion.motion_joints`), nobody beside it,
+    also written as OUT/motion.mp4.
 
     Raises:
         UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, look family or label
@@ -180,6 +187,9 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
         raise UserError(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}")
     look_family(looks)
     check_labels(labels)
+    if motion_fps is not None and (not motion_fps > 0 or scene != "workcell"):
+        raise UserError(f"--motion needs a frame rate above 0 and --scene workcell, got {motion_fps} FPS with "
+                        f"--scene {scene}")
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
@@ -192,8 +202,13 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     staging = _staging_folder(out_dir)
 
     start = time.perf_counter()
+    joints = [None] * n
+    if motion_fps is not None:
+        from fcnpose_tf.data.synth.motion import motion_joints
+
+        joints = motion_joints(seed, n, motion_fps, scene_seed, width, height, looks).tolist()
     tasks = [(int(seed), i, int(width), int(height), str(staging), float(tight_framing), scene, int(scene_seed),
-              looks, labels) for i in range(n)]
+              looks, labels, joints[i]) for i in range(n)]
     workers = min(workers, n)
     records: list[FrameRecord] = []
     # the frames are parts of the set: a failure before its VIA file is written keeps none of them as an
@@ -214,6 +229,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
                     bar.update()
         records.sort(key=lambda r: r.index)
         frames = [ViaFrame(r.filename, width, height, r.keypoints, size=r.size) for r in records]
+        if motion_fps is not None:
+            _write_video(staging / MOTION_VIDEO, [staging / r.filename for r in records], motion_fps, width, height)
         with fileio.signals_deferred():  # the earlier set is replaced whole, or not at all
             write_via_project(staging / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)  # a full disk fails here
             keep = {r.filename for r in records}
@@ -223,21 +240,39 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
             splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
             for record in records:
                 os.replace(staging / record.filename, image_dir / record.filename)
+            if motion_fps is not None:
+                os.replace(staging / MOTION_VIDEO, out_dir / MOTION_VIDEO)
             via_path = out_dir / VIA_FILENAME
             os.replace(staging / VIA_FILENAME, via_path)
             staging.rmdir()
     return SynthReport(Path(via_path), records, time.perf_counter() - start, workers, int(width), int(height), looks,
-                       labels)
+                       labels, motion_fps)
+
+
+MOTION_VIDEO = "motion.mp4"
+"""The video `generate_dataset` writes beside the frames of a motion sequence."""
+
+
+def _write_video(path: Path, images: list[Path], fps: float, width: int, height: int) -> None:
+    """The frames as an MPEG-4 video (OpenCV's mp4v) at `fps`."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (int(width), int(height)))
+    if not writer.isOpened():  # pragma: no cover - opencv-python-headless ships the mp4v encoder
+        raise UserError(f"{path}: OpenCV cannot write an mp4v video here")
+    try:
+        for image in images:
+            writer.write(cv2.imdecode(np.fromfile(image, np.uint8), cv2.IMREAD_COLOR))
+    finally:
+        writer.release()
 
 
 def generate(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
              workers: int | None = None, force: bool = False, progress: bool = True,
              tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE, scene_seed: int = 0,
-             looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS) -> Path:
+             looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS, motion_fps: float | None = None) -> Path:
     """Render a synthetic UR5 dataset into out_dir (see `generate_dataset`); returns the VIA file's path.
 
     Example:
         >>> via = generate("data/synth", n=500, seed=0)   # data/synth/images/*.png + ur5_synth.json
     """
     return generate_dataset(out_dir, n, seed, width, height, workers, force, progress, tight_framing, scene,
-                            scene_seed, looks, labels).via_path
+                            scene_seed, looks, labels, motion_fps).via_path

@@ -58,11 +58,14 @@ def _frame_rng(seed: int, index: int) -> np.random.Generator:
 
 def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: int = 640,
                   height: int = 480, tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
-                  scene_seed: int = 0, looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS) -> SynthSample:
+                  scene_seed: int = 0, looks: str = DEFAULT_LOOKS, labels: str = DEFAULT_LABELS,
+                  joints: np.ndarray | None = None, person: bool = True) -> SynthSample:
     """Render frame `index` of the synthetic set `seed` (or draw from a given Generator) at width x height.
 
     `scene` is "workcell" (the fixed cell of `scene_seed`) or "random" (see DEFAULT_SCENE); `looks` the
     look family (`looks.FAMILIES`); `labels` the keypoint convention (`looks.LABEL_CONVENTIONS`).
+    `joints` poses a workcell's arm (a motion sequence, `motion.motion_joints`) instead of drawing a pose;
+    `person=False` leaves the co-worker out.
     """
     if width < 32 or height < 32:
         raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
@@ -73,7 +76,7 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     rng = seed if isinstance(seed, np.random.Generator) else _frame_rng(seed, index)
     if scene == "workcell":
         cell = workcell(scene_seed, width, height, looks)
-        q = pose_in_view(rng, cell, tight_framing)
+        q = pose_in_view(rng, cell, tight_framing) if joints is None else np.asarray(joints, np.float64)
     else:
         cell, q = random_scene(rng, width, height, tight_framing, looks)
     style, lens_cam, base_z = cell.style, cell.camera, cell.base_z
@@ -83,7 +86,7 @@ def render_sample(seed: int | np.random.Generator = 0, index: int = 0, width: in
     robot_pts = np.vstack([part_points(p) for p in robot])
     kp_uv, kp_z = cam.project(kp3d)
     person, _ = _place_person(rng, cam, kp3d, kp_uv, kp_z, cell.mount_radius, cell.keepout[2:],
-                              PERSON_ODDS[scene])
+                              PERSON_ODDS[scene]) if person else ([], "none")
 
     keypoints = lens_cam.project(kp3d)[0] if lens_cam.k1 else kp_uv.copy()
     inside = (kp_z > 0) & (keypoints[:, 0] >= 0) & (keypoints[:, 0] <= width - 1) & (keypoints[:, 1] >= 0) & \

@@ -1,0 +1,111 @@
+"""Steady keypoints on video: a One-Euro filter per keypoint, coasting over short gaps. numpy only (Pi core).
+
+The One-Euro filter (Casiez, Roussel and Vogel, CHI 2012) is a low-pass filter whose cut-off rises with
+the signal's speed: a keypoint at rest is smoothed hard (no jitter), a moving one lightly (little lag).
+Per keypoint, on the (x, y) position in frame pixels:
+
+    a(fc)   = 1 / (1 + 1 / (2 pi fc dt))                       the smoothing factor of cut-off fc (Hz)
+    v       = low-pass of (x_t - x^_{t-1}) / dt at d_cutoff      speed, px/s
+    fc      = min_cutoff + beta |v|                              Hz
+    x^_t    = x^_{t-1} + a(fc) (x_t - x^_{t-1})
+
+A keypoint the model misses is held at its last estimate for up to `max_coast` frames (coasting),
+then reported missing, and its filter starts afresh at its next detection (a reset after a gap, so a
+keypoint that reappears elsewhere is not dragged there slowly). Defaults and what they measured:
+docs/runtime.md, "Smoothing".
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+DEFAULT_MIN_CUTOFF_HZ = 1.5
+"""Cut-off of a keypoint at rest (Hz)."""
+DEFAULT_BETA = 0.02
+"""Cut-off added per pixel/second of speed (Hz per px/s)."""
+DEFAULT_D_CUTOFF_HZ = 1.0
+"""Cut-off of the speed estimate (Hz)."""
+DEFAULT_MAX_COAST = 2
+"""Frames a missing keypoint is held at its last estimate before it is reported missing."""
+
+
+def _alpha(cutoff_hz: np.ndarray | float, dt: float) -> np.ndarray:
+    return 1.0 / (1.0 + 1.0 / (2.0 * math.pi * np.asarray(cutoff_hz, np.float64) * dt))
+
+
+@dataclass
+class OneEuroParams:
+    """The filter's parameters in frame pixels and Hz (see the module's docstring)."""
+
+    min_cutoff_hz: float = DEFAULT_MIN_CUTOFF_HZ
+    beta: float = DEFAULT_BETA
+    d_cutoff_hz: float = DEFAULT_D_CUTOFF_HZ
+    max_coast: int = DEFAULT_MAX_COAST
+
+    def check(self) -> "OneEuroParams":
+        from fcnpose_tf.errors import UserError
+
+        if not (self.min_cutoff_hz > 0 and self.d_cutoff_hz > 0 and self.beta >= 0 and self.max_coast >= 0):
+            raise UserError(f"smoothing parameters must be positive (cut-offs > 0 Hz, beta >= 0, coasting >= 0 "
+                            f"frames), got {self}")
+        return self
+
+
+class KeypointSmoother:
+    """One-Euro filters for K keypoints of a video, fed one frame at a time.
+
+    Example:
+        >>> smoother = KeypointSmoother(8)
+        >>> steady = smoother(keypoints_xy, t_seconds)   # K x 2, NaN where missing
+    """
+
+    def __init__(self, num_keypoints: int, params: OneEuroParams | None = None) -> None:
+        self.params = (params or OneEuroParams()).check()
+        self.k = int(num_keypoints)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget every track (e.g. when a new video starts)."""
+        self._x = np.full((self.k, 2), np.nan)  # filtered positions
+        self._v = np.zeros((self.k, 2))  # filtered velocities, px/s
+        self._missed = np.zeros(self.k, np.int64)  # frames since the last detection
+        self._t: float | None = None
+
+    def __call__(self, keypoints: np.ndarray, t: float) -> np.ndarray:
+        """The smoothed K x 2 keypoints at time t (seconds, increasing); NaN rows in `keypoints` are misses."""
+        obs = np.asarray(keypoints, np.float64).reshape(self.k, 2)
+        seen = np.isfinite(obs).all(1)
+        dt = None if self._t is None else float(t) - self._t
+        self._t = float(t)
+        tracked = np.isfinite(self._x).all(1)
+        if dt is None or dt <= 0:
+            fresh = seen
+            update = np.zeros(self.k, bool)
+        else:
+            fresh = seen & ~tracked
+            update = seen & tracked
+        self._x[fresh] = obs[fresh]
+        self._v[fresh] = 0.0
+        if update.any():
+            p = self.params
+            raw_v = (obs[update] - self._x[update]) / dt
+            self._v[update] += _alpha(p.d_cutoff_hz, dt) * (raw_v - self._v[update])
+            speed = np.linalg.norm(self._v[update], axis=1)
+            a = _alpha(p.min_cutoff_hz + p.beta * speed, dt)[:, None]
+            self._x[update] += a * (obs[update] - self._x[update])
+        self._missed[seen] = 0
+        self._missed[~seen] += 1
+        lost = ~seen & (self._missed > self.params.max_coast)
+        self._x[lost] = np.nan  # a gap longer than the coasting: the track starts afresh at its next detection
+        self._v[lost] = 0.0
+        return self._x.copy()
+
+
+def smooth_track(keypoints: np.ndarray, fps: float, params: OneEuroParams | None = None) -> np.ndarray:
+    """A whole N x K x 2 sequence at `fps` frames per second, smoothed frame by frame (as `run` does live)."""
+    keypoints = np.asarray(keypoints, np.float64)
+    smoother = KeypointSmoother(keypoints.shape[1], params)
+    return np.stack([smoother(frame, i / float(fps)) for i, frame in enumerate(keypoints)])
