@@ -210,3 +210,39 @@ def test_calibrated_ranges_clamp_the_sigmoid_input(faint):
 
     conv1 = keras.Model(graph.input, graph.get_layer("conv1").output)(frames).numpy()
     assert ranges["conv1"] == (0.0, pytest.approx(float(conv1.max()), rel=1e-5))
+
+
+def test_training_runs_epoch_by_epoch_until_the_gate_passes(faint):
+    """train_until_gate: epoch 0 is the calibrated copy; each later epoch trains, pins the sigmoid's input range
+    again and converts; it stops at the first file that passes and records every epoch's gate."""
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.export import ExportVerificationError, export_frames, export_tflite
+    from fcnpose_tf.model import load_model
+    from fcnpose_tf.qat import LOGIT_RANGE, train_until_gate
+
+    root, data, path = faint
+    model, dataset = load_model(path), load_dataset(data)
+    train, val = dataset.split(None)
+    samples, calibration = export_frames("int8", SIZE, dataset, train, dataset, val, 100)
+    training, _ = fold_data(dataset, None, SIZE, 0, 0, "paper")
+    seen = []
+
+    def convert(qat):
+        seen.append({v.name.split("/")[-1].split(":")[0]: float(v.numpy()) for v in qat.get_layer("quant_conv10")
+                     .non_trainable_weights if "pre_activation" in v.name})
+        # the mechanics only: the keypoint gate is off here (what training gives is measured on real models,
+        # docs/compression.md); the file is still converted, loaded and checked for its interface
+        export = export_tflite(qat, "int8", sample_frames=samples, calibration_frames=calibration,
+                               fold_upsampling=False, reference=model, check_keypoints=False)
+        if len(seen) < 2:  # refuse the untrained copy's file, as a model that needs training would be
+            raise ExportVerificationError("held back for the test; nothing written", {"frames": 16})
+        return export
+
+    result = train_until_gate(model, training.sequence(8, seed=0), calibration, convert, epochs=3,
+                              learning_rate=1e-4, seed=0, log=lambda line: None)
+    assert result.export is not None and result.epochs_run == 1 and len(seen) == 2
+    first, second = result.epochs
+    assert first == {"epoch": 0, "passed": False, "reason": "held back for the test", "frames": 16}
+    assert second["epoch"] == 1 and second["passed"] and second["loss"] > 0
+    assert seen[1] == {"pre_activation_min": -LOGIT_RANGE, "pre_activation_max": LOGIT_RANGE}
+    assert result.export.graph_rewrites and result.to_dict()["passed"] and result.reason == ""
