@@ -484,8 +484,7 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
 
     result = train_until_gate(retrained, run.fit_data.sequence(options.batch_size, seed=options.seed), calibration,
                               convert,
-                              epochs=options.qat_epochs, learning_rate=options.qat_learning_rate,
-                              positive_weight=options.positive_weight or 1.0, seed=options.seed,
+                              epochs=options.qat_epochs, learning_rate=options.qat_learning_rate, seed=options.seed,
                               verbose=2 if run.verbose else 0, log=run.log)
     if result.export is not None:
         write_bytes(run.paths[tflite_key("int8")], result.export.data, run.force)
