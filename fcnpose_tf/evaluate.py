@@ -181,3 +181,46 @@ def format_timing(timing: dict[str, Any]) -> str:
             f"FPS {timing['fps']:.1f} end to end, {timing['fps_inference_only']:.1f} inference only; "
             f"{timing['threads'] if timing['threads'] is not None else 'default'} thread(s), "
             f"{timing['backend']}, {timing['frames_timed']} frames after warm-up")
+
+
+def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = None,
+                    names: Sequence[str] = ()) -> dict[str, Any]:
+    """Jitter and lag of a video's tracks (frames in order at `fps`), and with `smooth` (One-Euro
+    parameters) the same for the smoothed tracks beside their PCK and EPE, as a JSON-ready dict."""
+    from fcnpose_tf.metrics import SEQUENCE_DEFINITIONS, jitter_px, lag_frames
+    from fcnpose_tf.smoothing import smooth_track
+
+    def describe(p: np.ndarray) -> dict[str, Any]:
+        report = keypoint_report(p, gt, names)
+        finite = lambda v: round(v, 3) if np.isfinite(v) else None  # noqa: E731 - strict JSON
+        return {"jitter_px": finite(jitter_px(p, gt)), "lag_frames": finite(lag_frames(p, gt)),
+                "epe_px": report["epe_px"], "pck@0.05_bbox": report["pck@0.05_bbox"],
+                "missing_fraction": report["missing_fraction"]}
+
+    out: dict[str, Any] = {"fps": fps, "definitions": SEQUENCE_DEFINITIONS, "raw": describe(pred),
+                           "ground_truth_jitter_px": 0.0}
+    if smooth is not None:
+        out["smoothing"] = {"filter": "one-euro", "min_cutoff_hz": smooth.min_cutoff_hz, "beta": smooth.beta,
+                            "d_cutoff_hz": smooth.d_cutoff_hz, "max_coast_frames": smooth.max_coast}
+        out["smoothed"] = describe(smooth_track(pred, fps, smooth))
+    return out
+
+
+def format_sequence(report: dict[str, Any]) -> str:
+    """Lines stating jitter, lag, EPE and PCK@0.05 of the raw (and smoothed) tracks, with the definitions."""
+    lines = [f"Sequence at {report['fps']:g} FPS ({report['definitions']})"]
+    for key in ("raw", "smoothed"):
+        if key in report:
+            r = report[key]
+            lines.append(f"  {key:8s} jitter {_num(r['jitter_px'])} px, lag {_num(r['lag_frames'])} frames, "
+                         f"EPE {_num(r['epe_px'])} px, PCK@0.05 {_num(r['pck@0.05_bbox'], 3)}, "
+                         f"missing {_num(r['missing_fraction'], 3)}")
+    if "smoothing" in report:
+        s = report["smoothing"]
+        lines.append(f"  smoothing: One-Euro, min cut-off {s['min_cutoff_hz']:g} Hz, beta {s['beta']:g}, "
+                     f"coasting {s['max_coast_frames']} frames")
+    return "\n".join(lines)
+
+
+def _num(value: Any, decimals: int = 2) -> str:
+    return "n/a" if value is None else f"{value:.{decimals}f}"

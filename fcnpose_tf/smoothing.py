@@ -109,3 +109,24 @@ def smooth_track(keypoints: np.ndarray, fps: float, params: OneEuroParams | None
     keypoints = np.asarray(keypoints, np.float64)
     smoother = KeypointSmoother(keypoints.shape[1], params)
     return np.stack([smoother(frame, i / float(fps)) for i, frame in enumerate(keypoints)])
+
+
+def add_smoothing_arguments(parser, video_only: bool = False) -> None:
+    """--smooth and the filter's parameters (run, predict and evaluate share them)."""
+    where = "on a video, " if video_only else ""
+    parser.add_argument("--smooth", action="store_true",
+                        help=f"{where}steady keypoints: a One-Euro filter per keypoint, coasting over up to "
+                             "--smooth-coast missed frames (docs/runtime.md, Smoothing)")
+    parser.add_argument("--smooth-min-cutoff", type=float, default=DEFAULT_MIN_CUTOFF_HZ, metavar="HZ",
+                        help=f"cut-off of a keypoint at rest (default {DEFAULT_MIN_CUTOFF_HZ:g} Hz; lower: steadier)")
+    parser.add_argument("--smooth-beta", type=float, default=DEFAULT_BETA, metavar="B",
+                        help=f"cut-off added per px/s of speed (default {DEFAULT_BETA:g}; higher: less lag)")
+    parser.add_argument("--smooth-coast", type=int, default=DEFAULT_MAX_COAST, metavar="N",
+                        help=f"frames a missed keypoint is held (default {DEFAULT_MAX_COAST})")
+
+
+def params_from_args(args) -> OneEuroParams | None:
+    """The filter's parameters if --smooth was given, else None."""
+    if not getattr(args, "smooth", False):
+        return None
+    return OneEuroParams(args.smooth_min_cutoff, args.smooth_beta, DEFAULT_D_CUTOFF_HZ, args.smooth_coast).check()

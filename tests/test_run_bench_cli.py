@@ -238,3 +238,24 @@ def test_sigterm_ends_a_run_cleanly(tmp_path, model_path):
     lines = out.read_text().splitlines()
     assert 0 < len(lines) < 6000 and f"Wrote:   {out} ({len(lines)} records)" in stdout
     assert [json.loads(line)["frame"] for line in lines] == list(range(len(lines)))
+
+
+def test_run_smooth_filters_the_records(capsys, tmp_path, model_path, video):
+    """--smooth: the first frame as found, then every record between the last smoothed one and the raw one."""
+    raw_out, smooth_out = tmp_path / "raw.jsonl", tmp_path / "smooth.jsonl"
+    assert _run(capsys, "run", model_path, "--source", video, "--out", raw_out, "--threads", 1)[0] == 0
+    code, _, err = _run(capsys, "run", model_path, "--source", video, "--out", smooth_out, "--threads", 1, "--smooth")
+    assert code == 0, err
+
+    def xy(path):
+        return np.array([[[k["x"], k["y"]] for k in json.loads(line)["keypoints"]]
+                         for line in path.read_text().splitlines()], float)
+
+    raw, smooth = xy(raw_out), xy(smooth_out)
+    np.testing.assert_allclose(smooth[0], raw[0])
+    ok = np.isfinite(raw[1:]) & np.isfinite(smooth[:-1]) & np.isfinite(smooth[1:])  # tracked in both frames
+    moved = ok & (np.abs(raw[1:] - np.nan_to_num(smooth[:-1])) > 1.0)
+    assert moved.any()
+    lo, hi = np.minimum(raw[1:], smooth[:-1])[ok], np.maximum(raw[1:], smooth[:-1])[ok]
+    assert np.all((smooth[1:][ok] >= lo - 0.01) & (smooth[1:][ok] <= hi + 0.01))
+    assert np.all(np.abs(smooth[1:] - raw[1:])[moved] > 0.01)  # pulled back, not copied

@@ -78,3 +78,22 @@ def test_lag_finds_a_known_delay(delay):
     pred = np.roll(truth, delay, axis=0)
     pred[:delay] = np.nan
     assert lag_frames(pred, truth) == pytest.approx(delay, abs=0.15)
+
+
+def test_evaluate_sequence_reports_jitter_and_lag(cli, tmp_path):
+    from fcnpose_tf.data.synth import generate_dataset
+    from fcnpose_tf.bundled import baseline_model
+
+    generate_dataset(tmp_path / "seq", n=6, seed=2, width=160, height=120, workers=1, progress=False, motion_fps=30)
+    out = tmp_path / "e.json"
+    result = cli("evaluate", baseline_model(), "--data", tmp_path / "seq", "--sequence", 30, "--smooth",
+                 "--threads", 1, "--json", out)
+    assert result.returncode == 0, result.stderr
+    assert "jitter" in result.stdout and "lag" in result.stdout and "smoothed" in result.stdout
+    import json
+
+    seq = json.loads(out.read_text())["sequence"]
+    assert seq["fps"] == 30 and set(seq) >= {"raw", "smoothed", "smoothing", "definitions"}
+    assert seq["raw"]["jitter_px"] is None or seq["raw"]["jitter_px"] >= 0
+    bad = cli("evaluate", baseline_model(), "--data", tmp_path / "seq", "--smooth")
+    assert bad.returncode == 2 and "--sequence" in bad.stderr

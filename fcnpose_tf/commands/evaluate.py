@@ -30,6 +30,7 @@ EXAMPLES = """\
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.data.args import add_data_arguments
     from fcnpose_tf.settings import thread_count
+    from fcnpose_tf.smoothing import add_smoothing_arguments
 
     parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
                         help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
@@ -39,6 +40,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fold", type=int, metavar="k", help="use the validation frames of fold k")
     parser.add_argument("--threads", type=thread_count, help="inference threads (default: all cores)")
     add_decoding_arguments(parser, fallback=True)
+    parser.add_argument("--sequence", type=float, metavar="FPS",
+                        help="the frames, in the VIA file's order, are a video at this frame rate (synth --motion): "
+                             "also report jitter and lag")
+    add_smoothing_arguments(parser)
     parser.add_argument("--json", type=Path, metavar="OUT.json", help="also write the report as JSON")
     parser.add_argument("--force", action="store_true", help="replace an existing --json file")
 
@@ -61,7 +66,12 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--fold must be between 0 and {k - 1}, got {args.fold}")
     if args.json is not None:
         check_writable(args.json, args.force)
+    if args.sequence is not None and not args.sequence > 0:
+        raise UserError(f"--sequence needs the frame rate (above 0), got {args.sequence}")
+    if args.smooth and args.sequence is None:
+        raise UserError("--smooth filters a video's tracks: give its frame rate with --sequence FPS")
     from fcnpose_tf.postprocess import describe_decoding
+    from fcnpose_tf.smoothing import params_from_args
 
     model_path = args.model or baseline_model()
     predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
@@ -74,10 +84,18 @@ def run(args: argparse.Namespace) -> int:
     print("PCK normalised by max(bbox w, h) of the ground-truth keypoints; EPE in frame pixels")
     print(format_report(result["metrics"]))
     print(format_timing(result["timing"]))
+    sequence = None
+    if args.sequence is not None:
+        from fcnpose_tf.evaluate import format_sequence, sequence_report
+
+        sequence = sequence_report(result["predictions"], result["ground_truth"], args.sequence,
+                                   params_from_args(args), dataset.schema.keypoints)
+        print(format_sequence(sequence))
     if args.json is not None:
         write_json(args.json, {"model": str(model_path), "size_bytes": Path(model_path).stat().st_size,
                                "data": str(dataset.via_path), "frames": description,
                                "decoding": {"threshold": predictor.threshold, "fallback": predictor.fallback},
-                               "metrics": result["metrics"], "timing": result["timing"]}, force=args.force)
+                               "metrics": result["metrics"], "timing": result["timing"],
+                               **({"sequence": sequence} if sequence is not None else {})}, force=args.force)
         print(f"Report: {args.json}")
     return 0

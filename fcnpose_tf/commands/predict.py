@@ -28,6 +28,7 @@ EXAMPLES = """\
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.settings import thread_count
+    from fcnpose_tf.smoothing import add_smoothing_arguments
 
     parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
                         help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
@@ -42,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=thread_count, default=None,
                         help="inference threads (default: all cores)")
     add_decoding_arguments(parser, fallback=True)
+    add_smoothing_arguments(parser, video_only=True)
     parser.add_argument("--force", action="store_true",
                         help="replace an existing VIA file and earlier saved frames of the same names")
 
@@ -56,6 +58,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
+    from fcnpose_tf.smoothing import params_from_args
 
     if args.every < 1:
         raise UserError(f"--every must be at least 1, got {args.every}")
@@ -76,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{predictor.describe()}; {source.describe()}", file=sys.stderr, flush=True)
         with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends it: the frames done so far, in the VIA file
             summary = run_stream(predictor, source, max_frames=args.max_frames, progress=ProgressLine(),
-                                 on_frame=collected.add, every=args.every)
+                                 on_frame=collected.add, every=args.every, smooth=params_from_args(args))
         written = collected.close()
     except BaseException:
         if collected is not None:

@@ -34,6 +34,7 @@ EXAMPLES = """\
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.settings import thread_count
+    from fcnpose_tf.smoothing import add_smoothing_arguments
 
     parser.add_argument("model", type=Path, help="an FCN-Pose .tflite model")
     parser.add_argument("--source", required=True,
@@ -55,6 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "beside it, image files referenced) with their keypoints, to correct in VIA")
     parser.add_argument("--via-every", type=int, default=1, metavar="N",
                         help="with --via: keep every Nth processed frame (a camera's frames add up fast)")
+    add_smoothing_arguments(parser)
     add_backend_argument(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
 
@@ -77,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
     from fcnpose_tf.runtime.sinks import VideoSink, open_record_writer, parse_outputs
     from fcnpose_tf.runtime.sources import open_source, parse_size
+    from fcnpose_tf.smoothing import params_from_args
     from fcnpose_tf.system import oversubscription_note
 
     if args.max_frames is not None and args.max_frames < 1:
@@ -116,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"{model.describe()}; {source.describe()}", file=sys.stderr, flush=True)
         with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends the run: outputs closed, summary printed
             summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine(),
-                                 on_frame=collected.add if collected is not None else None)
+                                 on_frame=collected.add if collected is not None else None,
+                                 smooth=params_from_args(args))
         finished = True
     finally:
         source.close()

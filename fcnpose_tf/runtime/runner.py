@@ -13,7 +13,7 @@ from __future__ import annotations
 import sys
 import time
 from array import array
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence, TextIO
 
 import cv2
@@ -24,6 +24,7 @@ from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction
 from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
 from fcnpose_tf.runtime.sources import Frame, FrameSource
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms
+from fcnpose_tf.smoothing import KeypointSmoother, OneEuroParams
 
 WINDOW_NAME = "fcnpose-tf"
 
@@ -112,10 +113,21 @@ class ProgressLine:
             self._width = 0
 
 
+def frame_time_s(frame: Frame, source: FrameSource) -> float:
+    """A frame's time for filtering: its position in a video, its capture time on a camera, else its index
+    at the source's frame rate (30 FPS when it has none: an image folder)."""
+    if frame.media_time_s is not None:
+        return float(frame.media_time_s)
+    if source.live:
+        return float(frame.timestamp)
+    return frame.index / float(source.fps or 30.0)
+
+
 def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[RecordWriter] = (),
                video: VideoSink | None = None, show: bool = False, max_frames: int | None = None,
                progress: ProgressLine | None = None, fps_window: int = 30,
-               on_frame: Callable[[Frame, Prediction], None] | None = None, every: int = 1) -> RunSummary:
+               on_frame: Callable[[Frame, Prediction], None] | None = None, every: int = 1,
+               smooth: OneEuroParams | None = None) -> RunSummary:
     """Run the model on every frame of `source`, writing each frame's record before reading the next.
 
     Args:
@@ -129,11 +141,14 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
         fps_window: frames averaged for the FPS drawn on the overlay and shown on the terminal.
         on_frame: called with each frame and its prediction (API users, `predict`'s VIA project).
         every: process only the frames whose index is a multiple of this (every Nth frame of a video).
+        smooth: One-Euro parameters: every record, overlay and hook gets the smoothed keypoints
+            (`frame_time_s` gives the filter its clock).
     Returns:
         The RunSummary; `end_reason` says why the loop ended (Ctrl-C included: KeyboardInterrupt
         during the loop ends it cleanly).
     """
     summary = RunSummary()
+    smoother = None
     rolling = RollingFps(fps_window)
     warm = False
     start = time.perf_counter()
@@ -151,6 +166,9 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
                 summary.skipped += 1
                 source.warn(f"skipped frame {frame.index} of {frame.name}: {exc}")
                 continue
+            if smooth is not None:
+                smoother = smoother or KeypointSmoother(len(prediction.keypoints), smooth)
+                prediction = replace(prediction, keypoints=smoother(prediction.keypoints, frame_time_s(frame, source)))
             summary.latency.add(prediction.times)
             rolling.add(prediction.times.total_ms)
             with signals_deferred():  # Ctrl-C/SIGTERM take effect after a frame's records, hook and count
