@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-DEFAULT_MIN_CUTOFF_HZ = 1.5
+DEFAULT_MIN_CUTOFF_HZ = 0.5
 """Cut-off of a keypoint at rest (Hz)."""
-DEFAULT_BETA = 0.02
+DEFAULT_BETA = 0.03
 """Cut-off added per pixel/second of speed (Hz per px/s)."""
 DEFAULT_D_CUTOFF_HZ = 1.0
 """Cut-off of the speed estimate (Hz)."""
