@@ -391,41 +391,46 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     make_folder(paths["ckpt_dir"])
 
     keras.utils.set_random_seed(config.seed)
-    if resume:
-        state = json.loads(paths["ckpt_state"].read_text())
-        model = keras.models.load_model(paths["ckpt_model"])  # with optimizer state
-        if state["epoch"] >= config.epochs or state.get("stopped_early"):
-            print(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
-    else:
-        state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
-                 "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
-        freeze_first_convolutions(model, config.freeze)
-        compile_for_training(model, config.learning_rate, config.positive_weight, config.distill)
-        if start_is_candidate:
-            state["start_val_loss"] = state["best_val_loss"] = _validation_loss(model, val_data, config.batch_size)
-            with parts_of(paths["ckpt_dir"]), atomic_path(paths["ckpt_best"], force=True) as tmp:
-                _save_weights(model, tmp)
+    state: dict[str, Any] = {"epoch": 0}
+    try:
+        if resume:
+            state = json.loads(paths["ckpt_state"].read_text())
+            model = keras.models.load_model(paths["ckpt_model"])  # with optimizer state
+            if state["epoch"] >= config.epochs or state.get("stopped_early"):
+                print(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
+        else:
+            state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
+                     "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
+            freeze_first_convolutions(model, config.freeze)
+            compile_for_training(model, config.learning_rate, config.positive_weight, config.distill)
+            if start_is_candidate:
+                state["start_val_loss"] = state["best_val_loss"] = _validation_loss(model, val_data,
+                                                                                    config.batch_size)
+                with parts_of(paths["ckpt_dir"]), atomic_path(paths["ckpt_best"], force=True) as tmp:
+                    _save_weights(model, tmp)
 
-    schedule = None
-    if config.lr_schedule == "cosine":
-        schedule = functools.partial(cosine_rate, learning_rate=config.learning_rate)
-    callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes, schedule,
-                                  epochs=config.epochs)
-    if state["epoch"] < config.epochs and not state["stopped_early"]:
-        if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have drawn
-            train_data.epoch = state["epoch"]
-        try:
+        schedule = None
+        if config.lr_schedule == "cosine":
+            schedule = functools.partial(cosine_rate, learning_rate=config.learning_rate)
+        callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes,
+                                      schedule, epochs=config.epochs)
+        if state["epoch"] < config.epochs and not state["stopped_early"]:
+            if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have
+                train_data.epoch = state["epoch"]
             model.fit(train_data, validation_data=val_data, validation_batch_size=config.batch_size,
                       initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[*callbacks, callback],
                       verbose=verbose)
-        except KeyboardInterrupt:
-            if not resumable:
-                remove_tree(paths["ckpt_dir"])
-                raise UserError(f"interrupted after {state['epoch']} complete epochs") from None
-            raise UserError(f"interrupted after {state['epoch']} complete epochs; "
-                            f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
-        except WriteError as exc:
-            raise _resumable(exc, paths, resumable) from None
+    except KeyboardInterrupt:
+        if not resumable or not paths["ckpt_state"].is_file():  # nothing to resume: no epoch-0 leftovers either
+            remove_tree(paths["ckpt_dir"])
+            if resumable:
+                raise UserError("interrupted before the first epoch ended: nothing to resume; run the command "
+                                "again to start over") from None
+            raise UserError(f"interrupted after {state['epoch']} complete epochs") from None
+        raise UserError(f"interrupted after {state['epoch']} complete epochs; "
+                        f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
+    except WriteError as exc:
+        raise _resumable(exc, paths, resumable) from None
 
     best = paths["ckpt_best"] if paths["ckpt_best"].is_file() else paths["ckpt_dir"] / "best.h5"
     if best.is_file():
@@ -462,7 +467,8 @@ def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> Writ
         return exc
     try:
         epoch = json.loads(paths["ckpt_state"].read_text())["epoch"]
-    except (OSError, ValueError, KeyError):  # no complete checkpoint yet: the run starts over
+    except (OSError, ValueError, KeyError):  # no complete checkpoint yet (the start's weights at most): starts over
+        remove_tree(paths["ckpt_dir"])
         return exc
     return WriteError(f"{exc}; the checkpoint of epoch {epoch} is intact: free some space, "
                       "then continue with --resume")
