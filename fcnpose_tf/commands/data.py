@@ -1,9 +1,14 @@
-"""Check a dataset: frame and keypoint counts, dropped frames, folds, and a preview of the target maps.
+"""Check a dataset (frame and keypoint counts, dropped frames, folds, a preview of the target maps), or merge
+rounds of labelling into one VIA project.
 
 DATA is a folder holding one VIA project file (*.json) and its images (beside it
 or in images/), or a VIA file path (images beside it, in images/, or --images).
 The first look at a dataset stores its splits as <VIA stem>.splits.json beside
 the VIA file; every later command reuses them.
+
+`data merge A.json B.json ... --out C.json` joins VIA projects frame by file name (a frame annotated
+in two of them is an error unless --prefer last), with every input's image folder stored so C.json
+loads with `data inspect C.json` and `train --data C.json` (docs/data.md, "Correcting and merging rounds").
 """
 
 from __future__ import annotations
@@ -20,6 +25,14 @@ EXAMPLES = """\
   fcnpose-tf data inspect demo --out preview.png        # plus frames with keypoints, skeleton and maps
   fcnpose-tf data inspect labels.json --images frames/ --keypoint-attr joint --min-visible 6
   fcnpose-tf data inspect my_export.json --skip-bad     # skip frames with bad regions, count them
+  fcnpose-tf data merge round1/labels.json round2/pre.json --out merged/labels.json   # rounds into one project
+  fcnpose-tf data merge round1/labels.json round2/pre.json --out merged.json --prefer last  # later file wins
+"""
+
+MERGE_EXAMPLES = """\
+  fcnpose-tf data merge round1/labels.json round2/pre.json --out merged/labels.json
+  fcnpose-tf data merge round1/labels.json round2/pre.json --out merged.json --prefer last
+  fcnpose-tf data inspect merged/labels.json                 # what the merged project holds, as train reads it
 """
 
 
@@ -41,10 +54,32 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="augmented copies per training frame (for the counts; the preview shows one)")
     inspect.add_argument("--seed", type=int, default=0, help="augmentation seed")
 
+    merge = actions.add_parser(
+        "merge", help="merge VIA projects (rounds of labelling) into one", formatter_class=parser.formatter_class,
+        description="Join VIA 2 projects frame by file name into one project that train --data and data inspect "
+                    "load: images are found as train --data finds them, their folders stored in the merged "
+                    "project (relative to it). A frame annotated differently in two inputs is an error naming it "
+                    "(or --prefer last); identical annotations are kept once; the keypoint schemas must match.",
+        epilog="examples:\n" + MERGE_EXAMPLES.rstrip())
+    merge.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                       help="show full tracebacks for errors")
+    merge.add_argument("inputs", nargs="+", type=Path, metavar="VIA",
+                       help="VIA project files (or dataset folders holding one), earliest round first")
+    merge.add_argument("--out", type=Path, required=True, metavar="OUT.json", help="the merged VIA project")
+    merge.add_argument("--prefer", choices=("error", "last"), default="error",
+                       help="a frame annotated in two inputs: error (default) or take the last input's annotation")
+    merge.add_argument("--keypoint-attr", default="keypoint", metavar="NAME",
+                       help="VIA region attribute holding each point's keypoint name")
+    merge.add_argument("--skip-bad", action="store_true",
+                       help="leave out frames with bad regions or missing images instead of stopping (listed)")
+    merge.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+
 
 def run(args: argparse.Namespace) -> int:
     if args.action == "inspect":
         return _inspect(args)
+    if args.action == "merge":
+        return _merge(args)
     raise AssertionError(args.action)  # pragma: no cover - argparse restricts the choices
 
 
@@ -117,6 +152,43 @@ def _inspect(args: argparse.Namespace) -> int:
         _write_png(args.out, image, args.force)
         print(f"Preview: {args.out} ({min(args.samples, len(ds))} frames; columns: keypoints and skeleton, "
               "target maps, an augmented copy with its maps)")
+    return 0
+
+
+def _merge(args: argparse.Namespace) -> int:
+    from fcnpose_tf.data.merge import merge_via_projects
+    from fcnpose_tf.data.splits import splits_path
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.fileio import check_writable, write_json
+
+    if args.out.suffix.lower() != ".json":
+        raise UserError(f"{args.out}: a VIA project is a .json file")
+    check_writable(args.out, args.force)  # before reading every input, not after
+    result = merge_via_projects(args.inputs, args.out, prefer=args.prefer, attribute=args.keypoint_attr,
+                                skip_bad=args.skip_bad)
+    stale = splits_path(args.out)
+    write_json(args.out, result.project, force=args.force)
+    for path, count in result.frames_per_input:
+        print(f"{path}: {count} frames")
+    notes = []
+    if result.identical:
+        notes.append(f"{len(result.identical)} annotated identically in two inputs, kept once")
+    if result.replaced:
+        notes.append(f"{len(result.replaced)} replaced by a later input's annotation (--prefer last): "
+                     + ", ".join(result.replaced[:5]) + (", ..." if len(result.replaced) > 5 else ""))
+    if result.skipped:
+        notes.append(f"{len(result.skipped)} bad frame(s) left out (--skip-bad)")
+    print(f"Merged: {args.out}: {result.num_frames} frames, schema {result.schema.name} "
+          f"({result.schema.num_keypoints} keypoints)" + (f"; {'; '.join(notes)}" if notes else ""))
+    for message in result.skipped[:10]:
+        print(f"  left out: {message}")
+    print("Images: " + ", ".join(map(str, result.image_folders))
+          + (f" ({len(result.stored_with_path)} frame(s) stored with their path: another folder holds an image "
+             "of the same name)" if result.stored_with_path else ""))
+    if stale.exists():
+        print(f"Note: {stale} holds the splits of an earlier {args.out.name}; train and inspect refuse it for the "
+              "merged frames: pass --resplit once (or merge into a new file to keep the earlier one's results "
+              "comparable)")
     return 0
 
 

@@ -1,0 +1,182 @@
+"""Merge VIA projects (rounds of labelling) into one project that `train --data` and `data inspect` load.
+
+Frames are matched by file name. A frame annotated in two inputs is an error naming it and both files,
+unless the two annotations are identical (kept once) or `prefer="last"` (the later file's annotation
+wins). Two different images that share a file name are always an error: one would be lost. The inputs'
+keypoint schemas must be the same. Each input's images are found as `train --data` finds them (beside
+the VIA file, in its `images/`, on its default path); the merged project lists their folders as VIA's
+search paths (default path first, relative to the merged file), and a frame whose name would resolve to
+another file there is stored with its path relative to the merged file instead. Every region and file
+attribute of a kept entry is carried over unchanged (rectangles, comments and all), so nothing a person
+drew is lost; frames with few keypoints are kept too (training drops them by its own --min-visible).
+"""
+
+from __future__ import annotations
+
+import copy
+import filecmp
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+from fcnpose_tf.data import via as _via
+from fcnpose_tf.data.dataset import resolve_data
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.keypoints import KeypointSchema
+
+PREFER_CHOICES = ("error", "last")
+
+
+@dataclass
+class _Entry:
+    source: Path
+    meta: dict
+    image: Path
+
+
+@dataclass
+class MergeResult:
+    """The merged VIA project (a dict ready for `fileio.write_json`) and what the merge did."""
+
+    project: dict
+    schema: KeypointSchema
+    frames_per_input: list[tuple[Path, int]]
+    replaced: list[str] = field(default_factory=list)
+    identical: list[str] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    image_folders: list[Path] = field(default_factory=list)
+    stored_with_path: list[str] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.project["_via_img_metadata"])
+
+
+def _same_image(a: Path, b: Path) -> bool:
+    try:
+        return a.resolve() == b.resolve() or os.path.samefile(a, b) or filecmp.cmp(a, b, shallow=False)
+    except OSError:
+        return False
+
+
+def _relative(folder: Path, base: Path) -> str:
+    """`folder` relative to `base` (absolute when no relative path exists, as across Windows drives)."""
+    try:
+        return os.path.relpath(folder, base)
+    except ValueError:  # pragma: no cover - different drives
+        return os.fspath(folder)
+
+
+def _schema_text(schema: KeypointSchema) -> str:
+    return f"{schema.name!r} ({', '.join(schema.keypoints)})"
+
+
+def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLike, *, prefer: str = "error",
+                       attribute: str = "keypoint", skip_bad: bool = False) -> MergeResult:
+    """The VIA project merging `inputs` (VIA files or dataset folders, in order), to be written at `out`.
+
+    Args:
+        inputs: two or more VIA 2 projects or region-data exports (or folders holding one, as `--data`).
+        out: where the merged project will be written (image paths are stored relative to its folder).
+        prefer: "error": a frame annotated differently in two inputs is an error; "last": the later wins.
+        attribute: the region attribute naming each point's keypoint (`--keypoint-attr`).
+        skip_bad: leave out frames with bad regions or missing images (listed in `skipped`) instead of stopping.
+    Raises:
+        UserError: fewer than two inputs, an input given twice, keypoint schemas that differ, a frame annotated
+            in two inputs (without prefer "last"), two images with one name, a bad frame or missing image
+            (without skip_bad): naming the file and the frame.
+    """
+    if prefer not in PREFER_CHOICES:
+        raise UserError(f"--prefer must be one of {', '.join(PREFER_CHOICES)}, got {prefer!r}")
+    if len(inputs) < 2:
+        raise UserError("data merge needs at least two VIA projects")
+    out = Path(out)
+    base = out.parent.resolve() if out.parent != Path("") else Path.cwd()
+    paths: list[Path] = []
+    for given in inputs:
+        via_path, _ = resolve_data(given)
+        if any(via_path.resolve() == p.resolve() for p in paths):
+            raise UserError(f"{via_path}: given twice")
+        paths.append(via_path)
+
+    schema: KeypointSchema | None = None
+    merged: dict[str, _Entry] = {}
+    result = MergeResult({}, None, [])  # type: ignore[arg-type]
+    attributes: dict[str, dict] = {"region": {}, "file": {}}
+    for via_path in paths:
+        annotations = _via.read_via(via_path, attribute=attribute, min_visible=0, skip_bad=skip_bad)
+        if schema is None:
+            schema = annotations.schema
+        elif annotations.schema.to_dict() != schema.to_dict():
+            raise UserError(f"{via_path}: keypoint schema {_schema_text(annotations.schema)} differs from "
+                            f"{paths[0]}'s {_schema_text(schema)}; only projects of one schema can be merged")
+        result.skipped += [f"{via_path}: {message}" for message in annotations.problems]
+        data = _via._load_json(via_path)
+        metadata, _ = _via._split_file(via_path, data)
+        raw = {meta["filename"]: meta for meta in metadata.values()
+               if isinstance(meta, dict) and isinstance(meta.get("filename"), str)}
+        for kind in ("region", "file"):
+            found = (data.get("_via_attributes") or {}).get(kind) if isinstance(data, dict) else None
+            for name, spec in (found or {}).items() if isinstance(found, dict) else ():
+                attributes[kind].setdefault(name, copy.deepcopy(spec))
+        for frame in annotations.frames:
+            entry = _Entry(via_path, copy.deepcopy(raw[frame.filename]), Path(frame.image_path))
+            earlier = merged.get(frame.filename)
+            if earlier is not None:
+                if not _same_image(earlier.image, entry.image):
+                    raise UserError(f"frame {frame.filename!r}: {earlier.source} and {via_path} name different "
+                                    f"images with this file name ({earlier.image}, {entry.image}); rename one "
+                                    "(file and VIA entry) before merging")
+                if earlier.meta.get("regions") == entry.meta.get("regions") and \
+                        earlier.meta.get("file_attributes") == entry.meta.get("file_attributes"):
+                    result.identical.append(frame.filename)
+                    continue
+                if prefer != "last":
+                    raise UserError(f"frame {frame.filename!r}: annotated in {earlier.source} and in {via_path}; "
+                                    "keep one of the two (delete the frame in the other file) or pass --prefer "
+                                    "last to take the later file's")
+                result.replaced.append(frame.filename)
+            merged[frame.filename] = entry
+        result.frames_per_input.append((via_path, len(annotations.frames)))
+    assert schema is not None
+    if not merged:
+        raise UserError("no frames to merge: " + ", ".join(map(str, paths)) + " hold no usable frame")
+
+    folders: list[Path] = []
+    for entry in merged.values():
+        folder = entry.image.parent.resolve()
+        if folder not in folders:
+            folders.append(folder)
+    relative = [_relative(f, base) for f in folders]
+    stored = [r for f, r in zip(folders, relative) if f not in (base, base / "images")]
+    project = _via.via_project_dict([], schema, attribute, base_dir=base, project_name=out.stem)
+    core = project["_via_settings"]["core"]
+    core["default_filepath"] = (stored[0].rstrip("/") + "/") if stored else ""
+    core["filepath"] = {r.rstrip("/") + "/": 1 for r in stored[1:]}
+    dirs = _via._image_dirs(base / out.name, None, project["_via_settings"])
+    metadata: dict[str, dict] = {}
+    for filename, entry in merged.items():
+        meta = entry.meta
+        try:
+            found = _via._find_image(filename, dirs)
+        except _via._FrameProblem:
+            found = None
+        if found is None or not _same_image(found, entry.image):  # the name alone would find another file
+            meta["filename"] = Path(_relative(entry.image.resolve(), base)).as_posix()
+            result.stored_with_path.append(filename)
+        size = meta.get("size", -1)
+        metadata[f"{meta['filename']}{size}"] = meta
+    for kind in ("region", "file"):
+        for name, spec in project["_via_attributes"][kind].items():
+            attributes[kind].setdefault(name, spec)
+    project["_via_attributes"] = attributes
+    project["_via_img_metadata"] = metadata
+    project["_via_image_id_list"] = list(metadata)
+    result.project = project
+    result.schema = schema
+    result.image_folders = folders
+    return result
+
+
+__all__ = ["MergeResult", "PREFER_CHOICES", "merge_via_projects"]
