@@ -7,6 +7,10 @@ of the keypoint's cluster in the output map) below --min-confidence, get no poin
 Image files are referenced where they are; video frames are saved as PNGs in images/ beside the
 VIA file. Open the project in VIA 2 (Project > Load), move, add or delete points, save the
 project, and train on it: `fcnpose-tf train --data out.json`. See docs/data.md, "Pre-annotation".
+
+With --select N only the N frames most worth correcting are written (--by uniform, uncertain, jump or
+disagree; never two within --min-gap frames): every processed frame is scored first, then the picked
+ones are read again and written (docs/data.md, "Correcting and merging rounds").
 """
 
 from __future__ import annotations
@@ -22,6 +26,8 @@ EXAMPLES = """\
   fcnpose-tf predict saved_models/fcnpose_ur5_p70_fp16.tflite --source frames/ --via frames/pre.json
   fcnpose-tf predict models/arm.keras --source clip.mp4 --every 10 --via clip_labels/pre.json
   fcnpose-tf predict model.tflite --source frames/ --via pre.json --min-confidence 20 --force
+  fcnpose-tf predict models/arm.keras --source clip.mp4 --via round2/pre.json --select 40          # spread evenly
+  fcnpose-tf predict models/arm.keras --source clip.mp4 --via round2/pre.json --select 40 --by jump --min-gap 15
   fcnpose-tf data inspect frames/pre.json                  # what the project holds, as training sees it
 """
 
@@ -42,6 +48,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
     parser.add_argument("--threads", type=thread_count, default=None,
                         help="inference threads (default: all cores)")
+    parser.add_argument("--select", type=int, default=None, metavar="N",
+                        help="write only the N frames most worth correcting (scored over every processed frame)")
+    parser.add_argument("--by", choices=("uniform", "uncertain", "jump", "disagree"), default="uniform",
+                        help="--select's choice: uniform (evenly spread, the baseline), uncertain (low map confidence "
+                             "or missing keypoints), jump (keypoints off their track between consecutive processed "
+                             "frames), disagree (keypoints that move when the frame is flipped or zoomed out)")
+    parser.add_argument("--min-gap", type=int, default=None, metavar="FRAMES",
+                        help="--select: no two picks closer than this many source frames (default: one second of "
+                             "video at its frame rate; 1 for images)")
     add_decoding_arguments(parser, fallback=True)
     add_smoothing_arguments(parser, video_only=True)
     parser.add_argument("--force", action="store_true",
@@ -64,6 +79,15 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--every must be at least 1, got {args.every}")
     if args.max_frames is not None and args.max_frames < 1:
         raise UserError(f"--max-frames must be at least 1, got {args.max_frames}")
+    if args.select is not None and args.select < 1:
+        raise UserError(f"--select must be at least 1, got {args.select}")
+    if args.min_gap is not None and args.min_gap < 1:
+        raise UserError(f"--min-gap must be at least 1, got {args.min_gap}")
+    if args.select is None and (args.by != "uniform" or args.min_gap is not None):
+        raise UserError("--by and --min-gap choose frames for --select N; pass --select")
+    if args.select is not None and params_from_args(args) is not None:
+        raise UserError("--smooth and --select do not go together: a pick's pre-labels are its own frame's "
+                        "predictions (smoothing would also hide the jumps --by jump looks for)")
     check_via_output(args.via, args.force, args.min_confidence)  # before the model loads: fail in a second
     model_path = args.model or baseline_model()
     if Path(model_path).suffix in (".keras", ".h5"):
@@ -73,6 +97,8 @@ def run(args: argparse.Namespace) -> int:
     predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
     source = open_source(args.source, refuse_cameras="predict reads image folders, images and videos; for a "
                          "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
+    if args.select is not None:
+        return _select(args, predictor, source)
     collected = None
     try:
         collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence)
@@ -92,4 +118,66 @@ def run(args: argparse.Namespace) -> int:
     print(summary.report(predictor, source))
     if written is None:
         raise UserError(f"{args.source}: no frame was processed ({summary.end_reason}); no VIA file written")
+    return 0
+
+
+def _select(args: argparse.Namespace, predictor, source) -> int:
+    """--select N: score every processed frame, pick N, read the source again and write the picks' pre-labels."""
+    import sys
+
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.fileio import stop_signals_as_interrupt
+    from fcnpose_tf.prelabel import ViaPredictions
+    from fcnpose_tf.runtime.estimator import Prediction
+    from fcnpose_tf.runtime.runner import ProgressLine, run_stream
+    from fcnpose_tf.runtime.sources import open_source
+    from fcnpose_tf.selection import FrameScores, default_min_gap
+
+    gap = args.min_gap or default_min_gap(source.fps, source.kind)
+    scores = FrameScores(args.by, predictor)
+    try:
+        print(f"{predictor.describe()}; {source.describe()}; scoring frames for --select {args.select} --by {args.by}"
+              f"{' (each frame predicted 3 times: plain, flipped, zoomed out)' if args.by == 'disagree' else ''}",
+              file=sys.stderr, flush=True)
+        with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends the scoring: the picks come from frames done
+            summary = run_stream(predictor, source, max_frames=args.max_frames, progress=ProgressLine(),
+                                 on_frame=scores.add, every=args.every)
+    finally:
+        source.close()
+    print(summary.report(predictor, source))
+    if not scores.records:
+        raise UserError(f"{args.source}: no frame was processed ({summary.end_reason}); no VIA file written")
+    picks = scores.pick(args.select, gap)
+    wanted = {record.index: record for record in picks}
+    again = open_source(args.source, refuse_cameras="predict reads image folders, images and videos")
+    collected = None
+    try:
+        collected = ViaPredictions(args.via, predictor.schema, again, args.force, args.min_confidence)
+        for frame in again:
+            record = wanted.get(frame.index)
+            if record is None:
+                continue
+            if tuple(frame.image.shape) != record.shape:
+                raise UserError(f"{args.source}: frame {frame.index} reads as {frame.image.shape} now, "
+                                f"{record.shape} when scored; the source changed while predict ran")
+            collected.add(frame, Prediction(record.keypoints, record.confidence, None, record.shape))
+            if len(collected.frames) == len(wanted):
+                break
+        if len(collected.frames) != len(wanted):
+            raise UserError(f"{args.source}: {len(wanted) - len(collected.frames)} picked frame(s) could not be "
+                            "read again; no VIA file written")
+        written = collected.close()
+    except BaseException:
+        if collected is not None:
+            collected.discard()
+        raise
+    finally:
+        again.close()
+    score = dict(zip((r.index for r in scores.records), scores.scores()))
+    fewer = (f" (only {len(picks)} fit {gap} frames apart in {len(scores.records)} processed frames)"
+             if len(picks) < args.select else "")
+    print(f"Selected {len(picks)} of {len(scores.records)} processed frames by {args.by}, at least {gap} frame(s) "
+          f"apart{fewer}: " + ", ".join(f"{r.index}" + (f" ({score[r.index]:.3g})" if args.by != "uniform" else "")
+                                       for r in picks))
+    print(f"{written}: {collected.describe()}")
     return 0
