@@ -502,7 +502,8 @@ def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model
 def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: int,
                augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
-               verbose: int = 1, log: Callable[[str], None] = print) -> dict[str, Any]:
+               verbose: int = 1, log: Callable[[str], None] = print, test_data: Any = None,
+               test_start: dict[str, Any] | None = None) -> dict[str, Any]:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
@@ -526,8 +527,12 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         label: prefix of the progress lines (default: the model path).
         verbose: 1 progress bars, 2 one line per epoch (logs), 0 silent training.
         log: where progress lines go.
+        test_data: a fixed test set (a loaded dataset of the same schema, never trained on): the trained model
+            is measured on all its frames and the result added as "test" (`record_of_test_set`).
+        test_start: the starting model's measurement on `test_data` (`record_of_test_set`'s "start"), None for random
+            weights.
     Returns:
-        The NAME_train.json record: data, split, sizes, config, epochs, best epoch, seconds, validation.
+        The NAME_train.json record: data, split, sizes, config, epochs, best epoch, seconds, validation (and test).
     Raises:
         UserError: an `init` model that does not fit the data or input size, or anything `fit` refuses.
     """
@@ -574,8 +579,74 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     paths = run_paths(model_path)
     record = json.loads(paths["train_json"].read_text())
     record["validation"] = {"metrics": report["metrics"], "timing": report["timing"]}
+    if test_data is not None:
+        log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
+        record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), test_start)
     write_json(paths["train_json"], record, force=True)
     return record
+
+
+TEST_DEFINITIONS = ("PCK@a: distance / max(w, h) of the ground truth's bounding box below a (missing = wrong), mean "
+                    "over keypoints; EPE: mean pixel error in the original frames (docs/training.md, metric "
+                    "definitions)")
+
+
+def measure_on_test_set(predictor: Any, test_data: Any) -> dict[str, Any]:
+    """Keypoint metrics (`metrics.keypoint_report`, per keypoint too) of a predictor on every frame of a test set."""
+    from fcnpose_tf.evaluate import evaluate_predictor
+
+    report = evaluate_predictor(predictor, test_data, range(len(test_data)), test_data.schema, min_timed_frames=0,
+                                warmup=1)
+    return report["metrics"]
+
+
+def start_on_test_set(init: str | Path, test_data: Any, input_size: int, threads: int | None = None
+                       ) -> dict[str, Any]:
+    """The starting model (`init`'s weights at the run's input size, as training starts) measured on a test set."""
+    from fcnpose_tf.evaluate import KerasKeypointModel
+
+    return measure_on_test_set(KerasKeypointModel(initial_model(init, test_data.schema, input_size), Path(init),
+                                           num_threads=threads), test_data)
+
+
+def record_of_test_set(test_data: Any, end: dict[str, Any], start: dict[str, Any] | None) -> dict[str, Any]:
+    """NAME_train.json's "test": which fixed frames, the starting model's metrics on them (None for random
+    weights: `start_model` says so) and the trained model's."""
+    from fcnpose_tf.records import file_sha256
+
+    return {"data": str(test_data.via_path), "data_sha256": file_sha256(test_data.via_path),
+            "num_frames": len(test_data), "definitions": TEST_DEFINITIONS,
+            "start_model": (start or {}).get("model"), "start": (start or {}).get("metrics"), "end": end}
+
+
+TEST_FIGURES = (("pck@0.5_bbox", "PCK@0.5", 3, 1), ("pck@0.2_bbox", "PCK@0.2", 3, 1),
+                ("pck@0.05_bbox", "PCK@0.05", 3, 1), ("epe_px", "EPE", 2, -1), ("missing_fraction", "missing", 3, -1))
+"""(key, label, decimals, +1 when higher is better) of the test line."""
+
+
+def format_test_set_line(test: dict[str, Any]) -> str:
+    """One line: the test set, then start -> end of each figure, and whether the end is worse than the start."""
+    start, end = test.get("start"), test["end"]
+
+    def num(value: Any, decimals: int) -> str:
+        return "n/a" if value is None else f"{value:.{decimals}f}"
+
+    parts = []
+    worse = []
+    for key, name, decimals, sign in TEST_FIGURES:
+        unit = " px" if key == "epe_px" else ""
+        if start is None:
+            parts.append(f"{name} {num(end.get(key), decimals)}{unit}")
+            continue
+        parts.append(f"{name} {num(start.get(key), decimals)} -> {num(end.get(key), decimals)}{unit}")
+        a, b = start.get(key), end.get(key)
+        if key != "missing_fraction" and a is not None and b is not None and sign * (b - a) < 0:
+            worse.append(name)
+    head = f"Test set {test['data']} ({test['num_frames']} frames): "
+    if start is None:
+        return head + ", ".join(parts) + "; no starting model to compare (--init none: random weights)"
+    verdict = f"; WORSE than the start in {', '.join(worse)}" if worse else "; no figure worse than the start"
+    return head + ", ".join(parts) + f" (start: {test.get('start_model')}){verdict}"
 
 
 def loss_name(positive_weight: float, distill: float = 0.0) -> str:

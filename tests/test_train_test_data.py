@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.keypoints import UR5
 from tests.test_train_evaluate import make_via_folder
 
 
@@ -35,3 +36,74 @@ def test_stopped_before_the_first_epoch_leaves_no_checkpoint_and_does_not_sugges
     with pytest.raises(UserError, match="no checkpoint to resume from"):
         train.check_checkpoint(out, resume=True, force=False)
     train.check_checkpoint(out, resume=False, force=False)  # a plain rerun is not refused
+
+
+def test_the_test_line_compares_start_and_end_and_says_when_the_end_is_worse():
+    from fcnpose_tf.train import format_test_set_line
+
+    start = {"pck@0.5_bbox": 0.9, "pck@0.2_bbox": 0.8, "pck@0.05_bbox": 0.3, "epe_px": 4.0, "missing_fraction": 0.0}
+    better = {**start, "pck@0.05_bbox": 0.4, "epe_px": 3.5}
+    worse = {**start, "pck@0.5_bbox": 0.85, "epe_px": 5.25}
+    test = {"data": "t.json", "num_frames": 12, "start_model": "generalist"}
+    line = format_test_set_line({**test, "start": start, "end": better})
+    assert "\n" not in line and line.startswith("Test set t.json (12 frames): PCK@0.5 0.900 -> 0.900")
+    assert "PCK@0.05 0.300 -> 0.400" in line and "EPE 4.00 -> 3.50 px" in line
+    assert line.endswith("(start: generalist); no figure worse than the start")
+    assert format_test_set_line({**test, "start": start, "end": worse}).endswith(
+        "; WORSE than the start in PCK@0.5, EPE")
+    none = format_test_set_line({**test, "start_model": None, "start": None, "end": better})
+    assert "EPE 3.50 px" in none and none.endswith("no starting model to compare (--init none: random weights)")
+
+
+TRAIN = ("--epochs", "1", "--input-size", "64", "--augment", "paper", "--augment-copies", "0", "--batch-size", "4",
+         "--quiet", "--threads", "1")
+
+
+@pytest.mark.slow
+def test_train_measures_the_start_and_every_fold_on_the_fixed_test_set(tmp_path, cli):
+    data = make_via_folder(tmp_path / "frames", n=8, size=(64, 64))
+    test = make_via_folder(tmp_path / "test", n=3, size=(64, 64), seed=7)
+    out = tmp_path / "models" / "arm.keras"
+    proc = cli("train", "--data", data, "--out", out, "--test-data", test, "--init", "workcell", *TRAIN)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    record = json.loads((tmp_path / "models" / "arm_train.json").read_text())["test"]
+    assert record["data"] == str(test / "labels.json") and record["num_frames"] == 3
+    assert record["start_model"] == "workcell"
+    for key in ("start", "end"):
+        figures = record[key]
+        assert {"pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "epe_px", "missing_fraction"} <= set(figures)
+        assert list(figures["per_keypoint"]) == list(UR5.keypoints)
+        assert figures["num_frames"] == 3
+    line = next(line for line in proc.stdout.splitlines() if line.startswith("Test set "))
+    assert "(3 frames): PCK@0.5 " in line and " -> " in line and "(start: workcell)" in line
+    assert not (test / "labels.splits.json").exists()  # the test set's folder is only read
+
+    out2 = tmp_path / "models" / "scratch.keras"
+    proc = cli("train", "--data", data, "--out", out2, "--test-data", test, "--init", "none", "--folds", "2",
+               "--resplit", *TRAIN)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    for fold in (0, 1):
+        record = json.loads((tmp_path / "models" / f"scratch_fold{fold}_train.json").read_text())["test"]
+        assert record["start"] is None and record["start_model"] is None and record["end"]["num_frames"] == 3
+    lines = [line for line in proc.stdout.splitlines() if "Test set " in line]
+    assert any(line.startswith("fold 1: Test set ") for line in lines)
+    assert all("no starting model to compare (--init none" in line for line in lines)
+
+
+@pytest.mark.slow
+def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_training(tmp_path, cli):
+    from fcnpose_tf.data.via import ViaFrame, write_via_project
+    from fcnpose_tf.keypoints import KeypointSchema
+
+    data = make_via_folder(tmp_path / "frames", n=6, size=(64, 64))
+    out = tmp_path / "m.keras"
+    proc = cli("train", "--data", data, "--out", out, "--test-data", data / "labels.json", *TRAIN)
+    assert proc.returncode == 2 and "6 of its 6 frames are also frames of --data" in proc.stderr
+    assert "never trained on" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    other = KeypointSchema.chain("arm3", ("base", "elbow", "tip"))
+    write_via_project(tmp_path / "frames" / "images" / "arm3.json",
+                      [ViaFrame("cam_00.jpg", 64, 64, np.full((3, 2), 20.0))], other)
+    proc = cli("train", "--data", data, "--out", out, "--test-data", tmp_path / "frames" / "images" / "arm3.json",
+               "--min-visible", "1", *TRAIN)
+    assert proc.returncode == 2 and "keypoint schema 'arm3'" in proc.stderr
+    assert not out.exists() and not (tmp_path / "m.ckpt").exists()

@@ -9,6 +9,9 @@ is the last example below. Without --folds the model trains on the 80/20 hold-ou
 trains one model per fold of the dataset's stored K-fold splits (or only --fold k) and reports mean
 and std. Next to the model it writes
 NAME_loss.csv/.png (loss curves) and NAME_train.json (settings, epochs, validation metrics).
+With --test-data T, a fixed test set (frames never trained on) is measured with the starting model
+before training and with every trained model at its end: both go into NAME_train.json ("test") and
+one line compares them, so a round of new labels that made the model worse shows.
 Ctrl-C or a kill loses at most one epoch: rerun with --resume.
 """
 
@@ -27,6 +30,7 @@ EXAMPLES = """\
   fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5                    # 5-fold CV
   fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
   fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # fresh transforms, whatever the views
+  fcnpose-tf train --data merged.json --out models/arm2.keras --init models/arm.keras --test-data test/  # a round
   fcnpose-tf train --data data/ur5 --out models/paper.keras --init none --augment paper \\
       --positive-weight 1 --lr-patience 0 --patience 20 --max-minutes 600                # the paper's recipe
 """
@@ -58,6 +62,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "bundled paper-reproduction baseline; either is refused for data of another keypoint "
                              "schema; none: random weights, as the paper. A trained start is the model to beat: "
                              "if no epoch improves on its validation loss, it is written unchanged")
+    parser.add_argument("--test-data", type=Path, metavar="T",
+                        help="a fixed test set (dataset folder or VIA file, images found as for --data; frames never "
+                             "trained on): the starting model and every trained one are measured on it (PCK@0.5/0.2/"
+                             "0.05, EPE, missing, per keypoint), in NAME_train.json and one line comparing them")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
@@ -92,7 +100,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.evaluate import format_timing
     from fcnpose_tf.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.train import FitConfig, check_checkpoint, check_outputs, run_identity, train_fold
+    from fcnpose_tf.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line, run_identity,
+                                  start_on_test_set, train_fold)
 
     init = initial_weights(args.init)
     if args.freeze is None:
@@ -139,21 +148,57 @@ def run(args: argparse.Namespace) -> int:
                                                augment=args.augment, augment_copies=args.augment_copies,
                                                split_seed=args.split_seed))
     dataset = load_from_args(args)  # --folds K or a --fold: K folds required of the data; else the hold-out split
+    test = _load_test_data(args, dataset) if args.test_data is not None else None
 
     set_tensorflow_threads(args.threads)
+    test_start = None
+    if test is not None and init is not None:
+        print(f"Measuring the starting model ({metadata['init']}) on the {len(test)} frames of the test set "
+              f"{test.via_path}")
+        test_start = {"model": metadata["init"],
+                      "metrics": start_on_test_set(init, test, args.input_size, args.threads)}
     reports = []
+    test_lines = []
     for fold in folds:
         record = train_fold(dataset, fold, fold_model_path(args.out, fold), config, input_size=args.input_size,
                             augment_copies=args.augment_copies, augment=args.augment, init=init, resume=args.resume,
                             force=args.force, metadata=metadata,
-                            threads=args.threads, verbose=2 if args.quiet else 1)
+                            threads=args.threads, verbose=2 if args.quiet else 1, test_data=test,
+                            test_start=test_start)
         print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         print(format_report(record["validation"]["metrics"]))
         print(format_timing(record["validation"]["timing"]))
         reports.append((fold, record["validation"]))
+        if test is not None:
+            line = format_test_set_line(record["test"])
+            test_lines.append(line if len(folds) == 1 else f"fold {fold}: {line}")
+            print(line)
     if len(reports) > 1:
         _print_fold_summary(reports)
+        for line in test_lines:
+            print(line)
     return 0
+
+
+def _load_test_data(args: argparse.Namespace, dataset):
+    """The --test-data set, loaded as --data is (same keypoint attribute, drops) without writing splits beside it;
+    refused when its schema differs from the data's or it shares frames with the training data."""
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.errors import UserError
+
+    test = load_dataset(args.test_data, attribute=args.keypoint_attr, min_visible=args.min_visible,
+                        skip_bad=args.skip_bad, write_splits=False)
+    if test.schema.to_dict() != dataset.schema.to_dict():
+        raise UserError(f"--test-data {test.via_path}: keypoint schema {test.schema.name!r} "
+                        f"({', '.join(test.schema.keypoints)}) differs from the data's {dataset.schema.name!r} "
+                        f"({', '.join(dataset.schema.keypoints)})")
+    trained_on = {s.image_path.resolve() for s in dataset.samples}
+    shared = [s.filename for s in test.samples if s.image_path.resolve() in trained_on]
+    if shared:
+        raise UserError(f"--test-data {test.via_path}: {len(shared)} of its {len(test)} frames are also frames of "
+                        f"--data {dataset.via_path} ({', '.join(shared[:3])}{', ...' if len(shared) > 3 else ''}); "
+                        "a test set must hold frames never trained on")
+    return test
 
 
 def _choose_augment(via_path: Path, images_dir: Path | None, args: argparse.Namespace) -> tuple[str, dict]:
