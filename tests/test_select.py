@@ -178,3 +178,27 @@ def test_select_options_are_checked_before_the_model_loads(capsys, tmp_path, cli
                         "--smooth")
     _one_line_error(code, err, "--smooth and --select do not go together")
     assert not via.exists()
+
+
+def test_a_stopped_selection_writes_the_picks_of_the_frames_scored_and_exits_143(capsys, tmp_path, clip12,
+                                                                                  monkeypatch):
+    import os
+    import signal
+
+    from fcnpose_tf import selection
+
+    original = selection.FrameScores.add
+
+    def add_then_stop(self, frame, prediction):
+        original(self, frame, prediction)
+        if len(self.records) == 6:
+            os.kill(os.getpid(), signal.SIGTERM)  # held back until the frame is counted, then ends the scoring
+
+    monkeypatch.setattr(selection.FrameScores, "add", add_then_stop)
+    via = tmp_path / "pre.json"
+    code, out, err = _run(capsys, "predict", BUNDLED_P70, "--source", clip12, "--via", via, "--select", "2",
+                          "--min-gap", "3", "--threads", 1)
+    assert code == 143, err
+    assert "Selected 2 of 6 processed frames by uniform" in out and err.strip().splitlines()[-1].startswith(
+        "terminated (SIGTERM)")
+    assert sorted(p.name for p in (tmp_path / "images").iterdir()) == ["clip_000000.png", "clip_000005.png"]

@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="VIA project files (or dataset folders holding one), earliest round first")
     merge.add_argument("--out", type=Path, required=True, metavar="OUT.json", help="the merged VIA project")
     merge.add_argument("--prefer", choices=("error", "last"), default="error",
-                       help="a frame annotated in two inputs: error (default) or take the last input's annotation")
+                       help="a frame annotated differently in two inputs: error, or take the last input's annotation")
     merge.add_argument("--keypoint-attr", default="keypoint", metavar="NAME",
                        help="VIA region attribute holding each point's keypoint name")
     merge.add_argument("--skip-bad", action="store_true",
