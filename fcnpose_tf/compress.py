@@ -482,9 +482,9 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
         return export_tflite(qat_model, "int8", sample_frames=samples, calibration_frames=calibration,
                              num_threads=options.threads, fold_upsampling=False, reference=retrained)
 
-    result = train_until_gate(retrained, run.fit_data.sequence(options.batch_size, seed=options.seed), calibration,
-                              convert,
-                              epochs=options.qat_epochs, learning_rate=options.qat_learning_rate, seed=options.seed,
+    sequence = run.fit_data.sequence(options.batch_size, seed=options.seed)
+    result = train_until_gate(retrained, sequence, calibration, convert, epochs=options.qat_epochs,
+                              learning_rate=options.qat_learning_rate, seed=options.seed,
                               verbose=2 if run.verbose else 0, log=run.log)
     if result.export is not None:
         write_bytes(run.paths[tflite_key("int8")], result.export.data, run.force)

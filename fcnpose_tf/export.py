@@ -372,7 +372,8 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
     convert_seconds = time.perf_counter() - start
     start = time.perf_counter()
     # Always against the original model: the rewrite is checked together with the conversion.
-    parity = verify_tflite(model if reference is None else reference, data, frames, map_atol=map_atol, keypoint_px=keypoint_px, threshold=threshold,
+    parity = verify_tflite(model if reference is None else reference, data, frames, map_atol=map_atol,
+                           keypoint_px=keypoint_px, threshold=threshold,
                            check_keypoints=check_keypoints, num_threads=num_threads, label=quantize,
                            keypoint_share=KEYPOINT_SHARE_BY_MODE[quantize],
                            pixel_input=quantize == FULL_INTEGER)
