@@ -11,8 +11,8 @@ folder). Strategies (docs/data.md, "Correcting and merging rounds"):
   map cluster) falls short of that keypoint's median confidence over the source, as a share of it;
   summed over keypoints.
 - `jump`: the largest distance (frame pixels) of a keypoint from the midpoint of its positions in the
-  previous and the next processed frame (at either end: from the line through the two on one side): one
-  frame off its track scores high, smooth fast motion does not.
+  previous and the next processed frame (at either end: from the line through the two on one side, scaled
+  so noise scores alike): one frame off its track scores high, smooth fast motion does not.
 - `disagree`: test-time augmentation: the frame flipped left-right (no keypoints swapped: the UR5 chain has
   no left/right pairs) and zoomed out (centred on a canvas PAD_FRACTION larger, as the training's padding),
   each predicted and mapped back; per keypoint the largest distance to the plain prediction (the frame's
@@ -143,7 +143,8 @@ def uncertainty_scores(keypoints: np.ndarray, confidence: np.ndarray) -> np.ndar
 def jump_scores(keypoints: np.ndarray) -> np.ndarray:
     """Per frame: the largest distance of a keypoint from where its neighbours put it: the midpoint of its
     previous and next positions, else (at either end, or a neighbour missing it) the line through the two
-    positions on one side, else the one neighbour's position; 0 when no neighbour has it."""
+    positions on one side (distance halved), else the one neighbour's position (times 0.87); 0 when no
+    neighbour has it. The factors give per-frame noise the same score wherever it is measured."""
     n = len(keypoints)
 
     def shifted(by: int) -> np.ndarray:  # keypoints of frame t + by at row t (NaN outside)
@@ -155,11 +156,13 @@ def jump_scores(keypoints: np.ndarray) -> np.ndarray:
                 out[-by:] = keypoints[:n + by]
         return out
 
-    reference = np.full_like(keypoints, np.nan)
-    for candidate in ((shifted(-1) + shifted(1)) / 2, 2 * shifted(-1) - shifted(-2), 2 * shifted(1) - shifted(2),
-                      shifted(-1), shifted(1)):
-        reference = np.where(np.isfinite(reference), reference, candidate)
-    distance = np.linalg.norm(keypoints - reference, axis=2)
+    # each reference's distance scaled so that independent per-frame noise of std s scores alike with any of them:
+    # p - (a + b) / 2 has variance 1.5 s^2, p - (2a - b) 6 s^2, p - a 2 s^2
+    distance = np.full(keypoints.shape[:2], np.nan)
+    for candidate, scale in (((shifted(-1) + shifted(1)) / 2, 1.0), (2 * shifted(-1) - shifted(-2), 0.5),
+                             (2 * shifted(1) - shifted(2), 0.5), (shifted(-1), 0.75 ** 0.5),
+                             (shifted(1), 0.75 ** 0.5)):
+        distance = np.where(np.isfinite(distance), distance, scale * np.linalg.norm(keypoints - candidate, axis=2))
     distance = np.where(np.isfinite(distance), distance, 0.0)
     return distance.max(axis=1) if n else np.zeros(0)
 
