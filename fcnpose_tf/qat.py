@@ -162,8 +162,12 @@ def calibrate_ranges(qat: keras.Model, graph: keras.Model, frames: Any) -> dict[
     wrapped = {layer.layer.name: layer for layer in qat.layers if hasattr(layer, "layer")}
     wanted = [name for name in wrapped if name in inner and getattr(inner[name], "activation", None) is not None]
     probe = keras.Model(graph.input, [inner[name].output for name in wanted])
-    outputs = probe.predict(frames, batch_size=8, verbose=0)
-    outputs = outputs if isinstance(outputs, list) else [outputs]
+    # running min/max over batches: all layers' outputs of 100 frames at 224 would take ~4 GB (unpruned model)
+    lows, highs = [np.inf] * len(wanted), [-np.inf] * len(wanted)
+    for start in range(0, len(frames), 8):
+        batch = probe(frames[start:start + 8], training=False)
+        for i, values in enumerate(batch if isinstance(batch, (list, tuple)) else [batch]):
+            lows[i], highs[i] = min(lows[i], float(np.min(values))), max(highs[i], float(np.max(values)))
     ranges: dict[str, tuple[float, float]] = {}
     for layer in qat.layers:  # the input: pixels (the file's input scale is pinned to 1/255 anyway)
         if isinstance(layer, QuantizeLayer):
@@ -171,12 +175,12 @@ def calibrate_ranges(qat: keras.Model, graph: keras.Model, frames: Any) -> dict[
                 short = variable.name.split("/")[-1].split(":")[0]
                 if short.endswith("_min") or short.endswith("_max"):
                     variable.assign(min(0.0, float(frames.min())) if short.endswith("_min") else float(frames.max()))
-    for name, values in zip(wanted, outputs):
+    for name, value_min, value_max in zip(wanted, lows, highs):
         layer = wrapped[name]
         for variable in layer.non_trainable_weights:
             short = variable.name.split("/")[-1].split(":")[0]
             if short in ("post_activation_min", "post_activation_max"):
-                low, high = min(0.0, float(values.min())), max(0.0, float(values.max()))
+                low, high = min(0.0, value_min), max(0.0, value_max)
             elif short in ("pre_activation_min", "pre_activation_max"):
                 low, high = -LOGIT_RANGE, LOGIT_RANGE
             else:
