@@ -80,7 +80,10 @@ def plan_outputs(args: argparse.Namespace) -> None:
 
 
 def _kept(outputs: fileio.CommandOutputs) -> str:
-    kept = outputs.kept()
+    from fcnpose_tf.synthcache import cache_dir
+
+    cache = cache_dir().resolve()
+    kept = [p for p in outputs.kept() if cache not in p.resolve().parents]  # the package's own cache is not an output
     return f"; kept the files completed before it: {', '.join(map(str, kept))}" if kept else ""
 
 
