@@ -432,6 +432,9 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
                             config.compress_options(job), force=True, verbose=config.verbose, log=_log,
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
+    if report["quantized"] is None:  # every format refused by its keypoint gate: the job fails, one line
+        reasons = "; ".join(f"{r['quantize']}: {r['reason']}" for r in report["refused"])
+        raise UserError(f"{job.label}: no TFLite file passed its keypoint gate ({reasons})")
     return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
             "keras": _strip(report["retrained"]),
             "tflite": _strip(report["quantized"]),
