@@ -415,3 +415,18 @@ def test_int8_gate_refuses_a_broken_calibration_and_writes_nothing(trained_p70_f
     with pytest.raises(ExportVerificationError, match=r"lost or gained|keypoints within 2 px"):
         write_tflite(model, path, "int8", sample_frames=verification, calibration_frames=np.zeros_like(calibration))
     assert not path.exists()
+
+
+def test_export_with_too_few_frames_for_int8_refuses_before_writing_anything(cli, tmp_path):
+    """The 16-frame minimum of the int8 gate is known before any conversion: no float16 file first, then a failure."""
+    from fcnpose_tf.model import build_fcn_pose
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "frames", n=6)
+    model = tmp_path / "m.keras"
+    build_fcn_pose(input_size=64).save(model)
+    proc = cli("export", model, "--data", data, "--quantize", "float16,int8", "--out-dir", tmp_path / "out",
+               "--threads", "1")
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1].startswith("error: int8 export is verified on keypoints of at least 16")
+    assert not (tmp_path / "out").exists()

@@ -53,7 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings, synthcache
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.export import ExportVerificationError, export_frames, write_tflite
+    from fcnpose_tf.export import MIN_FRAMES_BY_MODE, ExportVerificationError, export_frames, write_tflite
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.model import load_model
     from fcnpose_tf.tables import format_table
@@ -77,6 +77,12 @@ def run(args: argparse.Namespace) -> int:
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     size = int(model.input_shape[1])
+    available = min(len(val) + len(train), max(MIN_FRAMES_BY_MODE.values()))  # what export_frames can gather
+    short = [q for q in paths if MIN_FRAMES_BY_MODE[q] > available]
+    if short:  # known before anything is converted: refuse before writing any file
+        raise UserError(f"{', '.join(short)} export is verified on keypoints of at least "
+                        f"{max(MIN_FRAMES_BY_MODE[q] for q in short)} real frames; {dataset.via_path} has "
+                        f"{len(val) + len(train)} (add frames, or leave {', '.join(short)} out of --quantize)")
     rows, records, refused = [], [], []
     for quantize, path in paths.items():
         samples, calibration = export_frames(quantize, size, dataset, train, dataset, val, args.calibration_frames,
