@@ -249,8 +249,11 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
         converter.target_spec.supported_ops = [tf.lite.OpsSet.TFLITE_BUILTINS_INT8]  # no float fallback
         converter.inference_input_type = tf.uint8
         converter.inference_output_type = tf.int8  # the sigmoid's own type: no requantizing op at the end
+    from fcnpose_tf.nativelog import native_stderr_captured
+
     try:
-        data = bytes(converter.convert())
+        with native_stderr_captured():  # the converter's own lines (`fully_quantize: 0, inference_type: 6, ...`)
+            data = bytes(converter.convert())
     except Exception as exc:  # ConverterError and friends: an op without a built-in kernel, ...
         detail = str(exc).strip().splitlines()
         raise UserError(f"TFLite conversion of model {model.name} ({quantize}) failed: "
