@@ -814,3 +814,22 @@ def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:
         "constant_bytes": int(sum(buffer_bytes(t) for t in constant)),
         "convolutions": convolutions,
     }
+
+
+def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool) -> int:
+    """The end of a command whose formats the keypoint gate may refuse (`export`, `compress`): name every
+    file written, then its exit status. UserError (exit 2) when no .tflite file was written, or when a
+    format the user named with --quantize was refused; else 0, with a note naming the refused formats."""
+    for path in written:
+        print(f"wrote {path}")
+    names = ", ".join(refused)
+    kept = f"kept {', '.join(map(str, written))}" if written else "nothing written"
+    if not any_tflite:
+        raise UserError(f"no TFLite file written: {names} refused by the keypoint gate (the table above gives the "
+                        f"reasons); {kept}")
+    if named and refused:
+        raise UserError(f"{names} (named with --quantize) refused by the keypoint gate (the table above gives the "
+                        f"reason); {kept}")
+    if refused:
+        print(f"note: {names} refused by the keypoint gate (see above); the other formats were written")
+    return 0

@@ -166,22 +166,11 @@ def _finish(report: dict, model_path: Path, out_dir: Path, options, named: bool)
     """Name every file written; the exit status (see the module doc): 2 when a named format was refused or no
     .tflite file was written, else 0."""
     from fcnpose_tf.compress import output_paths
-    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.export import finish_formats
 
     written = [Path(p) for p in report["files"].values()]
     written += [p for p in output_paths(model_path, out_dir, options) if p.is_file() and p not in written
                 and p.suffix != ".tflite"]  # the retraining's record and loss curves
-    for path in written:
-        print(f"wrote {path}")
-    refused = [entry["quantize"] for entry in report["refused"]]
-    kept = f"kept {', '.join(map(str, written))}"
-    if not report["quantized"]:
-        raise UserError(f"no TFLite file written: {', '.join(refused)} refused by the keypoint gate (the table above "
-                        f"gives the reasons); {kept}")
-    if named and refused:
-        raise UserError(f"{', '.join(refused)} (named with --quantize) refused by the keypoint gate (the table above "
-                        f"gives the reason); {kept}")
-    if refused:
-        print(f"note: {', '.join(refused)} refused by the keypoint gate (see above); the other formats were written")
-    return 0
+    return finish_formats(written, [entry["quantize"] for entry in report["refused"]], bool(report["quantized"]),
+                          named)
 

@@ -53,7 +53,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings, synthcache
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.export import MIN_FRAMES_BY_MODE, ExportVerificationError, export_frames, write_tflite
+    from fcnpose_tf.export import (MIN_FRAMES_BY_MODE, ExportVerificationError, export_frames, finish_formats,
+                                   write_tflite)
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.model import load_model
     from fcnpose_tf.tables import format_table
@@ -116,16 +117,4 @@ def run(args: argparse.Namespace) -> int:
                                               f"{len(train)} frames", "files": records, "refused": refused},
                    force=args.force)
     written = [Path(r["file"]) for r in records] + ([args.json] if args.json else [])
-    for path in written:
-        print(f"wrote {path}")
-    names = ", ".join(entry["quantize"] for entry in refused)
-    kept = f"kept {', '.join(map(str, written))}" if written else "nothing written"
-    if not records:
-        raise UserError(f"no TFLite file written: {names} refused by the keypoint gate (the table above gives the "
-                        f"reasons); {kept}")
-    if named and refused:
-        raise UserError(f"{names} (named with --quantize) refused by the keypoint gate (the table above gives the "
-                        f"reason); {kept}")
-    if refused:
-        print(f"note: {names} refused by the keypoint gate (see above); the other formats were written")
-    return 0
+    return finish_formats(written, [entry["quantize"] for entry in refused], bool(records), named)
