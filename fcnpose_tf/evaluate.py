@@ -197,8 +197,7 @@ def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = 
                 "epe_px": report["epe_px"], "pck@0.05_bbox": report["pck@0.05_bbox"],
                 "missing_fraction": report["missing_fraction"]}
 
-    out: dict[str, Any] = {"fps": fps, "definitions": SEQUENCE_DEFINITIONS, "raw": describe(pred),
-                           "ground_truth_jitter_px": 0.0}
+    out: dict[str, Any] = {"fps": fps, "definitions": SEQUENCE_DEFINITIONS, "raw": describe(pred)}
     if smooth is not None:
         out["smoothing"] = {"filter": "one-euro", "min_cutoff_hz": smooth.min_cutoff_hz, "beta": smooth.beta,
                             "d_cutoff_hz": smooth.d_cutoff_hz, "max_coast_frames": smooth.max_coast}

@@ -55,8 +55,9 @@ class Camera:
         if not self.k1:
             return self
         K = self.K.copy()
-        K[0, 0] /= self.undistort_scale()
-        K[1, 1] /= self.undistort_scale()
+        scale = self.undistort_scale()
+        K[0, 0] /= scale
+        K[1, 1] /= scale
         return Camera(K, self.R, self.eye, self.width, self.height)
 
     def distortion_maps(self) -> tuple[np.ndarray, np.ndarray]:
