@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "gripper, a wide-angle distorting lens, overhead light, a clean render)")
     parser.add_argument("--labels", choices=LABEL_CONVENTIONS, default=DEFAULT_LABELS,
                         help="keypoint convention: housing (the centre of each joint housing, where an annotator "
-                             "clicks; the default) or kinematic (the URDF joint frames on the joint axes, as DREAM "
+                             "clicks) or kinematic (the URDF joint frames on the joint axes, as DREAM "
                              "and robot simulators define them)")
     parser.add_argument("--motion", type=float, metavar="FPS",
                         help="a motion sequence: consecutive frames of the workcell's arm moving smoothly through "
