@@ -51,7 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="which workcell (robot look, mount, room, light, camera); frames of every --seed "
                              "share it, so a held-out set is the same cell in new poses (default: 0)")
     parser.add_argument("--looks", choices=LOOKS, default=DEFAULT_LOOKS,
-                        help="look family: classic (a silver UR5 with blue-grey caps, a webcam: the default), "
+                        help="look family: classic (a silver UR5 with blue-grey caps, a webcam), "
                              "varied (UR3/5/10/16 and e-series arms, any paint, grippers, vacuum cups, spindles, "
                              "lenses, lights and sensors: what the generalist is pretrained on), heldout (a look "
                              "pretraining never draws: a UR5e with dark housings and coloured caps, an adaptive "
