@@ -210,21 +210,33 @@ def signals_deferred() -> Iterator[None]:
     A step that must not be cut in two by Ctrl-C or a `kill` (a record written and counted) runs
     inside. Python runs signal handlers in the main thread between bytecodes, so the handlers are
     swapped for recording ones there (a thread's signal mask would not do: LiteRT's threads would
-    still take the signal); in other threads the block simply runs.
+    still take the signal); in other threads the block simply runs. A signal taken by the old handler
+    while the swap itself runs (before the block) leaves every handler as it was.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     arrived: list[int] = []
     held = (signal.SIGINT, signal.SIGTERM)
-    previous = {sig: signal.signal(sig, lambda signum, frame: arrived.append(signum)) for sig in held}
+    previous = [(sig, signal.getsignal(sig)) for sig in held]  # read first: nothing is changed yet
     try:
+        for sig in held:
+            signal.signal(sig, lambda signum, frame: arrived.append(signum))
         yield
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+        _handlers_reinstalled(previous)
         for sig in dict.fromkeys(arrived):
             signal.raise_signal(sig)
+
+
+def _handlers_reinstalled(previous: list[tuple[int, object]]) -> None:
+    """Put each (signal, handler) back; a signal taken while doing so does not stop the rest."""
+    if previous:
+        (sig, handler), rest = previous[0], previous[1:]
+        try:
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)  # None: set outside Python
+        finally:
+            _handlers_reinstalled(rest)
 
 
 STOP_SIGNALS = {signal.SIGINT: ("interrupted (Ctrl-C)", 130), signal.SIGTERM: ("terminated (SIGTERM)", 143)}

@@ -60,6 +60,23 @@ def native_stderr_captured(sink: IO[bytes] | None = None) -> Iterator[NativeOutp
             pass
         own: IO[bytes] | None = None
         saved: int | None = None
+
+        def restore() -> None:  # idempotent: run again if a signal cut a first run short
+            nonlocal saved, own
+            if saved is not None:
+                with contextlib.suppress(OSError):
+                    os.dup2(saved, 2)
+                    os.close(saved)
+                saved = None
+                try:
+                    sink.seek(0)
+                    output.text = sink.read().decode("utf-8", "replace")
+                except OSError:
+                    pass
+            if own is not None:
+                own.close()
+                own = None
+
         try:
             with signals_deferred():  # Ctrl-C or a kill arriving mid-switch must not leave descriptor 2 redirected
                 try:
@@ -76,14 +93,8 @@ def native_stderr_captured(sink: IO[bytes] | None = None) -> Iterator[NativeOutp
                         saved = None
             yield output
         finally:
-            with signals_deferred():
-                if saved is not None:
-                    os.dup2(saved, 2)
-                    os.close(saved)
-                    try:
-                        sink.seek(0)
-                        output.text = sink.read().decode("utf-8", "replace")
-                    except OSError:
-                        pass
-                if own is not None:
-                    own.close()
+            try:
+                with signals_deferred():
+                    restore()
+            finally:  # a signal taken before the deferral above began: descriptor 2 still comes back
+                restore()

@@ -700,3 +700,57 @@ def test_sigterm_while_stderr_is_switched_for_a_native_call_leaves_it_restored(m
         monkeypatch.undo()
     after = os.fstat(2)
     assert calls == [2, 2] and (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
+
+
+def test_a_signal_taken_just_before_the_restoring_deferral_still_restores_stderr(monkeypatch):
+    """The handler runs between any two bytecodes: also after the native call, before the restore's deferral."""
+    import contextlib
+
+    from fcnpose_tf import nativelog
+
+    real, entered = nativelog.signals_deferred, []
+
+    @contextlib.contextmanager
+    def cut_short_on_the_restore():
+        entered.append(1)
+        if len(entered) == 2:  # the handler ran here: KeyboardInterrupt before anything is held back
+            raise KeyboardInterrupt("terminated (SIGTERM)")
+        with real():
+            yield
+
+    before = os.fstat(2)
+    monkeypatch.setattr(nativelog, "signals_deferred", cut_short_on_the_restore)
+    with pytest.raises(KeyboardInterrupt):
+        with nativelog.native_stderr_captured():
+            pass
+    monkeypatch.undo()
+    after = os.fstat(2)
+    assert len(entered) == 2 and (after.st_dev, after.st_ino) == (before.st_dev, before.st_ino)
+
+
+def test_a_signal_taken_while_the_deferral_swaps_handlers_leaves_them_as_they_were(monkeypatch):
+    """SIGINT swapped, then a kill before SIGTERM is: both handlers come back, none is left recording."""
+    from fcnpose_tf import fileio
+
+    real_signal, swaps = signal.signal, []
+
+    def signal_cut_after_first_swap(sig, handler):
+        result = real_signal(sig, handler)
+        swaps.append(sig)
+        if len(swaps) == 1:
+            raise KeyboardInterrupt("terminated (SIGTERM)")
+        return result
+
+    def on_int(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = real_signal(signal.SIGINT, on_int)
+    try:
+        monkeypatch.setattr(fileio.signal, "signal", signal_cut_after_first_swap)
+        with pytest.raises(KeyboardInterrupt):
+            with fileio.signals_deferred():
+                pass
+        monkeypatch.undo()
+        assert signal.getsignal(signal.SIGINT) is on_int
+    finally:
+        real_signal(signal.SIGINT, previous)
