@@ -97,11 +97,19 @@ def test_identical_annotations_are_kept_once_and_all_regions_carried_over(tmp_pa
     assert first["file_attributes"] == {"note": "occluded by a person"}
 
 
-def test_two_images_with_one_name_and_a_name_that_would_find_another_image(tmp_path, capsys):
-    a, _ = _round(tmp_path / "r1", ["f0.png", "f1.png"], seed=0)
-    b, kps_b = _round(tmp_path / "r2", ["f1.png"], seed=1)  # another image called f1.png
-    status, captured = _merge(a, b, "--out", tmp_path / "m.json", "--prefer", "last", capsys=capsys)
-    assert status == 2 and "frame 'f1.png'" in captured.err and "different images with this file name" in captured.err
+def test_two_images_with_one_name_are_two_frames_and_a_name_that_would_find_another_image(tmp_path, capsys):
+    a, kps_a = _round(tmp_path / "r1", ["f0.png", "f1.png"], seed=0)
+    b, kps_b = _round(tmp_path / "r2", ["f1.png"], seed=1)  # another image called f1.png (another session's)
+    out = tmp_path / "m.json"
+    status, captured = _merge(a, b, "--out", out, capsys=capsys)
+    assert status == 0, captured.err
+    ds = load_dataset(out)
+    assert len(ds.names) == 3
+    for folder, kps in (("r1", kps_a), ("r2", kps_b)):  # each f1.png with its own image and keypoints
+        image = (tmp_path / folder / "images/f1.png").resolve()
+        i = next(i for i, sample in enumerate(ds.samples) if sample.image_path.resolve() == image)
+        np.testing.assert_allclose(ds.samples[i].keypoints, kps["f1.png"], atol=1e-3)
+        assert np.array_equal(ds.load_image(i), cv2.imread(str(tmp_path / folder / "images/f1.png")))
 
     # r2's x.png is annotated; r1's folder holds an unannotated x.png too: the merged entry keeps its path
     c, kps_c = _round(tmp_path / "r3", ["x.png"], seed=2)

@@ -1,8 +1,9 @@
 """Merge VIA projects (rounds of labelling) into one project that `train --data` and `data inspect` load.
 
-Frames are matched by file name. A frame annotated in two inputs is an error naming it and both files,
-unless the two annotations are identical (kept once) or `prefer="last"` (the later file's annotation
-wins). Two different images that share a file name are always an error: one would be lost. The inputs'
+Frames are matched by file name and image: a frame annotated in two inputs (the same name, the same
+image) is an error naming it and both files, unless the two annotations are identical (kept once) or
+`prefer="last"` (the later file's annotation wins). Two different images that share a file name (two
+sessions' `frame_0001.png`, two synthetic sets' `synth_00000.png`) are two frames: both are kept. The inputs'
 keypoint schemas must be the same. Each input's images are found as `train --data` finds them (beside
 the VIA file, in its `images/`, on its default path); the merged project lists their folders as VIA's
 search paths (default path first, relative to the merged file), and a frame whose name would resolve to
@@ -84,7 +85,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
         skip_bad: leave out frames with bad regions or missing images (listed in `skipped`) instead of stopping.
     Raises:
         UserError: fewer than two inputs, an input given twice, keypoint schemas that differ, a frame annotated
-            in two inputs (without prefer "last"), two images with one name, a bad frame or missing image
+            in two inputs (without prefer "last"), a bad frame or missing image
             (without skip_bad): naming the file and the frame.
     """
     if prefer not in PREFER_CHOICES:
@@ -101,7 +102,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
         paths.append(via_path)
 
     schema: KeypointSchema | None = None
-    merged: dict[str, _Entry] = {}
+    merged: dict[str, list[_Entry]] = {}  # by file name: the different images sharing it
     result = MergeResult({}, None, [])  # type: ignore[arg-type]
     attributes: dict[str, dict] = {"region": {}, "file": {}}
     for via_path in paths:
@@ -122,29 +123,29 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
                 attributes[kind].setdefault(name, copy.deepcopy(spec))
         for frame in annotations.frames:
             entry = _Entry(via_path, copy.deepcopy(raw[frame.filename]), Path(frame.image_path))
-            earlier = merged.get(frame.filename)
-            if earlier is not None:
-                if not _same_image(earlier.image, entry.image):
-                    raise UserError(f"frame {frame.filename!r}: {earlier.source} and {via_path} name different "
-                                    f"images with this file name ({earlier.image}, {entry.image}); rename one "
-                                    "(file and VIA entry) before merging")
-                if earlier.meta.get("regions") == entry.meta.get("regions") and \
-                        earlier.meta.get("file_attributes") == entry.meta.get("file_attributes"):
-                    result.identical.append(frame.filename)
-                    continue
-                if prefer != "last":
-                    raise UserError(f"frame {frame.filename!r}: annotated in {earlier.source} and in {via_path}; "
-                                    "keep one of the two (delete the frame in the other file) or pass --prefer "
-                                    "last to take the later file's")
-                result.replaced.append(frame.filename)
-            merged[frame.filename] = entry
+            named = merged.setdefault(frame.filename, [])
+            earlier = next((e for e in named if _same_image(e.image, entry.image)), None)
+            if earlier is None:
+                named.append(entry)
+                continue
+            if earlier.meta.get("regions") == entry.meta.get("regions") and \
+                    earlier.meta.get("file_attributes") == entry.meta.get("file_attributes"):
+                result.identical.append(frame.filename)
+                continue
+            if prefer != "last":
+                raise UserError(f"frame {frame.filename!r}: annotated in {earlier.source} and in {via_path}; "
+                                "keep one of the two (delete the frame in the other file) or pass --prefer "
+                                "last to take the later file's")
+            result.replaced.append(frame.filename)
+            named[named.index(earlier)] = entry
         result.frames_per_input.append((via_path, len(annotations.frames)))
     assert schema is not None
     if not merged:
         raise UserError("no frames to merge: " + ", ".join(map(str, paths)) + " hold no usable frame")
 
     folders: list[Path] = []
-    for entry in merged.values():
+    entries = [entry for named in merged.values() for entry in named]
+    for entry in entries:
         folder = entry.image.parent.resolve()
         if folder not in folders:
             folders.append(folder)
@@ -156,8 +157,8 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
     core["filepath"] = {r.rstrip("/") + "/": 1 for r in stored[1:]}
     dirs = _via._image_dirs(base / out.name, None, project["_via_settings"])
     metadata: dict[str, dict] = {}
-    for filename, entry in merged.items():
-        meta = entry.meta
+    for entry in entries:
+        meta, filename = entry.meta, entry.meta["filename"]
         try:
             found = _via._find_image(filename, dirs)
         except _via._FrameProblem:
