@@ -75,6 +75,16 @@ def test_the_generalists_data_command_refuses_a_held_out_family(tmp_path):
                          "--dry-run"], capture_output=True, text=True)
     assert ok.returncode == 0, ok.stderr
     assert "--looks varied" in ok.stdout and "--init generalist" in ok.stdout
+    mixed = subprocess.run([sys.executable, str(TOOLS / "pretrain_generalist.py"), "--work", str(tmp_path / "w"),
+                            "--looks", "varied:30,classic:12", "--seed", "5", "--dry-run"], capture_output=True, text=True)
+    steps = mixed.stdout.splitlines()
+    assert mixed.returncode == 0 and [s.split()[3] for s in steps] == ["synth", "synth", "data", "train"], mixed.stderr
+    assert "--looks varied --n 30 --seed 5 " in steps[0] and "--looks classic --n 12 --seed 2005 " in steps[1]
+    assert steps[3].split("--data ")[1].startswith(str(tmp_path / "w" / "frames.json"))
+    for bad in ("varied,heldout", "varied:0", "varied:x", "varied,varied"):
+        refused = subprocess.run([sys.executable, str(TOOLS / "pretrain_generalist.py"), "--work", str(tmp_path / "w"),
+                                  "--looks", bad, "--dry-run"], capture_output=True, text=True)
+        assert refused.returncode == 2 and refused.stderr.startswith("error: "), (bad, refused.stderr)
 
 
 @pytest.mark.parametrize("looks", ["varied", "heldout"])

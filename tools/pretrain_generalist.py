@@ -1,9 +1,11 @@
 #!/usr/bin/env python3
 """Continue pretraining the bundled generalist on fresh domain-randomised frames (maintainers only).
 
-The generalist's data command: renders `--n` frames of a *pretraining* look family (`varied` by
-default; a held-out family such as `heldout` is refused, so the looks that measure unseen arms never
-reach pretraining), then continues training the bundled generalist on them with the recipe of
+The generalist's data command: renders `--n` frames of each *pretraining* look family named by
+`--looks` (`varied` by default; `varied:3000,classic:1200` mixes families, each with its own frame
+count and seed; a held-out family such as `heldout` is refused, so the looks that measure unseen arms
+never reach pretraining), merges them into one project (`data merge`), then continues training the
+bundled generalist on them with the recipe of
 saved_models/PROVENANCE.md (online augmentation, conv1-2 fixed, a half-cosine rate over the time
 budget). Takes `--minutes` plus a few minutes of rendering on 2 cores. Run from the repository root
 in an environment with '.[train]'; copy the result over saved_models/fcnpose_ur5_generalist.keras
@@ -11,6 +13,8 @@ in an environment with '.[train]'; copy the result over saved_models/fcnpose_ur5
 docs/training.md, and record the run in saved_models/PROVENANCE.md.
 
     python tools/pretrain_generalist.py --work runs/gen --n 4000 --seed 9000 --minutes 60
+    python tools/pretrain_generalist.py --work runs/gen --looks varied:3000,classic:1200 --seed 11000 \
+        --init saved_models/candidates/fcnpose_ur5_generalist_varied.keras --learning-rate 5e-4 --minutes 95
     python tools/pretrain_generalist.py --work runs/gen --dry-run      # print the commands only
 """
 
@@ -28,14 +32,42 @@ from fcnpose_tf.data.synth.looks import PRETRAINING_LOOKS, check_pretraining_loo
 from fcnpose_tf.errors import UserError  # noqa: E402
 
 
+SEED_STEP = 2000
+"""The i-th family of `--looks` renders with seed `--seed + i * SEED_STEP` (frames of one seed never repeat another's)."""
+
+
+def looks_plan(spec: str, n: int) -> list[tuple[str, int]]:
+    """`varied:3000,classic:1200` -> [("varied", 3000), ("classic", 1200)]; a family without a count gets `n`."""
+    plan = []
+    for part in spec.split(","):
+        family, _, count = part.strip().partition(":")
+        try:
+            frames = int(count) if count else n
+        except ValueError:
+            raise UserError(f"--looks {spec!r}: {count!r} is not a frame count (FAMILY[:N],...)") from None
+        check_pretraining_looks(family)
+        if frames < 1 or family in dict(plan):
+            raise UserError(f"--looks {spec!r}: each family once, with at least one frame")
+        plan.append((family, frames))
+    return plan
+
+
 def commands(args: argparse.Namespace) -> list[list[str]]:
-    data, out = args.work / "frames", args.work / "generalist.keras"
     exe = [sys.executable, "-m", "fcnpose_tf"]
-    return [exe + ["synth", "--out", str(data), "--scene", "random", "--looks", args.looks, "--n", str(args.n),
-                   "--seed", str(args.seed), "--workers", str(args.threads), "--no-progress"],
-            exe + ["train", "--data", str(data), "--out", str(out), "--init", args.init, "--augment", "online",
-                   "--freeze", "2", "--lr-schedule", "cosine", "--learning-rate", str(args.learning_rate),
-                   "--max-minutes", str(args.minutes), "--patience", "60", "--threads", str(args.threads)]]
+    plan = looks_plan(args.looks, args.n)
+    folders = [args.work / (f"frames_{family}" if len(plan) > 1 else "frames") for family, _ in plan]
+    out = args.work / "generalist.keras"
+    steps = [exe + ["synth", "--out", str(folder), "--scene", "random", "--looks", family, "--n", str(frames),
+                    "--seed", str(args.seed + i * SEED_STEP), "--workers", str(args.threads), "--no-progress"]
+             for i, ((family, frames), folder) in enumerate(zip(plan, folders))]
+    data = folders[0]
+    if len(plan) > 1:
+        data = args.work / "frames.json"
+        steps.append(exe + ["data", "merge", *map(str, folders), "--out", str(data)])
+    steps.append(exe + ["train", "--data", str(data), "--out", str(out), "--init", args.init, "--augment", "online",
+                        "--freeze", "2", "--lr-schedule", "cosine", "--learning-rate", str(args.learning_rate),
+                        "--max-minutes", str(args.minutes), "--patience", "60", "--threads", str(args.threads)])
+    return steps
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,8 +75,9 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--work", type=Path, required=True, help="folder for the frames and the model (new)")
     parser.add_argument("--looks", default="varied",
-                        help=f"look family to pretrain on (one of {', '.join(PRETRAINING_LOOKS)}; default varied)")
-    parser.add_argument("--n", type=int, default=4000, help="frames to render (default 4000)")
+                        help=f"look families to pretrain on, FAMILY[:N],... (of {', '.join(PRETRAINING_LOOKS)}; "
+                             "default varied)")
+    parser.add_argument("--n", type=int, default=4000, help="frames per family without a count (default 4000)")
     parser.add_argument("--seed", type=int, default=9000, help="frame seed; use one no earlier run used")
     parser.add_argument("--minutes", type=float, default=60.0, help="training budget in minutes (default 60)")
     parser.add_argument("--learning-rate", type=float, default=7e-4, help="start of the half cosine (default 7e-4)")
@@ -53,11 +86,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     args = parser.parse_args(argv)
     try:
-        check_pretraining_looks(args.looks)
+        steps = commands(args)
     except UserError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    for command in commands(args):
+    for command in steps:
         print(shlex.join(command), flush=True)
         if not args.dry_run:
             subprocess.run(command, check=True)
