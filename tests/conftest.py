@@ -17,3 +17,25 @@ def cli(tmp_path):
                               env=full_env, capture_output=True, text=True, timeout=timeout)
 
     return run
+
+
+@pytest.fixture
+def cli_here(capsys):
+    """Run `fcnpose-tf ARGS` in this process through `fcnpose_tf.cli.main`: (status, stdout, stderr).
+
+    The same parser, exit path and messages as `cli` without a new interpreter importing TensorFlow
+    again (seconds per call): for checks that do not depend on a fresh process (thread settings,
+    signals, what a process imports).
+    """
+    from fcnpose_tf.cli import main
+
+    def run(*args):
+        capsys.readouterr()
+        try:
+            status = main([str(a) for a in args])
+        except SystemExit as exc:  # argparse's own errors and --help
+            status = exc.code
+        out, err = capsys.readouterr()
+        return status, out, err
+
+    return run
