@@ -196,15 +196,16 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
     (["--rate", "0.5", "--min-filters", "-1"], "narrowest layer must be a whole number >= 0, got -1"),
     (["--rate", "0.5", "--min-filters", "wide"], "argument --min-filters: invalid int value: 'wide'"),
 ])
-def test_bad_input_leaves_nothing(setup, cli, extra, message):
+def test_bad_input_leaves_nothing(setup, cli_here, extra, message, tmp_path, monkeypatch):
     root, data, base = setup
+    monkeypatch.chdir(tmp_path)  # a relative --data MISSING is looked up here
     out = root / "refused"
     args = ["compress", "--model", base, "--out-dir", out, "--retrain-epochs", "0"] + extra
     if "--data" not in extra:
         args += ["--data", data]
-    proc = cli(*args)
-    assert proc.returncode == 2 and message in proc.stderr and "Traceback" not in proc.stderr
-    assert len([line for line in proc.stderr.splitlines() if line.startswith("error:")]) == 1
+    status, _, err = cli_here(*args)  # in-process: a defect would raise here instead of printing a traceback
+    assert status == 2 and message in err and "Traceback" not in err
+    assert len([line for line in err.splitlines() if line.startswith("error:")]) == 1
     assert not out.exists()  # not even an empty folder
 
 
