@@ -19,6 +19,8 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "run"
+PIPELINE_DEFAULT = False
+"""Whether `run` pipelines by default (measured: docs/runtime.md, pipelined run)."""
 OUTPUTS = ("out", "save_video", "via")
 EXAMPLES = """\
   fcnpose-tf run model.tflite --source 0 --show                        # camera 0 in a window
@@ -56,6 +58,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "beside it, image files referenced) with their keypoints, to correct in VIA")
     parser.add_argument("--via-every", type=int, default=1, metavar="N",
                         help="with --via: keep every Nth processed frame (a camera's frames add up fast)")
+    parser.add_argument("--pipeline", action=argparse.BooleanOptionalAction, default=PIPELINE_DEFAULT,
+                        help="run the interpreter on its own thread, overlapping it with reading and "
+                             "preprocessing the next frame and writing the previous one (same keypoints; "
+                             "docs/runtime.md, pipelined run)")
     add_smoothing_arguments(parser)
     add_backend_argument(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
@@ -120,7 +126,7 @@ def run(args: argparse.Namespace) -> int:
         with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends the run: outputs closed, summary printed
             summary = run_stream(model, source, writers, video, args.show, args.max_frames, ProgressLine(),
                                  on_frame=collected.add if collected is not None else None,
-                                 smooth=params_from_args(args))
+                                 smooth=params_from_args(args), pipelined=args.pipeline)
         finished = True
     finally:
         source.close()

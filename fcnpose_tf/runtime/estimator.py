@@ -109,6 +109,9 @@ class KeypointPredictor(abc.ABC):
     """Threads of the forward pass (None: the library's default)."""
     schema: KeypointSchema
     """Keypoint names and skeleton of the output maps (`schema_for_maps` unless given)."""
+    pipelinable: bool = False
+    """True when the backend implements the staged-frame methods (`new_input`, `preprocess_into`,
+    `new_output`, `forward`, `decode_output`) that `runtime.pipeline` runs on two threads."""
 
     @property
     @abc.abstractmethod
@@ -244,17 +247,22 @@ class KeypointModel(KeypointPredictor):
     # -- the three stages ----------------------------------------------------------------------------
     def set_input(self, frame_bgr: np.ndarray) -> None:
         """Preprocess a BGR uint8 frame into the interpreter's input tensor (the training preprocessing)."""
-        size = self.io.input_size
         view = self._input()
+        self.preprocess_into(frame_bgr, view[0])
+        del view  # the interpreter refuses to invoke while a view of its buffers is alive
+
+    def preprocess_into(self, frame_bgr: np.ndarray, buffer: np.ndarray) -> None:
+        """The model's input for a frame, written into `buffer` (S x S x 3 of the input's dtype: the
+        interpreter's own tensor, or a `new_input` staging buffer of the pipelined run)."""
+        size = self.io.input_size
         spec = self.io.input
         if spec.holds_pixel_bytes:
-            preprocess_frame_bytes(frame_bgr, size, out=view[0])
+            preprocess_frame_bytes(frame_bgr, size, out=buffer)
         elif self._scratch_in is None:
-            preprocess_frame(frame_bgr, size, out=view[0])
+            preprocess_frame(frame_bgr, size, out=buffer)
         else:
             preprocess_frame(frame_bgr, size, out=self._scratch_in)
-            view[0] = spec.quantize(self._scratch_in) if spec.quantized else self._scratch_in
-        del view  # the interpreter refuses to invoke while a view of its buffers is alive
+            buffer[...] = spec.quantize(self._scratch_in) if spec.quantized else self._scratch_in
 
     def invoke(self) -> None:
         """Run the network on the current input."""
@@ -281,13 +289,46 @@ class KeypointModel(KeypointPredictor):
         """Post-process the last output; quantized maps are thresholded as the integers they are
         (`postprocess.quantized_cut`: the same keypoints as thresholding `read_maps`, without
         dequantizing M x M x C values)."""
-        spec = self.io.output
-        if not spec.quantized:
-            return super().decode(frame_shape)
         view = self._output()[0]
-        keypoints, confidence = decode_maps(view, frame_shape, self.threshold, fallback=self.fallback,
-                                            quantization=(spec.scale, spec.zero_point))
+        result = self.decode_output(view, frame_shape)
         del view  # the interpreter refuses to invoke while a view of its buffers is alive
+        return result
+
+    # -- staged frames: the pipelined `run` (runtime.pipeline) -------------------------------------------
+    # The interpreter's buffers belong to the thread that invokes; the other thread preprocesses into and
+    # decodes from copies of them. The stages are the ones above, so the keypoints are the same.
+    pipelinable = True
+
+    def new_input(self) -> np.ndarray:
+        """A staging buffer for `preprocess_into`: S x S x 3 of the input tensor's dtype."""
+        return np.empty(self.io.input.shape[1:], self.io.input.dtype)
+
+    def new_output(self) -> np.ndarray:
+        """A buffer for the raw output `forward` copies out: M x M x C of the output tensor's dtype."""
+        return np.empty(self.io.output.shape[1:], self.io.output.dtype)
+
+    def forward(self, staged: np.ndarray, raw_output: np.ndarray) -> float:
+        """Copy a staged input into the interpreter, invoke, copy its raw output out; the invoke's ms."""
+        view = self._input()
+        view[0] = staged
+        del view
+        t0 = time.perf_counter()
+        self.interpreter.invoke()
+        invoke_ms = (time.perf_counter() - t0) * 1e3
+        view = self._output()
+        raw_output[...] = view[0]
+        del view
+        return invoke_ms
+
+    def decode_output(self, raw: np.ndarray, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints and confidences from raw output maps (the interpreter's tensor or a `forward` copy)."""
+        spec = self.io.output
+        if spec.quantized:
+            keypoints, confidence = decode_maps(raw, frame_shape, self.threshold, fallback=self.fallback,
+                                                quantization=(spec.scale, spec.zero_point))
+        else:
+            maps = raw if raw.dtype == np.float32 else raw.astype(np.float32)
+            keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback)
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:

@@ -6,6 +6,12 @@ KeyboardInterrupt): the frames processed so far are written, the video is
 finalised and the summary reports why the run stopped. A signal never splits a
 frame: its records, the `on_frame` hook (a VIA project's entry) and its count
 are done with Ctrl-C and SIGTERM held back (`fileio.signals_deferred`).
+
+Two loops share what happens to a decoded frame (`_Delivery`): the sequential one
+(read, preprocess, invoke, decode, write, next) and the pipelined one, whose
+invoke runs on a second thread (`runtime.pipeline`) while this thread decodes and
+writes the previous frame and reads and preprocesses the next. Signals, records,
+drawing and the window stay on the calling (main) thread in both.
 """
 
 from __future__ import annotations
@@ -20,7 +26,7 @@ import cv2
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import signals_deferred
-from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction
+from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction, StageTimes
 from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
 from fcnpose_tf.runtime.sources import Frame, FrameSource
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms
@@ -30,6 +36,10 @@ WINDOW_NAME = "fcnpose-tf"
 
 CAPTURE_LATENCY_DEFINITION = ("from the grab thread receiving the frame to its records written; time spent "
                               "in the camera, its driver and libcamera before that is not included")
+
+
+DELIVERED_DEFINITION = ("frames/s from the first frame's records written to the last's; "
+                        "read = the source handing the frame over")
 
 
 def check_display() -> None:
@@ -53,12 +63,26 @@ class RunSummary:
     latency: LatencyLog = field(default_factory=LatencyLog)
     capture_to_keypoints_ms: array = field(default_factory=lambda: array("d"))
     """Live sources only: per frame, from its capture timestamp to its records written (ms)."""
+    read_to_keypoints_ms: array = field(default_factory=lambda: array("d"))
+    """Per frame, from the source handing it over to its records written (ms): the latency the loop adds."""
+    first_written_s: float = 0.0
+    last_written_s: float = 0.0
+    """perf_counter() when the first and the last frame's records were written (the delivered rate's span)."""
+    pipelined: bool = False
+    """The invoke ran on its own thread, overlapping the other stages (`runtime.pipeline`)."""
     outputs: list[str] = field(default_factory=list)
 
     @property
     def loop_fps(self) -> float:
         """Frames per wall-clock second, including capture, drawing and writing."""
         return self.frames / self.wall_s if self.wall_s > 0 else float("nan")
+
+    @property
+    def delivered_fps(self) -> float:
+        """Frames per second from the first frame's records written to the last's (steady state: no
+        warm-up, no start-up); NaN below two frames."""
+        span = self.last_written_s - self.first_written_s
+        return (self.frames - 1) / span if self.frames > 1 and span > 0 else float("nan")
 
     def report(self, model: KeypointPredictor, source: FrameSource) -> str:
         """Multi-line summary: counts, the per-stage latency table, FPS with its definition, outputs."""
@@ -72,6 +96,10 @@ class RunSummary:
                       f"FPS:     {fps['end_to_end']:.1f} end-to-end, {fps['invoke']:.1f} invoke-only "
                       f"({_threads(model.num_threads)}; {FPS_DEFINITION})",
                       f"Loop:    {self.loop_fps:.1f} frames/s wall clock (with capture, drawing and writing)"]
+            d = describe_ms(self.read_to_keypoints_ms)
+            lines.append(f"Delivered: {self.delivered_fps:.1f} frames/s, {self._mode()}; per frame "
+                         f"{d['median']:.1f} ms p50, {d['p95']:.1f} ms p95 from read to records written "
+                         f"({DELIVERED_DEFINITION})")
         if len(self.capture_to_keypoints_ms):
             d = describe_ms(self.capture_to_keypoints_ms)
             lines.append(f"Latency: capture to keypoints written {d['median']:.1f} ms p50, {d['p95']:.1f} ms p95, "
@@ -79,6 +107,10 @@ class RunSummary:
         for out in self.outputs:
             lines.append(f"Wrote:   {out}")
         return "\n".join(lines)
+
+
+    def _mode(self) -> str:
+        return "pipelined (invoke on its own thread)" if self.pipelined else "sequential"
 
 
 def _threads(count: int | None) -> str:
@@ -127,8 +159,8 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
                video: VideoSink | None = None, show: bool = False, max_frames: int | None = None,
                progress: ProgressLine | None = None, fps_window: int = 30,
                on_frame: Callable[[Frame, Prediction], None] | None = None, every: int = 1,
-               smooth: OneEuroParams | None = None) -> RunSummary:
-    """Run the model on every frame of `source`, writing each frame's record before reading the next.
+               smooth: OneEuroParams | None = None, pipelined: bool = False) -> RunSummary:
+    """Run the model on every frame of `source`, writing each frame's record as soon as it is decoded.
 
     Args:
         model: the loaded model.
@@ -143,62 +175,27 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
         every: process only the frames whose index is a multiple of this (every Nth frame of a video).
         smooth: One-Euro parameters: every record, overlay and hook gets the smoothed keypoints
             (`frame_time_s` gives the filter its clock).
+        pipelined: run the interpreter's invoke on a second thread, overlapping it with reading and
+            preprocessing the next frame and decoding and writing the previous one (`runtime.pipeline`;
+            the same keypoints, in the same order). Ignored for a model without the staged-frame
+            methods (`KeypointPredictor.pipelinable`).
     Returns:
         The RunSummary; `end_reason` says why the loop ended (Ctrl-C included: KeyboardInterrupt
         during the loop ends it cleanly).
     """
-    summary = RunSummary()
-    smoother = None
-    rolling = RollingFps(fps_window)
-    warm = False
-    start = time.perf_counter()
+    summary = RunSummary(pipelined=bool(pipelined and model.pipelinable))
+    delivery = _Delivery(model, source, summary, writers, video, show, max_frames, progress, fps_window,
+                         on_frame, smooth)
     frames_iter = iter(source)
     try:
-        for frame in frames_iter:
-            if frame.index % every:
-                continue
-            if not warm:  # one untimed frame of the source's size: start-up costs stay out of the figures
-                model.warmup(frame.image.shape)
-                warm = True
-            try:
-                prediction = model.predict(frame.image)
-            except UserError as exc:  # e.g. a frame with an unexpected shape: skip, say so
-                summary.skipped += 1
-                source.warn(f"skipped frame {frame.index} of {frame.name}: {exc}")
-                continue
-            if smooth is not None:
-                smoother = smoother or KeypointSmoother(len(prediction.keypoints), smooth)
-                prediction = replace(prediction, keypoints=smoother(prediction.keypoints, frame_time_s(frame, source)))
-            summary.latency.add(prediction.times)
-            rolling.add(prediction.times.total_ms)
-            with signals_deferred():  # Ctrl-C/SIGTERM take effect after a frame's records, hook and count
-                for writer in writers:
-                    writer.write(frame, prediction)
-                if source.live:
-                    summary.capture_to_keypoints_ms.append((time.time() - frame.timestamp) * 1e3)
-                if on_frame is not None:
-                    on_frame(frame, prediction)
-                summary.frames += 1
-            if video is not None or show:
-                overlay = draw_overlay(frame.image, prediction, model.schema, rolling.fps)
-                if video is not None:
-                    video.write(overlay)
-                if show:
-                    cv2.imshow(WINDOW_NAME, overlay)
-                    if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
-                        summary.end_reason = "stopped from the window (q/Esc)"
-                        break
-            if progress is not None:
-                elapsed = time.perf_counter() - start
-                progress.update(summary.frames, rolling.fps, summary.frames / elapsed if elapsed > 0 else 0.0,
-                                prediction.times)
-            if max_frames is not None and summary.frames >= max_frames:
-                summary.end_reason = f"reached --max-frames {max_frames}"
-                break
+        if summary.pipelined:
+            _pipelined_loop(model, source, frames_iter, every, delivery)
+        else:
+            _sequential_loop(model, source, frames_iter, every, delivery)
     except KeyboardInterrupt as exc:  # Ctrl-C, or a signal handler raising KeyboardInterrupt("reason")
         summary.end_reason = str(exc) or "interrupted (Ctrl-C)"
     finally:
-        summary.wall_s = time.perf_counter() - start
+        summary.wall_s = time.perf_counter() - delivery.start
         if progress is not None:
             progress.close()
         close = getattr(frames_iter, "close", None)
@@ -216,6 +213,137 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
     for writer in writers:
         summary.outputs.append(f"{writer.path} ({writer.count} records)")
     return summary
+
+
+def _sequential_loop(model: KeypointPredictor, source: FrameSource, frames_iter, every: int,
+                     delivery: "_Delivery") -> None:
+    """One frame at a time: read, preprocess, invoke, decode, write, then the next."""
+    warm = False
+    for frame in frames_iter:
+        read_at = time.perf_counter()
+        if frame.index % every:
+            continue
+        if not warm:  # one untimed frame of the source's size: start-up costs stay out of the figures
+            model.warmup(frame.image.shape)
+            warm, read_at = True, time.perf_counter()
+        try:
+            prediction = model.predict(frame.image)
+        except UserError as exc:  # e.g. a frame with an unexpected shape: skip, say so
+            delivery.skip(frame, exc)
+            continue
+        if delivery.deliver(frame, prediction, read_at):
+            return
+
+
+def _pipelined_loop(model: KeypointPredictor, source: FrameSource, frames_iter, every: int,
+                    delivery: "_Delivery") -> None:
+    """Invoke frame n on the worker while this thread writes frame n-1 and reads and preprocesses n+1."""
+    from fcnpose_tf.runtime.pipeline import InvokeWorker
+
+    summary = delivery.summary
+    worker: InvokeWorker | None = None
+    in_flight = None  # (frame, slot, preprocess ms, read time) of the frame the worker is invoking
+    slot = 0
+    try:
+        while True:
+            if delivery.max_frames is not None and summary.frames + (in_flight is not None) >= delivery.max_frames:
+                break  # the frame in flight is the last one wanted: read no more
+            frame = next(frames_iter, None)
+            if frame is None:
+                break
+            read_at = time.perf_counter()
+            if frame.index % every:
+                continue
+            if worker is None:
+                model.warmup(frame.image.shape)  # untimed, on this thread, before the worker exists
+                worker, read_at = InvokeWorker(model), time.perf_counter()
+            t0 = time.perf_counter()
+            try:
+                model.preprocess_into(frame.image, worker.inputs[slot])
+            except UserError as exc:
+                delivery.skip(frame, exc)
+                continue
+            preprocess_ms = (time.perf_counter() - t0) * 1e3
+            done = None
+            if in_flight is not None:
+                done = (in_flight, *worker.wait())
+            worker.start(slot)
+            in_flight, slot = (frame, slot, preprocess_ms, read_at), 1 - slot
+            if done is not None and delivery.deliver_raw(worker, *done):
+                return
+        if in_flight is not None:
+            done = (in_flight, *worker.wait())
+            in_flight = None
+            delivery.deliver_raw(worker, *done)
+    finally:
+        if worker is not None:
+            worker.close()  # waits for an invoke still running (a stopped run drops its frame)
+
+
+class _Delivery:
+    """What happens to a frame once its keypoints are known, the same for both loops: smoothing, the
+    latency log, records, hook and count (with Ctrl-C/SIGTERM held back), overlay, window, progress,
+    --max-frames. `deliver` returns True when the run should stop."""
+
+    def __init__(self, model, source, summary, writers, video, show, max_frames, progress, fps_window,
+                 on_frame, smooth):
+        self.model, self.source, self.summary = model, source, summary
+        self.writers, self.video, self.show, self.max_frames = writers, video, show, max_frames
+        self.progress, self.on_frame, self.smooth = progress, on_frame, smooth
+        self.smoother: KeypointSmoother | None = None
+        self.rolling = RollingFps(fps_window)
+        self.start = time.perf_counter()
+
+    def skip(self, frame: Frame, exc: UserError) -> None:
+        self.summary.skipped += 1
+        self.source.warn(f"skipped frame {frame.index} of {frame.name}: {exc}")
+
+    def deliver_raw(self, worker, in_flight, slot: int, invoke_ms: float) -> bool:
+        """Decode a pipelined frame's raw output (this thread) and deliver it."""
+        frame, staged_slot, preprocess_ms, read_at = in_flight
+        assert slot == staged_slot
+        t0 = time.perf_counter()
+        keypoints, confidence = self.model.decode_output(worker.outputs[slot], frame.image.shape)
+        times = StageTimes(preprocess_ms, invoke_ms, (time.perf_counter() - t0) * 1e3)
+        return self.deliver(frame, Prediction(keypoints, confidence, times, tuple(frame.image.shape)), read_at)
+
+    def deliver(self, frame: Frame, prediction: Prediction, read_at: float) -> bool:
+        summary = self.summary
+        if self.smooth is not None:
+            self.smoother = self.smoother or KeypointSmoother(len(prediction.keypoints), self.smooth)
+            prediction = replace(prediction, keypoints=self.smoother(prediction.keypoints,
+                                                                     frame_time_s(frame, self.source)))
+        summary.latency.add(prediction.times)
+        self.rolling.add(prediction.times.total_ms)
+        with signals_deferred():  # Ctrl-C/SIGTERM take effect after a frame's records, hook and count
+            for writer in self.writers:
+                writer.write(frame, prediction)
+            if self.source.live:
+                summary.capture_to_keypoints_ms.append((time.time() - frame.timestamp) * 1e3)
+            if self.on_frame is not None:
+                self.on_frame(frame, prediction)
+            summary.frames += 1
+            written_at = time.perf_counter()
+            summary.read_to_keypoints_ms.append((written_at - read_at) * 1e3)
+            summary.first_written_s = summary.first_written_s or written_at
+            summary.last_written_s = written_at
+        if self.video is not None or self.show:
+            overlay = draw_overlay(frame.image, prediction, self.model.schema, self.rolling.fps)
+            if self.video is not None:
+                self.video.write(overlay)
+            if self.show:
+                cv2.imshow(WINDOW_NAME, overlay)
+                if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
+                    summary.end_reason = "stopped from the window (q/Esc)"
+                    return True
+        if self.progress is not None:
+            elapsed = time.perf_counter() - self.start
+            self.progress.update(summary.frames, self.rolling.fps,
+                                 summary.frames / elapsed if elapsed > 0 else 0.0, prediction.times)
+        if self.max_frames is not None and summary.frames >= self.max_frames:
+            summary.end_reason = f"reached --max-frames {self.max_frames}"
+            return True
+        return False
 
 
 __all__ = ["RunSummary", "ProgressLine", "run_stream", "check_display", "WINDOW_NAME"]
