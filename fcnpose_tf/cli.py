@@ -25,10 +25,6 @@ EXIT_USER_ERROR = 2
 EXIT_SIGNAL = {sig: status for sig, (_, status) in fileio.STOP_SIGNALS.items()}
 """Ctrl-C (SIGINT) ends a command with 130, a `kill` (SIGTERM) with 143, after the same clean-up."""
 
-OWNERS_OUTPUTS = {"compress": ("out_dir",), "export": ("out_dir", "json")}
-"""The output options of command modules that do not declare OUTPUTS themselves."""
-
-
 class _Parser(argparse.ArgumentParser):
     """argparse with a one-line error (plus a pointer to --help) and exit status 2."""
 
@@ -63,7 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
                          help="show full tracebacks for errors")
         module.add_arguments(cmd)
         cmd.set_defaults(_run=module.run, _uses_tensorflow=getattr(module, "USES_TENSORFLOW", False),
-                         _outputs=getattr(module, "OUTPUTS", OWNERS_OUTPUTS.get(module.NAME, ())),
+                         _outputs=getattr(module, "OUTPUTS", ()),
                          _resumable=getattr(module, "RESUMABLE_OUTPUTS", ()),
                          _private_temp=getattr(module, "PRIVATE_TEMP", True))
     return parser

@@ -35,6 +35,7 @@ from pathlib import Path
 
 NAME = "compress"
 USES_TENSORFLOW = True
+OUTPUTS = ("out_dir",)
 EXAMPLES = """\
   fcnpose-tf compress --rate 0.7                       # bundled baseline, synthetic data, ./compressed/
   fcnpose-tf compress --rate 0.5 --retrain-epochs 100  # the paper's retraining budget
