@@ -19,15 +19,16 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "run"
-PIPELINE_DEFAULT = False
-"""Whether `run` pipelines by default (measured: docs/runtime.md, pipelined run)."""
+PIPELINE_DEFAULT = True
+"""`run` pipelines by default: more frames/s than the sequential loop in every measured round
+(docs/runtime.md, "Pipelined run"); --no-pipeline gives the lower per-frame latency."""
 OUTPUTS = ("out", "save_video", "via")
 EXAMPLES = """\
   fcnpose-tf run model.tflite --source 0 --show                        # camera 0 in a window
   fcnpose-tf run model.tflite --source /dev/video0 --out k.jsonl --threads 4
   fcnpose-tf run model.tflite --source clip.mp4 --out k.jsonl --save-video overlay.mp4
   fcnpose-tf run model.tflite --source frames/ --out k.csv             # every image in a folder
-  fcnpose-tf run model.tflite --source frame.png --out k.jsonl --force
+  fcnpose-tf run workcell-p70-int8 --source frame.png --out k.jsonl --force  # the bundled int8 file, by name
   fcnpose-tf run model.tflite --source picamera2 --out k.jsonl         # Pi camera module (Picamera2)
   fcnpose-tf run model.tflite --source picamera2:1 --camera-size 1280x720 --out k.jsonl
   fcnpose-tf run model.tflite --source 0 --via hard/frames.json --via-every 30  # 1 frame/s to correct in VIA
@@ -38,7 +39,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.settings import thread_count
     from fcnpose_tf.smoothing import add_smoothing_arguments
 
-    parser.add_argument("model", type=Path, help="an FCN-Pose .tflite model")
+    from fcnpose_tf.bundled import TFLITE_SUFFIXES, model_argument, names_help
+
+    parser.add_argument("model", type=model_argument(TFLITE_SUFFIXES), metavar="MODEL",
+                        help=f"an FCN-Pose .tflite model, a file or a bundled one by name ({names_help(TFLITE_SUFFIXES)})")
     parser.add_argument("--source", required=True,
                         help="camera index (0), /dev/videoN, stream URL, picamera2[:N] (Pi camera module), "
                              "video file, image folder or image")
