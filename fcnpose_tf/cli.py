@@ -16,7 +16,7 @@ from typing import Sequence
 
 from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
-from fcnpose_tf import fileio
+from fcnpose_tf import fileio, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.tfsetup import import_tensorflow_quietly
 
@@ -30,6 +30,10 @@ class _Parser(argparse.ArgumentParser):
 
     def error(self, message: str):  # noqa: D401 - argparse API
         self.exit(2, f"error: {message} (see `{self.prog} --help`)\n")
+
+    def parse_known_args(self, args=None, namespace=None):  # noqa: D102 - argparse API
+        namespace, extras = super().parse_known_args(args, namespace)
+        return settings.fill_from_preset(self, namespace), extras  # options left out: the command's --preset
 
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):

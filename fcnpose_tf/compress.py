@@ -22,7 +22,7 @@ import os
 import tempfile
 import time
 import warnings
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
@@ -49,11 +49,14 @@ Log = Callable[[str], None]
 
 @settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
                        settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
-                       ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE, settings.LEARNING_RATE,
-                       settings.AUGMENT, settings.AUGMENT_COPIES, settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
-                       settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.LR_SCHEDULE, settings.IMPORTANCE,
-                       settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.FREEZE, settings.MIN_FILTERS,
-                       settings.QAT_EPOCHS, settings.QAT_LEARNING_RATE)
+                       ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE,
+                       ("learning_rate", settings.COMPRESS_LEARNING_RATE), settings.AUGMENT, settings.AUGMENT_COPIES,
+                       settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
+                       ("positive_weight", settings.INHERITED_POSITIVE_WEIGHT),
+                       ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
+                       ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
+                       settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.QAT_EPOCHS,
+                       settings.QAT_LEARNING_RATE)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
@@ -62,16 +65,19 @@ class CompressOptions:
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
     retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
     narrowest a pruned layer may become at the same parameter budget), and qat_epochs / qat_learning_rate
-    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback). Defaults,
-    checks and meanings: `fcnpose_tf.settings`."""
+    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback).
+
+    The defaults are `fcnpose-tf compress`'s (`CompressOptions.preset("paper", rate=...)`: the paper's recipe);
+    importance, min_filters, lr_patience and positive_weight left None are chosen per run by `resolved`
+    (`compress_model` calls it). Defaults, checks and meanings: `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
         """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
         from fcnpose_tf.importance import DATA_AWARE
 
         settings.validate_fields(self)
-        settings.check_lr_schedule(self.lr_schedule, self.lr_patience)
-        if self.method == "magnitude" and self.importance != "l1":
+        settings.check_lr_schedule(self.lr_schedule, self.lr_patience or 0)
+        if self.method == "magnitude" and self.importance not in (None, "l1"):
             raise UserError(f"--importance {self.importance} ranks filters for filter surgery (--method l1); "
                             "magnitude pruning zeroes the smallest weights")
         if self.method == "magnitude" and self.freeze:
@@ -84,11 +90,34 @@ class CompressOptions:
             raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
                             f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
 
+    def resolved(self, base_path: str | os.PathLike | None = None) -> CompressOptions:
+        """These options with the settings left None chosen for the run: importance (`settings.DEFAULT_COMPRESS_IMPORTANCE`
+        for filter surgery with the independent strategy, else the paper's l1: greedy ranking reads kernels only),
+        min_filters (`settings.DEFAULT_COMPRESS_MIN_FILTERS` for filter surgery; magnitude pruning keeps every
+        filter), lr_patience (`settings.resolved_lr_patience`) and positive_weight (the one `base_path` was trained
+        with, from its NAME_train.json; else 1, the paper's plain BCE)."""
+        importance, min_filters, positive_weight = self.importance, self.min_filters, self.positive_weight
+        if importance is None:
+            independent_surgery = self.method == "l1" and self.strategy == "independent"
+            importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
+        if min_filters is None:
+            min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if self.method == "l1" else 0
+        if positive_weight is None:
+            record = training_record(base_path) if base_path is not None else None
+            positive_weight = float(((record or {}).get("config") or {}).get("positive_weight") or 1.0)
+        lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
+                                                    settings.DEFAULT_COMPRESS_LR_PATIENCE)
+        return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
+                       lr_patience=lr_patience)
+
     def recipe(self, min_filters_used: int | None = None) -> str:
         """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
 
         `min_filters_used` is the floor the surgery could keep (`prune.prune_widths`) when lower than asked."""
         from fcnpose_tf.train import loss_name
+
+        if None in (self.importance, self.min_filters, self.lr_patience, self.positive_weight):
+            return self.resolved().recipe(min_filters_used)
 
         used = self.min_filters if min_filters_used is None else min_filters_used
         floor = "" if used <= 1 else (
@@ -112,10 +141,7 @@ class CompressOptions:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
         from fcnpose_tf.train import FitConfig
 
-        return FitConfig(epochs=max(self.retrain_epochs, 1), patience=self.patience, batch_size=self.batch_size,
-                         learning_rate=self.learning_rate, seed=self.seed, positive_weight=self.positive_weight,
-                         lr_patience=self.lr_patience, lr_schedule=self.lr_schedule, distill=self.distill,
-                         freeze=self.freeze)
+        return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1), max_minutes=None))
 
 
 def tflite_key(quantize: str) -> str:
@@ -521,7 +547,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         eval_dataset, eval_indices: the frames every step is measured on.
         out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite (one file per `options.quantize` format) and
             NAME_p70_report.json go.
-        options: rate, method, strategy, quantize, calibration frames, retraining settings, threads.
+        options: rate, method, strategy, quantize, calibration frames, retraining settings, threads (those left
+            None chosen by `CompressOptions.resolved` for `base_path`; the report's "options" holds the values used).
         force: replace existing output files.
         verbose: 0 silent (no progress lines either); 1 progress bars while preparing data and one line
             per epoch; 2 one line per epoch without progress bars (logs: `sweep --quiet`).
@@ -540,10 +567,11 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     from fcnpose_tf.model import load_model
     from fcnpose_tf.prune import prune_plan, prune_widths
 
+    base_path = Path(base_path)
+    options = options.resolved(base_path)
     options.validate()
     start = time.perf_counter()
     say = log if verbose else (lambda line: None)
-    base_path = Path(base_path)
     names = output_names(base_path.stem, options)
     paths = {k: Path(out_dir) / v for k, v in names.items() if k != "stem"}
     base = load_model(base_path)

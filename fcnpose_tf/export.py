@@ -46,12 +46,23 @@ import numpy as np
 
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
+from fcnpose_tf import settings
 from fcnpose_tf.settings import QUANTIZE_MODES
 
 if TYPE_CHECKING:  # TensorFlow is imported only when converting
     import tf_keras as keras
 
-DEFAULT_QUANTIZE = "float16"
+
+@settings.config_class(settings.QUANTIZE, settings.CALIBRATION_FRAMES, ("seed", settings.CALIBRATION_SEED),
+                       settings.THREADS)
+class ExportOptions:
+    """What `fcnpose-tf export` writes: quantize (one verified file per format), calibration_frames and seed (the
+    int8 file's calibration frames) and threads. The defaults are the command's; defaults, checks and meanings:
+    `fcnpose_tf.settings`."""
+
+
+DEFAULT_QUANTIZE = settings.QUANTIZE.default[0]
+"""The format of one file when none is named: the first of the default formats (float16, the paper's)."""
 FULL_INTEGER = "int8"
 """The full-integer mode: calibrated on real frames, integer input and output."""
 INT8_INPUT_SCALE = 1.0 / 255.0
@@ -79,8 +90,6 @@ KEYPOINT_SHARE_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 1.0, "
 # little on two frames); the other modes compare maps value by value and accept any number.
 MIN_FRAMES_BY_MODE = {"float32": 1, "float16": 1, "int8-weights": 1, "int8": 16}
 DEFAULT_SAMPLES = 2
-CALIBRATION_SEED = 0
-"""Seed of the choice of calibration frames (`calibration_frames`)."""
 # Default of export_tflite / to_tflite `fold_upsampling`. Off: folding makes the 70% model's forward
 # pass ~1.35x faster here but stores f*f phase kernels, so its float16 file grows from 40,304 to
 # 103,276 bytes (the paper's size column, and compress's 45 KB bound for the 70% model, are about the
@@ -291,7 +300,7 @@ def _pixel_scaled_input(data: bytes) -> bytes:
 
 def export_frames(quantize: str, input_size: int, train_dataset: Any, train_indices: Sequence[int],
                   check_dataset: Any, check_indices: Sequence[int], calibration_count: int,
-                  seed: int = CALIBRATION_SEED) -> tuple[np.ndarray, np.ndarray | None]:
+                  seed: int = settings.CALIBRATION_SEED.default) -> tuple[np.ndarray, np.ndarray | None]:
     """Real frames for `export_tflite`: (sample_frames, calibration_frames or None).
 
     The file is verified on the first `MIN_FRAMES_BY_MODE` frames of `check_indices` (16, topped
@@ -313,7 +322,7 @@ def export_frames(quantize: str, input_size: int, train_dataset: Any, train_indi
 
 
 def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_size: int,
-                       seed: int = CALIBRATION_SEED) -> np.ndarray:
+                       seed: int = settings.CALIBRATION_SEED.default) -> np.ndarray:
     """`count` frames drawn (seeded, without replacement) from `indices` of `dataset`, preprocessed as
     the runtime does: the representative data of a full-integer export.
 

@@ -7,6 +7,13 @@ live here only. Where two commands use the same setting with a different default
 against retraining, one training run against a sweep of many), both variants are defined below,
 each with its reason.
 
+Every setting has a value per preset (PRESETS): `recommended`, the default everywhere (what measured
+best on a user's frames), and `paper`, the paper's recipe. A command's `--preset` and a config class's
+`preset(name, ...)` read the same values, so `CompressOptions(rate=0.7)` is `compress --rate 0.7` and
+`CompressOptions.preset("paper", rate=0.7)` is `compress --preset paper --rate 0.7`. A value of None
+("auto") is resolved per run by the library (`train.FitConfig.resolved`, `compress.CompressOptions.resolved`),
+never by a command.
+
 Imports only the standard library: the CLI builds its parser from this module on a Pi without
 TensorFlow or numpy, and `sweep.jobs` (which imports no numpy) embeds it.
 """
@@ -20,8 +27,19 @@ from typing import Any, Callable
 
 from fcnpose_tf.errors import UserError
 
+_SAME = object()
+"""`Setting(paper=...)` not given: the paper's value is the default."""
+
 REQUIRED = dataclasses.MISSING
 """Default of a setting every caller must give (the compression rate)."""
+
+PRESETS = {
+    "recommended": "what measured best on a user's frames (docs/training.md, docs/compression.md)",
+    "paper": "the paper's recipe: random start, plain binary cross-entropy, constant learning rate, L1 ranking at "
+             "the paper's widths, the paper's epoch budgets, float16 only",
+}
+"""The named sets of defaults; each setting's value under `paper` is its `paper` attribute."""
+DEFAULT_PRESET = "recommended"
 
 
 class Setting:
@@ -34,8 +52,10 @@ class Setting:
 
     def __init__(self, name: str, type: Callable[[str], Any], default: Any, help: str, *, label: str,
                  check: Callable[[Any], bool] | None = None, requirement: str = "", metavar: str | None = None,
-                 choices: tuple[Any, ...] | None = None, parse: Callable[[str], Any] | None = None) -> None:
+                 choices: tuple[Any, ...] | None = None, parse: Callable[[str], Any] | None = None,
+                 paper: Any = _SAME) -> None:
         self.name = name
+        self.paper = default if paper is _SAME else paper
         self.type = type
         self.parse = parse
         self.default = default
@@ -47,8 +67,16 @@ class Setting:
         self.choices = choices
 
     def variant(self, **overrides: Any) -> Setting:
-        """This setting with some attributes replaced (e.g. name, default, help); the rest stays shared."""
+        """This setting with some attributes replaced (e.g. name, default, help); the rest stays shared.
+
+        The paper's value is the option's, not the command's: a variant keeps it unless it overrides `paper`."""
         return _Variant(self, overrides)
+
+    def default_in(self, preset: str) -> Any:
+        """The value under the named preset (PRESETS): `default` for recommended, `paper` for the paper's recipe."""
+        if preset not in PRESETS:
+            raise UserError(f"preset must be one of {', '.join(PRESETS)}, got {preset!r}")
+        return self.paper if preset == "paper" else self.default
 
     @property
     def flag(self) -> str:
@@ -67,15 +95,20 @@ class Setting:
         return value
 
     def field(self) -> Any:
-        """A dataclass field holding this setting: its default (read when an instance is made) and the setting."""
+        """A dataclass field holding this setting: its recommended default (read when an instance is made) and the
+        setting."""
         metadata = {_SETTING: self}
         if self.default is REQUIRED:
             return dataclasses.field(metadata=metadata)
         return dataclasses.field(default_factory=lambda: self.default, metadata=metadata)
 
     def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup, flag: str | None = None) -> None:
-        """Add this setting as `flag` (default: its own --flag) with its type, default, choices and help."""
-        kwargs: dict[str, Any] = {"help": self.help, "metavar": self.metavar}
+        """Add this setting as `flag` (default: its own --flag) with its type, choices and help.
+
+        Left out, the option takes its value from the command's --preset (recommended without one) once the
+        arguments are parsed (`fill_from_preset`): argparse sees no default, and the help states both.
+        """
+        kwargs: dict[str, Any] = {"metavar": self.metavar}
         if self.parse is not None:
             kwargs["type"] = self.parse
         elif self.type is not str:
@@ -85,8 +118,15 @@ class Setting:
         if self.default is REQUIRED:
             kwargs["required"] = True
         else:
-            kwargs["default"] = self.default
-        parser.add_argument(flag or self.flag, dest=self.name, **kwargs)
+            kwargs["default"] = argparse.SUPPRESS
+        help_text = self.help
+        shown = [] if self.default in (None, REQUIRED) else [f"default: {_shown(self.default)}"]
+        if any(action.dest == "preset" for action in parser._actions) and self.paper != self.default:
+            shown.append(f"--preset paper: {_shown(self.paper)}")
+        if shown and "%(default)" not in help_text:
+            help_text = f"{help_text} ({'; '.join(shown)})"
+        action = parser.add_argument(flag or self.flag, dest=self.name, help=help_text, **kwargs)
+        action.setting = self  # read by fill_from_preset
 
 
 class _Variant(Setting):
@@ -105,6 +145,41 @@ class _Variant(Setting):
 _SETTING = "fcnpose_tf.setting"
 
 
+def _shown(value: Any) -> str:
+    """A default as a user would type it: float16,int8 for a tuple, none for None."""
+    if isinstance(value, (tuple, list)):
+        return ",".join(map(str, value))
+    return "none" if value is None else str(value)
+
+
+def add_preset_argument(parser: argparse.ArgumentParser) -> None:
+    """--preset NAME, added before the command's settings (their help then names the paper's values)."""
+    parser.add_argument("--preset", choices=tuple(PRESETS), default=DEFAULT_PRESET,
+                        help="the defaults of every option not given: " + "; ".join(
+                            f"{name}: {text}" for name, text in PRESETS.items()))
+
+
+GIVEN = "given_settings"
+"""The attribute of a parsed namespace naming the settings given on the command line (the rest came from a preset)."""
+
+
+def fill_from_preset(parser: argparse.ArgumentParser, namespace: argparse.Namespace) -> argparse.Namespace:
+    """Give every setting of `parser` that the command line left out its value under the namespace's --preset
+    (recommended without one); record the names that were given in `namespace.given_settings`."""
+    preset = getattr(namespace, "preset", DEFAULT_PRESET)
+    given = set(getattr(namespace, GIVEN, ()))
+    for action in parser._actions:
+        setting = getattr(action, "setting", None)
+        if setting is None:
+            continue
+        if hasattr(namespace, action.dest):
+            given.add(action.dest)
+        else:
+            setattr(namespace, action.dest, setting.default_in(preset))
+    setattr(namespace, GIVEN, frozenset(given))
+    return namespace
+
+
 def _is_type(value: Any, kind: Callable) -> bool:
     if isinstance(value, bool):
         return False
@@ -120,7 +195,8 @@ def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], ty
 
     Each field takes its name (unless given as a (name, setting) pair), type and default from its
     setting, so a configuration class states only which settings it holds; `validate` (added
-    unless the class defines one) checks each with its setting's message.
+    unless the class defines one) checks each with its setting's message, and `preset(name, **values)`
+    makes an instance with the named preset's values (`preset_values`) for every field not given.
     """
     def decorate(cls: type) -> type:
         annotations: dict[str, str] = {}
@@ -132,8 +208,42 @@ def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], ty
         cls.__annotations__ = {**annotations, **cls.__dict__.get("__annotations__", {})}
         if "validate" not in cls.__dict__:
             cls.validate = validate_fields
+        cls.preset = classmethod(_from_preset)
         return dataclasses.dataclass(cls)
     return decorate
+
+
+def _from_preset(cls: type, name: str, **values: Any) -> Any:
+    """An instance of the config class `cls` with preset `name`'s value of every field not in `values`."""
+    return cls(**{**preset_values(cls, name), **values})
+
+
+def preset_values(config_type: type, preset: str) -> dict[str, Any]:
+    """The value under `preset` of every field of dataclass `config_type` declared with `Setting.field`
+    (a required one, such as the rate, is left out)."""
+    values = {}
+    for f in dataclasses.fields(config_type):
+        setting = f.metadata.get(_SETTING)
+        if setting is not None and setting.default is not REQUIRED:
+            values[f.name] = setting.default_in(preset)
+    return values
+
+
+def carried(source: Any, config_type: type, *, renamed: dict[str, str] | None = None, **given: Any) -> dict[str, Any]:
+    """Every field of dataclass `config_type`, read from `source` by name (`renamed`: field -> attribute of
+    `source`), `given` taking precedence. TypeError when `source` lacks one: a value a config holds is never
+    dropped on the way to another (the sweep's settings to a run's FitConfig and CompressOptions)."""
+    renamed = renamed or {}
+    values = {}
+    for f in dataclasses.fields(config_type):
+        if f.name in given:
+            values[f.name] = given[f.name]
+            continue
+        attribute = renamed.get(f.name, f.name)
+        if not hasattr(source, attribute):
+            raise TypeError(f"{type(source).__name__} has no {attribute!r} for {config_type.__name__}.{f.name}")
+        values[f.name] = getattr(source, attribute)
+    return values
 
 
 def validate_fields(config: Any) -> None:
@@ -198,7 +308,7 @@ INPUT_SIZE = Setting(
 FOLDS = Setting("folds", int, 5, "K of the K-fold cross-validation splits (the paper: 5)", label="folds",
                 check=lambda v: v >= 2, requirement="at least 2", metavar="K")
 TRAIN_FOLDS = FOLDS.variant(
-    default=None, help="train one model per fold of K-fold cross-validation (the paper: 5)")
+    default=None, paper=None, help="train one model per fold of K-fold cross-validation (the paper: 5)")
 """`train` trains on the 80/20 hold-out split unless --folds asks for one model per fold."""
 FOLD = Setting("fold", int, None, "train only fold k (0-based) of the K folds", label="fold",
                check=lambda v: v >= 0, requirement="a fold index (0-based)", metavar="k")
@@ -225,6 +335,14 @@ copies measured ahead, on random views online augmentation (docs/training.md, "T
 `data.views` tells the two apart from the frames themselves."""
 AUGMENT_COPIES = Setting("augment_copies", int, 2, "with --augment paper: offline rotation/padding copies per training frame (the paper: 2)",
                          label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
+INIT = Setting(
+    "init", str, "generalist", "start from this model's weights (trained at any input size for the same keypoints): "
+    "a bundled model by name (generalist: the UR5 model fine-tuned on domain-randomised scenes; workcell: the "
+    "paper-reproduction baseline; either refused for data of another keypoint schema), a model file, or none: "
+    "random weights, as the paper. A trained start is the model to beat: if no epoch improves on its validation "
+    "loss, it is written unchanged", label="initial weights", metavar="MODEL|NAME|none", paper="none")
+"""`train` fine-tunes the bundled generalist: measured on two proxies of a user's frames (docs/training.md,
+"Training on your own frames")."""
 SEED = Setting("seed", int, 0, "seed of weights, augmentation and batch order", label="seed",
                check=lambda v: True, requirement="a whole number")
 
@@ -240,23 +358,20 @@ SWEEP_EPOCHS = EPOCHS.variant(
 60 epochs, so 500 would only spend hours on early stopping's patience."""
 PATIENCE = Setting("patience", int, 20, "stop after this many epochs without a lower validation loss",
                    label="patience", check=lambda v: v >= 1, requirement="at least 1", metavar="N")
-TRAIN_PATIENCE = PATIENCE.variant(
-    default=12, help="stop after this many epochs without a lower validation loss (default 12; the paper's "
-                     "recipe: 20)")
+TRAIN_PATIENCE = PATIENCE.variant(default=12)
 """With the learning rate halved every 4 epochs without progress (TRAIN_LR_PATIENCE), 12 epochs of patience
 allow three halvings before stopping: the bundled baseline's recipe (saved_models/PROVENANCE.md)."""
 RETRAIN_PATIENCE = PATIENCE.variant(
-    name="retrain_patience", default=5, label="retraining patience",
+    name="retrain_patience", default=5, paper=5, label="retraining patience",
     help="early-stopping patience while retraining")
 """Retraining starts from trained weights and converges within a few epochs; 20 epochs of patience
-would mostly retrain past the best epoch."""
+would mostly retrain past the best epoch. The paper states no retraining patience, so its preset keeps 5."""
 RETRAIN_EPOCHS = Setting(
     "retrain_epochs", int, 25, "retraining epochs with early stopping (the paper: up to 100); 0 skips retraining",
-    label="retrain epochs", check=lambda v: v >= 0, requirement=">= 0")
+    label="retrain epochs", check=lambda v: v >= 0, requirement=">= 0", paper=100)
 """Default retraining budget: keeps `compress --rate 0.7` within ~10 minutes on 2 cores (measured:
 11 min 55 s wall with a sweep job sharing one of the two cores; held-out PCK@0.5 0.946 against the
-base's 0.966, the same as 40 epochs). The paper retrains up to 100 epochs until convergence; pass
---retrain-epochs 100 for that."""
+base's 0.966, the same as 40 epochs). The paper retrains up to 100 epochs until convergence: its preset."""
 RETRAIN_EPOCHS_BY_RATE = RETRAIN_EPOCHS.variant(
     type=str, check=None, metavar="E[,RATES=E]",
     help="retraining epochs after pruning, with early stopping (the paper: up to 100); RATES=E items give some "
@@ -267,11 +382,14 @@ MAX_MINUTES = Setting(
     "none; the epochs and early stopping decide)", label="time budget", check=lambda v: v > 0,
     requirement="a positive number of minutes", metavar="MIN")
 TRAIN_MAX_MINUTES = MAX_MINUTES.variant(
-    default=30.0, help="time budget: no new epoch starts after this many minutes of training (default 30; the "
-                       "paper's 500 epochs would take days here)")
+    help="time budget: no new epoch starts after this many minutes of training (the paper's 500 epochs would "
+         "take days here; none: the epochs and early stopping decide)", default=30.0)
 """`train` sets its budget by time, not by the paper's 500 epochs: 30 minutes on 2 CPU cores fine-tunes a
 bundled model on a few hundred frames (docs/training.md, "Training on your own frames"). Compression and
 the sweep keep epoch budgets (their tables compare rates at equal epochs)."""
+SWEEP_MAX_MINUTES = MAX_MINUTES.variant(
+    help="time budget of each base model's training: no new epoch starts after this many minutes (default: none; "
+         "the epochs and early stopping decide)")
 BATCH_SIZE = Setting("batch_size", int, 8, "training batch size", label="batch size",
                      check=lambda v: v >= 1, requirement="at least 1")
 LEARNING_RATE = Setting("learning_rate", float, 1e-3, "Adam learning rate", label="learning rate",
@@ -371,6 +489,9 @@ TRAIN_FREEZE = FREEZE.variant(
 and their gradients are most of a training step's cost at 224 (conv1 and conv2 frozen: 2.4x faster steps).
 On the new-cell proxy it reached the same accuracy as training every layer (PCK@0.05 0.800 against 0.806)
 in 16 instead of 24 minutes (docs/training.md, "Training on your own frames")."""
+SWEEP_FREEZE = FREEZE.variant(
+    help="keep the first N convolutions (conv1..convN) of a pruned model fixed while it is retrained; the base models "
+         "train every layer (they start from random weights); 0 retrains every layer, as the paper does")
 DEFAULT_FINE_TUNE_FREEZE = 2
 """conv1..conv2 stay fixed when `train` starts from a trained model and --freeze is not given."""
 THREADS = Setting("threads", int, None, "CPU threads for TensorFlow and LiteRT (default: all cores)",
@@ -483,12 +604,13 @@ def quantize_modes(text: str) -> tuple[str, ...]:
 QUANTIZE = Setting(
     "quantize", tuple, ("float16", "int8"),
     "TFLite files to write, one per format, comma-separated: float16 (the paper's), int8 (full integer, calibrated "
-    "on training frames; the fastest on a Raspberry Pi 3/4), float32, int8-weights (dynamic range); "
-    "default float16,int8", label="quantize", metavar="MODE[,MODE]", parse=quantize_modes,
+    "on training frames; the fastest on a Raspberry Pi 3/4), float32, int8-weights (dynamic range)",
+    label="quantize", metavar="MODE[,MODE]", parse=quantize_modes, paper=("float16",),
     check=lambda v: isinstance(v, (tuple, list)) and len(v) > 0 and all(m in QUANTIZE_MODES for m in v)
     and len(set(v)) == len(v),
     requirement=f"a non-empty list of distinct formats out of {', '.join(QUANTIZE_MODES)}")
-"""`compress` writes the paper's float16 file and the int8 file, so its table puts both in front of the user."""
+"""`compress` writes the paper's float16 file and the int8 file, so its table puts both in front of the user;
+the paper's preset writes its float16 file only."""
 CALIBRATION_FRAMES = Setting(
     "calibration_frames", int, 100, "int8: training frames (seeded choice, never the measured frames) the "
     "activation ranges are calibrated on", label="calibration frames", check=lambda v: v >= 1,

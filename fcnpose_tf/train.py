@@ -20,7 +20,7 @@ import json
 import math
 import shutil
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
@@ -34,9 +34,10 @@ from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writ
 from fcnpose_tf.model import save_for_inference
 
 
-@settings.config_class(settings.EPOCHS, settings.PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                       settings.SEED, settings.POSITIVE_WEIGHT, settings.LR_PATIENCE, settings.LR_SCHEDULE,
-                       settings.MAX_MINUTES, settings.FREEZE, settings.DISTILL)
+@settings.config_class(settings.EPOCHS, ("patience", settings.TRAIN_PATIENCE), settings.BATCH_SIZE,
+                       settings.LEARNING_RATE, settings.SEED, ("positive_weight", settings.TRAIN_POSITIVE_WEIGHT),
+                       ("lr_patience", settings.TRAIN_LR_PATIENCE), settings.LR_SCHEDULE,
+                       ("max_minutes", settings.TRAIN_MAX_MINUTES), ("freeze", settings.TRAIN_FREEZE), settings.DISTILL)
 class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
@@ -44,13 +45,27 @@ class FitConfig:
     of each epoch is `cosine_rate` of the budget spent, epochs or time, instead; lr_patience 0), max_minutes
     (no new epoch starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
     their weights) and distill (weight of a teacher's maps in the loss; the training batches must
-    carry them, `fcnpose_tf.distill`). Defaults, checks and meanings:
+    carry them, `fcnpose_tf.distill`).
+
+    The defaults are `fcnpose-tf train`'s (`FitConfig.preset("paper")`: the paper's recipe); positive_weight,
+    lr_patience and freeze left None are chosen per run by `resolved`. Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
         """Check every setting and that a cosine schedule is not also asked to halve on plateaus; UserError if bad."""
         settings.validate_fields(self)
-        settings.check_lr_schedule(self.lr_schedule, self.lr_patience)
+        settings.check_lr_schedule(self.lr_schedule, self.lr_patience or 0)
+
+    def resolved(self, *, trained_start: bool, augment: str = "paper") -> FitConfig:
+        """This config with the settings left None chosen for a run that starts from trained weights or not, with
+        this augmentation: freeze (`settings.DEFAULT_FINE_TUNE_FREEZE` from a trained start, else 0), lr_patience
+        (`settings.resolved_lr_patience`) and positive_weight (`settings.train_positive_weight`)."""
+        freeze = self.freeze if self.freeze is not None else (settings.DEFAULT_FINE_TUNE_FREEZE if trained_start else 0)
+        positive_weight = self.positive_weight if self.positive_weight is not None else \
+            settings.train_positive_weight(trained_start=trained_start, augment=augment)
+        lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
+                                                    settings.DEFAULT_TRAIN_LR_PATIENCE)
+        return replace(self, freeze=freeze, positive_weight=positive_weight, lr_patience=lr_patience)
 
 
 MIN_LEARNING_RATE = 1e-5
@@ -354,7 +369,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         train_data: a keras Sequence of (images float32 N x S x S x 3, maps float32 N x S x S x C).
         val_data: validation (images, maps) arrays; the validation loss drives early stopping.
         model_path: where the best model is saved (.keras or .h5), without optimizer state.
-        config: epochs, patience, batch size, learning rate, seed.
+        config: epochs, patience, batch size, learning rate, seed (settings left None: `FitConfig.resolved`, for
+            a trained start when `start_is_candidate`, with the paper's copies).
         resume: continue an interrupted run from `model_path`'s checkpoint.
         force: replace an existing model file / start over despite a checkpoint.
         metadata: extra facts recorded in NAME_train.json (data, split, input size...).
@@ -375,6 +391,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         UserError: output exists without force, nothing to resume, a checkpoint exists
             and neither resume nor force was given, or the checkpoint was started on other data or settings.
     """
+    config = config.resolved(trained_start=start_is_candidate)  # what train_fold has not chosen yet
     config.validate()
     if config.distill and not getattr(train_data, "carries_teacher_maps", False):
         raise ValueError("distillation needs training batches that carry the teacher's maps "
@@ -516,7 +533,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         dataset: a loaded dataset with its splits (`data.dataset.load_dataset`).
         fold: K-fold index (0-based), or None for the 80/20 hold-out split.
         model_path: where the best model goes (.keras or .h5); the run's files go beside it.
-        config: optimisation settings; `config.seed` also seeds the augmentation.
+        config: optimisation settings (those left None chosen by `FitConfig.resolved` for `init` and `augment`);
+            `config.seed` also seeds the augmentation.
         input_size: the model's input side (a multiple of 32).
         augment_copies: offline augmented copies per training frame (augment "paper").
         augment: "paper" (fixed offline copies) or "online" (fresh random transforms every epoch).
@@ -543,6 +561,13 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 
     model_path = Path(model_path)
     label = label or str(model_path)
+    if config.positive_weight is None:
+        weight = settings.train_positive_weight(trained_start=init is not None, augment=augment)
+        log(f"Keypoint weight: {weight:g} (" + ("fine-tuning a trained model on the paper's copies"
+                                               if init is not None and augment == "paper"
+                                               else "random weights or online augmentation")
+            + "; --positive-weight sets it)")
+    config = config.resolved(trained_start=init is not None, augment=augment)
     identity = run_identity(dataset.via_path, config, input_size=input_size, augment=augment,
                             augment_copies=augment_copies,
                             fold=fold, folds=dataset.splits.k, split_seed=dataset.splits.seed)

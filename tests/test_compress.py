@@ -137,7 +137,8 @@ def test_recipe_names_the_floor_and_a_lowered_one():
     assert options.recipe().startswith("filter surgery at 0.9 (no layer under 12 filters, same parameter budget), ")
     assert options.recipe(5).startswith("filter surgery at 0.9 (no layer under 5 filters: --min-filters 12 lowered "
                                         "to fit the parameter budget), filters ranked by taylor")
-    assert CompressOptions(rate=0.7).recipe(0).startswith("filter surgery at 0.7, filters ranked by l1")
+    assert CompressOptions.preset("paper", rate=0.7).recipe(0).startswith("filter surgery at 0.7, filters ranked by l1")
+    assert CompressOptions(rate=0.7).recipe().startswith("filter surgery at 0.7 (no layer under 12 filters")
 
 
 @pytest.mark.slow

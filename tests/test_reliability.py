@@ -101,8 +101,7 @@ def test_resume_refuses_a_checkpoint_of_other_settings_or_data_before_preparing_
     monkeypatch.setattr(dataset_module, "load_dataset", no_data_preparation)
     monkeypatch.setattr(dataset_module, "fold_data", no_data_preparation)
     resume = ["train", "--data", str(data), "--out", str(out), "--resume", "--epochs", "3",  # the interrupted
-              "--augment", "paper", "--augment-copies", "0", "--positive-weight", "1", "--lr-patience", "0",  # run's
-              "--init", "none"]
+              "--augment", "paper", "--augment-copies", "0", "--init", "none"]  # run's (FitConfig's defaults are train's)
     assert main([*resume, "--input-size", "64"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{tmp_path / 'm.ckpt'} was started with --input-size 32 on " in err

@@ -29,6 +29,7 @@ def test_a_default_changed_in_settings_reaches_every_command_and_config(monkeypa
     from fcnpose_tf.train import FitConfig
 
     monkeypatch.setattr(settings.BATCH_SIZE, "default", 3)
+    monkeypatch.setattr(settings.BATCH_SIZE, "paper", 3)
     monkeypatch.setattr(settings.LR_PATIENCE, "default", 7)
     monkeypatch.setattr(settings.RETRAIN_EPOCHS, "default", 11)
     monkeypatch.setattr(settings.PATIENCE, "help", "patience help changed in one place")
@@ -41,13 +42,14 @@ def test_a_default_changed_in_settings_reaches_every_command_and_config(monkeypa
     for command in ("train", "compress", "sweep"):
         text = " ".join(_help(command).split())
         assert "--batch-size BATCH_SIZE training batch size (default: 3)" in text
-        assert "(default: 7)" in text or command in ("train", "compress")  # their own variants (below)
+        assert "(default: 7;" in text or command in ("train", "compress")  # their own variants (below)
     for command in ("compress", "sweep"):
-        assert "(default: 11)" in " ".join(_help(command).split())
+        assert "(default: 11;" in " ".join(_help(command).split())
     assert "patience help changed in one place" in _help("sweep")  # train has its own variant (TRAIN_PATIENCE)
     assert FitConfig().batch_size == CompressOptions(rate=0.5).batch_size == SweepConfig("o", "d").batch_size == 3
     assert CompressOptions(rate=0.5).retrain_epochs == SweepConfig("o", "d").retrain_epochs == 11
-    assert FitConfig().lr_patience == CompressOptions(rate=0.5).lr_patience == SweepConfig("o", "d").lr_patience == 7
+    assert SweepConfig("o", "d").lr_patience == 7 and FitConfig().lr_patience is CompressOptions(rate=0.5).lr_patience \
+        is None  # resolved per run (FitConfig.resolved, CompressOptions.resolved)
 
 
 @pytest.mark.parametrize("trained_start, augment, weight", [(True, "paper", 8.0), (True, "online", 20.0),
@@ -71,8 +73,9 @@ def test_commands_that_differ_use_their_own_variant():
     # compress retrains at 3e-3 halved after 3 stale epochs (0 on the cosine schedule); the sweep keeps the paper's
     assert compress.lr_patience is None and settings.DEFAULT_COMPRESS_LR_PATIENCE == 3
     assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, 1e-3, 1e-3)
-    assert CompressOptions(rate=0.5).learning_rate == 1e-3 and CompressOptions(rate=0.5).lr_patience == 0
-    assert (train.lr_patience, settings.DEFAULT_TRAIN_LR_PATIENCE, sweep.lr_patience) == (None, 4, 0) and (train.max_minutes, sweep.__dict__.get("max_minutes")) == (30.0, None)
+    assert CompressOptions(rate=0.5).learning_rate == 3e-3 and CompressOptions(rate=0.5).lr_patience is None
+    assert (train.lr_patience, settings.DEFAULT_TRAIN_LR_PATIENCE, sweep.lr_patience) == (None, 4, 0)
+    assert (train.max_minutes, sweep.max_minutes) == (30.0, None)
     assert (train.augment, compress.augment) == ("auto", "paper")  # train picks per dataset (data.views)
     # compress resolves its criterion per run (taylor for independent filter surgery); the sweep keeps the paper's
     assert compress.importance is None and sweep.importance == settings.IMPORTANCE.default == "l1"
@@ -114,3 +117,111 @@ def test_the_cli_refuses_with_the_settings_message(cli, tmp_path):
     proc = cli("sweep", "--out", tmp_path / "res", "--learning-rate", "0")
     assert proc.returncode == 2 and "learning rate must be a positive number, got 0.0" in proc.stderr
     assert not (tmp_path / "res").exists()
+
+
+def _cli_configs(preset):
+    """Each command's configs as its parser leaves them with no option but --preset (and what it requires)."""
+    from fcnpose_tf.commands.sweep import config_from_args
+    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.export import ExportOptions
+    from fcnpose_tf.train import FitConfig
+
+    flag = [] if preset is None else ["--preset", preset]
+    train, compress = _parsed(*TRAIN, *flag), _parsed("compress", "--rate", "0.7", *flag)
+    sweep = _parsed("sweep", "--out", "o", "--data", "d", "--threads", "1", *flag)
+    return {"train": FitConfig(**settings.values_from_args(train, FitConfig)),
+            "compress": CompressOptions(**settings.values_from_args(compress, CompressOptions,
+                                                                    patience="retrain_patience")),
+            "export": ExportOptions(**settings.values_from_args(_parsed("export", "m.keras"), ExportOptions)),
+            "sweep": config_from_args(sweep)}
+
+
+def _api_configs(preset):
+    """The same configs from the library: the class's defaults, or its `preset`."""
+    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.export import ExportOptions
+    from fcnpose_tf.sweep.jobs import SweepConfig
+    from fcnpose_tf.train import FitConfig
+
+    def make(cls, **values):
+        return cls(**values) if preset is None else cls.preset(preset, **values)
+
+    return {"train": make(FitConfig), "compress": make(CompressOptions, rate=0.7), "export": ExportOptions(),
+            "sweep": make(SweepConfig, out="o", data="d")}
+
+
+@pytest.mark.parametrize("preset", [None, "recommended", "paper"])
+def test_the_api_and_the_cli_mean_the_same_with_no_options(preset):
+    import dataclasses
+
+    cli, api = _cli_configs(preset), _api_configs(preset)
+    for kind in ("train", "compress", "export"):
+        assert cli[kind] == api[kind], kind
+    ignored = {"out", "data", "verbose"}  # paths as given; the executor's output mode
+    for f in dataclasses.fields(api["sweep"]):
+        if f.name not in ignored:
+            assert getattr(cli["sweep"], f.name) == getattr(api["sweep"], f.name), f.name
+    # and once the settings left None are chosen for a run, as the library chooses them
+    assert cli["compress"].resolved() == api["compress"].resolved()
+    assert cli["train"].resolved(trained_start=True) == api["train"].resolved(trained_start=True)
+
+
+def test_compress_options_mean_what_compress_means():
+    from fcnpose_tf.compress import CompressOptions
+
+    recommended = CompressOptions(rate=0.7).resolved()
+    assert (recommended.importance, recommended.min_filters, recommended.learning_rate, recommended.lr_patience) == \
+        ("taylor", 12, 3e-3, 3)
+    assert recommended.quantize == ("float16", "int8")
+    paper = CompressOptions.preset("paper", rate=0.7).resolved()
+    assert (paper.importance, paper.min_filters, paper.learning_rate, paper.lr_patience, paper.positive_weight) == \
+        ("l1", 0, 1e-3, 0, 1.0)
+    assert (paper.retrain_epochs, paper.quantize) == (100, ("float16",))
+    greedy = CompressOptions(rate=0.7, strategy="greedy").resolved()
+    assert greedy.importance == "l1"  # greedy ranking reads kernels only
+    assert CompressOptions(rate=0.7, method="magnitude").resolved().min_filters == 0
+
+
+def test_train_preset_paper_is_the_papers_recipe():
+    from fcnpose_tf.train import FitConfig
+
+    args = _parsed(*TRAIN, "--preset", "paper")
+    assert (args.init, args.augment, args.folds) == ("none", "paper", None)
+    config = FitConfig.preset("paper").resolved(trained_start=False)
+    assert (config.positive_weight, config.lr_patience, config.patience, config.max_minutes, config.freeze) == \
+        (1.0, 0, 20, None, 0)
+    recommended = FitConfig().resolved(trained_start=True)
+    assert (recommended.positive_weight, recommended.lr_patience, recommended.freeze, recommended.max_minutes) == \
+        (8.0, 4, 2, 30.0)
+    given = _parsed(*TRAIN, "--preset", "paper", "--patience", "12")  # an option given beats the preset
+    assert given.patience == 12 and given.given_settings >= {"patience"}
+
+
+def test_the_sweep_passes_every_setting_on_to_its_runs():
+    import dataclasses
+
+    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.sweep.jobs import SWEEP_FIXED, Job, SweepConfig
+    from fcnpose_tf.train import FitConfig
+
+    config = SweepConfig("o", "d", lr_schedule="cosine", freeze=2, max_minutes=5.0, learning_rate=2e-3)
+    fit = config.fit_config()
+    assert (fit.lr_schedule, fit.max_minutes, fit.learning_rate, fit.freeze) == ("cosine", 5.0, 2e-3, 0)
+    options = config.compress_options(Job(1, 0.7))
+    assert (options.lr_schedule, options.freeze, options.learning_rate, options.fold) == ("cosine", 2, 2e-3, 1)
+    held = {f.name for f in dataclasses.fields(SweepConfig)}
+    for f in dataclasses.fields(CompressOptions):  # none dropped: the sweep's own, fixed, or the job's
+        assert f.name in held | set(SWEEP_FIXED) | {"rate", "fold", "patience"}, f.name
+    assert {f.name for f in dataclasses.fields(FitConfig)} <= held
+
+
+@pytest.mark.parametrize("rate, params", [(0.5, 35185), (0.7, 14668)])
+def test_the_sweeps_paper_preset_keeps_the_papers_parameter_counts(rate, params):
+    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.prune import prune_model
+    from fcnpose_tf.sweep.jobs import Job, SweepConfig
+
+    options = SweepConfig.preset("paper", out="o", data="d").compress_options(Job(0, rate))
+    assert (options.min_filters, options.importance, options.retrain_epochs) == (0, "l1", 100)
+    pruned = prune_model(build_fcn_pose(input_size=64), options.rate, min_filters=options.min_filters)
+    assert pruned.count_params() == params

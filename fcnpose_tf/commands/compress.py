@@ -38,6 +38,7 @@ USES_TENSORFLOW = True
 OUTPUTS = ("out_dir",)
 EXAMPLES = """\
   fcnpose-tf compress --rate 0.7                       # bundled baseline, synthetic data, ./compressed/
+  fcnpose-tf compress --rate 0.7 --preset paper        # the paper's recipe: L1 ranking, its widths, 1e-3, float16
   fcnpose-tf compress --rate 0.5 --retrain-epochs 100  # the paper's retraining budget
   fcnpose-tf compress --rate 0.7 --method magnitude    # tfmot unstructured sparsity, for comparison
   fcnpose-tf compress --rate 0.7 --quantize float16    # the paper's file only
@@ -54,6 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.data.args import add_data_arguments
 
     settings.RATE.add_to(parser)
+    settings.add_preset_argument(parser)
     parser.add_argument("--model", type=Path, help="the model to compress (default: the bundled baseline)")
     add_data_arguments(parser, positional=False, required=False)
     parser.add_argument("--test-data", type=Path, metavar="DATA",
@@ -66,7 +68,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.COMPRESS_IMPORTANCE,
                     settings.IMPORTANCE_FRAMES, settings.DISTILL):
         setting.add_to(parser)
-    parser.set_defaults(quantize=None)  # None: not named (the default formats), see the exit status
     settings.RETRAIN_FOLD.add_to(parser)
     settings.AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
@@ -87,25 +88,13 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.fileio import removed_if_left_empty
     from fcnpose_tf.system import available_cores
 
-    named = args.quantize is not None  # formats the user named: refusing one is an error (exit status 2)
-    if not named:
-        args.quantize = settings.QUANTIZE.default
+    named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
     model_path = args.model or baseline_model()
-    if args.positive_weight is None:
-        from fcnpose_tf.records import training_record
-
-        args.positive_weight = float(((training_record(model_path) or {}).get("config") or {}).get("positive_weight", 1.0))
-    if args.importance is None:  # Taylor where it applies; the paper's L1 norm for greedy ranking (kernels only)
-        independent_surgery = args.method == "l1" and args.strategy == "independent"
-        args.importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
-    if args.min_filters is None:  # filter surgery's widths; magnitude pruning keeps every filter
-        args.min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if args.method == "l1" else 0
-    args.lr_patience = settings.resolved_lr_patience(args.lr_patience, args.lr_schedule,
-                                                     settings.DEFAULT_COMPRESS_LR_PATIENCE)
-    options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
-    options.validate()
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
+    options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
+    options = options.resolved(model_path)  # what the run does with the settings left None (compress_model's choice)
+    options.validate()
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails

@@ -43,7 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS):
         setting.add_to(parser)
-    parser.set_defaults(quantize=None)  # None: not named (the default formats), see the exit status
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write what was exported: per file its format, size, calibration, verification "
                              "gate and graph rewrites")
@@ -54,25 +53,23 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings, synthcache
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.export import (MIN_FRAMES_BY_MODE, ExportVerificationError, export_frames, finish_formats,
-                                   write_tflite)
+    from fcnpose_tf.export import (MIN_FRAMES_BY_MODE, ExportOptions, ExportVerificationError, export_frames,
+                                   finish_formats, write_tflite)
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.model import load_model
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.tfsetup import set_tensorflow_threads
 
-    named = args.quantize is not None  # formats the user named: refusing one is an error (exit status 2)
-    if not named:
-        args.quantize = settings.QUANTIZE.default
-    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED):
-        setting.validate(getattr(args, setting.name))
+    named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
+    options = ExportOptions(**settings.values_from_args(args, ExportOptions))
+    options.validate()
     if not args.model.is_file():
         raise UserError(f"{args.model}: model file not found")
     out_dir = args.out_dir or args.model.parent
-    paths = {q: out_dir / f"{args.model.stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in args.quantize}
+    paths = {q: out_dir / f"{args.model.stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize}
     for path in [*paths.values(), *([args.json] if args.json else [])]:  # before anything is converted
         check_writable(path, args.force)
-    set_tensorflow_threads(args.threads)
+    set_tensorflow_threads(options.threads)
     model = load_model(args.model)
     if args.data is None:
         args.data = synthcache.default_training_data()
@@ -87,11 +84,11 @@ def run(args: argparse.Namespace) -> int:
                         f"{len(val) + len(train)} (add frames, or leave {', '.join(short)} out of --quantize)")
     rows, records, refused = [], [], []
     for quantize, path in paths.items():
-        samples, calibration = export_frames(quantize, size, dataset, train, dataset, val, args.calibration_frames,
-                                             args.seed)
+        samples, calibration = export_frames(quantize, size, dataset, train, dataset, val, options.calibration_frames,
+                                             options.seed)
         try:
             export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
-                                  calibration_frames=calibration, num_threads=args.threads)
+                                  calibration_frames=calibration, num_threads=options.threads)
         except ExportVerificationError as exc:  # a row, not the end of the run
             refused.append({"file": str(path), "quantize": quantize, "status": "refused", "reason": exc.reason,
                             **({"parity": exc.facts} if exc.facts else {})})
@@ -114,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         write_json(args.json, {"model": str(args.model), "data": str(dataset.via_path),
                                "verification_frames": f"the first {len(samples)} of the validation split",
-                               "calibration": f"seeded choice (seed {args.seed}) of the training split's "
+                               "calibration": f"seeded choice (seed {options.seed}) of the training split's "
                                               f"{len(train)} frames", "files": records, "refused": refused},
                    force=args.force)
     written = [Path(r["file"]) for r in records] + ([args.json] if args.json else [])

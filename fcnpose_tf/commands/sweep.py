@@ -21,6 +21,7 @@ RESUMABLE_OUTPUTS = ("out",)
 USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf sweep --rates 0.1:0.9:0.1 --folds 5 --out results/          # the paper's nine rates, 5-fold CV
+  fcnpose-tf sweep --preset paper --out results_paper/                    # the paper's epoch budgets (500, 100)
   fcnpose-tf sweep --rates full,0.5,0.7 --epochs 30 --retrain-epochs 10  # plus the unpruned TFLite row
   fcnpose-tf sweep --rates 0.5,0.7 --folds 2 --epochs 2 --retrain-epochs 1 --input-size 64   # a smoke test
   fcnpose-tf sweep --retrain-epochs 10,0.6:0.9:0.1=40                     # 40 retraining epochs from 60% up
@@ -51,12 +52,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("results"), metavar="DIR",
                         help="results folder (jobs/, models/, tables/, summary.md, pck_vs_fps.png, results.json)")
     train = parser.add_argument_group("training")
-    for setting in (settings.SWEEP_EPOCHS, settings.PATIENCE):
+    settings.add_preset_argument(train)
+    for setting in (settings.SWEEP_EPOCHS, settings.PATIENCE, settings.SWEEP_MAX_MINUTES):
         setting.add_to(train)
     settings.RETRAIN_EPOCHS_BY_RATE.add_to(train)
     for setting in (settings.RETRAIN_PATIENCE, settings.INPUT_SIZE, settings.BATCH_SIZE, settings.LEARNING_RATE,
-                    settings.LR_PATIENCE, settings.POSITIVE_WEIGHT, settings.AUGMENT_COPIES, settings.SEED,
-                    settings.IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL, settings.MIN_FILTERS):
+                    settings.LR_PATIENCE, settings.LR_SCHEDULE, settings.POSITIVE_WEIGHT, settings.AUGMENT_COPIES,
+                    settings.SEED, settings.IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL,
+                    settings.MIN_FILTERS, settings.SWEEP_FREEZE):
         setting.add_to(train)
     run = parser.add_argument_group("execution")
     run.add_argument("--executor", choices=("local", "ray"), default="local",
@@ -107,10 +110,24 @@ def make_executor(args: argparse.Namespace, threads: int):
     return RayExecutor(address=args.address, num_cpus=args.num_cpus, threads=threads)
 
 
-def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf import settings, synthcache
-    from fcnpose_tf.sweep import SweepConfig, parse_rates, run_sweep, write_report
+def config_from_args(args: argparse.Namespace):
+    """The SweepConfig of the parsed options (every setting by name; the rates and per-rate budgets read)."""
+    from fcnpose_tf import settings
+    from fcnpose_tf.sweep import SweepConfig, parse_rates
     from fcnpose_tf.sweep.rates import parse_per_rate_epochs
+
+    retrain_epochs, retrain_epochs_by_rate = parse_per_rate_epochs(args.retrain_epochs)
+    parallel = args.workers > 1 or args.executor == "ray"
+    return SweepConfig(**{**settings.values_from_args(args, SweepConfig), "out": str(args.out),
+                          "data": str(args.data), "images": str(args.images) if args.images else None,
+                          "rates": parse_rates(args.rates), "retrain_epochs": retrain_epochs,
+                          "retrain_epochs_by_rate": retrain_epochs_by_rate, "threads": resolve_threads(args),
+                          "verbose": 2 if (args.quiet or parallel) else 1})
+
+
+def run(args: argparse.Namespace) -> int:
+    from fcnpose_tf import synthcache
+    from fcnpose_tf.sweep import run_sweep, write_report
 
     if args.report_only and args.retime:
         from fcnpose_tf.errors import UserError
@@ -122,18 +139,10 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if args.retime:
         return _retime(args)
-    rates = parse_rates(args.rates)
-    retrain_epochs, retrain_epochs_by_rate = parse_per_rate_epochs(args.retrain_epochs)
-    threads = resolve_threads(args)
-    executor = make_executor(args, threads)
-    parallel = args.workers > 1 or args.executor == "ray"
+    executor = make_executor(args, resolve_threads(args))
     if args.data is None:
         args.data = synthcache.default_training_data()
-    config = SweepConfig(**{**settings.values_from_args(args, SweepConfig), "out": str(args.out),
-                            "data": str(args.data), "images": str(args.images) if args.images else None,
-                            "rates": rates, "retrain_epochs": retrain_epochs,
-                            "retrain_epochs_by_rate": retrain_epochs_by_rate, "threads": threads,
-                            "verbose": 2 if (args.quiet or parallel) else 1})
+    config = config_from_args(args)
     if args.resplit:  # store new splits first; the sweep then refuses OUT's old jobs unless --force
         from fcnpose_tf.data.args import load_from_args
 

@@ -31,15 +31,12 @@ EXAMPLES = """\
   fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
   fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # fresh transforms, whatever the views
   fcnpose-tf train --data merged.json --out models/arm2.keras --init models/arm.keras --test-data test/  # a round
-  fcnpose-tf train --data data/ur5 --out models/paper.keras --init none --augment paper \\
-      --positive-weight 1 --lr-patience 0 --patience 20 --max-minutes 600                # the paper's recipe
+  fcnpose-tf train --data data/ur5 --out models/paper.keras --preset paper  # the paper's recipe (from scratch)
 """
 
 
 BUNDLED_INITS = {"generalist": "generalist_model", "workcell": "baseline_model"}
 """The bundled models --init takes by name (functions of fcnpose_tf.bundled)."""
-DEFAULT_INIT = "generalist"
-"""Measured on two proxies of a user's frames (docs/training.md, "Training on your own frames")."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -49,6 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_data_arguments(parser, positional=False, folds_option=False)
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
+    settings.add_preset_argument(parser)
     for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
                     settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
                     settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
@@ -56,12 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
-    parser.add_argument("--init", metavar="MODEL|" + "|".join(BUNDLED_INITS) + "|none", default=DEFAULT_INIT,
-                        help="start from this model's weights (trained at any input size for the same keypoints): "
-                             "generalist: the bundled UR5 model fine-tuned on domain-randomised scenes; workcell: the "
-                             "bundled paper-reproduction baseline; either is refused for data of another keypoint "
-                             "schema; none: random weights, as the paper. A trained start is the model to beat: "
-                             "if no epoch improves on its validation loss, it is written unchanged")
+    settings.INIT.add_to(parser)
     parser.add_argument("--test-data", type=Path, metavar="T",
                         help="a fixed test set (dataset folder or VIA file, images found as for --data; frames never "
                              "trained on): the starting model and every trained one are measured on it (PCK@0.5/0.2/"
@@ -104,14 +97,8 @@ def run(args: argparse.Namespace) -> int:
                                   start_on_test_set, train_fold)
 
     init = initial_weights(args.init)
-    if args.freeze is None:
-        args.freeze = settings.DEFAULT_FINE_TUNE_FREEZE if init else 0
-    args.lr_patience = settings.resolved_lr_patience(args.lr_patience, args.lr_schedule,
-                                                     settings.DEFAULT_TRAIN_LR_PATIENCE)
-    given = settings.values_from_args(args, FitConfig)
-    if given["positive_weight"] is None:  # resolved with the augmentation (below); every other setting checked now
-        given["positive_weight"] = settings.DEFAULT_FROM_SCRATCH_POSITIVE_WEIGHT
-    FitConfig(**given).validate()
+    config = FitConfig(**settings.values_from_args(args, FitConfig))  # settings left None: chosen per run (resolved)
+    config.validate()
     for setting in (settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
                     settings.THREADS):
         setting.validate(getattr(args, setting.name))
@@ -132,19 +119,14 @@ def run(args: argparse.Namespace) -> int:
             check_outputs(fold_model_path(args.out, fold), args.force)
     via_path, images_dir = resolve_data(args.data, args.images)
     # a bundled start is recorded by its name (its path is this machine's), a user's model by the path given
-    metadata: dict = {"init": args.init if args.init in BUNDLED_INITS else (str(init) if init else None)}
+    metadata: dict = {"init": args.init if args.init in BUNDLED_INITS else (str(init) if init else None),
+                      "preset": args.preset}
     if args.augment == "auto":  # resolved before the checkpoint check: a checkpoint records what ran
         args.augment, metadata["augment_auto"] = _choose_augment(via_path, images_dir, args)
-    if args.positive_weight is None:
-        args.positive_weight = settings.train_positive_weight(trained_start=init is not None, augment=args.augment)
-        print(f"Keypoint weight: {args.positive_weight:g} ("
-              + ("fine-tuning a trained model on the paper's copies" if args.positive_weight
-                 == settings.DEFAULT_FINE_TUNE_POSITIVE_WEIGHT else "random weights or online augmentation")
-              + "; --positive-weight sets it)")
-    config = FitConfig(**settings.values_from_args(args, FitConfig))
+    resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
-                         identity=run_identity(via_path, config, input_size=args.input_size, fold=fold, folds=k,
+                         identity=run_identity(via_path, resolved, input_size=args.input_size, fold=fold, folds=k,
                                                augment=args.augment, augment_copies=args.augment_copies,
                                                split_seed=args.split_seed))
     dataset = load_from_args(args)  # --folds K or a --fold: K folds required of the data; else the hold-out split

@@ -34,7 +34,7 @@ def add_data_arguments(parser: argparse.ArgumentParser, positional: bool = True,
     parser.add_argument("--skip-bad", action="store_true",
                         help="skip frames with bad regions or missing images instead of stopping")
     if folds_option:  # unset (None): the default K, and no folds on a dataset smaller than that
-        FOLDS.variant(default=None, help=f"{FOLDS.help}; default {FOLDS.default}, refused for fewer frames "
+        FOLDS.variant(default=None, paper=None, help=f"{FOLDS.help}; default {FOLDS.default}, refused for fewer frames "
                       "when given").add_to(parser)
     parser.add_argument("--split-seed", type=int, default=0, help="seed of the stored splits")
     parser.add_argument("--resplit", action="store_true", help="replace the stored splits")

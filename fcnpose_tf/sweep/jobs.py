@@ -42,14 +42,16 @@ MODELS_DIR = "models"
 
 KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "patience", "retrain_epochs",
               "retrain_patience", "batch_size", "learning_rate", "lr_patience", "positive_weight", "augment_copies",
-              "seed", "threads", "importance", "importance_frames", "distill", "min_filters")
+              "seed", "threads", "importance", "importance_frames", "distill", "min_filters", "lr_schedule", "freeze",
+              "max_minutes")
 """Settings that change a job's results: a results folder holds jobs of one value of each."""
 
 KEY_DEFAULTS = {"lr_patience": 0, "importance": "l1", "importance_frames": settings.IMPORTANCE_FRAMES.default,
-                "distill": 0.0, "min_filters": 0}
+                "distill": 0.0, "min_filters": 0, "lr_schedule": "plateau", "freeze": 0, "max_minutes": None}
 """Key fields added after results folders existed, with the value older folders were made with."""
 
-RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience", "importance", "importance_frames", "distill", "min_filters")
+RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience", "importance", "importance_frames", "distill", "min_filters",
+                     "freeze")
 """Key fields that only matter to jobs that retrain (a rate above 0): a base job or the unpruned export
 keeps its record when they change."""
 
@@ -93,6 +95,11 @@ def record_matches(record: dict[str, Any] | None, key: dict[str, Any], by_rate: 
     return job_key(record["config_key"], rate) == job_key(key, rate, by_rate)
 
 
+SWEEP_FIXED = ("method", "strategy", "quantize", "calibration_frames", "augment", "qat_epochs", "qat_learning_rate")
+"""CompressOptions settings a sweep does not vary: filter surgery with independent ranking, the float16 and int8 files,
+the paper's offline copies, compress's QAT fallback (CompressOptions' defaults). Every other one is the sweep's own."""
+
+
 @dataclass(frozen=True)
 class SweepConfig:
     """Everything a job needs, as plain values (picklable, JSON-ready).
@@ -134,6 +141,11 @@ class SweepConfig:
     """Weight of the fold's base model's maps in a rate job's retraining loss (0: the paper's)."""
     min_filters: int = settings.MIN_FILTERS.field()
     """No pruned layer under this many filters, within the keep rule's parameter budget (0: the paper's widths)."""
+    lr_schedule: str = settings.LR_SCHEDULE.field()
+    freeze: int = settings.SWEEP_FREEZE.field()
+    """conv1..convN kept fixed while a rate job retrains (base models start from random weights: every layer trains)."""
+    max_minutes: float | None = settings.SWEEP_MAX_MINUTES.field()
+    """Time budget of each base model's training (retraining is bounded by its epochs)."""
     threads: int = 1
     """Resolved by the command (`commands.sweep.resolve_threads`): never None here."""
     verbose: int = 1
@@ -154,26 +166,29 @@ class SweepConfig:
     def retrain_epochs_at(self, rate: float) -> int:
         return retrain_epochs_at(rate, self.retrain_epochs, self.retrain_epochs_by_rate)
 
+    @classmethod
+    def preset(cls, name: str, **values: Any) -> SweepConfig:
+        """A config with preset `name`'s value (`fcnpose_tf.settings.PRESETS`) of every setting not in `values`."""
+        return cls(**{**settings.preset_values(cls, name), **values})
+
     def fit_config(self) -> FitConfig:
-        """How the base models are trained."""
+        """How the base models are trained: every FitConfig setting the sweep's (random weights: no layer frozen,
+        no teacher)."""
         from fcnpose_tf.train import FitConfig
 
-        return FitConfig(epochs=self.epochs, patience=self.patience, batch_size=self.batch_size,
-                         learning_rate=self.learning_rate, seed=self.seed, positive_weight=self.positive_weight,
-                         lr_patience=self.lr_patience)
+        return FitConfig(**settings.carried(self, FitConfig, freeze=0, distill=0.0))
 
     def compress_options(self, job: Job) -> CompressOptions:
-        """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained)."""
+        """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained): every
+        CompressOptions setting the sweep's, those of SWEEP_FIXED at CompressOptions' defaults."""
         from fcnpose_tf.compress import CompressOptions
 
-        return CompressOptions(rate=float(job.rate),
-                               retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
-                               patience=self.retrain_patience, batch_size=self.batch_size,
-                               learning_rate=self.learning_rate, augment_copies=self.augment_copies, seed=self.seed,
-                               fold=job.fold, threads=self.threads, positive_weight=self.positive_weight,
-                               lr_patience=self.lr_patience, importance=self.importance,
-                               importance_frames=self.importance_frames, min_filters=self.min_filters,
-                               distill=0.0 if job.rate == 0 else self.distill)
+        fixed = {name: value for name, value in settings.preset_values(CompressOptions, settings.DEFAULT_PRESET).items()
+                 if name in SWEEP_FIXED}
+        return CompressOptions(**settings.carried(
+            self, CompressOptions, renamed={"patience": "retrain_patience"}, **fixed, rate=float(job.rate),
+            fold=job.fold, retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
+            distill=0.0 if job.rate == 0 else self.distill))
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
