@@ -25,9 +25,11 @@ contiguous pass (numpy is ~9x slower on a strided per-map slice), de-interleaved
 ``cv2.transpose``, and each map is labelled by ``cv2.connectedComponents`` only inside the bounding
 box of its active pixels (``cv2.boundingRect``), with the empty rows and columns between far-apart
 active pixels squeezed out. OpenCV's own statistics are not used: they cost per pixel of the
-labelled area, background included; cluster sizes come from the labels of the active pixels, the
-centroid from the kept cluster's binary image moments
-(``cv2.moments``: exact integer sums, one call; row and column sums where lines were squeezed out).
+labelled area, background included; cluster sizes come from the labels (of the active pixels only
+when the window is sparse), the centroid from exact integer sums of the kept cluster's pixel
+coordinates (read from the labels; ``cv2.moments`` of the window when it holds one cluster), a fully
+active window's in closed form. Labelling itself is the floor: on coin-flip maps (thousands of
+clusters per map) it is ~70 % of the frame (docs/postprocess.md, section 4).
 ``tools/bench_postprocess.py`` measures this against the plain per-map
 ``cv2.connectedComponentsWithStats``.
 """
@@ -142,6 +144,24 @@ def _squeeze_index(occupied: np.ndarray) -> np.ndarray:
     return np.flatnonzero(keep)
 
 
+_LABELS_16U_MAX_AREA = 131068
+"""Windows up to this many pixels are labelled as uint16 (4-connected clusters <= area / 2 + 1 <= 65535 labels):
+half the label memory of int32, and counted by `cv2.calcHist` instead of `np.bincount` (which widens to int64)."""
+
+
+_CALCHIST_MIN_AREA = 4096
+"""From this many labels on, `cv2.calcHist` counts uint16 labels faster than `np.bincount` (on a few hundred its
+set-up costs more than the count)."""
+
+
+def _centroid(size: int, sum_x: int, sum_y: int, x0: int, y0: int, min_size: int) -> tuple[float, float, int]:
+    """(x, y, size) from exact integer sums in window coordinates: one division per axis, so the result is
+    bit-identical to sum(x) / n over the cluster's pixels in map coordinates."""
+    if size < min_size:
+        return math.nan, math.nan, 0
+    return (sum_x + x0 * size) / size, (sum_y + y0 * size) / size, size
+
+
 def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, int]:
     """Largest 4-connected cluster of a C-contiguous 0/1 uint8 plane (see largest_cluster)."""
     x0, y0, w, h = cv2.boundingRect(plane)
@@ -153,6 +173,8 @@ def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, in
     if w != plane.shape[1]:
         win = np.ascontiguousarray(win)
     active = cv2.countNonZero(win)
+    if active == w * h:  # every pixel of the window active: one cluster, the rectangle's centre
+        return _centroid(active, h * (w * (w - 1) // 2), w * (h * (h - 1) // 2), x0, y0, min_size)
     img, xs, ys = win, None, None
     if 2 * active <= w * h and w * h > _SQUEEZE_MIN_AREA:
         # A blob plus far-off speckles gives a big, mostly empty window: drop the empty rows and
@@ -161,53 +183,61 @@ def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, in
         # so a window more than half active never is: a lone blob's (a disc fills ~3/4 of its
         # bounding box) skips the search for empty lines.
         # (REDUCE_SUM to int32 is vectorised in OpenCV; REDUCE_MAX on uint8 rows is ~50x slower.)
-        ys = _squeeze_index(cv2.reduce(win, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel() != 0)
-        xs = _squeeze_index(cv2.reduce(win, 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel() != 0)
-        if 2 * ys.size * xs.size <= w * h:
-            img = np.ascontiguousarray(win[ys][:, xs])
-        else:
-            xs = ys = None
-    mask = img
-    if active != w * h:  # (a window with every pixel active is a single cluster)
-        n, labels = cv2.connectedComponents(img, connectivity=4, ltype=cv2.CV_32S)
-        if n > 2:
-            if active * 8 <= img.size:
-                # Sparse: look at the active pixels only (findNonZero scans in raster order).
-                pts = cv2.findNonZero(img).reshape(-1, 2)
-                lab = labels[pts[:, 1], pts[:, 0]]
+        row_sums = cv2.reduce(win, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S)
+        col_sums = cv2.reduce(win, 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S)
+        if cv2.countNonZero(row_sums) < h or cv2.countNonZero(col_sums) < w:  # some line is empty
+            ys = _squeeze_index(row_sums.ravel() != 0)
+            xs = _squeeze_index(col_sums.ravel() != 0)
+            if 2 * ys.size * xs.size <= w * h:
+                img = np.ascontiguousarray(win[ys][:, xs])
             else:
-                lab = labels.ravel()  # background label 0 included; its count is zeroed below
+                xs = ys = None
+    small = img.size <= _LABELS_16U_MAX_AREA
+    n, labels = cv2.connectedComponents(img, connectivity=4, ltype=cv2.CV_16U if small else cv2.CV_32S)
+    if n > 2:  # several clusters (else the one cluster is every active pixel: its moments below)
+        sparse = active * 8 <= img.size
+        if sparse:
+            # Look at the active pixels only (findNonZero scans in raster order).
+            pts = cv2.findNonZero(img).reshape(-1, 2)
+            lab = labels[pts[:, 1], pts[:, 0]]
             counts = np.bincount(lab, minlength=n)
-            counts[0] = 0
-            best = int(counts.argmax())
-            tied = counts == counts[best]
-            if np.count_nonzero(tied) > 1:
-                # Tie rule: the cluster holding the earliest pixel in row-major order, which is the
-                # one Algorithm 1 creates first when it scans S in that order. (OpenCV numbers
-                # labels in that order when single-threaded; we do not rely on it.)
-                best = int(lab[np.argmax(tied[lab])])
-            mask = (labels == best).view(np.uint8)
+        else:
+            lab = labels.ravel()
+            if small and img.size >= _CALCHIST_MIN_AREA:  # float32 counts, exact below 2**24
+                counts = cv2.calcHist([labels], [0], None, [n], [0, n]).ravel().astype(np.int64)
+            else:
+                counts = np.bincount(lab, minlength=n)
+        counts[0] = 0  # the background (absent from a sparse count)
+        best = int(counts.argmax())
+        tied = counts == counts[best]
+        if np.count_nonzero(tied) > 1:
+            # Tie rule: the cluster holding the earliest pixel in row-major order, which is the
+            # one Algorithm 1 creates first when it scans S in that order. (OpenCV numbers
+            # labels in that order when single-threaded; we do not rely on it.)
+            best = int(lab[np.argmax(tied[lab])])
+        # The kept cluster's pixels straight from the labels: exact integer sums of their columns and
+        # rows (raster indices divided by the image's width; through xs and ys back to the window's
+        # lines when it was squeezed), no pass over a mask image.
+        if sparse:
+            mine = pts[lab == best]
+            cols, rows = mine[:, 0], mine[:, 1]
+        else:
+            rows, cols = np.divmod(np.flatnonzero(lab == best), img.shape[1])
+        if xs is not None:
+            cols, rows = xs[cols], ys[rows]
+        return _centroid(len(cols), int(cols.sum()), int(rows.sum()), x0, y0, min_size)
     if xs is None:
         # Window coordinates are map coordinates minus (x0, y0). The binary image moments are
         # exact integers (pixel count, sums of column and row indices), so one division gives a
         # result bit-identical to sum(x) / n over the cluster's pixels, in one OpenCV call.
-        m = cv2.moments(mask, True)
-        size = int(m["m00"])
-        if size < min_size:
-            return math.nan, math.nan, 0
-        return (int(m["m10"]) + x0 * size) / size, (int(m["m01"]) + y0 * size) / size, size
-    # Centroid from per-column and per-row pixel counts: exact integer sums, one division,
-    # so the result is bit-identical to sum(x) / n over the cluster's pixels.
-    cols = cv2.reduce(mask, 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel().astype(np.int64)
-    rows = cv2.reduce(mask, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel().astype(np.int64)
+        m = cv2.moments(img, True)
+        return _centroid(int(m["m00"]), int(m["m10"]), int(m["m01"]), x0, y0, min_size)
+    # Centroid from per-column and per-row pixel counts of the squeezed image, at the columns and rows
+    # they came from: exact integer sums, one division.
+    cols = cv2.reduce(img, 0, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel().astype(np.int64)
+    rows = cv2.reduce(img, 1, cv2.REDUCE_SUM, dtype=cv2.CV_32S).ravel().astype(np.int64)
     size = int(cols.sum())
-    if size < min_size:
-        return math.nan, math.nan, 0
-    col_x = xs if xs is not None else np.arange(mask.shape[1])
-    row_y = ys if ys is not None else np.arange(mask.shape[0])
-    sum_x = int(cols @ col_x.astype(np.int64)) + x0 * size
-    sum_y = int(rows @ row_y.astype(np.int64)) + y0 * size
-    return sum_x / size, sum_y / size, size
+    return _centroid(size, int(cols @ xs.astype(np.int64)), int(rows @ ys.astype(np.int64)), x0, y0, min_size)
 
 
 def _check_maps(maps: np.ndarray) -> np.ndarray:
