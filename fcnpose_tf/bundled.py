@@ -7,9 +7,11 @@ FCNPOSE_MODELS_DIR overrides both. numpy-free, TensorFlow-free.
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from pathlib import Path
+from typing import Callable
 
 from fcnpose_tf.errors import UserError
 
@@ -43,3 +45,69 @@ def baseline_model() -> Path:
 def generalist_model() -> Path:
     """Path of the bundled generalist FCN-Pose (.keras), `train`'s starting point for a user's frames."""
     return models_dir() / f"{GENERALIST_NAME}.keras"
+
+
+KERAS_SUFFIXES = (".keras", ".h5")
+TFLITE_SUFFIXES = (".tflite",)
+ANY_MODEL = KERAS_SUFFIXES + TFLITE_SUFFIXES
+
+BUNDLED_MODELS = {
+    "generalist": (f"{GENERALIST_NAME}.keras", "the UR5 generalist, fine-tuned on domain-randomised scenes"),
+    "workcell": (f"{BASELINE_NAME}.keras", "the paper-reproduction baseline of one UR5 workcell"),
+    "workcell-p70": (f"{BASELINE_NAME}_p70.keras", "the workcell baseline pruned at rate 0.7 and retrained"),
+    "workcell-p70-fp16": (f"{BASELINE_NAME}_p70_fp16.tflite", "workcell-p70 as float16 TFLite (the paper's format)"),
+    "workcell-p70-int8": (f"{BASELINE_NAME}_p70_int8.tflite", "workcell-p70 as full-integer int8 TFLite (the Pi's)"),
+}
+"""The names every command's model argument takes (`resolve_model`): name -> (file in models_dir(), what it is)."""
+
+
+def bundled_names(suffixes: tuple[str, ...] = ANY_MODEL) -> list[str]:
+    """The bundled models' names whose files have one of `suffixes`."""
+    return [name for name, (file, _) in BUNDLED_MODELS.items() if Path(file).suffix in suffixes]
+
+
+def names_help(suffixes: tuple[str, ...] = ANY_MODEL) -> str:
+    """For a model argument's help: the bundled names it takes, each with what it is."""
+    return "; ".join(f"{name}: {BUNDLED_MODELS[name][1]}" for name in bundled_names(suffixes))
+
+
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
+def resolve_model(value: str | os.PathLike, suffixes: tuple[str, ...] = ANY_MODEL,
+                  say: Callable[[str], None] = _say) -> Path:
+    """The model file `value` names: an existing file as given, else a bundled model by name (BUNDLED_MODELS), whose
+    file `say` names.
+
+    Raises:
+        UserError: neither a file nor a bundled name, or a bundled model of another kind than `suffixes` allows.
+    """
+    text = os.fspath(value)
+    if Path(text).is_file():
+        return Path(text)
+    names = bundled_names(suffixes)
+    if text in BUNDLED_MODELS:
+        file = BUNDLED_MODELS[text][0]
+        if text not in names:
+            raise UserError(f"{text}: the bundled {Path(file).suffix} model; this command takes "
+                            f"{'/'.join(suffixes)} models (bundled: {', '.join(names)})")
+        path = models_dir() / file
+        if not path.is_file():
+            raise UserError(f"{text}: the bundled model {path} is missing")
+        say(f"{text}: the bundled model {path}")
+        return path
+    raise UserError(f"{text}: model file not found (or one of the bundled models: {', '.join(names)})")
+
+
+def model_argument(suffixes: tuple[str, ...] = ANY_MODEL) -> Callable[[str], Path]:
+    """argparse type of a model argument: a bundled name resolved while parsing (`resolve_model`; a name of another
+    kind is a one-line usage error), any other text the path it names (the command reads the file)."""
+    def model(text: str) -> Path:
+        if text not in BUNDLED_MODELS or Path(text).is_file():
+            return Path(text)
+        try:
+            return resolve_model(text, suffixes)
+        except UserError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return model

@@ -25,6 +25,7 @@ import dataclasses
 import math
 from typing import Any, Callable
 
+from fcnpose_tf.bundled import KERAS_SUFFIXES, names_help
 from fcnpose_tf.errors import UserError
 
 _SAME = object()
@@ -337,10 +338,9 @@ AUGMENT_COPIES = Setting("augment_copies", int, 2, "with --augment paper: offlin
                          label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
 INIT = Setting(
     "init", str, "generalist", "start from this model's weights (trained at any input size for the same keypoints): "
-    "a bundled model by name (generalist: the UR5 model fine-tuned on domain-randomised scenes; workcell: the "
-    "paper-reproduction baseline; either refused for data of another keypoint schema), a model file, or none: "
-    "random weights, as the paper. A trained start is the model to beat: if no epoch improves on its validation "
-    "loss, it is written unchanged", label="initial weights", metavar="MODEL|NAME|none", paper="none")
+    f"a .keras/.h5 file, a bundled model by name ({names_help(KERAS_SUFFIXES)}; refused for data of another keypoint "
+    "schema), or none: random weights, as the paper. A trained start is the model to beat: if no epoch improves on "
+    "its validation loss, it is written unchanged", label="initial weights", metavar="MODEL|NAME|none", paper="none")
 """`train` fine-tunes the bundled generalist: measured on two proxies of a user's frames (docs/training.md,
 "Training on your own frames")."""
 SEED = Setting("seed", int, 0, "seed of weights, augmentation and batch order", label="seed",

@@ -25,14 +25,18 @@ EXAMPLES = """\
   fcnpose-tf bench model.tflite                              # 1, 2, 4 ... up to all cores
   fcnpose-tf bench model.tflite --threads 1,2,4 --frames 200 --json bench.json
   fcnpose-tf bench model.tflite --image frame.png --markdown # a real frame; a table for docs
-  fcnpose-tf bench saved_models/fcnpose_ur5_p70_int8.tflite saved_models/fcnpose_ur5_p70_fp16.tflite --threads 1
+  fcnpose-tf bench workcell-p70-int8 workcell-p70-fp16 --threads 1   # the bundled files, by name
 """
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.settings import thread_counts
 
-    parser.add_argument("model", type=Path, nargs="+", help="one or more FCN-Pose .tflite models")
+    from fcnpose_tf.bundled import TFLITE_SUFFIXES, model_argument, names_help
+
+    parser.add_argument("model", type=model_argument(TFLITE_SUFFIXES), nargs="+", metavar="MODEL",
+                        help=f"one or more FCN-Pose .tflite models, files or bundled ones by name "
+                             f"({names_help(TFLITE_SUFFIXES)})")
     parser.add_argument("--threads", type=thread_counts, default=None, metavar="N,N,...",
                         help="thread counts to compare (default: 1, 2, 4 ... up to all cores)")
     parser.add_argument("--frames", type=int, default=200, help="timed frames per thread count (>= 50 advised)")

@@ -56,7 +56,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     settings.RATE.add_to(parser)
     settings.add_preset_argument(parser)
-    parser.add_argument("--model", type=Path, help="the model to compress (default: the bundled baseline)")
+    from fcnpose_tf.bundled import KERAS_SUFFIXES, model_argument, names_help
+
+    parser.add_argument("--model", type=model_argument(KERAS_SUFFIXES), default="workcell", metavar="MODEL",
+                        help=f"the .keras/.h5 model to compress, or a bundled one by name ({names_help(KERAS_SUFFIXES)})")
     add_data_arguments(parser, positional=False, required=False)
     parser.add_argument("--test-data", type=Path, metavar="DATA",
                         help="frames to measure on (default: --data's validation split; without --data, "
@@ -89,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.system import available_cores
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
-    model_path = args.model or baseline_model()
+    model_path = args.model
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
@@ -107,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
             eval_dataset = load_dataset(args.test_data)
             eval_indices = list(range(len(eval_dataset)))
             description = f"all {len(eval_dataset)} frames of {args.test_data}"
-        elif args.model is None and args.images is None and Path(args.data) == synthcache.default_training_data():
+        elif Path(model_path) == baseline_model() and args.images is None \
+                and Path(args.data) == synthcache.default_training_data():
             eval_dataset = load_dataset(synthcache.heldout_data())
             eval_indices = list(range(len(eval_dataset)))
             description = (f"{len(eval_dataset)} held-out synthetic frames (seed {synthcache.HELDOUT_SEED}, "

@@ -22,7 +22,8 @@ USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf synth --out heldout --n 100 --seed 1
   fcnpose-tf evaluate --data heldout                       # the bundled baseline on unseen frames
-  fcnpose-tf evaluate saved_models/fcnpose_ur5_p70_fp16.tflite --data heldout --threads 1
+  fcnpose-tf evaluate workcell-p70-fp16 --data heldout --threads 1   # a bundled model by name
+  fcnpose-tf evaluate generalist --data my_frames/        # the generalist on your frames, before fine-tuning
   fcnpose-tf evaluate models/arm.keras --data my_frames/ --fold 2 --json fold2.json
 """
 
@@ -32,8 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.settings import thread_count
     from fcnpose_tf.smoothing import add_smoothing_arguments
 
-    parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
-                        help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
+    from fcnpose_tf.bundled import model_argument, names_help
+
+    parser.add_argument("model", nargs="?", type=model_argument(), default="workcell", metavar="MODEL",
+                        help=f"a .keras/.h5 or .tflite model, or a bundled one by name ({names_help()})")
     add_data_arguments(parser, positional=False)
     parser.add_argument("--split", choices=("auto", "val", "all"), default="auto",
                         help="auto: validation frames on the model's own training data, else all frames")
@@ -49,7 +52,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf.bundled import baseline_model
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import choose_frames, evaluate_predictor, format_timing, open_model
@@ -73,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.postprocess import describe_decoding
     from fcnpose_tf.smoothing import params_from_args
 
-    model_path = args.model or baseline_model()
+    model_path = args.model
     predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
     dataset = load_from_args(args)
     indices, description = choose_frames(dataset, model_path, args.split, args.fold)

@@ -38,7 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf import settings
     from fcnpose_tf.data.args import add_data_arguments
 
-    parser.add_argument("model", type=Path, metavar="MODEL", help="a trained .keras/.h5 FCN-Pose")
+    from fcnpose_tf.bundled import KERAS_SUFFIXES, model_argument, names_help
+
+    parser.add_argument("model", type=model_argument(KERAS_SUFFIXES), metavar="MODEL",
+                        help=f"a trained .keras/.h5 FCN-Pose, or a bundled one by name ({names_help(KERAS_SUFFIXES)})")
     add_data_arguments(parser, positional=False, required=False)
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS):

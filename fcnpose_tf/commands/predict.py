@@ -23,7 +23,7 @@ from fcnpose_tf.settings import add_decoding_arguments
 NAME = "predict"
 OUTPUTS = ("via",)
 EXAMPLES = """\
-  fcnpose-tf predict saved_models/fcnpose_ur5_p70_fp16.tflite --source frames/ --via frames/pre.json
+  fcnpose-tf predict generalist --source frames/ --via frames/pre.json     # a bundled model by name
   fcnpose-tf predict models/arm.keras --source clip.mp4 --every 10 --via clip_labels/pre.json
   fcnpose-tf predict model.tflite --source frames/ --via pre.json --min-confidence 20 --force
   fcnpose-tf predict models/arm.keras --source clip.mp4 --via round2/pre.json --select 40          # spread evenly
@@ -36,8 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.settings import thread_count
     from fcnpose_tf.smoothing import add_smoothing_arguments
 
-    parser.add_argument("model", nargs="?", type=Path, metavar="MODEL",
-                        help="a .keras/.h5 or .tflite model (default: the bundled baseline)")
+    from fcnpose_tf.bundled import model_argument, names_help
+
+    parser.add_argument("model", nargs="?", type=model_argument(), default="workcell", metavar="MODEL",
+                        help=f"a .keras/.h5 or .tflite model, or a bundled one by name ({names_help()})")
     parser.add_argument("--source", required=True, help="image folder, image file or video file")
     parser.add_argument("--via", type=Path, required=True, metavar="OUT.json",
                         help="the VIA 2.x project to write (video frames go to images/ beside it)")
@@ -66,7 +68,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from fcnpose_tf.bundled import baseline_model
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.evaluate import open_model
     from fcnpose_tf.fileio import stop_signals_as_interrupt
@@ -89,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--smooth and --select do not go together: a pick's pre-labels are its own frame's "
                         "predictions (smoothing would also hide the jumps --by jump looks for)")
     check_via_output(args.via, args.force, args.min_confidence)  # before the model loads: fail in a second
-    model_path = args.model or baseline_model()
+    model_path = args.model
     if Path(model_path).suffix in (".keras", ".h5"):
         from fcnpose_tf.tfsetup import import_tensorflow_quietly
 

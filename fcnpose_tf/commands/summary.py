@@ -19,7 +19,11 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("model", nargs="?", type=Path, help="a .keras/.h5 model file (default: build FCN-Pose)")
+    from fcnpose_tf.bundled import KERAS_SUFFIXES, model_argument, names_help
+
+    parser.add_argument("model", nargs="?", type=model_argument(KERAS_SUFFIXES), metavar="MODEL",
+                        help=f"a .keras/.h5 model file, or a bundled one by name ({names_help(KERAS_SUFFIXES)}); "
+                             "default: build FCN-Pose")
     parser.add_argument("--input-size", type=int, default=224,
                         help="input side when building the default model (multiple of 32)")
 

@@ -35,8 +35,6 @@ EXAMPLES = """\
 """
 
 
-BUNDLED_INITS = {"generalist": "generalist_model", "workcell": "baseline_model"}
-"""The bundled models --init takes by name (functions of fcnpose_tf.bundled)."""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -66,18 +64,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def initial_weights(init: str) -> Path | None:
-    """The model file --init names: None for "none", a bundled model for its name, else the path."""
+    """The model file --init names: None for "none", else `bundled.resolve_model`'s (a file, or a bundled name)."""
+    from fcnpose_tf.bundled import KERAS_SUFFIXES, resolve_model
+
     if init == "none":
         return None
-    if init in BUNDLED_INITS:
-        from fcnpose_tf import bundled
-
-        return getattr(bundled, BUNDLED_INITS[init])()
-    if not Path(init).exists():
-        from fcnpose_tf.errors import UserError
-
-        raise UserError(f"--init {init}: no such model file (or pass one of {', '.join(BUNDLED_INITS)}, none)")
-    return Path(init)
+    return resolve_model(init, KERAS_SUFFIXES)
 
 
 def fold_model_path(out: Path, fold: int | None) -> Path:
@@ -119,7 +111,9 @@ def run(args: argparse.Namespace) -> int:
             check_outputs(fold_model_path(args.out, fold), args.force)
     via_path, images_dir = resolve_data(args.data, args.images)
     # a bundled start is recorded by its name (its path is this machine's), a user's model by the path given
-    metadata: dict = {"init": args.init if args.init in BUNDLED_INITS else (str(init) if init else None),
+    from fcnpose_tf.bundled import BUNDLED_MODELS
+
+    metadata: dict = {"init": args.init if args.init in BUNDLED_MODELS else (str(init) if init else None),
                       "preset": args.preset}
     if args.augment == "auto":  # resolved before the checkpoint check: a checkpoint records what ran
         args.augment, metadata["augment_auto"] = _choose_augment(via_path, images_dir, args)
