@@ -443,7 +443,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             if resumable:
                 raise UserError("interrupted before the first epoch ended: nothing to resume; run the command "
                                 "again to start over") from None
-            raise UserError(f"interrupted after {state['epoch']} complete epochs") from None
+            raise UserError(f"stopped after {state['epoch']} of {config.epochs} epochs; this run cannot be resumed (its "
+                            "checkpoint is removed): run the same command again to start it over") from None
         raise UserError(f"interrupted after {state['epoch']} complete epochs; "
                         f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
     except WriteError as exc:

@@ -138,6 +138,30 @@ def test_interrupted_training_resumes(tmp_path, monkeypatch):
     assert out.is_file() and not (tmp_path / "m.ckpt").exists()
 
 
+def test_an_interrupted_run_that_cannot_resume_says_what_to_do_and_leaves_no_checkpoint(tmp_path, monkeypatch):
+    """compress retrains through fit(resumable=False): Ctrl-C names the epochs done and says to run the command
+    again, not to pass a --resume compress does not have."""
+    from fcnpose_tf import train
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.model import build_fcn_pose
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
+    tr, va = fold_data(ds, None, 32, 0)
+    original = train._CheckpointAndStop.on_epoch_end
+
+    def interrupt_after_first(self, epoch, logs=None):
+        original(self, epoch, logs)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
+    with pytest.raises(UserError) as info:
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "m_p70.keras",
+                  train.FitConfig(epochs=3, batch_size=4), verbose=0, resumable=False)
+    assert str(info.value) == ("stopped after 1 of 3 epochs; this run cannot be resumed (its checkpoint is removed): "
+                               "run the same command again to start it over")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
+
+
 def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
     import tensorflow as tf
     import tf_keras as keras
