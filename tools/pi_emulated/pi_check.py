@@ -5,7 +5,8 @@ the Pi-like venv that has no TensorFlow. Subcommands:
 
     info                      what this Python sees: machine, versions, CPU model, TensorFlow importable?
     frames DIR                write a few synthetic frames (fcnpose_tf.data.synth, else a drawn stick arm)
-    maps MODEL                raw output maps of a .tflite for a directory of frames (or saved inputs)
+    maps MODEL                raw output maps of a .tflite (any shipped format) for a directory of frames
+                              (or saved inputs), through the package's own preprocessing and decoding
     save-inputs NPZ OUT       the preprocessed inputs of a `maps` result, as .npy (to feed the other side)
     compare-maps A B          max abs difference of inputs and output maps of two `maps` results
     compare-keypoints A B     max keypoint distance (px) of two `fcnpose-tf run --out X.jsonl` results
@@ -174,23 +175,48 @@ def captured_stderr_fd():
             sys.stderr.write(box["text"])
 
 
-def preprocess(frame_paths: list[Path], size: int):
+def _runtime_model(model: Path, require_litert: bool):
+    """The package's own KeypointModel for `model`: its preprocessing into the model's input type and its
+    decoding are the ones `fcnpose-tf run` uses, for every format (float32 or float16 input, the int8
+    file's uint8 pixel bytes, int8 maps). It loads a second interpreter: the helper invokes its own,
+    whose delegate line it captures."""
+    try:
+        from fcnpose_tf.errors import UserError
+        from fcnpose_tf.runtime.estimator import KeypointModel
+    except ImportError as exc:
+        raise CheckError(f"fcnpose_tf is not importable here ({exc}); install the package first") from exc
+    try:
+        return KeypointModel(model, 1, backend="ai_edge_litert" if require_litert else "auto")
+    except UserError as exc:
+        raise CheckError(str(exc)) from exc
+
+
+def preprocess(runtime, frame_paths: list[Path]):
+    """(the model's inputs in its own dtype, their real values as float32, the frames' H x W)."""
     import cv2
     import numpy as np
 
-    try:
-        from fcnpose_tf.preprocess import preprocess_frame
-    except ImportError as exc:
-        raise CheckError(f"fcnpose_tf is not importable here ({exc}); install the package first") from exc
-    batch = np.empty((len(frame_paths), size, size, 3), np.float32)
+    spec = runtime.io.input
+    batch = np.empty((len(frame_paths), *spec.shape[1:]), spec.dtype)
     shapes = []
     for i, path in enumerate(frame_paths):
         frame = cv2.imread(str(path), cv2.IMREAD_COLOR)
         if frame is None:
             raise CheckError(f"could not read image {path}")
-        preprocess_frame(frame, size, out=batch[i])
+        runtime.preprocess_into(frame, batch[i])
         shapes.append(frame.shape[:2])
-    return batch, np.array(shapes, np.int64)
+    return batch, real_values(batch, spec), np.array(shapes, np.int64)
+
+
+def real_values(values, spec):
+    """What a tensor's values stand for: (q - zero_point) * scale for a quantized one, else as float32."""
+    import numpy as np
+
+    from fcnpose_tf.postprocess import dequantize
+
+    if spec.quantized:
+        return dequantize(values, spec.scale, spec.zero_point)
+    return np.asarray(values, np.float32)
 
 
 def cmd_maps(args: argparse.Namespace) -> int:
@@ -202,30 +228,32 @@ def cmd_maps(args: argparse.Namespace) -> int:
     with captured_stderr_fd() as log:
         interpreter, backend = load_interpreter(model, args.threads, args.require_litert)
         interpreter.allocate_tensors()
+        # After the helper's own interpreter: LiteRT prints its delegate line once per process.
+        runtime = _runtime_model(model, args.require_litert)
+        spec_in, spec_out = runtime.io.input, runtime.io.output
         inp = interpreter.get_input_details()[0]
         out = interpreter.get_output_details()[0]
-        shape = tuple(int(v) for v in inp["shape"])
-        if len(shape) != 4 or shape[0] != 1 or shape[1] != shape[2] or shape[3] != 3:
-            raise CheckError(f"{model}: input shape {shape} is not 1 x S x S x 3 (not an FCN-Pose export?)")
-        if np.dtype(inp["dtype"]) != np.float32:
-            raise CheckError(f"{model}: input type {np.dtype(inp['dtype'])}, expected float32")
-        size = shape[1]
         frame_paths = list_frames(Path(args.frames))
-        own_inputs, frame_shapes = preprocess(frame_paths, size)
+        own_inputs, own_real, frame_shapes = preprocess(runtime, frame_paths)
         inputs = own_inputs if args.inputs is None else np.load(args.inputs)
-        if inputs.shape[1:] != (size, size, 3):
-            raise CheckError(f"{args.inputs}: inputs of shape {inputs.shape}, model wants N x {size} x {size} x 3")
-        maps = []
+        if inputs.shape[1:] != own_inputs.shape[1:] or inputs.dtype != own_inputs.dtype:
+            raise CheckError(f"{args.inputs}: inputs of shape {inputs.shape} {inputs.dtype}, the model wants "
+                             f"N x {' x '.join(map(str, own_inputs.shape[1:]))} {own_inputs.dtype}")
+        raw = []
         for x in inputs:
             interpreter.set_tensor(inp["index"], x[None])
             interpreter.invoke()
-            maps.append(interpreter.get_tensor(out["index"])[0].copy())
+            raw.append(interpreter.get_tensor(out["index"])[0].copy())
     xnnpack = "XNNPACK" in log["text"]
-    maps = np.stack(maps)
+    raw = np.stack(raw)
+    maps = real_values(raw, spec_out)
     tmp = Path(args.out).with_suffix(".partial.npz")
-    np.savez(tmp, inputs=own_inputs, maps=maps, frame_shapes=frame_shapes, backend=backend, xnnpack=xnnpack)
+    np.savez(tmp, inputs=own_inputs, inputs_real=own_real, maps=maps, raw_maps=raw, frame_shapes=frame_shapes,
+             backend=backend, xnnpack=xnnpack, output_scale=spec_out.scale, output_zero_point=spec_out.zero_point,
+             output_quantized=spec_out.quantized)
     os.replace(tmp, args.out)
-    print(f"  {backend}: {len(maps)} frames at {size}x{size} -> maps {maps.shape[1:]} "
+    size = spec_in.shape[1]
+    print(f"  {backend}: {len(maps)} frames at {size}x{size} ({runtime.io.describe()}) -> maps {maps.shape[1:]} "
           f"(min {maps.min():.4f}, max {maps.max():.4f}); XNNPACK delegate: {'yes' if xnnpack else 'NO'}")
     if args.require_xnnpack and not xnnpack:
         raise CheckError("LiteRT did not report its XNNPACK delegate (on a Pi it does): check the emulated "
@@ -239,11 +267,17 @@ def cmd_compare_maps(args: argparse.Namespace) -> int:
     a, b = np.load(args.a), np.load(args.b)
     if a["maps"].shape != b["maps"].shape:
         raise CheckError(f"map shapes differ: {a['maps'].shape} vs {b['maps'].shape}")
-    input_diff = float(np.abs(a["inputs"] - b["inputs"]).max())
-    map_diff = float(np.abs(a["maps"] - b["maps"]).max())
+    input_diff = float(np.abs(a["inputs_real"].astype(np.float64) - b["inputs_real"]).max())
+    map_diff = float(np.abs(a["maps"].astype(np.float64) - b["maps"]).max())
     spread = float(a["maps"].std())
-    print(f"  preprocessing (OpenCV resize + scale) max abs diff: {input_diff:.3g} (inputs in [0, 1])")
-    print(f"  raw output maps max abs diff: {map_diff:.3g} (tolerance {args.tol:g}; "
+    print(f"  preprocessing (OpenCV resize, into the model's {a['inputs'].dtype} input) max abs diff: "
+          f"{input_diff:.3g} (real values in [0, 1])")
+    levels = ""
+    if bool(a["output_quantized"]):
+        step = float(a["output_scale"])
+        level_diff = int(np.abs(a["raw_maps"].astype(np.int64) - b["raw_maps"]).max())
+        levels = f"; {level_diff} quantization level{'s' if level_diff != 1 else ''} of {step:.3g}"
+    print(f"  raw output maps max abs diff: {map_diff:.3g}{levels} (tolerance {args.tol:g}; "
           f"maps' own std {spread:.3g})")
     kp_diff = _keypoints_from_maps_diff(a, b)
     if kp_diff is not None:
