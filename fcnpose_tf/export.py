@@ -2,7 +2,7 @@
 
 A tf_keras model is converted with a static 1 x H x W x C input (through a concrete function
 with a fixed input signature, with the model passed as the trackable object so the converter
-sees its variables), built-in ops only, in one of four formats:
+sees its variables), built-in ops only, in one of five formats:
 
     float32        no optimisation (the reference, largest file)
     float16        weights stored as float16, dequantized to float32 when the model is loaded
@@ -16,6 +16,10 @@ sees its variables), built-in ops only, in one of four formats:
                    are) and an int8 output (the sigmoid's fixed scale 1/256, zero point -128), so
                    the runtime neither converts its input to float nor dequantizes its maps.
                    The fastest file on CPUs without fp16 arithmetic (a Raspberry Pi 3/4).
+    float16-native float16 weights plus the converter's reduced-precision metadata (float16
+                   accumulation allowed): XNNPACK then computes it in float16 on a CPU with
+                   float16 arithmetic (ARMv8.2-A: a Raspberry Pi 5's Cortex-A76) and in float32
+                   elsewhere (a Pi 3/4, x86), where it is the float16 file. Gated like float16.
 
 Before conversion, `fcnpose_tf.inference_graph.fold_upsampling` may rewrite the network exactly
 (each nearest UpSampling2D + Conv2D pair computed at low resolution, then DEPTH_TO_SPACE), which
@@ -64,6 +68,8 @@ class ExportOptions:
 DEFAULT_QUANTIZE = settings.QUANTIZE.default[0]
 """The format of one file when none is named: the first of the default formats (float16, the paper's)."""
 FULL_INTEGER = "int8"
+FLOAT16_NATIVE = "float16-native"
+"""float16 with reduced-precision metadata: computed in float16 where the CPU can (a Pi 5)."""
 """The full-integer mode: calibrated on real frames, integer input and output."""
 INT8_INPUT_SCALE = 1.0 / 255.0
 """Scale of the int8 file's uint8 input (zero point 0): one step per grey level of the resized frame."""
@@ -81,14 +87,16 @@ KEYPOINT_PX = 1.0
 # Full-integer int8 quantizes every activation to 256 levels, so maps move further; its gate is
 # stated in keypoint terms (KEYPOINT_SHARE_BY_MODE, MIN_FRAMES_BY_MODE), not in map values: map_atol 1
 # accepts any map that is a probability (the sigmoid output stays in [0, 1]).
-MAP_ATOL_BY_MODE = {"float32": 1e-2, "float16": 1e-2, "int8-weights": 0.2, "int8": 1.0}
-KEYPOINT_PX_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 2.0, "int8": 2.0}
+# float16-native is gated as float16: where the gate runs (x86, a Pi 4) it computes in float32 like the float16
+# file; on a Pi 5 its float16 arithmetic is checked by tools/pi_emulated_check.sh --cpu cortex-a76.
+MAP_ATOL_BY_MODE = {"float32": 1e-2, "float16": 1e-2, "int8-weights": 0.2, "int8": 1.0, "float16-native": 1e-2}
+KEYPOINT_PX_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 2.0, "int8": 2.0, "float16-native": 1.0}
 # Share of the compared keypoints that must lie within keypoint_px; a keypoint found by one model
 # and not by the other (lost or gained) always fails. For int8: at least 95 % within 2 map px.
-KEYPOINT_SHARE_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 1.0, "int8": 0.95}
+KEYPOINT_SHARE_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 1.0, "int8": 0.95, "float16-native": 1.0}
 # Real frames the keypoint gate needs: int8 is refused on fewer than 16 (a share of 95 % means
 # little on two frames); the other modes compare maps value by value and accept any number.
-MIN_FRAMES_BY_MODE = {"float32": 1, "float16": 1, "int8-weights": 1, "int8": 16}
+MIN_FRAMES_BY_MODE = {"float32": 1, "float16": 1, "int8-weights": 1, "int8": 16, "float16-native": 1}
 DEFAULT_SAMPLES = 2
 # Default of export_tflite / to_tflite `fold_upsampling`. Off: folding makes the 70% model's forward
 # pass ~1.35x faster here but stores f*f phase kernels, so its float16 file grows from 40,304 to
@@ -100,7 +108,7 @@ FOLD_UPSAMPLING = False
 # folded, the int8 file's forward pass is 1.37x faster (2.85 vs 3.90 ms; its frame 1.28x), for 65 KB
 # instead of 27 KB; the float modes keep the plain network (FOLD_UPSAMPLING, above).
 FOLD_UPSAMPLING_BY_MODE = {"float32": FOLD_UPSAMPLING, "float16": FOLD_UPSAMPLING,
-                           "int8-weights": FOLD_UPSAMPLING, "int8": True}
+                           "int8-weights": FOLD_UPSAMPLING, "int8": True, "float16-native": FOLD_UPSAMPLING}
 # Map values within this much of the threshold are "on the threshold": which side they fall on is
 # arbitrary for maps only this accurate, so keypoints resting on such pixels are not compared.
 THRESHOLD_MARGIN = 1e-2
@@ -247,9 +255,11 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
     # (without it, they can be garbage-collected away and the file holds no weights).
     converter = tf.lite.TFLiteConverter.from_concrete_functions([forward.get_concrete_function()], model)
     converter.target_spec.supported_ops = [tf.lite.OpsSet.TFLITE_BUILTINS]
-    if quantize == "float16":
+    if quantize in ("float16", FLOAT16_NATIVE):
         converter.optimizations = [tf.lite.Optimize.DEFAULT]
         converter.target_spec.supported_types = [tf.float16]
+        if quantize == FLOAT16_NATIVE:  # writes the `reduced_precision_support` metadata XNNPACK reads
+            converter.target_spec._experimental_supported_accumulation_type = tf.float16
     elif quantize == "int8-weights":
         converter.optimizations = [tf.lite.Optimize.DEFAULT]  # no representative data: dynamic range
     elif quantize == FULL_INTEGER:
@@ -723,7 +733,9 @@ def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:
         holding data: the stored weights); ``constant_bytes`` (bytes of stored weights);
         ``convolutions``: for every CONV_2D / DEPTHWISE_CONV_2D / FULLY_CONNECTED / TRANSPOSE_CONV, its
         filter shape, ``filter_dtype`` (what the op consumes), ``stored_dtype`` (what the file
-        stores) and ``dequantized`` (the filter comes from a DEQUANTIZE of a stored constant).
+        stores) and ``dequantized`` (the filter comes from a DEQUANTIZE of a stored constant);
+        ``metadata``: the file's metadata entries by name (short text values as text, e.g. the
+        float16-native file's ``reduced_precision_support``; others as their size).
     Raises:
         UserError: if the file is missing or is not a TFLite flatbuffer.
     Example:
@@ -822,7 +834,18 @@ def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:
         "constant_dtypes": dict(sorted(Counter(type_names.get(t.type, str(t.type)) for t in constant).items())),
         "constant_bytes": int(sum(buffer_bytes(t) for t in constant)),
         "convolutions": convolutions,
+        "metadata": {text(m.name): _metadata_value(tree, m.buffer) for m in (tree.metadata or [])},
     }
+
+
+def _metadata_value(tree, index: int) -> str:
+    """A metadata entry's buffer as text when it is short printable text (``reduced_precision_support``:
+    ``fp16inferencefp16accumulation``), else its size."""
+    buffer = tree.buffers[index] if tree.buffers and 0 <= index < len(tree.buffers) else None
+    data = bytes(bytearray(buffer.data)) if buffer is not None and buffer.data is not None else b""
+    if data and len(data) <= 256 and all(32 <= b < 127 for b in data.rstrip(b"\0")):
+        return data.rstrip(b"\0").decode("ascii")
+    return f"{len(data)} bytes"
 
 
 def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool) -> int:

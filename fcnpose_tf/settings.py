@@ -581,10 +581,12 @@ DISTILL = Setting(
     "alone, as the paper does", label="distillation weight", check=lambda v: 0 <= v <= 1,
     requirement="a number in [0, 1]", metavar="W")
 """0 keeps the paper's retraining loss exactly; docs/compression.md measures other weights."""
-QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8")
+QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8", "float16-native")
 """TFLite formats (fcnpose_tf.export): float32, float16 weights (the paper's), dynamic-range int8 weights,
-and full-integer int8 (int8 weights and activations, uint8 pixel input; the fastest on a Pi 3/4)."""
-QUANTIZE_FILE_TAGS = {"float32": "fp32", "float16": "fp16", "int8-weights": "int8w", "int8": "int8"}
+full-integer int8 (int8 weights and activations, uint8 pixel input; the fastest on a Pi 3/4), and float16
+with the converter's reduced-precision metadata (computed in float16 on CPUs with float16 arithmetic, a Pi 5)."""
+QUANTIZE_FILE_TAGS = {"float32": "fp32", "float16": "fp16", "int8-weights": "int8w", "int8": "int8",
+                      "float16-native": "fp16native"}
 """A TFLite file name's suffix per format: NAME_p70_fp16.tflite, NAME_p70_int8.tflite."""
 
 
@@ -604,7 +606,8 @@ def quantize_modes(text: str) -> tuple[str, ...]:
 QUANTIZE = Setting(
     "quantize", tuple, ("float16", "int8"),
     "TFLite files to write, one per format, comma-separated: float16 (the paper's), int8 (full integer, calibrated "
-    "on training frames; the fastest on a Raspberry Pi 3/4), float32, int8-weights (dynamic range)",
+    "on training frames; the fastest on a Raspberry Pi 3/4), float32, int8-weights (dynamic range), "
+    "float16-native (float16 with reduced-precision metadata: computed in float16 on a Raspberry Pi 5)",
     label="quantize", metavar="MODE[,MODE]", parse=quantize_modes, paper=("float16",),
     check=lambda v: isinstance(v, (tuple, list)) and len(v) > 0 and all(m in QUANTIZE_MODES for m in v)
     and len(set(v)) == len(v),

@@ -3,7 +3,8 @@
 One file per --quantize format, next to the model unless --out-dir says otherwise: NAME_fp16.tflite
 (the paper's float16), NAME_int8.tflite (full integer: int8 weights and activations calibrated on
 --calibration-frames training frames, a uint8 pixel input; the fastest file on a Raspberry Pi 3/4),
-NAME_fp32.tflite, NAME_int8w.tflite. Frames come from --data (default: the synthetic frames the
+NAME_fp32.tflite, NAME_int8w.tflite, NAME_fp16native.tflite (float16 with reduced-precision metadata:
+computed in float16 on a Raspberry Pi 5, docs/raspberry-pi.md). Frames come from --data (default: the synthetic frames the
 bundled models were trained on): int8 is calibrated on the training split's frames and every file
 is verified on the validation split's first 16 frames, never calibrated on them.
 
