@@ -22,14 +22,14 @@ def test_summary_prints_paper_figures(cli):
 
 
 @pytest.mark.slow
-def test_summary_of_a_saved_model_reports_size(cli, tmp_path):
+def test_summary_of_a_saved_model_reports_size(cli_here, tmp_path):
     from fcnpose_tf.model import build_fcn_pose
 
     path = tmp_path / "m.keras"
     build_fcn_pose(input_size=64).save(path)
-    proc = cli("summary", path)
-    assert proc.returncode == 0, proc.stderr
-    assert "(64, 64, 9)" in proc.stdout and "File size:" in proc.stdout
+    status, out, err = cli_here("summary", path)
+    assert status == 0, err
+    assert "(64, 64, 9)" in out and "File size:" in out
 
 
 @pytest.mark.slow
@@ -39,32 +39,33 @@ def test_summary_of_a_saved_model_reports_size(cli, tmp_path):
     (["summary", "--input-size", "abc"], "invalid int value"),
     (["no-such-command"], "invalid choice"),
 ])
-def test_user_errors_are_one_line_exit_2(cli, args, message):
-    proc = cli(*args)
-    assert proc.returncode == 2
-    assert message in proc.stderr
-    assert "Traceback" not in proc.stderr
-    assert [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+def test_user_errors_are_one_line_exit_2(cli_here, args, message, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # missing.keras is looked up here
+    status, _, err = cli_here(*args)  # in-process: a defect would raise here instead of printing a traceback
+    assert status == 2
+    assert message in err
+    assert "Traceback" not in err
+    assert [line for line in err.splitlines() if line.startswith("error:")]
 
 
 @pytest.mark.slow
-def test_corrupt_model_file(cli, tmp_path):
+def test_corrupt_model_file(cli_here, tmp_path):
     bad = tmp_path / "broken.keras"
     bad.write_bytes(b"not a zip")
-    proc = cli("summary", bad)
-    assert proc.returncode == 2 and "broken.keras: cannot be read" in proc.stderr
-    assert "Traceback" not in proc.stderr
+    status, _, err = cli_here("summary", bad)
+    assert status == 2 and "broken.keras: cannot be read" in err
+    assert "Traceback" not in err
 
 
-def test_every_command_help_shows_an_example(cli):
+def test_every_command_help_shows_an_example(cli_here):
     from fcnpose_tf.commands import COMMAND_MODULES
     import importlib
 
     for name in COMMAND_MODULES:
         module = importlib.import_module(f"fcnpose_tf.commands.{name}")
-        proc = cli(module.NAME, "--help")
-        assert proc.returncode == 0
-        assert "examples:" in proc.stdout and f"fcnpose-tf {module.NAME}" in proc.stdout
+        status, out, _ = cli_here(module.NAME, "--help")
+        assert status == 0
+        assert "examples:" in out and f"fcnpose-tf {module.NAME}" in out
 
 
 def _dests(parser):
