@@ -125,7 +125,7 @@ def test_online_training_data_follows_seed_and_epoch_and_keeps_keypoints_on_thei
     assert 0.0 <= images.min() and images.max() <= 1.0 and set(np.unique(maps)) <= {0.0, 1.0}
 
 
-def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli):
+def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli, cli_here):
     import json
 
     from test_train_evaluate import make_via_folder
@@ -148,11 +148,12 @@ def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli):
     assert record["augment"] == "online" and record["augment_copies"] is None
     # the cosine sets every epoch's rate itself: an unset --lr-patience resolves to 0 instead of being refused
     assert (record["config"]["lr_schedule"], record["config"]["lr_patience"]) == ("cosine", 0)
-    proc = cli("train", "--data", data, "--out", tmp_path / "q.keras", "--augment", "fancy")
-    assert proc.returncode == 2 and "invalid choice: 'fancy'" in proc.stderr
+    status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "q.keras", "--augment", "fancy")
+    assert status == 2 and "invalid choice: 'fancy'" in err
 
 
-def test_default_init_is_the_bundled_generalist_and_bundled_inits_are_refused_for_another_schema(tmp_path, cli):
+def test_default_init_is_the_bundled_generalist_and_bundled_inits_are_refused_for_another_schema(tmp_path, cli,
+                                                                                                   cli_here):
     import cv2
 
     from fcnpose_tf.data.via import ViaFrame, write_via_project
@@ -166,14 +167,14 @@ def test_default_init_is_the_bundled_generalist_and_bundled_inits_are_refused_fo
         cv2.imwrite(str(tmp_path / "d" / "images" / f"f{i}.png"), np.full((48, 64, 3), 60, np.uint8))
         frames.append(ViaFrame(f"f{i}.png", 64, 48, np.c_[rng.uniform(5, 58, 4), rng.uniform(5, 42, 4)]))
     write_via_project(tmp_path / "d" / "labels.json", frames, arm)
-    proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
-               "--input-size", "32")
-    assert proc.returncode == 2 and proc.stderr.strip().splitlines()[-1].startswith("error: ")
-    assert "fcnpose_ur5_generalist.keras: trained for base, shoulder" in proc.stderr
-    assert "pass --init none to train from scratch" in proc.stderr and not (tmp_path / "m.keras").exists()
-    proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
-               "--input-size", "32", "--init", "workcell")
-    assert proc.returncode == 2 and "fcnpose_ur5.keras: trained for base, shoulder" in proc.stderr
+    status, _, err = cli_here("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
+                              "--input-size", "32")
+    assert status == 2 and err.strip().splitlines()[-1].startswith("error: ")
+    assert "fcnpose_ur5_generalist.keras: trained for base, shoulder" in err
+    assert "pass --init none to train from scratch" in err and not (tmp_path / "m.keras").exists()
+    status, _, err = cli_here("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
+                              "--input-size", "32", "--init", "workcell")
+    assert status == 2 and "fcnpose_ur5.keras: trained for base, shoulder" in err
     proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
                "--input-size", "32", "--init", "none", "--quiet")
     assert proc.returncode == 0, proc.stderr
