@@ -91,19 +91,19 @@ def test_train_measures_the_start_and_every_fold_on_the_fixed_test_set(tmp_path,
 
 
 @pytest.mark.slow
-def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_training(tmp_path, cli):
+def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_training(tmp_path, cli_here):
     from fcnpose_tf.data.via import ViaFrame, write_via_project
     from fcnpose_tf.keypoints import KeypointSchema
 
     data = make_via_folder(tmp_path / "frames", n=6, size=(64, 64))
     out = tmp_path / "m.keras"
-    proc = cli("train", "--data", data, "--out", out, "--test-data", data / "labels.json", *TRAIN)
-    assert proc.returncode == 2 and "6 of its 6 frames are also frames of --data" in proc.stderr
-    assert "never trained on" in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    status, _, err = cli_here("train", "--data", data, "--out", out, "--test-data", data / "labels.json", *TRAIN)
+    assert status == 2 and "6 of its 6 frames are also frames of --data" in err
+    assert "never trained on" in err and len(err.strip().splitlines()) == 1
     other = KeypointSchema.chain("arm3", ("base", "elbow", "tip"))
     write_via_project(tmp_path / "frames" / "images" / "arm3.json",
                       [ViaFrame("cam_00.jpg", 64, 64, np.full((3, 2), 20.0))], other)
-    proc = cli("train", "--data", data, "--out", out, "--test-data", tmp_path / "frames" / "images" / "arm3.json",
-               "--min-visible", "1", *TRAIN)
-    assert proc.returncode == 2 and "keypoint schema 'arm3'" in proc.stderr
+    status, _, err = cli_here("train", "--data", data, "--out", out, "--test-data",
+                              tmp_path / "frames" / "images" / "arm3.json", "--min-visible", "1", *TRAIN)
+    assert status == 2 and "keypoint schema 'arm3'" in err
     assert not out.exists() and not (tmp_path / "m.ckpt").exists()
