@@ -16,7 +16,7 @@ from typing import Sequence
 
 from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
-from fcnpose_tf import fileio, settings
+from fcnpose_tf import fileio, progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.tfsetup import import_tensorflow_quietly
 
@@ -92,6 +92,7 @@ def _end(outputs: fileio.CommandOutputs, message: str | None, status: int) -> in
     print one line naming what it completed, return the exit status (a stop signal's, if one came)."""
     signum = fileio.stop_signal()
     with fileio.stop_signals_ignored():
+        progress.current().end_line()  # a bar being drawn is closed: the line below starts a line of its own
         outputs.clean_up()
         if signum is not None:
             reason, status = fileio.STOP_SIGNALS[signum]
@@ -120,6 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     private_temp = args._private_temp(args) if callable(args._private_temp) else args._private_temp
+    progress.use(progress.Reporter(quiet=bool(getattr(args, "quiet", False))))  # --quiet: no bars (logs)
     with fileio.command_outputs() as outputs, fileio.stop_signals_handled(), \
             (fileio.private_temporary_folder() if private_temp else contextlib.nullcontext()):
         try:

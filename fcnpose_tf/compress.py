@@ -28,9 +28,10 @@ from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
 import numpy as np
 
-from fcnpose_tf import settings
+from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
+from fcnpose_tf.progress import Reporter
 from fcnpose_tf.fileio import check_writable, write_json
 from fcnpose_tf.records import file_sha256, training_record
 
@@ -333,8 +334,7 @@ class _Run:
     eval_dataset: Any
     eval_indices: Sequence[int]
     force: bool
-    verbose: int
-    log: Log
+    reporter: Reporter
     recipe: str
     fit_data: Any = None
     """The retraining's training data (`data.dataset.fold_data`), kept for quantization-aware training."""
@@ -346,6 +346,10 @@ class _Run:
     def measure(self, predictor: Any, label: str, timing: bool = True) -> dict:
         """Metrics (and timing) of a predictor on the run's frames."""
         return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.log, timing=timing)
+
+    def log(self, line: str) -> None:
+        """One progress line of the run (`reporter.say`)."""
+        self.reporter.say(line)
 
     def keras_predictor(self, model: keras.Model, path: Path | None = None) -> KerasKeypointModel:
         """`model` as a predictor with the run's threads (`path`: its file, for the report)."""
@@ -418,7 +422,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     data_sha256 = file_sha256(run.train_dataset.via_path)
     fold = retrain_fold(run)
     train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
-                                     options.augment, progress=run.verbose == 1)
+                                     options.augment, progress=run.reporter)
     run.fit_data = train_data
     entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
                                                 "train_samples": len(train_data), "val_frames": len(val_data)}}
@@ -436,7 +440,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
 
     def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
         result = fit(model, sequence, val_data.arrays(),
-                     keras_path, options.fit_config(), force=run.force, verbose=2 if run.verbose else 0,
+                     keras_path, options.fit_config(), force=run.force, reporter=run.reporter.lines(),
                      metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False)
         entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
         return result
@@ -501,7 +505,7 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     options = run.options
     if run.fit_data is None:  # not retrained in this run (--retrain-epochs 0): the same split's frames
         run.fit_data, _ = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
-                                    options.augment, progress=run.verbose == 1)
+                                    options.augment, progress=run.reporter)
     samples, calibration = _export_frames(run, "int8", fold)
 
     def convert(qat_model: keras.Model) -> Any:
@@ -511,7 +515,7 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     sequence = run.fit_data.sequence(options.batch_size, seed=options.seed)
     result = train_until_gate(retrained, sequence, calibration, convert, epochs=options.qat_epochs,
                               learning_rate=options.qat_learning_rate, seed=options.seed,
-                              verbose=2 if run.verbose else 0, log=run.log)
+                              verbose=run.reporter.lines().keras_verbose, log=run.log)
     if result.export is not None:
         write_bytes(run.paths[tflite_key("int8")], result.export.data, run.force)
     return result
@@ -538,7 +542,7 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any],
 
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
                    out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
-                   eval_description: str = "", verbose: int = 1, log: Log = print) -> dict[str, Any]:
+                   eval_description: str = "", reporter: Reporter | None = None) -> dict[str, Any]:
     """Prune, retrain, export and measure one model at one rate; write the files; return the report.
 
     Args:
@@ -550,9 +554,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         options: rate, method, strategy, quantize, calibration frames, retraining settings, threads (those left
             None chosen by `CompressOptions.resolved` for `base_path`; the report's "options" holds the values used).
         force: replace existing output files.
-        verbose: 0 silent (no progress lines either); 1 progress bars while preparing data and one line
-            per epoch; 2 one line per epoch without progress bars (logs: `sweep --quiet`).
-        log: where the progress lines go.
+        reporter: where the step lines and progress go (`fcnpose_tf.progress`; default: the current one): data
+            preparation's progress, then the retraining one line per epoch; nothing when silent.
     Returns:
         The report dict (also written as NAME_pXX_report.json). Its "quantized" entry is the first
         TFLite file written (the paper's float16 by default; None if every format was refused),
@@ -571,7 +574,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     options = options.resolved(base_path)
     options.validate()
     start = time.perf_counter()
-    say = log if verbose else (lambda line: None)
+    reporter = progress.resolve(reporter)
+    say = reporter.say
     names = output_names(base_path.stem, options)
     paths = {k: Path(out_dir) / v for k, v in names.items() if k != "stem"}
     base = load_model(base_path)
@@ -582,7 +586,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     floor = prune_widths(base, options.rate, options.min_filters)[1] if options.method == "l1" else 0
     check_outputs(base_path, out_dir, options, force)
     run = _Run(base_path, base, pruning_method(options, floor), options, paths, train_dataset, eval_dataset,
-               eval_indices, force, verbose, say, options.recipe(floor))
+               eval_indices, force, reporter, options.recipe(floor))
     steps = 4 + 2 * len(options.quantize)
     say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size})")
     if floor < options.min_filters:

@@ -144,9 +144,9 @@ def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequ
     log = LatencyLog()
     iterator = range(max(len(indices), min_timed_frames))
     if progress:
-        from tqdm import tqdm
+        from fcnpose_tf import progress as reporting
 
-        iterator = tqdm(iterator, desc="evaluating", unit="frame", leave=False)
+        iterator = reporting.current().progress(iterator, "evaluating")
     for step in iterator:
         j = step % len(indices)
         result = predictor.predict(frames[indices[j]])

@@ -96,7 +96,9 @@ def synthetic_dataset(n: int, seed: int, width: int = 640, height: int = 480) ->
     from fcnpose_tf.data.synth import generate
 
     folder.parent.mkdir(parents=True, exist_ok=True)
-    print(f"generating {n} synthetic UR5 frames (seed {seed}) into the cache: {folder}")
+    from fcnpose_tf.progress import current
+
+    current().say(f"generating {n} synthetic UR5 frames (seed {seed}) into the cache: {folder}")
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.", dir=folder.parent))
     try:
         generate(tmp, n=n, seed=seed, width=width, height=height, force=True)

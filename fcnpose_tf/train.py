@@ -27,11 +27,12 @@ from typing import Any, Callable, Sequence
 import numpy as np
 import tf_keras as keras
 
-from fcnpose_tf import settings
+from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
 from fcnpose_tf.model import save_for_inference
+from fcnpose_tf.progress import Reporter
 
 
 @settings.config_class(settings.EPOCHS, ("patience", settings.TRAIN_PATIENCE), settings.BATCH_SIZE,
@@ -358,7 +359,7 @@ def _load_weights(model: keras.Model, path: Path) -> None:
 
 def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np.ndarray, np.ndarray],
         model_path: str | Path, config: FitConfig, *, resume: bool = False, force: bool = False,
-        metadata: dict[str, Any] | None = None, verbose: int = 1,
+        metadata: dict[str, Any] | None = None, reporter: Reporter | None = None, verbose: int | None = None,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
         identity: dict[str, Any] | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
@@ -374,7 +375,9 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         resume: continue an interrupted run from `model_path`'s checkpoint.
         force: replace an existing model file / start over despite a checkpoint.
         metadata: extra facts recorded in NAME_train.json (data, split, input size...).
-        verbose: Keras' fit verbosity (0 silent, 1 progress bar, 2 one line per epoch).
+        reporter: where messages and progress go (`fcnpose_tf.progress`; default: the current one): Keras' progress
+            bar on a terminal, one line per epoch in a log or with --quiet, nothing when silent.
+        verbose: Keras' verbosity instead of a reporter (0 silent, 1 bars, 2 lines; `progress.from_verbose`).
         callbacks: more Keras callbacks, run before the checkpointing one each epoch (tfmot's
             UpdatePruningStep, which must mask the weights before they are kept as the best).
         inference_model: what to save as `model_path` from the trained model (tfmot's
@@ -391,6 +394,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         UserError: output exists without force, nothing to resume, a checkpoint exists
             and neither resume nor force was given, or the checkpoint was started on other data or settings.
     """
+    reporter = progress.resolve(reporter, verbose)
     config = config.resolved(trained_start=start_is_candidate)  # what train_fold has not chosen yet
     config.validate()
     if config.distill and not getattr(train_data, "carries_teacher_maps", False):
@@ -414,7 +418,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             state = json.loads(paths["ckpt_state"].read_text())
             model = keras.models.load_model(paths["ckpt_model"])  # with optimizer state
             if state["epoch"] >= config.epochs or state.get("stopped_early"):
-                print(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
+                reporter.say(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
         else:
             state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
                      "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
@@ -436,7 +440,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                 train_data.epoch = state["epoch"]
             model.fit(train_data, validation_data=val_data, validation_batch_size=config.batch_size,
                       initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[*callbacks, callback],
-                      verbose=verbose)
+                      verbose=reporter.keras_verbose)
     except KeyboardInterrupt:
         if not resumable or not paths["ckpt_state"].is_file():  # nothing to resume: no epoch-0 leftovers either
             remove_tree(paths["ckpt_dir"])
@@ -520,7 +524,7 @@ def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model
 def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: int,
                augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
-               verbose: int = 1, log: Callable[[str], None] = print, test_data: Any = None,
+               reporter: Reporter | None = None, test_data: Any = None,
                test_start: dict[str, Any] | None = None) -> dict[str, Any]:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
@@ -544,8 +548,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         metadata: more facts for NAME_train.json; they override the dataset's (e.g. "data" as given).
         threads: TensorFlow threads of the validation timing (None: all cores).
         label: prefix of the progress lines (default: the model path).
-        verbose: 1 progress bars, 2 one line per epoch (logs), 0 silent training.
-        log: where progress lines go.
+        reporter: where messages and progress go (`fcnpose_tf.progress`; default: the current one): bars on a
+            terminal, lines in a log, one line per epoch with --quiet, nothing when silent.
         test_data: a fixed test set (a loaded dataset of the same schema, never trained on): the trained model
             is measured on all its frames and the result added as "test" (`record_of_test_set`).
         test_start: the starting model's measurement on `test_data` (`record_of_test_set`'s "start"), None for random
@@ -562,6 +566,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 
     model_path = Path(model_path)
     label = label or str(model_path)
+    reporter = progress.resolve(reporter)
+    log = reporter.say
     if config.positive_weight is None:
         weight = settings.train_positive_weight(trained_start=init is not None, augment=augment)
         log(f"Keypoint weight: {weight:g} (" + ("fine-tuning a trained model on the paper's copies"
@@ -581,7 +587,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     folds = dataset.splits.k
     split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {folds}"
     train_data, val_data = fold_data(dataset, fold, input_size, augment_copies, config.seed, augment,
-                                     progress=verbose == 1)
+                                     progress=reporter)
     log(f"{label}: {'resuming' if resume else 'training'} on {split_name}: {train_data.describe()}, "
         f"{len(val_data)} validation frames, {input_size}x{input_size}, up to {config.epochs} epochs")
     facts = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path), "num_frames": len(dataset),
@@ -591,7 +597,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
              "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
-                 verbose=verbose, identity=identity, start_is_candidate=init is not None)
+                 reporter=reporter, identity=identity, start_is_candidate=init is not None)
     log(f"{label}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
         f"{result.epochs_run}{' (the starting model: no epoch improved on it)' if init is not None and result.best_epoch == 0 else ''}"
         f"{' (early stop)' if result.stopped_early else ''}"

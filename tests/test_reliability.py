@@ -8,6 +8,7 @@ import signal
 import pytest
 
 from fcnpose_tf.cli import build_parser, main
+from fcnpose_tf.progress import Reporter
 
 
 @pytest.mark.parametrize("command", [
@@ -82,7 +83,7 @@ def _interrupted_run(tmp_path, monkeypatch):
     monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
     with pytest.raises(UserError, match="interrupted after 1 complete epochs"):
         train.train_fold(load_dataset(data), None, out, train.FitConfig(epochs=3), input_size=32,
-                         augment_copies=0, verbose=0, log=lambda line: None)
+                         augment_copies=0, reporter=Reporter(silent=True))
     monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", original)
     return data, out
 

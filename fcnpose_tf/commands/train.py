@@ -60,7 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
-    parser.add_argument("--quiet", action="store_true", help="one line per epoch instead of a progress bar (for logs)")
+    parser.add_argument("--quiet", action="store_true",
+                        help="one line per epoch and no progress bars, also on a terminal (for logs; without a "
+                             "terminal there are no bars either)")
 
 
 def initial_weights(init: str) -> Path | None:
@@ -139,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         record = train_fold(dataset, fold, fold_model_path(args.out, fold), config, input_size=args.input_size,
                             augment_copies=args.augment_copies, augment=args.augment, init=init, resume=args.resume,
                             force=args.force, metadata=metadata,
-                            threads=args.threads, verbose=2 if args.quiet else 1, test_data=test,
+                            threads=args.threads, test_data=test,
                             test_start=test_start)
         print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         print(format_report(record["validation"]["metrics"]))

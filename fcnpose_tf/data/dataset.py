@@ -21,7 +21,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
@@ -274,14 +274,13 @@ def _to_float(images: np.ndarray) -> np.ndarray:
     return out
 
 
-def _progress(items: Sequence, enabled: bool, desc: str):
-    if not enabled:
+def _progress(items: Sequence, progress: Any, desc: str):
+    """`items`, with their progress reported when `progress` is a `progress.Reporter` (True: the current one)."""
+    if progress is False or progress is None:
         return items
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover - tqdm comes with the train extra
-        return items
-    return tqdm(items, desc=desc, unit="frame")
+    from fcnpose_tf import progress as reporting
+
+    return reporting.resolve(None if progress is True else progress).progress(items, desc)
 
 
 @functools.lru_cache(maxsize=None)

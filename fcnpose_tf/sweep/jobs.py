@@ -372,6 +372,14 @@ def _log(line: str) -> None:
     print(line, flush=True)  # a worker's lines reach the driver's log as they happen
 
 
+def _reporter(config: SweepConfig) -> Any:
+    """A job's reporter: `config.verbose` as Keras counts it (`progress.from_verbose`; a worker process gets it
+    pickled with the config)."""
+    from fcnpose_tf.progress import from_verbose
+
+    return from_verbose(config.verbose)
+
+
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     from fcnpose_tf.compress import file_sizes, model_facts
     from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
@@ -394,8 +402,8 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         trained = train_fold(dataset, job.fold, path, config.fit_config(), input_size=config.input_size,
                              augment_copies=config.augment_copies, resume=resume, force=config.force or not resume,
                              metadata={"data": config.data, "trained_by": "fcnpose-tf sweep"},
-                             threads=config.threads, label=f"{job.label} ({path.name})", verbose=config.verbose,
-                             log=_log)
+                             threads=config.threads, label=f"{job.label} ({path.name})",
+                             reporter=_reporter(config))
         training = {"reused": False, "resumed": resume, "epochs_run": trained["epochs_run"],
                     "best_epoch": trained["best_epoch"], "best_val_loss": trained["best_val_loss"],
                     "seconds": trained["train_seconds"], "stopped_early": trained["stopped_early"]}
@@ -445,7 +453,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     base_sha256 = file_sha256(base)
     _log(f"{job.label}: compressing {base.name}")
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
-                            config.compress_options(job), force=True, verbose=config.verbose, log=_log,
+                            config.compress_options(job), force=True, reporter=_reporter(config),
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
     if report["quantized"] is None:  # every format refused by its keypoint gate: the job fails, one line
         reasons = "; ".join(f"{r['quantize']}: {r['reason']}" for r in report["refused"])

@@ -16,6 +16,7 @@ import numpy as np
 from fcnpose_tf.data.synth.frame import render_sample
 from fcnpose_tf.data.synth.looks import DEFAULT_LABELS, DEFAULT_LOOKS, check_labels, look_family
 from fcnpose_tf.data.synth.scene import DEFAULT_SCENE, DEFAULT_TIGHT_FRAMING, SCENES
+from fcnpose_tf import progress as reporting
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
 from fcnpose_tf.system import available_cores
@@ -195,8 +196,6 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
         raise UserError(f"--workers must be at least 1, got {workers}")
     if not 0.0 <= tight_framing <= 1.0:
         raise UserError(f"--tight-framing must be between 0 and 1, got {tight_framing}")
-    from tqdm import tqdm  # a missing package is also found before anything is touched
-
     out_dir = Path(out_dir)  # every option checked
     image_dir = _prepare_output(out_dir, force)
     staging = _staging_folder(out_dir)
@@ -213,8 +212,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     records: list[FrameRecord] = []
     # the frames are parts of the set: a failure before its VIA file is written keeps none of them as an
     # output of its own, whether a worker process or this one wrote it
-    with fileio.parts_of(out_dir), tqdm(total=n, unit="frame", desc="synth", disable=not progress,
-                                        dynamic_ncols=True) as bar:
+    reporter = reporting.current() if progress else reporting.Reporter(silent=True)
+    with fileio.parts_of(out_dir), reporter.counter(n, "synth") as bar:
         if workers == 1:
             for task in tasks:
                 records.append(_render_and_write(task))
