@@ -28,7 +28,7 @@ def setup(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_compress_writes_model_tflite_and_report(setup, cli):
+def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
     root, data, base = setup
     out = root / "out"
     proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "1",
@@ -75,9 +75,9 @@ def test_compress_writes_model_tflite_and_report(setup, cli):
     assert report["pruning"]["importance_frames"] == 16 and report["options"]["distill"] == 0.0
 
     before = {p.name: p.read_bytes() for p in out.iterdir()}
-    again = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "0",
-                "--out-dir", out)
-    assert again.returncode == 2 and "already exists; pass --force" in again.stderr
+    status, _, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "0",
+                              "--out-dir", out)
+    assert status == 2 and "already exists; pass --force" in err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
 
 
@@ -211,7 +211,7 @@ def test_bad_input_leaves_nothing(setup, cli_here, extra, message, tmp_path, mon
 
 
 @pytest.mark.slow
-def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
+def test_unsupported_layer_and_unwritable_output(setup, cli_here, tmp_path):
     import tf_keras as keras
 
     root, data, base = setup
@@ -223,18 +223,19 @@ def test_unsupported_layer_and_unwritable_output(setup, cli, tmp_path):
     odd = tmp_path / "skip.keras"
     keras.Model(inp, outp).save(odd)
     out = tmp_path / "out"
-    proc = cli("compress", "--rate", "0.5", "--model", odd, "--data", data, "--retrain-epochs", "0", "--out-dir", out)
-    assert proc.returncode == 2 and "unsupported layer" in proc.stderr and "Traceback" not in proc.stderr
-    assert "[1/" not in proc.stdout  # refused before measuring or preparing anything
+    status, stdout, err = cli_here("compress", "--rate", "0.5", "--model", odd, "--data", data, "--retrain-epochs", "0",
+                                   "--out-dir", out)  # in-process: a defect would raise here instead of a traceback
+    assert status == 2 and "unsupported layer" in err and "Traceback" not in err
+    assert "[1/" not in stdout  # refused before measuring or preparing anything
     assert not out.exists()
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--out-dir", blocker)
-    assert proc.returncode == 2 and "not a folder" in proc.stderr
+    status, _, err = cli_here("compress", "--rate", "0.5", "--model", base, "--data", data, "--out-dir", blocker)
+    assert status == 2 and "not a folder" in err
 
 
 @pytest.mark.slow
-def test_export_command_writes_verified_files_next_to_the_model(setup, cli, tmp_path):
+def test_export_command_writes_verified_files_next_to_the_model(setup, cli, cli_here, tmp_path):
     """`fcnpose-tf export`: one file per format, the int8 one calibrated on the data's training split."""
     import shutil
 
@@ -250,8 +251,8 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli, tmp_
     assert int8["quantize"] == "int8" and int8["calibration_frames"] == 16 and int8["graph_rewrites"]
     assert int8["parity"]["frames"] == 16 and int8["parity"]["min_keypoint_share"] == 0.95
     assert "arm_int8.tflite" in proc.stdout and "folded" in proc.stdout
-    again = cli("export", model, "--data", data, "--quantize", "int8")
-    assert again.returncode == 2 and "already exists; pass --force" in again.stderr
+    status, _, err = cli_here("export", model, "--data", data, "--quantize", "int8")
+    assert status == 2 and "already exists; pass --force" in err
 
 
 def test_compress_options_refuse_combinations_no_run_can_do():
