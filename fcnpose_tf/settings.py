@@ -85,8 +85,8 @@ class Setting:
         return "--" + self.name.replace("_", "-")
 
     def validate(self, value: Any) -> Any:
-        """Return `value` if it is allowed (None too when the default is None), else raise UserError."""
-        if value is None and self.default is None:
+        """Return `value` if it is allowed (None too when the option's default is None), else raise UserError."""
+        if value is None and self.accepts_none:
             return value
         if self.choices is not None:
             if value not in self.choices:
@@ -94,6 +94,13 @@ class Setting:
         elif self.check is not None and not (_is_type(value, self.type) and self.check(value)):
             raise UserError(f"{self.label} must be {self.requirement}, got {value!r}")
         return value
+
+    @property
+    def accepts_none(self) -> bool:
+        """None is a value (no time budget, no floor) when the default is None here or in the setting this varies:
+        `train`'s 30-minute budget is a variant of a budget that compression leaves unset."""
+        base = self.__dict__.get("_base")
+        return self.default is None or (base is not None and base.accepts_none)
 
     def field(self) -> Any:
         """A dataclass field holding this setting: its recommended default (read when an instance is made) and the
