@@ -44,6 +44,13 @@ def logged_runs(tmp_path_factory):
                                  "--quiet"),
         "evaluate": _logged("evaluate", model, "--data", data, "--threads", 1),
         "summary": _logged("summary", model),
+        "export": _logged("export", model, "--data", data, "--quantize", "float16", "--out-dir", root / "tfl",
+                          "--threads", 1),
+        "run": _logged("run", "workcell-p70-int8", "--source", data / "images", "--out", root / "k.jsonl",
+                       "--threads", 1),
+        "bench": _logged("bench", "workcell-p70-int8", "--frames", 5, "--warmup", 1, "--threads", 1),
+        "predict": _logged("predict", "workcell-p70-fp16", "--source", data / "images", "--via", root / "pre.json",
+                           "--threads", 1),
         "train again": _logged("train", "--data", data, "--out", model, "--epochs", 1, "--input-size", 64),
         "bad rate": _logged("compress", "--rate", 2),
         "bad model": _logged("evaluate", root / "nope.keras", "--data", data),
@@ -51,8 +58,8 @@ def logged_runs(tmp_path_factory):
     return runs
 
 
-@pytest.mark.parametrize("name", ["synth", "inspect", "train", "train --quiet", "evaluate", "summary", "train again",
-                                  "bad rate", "bad model"])
+@pytest.mark.parametrize("name", ["synth", "inspect", "train", "train --quiet", "evaluate", "summary", "export", "run",
+                                  "bench", "predict", "train again", "bad rate", "bad model"])
 def test_a_command_writing_to_a_file_draws_no_bars(logged_runs, name):
     status, text = logged_runs[name]
     _reads_well(text)
