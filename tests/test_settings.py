@@ -182,6 +182,7 @@ def test_compress_options_mean_what_compress_means():
     assert CompressOptions(rate=0.7, method="magnitude").resolved().min_filters == 0
     for options in (recommended, paper):  # retraining has an epoch budget, no time budget: a valid FitConfig
         fit_config = options.fit_config()
+        fit_config.validate()  # what fit() checks first
         assert fit_config.max_minutes is None and fit_config.epochs == options.retrain_epochs
 
 
