@@ -496,6 +496,26 @@ def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> Writ
                       "then continue with --resume")
 
 
+def resolve_augment(via_path: str | Path, images_dir: str | Path | None = None, *, attribute: str = "keypoint",
+                    min_visible: int | None = None, skip_bad: bool = False,
+                    reporter: Reporter | None = None) -> tuple[str, dict[str, Any]]:
+    """What `augment="auto"` (train's default) means for these frames: the paper's copies for one fixed camera,
+    online augmentation when the views vary (`data.views`); the choice and what it was based on, for
+    NAME_train.json ("augment_auto"), said through `reporter`."""
+    from fcnpose_tf.data.via import read_via
+    from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
+
+    frames = read_via(via_path, images_dir, attribute=attribute, min_visible=min_visible, skip_bad=skip_bad).frames
+    variation = view_variation([f.image_path for f in frames])
+    augment = choose_augment(variation)
+    camera = "one fixed camera" if augment == "paper" else "views that vary"
+    progress.resolve(reporter).say(
+        f"Augmentation: auto -> {augment} ({camera}: the frames differ from their median by {variation:.2f} std; a "
+        f"fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION})")
+    return augment, {"view_variation": round(variation, 4), "fixed_camera_max": FIXED_CAMERA_MAX_VARIATION,
+                     "chose": augment}
+
+
 def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model:
     """FCN-Pose at `input_size` holding the weights of the model file `init` (trained at any input size).
 

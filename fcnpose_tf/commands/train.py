@@ -87,8 +87,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.evaluate import format_timing
     from fcnpose_tf.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line, run_identity,
-                                  start_on_test_set, train_fold)
+    from fcnpose_tf.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line, resolve_augment,
+                                  run_identity, start_on_test_set, train_fold)
 
     init = initial_weights(args.init)
     config = FitConfig(**settings.values_from_args(args, FitConfig))  # settings left None: chosen per run (resolved)
@@ -118,7 +118,9 @@ def run(args: argparse.Namespace) -> int:
     metadata: dict = {"init": args.init if args.init in BUNDLED_MODELS else (str(init) if init else None),
                       "preset": args.preset}
     if args.augment == "auto":  # resolved before the checkpoint check: a checkpoint records what ran
-        args.augment, metadata["augment_auto"] = _choose_augment(via_path, images_dir, args)
+        args.augment, metadata["augment_auto"] = resolve_augment(via_path, images_dir, attribute=args.keypoint_attr,
+                                                                 min_visible=args.min_visible,
+                                                                 skip_bad=args.skip_bad)
     resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
@@ -177,23 +179,6 @@ def _load_test_data(args: argparse.Namespace, dataset):
                         f"--data {dataset.via_path} ({', '.join(shared[:3])}{', ...' if len(shared) > 3 else ''}); "
                         "a test set must hold frames never trained on")
     return test
-
-
-def _choose_augment(via_path: Path, images_dir: Path | None, args: argparse.Namespace) -> tuple[str, dict]:
-    """--augment auto: the paper's copies for one fixed camera, online when the views vary (`data.views`);
-    the choice and what it was based on, for NAME_train.json."""
-    from fcnpose_tf.data.via import read_via
-    from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
-
-    frames = read_via(via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible,
-                      skip_bad=args.skip_bad).frames
-    variation = view_variation([f.image_path for f in frames])
-    augment = choose_augment(variation)
-    camera = "one fixed camera" if augment == "paper" else "views that vary"
-    print(f"Augmentation: auto -> {augment} ({camera}: the frames differ from their median by {variation:.2f} "
-          f"std; a fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION})")
-    return augment, {"view_variation": round(variation, 4), "fixed_camera_max": FIXED_CAMERA_MAX_VARIATION,
-                     "chose": augment}
 
 
 def _print_fold_summary(reports: list) -> None:
