@@ -417,7 +417,7 @@ def test_int8_gate_refuses_a_broken_calibration_and_writes_nothing(trained_p70_f
     assert not path.exists()
 
 
-def test_export_with_too_few_frames_for_int8_refuses_before_writing_anything(cli, tmp_path):
+def test_export_with_too_few_frames_for_int8_refuses_before_writing_anything(cli_here, tmp_path):
     """The 16-frame minimum of the int8 gate is known before any conversion: no float16 file first, then a failure."""
     from fcnpose_tf.model import build_fcn_pose
     from test_train_evaluate import make_via_folder
@@ -425,8 +425,8 @@ def test_export_with_too_few_frames_for_int8_refuses_before_writing_anything(cli
     data = make_via_folder(tmp_path / "frames", n=6)
     model = tmp_path / "m.keras"
     build_fcn_pose(input_size=64).save(model)
-    proc = cli("export", model, "--data", data, "--quantize", "float16,int8", "--out-dir", tmp_path / "out",
-               "--threads", "1")
-    assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.strip().splitlines()[-1].startswith("error: int8 export is verified on keypoints of at least 16")
+    status, _, err = cli_here("export", model, "--data", data, "--quantize", "float16,int8", "--out-dir",
+                              tmp_path / "out", "--threads", "1")
+    assert status == 2, err
+    assert err.strip().splitlines()[-1].startswith("error: int8 export is verified on keypoints of at least 16")
     assert not (tmp_path / "out").exists()
