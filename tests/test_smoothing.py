@@ -80,7 +80,7 @@ def test_lag_finds_a_known_delay(delay):
     assert lag_frames(pred, truth) == pytest.approx(delay, abs=0.15)
 
 
-def test_evaluate_sequence_reports_jitter_and_lag(cli, tmp_path):
+def test_evaluate_sequence_reports_jitter_and_lag(cli, cli_here, tmp_path):
     from fcnpose_tf.data.synth import generate_dataset
     from fcnpose_tf.bundled import baseline_model
 
@@ -95,5 +95,5 @@ def test_evaluate_sequence_reports_jitter_and_lag(cli, tmp_path):
     seq = json.loads(out.read_text())["sequence"]
     assert seq["fps"] == 30 and set(seq) >= {"raw", "smoothed", "smoothing", "definitions"}
     assert seq["raw"]["jitter_px"] is None or seq["raw"]["jitter_px"] >= 0
-    bad = cli("evaluate", baseline_model(), "--data", tmp_path / "seq", "--smooth")
-    assert bad.returncode == 2 and "--sequence" in bad.stderr
+    status, _, err = cli_here("evaluate", baseline_model(), "--data", tmp_path / "seq", "--smooth")
+    assert status == 2 and "--sequence" in err
