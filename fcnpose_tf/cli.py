@@ -121,8 +121,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     private_temp = args._private_temp(args) if callable(args._private_temp) else args._private_temp
-    progress.use(progress.Reporter(quiet=bool(getattr(args, "quiet", False))))  # --quiet: no bars (logs)
-    with fileio.command_outputs() as outputs, fileio.stop_signals_handled(), \
+    reporter = progress.Reporter(quiet=bool(getattr(args, "quiet", False)))  # --quiet: no bars (logs)
+    with progress.using(reporter), fileio.command_outputs() as outputs, fileio.stop_signals_handled(), \
             (fileio.private_temporary_folder() if private_temp else contextlib.nullcontext()):
         try:
             plan_outputs(args)

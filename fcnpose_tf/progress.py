@@ -12,6 +12,7 @@ Standard library only (tqdm is imported when a bar is drawn): the Pi runtime may
 
 from __future__ import annotations
 
+import contextlib
 import sys
 from typing import Any, Iterable, Iterator, TextIO
 
@@ -160,6 +161,17 @@ def use(reporter: Reporter) -> Reporter:
     global _current
     previous, _current = _current, reporter
     return previous
+
+
+@contextlib.contextmanager
+def using(reporter: Reporter) -> Iterator[Reporter]:
+    """`reporter` as the current one (`use`) within the block, the previous one again after it."""
+    previous = use(reporter)
+    try:
+        yield reporter
+    finally:
+        reporter.end_line()
+        use(previous)
 
 
 def resolve(reporter: Reporter | None, verbose: int | None = None) -> Reporter:
