@@ -57,6 +57,8 @@ BUNDLED_MODELS = {
     "workcell-p70": (f"{BASELINE_NAME}_p70.keras", "the workcell baseline pruned at rate 0.7 and retrained"),
     "workcell-p70-fp16": (f"{BASELINE_NAME}_p70_fp16.tflite", "workcell-p70 as float16 TFLite (the paper's format)"),
     "workcell-p70-int8": (f"{BASELINE_NAME}_p70_int8.tflite", "workcell-p70 as full-integer int8 TFLite (the Pi's)"),
+    "workcell-p70-fp16native": (f"{BASELINE_NAME}_p70_fp16native.tflite",
+                                "workcell-p70 as float16-native TFLite (a Pi 5 computes it in float16)"),
 }
 """The names every command's model argument takes (`resolve_model`): name -> (file in models_dir(), what it is)."""
 

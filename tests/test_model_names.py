@@ -42,7 +42,7 @@ def test_a_tflite_model_argument_takes_the_bundled_tflite_names(command, cli_her
     status, out, err = cli_here(*[("generalist" if a == "MODEL" else a) for a in argv])
     assert status == 2 and err.startswith("error: ") and len(err.strip().splitlines()) == 1
     assert "generalist: the bundled .keras model; this command takes .tflite models (bundled: " \
-           "workcell-p70-fp16, workcell-p70-int8)" in err
+           "workcell-p70-fp16, workcell-p70-int8, workcell-p70-fp16native)" in err
 
 
 @pytest.mark.parametrize("command", ["evaluate", "predict", "export", "summary", "compress", "run", "bench", "train"])

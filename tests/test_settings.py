@@ -177,6 +177,9 @@ def test_compress_options_mean_what_compress_means():
     assert (paper.importance, paper.min_filters, paper.learning_rate, paper.lr_patience, paper.positive_weight) == \
         ("l1", 0, 1e-3, 0, 1.0)
     assert (paper.retrain_epochs, paper.quantize) == (100, ("float16",))
+    for options in (recommended, paper):  # what compress_model retrains with passes fit's checks
+        options.validate()
+        options.fit_config().validate()
     greedy = CompressOptions(rate=0.7, strategy="greedy").resolved()
     assert greedy.importance == "l1"  # greedy ranking reads kernels only
     assert CompressOptions(rate=0.7, method="magnitude").resolved().min_filters == 0
@@ -192,6 +195,7 @@ def test_train_preset_paper_is_the_papers_recipe():
     args = _parsed(*TRAIN, "--preset", "paper")
     assert (args.init, args.augment, args.folds) == ("none", "paper", None)
     config = FitConfig.preset("paper").resolved(trained_start=False)
+    config.validate()  # no time budget is a value the paper's recipe may have
     assert (config.positive_weight, config.lr_patience, config.patience, config.max_minutes, config.freeze) == \
         (1.0, 0, 20, None, 0)
     recommended = FitConfig().resolved(trained_start=True)
