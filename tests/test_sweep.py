@@ -605,13 +605,30 @@ def _check_smoke_outputs(out: Path, threads: int) -> None:
             assert section["timing"]["threads"] == threads and section["metrics"]["num_frames"] == 10
 
 
-@pytest.mark.slow
-def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, cli):
-    frames = smoke_frames
-    out = tmp_path / "res"
-    proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
+def _sweep_cli(*args, cwd, env=None):
+    """`python -m fcnpose_tf ARGS` in a fresh process (the sweep sets TensorFlow's threads before it starts)."""
+    full_env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", **(env or {}))
+    return subprocess.run([sys.executable, "-m", "fcnpose_tf", *map(str, args)], cwd=cwd, env=full_env,
+                          capture_output=True, text=True, timeout=900)
+
+
+@pytest.fixture(scope="module")
+def smoke_sweep(tmp_path_factory, smoke_frames):
+    """A real sweep on the local executor, 1 thread per job (not TensorFlow's default on any machine), run once:
+    each smoke test works on its own copy of the results folder."""
+    out = tmp_path_factory.mktemp("smokesweep") / "res"
+    proc = _sweep_cli("sweep", "--data", smoke_frames, "--out", out, *SMOKE, "--threads", "1", cwd=out.parent)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    _check_smoke_outputs(out, threads=2)
+    return out, proc
+
+
+@pytest.mark.slow
+def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, smoke_sweep, cli):
+    frames = smoke_frames
+    first, proc = smoke_sweep
+    out = tmp_path / "res"
+    shutil.copytree(first, out)  # copy2: the files' modification times too
+    _check_smoke_outputs(out, threads=1)
     assert "Pruning results, Keras" in proc.stdout and "14,668" in proc.stdout
     assert "frames at 64x64" not in proc.stdout + proc.stderr  # --quiet: no progress bars in logs
     stamps = {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir()}
@@ -619,14 +636,14 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, cli):
     record = json.loads(jobs["fold0_p70.json"])
     assert record["pruning"]["importance"] == "l1" and record["distillation"] is None  # the paper's recipe
 
-    again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
+    again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "1")
     assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
     assert "skipping 6 finished job(s)" in again.stdout and "nothing to run" in again.stdout
     assert {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir()} == stamps
     assert {p.name: p.read_bytes() for p in (out / "jobs").iterdir()} == jobs
 
-    other = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "1")
-    assert other.returncode == 2 and "threads 2 -> 1" in other.stderr
+    other = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
+    assert other.returncode == 2 and "threads 1 -> 2" in other.stderr
 
     # --retime: the same measurements from the saved files; identical metrics, new timings, same models
     retime = cli("sweep", "--out", out, "--retime")
@@ -639,9 +656,9 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, cli):
         for section in ("keras", "tflite", "tflite_int8"):
             if section in old:
                 assert new[section]["metrics"] == old[section]["metrics"]
-                assert new[section]["timing"]["threads"] == 2
+                assert new[section]["timing"]["threads"] == 1
                 assert new[section]["timing"]["total_ms"] != old[section]["timing"]["total_ms"]
-        assert new["retimed"]["tensorflow_threads"]["intra_op"] == 2
+        assert new["retimed"]["tensorflow_threads"]["intra_op"] == 1
     report = json.loads((out / "models" / "base_fold0_p70_report.json").read_text())
     job = json.loads((out / "jobs" / "fold0_p70.json").read_text())
     assert report["quantized"]["timing"] == job["tflite"]["timing"]
@@ -654,16 +671,23 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, cli):
 
 
 @pytest.mark.slow
-def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, cli):
+def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, smoke_sweep, cli):
+    """Fold 1's jobs (its base, then both rates at once on 2 CPUs) run as Ray tasks in a folder whose fold 0 the
+    local executor finished: a base before its rates, 1 thread per task, and the same records as a local run."""
     pytest.importorskip("ray")
     frames = smoke_frames
     out = tmp_path / "res"
+    shutil.copytree(smoke_sweep[0], out)
+    for path in [*(out / "jobs").glob("fold1_*.json"), *(out / "models").glob("base_fold1*")]:
+        shutil.rmtree(path) if path.is_dir() else path.unlink()
     proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
                "--threads", "1", env={"RAY_USAGE_STATS_ENABLED": "0"})
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "skipping 3 finished job(s): fold0_base, fold0_p50, fold0_p70" in proc.stdout
     _check_smoke_outputs(out, threads=1)
     results = json.loads((out / "results.json").read_text())
     assert results["runs"][-1]["executor"] == "ray" and results["runs"][-1]["cluster"]["cpus"] == 2
+    assert sorted(results["runs"][-1]["jobs_done"]) == ["fold1_base", "fold1_p50", "fold1_p70"]
     again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
                 "--threads", "1")
     assert again.returncode == 0 and "skipping 6 finished job(s)" in again.stdout
