@@ -14,7 +14,7 @@ docs/training.md, and record the run in saved_models/PROVENANCE.md.
 
     python tools/pretrain_generalist.py --work runs/gen --n 4000 --seed 9000 --minutes 60
     python tools/pretrain_generalist.py --work runs/gen --looks varied:3000,classic:1200 --seed 11000 \
-        --init saved_models/candidates/fcnpose_ur5_generalist_varied.keras --learning-rate 5e-4 --minutes 95
+        --init saved_models/candidates/fcnpose_ur5_generalist_mixed.keras --learning-rate 5e-4 --minutes 95
     python tools/pretrain_generalist.py --work runs/gen --dry-run      # print the commands only
 """
 
