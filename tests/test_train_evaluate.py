@@ -64,16 +64,16 @@ def test_train_writes_model_curves_and_record(trained):
 
 
 @pytest.mark.slow
-def test_existing_model_needs_force(trained, cli):
+def test_existing_model_needs_force(trained, cli_here):
     data, out, _ = trained
     before = out.read_bytes()
-    proc = cli("train", "--data", data, "--out", out, "--epochs", "1", "--input-size", "64")
-    assert proc.returncode == 2 and "already exists; pass --force" in proc.stderr
+    status, _, err = cli_here("train", "--data", data, "--out", out, "--epochs", "1", "--input-size", "64")
+    assert status == 2 and "already exists; pass --force" in err
     assert out.read_bytes() == before
 
 
 @pytest.mark.slow
-def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, cli, tmp_path):
+def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, cli, cli_here, tmp_path):
     data, out, _ = trained
     proc = cli("evaluate", out, "--data", data, "--json", tmp_path / "r.json", "--threads", "1")
     assert proc.returncode == 0, proc.stderr
@@ -82,29 +82,29 @@ def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, 
     assert report["timing"]["frames_timed"] >= 50 and report["timing"]["threads"] == 1
     assert set(report["metrics"]) >= {"pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "epe_px", "pck_auc_0-20px"}
     other = make_via_folder(tmp_path / "other", n=4, seed=5)
-    proc = cli("evaluate", out, "--data", other)
-    assert proc.returncode == 0, proc.stderr
-    assert "all 4 frames" in proc.stdout
+    status, stdout, err = cli_here("evaluate", out, "--data", other)
+    assert status == 0, err
+    assert "all 4 frames" in stdout
 
 
 @pytest.mark.slow
-def test_evaluate_errors(trained, cli, tmp_path):
+def test_evaluate_errors(trained, cli_here, tmp_path):
     from fcnpose_tf.model import build_fcn_pose
 
     data, out, _ = trained
-    proc = cli("evaluate", tmp_path / "nope.keras", "--data", data)
-    assert proc.returncode == 2 and "nope.keras: model file not found" in proc.stderr
+    status, _, err = cli_here("evaluate", tmp_path / "nope.keras", "--data", data)
+    assert status == 2 and "nope.keras: model file not found" in err
     wrong = tmp_path / "five.keras"
     build_fcn_pose(input_size=64, num_maps=5).save(wrong)
-    proc = cli("evaluate", wrong, "--data", data)
-    assert proc.returncode == 2 and "5 output maps" in proc.stderr and "Traceback" not in proc.stderr
+    status, _, err = cli_here("evaluate", wrong, "--data", data)  # in-process: a defect raises here
+    assert status == 2 and "5 output maps" in err and "Traceback" not in err
     empty = tmp_path / "empty"
     empty.mkdir()
     write_via_project(empty / "labels.json", [], UR5)
-    proc = cli("evaluate", out, "--data", empty)
-    assert proc.returncode == 2 and "no usable frames" in proc.stderr
-    proc = cli("evaluate", out, "--data", tmp_path / "missing")
-    assert proc.returncode == 2 and "not found" in proc.stderr
+    status, _, err = cli_here("evaluate", out, "--data", empty)
+    assert status == 2 and "no usable frames" in err
+    status, _, err = cli_here("evaluate", out, "--data", tmp_path / "missing")
+    assert status == 2 and "not found" in err
 
 
 @pytest.mark.slow
@@ -180,7 +180,7 @@ def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
 
 
 @pytest.mark.slow
-def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_path):
+def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_here, tmp_path):
     data, trained_out, _ = trained
     out = _poor_start(trained_out, tmp_path / "poor_start.keras")
     proc = cli("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1", "--input-size", "64",
@@ -201,26 +201,25 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, tmp_pa
                                                           tuned.get_layer(name).get_weights()))
         assert same == kept, name
     assert all(layer.trainable for layer in tuned.layers)  # the written model is a plain FCN-Pose
-    proc = cli("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1", "--input-size", "64",
-               "--augment-copies", "0", "--init", out, "--freeze", "0", "--positive-weight", "20", "--quiet")
+    # the convolutions do not depend on the input size: a 64x64 model starts a 96x96 run
+    proc = cli("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1", "--input-size", "96",
+               "--augment-copies", "0", "--augment", "paper", "--init", out, "--freeze", "0", "--positive-weight",
+               "20", "--quiet")
     assert proc.returncode == 0, proc.stderr
     assert json.loads((tmp_path / "ft0_train.json").read_text())["config"]["positive_weight"] == 20.0
     tuned = load_model(tmp_path / "ft0.keras")
+    assert tuned.input_shape[1:3] == (96, 96)
     assert not np.array_equal(start.get_layer("conv1").get_weights()[0], tuned.get_layer("conv1").get_weights()[0])
-    proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--init", out, "--freeze", "10")
-    assert proc.returncode == 2 and "error: frozen layers must be 0 to 9" in proc.stderr
-    # the convolutions do not depend on the input size: a 64x64 model starts a 96x96 run
-    proc = cli("train", "--data", data, "--out", tmp_path / "ft96.keras", "--epochs", "1", "--input-size", "96",
-               "--augment-copies", "0", "--augment", "paper", "--init", out, "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "bad.keras", "--init", out, "--freeze", "10")
+    assert status == 2 and "error: frozen layers must be 0 to 9" in err
     # a model of another keypoint schema is refused before any training, saying how to start from scratch
     from fcnpose_tf.model import build_fcn_pose, save_for_inference
 
     other = tmp_path / "other_arm.keras"
     save_for_inference(build_fcn_pose(input_size=64, num_maps=5), other)
-    proc = cli("train", "--data", data, "--out", tmp_path / "bad.keras", "--epochs", "1", "--input-size", "64",
-               "--init", other)
-    assert proc.returncode == 2 and "pass --init none to train from scratch" in proc.stderr
+    status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "bad.keras", "--epochs", "1",
+                              "--input-size", "64", "--init", other)
+    assert status == 2 and "pass --init none to train from scratch" in err
     assert not (tmp_path / "bad.keras").exists()
 
 
