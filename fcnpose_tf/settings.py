@@ -310,7 +310,8 @@ INPUT_SIZE_MULTIPLE = 32
 # ------------------------------------------------------------------------------------------
 
 INPUT_SIZE = Setting(
-    "input_size", int, 224, f"model input side, a multiple of {INPUT_SIZE_MULTIPLE}", label="input size",
+    "input_size", int, 224, f"model input side, a multiple of {INPUT_SIZE_MULTIPLE}; 320 or 384 localise finer where "
+    "the arm is small in the frame, at 2-3x the compute (docs/training.md, \"Someone else's arm\")", label="input size",
     check=lambda v: v > 0 and v % INPUT_SIZE_MULTIPLE == 0,
     requirement=f"a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)")
 FOLDS = Setting("folds", int, 5, "K of the K-fold cross-validation splits (the paper: 5)", label="folds",
