@@ -48,7 +48,7 @@ def test_help_has_examples(capsys):
         build_parser().parse_args(["predict", "--help"])
     assert exc.value.code == 0
     text = capsys.readouterr().out
-    assert "examples:" in text and "fcnpose-tf predict saved_models/fcnpose_ur5_p70_fp16.tflite" in text
+    assert "examples:" in text and "fcnpose-tf predict generalist --source frames/ --via frames/pre.json" in text
 
 
 def test_round_trip_through_via_and_a_hand_correction(capsys, tmp_path, synth_frames):
