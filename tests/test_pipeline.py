@@ -24,14 +24,8 @@ from fcnpose_tf.runtime.pipeline import WORKER_NAME
 from fcnpose_tf.runtime.runner import run_stream
 from fcnpose_tf.runtime.sinks import JsonlWriter
 from fcnpose_tf.runtime.sources import Frame, FrameSource, open_source
-from test_runtime import RED_CYCLE, _convert_plain, _structured_model, quadrant_frame, write_video
-
-
-@pytest.fixture(scope="module")
-def model_path(tmp_path_factory) -> Path:
-    path = tmp_path_factory.mktemp("pipe_models") / "structured.tflite"
-    path.write_bytes(_convert_plain(_structured_model()))
-    return path
+from test_run_bench_cli import model_path  # noqa: F401 - the structured .tflite fixture, one definition
+from test_runtime import RED_CYCLE, quadrant_frame, write_video
 
 
 @pytest.fixture(scope="module")
