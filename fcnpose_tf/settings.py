@@ -84,6 +84,14 @@ class Setting:
         """The command-line option: --name-with-dashes."""
         return "--" + self.name.replace("_", "-")
 
+    def validate_quietly(self, value: Any) -> bool:
+        """Whether `validate` accepts `value` (for a variant whose check widens this setting's)."""
+        try:
+            self.validate(value)
+        except UserError:
+            return False
+        return True
+
     def validate(self, value: Any) -> Any:
         """Return `value` if it is allowed (None too when the option's default is None), else raise UserError."""
         if value is None and self.accepts_none:
@@ -314,6 +322,31 @@ INPUT_SIZE = Setting(
     "the arm is small in the frame, at 2-3x the compute (docs/training.md, \"Someone else's arm\")", label="input size",
     check=lambda v: v > 0 and v % INPUT_SIZE_MULTIPLE == 0,
     requirement=f"a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)")
+AUTO_INPUT_SIZE = "auto"
+
+
+def input_size_or_auto(text: str) -> int | str:
+    """argparse type of train's --input-size: auto (chosen from the arm's size in the frames) or a whole number
+    (checked against FCN-Pose's multiple of 32 by the setting)."""
+    if text.strip().lower() == AUTO_INPUT_SIZE:
+        return AUTO_INPUT_SIZE
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected auto or a positive multiple of {INPUT_SIZE_MULTIPLE}, got {text!r}") from None
+
+
+TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
+    default=AUTO_INPUT_SIZE, type=str, parse=input_size_or_auto, metavar="N|auto",
+    check=lambda v: v == AUTO_INPUT_SIZE or INPUT_SIZE.validate_quietly(v),
+    requirement=f"auto or a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)",
+    help="model input side: auto chooses the smallest multiple of 32 from 224 to 384 at which the arm's keypoint "
+         "box spans 140 input pixels in the median frame (224 where the arm spans 5/8 of the frame or more; larger "
+         "where it is smaller, at 1.3-2.9x the compute per frame: docs/training.md, \"Input size\"); or a multiple of 32")
+"""`train` serves a user's camera: where the arm is small in the frame, 224 leaves PCK@0.05's radius a few input
+pixels wide and fine localisation falls (measured on the held-out fixed camera: docs/training.md, "Someone else's
+arm"); `data.arm_size` measures the arm and chooses. The paper's preset keeps the paper's 224."""
 FOLDS = Setting("folds", int, 5, "K of the K-fold cross-validation splits (the paper: 5)", label="folds",
                 check=lambda v: v >= 2, requirement="at least 2", metavar="K")
 TRAIN_FOLDS = FOLDS.variant(

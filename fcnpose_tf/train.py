@@ -516,6 +516,26 @@ def resolve_augment(via_path: str | Path, images_dir: str | Path | None = None, 
                      "chose": augment}
 
 
+def resolve_input_size(via_path: str | Path, images_dir: str | Path | None = None, *, attribute: str = "keypoint",
+                       min_visible: int | None = None, skip_bad: bool = False,
+                       reporter: Reporter | None = None) -> tuple[int, dict[str, Any]]:
+    """What `input_size="auto"` (train's default) means for these frames: the smallest input side at which the arm
+    spans enough input pixels (`data.arm_size`); the choice and what it was based on, for NAME_train.json
+    ("input_size_auto"), said through `reporter`."""
+    from fcnpose_tf.data.arm_size import MIN_ARM_INPUT_PX, arm_span, choose_input_size
+    from fcnpose_tf.data.via import read_via
+
+    frames = read_via(via_path, images_dir, attribute=attribute, min_visible=min_visible, skip_bad=skip_bad).frames
+    span = arm_span((f.keypoints, f.width, f.height) for f in frames)
+    size = choose_input_size(span)
+    default = settings.INPUT_SIZE.default
+    cost = f"; --input-size {default} runs {(size / default) ** 2:.1f}x faster" if size > default else ""
+    progress.resolve(reporter).say(
+        f"Input size: auto -> {size} (the arm's keypoint box spans {span:.2f} of the median frame: {span * size:.0f} "
+        f"input pixels at {size}, {MIN_ARM_INPUT_PX} wanted{cost})")
+    return size, {"arm_span": round(span, 4), "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": size}
+
+
 def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model:
     """FCN-Pose at `input_size` holding the weights of the model file `init` (trained at any input size).
 

@@ -3,8 +3,9 @@
 By default it fine-tunes the bundled UR5 generalist (pretrained on domain-randomised scenes) on
 your frames (augmentation chosen from the frames: the paper's 2 fixed copies per frame for one fixed
 camera, fresh random transforms every epoch when the views vary), keypoint pixels weighted 8 on one
-fixed camera (20 when the views vary or from scratch), the learning rate halved after 4 epochs without
-progress and a 30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe
+fixed camera (20 when the views vary or from scratch), the input side chosen from the arm's size in the
+frames (224 where the arm spans 5/8 of the frame, up to 384 where it is small), the learning rate halved after
+4 epochs without progress and a 30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe
 is the last example below. Without --folds the model trains on the 80/20 hold-out split; --folds K
 trains one model per fold of the dataset's stored K-fold splits (or only --fold k) and reports mean
 and std. Next to the model it writes
@@ -28,7 +29,7 @@ EXAMPLES = """\
   fcnpose-tf train --data my_frames/ --out models/arm.keras --resume                     # after Ctrl-C
   fcnpose-tf train --data my_frames/ --out models/arm.keras --max-minutes 90             # a longer budget
   fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5                    # 5-fold CV
-  fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 160
+  fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 224  # fastest on the Pi
   fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # fresh transforms, whatever the views
   fcnpose-tf train --data merged.json --out models/arm2.keras --init models/arm.keras --test-data test/  # a round
   fcnpose-tf train --data data/ur5 --out models/paper.keras --preset paper  # the paper's recipe (from scratch)
@@ -47,8 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.add_preset_argument(parser)
     for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
                     settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
-                    settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
-                    settings.TRAIN_FOLDS):
+                    settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.TRAIN_INPUT_SIZE, settings.TRAIN_AUGMENT,
+                    settings.AUGMENT_COPIES, settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
@@ -88,13 +89,13 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line, resolve_augment,
-                                  run_identity, start_on_test_set, train_fold)
+                                  resolve_input_size, run_identity, start_on_test_set, train_fold)
 
     init = initial_weights(args.init)
     config = FitConfig(**settings.values_from_args(args, FitConfig))  # settings left None: chosen per run (resolved)
     config.validate()
-    for setting in (settings.INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS, settings.FOLD,
-                    settings.THREADS):
+    for setting in (settings.TRAIN_INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS,
+                    settings.FOLD, settings.THREADS):
         setting.validate(getattr(args, setting.name))
     if args.out.suffix not in (".keras", ".h5"):
         raise UserError(f"{args.out}: --out must end in .keras or .h5")
@@ -121,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
         args.augment, metadata["augment_auto"] = resolve_augment(via_path, images_dir, attribute=args.keypoint_attr,
                                                                  min_visible=args.min_visible,
                                                                  skip_bad=args.skip_bad)
+    if args.input_size == settings.AUTO_INPUT_SIZE:  # as --augment auto: a checkpoint records the size that ran
+        args.input_size, metadata["input_size_auto"] = resolve_input_size(
+            via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible, skip_bad=args.skip_bad)
     resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
