@@ -515,7 +515,7 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     sequence = run.fit_data.sequence(options.batch_size, seed=options.seed)
     result = train_until_gate(retrained, sequence, calibration, convert, epochs=options.qat_epochs,
                               learning_rate=options.qat_learning_rate, seed=options.seed,
-                              verbose=run.reporter.lines().keras_verbose, log=run.log)
+                              reporter=run.reporter)
     if result.export is not None:
         write_bytes(run.paths[tflite_key("int8")], result.export.data, run.force)
     return result

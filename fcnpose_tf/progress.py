@@ -149,6 +149,8 @@ def _is_terminal(stream: Any) -> bool:
 
 
 _current = Reporter()
+SILENT = Reporter(silent=True)
+"""A reporter that says nothing: library calls and tests that want no output."""
 
 
 def current() -> Reporter:
@@ -174,12 +176,9 @@ def using(reporter: Reporter) -> Iterator[Reporter]:
         use(previous)
 
 
-def resolve(reporter: Reporter | None, verbose: int | None = None) -> Reporter:
-    """`reporter`; else, when a caller still passes Keras' `verbose` (0 silent, 1 bars, 2 one line per epoch), its
-    reporter (`from_verbose`); else the current one."""
-    if reporter is not None:
-        return reporter
-    return from_verbose(verbose) if verbose is not None else _current
+def resolve(reporter: Reporter | None) -> Reporter:
+    """`reporter`, else the current one."""
+    return reporter if reporter is not None else _current
 
 
 def from_verbose(verbose: int) -> Reporter:

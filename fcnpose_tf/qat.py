@@ -31,6 +31,7 @@ import time
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Callable
 
+from fcnpose_tf import progress
 from fcnpose_tf.errors import UserError
 
 if TYPE_CHECKING:
@@ -50,7 +51,6 @@ every logit below about -6.2 gives level 0 and every one above +6.2 the top leve
 the file can represent, while the calibrated range of a trained model's logits (about [-65, 15] on a model
 fine-tuned on a user's frames) makes each int8 step 0.31 logit, 0.08 in map value at the 0.5 threshold."""
 
-Log = Callable[[str], None]
 
 
 @dataclass
@@ -204,7 +204,7 @@ def _pin_logit_range(qat: keras.Model) -> None:
 
 def train_until_gate(model: keras.Model, sequence: Any, calibration: Any,
                      convert: Callable[[keras.Model], TFLiteExport], *, epochs: int, learning_rate: float,
-                     seed: int = 0, fold_upsampling: bool = True, verbose: int = 0, log: Log = print) -> QATResult:
+                     seed: int = 0, fold_upsampling: bool = True, reporter: progress.Reporter | None = None) -> QATResult:
     """Quantization-aware training of `model` on `sequence`, one epoch at a time, until `convert` passes.
 
     The copy's ranges are first set from `calibration` (`calibrate_ranges`) and converted once before any
@@ -223,8 +223,8 @@ def train_until_gate(model: keras.Model, sequence: Any, calibration: Any,
         learning_rate: Adam's rate.
         seed: TensorFlow's seed for the run.
         fold_upsampling: train the folded graph (`fcnpose_tf.inference_graph`), as the int8 export converts it.
-        verbose: Keras fit's verbosity (0 silent, 2 one line per epoch).
-        log: where the per-epoch gate lines go.
+        reporter: where the per-epoch gate lines and Keras' epoch lines go (`fcnpose_tf.progress`; default: the
+            current one), drawn as lines: the gate's line follows each epoch's.
     Returns:
         A `QATResult` (its export None when no epoch's file passed).
     """
@@ -236,6 +236,8 @@ def train_until_gate(model: keras.Model, sequence: Any, calibration: Any,
 
     if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 0:
         raise UserError(f"quantization-aware training epochs must be a whole number >= 0, got {epochs!r}")
+    reporter = progress.resolve(reporter).lines()
+    log = reporter.say
     start = time.perf_counter()
     keras.utils.set_random_seed(seed)
     graph, rewrites = _inference_graph(model) if fold_upsampling else (model, ())
@@ -248,7 +250,7 @@ def train_until_gate(model: keras.Model, sequence: Any, calibration: Any,
     for epoch in range(epochs + 1):
         row: dict[str, Any] = {"epoch": epoch}
         if epoch:
-            history = qat.fit(batches, epochs=epoch, initial_epoch=epoch - 1, verbose=verbose, shuffle=False)
+            history = qat.fit(batches, epochs=epoch, initial_epoch=epoch - 1, verbose=reporter.keras_verbose, shuffle=False)
             _pin_logit_range(qat)
             row["loss"] = round(float(history.history["loss"][-1]), 6)
             result.epochs_run = epoch

@@ -359,7 +359,7 @@ def _load_weights(model: keras.Model, path: Path) -> None:
 
 def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np.ndarray, np.ndarray],
         model_path: str | Path, config: FitConfig, *, resume: bool = False, force: bool = False,
-        metadata: dict[str, Any] | None = None, reporter: Reporter | None = None, verbose: int | None = None,
+        metadata: dict[str, Any] | None = None, reporter: Reporter | None = None,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
         identity: dict[str, Any] | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
@@ -377,7 +377,6 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         metadata: extra facts recorded in NAME_train.json (data, split, input size...).
         reporter: where messages and progress go (`fcnpose_tf.progress`; default: the current one): Keras' progress
             bar on a terminal, one line per epoch in a log or with --quiet, nothing when silent.
-        verbose: Keras' verbosity instead of a reporter (0 silent, 1 bars, 2 lines; `progress.from_verbose`).
         callbacks: more Keras callbacks, run before the checkpointing one each epoch (tfmot's
             UpdatePruningStep, which must mask the weights before they are kept as the best).
         inference_model: what to save as `model_path` from the trained model (tfmot's
@@ -394,7 +393,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         UserError: output exists without force, nothing to resume, a checkpoint exists
             and neither resume nor force was given, or the checkpoint was started on other data or settings.
     """
-    reporter = progress.resolve(reporter, verbose)
+    reporter = progress.resolve(reporter)
     config = config.resolved(trained_start=start_is_candidate)  # what train_fold has not chosen yet
     config.validate()
     if config.distill and not getattr(train_data, "carries_teacher_maps", False):

@@ -8,6 +8,7 @@ import tf_keras as keras
 from fcnpose_tf.model import build_fcn_pose
 from fcnpose_tf.train import (DistillationLoss, FitConfig, KeypointBinaryCrossentropy, compile_for_training, fit,
                               training_loss)
+from fcnpose_tf.progress import SILENT
 from weights import randomize
 
 
@@ -145,6 +146,6 @@ def test_fit_with_distillation_runs_and_records_it(models, tmp_path):
     with pytest.raises(ValueError, match="teacher's maps"):
         fit(keras.models.clone_model(student), data.sequence(4), val.arrays(), tmp_path / "m.keras", config)
     sequence, _ = with_teacher_maps(data, data.sequence(4), teacher)
-    result = fit(keras.models.clone_model(student), sequence, val.arrays(), tmp_path / "m.keras", config, verbose=0)
+    result = fit(keras.models.clone_model(student), sequence, val.arrays(), tmp_path / "m.keras", config, reporter=SILENT)
     assert result.epochs_run == 1 and np.isfinite(result.best_val_loss)
     assert json.loads((tmp_path / "m_train.json").read_text())["config"]["distill"] == 0.5

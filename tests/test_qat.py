@@ -6,6 +6,7 @@ import json
 import numpy as np
 import pytest
 
+from fcnpose_tf.progress import SILENT
 from test_train_evaluate import make_via_folder
 from weights import randomize
 
@@ -239,7 +240,7 @@ def test_training_runs_epoch_by_epoch_until_the_gate_passes(faint):
         return export
 
     result = train_until_gate(model, training.sequence(8, seed=0), calibration, convert, epochs=3,
-                              learning_rate=1e-4, seed=0, log=lambda line: None)
+                              learning_rate=1e-4, seed=0, reporter=SILENT)
     assert result.export is not None and result.epochs_run == 1 and len(seen) == 2
     first, second = result.epochs
     assert first == {"epoch": 0, "passed": False, "reason": "held back for the test", "frames": 16}

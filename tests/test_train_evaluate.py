@@ -9,6 +9,7 @@ import pytest
 from fcnpose_tf.data.via import ViaFrame, write_via_project
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
+from fcnpose_tf.progress import SILENT
 
 
 def make_via_folder(folder, n=10, size=(96, 72), seed=0):
@@ -126,14 +127,14 @@ def test_interrupted_training_resumes(tmp_path, monkeypatch):
 
     monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
     with pytest.raises(UserError, match="interrupted after 1 complete epochs; continue with --resume"):
-        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, verbose=0)
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT)
     state = json.loads((tmp_path / "m.ckpt" / "state.json").read_text())
     assert state["epoch"] == 1 and not out.exists()
     with pytest.raises(UserError, match="pass --resume to continue it or --force"):
-        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, verbose=0)
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT)
     monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", original)
     result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, resume=True,
-                       verbose=0)
+                       reporter=SILENT)
     assert result.epochs_run == 3 and [h["epoch"] for h in result.history] == [1, 2, 3]
     assert out.is_file() and not (tmp_path / "m.ckpt").exists()
 
@@ -156,7 +157,7 @@ def test_an_interrupted_run_that_cannot_resume_says_what_to_do_and_leaves_no_che
     monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
     with pytest.raises(UserError) as info:
         train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "m_p70.keras",
-                  train.FitConfig(epochs=3, batch_size=4), verbose=0, resumable=False)
+                  train.FitConfig(epochs=3, batch_size=4), reporter=SILENT, resumable=False)
     assert str(info.value) == ("stopped after 1 of 3 epochs; this run cannot be resumed (its checkpoint is removed): "
                                "run the same command again to start it over")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
@@ -374,7 +375,7 @@ def test_time_budget_ends_training_after_the_epoch_that_reaches_it(tmp_path):
     tr, va = fold_data(ds, None, 32, 0)
     out = tmp_path / "m.keras"
     config = train.FitConfig(epochs=5, patience=5, batch_size=4, max_minutes=1e-6)
-    result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, verbose=0)
+    result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT)
     assert result.epochs_run == 1 and not result.stopped_early
     record = json.loads((tmp_path / "m_train.json").read_text())
     assert record["stopped_by_time_budget"] is True and record["config"]["max_minutes"] == 1e-6
@@ -396,7 +397,7 @@ def test_frozen_layers_keep_their_weights_and_the_saved_model_matches_the_traine
 
     batches = tf.data.Dataset.from_tensor_slices((images, maps)).batch(4)
     fit(model, batches, (images[:4], maps[:4]), tmp_path / "m.keras",
-        FitConfig(epochs=2, batch_size=4, freeze=2), verbose=0)
+        FitConfig(epochs=2, batch_size=4, freeze=2), reporter=SILENT)
     saved = load_model(tmp_path / "m.keras")
     for layer in model.layers:
         for trained, written in zip(layer.get_weights(), saved.get_layer(layer.name).get_weights()):

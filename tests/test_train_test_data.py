@@ -8,6 +8,7 @@ import pytest
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
+from fcnpose_tf.progress import SILENT
 from tests.test_train_evaluate import make_via_folder
 
 
@@ -29,7 +30,7 @@ def test_stopped_before_the_first_epoch_leaves_no_checkpoint_and_does_not_sugges
 
     monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", stop_in_first_epoch)
     with pytest.raises(UserError) as info:
-        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, verbose=0,
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT,
                   start_is_candidate=trained_start)
     assert "before the first epoch ended" in str(info.value) and "--resume" not in str(info.value)
     assert not (tmp_path / "m.ckpt").exists() and not out.exists()
