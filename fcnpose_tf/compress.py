@@ -542,7 +542,8 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any],
 
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
                    out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
-                   eval_description: str = "", reporter: Reporter | None = None) -> dict[str, Any]:
+                   eval_description: str = "", reporter: Reporter | None = None,
+                   metadata: dict[str, Any] | None = None) -> dict[str, Any]:
     """Prune, retrain, export and measure one model at one rate; write the files; return the report.
 
     Args:
@@ -556,6 +557,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         force: replace existing output files.
         reporter: where the step lines and progress go (`fcnpose_tf.progress`; default: the current one): data
             preparation's progress, then the retraining one line per epoch; nothing when silent.
+        metadata: more facts for the report (e.g. the command's "preset").
     Returns:
         The report dict (also written as NAME_pXX_report.json). Its "quantized" entry is the first
         TFLite file written (the paper's float16 by default; None if every format was refused),
@@ -596,7 +598,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         "base_model": str(base_path), "method": options.method, "recipe": run.recipe, "options": asdict(options),
         "evaluation_frames": eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
         "pck_normalisation": "max(w, h) of the ground-truth keypoints' bounding box",
-        "threads": options.threads,
+        "threads": options.threads, **(metadata or {}),
     }
     report.update(measure_base(run))
     say(f"[2/{steps}] pruning: {run.method.describe()}")

@@ -37,7 +37,7 @@ def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
     names = {"base_p70.keras", "base_p70_fp16.tflite", "base_p70_int8.tflite", "base_p70_report.json"}
     assert names <= {p.name for p in out.iterdir()}
     report = json.loads((out / "base_p70_report.json").read_text())
-    assert report["base"]["params"] == 131705
+    assert report["base"]["params"] == 131705 and report["preset"] == "recommended"
     # the default --min-filters 12: no layer under 12 filters (conv5/conv6 keep all 8) within the keep rule's
     # 14,668 parameters, instead of the paper's widths (39, 20, 10, 5, 3, 3, 5, 10, 20)
     assert report["retrained"]["params"] == 14344 == report["quantized"]["params"]

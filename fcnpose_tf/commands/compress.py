@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
             eval_indices = [int(i) for i in val]
             description = f"{len(val)} validation frames of {train_dataset.via_path}"
         report = compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, options,
-                                force=args.force, eval_description=description)
+                                force=args.force, eval_description=description, metadata={"preset": args.preset})
     threads = args.threads if args.threads is not None else f"all {available_cores()}"
     print(f"\nCompression at rate {args.rate:g} ({report['recipe']}); measured on {description}; "
           f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
