@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import sys
-from typing import Any, Iterable, Iterator, TextIO
+from typing import Any, Iterable, Iterator, Sequence, TextIO
 
 LINE_STEPS = 10
 """Without a bar a loop reports every 1/LINE_STEPS of its length (and its end)."""
@@ -179,6 +179,14 @@ def using(reporter: Reporter) -> Iterator[Reporter]:
 def resolve(reporter: Reporter | None) -> Reporter:
     """`reporter`, else the current one."""
     return reporter if reporter is not None else _current
+
+
+def report_items(items: Sequence, progress: Reporter | bool | None, desc: str) -> Iterable:
+    """`items`, their progress reported when `progress` is a Reporter (True: the current one; False or None: not
+    reported), for data preparation whose callers pass either."""
+    if progress is False or progress is None:
+        return items
+    return resolve(None if progress is True else progress).progress(items, desc)
 
 
 def from_verbose(verbose: int) -> Reporter:

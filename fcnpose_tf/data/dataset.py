@@ -33,6 +33,7 @@ from fcnpose_tf.data.via import read_via
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.preprocess import keypoints_to_input, preprocess_frame, read_image
+from fcnpose_tf.progress import report_items
 
 
 @dataclass
@@ -212,7 +213,7 @@ class TrainingData:
             self.frame_sizes[row] = (frame.shape[1], frame.shape[0])
             self.kinds[row] = kind
 
-        for j, index in enumerate(_progress(indices, progress, f"frames at {s}x{s}")):
+        for j, index in enumerate(report_items(indices, progress, f"frames at {s}x{s}")):
             frame = dataset.load_image(int(index))
             kps = dataset.samples[int(index)].keypoints
             put(j, int(index), frame, kps, "original")
@@ -272,15 +273,6 @@ def _to_float(images: np.ndarray) -> np.ndarray:
     out = np.empty(images.shape, np.float32)
     np.multiply(images, np.float32(1.0 / 255.0), out=out, casting="unsafe")
     return out
-
-
-def _progress(items: Sequence, progress: Any, desc: str):
-    """`items`, with their progress reported when `progress` is a `progress.Reporter` (True: the current one)."""
-    if progress is False or progress is None:
-        return items
-    from fcnpose_tf import progress as reporting
-
-    return reporting.resolve(None if progress is True else progress).progress(items, desc)
 
 
 @functools.lru_cache(maxsize=None)

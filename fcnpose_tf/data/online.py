@@ -30,6 +30,7 @@ import numpy as np
 from fcnpose_tf.data.augment import _albumentations, inside_frame
 from fcnpose_tf.data.masks import make_target_maps
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.progress import report_items
 
 
 @dataclass(frozen=True)
@@ -190,8 +191,6 @@ class OnlineTrainingData:
     def __init__(self, dataset, indices: Iterable[int], input_size: int, seed: int = 0,
                  config: OnlineAugmentConfig = OnlineAugmentConfig(), samples_per_epoch: int | None = None,
                  radius: float | None = None, thickness: float | None = None, progress: bool = False):
-        from fcnpose_tf.data.dataset import _progress
-
         self.indices = np.asarray(list(indices), dtype=np.int64)
         if not self.indices.size:
             raise UserError("no training frames to augment")
@@ -206,7 +205,7 @@ class OnlineTrainingData:
         self.radius, self.thickness = radius, thickness
         self.frames: list[np.ndarray] = []
         self.keypoints: list[np.ndarray] = []
-        for index in _progress(self.indices, progress, f"frames for online augmentation at {input_size}"):
+        for index in report_items(self.indices, progress, f"frames for online augmentation at {input_size}"):
             frame = dataset.load_image(int(index))
             rgb, kps = working_frame(frame, dataset.samples[int(index)].keypoints, self.input_size, config.work_scale)
             self.frames.append(rgb)
