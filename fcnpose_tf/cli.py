@@ -18,7 +18,7 @@ from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
 from fcnpose_tf import fileio, progress, settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.tfsetup import import_tensorflow_quietly
+from fcnpose_tf.training.tfsetup import import_tensorflow_quietly
 
 EXIT_USER_ERROR = 2
 """Bad input, a refused or failed output (a full disk, a name too long): one `error:` line."""
@@ -80,7 +80,7 @@ def plan_outputs(args: argparse.Namespace) -> None:
 
 
 def _kept(outputs: fileio.CommandOutputs) -> str:
-    from fcnpose_tf.synthcache import cache_dir
+    from fcnpose_tf.data.synthcache import cache_dir
 
     cache = cache_dir().resolve()
     kept = [p for p in outputs.kept() if cache not in p.resolve().parents]  # the package's own cache is not an output

@@ -623,7 +623,7 @@ DISTILL = Setting(
     requirement="a number in [0, 1]", metavar="W")
 """0 keeps the paper's retraining loss exactly; docs/compression.md measures other weights."""
 QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8", "float16-native")
-"""TFLite formats (fcnpose_tf.export): float32, float16 weights (the paper's), dynamic-range int8 weights,
+"""TFLite formats (fcnpose_tf.compression.export): float32, float16 weights (the paper's), dynamic-range int8 weights,
 full-integer int8 (int8 weights and activations, uint8 pixel input; the fastest on a Pi 3/4), and float16
 with the converter's reduced-precision metadata (computed in float16 on CPUs with float16 arithmetic, a Pi 5)."""
 QUANTIZE_FILE_TAGS = {"float32": "fp32", "float16": "fp16", "int8-weights": "int8w", "int8": "int8",
@@ -663,7 +663,7 @@ CALIBRATION_SEED = SEED.variant(help="seed of the choice of int8 calibration fra
 """`export` trains nothing: its only random choice is which training frames calibrate an int8 file
 (`compress` draws them with its --seed)."""
 
-# Quantization-aware training: compress's int8 fallback (fcnpose_tf.qat; docs/compression.md, "int8 on a user's model").
+# Quantization-aware training: compress's int8 fallback (fcnpose_tf.compression.qat; docs/compression.md, "int8 on a user's model").
 QAT_EPOCHS = Setting(
     "qat_epochs", int, 4, "when post-training int8 is refused by its keypoint gate: at most N epochs of "
     "quantization-aware training (tfmot) from the retrained model on the same training frames, the int8 file "

@@ -78,7 +78,7 @@ def _small_arm_project(folder, span, n=6, size=(640, 480)):
 
 
 def test_resolve_input_size_reads_the_frames_and_says_why(tmp_path, capsys):
-    from fcnpose_tf.train import resolve_input_size
+    from fcnpose_tf.training.train import resolve_input_size
 
     size, record = resolve_input_size(_small_arm_project(tmp_path / "wide", 0.39))
     assert size == 384 and record == {"arm_span": 0.39, "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": 384}
@@ -91,7 +91,7 @@ def test_resolve_input_size_reads_the_frames_and_says_why(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_train_auto_records_the_choice(cli, tmp_path):
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.model import load_model
 
     data = _small_arm_project(tmp_path / "frames", 0.9)
     out = tmp_path / "m.keras"

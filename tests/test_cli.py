@@ -23,7 +23,7 @@ def test_summary_prints_paper_figures(cli):
 
 @pytest.mark.slow
 def test_summary_of_a_saved_model_reports_size(cli_here, tmp_path):
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     path = tmp_path / "m.keras"
     build_fcn_pose(input_size=64).save(path)

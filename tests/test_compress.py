@@ -11,7 +11,7 @@ from weights import randomize
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     root = tmp_path_factory.mktemp("compress")
     data = make_via_folder(root / "frames", n=20)  # 16 real frames for the int8 keypoint gate
@@ -113,7 +113,7 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli):
     """--freeze 2: conv1 and conv2 come out of retraining exactly as surgery left them (at rate 0 surgery keeps
     every filter, so they equal the base model's), conv3 is trained; the recipe says so."""
     import numpy as np
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.model import load_model
 
     root, data, base = setup
     out = root / "frozen"
@@ -131,7 +131,7 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli):
 
 
 def test_recipe_names_the_floor_and_a_lowered_one():
-    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.compression.compress import CompressOptions
 
     options = CompressOptions(rate=0.9, min_filters=12, importance="taylor", retrain_epochs=0)
     assert options.recipe().startswith("filter surgery at 0.9 (no layer under 12 filters, same parameter budget), ")
@@ -256,7 +256,7 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli, cli_
 
 
 def test_compress_options_refuse_combinations_no_run_can_do():
-    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.compression.compress import CompressOptions
     from fcnpose_tf.errors import UserError
 
     with pytest.raises(UserError, match="--importance taylor ranks filters for filter surgery"):

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 import tf_keras as keras
 
-from fcnpose_tf.model import build_fcn_pose
-from fcnpose_tf.train import (DistillationLoss, FitConfig, KeypointBinaryCrossentropy, compile_for_training, fit,
+from fcnpose_tf.training.model import build_fcn_pose
+from fcnpose_tf.training.train import (DistillationLoss, FitConfig, KeypointBinaryCrossentropy, compile_for_training, fit,
                               training_loss)
 from fcnpose_tf.progress import SILENT
 from weights import randomize
@@ -96,7 +96,7 @@ def _training_data(tmp_path, copies=1):
 
 
 def test_fixed_rows_carry_the_teachers_maps_in_the_same_order(models, tmp_path):
-    from fcnpose_tf.distill import with_teacher_maps
+    from fcnpose_tf.training.distill import with_teacher_maps
 
     _, teacher = models
     dataset, data = _training_data(tmp_path)
@@ -117,7 +117,7 @@ def test_fixed_rows_carry_the_teachers_maps_in_the_same_order(models, tmp_path):
 
 def test_online_rows_get_the_teachers_maps_per_batch(models, tmp_path):
     from fcnpose_tf.data.online import OnlineTrainingData
-    from fcnpose_tf.distill import with_teacher_maps
+    from fcnpose_tf.training.distill import with_teacher_maps
 
     _, teacher = models
     dataset, _ = _training_data(tmp_path, copies=0)
@@ -137,7 +137,7 @@ def test_online_rows_get_the_teachers_maps_per_batch(models, tmp_path):
 def test_fit_with_distillation_runs_and_records_it(models, tmp_path):
     import json
 
-    from fcnpose_tf.distill import with_teacher_maps
+    from fcnpose_tf.training.distill import with_teacher_maps
 
     student, teacher = models
     dataset, data = _training_data(tmp_path)

@@ -270,7 +270,7 @@ def _tmpdir_holds_a_file(tmpdir):
 
 @pytest.mark.slow
 def test_export_stopped_leaves_no_out_dir_and_nothing_in_tmpdir(tmp_path):
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     model = tmp_path / "m.keras"
     build_fcn_pose(input_size=64).save(model)
@@ -451,7 +451,7 @@ def test_records_kept_after_a_failure_are_named(tmp_path, tflite_model, capsys, 
 
 @pytest.mark.slow
 def test_compress_stopped_while_retraining_leaves_nothing_and_suggests_no_resume(tmp_path):
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
     from test_reliability import _frames_with_stored_splits
 
     data = _frames_with_stored_splits(tmp_path / "d")

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import tf_keras as keras
 
-from fcnpose_tf import export as export_module
+from fcnpose_tf.compression import export as export_module
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.export import (ExportVerificationError, export_tflite, inspect_tflite, run_tflite, to_tflite,
+from fcnpose_tf.compression.export import (ExportVerificationError, export_tflite, inspect_tflite, run_tflite, to_tflite,
                                verify_tflite, write_tflite)
-from fcnpose_tf.model import build_fcn_pose
-from fcnpose_tf.prune import prune_model
+from fcnpose_tf.training.model import build_fcn_pose
+from fcnpose_tf.compression.prune import prune_model
 from weights import randomize
 
 
@@ -386,7 +386,7 @@ def trained_p70_frames():
     """The bundled trained 70% model and real synthetic frames: 16 to calibrate on, 16 to verify on."""
     from fcnpose_tf.bundled import models_dir
     from fcnpose_tf.data.synth.frame import render_frame
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.model import load_model
     from fcnpose_tf.preprocess import preprocess_frame
 
     model = load_model(models_dir() / "fcnpose_ur5_p70.keras")
@@ -419,7 +419,7 @@ def test_int8_gate_refuses_a_broken_calibration_and_writes_nothing(trained_p70_f
 
 def test_export_with_too_few_frames_for_int8_refuses_before_writing_anything(cli_here, tmp_path):
     """The 16-frame minimum of the int8 gate is known before any conversion: no float16 file first, then a failure."""
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
     from test_train_evaluate import make_via_folder
 
     data = make_via_folder(tmp_path / "frames", n=6)

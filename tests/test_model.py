@@ -3,7 +3,7 @@ import pytest
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.metrics import conv_macs
-from fcnpose_tf.model import build_fcn_pose, conv_widths, describe
+from fcnpose_tf.training.model import build_fcn_pose, conv_widths, describe
 
 # The paper's table "FCN-Pose Structure": (layer, output shape, parameters).
 PAPER_TABLE = [

@@ -12,8 +12,8 @@ import pytest
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
-from fcnpose_tf.prune import (chain_param_count, filter_l1_norms, floored_widths, keep_count, kept_filters,
+from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
+from fcnpose_tf.compression.prune import (chain_param_count, filter_l1_norms, floored_widths, keep_count, kept_filters,
                               magnitude_prune, prune_model, prune_plan, prune_widths, pruned_widths, weight_sparsity)
 
 # tfmot 0.8.1 still imports distutils' LooseVersion
@@ -185,7 +185,7 @@ def test_plan_ranks_on_l1_norm_of_original_kernels():
 
 @pytest.mark.parametrize("norm", [None, 1, 2])  # the default (L1), and each weight norm given as importance=
 def test_greedy_ranks_without_the_removed_input_channels(norm):
-    from fcnpose_tf.importance import WeightNorm
+    from fcnpose_tf.compression.importance import WeightNorm
 
     extra = {} if norm is None else {"importance": WeightNorm(norm)}
     inputs = keras.Input((8, 8, 1))

@@ -25,7 +25,7 @@ def faint_model(frames, seed=0, contrast=0.8, share=0.03, skeleton_offset=60.0):
     import tensorflow as tf
     import tf_keras as keras
 
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     model = randomize(build_fcn_pose(input_size=SIZE), seed=seed)
     conv10 = model.get_layer("conv10")
@@ -70,8 +70,8 @@ def table_row(stdout, start):
 def test_post_training_int8_is_refused_and_float16_passes(faint):
     """The case itself: the gate refuses this model's post-training int8 file (a keypoint lost), not its float16."""
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.export import ExportVerificationError, export_frames, export_tflite
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.compression.export import ExportVerificationError, export_frames, export_tflite
+    from fcnpose_tf.training.model import load_model
 
     root, data, path = faint
     model, dataset = load_model(path), load_dataset(data)
@@ -129,8 +129,8 @@ def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli):
     """The default: post-training int8 refused, quantization-aware training's int8 file passes the same gate
     against the same Keras model, is written with the runtime's interface, and the report says how it was made."""
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.export import export_frames, inspect_tflite, verify_tflite
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.compression.export import export_frames, inspect_tflite, verify_tflite
+    from fcnpose_tf.training.model import load_model
 
     root, data, path = faint
     out = root / "qat"
@@ -194,10 +194,10 @@ def test_export_refusal_is_a_row_and_the_exit_status_follows_what_was_named(fain
 def test_calibrated_ranges_clamp_the_sigmoid_input(faint):
     """QAT starts from the calibration frames' ranges (tfmot's own start is [-6, 6]) with the logits on +-8."""
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.export import _inference_graph
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.compression.export import _inference_graph
+    from fcnpose_tf.training.model import load_model
     from fcnpose_tf.preprocess import preprocess_frame
-    from fcnpose_tf.qat import LOGIT_RANGE, calibrate_ranges, quantize_aware
+    from fcnpose_tf.compression.qat import LOGIT_RANGE, calibrate_ranges, quantize_aware
 
     root, data, path = faint
     dataset = load_dataset(data)
@@ -217,9 +217,9 @@ def test_training_runs_epoch_by_epoch_until_the_gate_passes(faint):
     """train_until_gate: epoch 0 is the calibrated copy; each later epoch trains, pins the sigmoid's input range
     again and converts; it stops at the first file that passes and records every epoch's gate."""
     from fcnpose_tf.data.dataset import fold_data, load_dataset
-    from fcnpose_tf.export import ExportVerificationError, export_frames, export_tflite
-    from fcnpose_tf.model import load_model
-    from fcnpose_tf.qat import LOGIT_RANGE, train_until_gate
+    from fcnpose_tf.compression.export import ExportVerificationError, export_frames, export_tflite
+    from fcnpose_tf.training.model import load_model
+    from fcnpose_tf.compression.qat import LOGIT_RANGE, train_until_gate
 
     root, data, path = faint
     model, dataset = load_model(path), load_dataset(data)

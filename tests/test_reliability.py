@@ -58,7 +58,7 @@ def test_compress_refuses_an_existing_side_file_before_any_work(tmp_path, capsys
 
 
 def test_compress_without_retraining_writes_no_training_side_files():
-    from fcnpose_tf.compress import CompressOptions, output_paths
+    from fcnpose_tf.compression.compress import CompressOptions, output_paths
 
     names = [p.name for p in output_paths("m.keras", "out", CompressOptions(rate=0.5, retrain_epochs=0))]
     assert names == ["m_p50.keras", "m_p50_fp16.tflite", "m_p50_int8.tflite", "m_p50_report.json"]
@@ -68,7 +68,7 @@ def _interrupted_run(tmp_path, monkeypatch):
     """A training run on 32x32 frames stopped by Ctrl-C after its first epoch: (data folder, model path)."""
     from test_train_evaluate import make_via_folder
 
-    from fcnpose_tf import train
+    from fcnpose_tf.training import train
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
 
@@ -604,7 +604,7 @@ def test_a_checkpoint_the_disk_cannot_take_keeps_the_last_good_one_and_resume_co
 
 @pytest.fixture
 def tiny_base(tmp_path):
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     base = tmp_path / "base.keras"
     build_fcn_pose(input_size=64).save(base)

@@ -55,7 +55,7 @@ BLOCKED = ("tensorflow", "tf_keras", "keras")
 def _to_tflite(model) -> bytes:
     """float16 .tflite bytes: the project's verified exporter when present, else the plain converter."""
     try:
-        from fcnpose_tf.export import to_tflite
+        from fcnpose_tf.compression.export import to_tflite
     except ImportError:
         to_tflite = None
     if to_tflite is not None:
@@ -74,7 +74,7 @@ def _convert_plain(model) -> bytes:
 
 def _structured_model():
     """The hand-set FCN-Pose described in the module docstring (tf_keras)."""
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     model = build_fcn_pose((3,) * 9, input_size=SIZE)
     for i in range(1, 10):
@@ -163,7 +163,7 @@ def structured(tmp_path_factory):
 @pytest.fixture(scope="module")
 def random_model(tmp_path_factory):
     """(keras model, .tflite path) of a random-weight FCN-Pose with the 70%-pruned widths, 64 x 64."""
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     model = build_fcn_pose((39, 20, 10, 5, 3, 3, 5, 10, 20), input_size=SIZE)
     path = tmp_path_factory.mktemp("models") / "p70_fp16.tflite"
@@ -277,7 +277,7 @@ def test_default_threads_is_all_cores(structured):
 
 @pytest.mark.parametrize("widths", [(3,) * 9, (39, 20, 10, 5, 3, 3, 5, 10, 20)])
 def test_params_and_macs_match_keras(widths, structured, random_model):
-    from fcnpose_tf.model import describe
+    from fcnpose_tf.training.model import describe
 
     keras_model, path = structured if widths == (3,) * 9 else random_model
     stats = KeypointModel(path, 1).stats()
@@ -371,8 +371,8 @@ def test_runtime_matches_training_side_path(structured, random_model):
 
 def test_keras_and_litert_predictors_share_one_frame_path(tmp_path, random_model):
     """The same float32-exported model behind both predictors: one predict, the same keypoints and maps."""
-    from fcnpose_tf.evaluate import KerasKeypointModel
-    from fcnpose_tf.export import to_tflite
+    from fcnpose_tf.training.evaluate import KerasKeypointModel
+    from fcnpose_tf.compression.export import to_tflite
     from fcnpose_tf.runtime.estimator import KeypointPredictor
 
     model = _structured_model()
@@ -410,7 +410,7 @@ def test_fully_quantized_models_are_fed_and_read_through_their_scales(tmp_path, 
     """Integer input/output (full-integer quantization): the frame is quantized, the maps dequantized."""
     import tensorflow as tf
 
-    from fcnpose_tf.model import describe
+    from fcnpose_tf.training.model import describe
     from fcnpose_tf.preprocess import preprocess_frame
 
     keras_model = _structured_model()
@@ -831,7 +831,7 @@ def test_runtime_modules_import_without_tensorflow(no_tf_env):
         import fcnpose_tf.runtime as rt
         names = [m.name for m in pkgutil.iter_modules(rt.__path__, "fcnpose_tf.runtime.")]
         for name in names + ["fcnpose_tf.commands.run", "fcnpose_tf.commands.bench", "fcnpose_tf.commands.predict",
-                             "fcnpose_tf.prelabel", "fcnpose_tf.evaluate", "fcnpose_tf.cli"]:
+                             "fcnpose_tf.runtime.prelabel", "fcnpose_tf.training.evaluate", "fcnpose_tf.cli"]:
             importlib.import_module(name)
         for attr in rt.__all__:
             getattr(rt, attr)

@@ -24,9 +24,9 @@ TRAIN = ["train", "--data", "d", "--out", "m.keras"]
 
 
 def test_a_default_changed_in_settings_reaches_every_command_and_config(monkeypatch):
-    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.compression.compress import CompressOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.training.train import FitConfig
 
     monkeypatch.setattr(settings.BATCH_SIZE, "default", 3)
     monkeypatch.setattr(settings.BATCH_SIZE, "paper", 3)
@@ -59,9 +59,9 @@ def test_train_weights_keypoints_less_when_fine_tuning_on_one_fixed_camera(train
 
 
 def test_commands_that_differ_use_their_own_variant():
-    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.compression.compress import CompressOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.training.train import FitConfig
 
     train, compress, sweep = _parsed(*TRAIN), _parsed("compress", "--rate", "0.5"), _parsed("sweep")
     assert (train.epochs, sweep.epochs) == (FitConfig().epochs, SweepConfig("o", "d").epochs) == (500, 60)
@@ -85,9 +85,9 @@ def test_commands_that_differ_use_their_own_variant():
 
 
 def _config(kind, **values):
-    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.compression.compress import CompressOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.training.train import FitConfig
 
     if kind == "fit":
         return FitConfig(**values)
@@ -122,9 +122,9 @@ def test_the_cli_refuses_with_the_settings_message(cli, tmp_path):
 def _cli_configs(preset):
     """Each command's configs as its parser leaves them with no option but --preset (and what it requires)."""
     from fcnpose_tf.commands.sweep import config_from_args
-    from fcnpose_tf.compress import CompressOptions
-    from fcnpose_tf.export import ExportOptions
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.export import ExportOptions
+    from fcnpose_tf.training.train import FitConfig
 
     flag = [] if preset is None else ["--preset", preset]
     train, compress = _parsed(*TRAIN, *flag), _parsed("compress", "--rate", "0.7", *flag)
@@ -138,10 +138,10 @@ def _cli_configs(preset):
 
 def _api_configs(preset):
     """The same configs from the library: the class's defaults, or its `preset`."""
-    from fcnpose_tf.compress import CompressOptions
-    from fcnpose_tf.export import ExportOptions
+    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.export import ExportOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.training.train import FitConfig
 
     def make(cls, **values):
         return cls(**values) if preset is None else cls.preset(preset, **values)
@@ -167,7 +167,7 @@ def test_the_api_and_the_cli_mean_the_same_with_no_options(preset):
 
 
 def test_compress_options_mean_what_compress_means():
-    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.compression.compress import CompressOptions
 
     recommended = CompressOptions(rate=0.7).resolved()
     assert (recommended.importance, recommended.min_filters, recommended.learning_rate, recommended.lr_patience) == \
@@ -190,7 +190,7 @@ def test_compress_options_mean_what_compress_means():
 
 
 def test_train_preset_paper_is_the_papers_recipe():
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.training.train import FitConfig
 
     args = _parsed(*TRAIN, "--preset", "paper")
     assert (args.init, args.augment, args.folds) == ("none", "paper", None)
@@ -208,9 +208,9 @@ def test_train_preset_paper_is_the_papers_recipe():
 def test_the_sweep_passes_every_setting_on_to_its_runs():
     import dataclasses
 
-    from fcnpose_tf.compress import CompressOptions
+    from fcnpose_tf.compression.compress import CompressOptions
     from fcnpose_tf.sweep.jobs import SWEEP_FIXED, Job, SweepConfig
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.training.train import FitConfig
 
     config = SweepConfig("o", "d", lr_schedule="cosine", freeze=2, max_minutes=5.0, learning_rate=2e-3)
     fit = config.fit_config()
@@ -225,8 +225,8 @@ def test_the_sweep_passes_every_setting_on_to_its_runs():
 
 @pytest.mark.parametrize("rate, params", [(0.5, 35185), (0.7, 14668)])
 def test_the_sweeps_paper_preset_keeps_the_papers_parameter_counts(rate, params):
-    from fcnpose_tf.model import build_fcn_pose
-    from fcnpose_tf.prune import prune_model
+    from fcnpose_tf.training.model import build_fcn_pose
+    from fcnpose_tf.compression.prune import prune_model
     from fcnpose_tf.sweep.jobs import Job, SweepConfig
 
     options = SweepConfig.preset("paper", out="o", data="d").compress_options(Job(0, rate))

@@ -697,7 +697,7 @@ def test_a_rate_job_whose_every_format_is_refused_fails_with_one_line(tmp_path, 
     """compress finishes with every format refused (report["quantized"] None): the job is a clean failure."""
     import types
 
-    import fcnpose_tf.compress
+    import fcnpose_tf.compression.compress
     from fcnpose_tf.sweep import jobs
 
     base = jobs.base_model_path(tmp_path, 0)
@@ -705,7 +705,7 @@ def test_a_rate_job_whose_every_format_is_refused_fails_with_one_line(tmp_path, 
     base.write_bytes(b"not read")
     report = {"quantized": None, "refused": [{"quantize": "float16", "reason": "keypoint 3 lost"},
                                              {"quantize": "int8", "reason": "2.5 px > 2 px"}]}
-    monkeypatch.setattr(fcnpose_tf.compress, "compress_model", lambda *a, **k: report)
+    monkeypatch.setattr(fcnpose_tf.compression.compress, "compress_model", lambda *a, **k: report)
     config = types.SimpleNamespace(out=tmp_path, folds=2, verbose=0, compress_options=lambda job: None)
     dataset = types.SimpleNamespace(split=lambda fold: ([0, 1], [2, 3]))
     with pytest.raises(UserError, match=r"no TFLite file passed its keypoint gate \(float16: keypoint 3 lost; int8"):

@@ -7,9 +7,10 @@ from pathlib import Path
 
 import pytest
 
-from fcnpose_tf import synthcache
+import fcnpose_tf
+from fcnpose_tf.data import synthcache
 
-PACKAGE = Path(synthcache.__file__).resolve().parent
+PACKAGE = Path(fcnpose_tf.__file__).resolve().parent
 
 
 def _module_of(path: Path) -> str:

@@ -90,7 +90,7 @@ def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, 
 
 @pytest.mark.slow
 def test_evaluate_errors(trained, cli_here, tmp_path):
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     data, out, _ = trained
     status, _, err = cli_here("evaluate", tmp_path / "nope.keras", "--data", data)
@@ -110,9 +110,9 @@ def test_evaluate_errors(trained, cli_here, tmp_path):
 
 @pytest.mark.slow
 def test_interrupted_training_resumes(tmp_path, monkeypatch):
-    from fcnpose_tf import train
+    from fcnpose_tf.training import train
     from fcnpose_tf.data.dataset import fold_data, load_dataset
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
     tr, va = fold_data(ds, None, 32, 0)
@@ -142,9 +142,9 @@ def test_interrupted_training_resumes(tmp_path, monkeypatch):
 def test_an_interrupted_run_that_cannot_resume_says_what_to_do_and_leaves_no_checkpoint(tmp_path, monkeypatch):
     """compress retrains through fit(resumable=False): Ctrl-C names the epochs done and says to run the command
     again, not to pass a --resume compress does not have."""
-    from fcnpose_tf import train
+    from fcnpose_tf.training import train
     from fcnpose_tf.data.dataset import fold_data, load_dataset
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
     tr, va = fold_data(ds, None, 32, 0)
@@ -167,7 +167,7 @@ def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
     import tensorflow as tf
     import tf_keras as keras
 
-    from fcnpose_tf.train import KeypointBinaryCrossentropy
+    from fcnpose_tf.training.train import KeypointBinaryCrossentropy
 
     rng = np.random.default_rng(0)
     y = (rng.random((2, 8, 8, 3)) > 0.8).astype(np.float32)
@@ -194,7 +194,7 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_he
     assert record["augment"] == "paper" and record["augment_auto"]["chose"] == "paper"  # one fixed "camera"
     assert "Augmentation: auto -> paper (one fixed camera" in proc.stdout
     assert "Keypoint weight: 8 (fine-tuning a trained model on the paper's copies" in proc.stdout
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.model import load_model
 
     start, tuned = load_model(out), load_model(tmp_path / "ft.keras")
     for name, kept in (("conv1", True), ("conv2", True), ("conv3", False), ("conv10", False)):
@@ -214,7 +214,7 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_he
     status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "bad.keras", "--init", out, "--freeze", "10")
     assert status == 2 and "error: frozen layers must be 0 to 9" in err
     # a model of another keypoint schema is refused before any training, saying how to start from scratch
-    from fcnpose_tf.model import build_fcn_pose, save_for_inference
+    from fcnpose_tf.training.model import build_fcn_pose, save_for_inference
 
     other = tmp_path / "other_arm.keras"
     save_for_inference(build_fcn_pose(input_size=64, num_maps=5), other)
@@ -227,7 +227,7 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_he
 def _poor_start(model_path, path):
     """`model_path`'s model with its maps pushed towards 1 everywhere (conv10's bias +3): the first epoch of
     training beats it on any frames, so what fine-tuning changed is in the saved model."""
-    from fcnpose_tf.model import load_model, save_for_inference
+    from fcnpose_tf.training.model import load_model, save_for_inference
 
     model = load_model(model_path)
     kernel, bias = model.get_layer("conv10").get_weights()
@@ -249,7 +249,7 @@ def test_a_start_no_epoch_beats_is_the_model_written(trained, cli, tmp_path):
     header, *rows = (tmp_path / "kept_loss.csv").read_text().splitlines()
     assert header == "epoch,loss,val_loss" and len(rows) == 2
     assert all(float(row.split(",")[2]) > record["start_val_loss"] for row in rows)
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.model import load_model
 
     start, kept = load_model(out), load_model(tmp_path / "kept.keras")
     assert all(np.array_equal(a, b) for a, b in zip(start.get_weights(), kept.get_weights()))
@@ -261,7 +261,7 @@ def _run_epoch_callback(tmp_path, learning_rate, val_losses, seconds=0.0, **sche
     behind it; its state afterwards."""
     import tf_keras as keras
 
-    from fcnpose_tf.train import _CheckpointAndStop, compile_for_training, run_paths
+    from fcnpose_tf.training.train import _CheckpointAndStop, compile_for_training, run_paths
 
     model = keras.Sequential([keras.Input((4, 4, 3)), keras.layers.Conv2D(9, 1, activation="sigmoid")])
     compile_for_training(model, learning_rate)
@@ -291,7 +291,7 @@ def test_cosine_schedule_sets_every_epochs_rate_and_refuses_plateau_halving_too(
     validation loss does (no time budget); combined with --lr-patience it is refused before any work."""
     import math
 
-    from fcnpose_tf.train import FitConfig, cosine_rate
+    from fcnpose_tf.training.train import FitConfig, cosine_rate
 
     expected = [1e-5 + (2e-3 - 1e-5) * (1 + math.cos(math.pi * e / 4)) / 2 for e in range(4)]
     assert [cosine_rate(e / 4, 2e-3) for e in range(4)] == pytest.approx(expected, rel=1e-12)
@@ -311,7 +311,7 @@ def test_cosine_follows_whichever_budget_ends_first(tmp_path):
     500-epoch, 30-minute budget ends by time, so the rate reaches its floor with the minutes."""
     import math
 
-    from fcnpose_tf.train import budget_progress, cosine_rate
+    from fcnpose_tf.training.train import budget_progress, cosine_rate
 
     assert budget_progress(2, 4, seconds=10.0, max_seconds=None) == 0.5
     assert budget_progress(2, 500, seconds=1350.0, max_seconds=1800.0) == 0.75  # time ends first
@@ -327,7 +327,7 @@ def test_cosine_follows_whichever_budget_ends_first(tmp_path):
 
 
 def test_loss_label_names_the_weighting():
-    from fcnpose_tf.train import loss_name
+    from fcnpose_tf.training.train import loss_name
 
     assert loss_name(1.0) == "binary cross-entropy"
     assert loss_name(20.0) == "binary cross-entropy, keypoint pixels weighted 20"
@@ -337,7 +337,7 @@ def test_evaluate_timing_uses_the_runtime_summary_with_sample_std():
     """evaluate_predictor's "± std" is the sample std (ddof=1) of the per-frame stage times."""
     from types import SimpleNamespace
 
-    from fcnpose_tf.evaluate import evaluate_predictor, format_timing
+    from fcnpose_tf.training.evaluate import evaluate_predictor, format_timing
     from fcnpose_tf.runtime.estimator import Prediction, StageTimes
 
     invoke = np.random.default_rng(1).uniform(5.0, 9.0, 60)
@@ -367,9 +367,9 @@ def test_evaluate_timing_uses_the_runtime_summary_with_sample_std():
 
 
 def test_time_budget_ends_training_after_the_epoch_that_reaches_it(tmp_path):
-    from fcnpose_tf import train
+    from fcnpose_tf.training import train
     from fcnpose_tf.data.dataset import fold_data, load_dataset
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
     tr, va = fold_data(ds, None, 32, 0)
@@ -385,8 +385,8 @@ def test_time_budget_ends_training_after_the_epoch_that_reaches_it(tmp_path):
 
 def test_frozen_layers_keep_their_weights_and_the_saved_model_matches_the_trained_one(tmp_path):
     """fit with freeze=2: conv1..2 unchanged; the file holds each layer's trained weights (frozen ones sort last)."""
-    from fcnpose_tf.model import build_fcn_pose, load_model
-    from fcnpose_tf.train import FitConfig, fit
+    from fcnpose_tf.training.model import build_fcn_pose, load_model
+    from fcnpose_tf.training.train import FitConfig, fit
 
     rng = np.random.default_rng(0)
     images = rng.random((8, 32, 32, 3), dtype=np.float32)
@@ -408,6 +408,6 @@ def test_frozen_layers_keep_their_weights_and_the_saved_model_matches_the_traine
         elif layer.weights:
             assert changed, layer.name
     with pytest.raises(UserError, match="nothing to train"):
-        from fcnpose_tf.train import freeze_first_convolutions
+        from fcnpose_tf.training.train import freeze_first_convolutions
 
         freeze_first_convolutions(build_fcn_pose(input_size=32), 10)

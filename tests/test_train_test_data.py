@@ -16,9 +16,9 @@ from tests.test_train_evaluate import make_via_folder
 @pytest.mark.parametrize("trained_start", [True, False])
 def test_stopped_before_the_first_epoch_leaves_no_checkpoint_and_does_not_suggest_resume(
         tmp_path, monkeypatch, trained_start):
-    from fcnpose_tf import train
+    from fcnpose_tf.training import train
     from fcnpose_tf.data.dataset import fold_data, load_dataset
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
 
     ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
     tr, va = fold_data(ds, None, 32, 0)
@@ -40,7 +40,7 @@ def test_stopped_before_the_first_epoch_leaves_no_checkpoint_and_does_not_sugges
 
 
 def test_the_test_line_compares_start_and_end_and_says_when_the_end_is_worse():
-    from fcnpose_tf.train import format_test_set_line
+    from fcnpose_tf.training.train import format_test_set_line
 
     start = {"pck@0.5_bbox": 0.9, "pck@0.2_bbox": 0.8, "pck@0.05_bbox": 0.3, "epe_px": 4.0, "missing_fraction": 0.0}
     better = {**start, "pck@0.05_bbox": 0.4, "epe_px": 3.5}

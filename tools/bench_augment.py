@@ -24,15 +24,15 @@ def main() -> int:
     parser.add_argument("--threads", type=int, default=None, help="TensorFlow threads (default: all cores)")
     args = parser.parse_args()
 
-    from fcnpose_tf.tfsetup import import_tensorflow_quietly, set_tensorflow_threads
+    from fcnpose_tf.training.tfsetup import import_tensorflow_quietly, set_tensorflow_threads
 
     import_tensorflow_quietly()
     set_tensorflow_threads(args.threads)
     from fcnpose_tf.data.dataset import TrainingData, load_dataset
     from fcnpose_tf.data.online import OnlineTrainingData
-    from fcnpose_tf.model import build_fcn_pose
+    from fcnpose_tf.training.model import build_fcn_pose
     from fcnpose_tf.tables import format_table
-    from fcnpose_tf.train import compile_for_training
+    from fcnpose_tf.training.train import compile_for_training
 
     dataset = load_dataset(args.data)
     indices = list(range(min(args.frames, len(dataset))))

@@ -29,18 +29,18 @@ def main() -> int:
     parser.add_argument("--online", action="store_true", help="also time online augmentation (per-batch teacher)")
     args = parser.parse_args()
 
-    from fcnpose_tf.tfsetup import set_tensorflow_threads
+    from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
     set_tensorflow_threads(args.threads)
     import tf_keras as keras
 
-    from fcnpose_tf import synthcache
+    from fcnpose_tf.data import synthcache
     from fcnpose_tf.bundled import baseline_model
     from fcnpose_tf.data.dataset import TrainingData, load_dataset
-    from fcnpose_tf.distill import with_teacher_maps
-    from fcnpose_tf.model import load_model
-    from fcnpose_tf.prune import prune_model
-    from fcnpose_tf.train import compile_for_training
+    from fcnpose_tf.training.distill import with_teacher_maps
+    from fcnpose_tf.training.model import load_model
+    from fcnpose_tf.compression.prune import prune_model
+    from fcnpose_tf.training.train import compile_for_training
 
     teacher = load_model(baseline_model())
     size = int(teacher.input_shape[1])

@@ -8,7 +8,7 @@ alternating every frame) so all paths see the same load:
      full-integer int8 file, with the bundled 70 % float16 file as C for comparison),
   C... more TFLite files (--tflite again) and float16 exports of Keras models made on
      the fly (--export, verified against the Keras model; --fold exports them with
-     fcnpose_tf.inference_graph.fold_upsampling, --no-fold without, --both both ways),
+     fcnpose_tf.compression.inference_graph.fold_upsampling, --no-fold without, --both both ways),
 each end to end (preprocess + forward pass + post-processing). Prints medians, p95, each path's
 FPS ratio to A, and the share of its frame time spent outside the interpreter (pre + post).
 
@@ -85,11 +85,11 @@ def main() -> int:
 
     from fcnpose_tf.bundled import baseline_model, models_dir
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.evaluate import KerasKeypointModel
+    from fcnpose_tf.training.evaluate import KerasKeypointModel
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.runtime.timing import LatencyLog
-    from fcnpose_tf.synthcache import heldout_data
-    from fcnpose_tf.tfsetup import set_tensorflow_threads
+    from fcnpose_tf.data.synthcache import heldout_data
+    from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
     set_tensorflow_threads(args.threads)
     keras_path = args.keras or baseline_model()
@@ -101,8 +101,8 @@ def main() -> int:
     tmp = tempfile.TemporaryDirectory(prefix="bench_speedup_")
     labels = [f"{p.name} (LiteRT)" for p in tflite_paths]
     if args.export:
-        from fcnpose_tf.export import write_tflite
-        from fcnpose_tf.model import load_model
+        from fcnpose_tf.compression.export import write_tflite
+        from fcnpose_tf.training.model import load_model
         from fcnpose_tf.preprocess import preprocess_frame
 
         for source in args.export:
@@ -140,7 +140,7 @@ def main() -> int:
                 "postprocess_ms_median": s["postprocess"]["median"], "fps_median": 1000.0 / s["end_to_end"]["median"],
                 "pre_post_share_percent": float(100 * np.median(share))}
 
-    from fcnpose_tf.model import describe
+    from fcnpose_tf.training.model import describe
 
     def throughput(macs: int, inference_ms: float) -> float:
         return macs / inference_ms / 1e6  # GMAC/s

@@ -30,12 +30,12 @@ def main() -> int:
                         help="time the network pruned at this rate (the keep rule's widths; default 0: unpruned)")
     args = parser.parse_args()
 
-    from fcnpose_tf.tfsetup import set_tensorflow_threads
+    from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
     set_tensorflow_threads(args.threads)
-    from fcnpose_tf.model import DEFAULT_WIDTHS, build_fcn_pose
-    from fcnpose_tf.prune import pruned_widths
-    from fcnpose_tf.train import compile_for_training, freeze_first_convolutions
+    from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose
+    from fcnpose_tf.compression.prune import pruned_widths
+    from fcnpose_tf.training.train import compile_for_training, freeze_first_convolutions
 
     rng = np.random.default_rng(0)
     size, batch = args.input_size, args.batch_size

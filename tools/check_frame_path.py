@@ -31,7 +31,7 @@ def main() -> int:
     from fcnpose_tf.bundled import models_dir
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.runtime.estimator import KeypointModel
-    from fcnpose_tf.synthcache import heldout_data
+    from fcnpose_tf.data.synthcache import heldout_data
 
     paths = args.tflite or sorted(models_dir().glob("*.tflite"))
     dataset = load_dataset(args.data or heldout_data())

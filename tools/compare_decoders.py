@@ -75,7 +75,7 @@ def main() -> None:
 
     from fcnpose_tf import metrics
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.evaluate import open_model
+    from fcnpose_tf.training.evaluate import open_model
     from fcnpose_tf.preprocess import keypoints_to_frame
 
     dataset = load_dataset(args.data)

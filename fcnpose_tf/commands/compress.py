@@ -81,13 +81,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf import settings, synthcache
+    from fcnpose_tf import settings
+    from fcnpose_tf.data import synthcache
     from fcnpose_tf.bundled import baseline_model
-    from fcnpose_tf.compress import CompressOptions, check_outputs, compress_model, report_table
+    from fcnpose_tf.compression.compress import CompressOptions, check_outputs, compress_model, report_table
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.tfsetup import set_tensorflow_threads
+    from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.fileio import removed_if_left_empty
     from fcnpose_tf.system import available_cores
 
@@ -159,8 +160,8 @@ def run(args: argparse.Namespace) -> int:
 def _finish(report: dict, model_path: Path, out_dir: Path, options, named: bool) -> int:
     """Name every file written; the exit status (see the module doc): 2 when a named format was refused or no
     .tflite file was written, else 0."""
-    from fcnpose_tf.compress import output_paths
-    from fcnpose_tf.export import finish_formats
+    from fcnpose_tf.compression.compress import output_paths
+    from fcnpose_tf.compression.export import finish_formats
 
     written = [Path(p) for p in report["files"].values()]
     written += [p for p in output_paths(model_path, out_dir, options) if p.is_file() and p not in written

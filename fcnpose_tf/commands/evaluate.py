@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.evaluate import choose_frames, evaluate_predictor, format_timing, open_model
+    from fcnpose_tf.training.evaluate import choose_frames, evaluate_predictor, format_timing, open_model
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.settings import FOLDS
@@ -88,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     print(format_timing(result["timing"]))
     sequence = None
     if args.sequence is not None:
-        from fcnpose_tf.evaluate import format_sequence, sequence_report
+        from fcnpose_tf.training.evaluate import format_sequence, sequence_report
 
         sequence = sequence_report(result["predictions"], result["ground_truth"], args.sequence,
                                    params_from_args(args), dataset.schema.keypoints)

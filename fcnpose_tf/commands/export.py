@@ -54,15 +54,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf import settings, synthcache
+    from fcnpose_tf import settings
+    from fcnpose_tf.data import synthcache
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.export import (MIN_FRAMES_BY_MODE, ExportOptions, ExportVerificationError, export_frames,
+    from fcnpose_tf.compression.export import (MIN_FRAMES_BY_MODE, ExportOptions, ExportVerificationError, export_frames,
                                    finish_formats, write_tflite)
     from fcnpose_tf.fileio import check_writable, write_json
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.model import load_model
     from fcnpose_tf.tables import format_table
-    from fcnpose_tf.tfsetup import set_tensorflow_threads
+    from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
     options = ExportOptions(**settings.values_from_args(args, ExportOptions))

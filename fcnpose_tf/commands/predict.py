@@ -69,9 +69,9 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.evaluate import open_model
+    from fcnpose_tf.training.evaluate import open_model
     from fcnpose_tf.fileio import stop_signals_as_interrupt
-    from fcnpose_tf.prelabel import ViaPredictions, check_via_output
+    from fcnpose_tf.runtime.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
     from fcnpose_tf.smoothing import params_from_args
@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     check_via_output(args.via, args.force, args.min_confidence)  # before the model loads: fail in a second
     model_path = args.model
     if Path(model_path).suffix in (".keras", ".h5"):
-        from fcnpose_tf.tfsetup import import_tensorflow_quietly
+        from fcnpose_tf.training.tfsetup import import_tensorflow_quietly
 
         import_tensorflow_quietly()
     predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
@@ -128,11 +128,11 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
 
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import stop_signals_as_interrupt
-    from fcnpose_tf.prelabel import ViaPredictions
+    from fcnpose_tf.runtime.prelabel import ViaPredictions
     from fcnpose_tf.runtime.estimator import Prediction
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
-    from fcnpose_tf.selection import FrameScores, default_min_gap
+    from fcnpose_tf.runtime.selection import FrameScores, default_min_gap
 
     gap = args.min_gap or default_min_gap(source.fps, source.kind)
     scores = FrameScores(args.by, predictor)

@@ -29,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf.model import build_fcn_pose, describe, load_model
+    from fcnpose_tf.training.model import build_fcn_pose, describe, load_model
     from fcnpose_tf.tables import format_table
 
     if args.model is None:

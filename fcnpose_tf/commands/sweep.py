@@ -126,7 +126,7 @@ def config_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf import synthcache
+    from fcnpose_tf.data import synthcache
     from fcnpose_tf.sweep import run_sweep, write_report
 
     if args.report_only and args.retime:

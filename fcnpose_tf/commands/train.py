@@ -85,10 +85,10 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.data.dataset import resolve_data
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.evaluate import format_timing
-    from fcnpose_tf.tfsetup import set_tensorflow_threads
+    from fcnpose_tf.training.evaluate import format_timing
+    from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line, resolve_augment,
+    from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line, resolve_augment,
                                   resolve_input_size, run_identity, start_on_test_set, train_fold)
 
     init = initial_weights(args.init)

@@ -5,7 +5,7 @@ the stages are the ones the FPS definition adds up (docs/runtime.md): preprocess
 side's `preprocess_frame`), the network's forward pass, and post-processing (`postprocess.decode`:
 `maps_to_keypoints`, then scaling back to the frame). A backend supplies only the forward pass and
 its buffers. `KeypointModel` is the LiteRT one (preprocessing writes straight into the
-interpreter's input buffer); the tf_keras one is `fcnpose_tf.evaluate.KerasKeypointModel`.
+interpreter's input buffer); the tf_keras one is `fcnpose_tf.training.evaluate.KerasKeypointModel`.
 No per-frame allocation of model-sized buffers; not thread-safe (one model per thread).
 """
 

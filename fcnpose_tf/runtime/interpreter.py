@@ -207,7 +207,7 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
     if any(d < 0 for d in signature[1:]):  # allocated as [1, 1, 1, 3]: keypoints would land at the frame centre
         raise UserError(f"{path}: the input size is not fixed (shape signature {signature}); the runtime needs "
                         "a fixed S x S input: export the model with one, e.g. "
-                        "fcnpose_tf.export.write_tflite(model, 'model.tflite', input_size=224), or build it on "
+                        "fcnpose_tf.compression.export.write_tflite(model, 'model.tflite', input_size=224), or build it on "
                         "tf_keras.Input((224, 224, 3))")
     shape = spec_in.shape
     if len(shape) != 4 or shape[0] != 1 or shape[3] != 3:
@@ -285,7 +285,7 @@ def model_stats(interpreter: Any, path: str | os.PathLike) -> ModelStats:
         return index
 
     # A CONV_2D feeding DEPTH_TO_SPACE(b) is an upsampling folded into a convolution by
-    # fcnpose_tf.inference_graph.fold_upsampling: its b*b phase kernels stand for one 3x3 kernel
+    # fcnpose_tf.compression.inference_graph.fold_upsampling: its b*b phase kernels stand for one 3x3 kernel
     # (3x3 taps per phase for a 3x3 or 1x1 per phase for a 1x1 original), so count its weights / (b*b).
     consumers: dict[int, list] = {}
     for op in ops:

@@ -33,8 +33,8 @@ from fcnpose_tf.records import file_sha256, library_versions, machine_info, trai
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
 
 if TYPE_CHECKING:
-    from fcnpose_tf.compress import CompressOptions
-    from fcnpose_tf.train import FitConfig
+    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.training.train import FitConfig
 
 RECORD_VERSION = 1
 JOBS_DIR = "jobs"
@@ -174,14 +174,14 @@ class SweepConfig:
     def fit_config(self) -> FitConfig:
         """How the base models are trained: every FitConfig setting the sweep's (random weights: no layer frozen,
         no teacher)."""
-        from fcnpose_tf.train import FitConfig
+        from fcnpose_tf.training.train import FitConfig
 
         return FitConfig(**settings.carried(self, FitConfig, freeze=0, distill=0.0))
 
     def compress_options(self, job: Job) -> CompressOptions:
         """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained): every
         CompressOptions setting the sweep's, those of SWEEP_FIXED at CompressOptions' defaults."""
-        from fcnpose_tf.compress import CompressOptions
+        from fcnpose_tf.compression.compress import CompressOptions
 
         fixed = {name: value for name, value in settings.preset_values(CompressOptions, settings.DEFAULT_PRESET).items()
                  if name in SWEEP_FIXED}
@@ -315,7 +315,7 @@ def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
     """
     import gc
 
-    from fcnpose_tf.tfsetup import import_tensorflow_quietly, set_tensorflow_threads
+    from fcnpose_tf.training.tfsetup import import_tensorflow_quietly, set_tensorflow_threads
 
     start = time.perf_counter()
     import_tensorflow_quietly()  # in a worker process: without TensorFlow's start-up log lines, as the CLI does
@@ -381,10 +381,10 @@ def _reporter(config: SweepConfig) -> Any:
 
 
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
-    from fcnpose_tf.compress import file_sizes, model_facts
-    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
-    from fcnpose_tf.model import load_model
-    from fcnpose_tf.train import run_paths, train_fold
+    from fcnpose_tf.compression.compress import file_sizes, model_facts
+    from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
+    from fcnpose_tf.training.model import load_model
+    from fcnpose_tf.training.train import run_paths, train_fold
 
     path = base_model_path(config.out, job.fold)
     _, val_idx = dataset.split(job.fold)
@@ -418,7 +418,7 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
 
 
 def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) -> dict[str, Any]:
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.model import load_model
 
     model = load_model(path)
     size, maps = int(model.input_shape[1]), int(model.output_shape[-1])
@@ -444,7 +444,7 @@ def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) 
 
 
 def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
-    from fcnpose_tf.compress import compress_model
+    from fcnpose_tf.compression.compress import compress_model
 
     base = base_model_path(config.out, job.fold)
     if not base.is_file():

@@ -77,7 +77,7 @@ def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
 
 def _measure(predictor: Any, dataset: Any, indices: list[int]) -> dict[str, Any]:
     """The jobs' measurement: every frame scored once, timing over >= 50 frames after 5 warm-up frames."""
-    from fcnpose_tf.evaluate import MIN_TIMED_FRAMES, WARMUP_FRAMES, evaluate_predictor
+    from fcnpose_tf.training.evaluate import MIN_TIMED_FRAMES, WARMUP_FRAMES, evaluate_predictor
 
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema, min_timed_frames=MIN_TIMED_FRAMES,
                                 warmup=WARMUP_FRAMES)
@@ -97,8 +97,8 @@ def _checked_file(out: Path, relative: str | None, what: str, sha256: str | None
 
 def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> dict[str, dict[str, Any]]:
     """Re-run the job's measurements: {section: {"metrics", "timing"}} for each timed section it has."""
-    from fcnpose_tf.evaluate import KerasKeypointModel
-    from fcnpose_tf.model import load_model
+    from fcnpose_tf.training.evaluate import KerasKeypointModel
+    from fcnpose_tf.training.model import load_model
     from fcnpose_tf.runtime.estimator import KeypointModel
 
     out = Path(config.out)
@@ -124,7 +124,7 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
     keras_path = _checked_file(out, files.get("keras"), "the compressed Keras model")
     measured["keras"] = _measure(KerasKeypointModel(load_model(keras_path), keras_path, num_threads=threads),
                                  dataset, indices)
-    from fcnpose_tf.compress import tflite_key
+    from fcnpose_tf.compression.compress import tflite_key
 
     for section in tflite_sections(record):
         quantize = record[section].get("quantize")
@@ -237,7 +237,7 @@ def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | Non
 
 def _prepare_tensorflow(threads: int) -> dict[str, Any]:
     """Import TensorFlow quietly with the jobs' thread settings; return them as TensorFlow reports them."""
-    from fcnpose_tf.tfsetup import import_tensorflow_quietly, set_tensorflow_threads, tensorflow_threads
+    from fcnpose_tf.training.tfsetup import import_tensorflow_quietly, set_tensorflow_threads, tensorflow_threads
 
     import_tensorflow_quietly()
     set_tensorflow_threads(threads)

@@ -10,8 +10,8 @@
 the steps below in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
 export_step, measure_quantized), each returning its part of the report. A format whose file fails its gate is a
 "refused" entry of the report, not the end of the run; post-training int8 refused falls back to
-quantization-aware training (`qat_step`, `fcnpose_tf.qat`). A pruning method is a `PruningMethod`
-object (`FilterPruning` with an importance criterion from `fcnpose_tf.importance`, `MagnitudePruning`);
+quantization-aware training (`qat_step`, `fcnpose_tf.compression.qat`). A pruning method is a `PruningMethod`
+object (`FilterPruning` with an importance criterion from `fcnpose_tf.compression.importance`, `MagnitudePruning`);
 both retrain through `train.fit`.
 """
 
@@ -30,7 +30,7 @@ import numpy as np
 
 from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
+from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.fileio import check_writable, write_json
 from fcnpose_tf.records import file_sha256, training_record
@@ -38,8 +38,8 @@ from fcnpose_tf.records import file_sha256, training_record
 if TYPE_CHECKING:
     import tf_keras as keras
 
-    from fcnpose_tf.importance import Importance
-    from fcnpose_tf.train import FitConfig, FitResult
+    from fcnpose_tf.compression.importance import Importance
+    from fcnpose_tf.training.train import FitConfig, FitResult
 
 # TensorFlow is imported inside the functions: `sweep.jobs` and the CLI import this module (or
 # read its settings) without needing TensorFlow until a compression runs.
@@ -74,7 +74,7 @@ class CompressOptions:
 
     def validate(self) -> None:
         """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
-        from fcnpose_tf.importance import DATA_AWARE
+        from fcnpose_tf.compression.importance import DATA_AWARE
 
         settings.validate_fields(self)
         settings.check_lr_schedule(self.lr_schedule, self.lr_patience or 0)
@@ -115,7 +115,7 @@ class CompressOptions:
         """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
 
         `min_filters_used` is the floor the surgery could keep (`prune.prune_widths`) when lower than asked."""
-        from fcnpose_tf.train import loss_name
+        from fcnpose_tf.training.train import loss_name
 
         if None in (self.importance, self.min_filters, self.lr_patience, self.positive_weight):
             return self.resolved().recipe(min_filters_used)
@@ -140,7 +140,7 @@ class CompressOptions:
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
-        from fcnpose_tf.train import FitConfig
+        from fcnpose_tf.training.train import FitConfig
 
         return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1), max_minutes=None))
 
@@ -162,7 +162,7 @@ def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
 
 def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
     """Every file a run writes into `out_dir`: the models, the report and (when retraining) the training side files."""
-    from fcnpose_tf.train import output_files
+    from fcnpose_tf.training.train import output_files
 
     names = output_names(Path(base_path).stem, options)
     paths = [Path(out_dir) / name for key, name in names.items() if key != "stem"]
@@ -180,7 +180,7 @@ def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, opti
 
 def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
     """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
-    from fcnpose_tf.model import h5_bytes, inference_copy, save_for_inference
+    from fcnpose_tf.training.model import h5_bytes, inference_copy, save_for_inference
 
     with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
         warnings.simplefilter("ignore", UserWarning)
@@ -196,7 +196,7 @@ def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, 
 
 def model_facts(model: keras.Model) -> dict[str, Any]:
     """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
-    from fcnpose_tf.model import conv_widths, describe
+    from fcnpose_tf.training.model import conv_widths, describe
 
     rows = describe(model)
     macs = sum(r.macs for r in rows)
@@ -245,7 +245,7 @@ class PruningMethod(Protocol):
 
 class FilterPruning:
     """The paper's method: remove the least important filters (exact layer surgery); the paper ranks them by
-    L1 norm, `fcnpose_tf.importance` holds the other criteria. The method is named "l1" in reports and
+    L1 norm, `fcnpose_tf.compression.importance` holds the other criteria. The method is named "l1" in reports and
     options for that reason; the criterion is recorded beside it."""
 
     name, tag = "l1", "p"
@@ -259,7 +259,7 @@ class FilterPruning:
         return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
 
     def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.prune import prune_model
+        from fcnpose_tf.compression.prune import prune_model
 
         start = time.perf_counter()
         pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
@@ -289,7 +289,7 @@ class MagnitudePruning:
         return f"magnitude at rate {self.rate:g}"
 
     def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.prune import magnitude_prune, prune_model
+        from fcnpose_tf.compression.prune import magnitude_prune, prune_model
 
         surgery = prune_model(base, self.rate)  # only its parameter count: the same reduction as filter surgery
         self.sparsity = 1.0 - model_facts(surgery)["params"] / model_facts(base)["params"]
@@ -298,7 +298,7 @@ class MagnitudePruning:
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         import tensorflow_model_optimization as tfmot
 
-        from fcnpose_tf.prune import magnitude_prune
+        from fcnpose_tf.compression.prune import magnitude_prune
 
         # the same masks as `prune` (computed from the base's weights), kept while fit retrains
         magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(
@@ -387,8 +387,8 @@ def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarr
 
 def importance_step(run: _Run, fold: int | None) -> Importance:
     """The run's filter importance criterion, with its frames when it is data-aware."""
-    from fcnpose_tf.importance import DATA_AWARE, make_importance
-    from fcnpose_tf.train import ground_truth_loss
+    from fcnpose_tf.compression.importance import DATA_AWARE, make_importance
+    from fcnpose_tf.training.train import ground_truth_loss
 
     name = run.options.importance
     if name not in DATA_AWARE:
@@ -411,8 +411,8 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     """Retrain the pruned model through `train.fit` (or only save it with 0 epochs); the saved model."""
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.fileio import atomic_path
-    from fcnpose_tf.model import load_model, save_for_inference
-    from fcnpose_tf.train import fit
+    from fcnpose_tf.training.model import load_model, save_for_inference
+    from fcnpose_tf.training.train import fit
 
     options, keras_path = run.options, run.paths["keras"]
     if options.retrain_epochs == 0:
@@ -431,7 +431,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
                 "recipe": run.recipe}
     sequence = train_data.sequence(options.batch_size, seed=options.seed)
     if options.distill > 0:
-        from fcnpose_tf.distill import with_teacher_maps
+        from fcnpose_tf.training.distill import with_teacher_maps
 
         run.log(f"  distillation: the base model's maps weigh {options.distill:g} in the retraining loss")
         sequence, facts = with_teacher_maps(train_data, sequence, run.base, options.batch_size)
@@ -473,7 +473,7 @@ def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
 
 
 def _export_frames(run: _Run, quantize: str, fold: int | None) -> tuple[np.ndarray, np.ndarray | None]:
-    from fcnpose_tf.export import export_frames
+    from fcnpose_tf.compression.export import export_frames
 
     return export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold), run.eval_dataset,
                          run.eval_indices, run.options.calibration_frames, run.options.seed)
@@ -486,7 +486,7 @@ def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | No
     Raises:
         ExportVerificationError: the file failed its gate (nothing written).
     """
-    from fcnpose_tf.export import write_tflite
+    from fcnpose_tf.compression.export import write_tflite
 
     samples, calibration = _export_frames(run, quantize, fold)
     return write_tflite(retrained, run.paths[tflite_key(quantize)], quantize, force=run.force,
@@ -495,12 +495,12 @@ def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | No
 
 def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     """Quantization-aware training from the retrained model on the retraining's training frames, until its int8
-    file passes the same gate against the retrained model (`fcnpose_tf.qat`); the file is written when one
+    file passes the same gate against the retrained model (`fcnpose_tf.compression.qat`); the file is written when one
     passes. Returns the `qat.QATResult` (its export None when every epoch's file was refused)."""
     from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.export import export_tflite
+    from fcnpose_tf.compression.export import export_tflite
     from fcnpose_tf.fileio import write_bytes
-    from fcnpose_tf.qat import train_until_gate
+    from fcnpose_tf.compression.qat import train_until_gate
 
     options = run.options
     if run.fit_data is None:  # not retrained in this run (--retrain-epochs 0): the same split's frames
@@ -525,7 +525,7 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any],
                       qat: dict[str, Any] | None = None) -> dict[str, Any]:
     """One TFLite file: its format, how it was quantized, size (plain and gzip), export facts, operators, metrics and
     timing (`qat`: the quantization-aware training that made it, with the post-training refusal it replaced)."""
-    from fcnpose_tf.export import inspect_tflite
+    from fcnpose_tf.compression.export import inspect_tflite
     from fcnpose_tf.runtime.estimator import KeypointModel
 
     path = run.paths[tflite_key(export.quantize)]
@@ -569,8 +569,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         UserError: bad options, existing outputs without force, unwritable folder, or a model whose
             maps do not match the dataset.
     """
-    from fcnpose_tf.model import load_model
-    from fcnpose_tf.prune import prune_plan, prune_widths
+    from fcnpose_tf.training.model import load_model
+    from fcnpose_tf.compression.prune import prune_plan, prune_widths
 
     base_path = Path(base_path)
     options = options.resolved(base_path)
@@ -635,7 +635,7 @@ def _export_or_refusal(run: _Run, retrained: keras.Model, quantize: str, fold: i
 
     A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
     falls back to quantization-aware training (`options.qat_epochs` > 0)."""
-    from fcnpose_tf.export import FULL_INTEGER, ExportVerificationError
+    from fcnpose_tf.compression.export import FULL_INTEGER, ExportVerificationError
 
     try:
         return export_step(run, retrained, quantize, fold), None

@@ -1,6 +1,6 @@
 """Filter importance criteria: a score for every output filter of every Conv2D, higher = keep.
 
-Filter surgery (`fcnpose_tf.prune`) keeps, in each Conv2D but the output layer, the filters a
+Filter surgery (`fcnpose_tf.compression.prune`) keeps, in each Conv2D but the output layer, the filters a
 criterion scores highest; the criterion is a callable object kept apart from the surgery (as in
 Torch-Pruning's ``importance=`` and keras-surgeon), so every criterion goes through the same surgery:
 
@@ -23,7 +23,7 @@ import numpy as np
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.model import chain_layers
+from fcnpose_tf.training.model import chain_layers
 
 CRITERIA = ("l1", "l2", "activation", "taylor")
 DATA_AWARE = ("activation", "taylor")

@@ -10,7 +10,7 @@ upsampled tensor is never built, and the folded convolution has 16 x the output 
 the TFLite CPU kernels (XNNPACK) vectorise far better than FCN-Pose's 9 maps.
 ``tools/bench_speedup.py`` and docs/runtime.md have the measured effect.
 
-`fcnpose_tf.export` applies it when asked (`fold_upsampling=True`; off by default, see
+`fcnpose_tf.compression.export` applies it when asked (`fold_upsampling=True`; off by default, see
 `export.FOLD_UPSAMPLING` for why), and verifies the file against the original Keras model. The
 rewritten model is for inference only: train and save the original.
 """
@@ -22,7 +22,7 @@ import tensorflow as tf
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.model import chain_layers
+from fcnpose_tf.training.model import chain_layers
 
 __all__ = ["DepthToSpace", "UnsupportedGraphError", "describe_folds", "fold_kernel", "fold_upsampling",
            "foldable_pairs"]
@@ -200,7 +200,7 @@ def fold_upsampling(model: keras.Model) -> keras.Model:
             exactly: bilinear interpolation, unequal factors, channels_first, strides or
             dilation other than 1, padding other than 'same', grouped, or even-sized kernels.
     Example:
-        >>> from fcnpose_tf.model import build_fcn_pose
+        >>> from fcnpose_tf.training.model import build_fcn_pose
         >>> folded = fold_upsampling(build_fcn_pose(input_size=64))
         >>> [layer.name for layer in folded.layers][-2:]
         ['conv10', 'conv10_depth_to_space']

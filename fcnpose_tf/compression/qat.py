@@ -1,6 +1,6 @@
 """Quantization-aware training (QAT): the int8 file when post-training int8 is refused by its gate.
 
-Post-training int8 (`fcnpose_tf.export`, ``quantize="int8"``) gives every activation tensor one
+Post-training int8 (`fcnpose_tf.compression.export`, ``quantize="int8"``) gives every activation tensor one
 scale, calibrated on training frames. On models fine-tuned on a user's frames this can move maps
 far enough that keypoints are lost (docs/compression.md, "int8 on a user's model"). QAT trains a
 copy of the model with the int8 rounding simulated in its forward pass
@@ -15,7 +15,7 @@ verified against the float model with the same keypoint gate; training stops at 
 whose file passes.
 
 As post-training int8 does by default, the copy is made of the network with its upsampling folded
-(`fcnpose_tf.inference_graph.fold_upsampling`: each nearest UpSampling2D + Conv2D pair becomes a
+(`fcnpose_tf.compression.inference_graph.fold_upsampling`: each nearest UpSampling2D + Conv2D pair becomes a
 low-resolution Conv2D + DepthToSpace, 1.37x faster in int8), so the file runs the same graph.
 FCN-Pose's layers (Conv2D, MaxPooling2D, UpSampling2D) are all in tfmot's default 8-bit registry;
 the folded graph's `DepthToSpace` is our own layer, which only moves values, so it is annotated with
@@ -37,7 +37,7 @@ from fcnpose_tf.errors import UserError
 if TYPE_CHECKING:
     import tf_keras as keras
 
-    from fcnpose_tf.export import TFLiteExport
+    from fcnpose_tf.compression.export import TFLiteExport
 
 QAT_TEACHER_WEIGHT = 1.0
 """Weight of the float model's maps in the QAT loss (`train.DistillationLoss`); 1: the float model's maps only.
@@ -109,7 +109,7 @@ def _no_op_config() -> Any:
 
 def quantize_aware(graph: keras.Model) -> keras.Model:
     """A quantization-aware copy of `graph` (tfmot's default 8-bit scheme), its weights copied; `DepthToSpace`
-    layers (a folded graph's, `fcnpose_tf.inference_graph`) quantize nothing.
+    layers (a folded graph's, `fcnpose_tf.compression.inference_graph`) quantize nothing.
 
     Raises:
         UserError: when a layer is outside tfmot's default 8-bit registry (naming it and its type).
@@ -117,7 +117,7 @@ def quantize_aware(graph: keras.Model) -> keras.Model:
     import tensorflow_model_optimization as tfmot
     import tf_keras as keras
 
-    from fcnpose_tf.inference_graph import DepthToSpace
+    from fcnpose_tf.compression.inference_graph import DepthToSpace
 
     qk = tfmot.quantization.keras
     no_op = _no_op_config()
@@ -222,7 +222,7 @@ def train_until_gate(model: keras.Model, sequence: Any, calibration: Any,
         epochs: at most this many epochs (0: only the calibrated copy).
         learning_rate: Adam's rate.
         seed: TensorFlow's seed for the run.
-        fold_upsampling: train the folded graph (`fcnpose_tf.inference_graph`), as the int8 export converts it.
+        fold_upsampling: train the folded graph (`fcnpose_tf.compression.inference_graph`), as the int8 export converts it.
         reporter: where the per-epoch gate lines and Keras' epoch lines go (`fcnpose_tf.progress`; default: the
             current one), drawn as lines: the gate's line follows each epoch's.
     Returns:
@@ -230,9 +230,9 @@ def train_until_gate(model: keras.Model, sequence: Any, calibration: Any,
     """
     import tf_keras as keras
 
-    from fcnpose_tf.distill import TeacherTargets
-    from fcnpose_tf.export import ExportVerificationError, _inference_graph
-    from fcnpose_tf.train import training_loss
+    from fcnpose_tf.training.distill import TeacherTargets
+    from fcnpose_tf.compression.export import ExportVerificationError, _inference_graph
+    from fcnpose_tf.training.train import training_loss
 
     if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 0:
         raise UserError(f"quantization-aware training epochs must be a whole number >= 0, got {epochs!r}")

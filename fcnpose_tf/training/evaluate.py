@@ -65,10 +65,10 @@ class KerasKeypointModel(KeypointPredictor):
     def __init__(self, model: Any, path: str | os.PathLike | None = None, threshold: float = 0.5,
                  num_threads: int | None = None, fallback: float | None = None):
         if isinstance(model, (str, os.PathLike)):
-            from fcnpose_tf.model import load_model
+            from fcnpose_tf.training.model import load_model
 
             path, model = model, load_model(model)
-        from fcnpose_tf.model import check_fixed_input
+        from fcnpose_tf.training.model import check_fixed_input
 
         check_fixed_input(model, path)
         shape = model.input_shape
@@ -113,7 +113,7 @@ def open_model(path: str | os.PathLike, threads: int | None = None, threshold: f
 
         return KeypointModel(path, num_threads=threads, threshold=threshold, fallback=fallback)
     if path.suffix in (".keras", ".h5"):
-        from fcnpose_tf.tfsetup import set_tensorflow_threads
+        from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
         set_tensorflow_threads(threads)
         return KerasKeypointModel(path, path, threshold, threads, fallback)

@@ -31,7 +31,7 @@ from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
-from fcnpose_tf.model import save_for_inference
+from fcnpose_tf.training.model import save_for_inference
 from fcnpose_tf.progress import Reporter
 
 
@@ -46,7 +46,7 @@ class FitConfig:
     of each epoch is `cosine_rate` of the budget spent, epochs or time, instead; lr_patience 0), max_minutes
     (no new epoch starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
     their weights) and distill (weight of a teacher's maps in the loss; the training batches must
-    carry them, `fcnpose_tf.distill`).
+    carry them, `fcnpose_tf.training.distill`).
 
     The defaults are `fcnpose-tf train`'s (`FitConfig.preset("paper")`: the paper's recipe); positive_weight,
     lr_patience and freeze left None are chosen per run by `resolved`. Defaults, checks and meanings:
@@ -235,7 +235,7 @@ class DistillationLoss(keras.losses.Loss):
     """(1 - W) x the training loss against the ground-truth maps + W x the same loss against a teacher's maps.
 
     Training targets carry both, concatenated on the channel axis (C ground-truth maps, then the
-    teacher's C maps of the same augmented frame; `fcnpose_tf.distill`). Targets with only C channels
+    teacher's C maps of the same augmented frame; `fcnpose_tf.training.distill`). Targets with only C channels
     (the validation data) get the ground-truth term alone, so the validation loss, and with it early
     stopping and the best epoch, is measured against the truth at every W.
     """
@@ -398,7 +398,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     config.validate()
     if config.distill and not getattr(train_data, "carries_teacher_maps", False):
         raise ValueError("distillation needs training batches that carry the teacher's maps "
-                         "(fcnpose_tf.distill.with_teacher_maps)")
+                         "(fcnpose_tf.training.distill.with_teacher_maps)")
     model_path = Path(model_path)
     if model_path.suffix not in (".keras", ".h5"):
         raise UserError(f"{model_path}: the model file must end in .keras or .h5")
@@ -542,7 +542,7 @@ def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model
     224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
     record names other keypoints.
     """
-    from fcnpose_tf.model import build_fcn_pose, conv_widths, load_model
+    from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model
     from fcnpose_tf.records import training_record
 
     source = load_model(init)
@@ -599,9 +599,9 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         UserError: an `init` model that does not fit the data or input size, or anything `fit` refuses.
     """
     from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.evaluate import KerasKeypointModel, evaluate_predictor
+    from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.records import file_sha256
-    from fcnpose_tf.model import build_fcn_pose, load_model
+    from fcnpose_tf.training.model import build_fcn_pose, load_model
 
     model_path = Path(model_path)
     label = label or str(model_path)
@@ -664,7 +664,7 @@ TEST_DEFINITIONS = ("PCK@a: distance / max(w, h) of the ground truth's bounding 
 
 def measure_on_test_set(predictor: Any, test_data: Any) -> dict[str, Any]:
     """Keypoint metrics (`metrics.keypoint_report`, per keypoint too) of a predictor on every frame of a test set."""
-    from fcnpose_tf.evaluate import evaluate_predictor
+    from fcnpose_tf.training.evaluate import evaluate_predictor
 
     report = evaluate_predictor(predictor, test_data, range(len(test_data)), test_data.schema, min_timed_frames=0,
                                 warmup=1)
@@ -674,7 +674,7 @@ def measure_on_test_set(predictor: Any, test_data: Any) -> dict[str, Any]:
 def start_on_test_set(init: str | Path, test_data: Any, input_size: int, threads: int | None = None
                        ) -> dict[str, Any]:
     """The starting model (`init`'s weights at the run's input size, as training starts) measured on a test set."""
-    from fcnpose_tf.evaluate import KerasKeypointModel
+    from fcnpose_tf.training.evaluate import KerasKeypointModel
 
     return measure_on_test_set(KerasKeypointModel(initial_model(init, test_data.schema, input_size), Path(init),
                                            num_threads=threads), test_data)

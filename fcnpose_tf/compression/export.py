@@ -21,7 +21,7 @@ sees its variables), built-in ops only, in one of five formats:
                    float16 arithmetic (ARMv8.2-A: a Raspberry Pi 5's Cortex-A76) and in float32
                    elsewhere (a Pi 3/4, x86), where it is the float16 file. Gated like float16.
 
-Before conversion, `fcnpose_tf.inference_graph.fold_upsampling` may rewrite the network exactly
+Before conversion, `fcnpose_tf.compression.inference_graph.fold_upsampling` may rewrite the network exactly
 (each nearest UpSampling2D + Conv2D pair computed at low resolution, then DEPTH_TO_SPACE), which
 makes the file run faster; see `export_tflite`'s ``fold_upsampling``.
 
@@ -364,7 +364,7 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
     Same as `to_tflite`, but returns the bytes together with the conversion time, the parity
     report and the graph rewrites (for `compress` reports). `reference` is the model the file is
     verified against (default: `model` itself): a quantization-aware copy of a model
-    (`fcnpose_tf.qat`) is converted, and its file is held to the model it was trained from.
+    (`fcnpose_tf.compression.qat`) is converted, and its file is held to the model it was trained from.
 
     Returns:
         A `TFLiteExport`.
@@ -406,7 +406,7 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
 def _inference_graph(model: keras.Model) -> tuple[keras.Model, tuple[str, ...]]:
     """The model with its upsampling folded (and what was folded), or the model itself when its
     structure is not one `fold_upsampling` can rewrite (e.g. branches): folding only saves time."""
-    from fcnpose_tf.inference_graph import UnsupportedGraphError, describe_folds, fold_upsampling
+    from fcnpose_tf.compression.inference_graph import UnsupportedGraphError, describe_folds, fold_upsampling
 
     try:
         rewrites = tuple(describe_folds(model))
@@ -451,7 +451,7 @@ def to_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sample_fr
         threshold: map threshold for decoding keypoints.
         check_keypoints: decode and compare keypoints (needs C >= 2 output maps, skeleton last).
         num_threads: interpreter threads for the check (None: the interpreter's default).
-        fold_upsampling: convert `fcnpose_tf.inference_graph.fold_upsampling(model)` instead of
+        fold_upsampling: convert `fcnpose_tf.compression.inference_graph.fold_upsampling(model)` instead of
             `model` (exact; each nearest UpSampling2D + 'same' Conv2D pair becomes a low-resolution
             Conv2D + DEPTH_TO_SPACE, which XNNPACK runs faster; the file holds f*f times larger
             kernels for those layers). A model whose structure cannot be folded (branches, several
@@ -469,7 +469,7 @@ def to_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sample_fr
         ExportVerificationError: if the converted model does not load, has the wrong interface,
             or disagrees with the Keras model; the message says by how much and where.
     Example:
-        >>> from fcnpose_tf.model import build_fcn_pose
+        >>> from fcnpose_tf.training.model import build_fcn_pose
         >>> data = to_tflite(build_fcn_pose(input_size=64), "float16")
         >>> inspect_tflite(data)["inputs"][0]["shape"]
         [1, 64, 64, 3]

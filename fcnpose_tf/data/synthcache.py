@@ -77,7 +77,7 @@ def generator_fingerprint(sources: Sequence[str | os.PathLike] | None = None) ->
     import cv2
     import numpy as np
 
-    root = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parents[1]  # the package: names like data/via.py
     digest = hashlib.sha256()
     for source in generator_sources() if sources is None else sources:
         path = Path(source).resolve()

@@ -3,7 +3,7 @@ magnitude pruning with tensorflow-model-optimization for comparison.
 
 Structured pruning (`prune_model`) removes whole filters: every Conv2D except the output layer
 keeps its ``n - floor(n * rate)`` filters that an importance criterion scores highest (default:
-the L1 norm of the kernel, the paper's; `fcnpose_tf.importance` holds the others), the network is rebuilt with
+the L1 norm of the kernel, the paper's; `fcnpose_tf.compression.importance` holds the others), the network is rebuilt with
 the narrower layers (``from_config`` plus sliced weights, as keras-surgeon does), and the next
 Conv2D's kernel loses the matching input channels. Parameters, MACs, file size and latency all
 shrink. Before retraining, the pruned model computes exactly what the original computes with the
@@ -30,8 +30,8 @@ import numpy as np
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.importance import Importance, WeightNorm
-from fcnpose_tf.model import chain_layers
+from fcnpose_tf.compression.importance import Importance, WeightNorm
+from fcnpose_tf.training.model import chain_layers
 
 Rate = Union[float, int, Fraction, Decimal, str]
 
@@ -340,7 +340,7 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
         strategy: ``"independent"`` ranks each layer on its whole kernel; ``"greedy"`` ranks a layer
             after taking the input channels the previous Conv2D lost out of its kernel
             (Li et al. 2017, section 3.2; weight criteria only).
-        importance: the criterion scoring each filter (`fcnpose_tf.importance`); default the L1 norm.
+        importance: the criterion scoring each filter (`fcnpose_tf.compression.importance`); default the L1 norm.
         min_filters: no layer narrower than this (all its filters if it has fewer), the parameter budget
             of `rate` kept by pruning the other layers harder (`floored_widths`); 0 is the paper's rule.
     Returns:
@@ -396,12 +396,12 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
     BatchNormalization and Dropout layers (softmax only where no channel was removed).
 
     Args:
-        model: a built tf_keras model, e.g. from `fcnpose_tf.model.build_fcn_pose`.
+        model: a built tf_keras model, e.g. from `fcnpose_tf.training.model.build_fcn_pose`.
         rate: fraction of filters to remove per layer, in [0, 1); 0 returns an identical copy.
         strategy: ``"independent"`` (default; each layer ranked on its original kernel) or
             ``"greedy"`` (a layer ranked without the input channels the previous layer lost),
             the two strategies Li et al. 2017 compare.
-        importance: the criterion ranking the filters (`fcnpose_tf.importance.make_importance`);
+        importance: the criterion ranking the filters (`fcnpose_tf.compression.importance.make_importance`);
             None is the L1 norm, the paper's.
         min_filters: the narrowest a layer may become, the parameter budget of `rate` kept
             (`floored_widths`); 0 (default) is the paper's keep rule.
@@ -411,7 +411,7 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
         UserError: for a rate outside [0, 1), an unknown strategy, or a model with a branch or an
             unsupported layer ("unsupported layer NAME (TYPE)").
     Example:
-        >>> from fcnpose_tf.model import build_fcn_pose, conv_widths
+        >>> from fcnpose_tf.training.model import build_fcn_pose, conv_widths
         >>> small = prune_model(build_fcn_pose(), 0.7)
         >>> conv_widths(small), small.count_params()
         ((39, 20, 10, 5, 3, 3, 5, 10, 20, 9), 14668)
@@ -498,7 +498,7 @@ def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | 
     Raises:
         UserError: for a sparsity outside [0, 1) or a model without a Conv2D to prune.
     Example:
-        >>> from fcnpose_tf.model import build_fcn_pose
+        >>> from fcnpose_tf.training.model import build_fcn_pose
         >>> sparse = magnitude_prune(build_fcn_pose(input_size=64), 0.7)
         >>> round(weight_sparsity(sparse, ["conv2"])["conv2"], 3)
         0.7

@@ -1,0 +1,6 @@
+"""Compression: filter importance (`importance`), L1-norm filter surgery (`prune`), the `compress` pipeline
+(prune, retrain, export, measure), quantization-aware training (`qat`), TFLite export verified on keypoints
+(`export`) and the inference graph the converter sees (`inference_graph`).
+
+Builds on the training side (`fcnpose_tf.training`); its .tflite files run on the Pi side (`fcnpose_tf.runtime`).
+"""
