@@ -362,7 +362,7 @@ AUGMENT = Setting(
     "random transforms for every sample of every epoch (flip, rotation, zoom, shift, colour, blur, noise, JPEG, "
     "occluding patches; docs/data.md)", label="augmentation", choices=("paper", "online"))
 """The paper's copies measured better than online augmentation within train's 30-minute budget on a new
-fixed-camera cell (docs/training.md, "Training on your own frames": from the generalist, PCK@0.05 0.800
+fixed-camera cell (docs/results.md, "Training history": from the generalist, PCK@0.05 0.800
 against 0.752 and EPE 9.1 against 10.6 px; from the workcell baseline 0.700 against 0.494), and
 they reproduce the paper's tables in `compress` and `sweep`. Online augmentation is the option for views
 that vary (a third party measured it ahead on random cameras after 40 epochs)."""
