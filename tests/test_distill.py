@@ -7,7 +7,7 @@ import tf_keras as keras
 
 from fcnpose_tf.training.model import build_fcn_pose
 from fcnpose_tf.training.train import (DistillationLoss, FitConfig, KeypointBinaryCrossentropy, compile_for_training, fit,
-                              training_loss)
+                                       training_loss)
 from fcnpose_tf.progress import SILENT
 from weights import randomize
 

@@ -7,7 +7,7 @@ import tf_keras as keras
 from fcnpose_tf.compression import export as export_module
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.export import (ExportVerificationError, export_tflite, inspect_tflite, run_tflite, to_tflite,
-                               verify_tflite, write_tflite)
+                                           verify_tflite, write_tflite)
 from fcnpose_tf.training.model import build_fcn_pose
 from fcnpose_tf.compression.prune import prune_model
 from weights import randomize

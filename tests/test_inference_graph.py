@@ -7,7 +7,7 @@ import tf_keras as keras
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.export import _interpreter, export_tflite, run_tflite
 from fcnpose_tf.compression.inference_graph import (DepthToSpace, UnsupportedGraphError, describe_folds, fold_kernel,
-                                        fold_upsampling, foldable_pairs)
+                                                    fold_upsampling, foldable_pairs)
 from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose
 from fcnpose_tf.compression.prune import pruned_widths
 from weights import randomize

@@ -13,8 +13,9 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
-from fcnpose_tf.compression.prune import (chain_param_count, filter_l1_norms, floored_widths, keep_count, kept_filters,
-                              magnitude_prune, prune_model, prune_plan, prune_widths, pruned_widths, weight_sparsity)
+from fcnpose_tf.compression.prune import (chain_param_count, filter_l1_norms, floored_widths, keep_count,
+                                          kept_filters, magnitude_prune, prune_model, prune_plan, prune_widths,
+                                          pruned_widths, weight_sparsity)
 
 # tfmot 0.8.1 still imports distutils' LooseVersion
 pytestmark = pytest.mark.filterwarnings("ignore:distutils Version classes are deprecated:DeprecationWarning")

@@ -12,7 +12,7 @@ import pytest
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.runtime.sources import Frame
 from fcnpose_tf.runtime.selection import (FrameRecord, FrameScores, default_min_gap, flip_back, pick_spread, pick_uniform,
-                                  zoom_out)
+                                          zoom_out)
 from test_predict import BUNDLED_P70
 from test_run_bench_cli import _one_line_error, _run
 from test_runtime import RED_CYCLE, quadrant_frame, write_video

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.compression.export import (MIN_FRAMES_BY_MODE, ExportOptions, ExportVerificationError, export_frames,
-                                   finish_formats, write_tflite)
+                                               finish_formats, write_tflite)
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.training.model import load_model
     from fcnpose_tf.tables import format_table

@@ -88,8 +88,9 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.training.evaluate import format_timing
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line, resolve_augment,
-                                  resolve_input_size, run_identity, start_on_test_set, train_fold)
+    from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line,
+                                           resolve_augment, resolve_input_size, run_identity, start_on_test_set,
+                                           train_fold)
 
     init = initial_weights(args.init)
     config = FitConfig(**settings.values_from_args(args, FitConfig))  # settings left None: chosen per run (resolved)
