@@ -84,14 +84,6 @@ class Setting:
         """The command-line option: --name-with-dashes."""
         return "--" + self.name.replace("_", "-")
 
-    def validate_quietly(self, value: Any) -> bool:
-        """Whether `validate` accepts `value` (for a variant whose check widens this setting's)."""
-        try:
-            self.validate(value)
-        except UserError:
-            return False
-        return True
-
     def validate(self, value: Any) -> Any:
         """Return `value` if it is allowed (None too when the option's default is None), else raise UserError."""
         if value is None and self.accepts_none:
@@ -339,7 +331,7 @@ def input_size_or_auto(text: str) -> int | str:
 
 TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
     default=AUTO_INPUT_SIZE, type=str, parse=input_size_or_auto, metavar="N|auto",
-    check=lambda v: v == AUTO_INPUT_SIZE or INPUT_SIZE.validate_quietly(v),
+    check=lambda v: v == AUTO_INPUT_SIZE or (_is_type(v, int) and INPUT_SIZE.check(v)),
     requirement=f"auto or a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)",
     help="model input side: auto chooses the smallest multiple of 32 from 224 to 384 at which the arm's keypoint "
          "box spans 140 input pixels in the median frame (224 where the arm spans 5/8 of the frame or more; larger "
