@@ -39,7 +39,7 @@ from fcnpose_tf.errors import UserError
 __all__ = [
     "DEFAULT_ALPHAS", "DEFAULT_MAX_PX", "conv_macs", "bbox_sizes", "errors_px", "normalized_errors",
     "pck", "pck_per_keypoint", "pck_curve_px", "pck_auc_px", "epe", "epe_per_keypoint",
-    "missing_fraction", "pck_key", "auc_key", "keypoint_report", "format_report",
+    "missing_fraction", "pck_key", "auc_key", "keypoint_report", "format_report", "mean_pck",
 ]
 
 DEFAULT_ALPHAS: tuple[float, ...] = (0.5, 0.2, 0.05)
@@ -277,6 +277,17 @@ def pck_key(alpha: float) -> str:
 def auc_key(max_px: float = DEFAULT_MAX_PX) -> str:
     """Report key of the pixel PCK-AUC, e.g. ``pck_auc_0-20px``."""
     return f"pck_auc_0-{float(max_px):g}px"
+
+
+def mean_pck(report: dict[str, Any], alphas: Sequence[float] = DEFAULT_ALPHAS) -> float:
+    """One score of a `keypoint_report`: the mean of its PCK@alpha over `alphas` (missing keypoints count as wrong).
+
+    With the reported thresholds a keypoint off by a whole link (PCK@0.5, PCK@0.2) weighs as much as fine
+    localisation (PCK@0.05); a pixel AUC up to 20 px would ignore every error beyond 20 px. Used to choose between
+    models measured on the same frames at different input sizes, where validation losses do not compare.
+    """
+    values = [report.get(pck_key(a)) for a in alphas]
+    return float(np.mean([0.0 if v is None else v for v in values]))
 
 
 def _json(value: float) -> float | None:

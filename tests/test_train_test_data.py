@@ -108,3 +108,60 @@ def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_tr
                               tmp_path / "frames" / "images" / "arm3.json", "--min-visible", "1", *TRAIN)
     assert status == 2 and "keypoint schema 'arm3'" in err
     assert not out.exists() and not (tmp_path / "m.ckpt").exists()
+
+
+def _synth_frames(folder, n, seed):
+    from fcnpose_tf.data.synth import generate
+
+    generate(folder, n=n, seed=seed, width=160, height=120, workers=1, progress=False)
+    return folder
+
+
+@pytest.mark.slow
+def test_the_start_as_saved_is_a_candidate_when_training_ran_at_another_size(tmp_path):
+    """A start pretrained at 224 that scores higher on the validation frames than the model trained at another
+    size is the model written, at its own size; one that scores lower leaves the trained model alone."""
+    from fcnpose_tf.bundled import resolve_model
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.training.model import build_fcn_pose, load_model, save_for_inference
+    from fcnpose_tf.training.train import keep_start_if_better
+
+    data = load_dataset(_synth_frames(tmp_path / "frames", 6, seed=5))
+    _, val_idx = data.split(None)
+    start = resolve_model("workcell")
+    trained_path = tmp_path / "trained.keras"
+    save_for_inference(build_fcn_pose(input_size=64), trained_path)
+
+    def trained_scoring(value):
+        return {"metrics": {"pck@0.5_bbox": value, "pck@0.2_bbox": value, "pck@0.05_bbox": value}}
+
+    entry, _, report = keep_start_if_better(start, data, val_idx, trained_scoring(1.0), trained_path, 64,
+                                            reporter=SILENT)
+    assert entry["chose"] == "trained" and entry["input_size"] == 224 and entry["trained_mean_pck"] == 1.0
+    assert load_model(trained_path).input_shape[1] == 64  # untouched
+    entry, predictor, report = keep_start_if_better(start, data, val_idx, trained_scoring(0.0), trained_path, 64,
+                                                    reporter=SILENT)
+    assert entry["chose"] == "start" and entry["start_mean_pck"] > 0 and predictor.input_size == 224
+    kept, bundled = load_model(trained_path), load_model(start)
+    assert kept.input_shape[1] == 224
+    assert all(np.array_equal(a, b) for a, b in zip(kept.get_weights(), bundled.get_weights()))
+    assert keep_start_if_better(start, data, val_idx, trained_scoring(1.0), trained_path, 224,
+                                reporter=SILENT) is None  # same size: fit's epoch 0 already was this candidate
+
+
+@pytest.mark.slow
+def test_train_at_a_size_where_the_start_is_better_writes_the_start_and_says_so(tmp_path, cli):
+    data = _synth_frames(tmp_path / "frames", 8, seed=5)
+    test = _synth_frames(tmp_path / "test", 3, seed=6)
+    out = tmp_path / "arm.keras"
+    proc = cli("train", "--data", data, "--out", out, "--test-data", test, "--init", "workcell", *TRAIN)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    record = json.loads((tmp_path / "arm_train.json").read_text())
+    # one epoch at 64 from the workcell model pretrained at 224 on these frames' look cannot beat it at 224
+    assert record["start_as_saved"]["chose"] == "start", record["start_as_saved"]
+    assert record["input_size"] == 224 and record["start_as_saved"]["trained_input_size"] == 64
+    from fcnpose_tf.training.model import load_model
+
+    assert load_model(out).input_shape[1] == 224
+    assert record["test"]["end"] == record["test"]["start"]  # the start measured as saved, on the same frames
+    assert "kept the starting model as saved, at its own input size 224" in proc.stdout

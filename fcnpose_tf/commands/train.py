@@ -141,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"Measuring the starting model ({metadata['init']}) on the {len(test)} frames of the test set "
               f"{test.via_path}")
         test_start = {"model": metadata["init"],
-                      "metrics": start_on_test_set(init, test, args.input_size, args.threads)}
+                      "metrics": start_on_test_set(init, test, args.threads)}
     reports = []
     test_lines = []
     for fold in folds:

@@ -535,8 +535,9 @@ def resolve_input_size(via_path: str | Path, images_dir: str | Path | None = Non
     return size, {"arm_span": round(span, 4), "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": size}
 
 
-def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model:
-    """FCN-Pose at `input_size` holding the weights of the model file `init` (trained at any input size).
+def initial_model(init: str | Path, schema: Any, input_size: int | None = None) -> keras.Model:
+    """FCN-Pose at `input_size` (None: the size it was saved at) holding the weights of the model file `init`
+    (trained at any input size).
 
     The convolutions do not depend on the input size, so a model pretrained at 160 starts a run at
     224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
@@ -553,7 +554,7 @@ def initial_model(init: str | Path, schema: Any, input_size: int) -> keras.Model
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
                         f"{', '.join(schema.keypoints)}; pass --init none to train from scratch, or --init MODEL "
                         "with a model of this schema")
-    if tuple(source.input_shape[1:3]) == (input_size, input_size):
+    if input_size is None or tuple(source.input_shape[1:3]) == (input_size, input_size):
         return source
     model = build_fcn_pose(widths[:-1], input_size, widths[-1])
     model.set_weights(source.get_weights())
@@ -649,12 +650,62 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
     paths = run_paths(model_path)
     record = json.loads(paths["train_json"].read_text())
+    if init is not None:
+        kept = keep_start_if_better(init, dataset, val_idx, report, model_path, input_size, threads=threads,
+                                    reporter=reporter, label=label)
+        if kept is not None:
+            record["start_as_saved"], start_predictor, start_report = kept
+            if record["start_as_saved"]["chose"] == "start":
+                predictor, report, record["input_size"] = start_predictor, start_report, start_predictor.input_size
     record["validation"] = {"metrics": report["metrics"], "timing": report["timing"]}
     if test_data is not None:
         log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
         record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), test_start)
     write_json(paths["train_json"], record, force=True)
     return record
+
+
+def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: dict[str, Any],
+                         model_path: Path, input_size: int, *, threads: int | None = None,
+                         reporter: Reporter | None = None, label: str = "") -> tuple[dict[str, Any], Any, dict] | None:
+    """The start as saved is a candidate too when the run trained at another input size than the start's own.
+
+    `fit` already keeps the start when no epoch beats it at the run's size (epoch 0); a start pretrained at
+    another size may still be better at its own, e.g. a generalist pretrained at 224 on views like the user's,
+    which training at a larger size can only approach with a few hundred frames. Both are measured on the
+    same validation frames, in frame pixels, and compared by `metrics.mean_pck` (validation losses at two sizes
+    do not compare); the start replaces the model file only when it scores higher.
+
+    Returns:
+        None when the start's input size is the run's; else (the record's "start_as_saved": its input size, both
+        scores and "chose": "start" or "trained"; the start's predictor; its validation report).
+    """
+    from fcnpose_tf.metrics import mean_pck
+    from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
+
+    start = initial_model(init, dataset.schema)
+    start_size = int(start.input_shape[1])
+    if start_size == input_size:
+        return None
+    reporter = progress.resolve(reporter)
+    reporter.say(f"{label}: evaluating the starting model as saved ({start_size}x{start_size}) on the same "
+                 f"{len(val_idx)} validation frames")
+    predictor = KerasKeypointModel(start, Path(init), num_threads=threads)
+    report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
+    start_score, trained_score = mean_pck(report["metrics"]), mean_pck(trained_report["metrics"])
+    chose = "start" if start_score > trained_score else "trained"
+    figures = (f"mean of PCK@0.5/0.2/0.05 on validation: the start at {start_size} {start_score:.3f}, "
+               f"the model trained at {input_size} {trained_score:.3f}")
+    if chose == "start":
+        with atomic_path(model_path, force=True) as tmp:
+            save_for_inference(start, tmp)
+        reporter.say(f"{label}: kept the starting model as saved, at its own input size {start_size} ({figures}); "
+                     f"--input-size {start_size} trains at that size")
+    else:
+        reporter.say(f"{label}: kept the trained model ({figures})")
+    entry = {"input_size": start_size, "start_mean_pck": round(start_score, 4),
+             "trained_mean_pck": round(trained_score, 4), "trained_input_size": input_size, "chose": chose}
+    return entry, predictor, report
 
 
 TEST_DEFINITIONS = ("PCK@a: distance / max(w, h) of the ground truth's bounding box below a (missing = wrong), mean "
@@ -671,13 +722,13 @@ def measure_on_test_set(predictor: Any, test_data: Any) -> dict[str, Any]:
     return report["metrics"]
 
 
-def start_on_test_set(init: str | Path, test_data: Any, input_size: int, threads: int | None = None
-                       ) -> dict[str, Any]:
-    """The starting model (`init`'s weights at the run's input size, as training starts) measured on a test set."""
+def start_on_test_set(init: str | Path, test_data: Any, threads: int | None = None) -> dict[str, Any]:
+    """The starting model as saved (its own input size: what the user would run without training) measured on a
+    test set."""
     from fcnpose_tf.training.evaluate import KerasKeypointModel
 
-    return measure_on_test_set(KerasKeypointModel(initial_model(init, test_data.schema, input_size), Path(init),
-                                           num_threads=threads), test_data)
+    return measure_on_test_set(KerasKeypointModel(initial_model(init, test_data.schema), Path(init),
+                                                  num_threads=threads), test_data)
 
 
 def record_of_test_set(test_data: Any, end: dict[str, Any], start: dict[str, Any] | None) -> dict[str, Any]:
