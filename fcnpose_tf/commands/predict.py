@@ -16,6 +16,7 @@ ones are read again and written (docs/data.md, "Correcting and merging rounds").
 from __future__ import annotations
 
 import argparse
+import contextlib
 from pathlib import Path
 
 from fcnpose_tf.settings import add_decoding_arguments
@@ -71,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.evaluate import open_model
     from fcnpose_tf.fileio import stop_signals_as_interrupt
-    from fcnpose_tf.runtime.prelabel import ViaPredictions, check_via_output
+    from fcnpose_tf.runtime.prelabel import check_via_output
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
     from fcnpose_tf.smoothing import params_from_args
@@ -100,20 +101,12 @@ def run(args: argparse.Namespace) -> int:
                          "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
     if args.select is not None:
         return _select(args, predictor, source)
-    collected = None
-    try:
-        collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence)
+    with _via_collection(args, predictor, source) as collected:
         print(f"{predictor.describe()}; {source.describe()}", file=sys.stderr, flush=True)
         with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends it: the frames done so far, in the VIA file
             summary = run_stream(predictor, source, max_frames=args.max_frames, progress=ProgressLine(),
                                  on_frame=collected.add, every=args.every, smooth=params_from_args(args))
         written = collected.close()
-    except BaseException:
-        if collected is not None:
-            collected.discard()
-        raise
-    finally:
-        source.close()
     if written is not None:
         summary.outputs.append(f"{written}: {collected.describe()}")
     print(summary.report(predictor, source))
@@ -122,13 +115,30 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+@contextlib.contextmanager
+def _via_collection(args: argparse.Namespace, predictor, source):
+    """The VIA file of --via, collected from `source`'s frames: discarded if anything fails or stops the command
+    before it is closed (nothing half-written), `source` closed either way."""
+    from fcnpose_tf.runtime.prelabel import ViaPredictions
+
+    collected = None
+    try:
+        collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence)
+        yield collected
+    except BaseException:
+        if collected is not None:
+            collected.discard()
+        raise
+    finally:
+        source.close()
+
+
 def _select(args: argparse.Namespace, predictor, source) -> int:
     """--select N: score every processed frame, pick N, read the source again and write the picks' pre-labels."""
     import sys
 
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import stop_signals_as_interrupt
-    from fcnpose_tf.runtime.prelabel import ViaPredictions
     from fcnpose_tf.runtime.estimator import Prediction
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
@@ -151,9 +161,7 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
     picks = scores.pick(args.select, gap)
     wanted = {record.index: record for record in picks}
     again = open_source(args.source, refuse_cameras="predict reads image folders, images and videos")
-    collected = None
-    try:
-        collected = ViaPredictions(args.via, predictor.schema, again, args.force, args.min_confidence)
+    with _via_collection(args, predictor, again) as collected:
         for frame in again:
             record = wanted.get(frame.index)
             if record is None:
@@ -168,12 +176,6 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
             raise UserError(f"{args.source}: {len(wanted) - len(collected.frames)} picked frame(s) could not be "
                             "read again; no VIA file written")
         written = collected.close()
-    except BaseException:
-        if collected is not None:
-            collected.discard()
-        raise
-    finally:
-        again.close()
     score = dict(zip((r.index for r in scores.records), scores.scores()))
     fewer = (f" (only {len(picks)} fit {gap} frames apart in {len(scores.records)} processed frames)"
              if len(picks) < args.select else "")
