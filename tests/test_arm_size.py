@@ -77,15 +77,21 @@ def _small_arm_project(folder, span, n=6, size=(640, 480)):
     return folder / "labels.json"
 
 
+def _frames(via_path):
+    from fcnpose_tf.data.via import read_via
+
+    return read_via(via_path).frames
+
+
 def test_resolve_input_size_reads_the_frames_and_says_why(tmp_path, capsys):
     from fcnpose_tf.training.train import resolve_input_size
 
-    size, record = resolve_input_size(_small_arm_project(tmp_path / "wide", 0.39))
+    size, record = resolve_input_size(_frames(_small_arm_project(tmp_path / "wide", 0.39)))
     assert size == 384 and record == {"arm_span": 0.39, "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": 384}
     out = capsys.readouterr().out
     assert "Input size: auto -> 384 (the arm's keypoint box spans 0.39 of the median frame: 150 input pixels" in out
     assert "--input-size 224 runs 2.9x faster" in out
-    size, _ = resolve_input_size(_small_arm_project(tmp_path / "close", 0.8))
+    size, _ = resolve_input_size(_frames(_small_arm_project(tmp_path / "close", 0.8)))
     assert size == 224 and "faster" not in capsys.readouterr().out
 
 

@@ -119,13 +119,16 @@ def run(args: argparse.Namespace) -> int:
 
     metadata: dict = {"init": args.init if args.init in BUNDLED_MODELS else (str(init) if init else None),
                       "preset": args.preset}
-    if args.augment == "auto":  # resolved before the checkpoint check: a checkpoint records what ran
-        args.augment, metadata["augment_auto"] = resolve_augment(via_path, images_dir, attribute=args.keypoint_attr,
-                                                                 min_visible=args.min_visible,
-                                                                 skip_bad=args.skip_bad)
-    if args.input_size == settings.AUTO_INPUT_SIZE:  # as --augment auto: a checkpoint records the size that ran
-        args.input_size, metadata["input_size_auto"] = resolve_input_size(
-            via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible, skip_bad=args.skip_bad)
+    # auto settings are resolved before the checkpoint check: a checkpoint records what ran
+    if args.augment == "auto" or args.input_size == settings.AUTO_INPUT_SIZE:
+        from fcnpose_tf.data.via import read_via
+
+        frames = read_via(via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible,
+                          skip_bad=args.skip_bad).frames
+        if args.augment == "auto":
+            args.augment, metadata["augment_auto"] = resolve_augment(frames)
+        if args.input_size == settings.AUTO_INPUT_SIZE:
+            args.input_size, metadata["input_size_auto"] = resolve_input_size(frames)
     resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,

@@ -495,16 +495,12 @@ def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> Writ
                       "then continue with --resume")
 
 
-def resolve_augment(via_path: str | Path, images_dir: str | Path | None = None, *, attribute: str = "keypoint",
-                    min_visible: int | None = None, skip_bad: bool = False,
-                    reporter: Reporter | None = None) -> tuple[str, dict[str, Any]]:
-    """What `augment="auto"` (train's default) means for these frames: the paper's copies for one fixed camera,
-    online augmentation when the views vary (`data.views`); the choice and what it was based on, for
-    NAME_train.json ("augment_auto"), said through `reporter`."""
-    from fcnpose_tf.data.via import read_via
+def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> tuple[str, dict[str, Any]]:
+    """What `augment="auto"` (train's default) means for these frames (`data.via` frames: image paths): the paper's
+    copies for one fixed camera, online augmentation when the views vary (`data.views`); the choice and what it
+    was based on, for NAME_train.json ("augment_auto"), said through `reporter`."""
     from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
 
-    frames = read_via(via_path, images_dir, attribute=attribute, min_visible=min_visible, skip_bad=skip_bad).frames
     variation = view_variation([f.image_path for f in frames])
     augment = choose_augment(variation)
     camera = "one fixed camera" if augment == "paper" else "views that vary"
@@ -515,16 +511,12 @@ def resolve_augment(via_path: str | Path, images_dir: str | Path | None = None, 
                      "chose": augment}
 
 
-def resolve_input_size(via_path: str | Path, images_dir: str | Path | None = None, *, attribute: str = "keypoint",
-                       min_visible: int | None = None, skip_bad: bool = False,
-                       reporter: Reporter | None = None) -> tuple[int, dict[str, Any]]:
-    """What `input_size="auto"` (train's default) means for these frames: the smallest input side at which the arm
-    spans enough input pixels (`data.arm_size`); the choice and what it was based on, for NAME_train.json
-    ("input_size_auto"), said through `reporter`."""
+def resolve_input_size(frames: Sequence[Any], reporter: Reporter | None = None) -> tuple[int, dict[str, Any]]:
+    """What `input_size="auto"` (train's default) means for these frames (`data.via` frames: keypoints and frame
+    sizes): the smallest input side at which the arm spans enough input pixels (`data.arm_size`); the choice and
+    what it was based on, for NAME_train.json ("input_size_auto"), said through `reporter`."""
     from fcnpose_tf.data.arm_size import MIN_ARM_INPUT_PX, arm_span, choose_input_size
-    from fcnpose_tf.data.via import read_via
 
-    frames = read_via(via_path, images_dir, attribute=attribute, min_visible=min_visible, skip_bad=skip_bad).frames
     span = arm_span((f.keypoints, f.width, f.height) for f in frames)
     size = choose_input_size(span)
     default = settings.INPUT_SIZE.default
