@@ -1,5 +1,5 @@
-"""What a result record states about where it came from: file hashes, a model's training record,
-the host and the library versions. Standard library only (runtime/ uses it on a Pi).
+"""What a result record states about where it came from: file hashes, a model's training record
+(`TrainingRecord`), the host and the library versions. Standard library only (runtime/ uses it on a Pi).
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import os
 import platform
 import socket
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -37,8 +38,60 @@ def file_sha256(path: str | os.PathLike) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
-def training_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
-    """The NAME_train.json written beside a model by `fcnpose-tf train`, or None (none, or unreadable).
+def _typed(value: Any, kind: type | tuple[type, ...]) -> Any:
+    """`value` if it is a `kind` (a bool is no int here), else None."""
+    return value if isinstance(value, kind) and not isinstance(value, bool) else None
+
+
+@dataclass(frozen=True)
+class TrainingRecord:
+    """The NAME_train.json written beside a model by `fcnpose-tf train` (and by `compress` beside a retrained
+    model), as the fields other modules read. A field the file lacks (an older record, a compressed model's)
+    or holds with another type reads as None; `raw` keeps the whole file for anything else."""
+
+    data: str | None = None
+    """The annotation file trained on, as given (a path)."""
+    data_sha256: str | None = None
+    """Hex SHA-256 of that annotation file: tells whether a dataset is the one trained on."""
+    fold: int | None = None
+    """The fold whose training frames were used; None for the hold-out 80/20 split (or not recorded)."""
+    folds: int | None = None
+    """How many folds the dataset's k-fold split has."""
+    split: str | None = None
+    """The split in words ("hold-out 80/20", "fold 2 of 5")."""
+    split_seed: int | None = None
+    """Seed of the dataset's split (which frames are validation frames)."""
+    keypoints: tuple[str, ...] | None = None
+    """The schema's keypoint names, in map order (the file's schema.keypoints)."""
+    positive_weight: float | None = None
+    """The keypoint maps' weight in the training loss (the file's config.positive_weight)."""
+    input_size: int | None = None
+    """The model's input size in pixels (the size it was kept at)."""
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, hash=False)
+    """The whole JSON object, for keys without a field (config, epochs_run, validation...). Not to be changed."""
+
+    @classmethod
+    def from_json(cls, record: dict[str, Any]) -> TrainingRecord:
+        """The record of a parsed NAME_train.json object; TypeError if it is no JSON object (dict)."""
+        if not isinstance(record, dict):
+            raise TypeError(f"a training record is a JSON object, not {type(record).__name__}")
+        schema = record.get("schema")
+        keypoints = schema.get("keypoints") if isinstance(schema, dict) else None
+        if not (isinstance(keypoints, list) and all(isinstance(name, str) for name in keypoints)):
+            keypoints = None
+        config = record.get("config")
+        positive_weight = _typed(config.get("positive_weight"), (int, float)) if isinstance(config, dict) else None
+        return cls(data=_typed(record.get("data"), str), data_sha256=_typed(record.get("data_sha256"), str),
+                   fold=_typed(record.get("fold"), int), folds=_typed(record.get("folds"), int),
+                   split=_typed(record.get("split"), str), split_seed=_typed(record.get("split_seed"), int),
+                   keypoints=tuple(keypoints) if keypoints is not None else None,
+                   positive_weight=float(positive_weight) if positive_weight is not None else None,
+                   input_size=_typed(record.get("input_size"), int), raw=record)
+
+
+def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
+    """The NAME_train.json written beside a model by `fcnpose-tf train`, or None (none, unreadable, or no
+    JSON object).
 
     An export or a compressed model (NAME_fp16.tflite, NAME_p70.keras) finds NAME_train.json too.
     """
@@ -46,9 +99,10 @@ def training_record(model_path: str | os.PathLike) -> dict[str, Any] | None:
     for candidate in (Path(f"{stem}_train.json"), stem.with_name(f"{stem.name.rsplit('_', 1)[0]}_train.json")):
         if candidate.is_file():
             try:
-                return json.loads(candidate.read_text())
+                record = json.loads(candidate.read_text())
             except (OSError, ValueError, RecursionError):  # unreadable, not JSON, nested beyond Python's parser
                 return None
+            return TrainingRecord.from_json(record) if isinstance(record, dict) else None
     return None
 
 

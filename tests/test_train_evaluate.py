@@ -1,6 +1,7 @@
 """Training, resuming, evaluation and their CLI errors on a small, non-synthetic VIA dataset built on the fly."""
 
 import json
+from dataclasses import fields
 
 import cv2
 import numpy as np
@@ -10,6 +11,7 @@ from fcnpose_tf.data.via import ViaFrame, write_via_project
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
 from fcnpose_tf.progress import SILENT
+from fcnpose_tf.records import training_record
 
 
 def make_via_folder(folder, n=10, size=(96, 72), seed=0):
@@ -60,6 +62,11 @@ def test_train_writes_model_curves_and_record(trained):
     assert record["epochs_run"] == 2 and record["train_samples"] == 16 and record["val_frames"] == 2
     assert "pck@0.5_bbox" in record["validation"]["metrics"]
     assert record["init"] == "generalist"  # the default start, by its name: its path is this machine's
+    typed = training_record(out)  # every field read from what train wrote, with its type (fold: the hold-out split)
+    assert [f.name for f in fields(typed) if getattr(typed, f.name) is None] == ["fold"]
+    assert typed.keypoints == tuple(UR5.keypoints) and typed.positive_weight == record["config"]["positive_weight"]
+    assert (typed.data_sha256, typed.split, typed.folds, typed.input_size) == \
+        (record["data_sha256"], record["split"], record["folds"], record["input_size"])
     assert "16 samples (8 frames + 1 augmented copies each)" in stdout
     assert "PCK normalised by max(bbox w, h)" in stdout
 

@@ -105,7 +105,7 @@ class CompressOptions:
             min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if self.method == "l1" else 0
         if positive_weight is None:
             record = training_record(base_path) if base_path is not None else None
-            positive_weight = float(((record or {}).get("config") or {}).get("positive_weight") or 1.0)
+            positive_weight = float(record.positive_weight or 1.0) if record is not None else 1.0
         lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
                                                     settings.DEFAULT_COMPRESS_LR_PATIENCE)
         return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
@@ -368,8 +368,10 @@ def retrain_fold(run: _Run) -> int | None:
     """The fold the run retrains on: --fold, else the base model's own (its record, same data), else the hold-out split."""
     if run.options.fold is not None:
         return run.options.fold
-    record = training_record(run.base_path) or {}
-    return record.get("fold") if record.get("data_sha256") == file_sha256(run.train_dataset.via_path) else None
+    record = training_record(run.base_path)
+    if record is None:
+        return None
+    return record.fold if record.data_sha256 == file_sha256(run.train_dataset.via_path) else None
 
 
 def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarray]:

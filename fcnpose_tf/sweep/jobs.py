@@ -410,11 +410,12 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         validation = trained["validation"]
         model = load_model(path)
     keras_step = {**model_facts(model), **file_sizes(model, path), **validation}
-    record = training_record(path) or {}
+    record = training_record(path)
+    raw = record.raw if record is not None else {}
     return {"eval_frames": len(val_idx), "training": training, "keras": keras_step,
             "files": {"keras": _relative(path, config.out)}, "model_sha256": file_sha256(path),
-            "base_training_record": {k: record.get(k) for k in ("data", "split", "train_samples", "val_frames",
-                                                                "config", "epochs_run", "best_epoch")}}
+            "base_training_record": {k: raw.get(k) for k in ("data", "split", "train_samples", "val_frames",
+                                                             "config", "epochs_run", "best_epoch")}}
 
 
 def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) -> dict[str, Any]:
@@ -432,15 +433,16 @@ def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) 
         _log(f"warning: {path} has no training record (NAME_train.json); cannot check that it was trained on "
              f"fold {job.fold}'s training frames only")
         return {"reused": True, "record": False}
-    if record.get("data_sha256") not in (None, config.data_sha256) or record.get("fold") != job.fold \
-            or record.get("split_seed", config.split_seed) != config.split_seed \
-            or record.get("folds", config.folds) != config.folds:
-        raise UserError(f"{path}: trained on {record.get('split', 'another split')} of {record.get('data')}, not on "
-                        f"fold {job.fold} of {config.folds} of {config.data} (its validation frames would leak "
-                        "into training); move it away or pass --force to retrain")
-    return {"reused": True, "record": True, "epochs_run": record.get("epochs_run"),
-            "best_epoch": record.get("best_epoch"), "best_val_loss": record.get("best_val_loss"),
-            "seconds": record.get("train_seconds"), "stopped_early": record.get("stopped_early")}
+    if record.data_sha256 not in (None, config.data_sha256) or record.fold != job.fold \
+            or record.split_seed not in (None, config.split_seed) or record.folds not in (None, config.folds):
+        split = record.split if record.split is not None else "another split"
+        raise UserError(f"{path}: trained on {split} of {record.data}, not on fold {job.fold} of {config.folds} of "
+                        f"{config.data} (its validation frames would leak into training); move it away or pass "
+                        "--force to retrain")
+    raw = record.raw
+    return {"reused": True, "record": True, "epochs_run": raw.get("epochs_run"),
+            "best_epoch": raw.get("best_epoch"), "best_val_loss": raw.get("best_val_loss"),
+            "seconds": raw.get("train_seconds"), "stopped_early": raw.get("stopped_early")}
 
 
 def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:

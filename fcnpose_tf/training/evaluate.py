@@ -38,11 +38,11 @@ def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold:
     NAME_train.json records the file's SHA-256), otherwise every frame (an unseen dataset).
     """
     if split == "auto":
-        record = training_record(model_path) or {}
-        if record.get("data_sha256") == file_sha256(dataset.via_path):
+        record = training_record(model_path)
+        if record is not None and record.data_sha256 == file_sha256(dataset.via_path):
             split = "val"
             if fold is None:
-                fold = record.get("fold")
+                fold = record.fold
         else:
             split = "all"
     if split == "all":

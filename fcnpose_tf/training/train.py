@@ -540,7 +540,7 @@ def initial_model(init: str | Path, schema: Any, input_size: int | None = None) 
 
     source = load_model(init)
     widths = conv_widths(source)
-    trained_for = ((training_record(init) or {}).get("schema") or {}).get("keypoints")
+    trained_for = record.keypoints if (record := training_record(init)) is not None else None
     if widths[-1] != schema.num_maps or (trained_for is not None and list(trained_for) != list(schema.keypoints)):
         names = ", ".join(trained_for) if trained_for else f"{widths[-1] - 1} keypoints"
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "

@@ -1,0 +1,96 @@
+"""The training record (NAME_train.json) read as a `TrainingRecord`: its fields from a full record, an older
+one, and files that are no record at all."""
+
+import json
+
+import pytest
+
+from fcnpose_tf.records import TrainingRecord, training_record
+
+KEYPOINTS = ["base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"]
+
+
+def written_by_train(**changes):
+    """A NAME_train.json as `fcnpose-tf train` writes it (the shape of a real one, trimmed)."""
+    record = {
+        "data": "nc_train/ur5_synth.json",
+        "data_sha256": "ea46fb790d1a6f6b6848ba811933ba411c254351b06e2984b8d205dfc66246aa",
+        "num_frames": 240, "split": "fold 2 of 5", "fold": 2, "folds": 5, "split_seed": 0, "input_size": 288,
+        "augment": "paper", "augment_copies": 2, "train_samples": 576, "val_frames": 48,
+        "schema": {"name": "ur5", "keypoints": KEYPOINTS, "edges": [[i, i + 1] for i in range(7)]},
+        "init": "generalist",
+        "config": {"epochs": 500, "patience": 12, "batch_size": 8, "learning_rate": 0.001, "seed": 0,
+                   "positive_weight": 8.0, "lr_patience": 4, "lr_schedule": "plateau", "freeze": 2, "distill": 0.0},
+        "epochs_run": 31, "best_epoch": 19, "best_val_loss": 0.0123, "train_seconds": 1500.2, "stopped_early": True,
+        "validation": {"metrics": {"pck@0.5_bbox": 0.97}, "timing": {}},
+    }
+    record.update(changes)
+    return record
+
+
+def test_a_full_record_reads_into_its_fields():
+    raw = written_by_train()
+    record = TrainingRecord.from_json(raw)
+    assert record == TrainingRecord(data="nc_train/ur5_synth.json", data_sha256=raw["data_sha256"], fold=2, folds=5,
+                                    split="fold 2 of 5", split_seed=0, keypoints=tuple(KEYPOINTS),
+                                    positive_weight=8.0, input_size=288, raw=raw)
+    assert record.raw is raw and record.raw["epochs_run"] == 31  # the rest of the file, by key
+    assert isinstance(record.keypoints, tuple) and isinstance(record.positive_weight, float)
+    with pytest.raises(AttributeError):
+        record.fold = 3  # frozen
+    hash(record)  # the raw dict is left out of the hash
+
+
+def test_the_hold_out_split_has_no_fold():
+    record = TrainingRecord.from_json(written_by_train(split="hold-out 80/20", fold=None))
+    assert record.fold is None and record.folds == 5 and record.split == "hold-out 80/20"
+
+
+def test_the_fields_are_the_keys_train_writes():
+    """Each field reads the key (or nested key) `train` writes under that name, unchanged."""
+    raw = written_by_train()
+    record = TrainingRecord.from_json(raw)
+    for name in ("data", "data_sha256", "fold", "folds", "split", "split_seed", "input_size"):
+        assert getattr(record, name) == raw[name], name
+    assert list(record.keypoints) == raw["schema"]["keypoints"]
+    assert record.positive_weight == raw["config"]["positive_weight"]
+
+
+def test_an_older_record_reads_its_missing_keys_as_none():
+    """Records from before a key existed, or a compressed model's (no split, folds, schema...)."""
+    raw = {"data": "labels.json", "config": {"epochs": 10}, "epochs_run": 10}
+    record = TrainingRecord.from_json(raw)
+    assert record == TrainingRecord(data="labels.json", raw=raw)
+    assert None is record.data_sha256 is record.fold is record.folds is record.split is record.split_seed
+    assert None is record.keypoints is record.positive_weight is record.input_size
+    assert TrainingRecord.from_json({}) == TrainingRecord()
+
+
+def test_values_of_another_type_read_as_none():
+    record = TrainingRecord.from_json(written_by_train(
+        fold="2", folds=True, data_sha256=123, schema=["base"], config={"positive_weight": "8"}, input_size=None))
+    assert None is record.fold is record.folds is record.data_sha256 is record.keypoints
+    assert None is record.positive_weight is record.input_size
+    assert TrainingRecord.from_json(written_by_train(schema={"keypoints": ["base", 1]})).keypoints is None
+    assert TrainingRecord.from_json(written_by_train(config=None)).positive_weight is None
+    assert TrainingRecord.from_json(written_by_train(config={"positive_weight": 20})).positive_weight == 20.0
+
+
+@pytest.mark.parametrize("value", [[], [1, 2], "text", 3, None])
+def test_from_json_refuses_what_is_no_json_object(value):
+    with pytest.raises(TypeError):
+        TrainingRecord.from_json(value)
+
+
+def test_training_record_reads_the_file_beside_the_model_and_its_derivatives(tmp_path):
+    (tmp_path / "m_train.json").write_text(json.dumps(written_by_train()))
+    for model in ("m.keras", "m_fp16.tflite", "m_p70.keras"):
+        record = training_record(tmp_path / model)
+        assert isinstance(record, TrainingRecord) and record.fold == 2 and record.keypoints == tuple(KEYPOINTS)
+    assert training_record(tmp_path / "other.keras") is None  # none beside it
+
+
+@pytest.mark.parametrize("text", ["", "{not json", "[1, 2, 3]", '"a string"', "42", "null", "\xff\xfe"])
+def test_training_record_is_none_for_a_file_that_is_no_record(tmp_path, text):
+    (tmp_path / "m_train.json").write_text(text, encoding="latin-1")
+    assert training_record(tmp_path / "m.keras") is None
