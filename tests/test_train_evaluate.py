@@ -214,7 +214,9 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_he
                "--augment-copies", "0", "--augment", "paper", "--init", out, "--freeze", "0", "--positive-weight",
                "20", "--quiet")
     assert proc.returncode == 0, proc.stderr
-    assert json.loads((tmp_path / "ft0_train.json").read_text())["config"]["positive_weight"] == 20.0
+    ft0 = json.loads((tmp_path / "ft0_train.json").read_text())
+    assert ft0["config"]["positive_weight"] == 20.0
+    assert "start_as_saved" not in ft0  # a size the user asked for is kept: the 64x64 start is no candidate
     tuned = load_model(tmp_path / "ft0.keras")
     assert tuned.input_shape[1:3] == (96, 96)
     assert not np.array_equal(start.get_layer("conv1").get_weights()[0], tuned.get_layer("conv1").get_weights()[0])

@@ -120,14 +120,15 @@ def run(args: argparse.Namespace) -> int:
     metadata: dict = {"init": args.init if args.init in BUNDLED_MODELS else (str(init) if init else None),
                       "preset": args.preset}
     # auto settings are resolved before the checkpoint check: a checkpoint records what ran
-    if args.augment == "auto" or args.input_size == settings.AUTO_INPUT_SIZE:
+    size_was_chosen = args.input_size == settings.AUTO_INPUT_SIZE
+    if args.augment == "auto" or size_was_chosen:
         from fcnpose_tf.data.via import read_via
 
         frames = read_via(via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible,
                           skip_bad=args.skip_bad).frames
         if args.augment == "auto":
             args.augment, metadata["augment_auto"] = resolve_augment(frames)
-        if args.input_size == settings.AUTO_INPUT_SIZE:
+        if size_was_chosen:
             args.input_size, metadata["input_size_auto"] = resolve_input_size(frames)
     resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
@@ -152,7 +153,7 @@ def run(args: argparse.Namespace) -> int:
                             augment_copies=args.augment_copies, augment=args.augment, init=init, resume=args.resume,
                             force=args.force, metadata=metadata,
                             threads=args.threads, test_data=test,
-                            test_start=test_start)
+                            test_start=test_start, size_was_chosen=size_was_chosen)
         print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         print(format_report(record["validation"]["metrics"]))
         print(format_timing(record["validation"]["timing"]))

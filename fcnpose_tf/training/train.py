@@ -557,7 +557,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
-               test_start: dict[str, Any] | None = None) -> dict[str, Any]:
+               test_start: dict[str, Any] | None = None, size_was_chosen: bool = False) -> dict[str, Any]:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
@@ -586,6 +586,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
             is measured on all its frames and the result added as "test" (`record_of_test_set`).
         test_start: the starting model's measurement on `test_data` (`record_of_test_set`'s "start"), None for random
             weights.
+        size_was_chosen: `input_size` is `train --input-size auto`'s choice, not the user's: the start as saved,
+            at its own size, is then a candidate too (`keep_start_if_better`).
     Returns:
         The NAME_train.json record: data, split, sizes, config, epochs, best epoch, seconds, validation (and test).
     Raises:
@@ -642,7 +644,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
     paths = run_paths(model_path)
     record = json.loads(paths["train_json"].read_text())
-    if init is not None:
+    if init is not None and size_was_chosen:
         kept = keep_start_if_better(init, dataset, val_idx, report, model_path, input_size, threads=threads,
                                     reporter=reporter, label=label)
         if kept is not None:
@@ -660,7 +662,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: dict[str, Any],
                          model_path: Path, input_size: int, *, threads: int | None = None,
                          reporter: Reporter | None = None, label: str = "") -> tuple[dict[str, Any], Any, dict] | None:
-    """The start as saved is a candidate too when the run trained at another input size than the start's own.
+    """The start as saved is a candidate too when the run trained at another input size than the start's own
+    (one `train --input-size auto` chose: a size the user asked for is kept).
 
     `fit` already keeps the start when no epoch beats it at the run's size (epoch 0); a start pretrained at
     another size may still be better at its own, e.g. a generalist pretrained at 224 on views like the user's,
