@@ -5,8 +5,15 @@ import json
 import numpy as np
 import pytest
 
+from fcnpose_tf.compression.compress import CompressReport, RefusedFormat, report_table
 from test_train_evaluate import make_via_folder
 from weights import randomize
+
+REPORT_KEYS_L1 = ["base_model", "method", "recipe", "options", "evaluation_frames", "pck_normalisation", "threads",
+                  "preset", "base", "pruning", "pruned_before_retraining", "retrain_data", "retraining", "retrained",
+                  "quantized", "other_quantized", "refused", "files", "seconds"]
+"""The keys of a retrained filter-surgery run's NAME_p70_report.json, in order, as written before the report was a
+`CompressReport` (with the command's metadata "preset")."""
 
 
 @pytest.fixture(scope="module")
@@ -38,6 +45,9 @@ def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
     assert names <= {p.name for p in out.iterdir()}
     report = json.loads((out / "base_p70_report.json").read_text())
     assert report["base"]["params"] == 131705 and report["preset"] == "recommended"
+    # the file is CompressReport.to_json(): its sections in this order, the command's "preset" among the facts
+    assert list(report) == REPORT_KEYS_L1
+    assert CompressReport.from_json(report).to_json() == report
     # the default --min-filters 12: no layer under 12 filters (conv5/conv6 keep all 8) within the keep rule's
     # 14,668 parameters, instead of the paper's widths (39, 20, 10, 5, 3, 3, 5, 10, 20)
     assert report["retrained"]["params"] == 14344 == report["quantized"]["params"]
@@ -166,6 +176,7 @@ def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli)
                "--threads", "1")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     report = json.loads((out / "base_m50_report.json").read_text())
+    assert list(report) == [{"pruning": "magnitude_sparsity"}.get(key, key) for key in REPORT_KEYS_L1]
     retraining = report["retraining"]
     assert retraining["loss"] == "keypoint_bce" and retraining["positive_weight"] == 20
     assert retraining["epochs_run"] == 2 and len(retraining["learning_rates"]) == 2  # fit's per-epoch rates
@@ -268,3 +279,96 @@ def test_compress_options_refuse_combinations_no_run_can_do():
     with pytest.raises(UserError, match=r"distillation weight must be a number in \[0, 1\], got 1.5"):
         CompressOptions(rate=0.5, distill=1.5).validate()
     CompressOptions(rate=0.5, strategy="greedy", importance="l2", distill=1.0).validate()
+
+
+def _step(params: int, pck: float, **more) -> dict:
+    metrics = {"pck@0.5_bbox": pck, "pck@0.2_bbox": pck, "pck@0.05_bbox": pck, "epe_px": 1.5}
+    return {"params": params, "macs": 2_000_000, "metrics": metrics, **more}
+
+
+def _report(**changes) -> CompressReport:
+    timing = {"inference_ms": {"mean": 2.0}, "fps": 100.0}
+    fields = dict(base_model="base.keras", method="l1", recipe="filter surgery at 0.7",
+                  options={"quantize": ("float16", "int8"), "rate": 0.7}, evaluation_frames="4 frames of via.json",
+                  pck_normalisation="max(w, h)", threads=1, metadata={"preset": "recommended"},
+                  base=_step(100, 0.9, h5_size_bytes=4000, timing=timing), pruning={"importance": "l1"},
+                  pruned_before_retraining=_step(30, 0.5),
+                  retrain_data={"fold": None}, retraining={"epochs_run": 1},
+                  retrained=_step(30, 0.8, h5_size_bytes=1200, timing=timing),
+                  quantized=_step(30, 0.8, quantize="float16", status="written", tflite_size_bytes=600, timing=timing),
+                  refused=[RefusedFormat("int8", "keypoint 3 lost", post_training={"reason": "keypoint 3 lost"})],
+                  files={"keras": "out/base_p70.keras", "tflite_fp16": "out/base_p70_fp16.tflite"}, seconds=12.5)
+    return CompressReport(**{**fields, **changes})
+
+
+def test_the_report_is_written_as_its_sections_in_order():
+    """`to_json` is the NAME_pXX_report.json object: the sections in the file's order, the caller's metadata in
+    its place, a section the run does not have left out (but "quantized", null when every format was refused)."""
+    report = _report()
+    written = report.to_json()
+    assert list(written) == REPORT_KEYS_L1
+    assert written["preset"] == "recommended" and written["threads"] == 1
+    assert written["refused"] == [{"quantize": "int8", "status": "refused", "reason": "keypoint 3 lost",
+                                   "post_training": {"reason": "keypoint 3 lost"}}]
+    assert CompressReport.from_json(json.loads(json.dumps(written))).to_json() == json.loads(json.dumps(written))
+    assert report.tflite_files == [report.quantized]
+
+    distilled = _report(distillation={"weight": 0.5}).to_json()
+    assert list(distilled)[list(distilled).index("retrain_data"):][:3] == ["retrain_data", "distillation", "retraining"]
+    magnitude = _report(method="magnitude", pruning=None, magnitude_sparsity=0.889, metadata={}).to_json()
+    assert "pruning" not in magnitude and "preset" not in magnitude
+    assert list(magnitude)[8:10] == ["magnitude_sparsity", "pruned_before_retraining"]
+    unretrained = _report(retrain_data=None, retraining=None, quantized=None).to_json()
+    assert "retrain_data" not in unretrained and "retraining" not in unretrained
+    assert unretrained["quantized"] is None and unretrained["other_quantized"] == []
+
+
+def test_a_refused_format_keeps_quantization_aware_trainings_facts():
+    qat = {"epochs_run": 3, "minutes": 1.5}
+    entry = RefusedFormat("int8", "after 3 epoch(s) of quantization-aware training: x", {"reason": "y"}, qat=qat)
+    assert entry.to_json() == {"quantize": "int8", "status": "refused", "reason": entry.reason,
+                               "post_training": {"reason": "y"}, "qat": qat}
+    assert RefusedFormat.from_json(entry.to_json()) == entry
+
+
+def test_a_written_report_reads_back_older_ones_too():
+    """from_json: a key without a field is a further fact (the sweep's "retimed"); a report written before
+    "recipe", "other_quantized" and "refused" existed reads them as "", [] and []; one without a section every
+    report has is no report."""
+    written = _report().to_json()
+    written["retimed"] = {"threads": 1}
+    back = CompressReport.from_json(written)
+    assert back.metadata == {"preset": "recommended", "retimed": {"threads": 1}}
+    assert back.refused == _report().refused and back.quantized == written["quantized"]
+
+    older = {k: v for k, v in _report().to_json().items() if k not in ("recipe", "other_quantized", "refused")}
+    older["options"] = {"quantize": "float16"}
+    del older["quantized"]["quantize"]
+    old = CompressReport.from_json(older)
+    assert (old.recipe, old.other_quantized, old.refused) == ("", [], [])
+    assert "float16 TFLite (.tflite)" in report_table(older)
+
+    with pytest.raises(ValueError, match="not a compress report: no base, retrained"):
+        CompressReport.from_json({k: v for k, v in written.items() if k not in ("base", "retrained")})
+    with pytest.raises(TypeError, match="a compress report is a JSON object, not list"):
+        CompressReport.from_json([])
+
+
+def test_report_metadata_cannot_replace_a_section(tmp_path):
+    from fcnpose_tf.compression.compress import CompressOptions, compress_model
+
+    with pytest.raises(ValueError, match="report metadata cannot hold base, method: a section of the report"):
+        _report(metadata={"method": "x", "base": {}, "preset": "paper"})
+    with pytest.raises(ValueError, match="cannot hold seconds"):  # before any work: no model is read
+        compress_model(tmp_path / "missing.keras", None, None, [], tmp_path / "out", CompressOptions(rate=0.5),
+                       metadata={"seconds": 1})
+    assert not (tmp_path / "out").exists()
+
+
+def test_the_table_of_a_report_and_of_its_file_are_the_same():
+    report = _report(options={"quantize": ("int8", "float16")})
+    table = report_table(report)
+    assert table == report_table(json.loads(json.dumps(report.to_json())))
+    lines = table.splitlines()
+    assert lines[-2].startswith("int8 TFLite: REFUSED (gate)")  # in --quantize order
+    assert lines[-1].startswith("float16 TFLite (.tflite)") and "0.6" in lines[-1]

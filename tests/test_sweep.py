@@ -694,17 +694,20 @@ def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, smoke_sweep
 
 
 def test_a_rate_job_whose_every_format_is_refused_fails_with_one_line(tmp_path, monkeypatch):
-    """compress finishes with every format refused (report["quantized"] None): the job is a clean failure."""
+    """compress finishes with every format refused (its report's quantized None): the job is a clean failure."""
     import types
 
     import fcnpose_tf.compression.compress
+    from fcnpose_tf.compression.compress import CompressReport, RefusedFormat
     from fcnpose_tf.sweep import jobs
 
     base = jobs.base_model_path(tmp_path, 0)
     base.parent.mkdir(parents=True)
     base.write_bytes(b"not read")
-    report = {"quantized": None, "refused": [{"quantize": "float16", "reason": "keypoint 3 lost"},
-                                             {"quantize": "int8", "reason": "2.5 px > 2 px"}]}
+    report = CompressReport(base_model=str(base), method="l1", recipe="", options={}, evaluation_frames="",
+                            pck_normalisation="", threads=None, base={}, pruned_before_retraining={}, retrained={},
+                            quantized=None, files={}, seconds=0.0, refused=[RefusedFormat("float16", "keypoint 3 lost"),
+                                                                            RefusedFormat("int8", "2.5 px > 2 px")])
     monkeypatch.setattr(fcnpose_tf.compression.compress, "compress_model", lambda *a, **k: report)
     config = types.SimpleNamespace(out=tmp_path, folds=2, verbose=0, compress_options=lambda job: None)
     dataset = types.SimpleNamespace(split=lambda fold: ([0, 1], [2, 3]))

@@ -32,6 +32,10 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from fcnpose_tf.compression.compress import CompressReport
 
 NAME = "compress"
 USES_TENSORFLOW = True
@@ -125,11 +129,11 @@ def run(args: argparse.Namespace) -> int:
         report = compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, options,
                                 force=args.force, eval_description=description, metadata={"preset": args.preset})
     threads = args.threads if args.threads is not None else f"all {available_cores()}"
-    print(f"\nCompression at rate {args.rate:g} ({report['recipe']}); measured on {description}; "
+    print(f"\nCompression at rate {args.rate:g} ({report.recipe}); measured on {description}; "
           f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
     print(report_table(report))
-    base = report["base"]
-    for final in [step for step in [report["quantized"], *report["other_quantized"]] if step]:
+    base = report.base
+    for final in report.tflite_files:
         print(f"{final['quantize']}: parameters {base['params']:,} -> {final['params']:,} "
               f"({100 * (1 - final['params'] / base['params']):.1f}% fewer); "
               f"MACs {base['macs'] / 1e6:.1f} M -> {final['macs'] / 1e6:.1f} M; "
@@ -149,23 +153,22 @@ def run(args: argparse.Namespace) -> int:
             print(f"  quantization-aware training: post-training int8 was refused "
                   f"({qat['post_training_refused']['reason']}); {qat['epochs_run']} QAT epoch(s), "
                   f"{qat['minutes']:.1f} min, gave this file")
-    for entry in report["refused"]:
-        print(f"{entry['quantize']}: REFUSED, no file written: {entry['reason']}")
-        if entry.get("qat"):
-            print(f"  (post-training: {entry['post_training']['reason']}; quantization-aware training "
-                  f"{entry['qat']['epochs_run']} epoch(s), {entry['qat']['minutes']:.1f} min)")
+    for entry in report.refused:
+        print(f"{entry.quantize}: REFUSED, no file written: {entry.reason}")
+        if entry.qat:
+            print(f"  (post-training: {entry.post_training['reason']}; quantization-aware training "
+                  f"{entry.qat['epochs_run']} epoch(s), {entry.qat['minutes']:.1f} min)")
     return _finish(report, model_path, args.out_dir, options, named)
 
 
-def _finish(report: dict, model_path: Path, out_dir: Path, options, named: bool) -> int:
+def _finish(report: CompressReport, model_path: Path, out_dir: Path, options, named: bool) -> int:
     """Name every file written; the exit status (see the module doc): 2 when a named format was refused or no
     .tflite file was written, else 0."""
     from fcnpose_tf.compression.compress import output_paths
     from fcnpose_tf.compression.export import finish_formats
 
-    written = [Path(p) for p in report["files"].values()]
+    written = [Path(p) for p in report.files.values()]
     written += [p for p in output_paths(model_path, out_dir, options) if p.is_file() and p not in written
                 and p.suffix != ".tflite"]  # the retraining's record and loss curves
-    return finish_formats(written, [entry["quantize"] for entry in report["refused"]], bool(report["quantized"]),
-                          named)
+    return finish_formats(written, [entry.quantize for entry in report.refused], report.quantized is not None, named)
 

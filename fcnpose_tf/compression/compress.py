@@ -8,11 +8,11 @@
 
 `compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
 the steps below in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
-export_step, measure_quantized), each returning its part of the report. A format whose file fails its gate is a
-"refused" entry of the report, not the end of the run; post-training int8 refused falls back to
-quantization-aware training (`qat_step`, `fcnpose_tf.compression.qat`). A pruning method is a `PruningMethod`
-object (`FilterPruning` with an importance criterion from `fcnpose_tf.compression.importance`, `MagnitudePruning`);
-both retrain through `train.fit`.
+export_step, measure_quantized), each returning its part of the report (a `CompressReport`, written as
+NAME_pXX_report.json). A format whose file fails its gate is a "refused" entry of the report (a `RefusedFormat`),
+not the end of the run; post-training int8 refused falls back to quantization-aware training (`qat_step`,
+`fcnpose_tf.compression.qat`). A pruning method is a `PruningMethod` object (`FilterPruning` with an importance
+criterion from `fcnpose_tf.compression.importance`, `MagnitudePruning`); both retrain through `train.fit`.
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import os
 import tempfile
 import time
 import warnings
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
 
@@ -145,6 +145,153 @@ class CompressOptions:
         return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1), max_minutes=None))
 
 
+# ------------------------------------------------------------------------------------------
+# The report: what a run measured and wrote (NAME_pXX_report.json)
+# ------------------------------------------------------------------------------------------
+
+Step = dict[str, Any]
+"""One measured step of the report, as written: the model's facts (widths, params, macs, flops, nonzero_weights; a
+TFLite file's params, macs, flops), its file sizes (h5_size_bytes, h5_gzip_size_bytes, keras_size_bytes; a TFLite
+file's tflite_size_bytes, tflite_gzip_size_bytes), "metrics" and "timing" (none for the pruned model before
+retraining). A TFLite file's also holds "quantize", "status" ("written"), "quantization", "export"
+(`TFLiteExport.to_dict`), "tflite_ops" and, when quantization-aware training made it, "qat"."""
+
+
+@dataclass(frozen=True)
+class RefusedFormat:
+    """A --quantize format whose file failed its keypoint gate: no file written, a row of the table. Written as
+    {"quantize", "status": "refused", "reason", "post_training"[, "qat"]}."""
+
+    quantize: str
+    """The format (float16, int8, ...)."""
+    reason: str
+    """Why it was refused: the gate's reason (after quantization-aware training, that training's)."""
+    post_training: dict[str, Any] = field(default_factory=dict)
+    """The post-training file's gate: its "reason" and the facts it measured."""
+    qat: dict[str, Any] | None = None
+    """Quantization-aware training's facts, when it was tried (int8 with --qat-epochs above 0)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The entry as the report's "refused" list holds it ("qat" only when tried)."""
+        return {"quantize": self.quantize, "status": "refused", "reason": self.reason,
+                "post_training": self.post_training, **({"qat": self.qat} if self.qat is not None else {})}
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> RefusedFormat:
+        """The entry of a parsed report's "refused" list."""
+        return cls(quantize=entry["quantize"], reason=entry["reason"],
+                   post_training=entry.get("post_training") or {}, qat=entry.get("qat"))
+
+
+def _if_any() -> Any:
+    """A section only some runs have: None when the run has none, and then not written."""
+    return field(default=None, metadata={"if_any": True})
+
+
+@dataclass(frozen=True, kw_only=True)
+class CompressReport:
+    """What `compress_model` measured and wrote: one field per top-level key of NAME_pXX_report.json, in the
+    file's order (`to_json`). The measured steps stay JSON objects (`Step`); a refused format is a `RefusedFormat`.
+    A section only some runs have (pruning, magnitude_sparsity, retrain_data, distillation, retraining) is None
+    when the run has none and is then not written; "quantized" is written either way (null: every format refused)."""
+
+    base_model: str
+    """The model that was compressed, its file as given."""
+    method: str
+    """The pruning method: l1 (filter surgery, whatever the criterion) or magnitude."""
+    recipe: str
+    """One line naming how the file was made (`CompressOptions.recipe`); "" read back from a report older than it."""
+    options: dict[str, Any]
+    """The settings used, `CompressOptions` as a dict (those left None chosen for the run)."""
+    evaluation_frames: str
+    """The frames every step was measured on, in words."""
+    pck_normalisation: str
+    """What PCK's distances are divided by."""
+    threads: int | None
+    """CPU threads of the timed inference (None: all cores)."""
+    metadata: dict[str, Any] = field(default_factory=dict)
+    """The caller's further facts (`compress_model(metadata=...)`, e.g. the command's "preset"), written as top-level
+    keys here; read back from a file, every key without a field (e.g. the sweep's "retimed")."""
+    base: Step
+    """The unpruned model (Keras)."""
+    pruning: dict[str, Any] | None = _if_any()
+    """Filter surgery's criterion and its facts, strategy, min_filters (the floor used), ranking_seconds."""
+    magnitude_sparsity: float | None = _if_any()
+    """Magnitude pruning's fraction of zeroed weights (the parameter reduction of filter surgery at the rate)."""
+    pruned_before_retraining: Step
+    """The pruned model before any retraining (Keras, no timing)."""
+    retrain_data: dict[str, Any] | None = _if_any()
+    """What the retraining trained on: data, fold, train_samples, val_frames (None: not retrained)."""
+    distillation: dict[str, Any] | None = _if_any()
+    """The base model as a teacher while retraining: weight and its facts (None: --distill 0)."""
+    retraining: dict[str, Any] | None = _if_any()
+    """How the retraining went (`retraining_report`); None: not retrained."""
+    retrained: Step
+    """The retrained model as saved (Keras, NAME_pXX.keras)."""
+    quantized: Step | None
+    """The first TFLite file written (the paper's float16 by default); None when every format was refused."""
+    other_quantized: list[Step] = field(default_factory=list)
+    """The other TFLite files written, in --quantize order."""
+    refused: list[RefusedFormat] = field(default_factory=list)
+    """The formats whose file failed its gate (nothing written for them)."""
+    files: dict[str, str]
+    """The files written, by `output_names` key (keras, tflite_fp16, ..., report)."""
+    seconds: float
+    """Wall time of the run."""
+
+    def __post_init__(self) -> None:
+        _check_metadata(self.metadata)
+
+    @property
+    def tflite_files(self) -> list[Step]:
+        """The TFLite files written: "quantized" first, then "other_quantized"."""
+        return [step for step in [self.quantized, *self.other_quantized] if step is not None]
+
+    def to_json(self) -> dict[str, Any]:
+        """The report as NAME_pXX_report.json holds it: the fields in order, `metadata`'s keys in its place, a
+        section only some runs have left out when None."""
+        report: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "metadata":
+                report.update(value)
+            elif f.name == "refused":
+                report[f.name] = [entry.to_json() for entry in value]
+            elif value is not None or not f.metadata.get("if_any"):
+                report[f.name] = value
+        return report
+
+    @classmethod
+    def from_json(cls, report: dict[str, Any]) -> CompressReport:
+        """The report of a parsed NAME_pXX_report.json (to read a written one back, e.g. for its table). Keys that
+        reports held before "recipe", "other_quantized" and "refused" existed read as "", [] and [] (one file,
+        and a refused format ended those runs); a key without a field goes to `metadata`.
+
+        Raises:
+            TypeError: not a JSON object.
+            ValueError: a key every report holds is missing.
+        """
+        if not isinstance(report, dict):
+            raise TypeError(f"a compress report is a JSON object, not {type(report).__name__}")
+        names = {f.name for f in fields(cls)} - {"metadata"}
+        optional = {f.name for f in fields(cls) if f.metadata.get("if_any")} | {"recipe", "other_quantized", "refused"}
+        missing = sorted(names - optional - report.keys())
+        if missing:
+            raise ValueError(f"not a compress report: no {', '.join(missing)}")
+        values = {k: v for k, v in report.items() if k in names}
+        values.setdefault("recipe", "")
+        values["other_quantized"] = list(values.get("other_quantized") or [])
+        values["refused"] = [RefusedFormat.from_json(entry) for entry in values.get("refused") or []]
+        return cls(**values, metadata={k: v for k, v in report.items() if k not in names})
+
+
+def _check_metadata(metadata: dict[str, Any] | None) -> None:
+    """ValueError if a key of a report's further facts is one of its sections (it would overwrite it)."""
+    clash = sorted(set(metadata or {}) & {f.name for f in fields(CompressReport)})
+    if clash:
+        raise ValueError(f"report metadata cannot hold {', '.join(clash)}: a section of the report")
+
+
 def tflite_key(quantize: str) -> str:
     """The key of a TFLite file in a run's names and paths (and the report's "files"): tflite_fp16, tflite_int8."""
     return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
@@ -234,7 +381,8 @@ class PruningMethod(Protocol):
         """The progress line's words for what is pruned."""
 
     def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
-        """The pruned model before retraining, and the report entries the method adds."""
+        """The pruned model before retraining, and the report sections the method adds (`CompressReport` fields
+        by name: pruning, magnitude_sparsity)."""
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
@@ -356,12 +504,12 @@ class _Run:
         return KerasKeypointModel(model, path, num_threads=self.options.threads)
 
 
-def measure_base(run: _Run) -> dict[str, Any]:
-    """The unpruned model: widths, parameters, MACs, file sizes, metrics and timing."""
+def measure_base(run: _Run) -> Step:
+    """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing."""
     base_path = run.base_path
     keras_file = base_path if base_path.suffix == ".keras" else None
-    return {"base": {**model_facts(run.base), **file_sizes(run.base, keras_file),
-                     **run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)")}}
+    return {**model_facts(run.base), **file_sizes(run.base, keras_file),
+            **run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)")}
 
 
 def retrain_fold(run: _Run) -> int | None:
@@ -402,7 +550,9 @@ def importance_step(run: _Run, fold: int | None) -> Importance:
 
 
 def prune_step(run: _Run, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
-    """Prune with the run's method (filters ranked by `importance`); measure the result before any retraining."""
+    """Prune with the run's method (filters ranked by `importance`); measure the result before any retraining.
+    The pruned model, and its report sections (`CompressReport` fields by name: the method's and
+    pruned_before_retraining)."""
     pruned, entries = run.method.prune(run.base, importance)
     entries["pruned_before_retraining"] = {**model_facts(pruned), **run.measure(
         run.keras_predictor(pruned), "the pruned model before retraining", timing=False)}
@@ -410,7 +560,8 @@ def prune_step(run: _Run, importance: Importance) -> tuple[keras.Model, dict[str
 
 
 def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
-    """Retrain the pruned model through `train.fit` (or only save it with 0 epochs); the saved model."""
+    """Retrain the pruned model through `train.fit` (or only save it with 0 epochs); the saved model, and the
+    report sections (`CompressReport` fields by name: retrain_data, distillation, retraining; none with 0 epochs)."""
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.fileio import atomic_path
     from fcnpose_tf.training.model import load_model, save_for_inference
@@ -459,11 +610,12 @@ def retraining_report(result: FitResult, loss: str, positive_weight: float, dist
             "learning_rates": [float(f"{h['lr']:.6g}") for h in result.history if "lr" in h]}
 
 
-def measure_retrained(run: _Run, retrained: keras.Model) -> dict[str, Any]:
-    """The retrained Keras model as saved: widths, parameters, MACs, file sizes, metrics and timing."""
+def measure_retrained(run: _Run, retrained: keras.Model) -> Step:
+    """The retrained Keras model as saved (the report's "retrained"): widths, parameters, MACs, file sizes, metrics
+    and timing."""
     keras_path = run.paths["keras"]
-    return {"retrained": {**model_facts(retrained), **file_sizes(retrained, keras_path),
-                          **run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)")}}
+    return {**model_facts(retrained), **file_sizes(retrained, keras_path),
+            **run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)")}
 
 
 def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
@@ -523,8 +675,7 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     return result
 
 
-def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any],
-                      qat: dict[str, Any] | None = None) -> dict[str, Any]:
+def measure_quantized(run: _Run, export: Any, retrained_facts: Step, qat: dict[str, Any] | None = None) -> Step:
     """One TFLite file: its format, how it was quantized, size (plain and gzip), export facts, operators, metrics and
     timing (`qat`: the quantization-aware training that made it, with the post-training refusal it replaced)."""
     from fcnpose_tf.compression.export import inspect_tflite
@@ -545,7 +696,7 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: dict[str, Any],
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
                    out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
                    eval_description: str = "", reporter: Reporter | None = None,
-                   metadata: dict[str, Any] | None = None) -> dict[str, Any]:
+                   metadata: dict[str, Any] | None = None) -> CompressReport:
     """Prune, retrain, export and measure one model at one rate; write the files; return the report.
 
     Args:
@@ -559,17 +710,17 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         force: replace existing output files.
         reporter: where the step lines and progress go (`fcnpose_tf.progress`; default: the current one): data
             preparation's progress, then the retraining one line per epoch; nothing when silent.
-        metadata: more facts for the report (e.g. the command's "preset").
+        metadata: more facts for the report (e.g. the command's "preset"), top-level keys of its file.
     Returns:
-        The report dict (also written as NAME_pXX_report.json). Its "quantized" entry is the first
-        TFLite file written (the paper's float16 by default; None if every format was refused),
-        "other_quantized" a list of the other files written, "refused" a list of the formats whose
-        file failed its gate: {"quantize", "status": "refused", "reason", "post_training": the gate's
-        facts, "qat": quantization-aware training's facts when it was tried}. A refused format
-        writes no file and does not end the run; "files" names the files written.
+        The `CompressReport` (its `to_json()` written as NAME_pXX_report.json). Its `quantized` is the
+        first TFLite file written (the paper's float16 by default; None if every format was refused),
+        `other_quantized` the other files written, `refused` the formats whose file failed its gate
+        (`RefusedFormat`: reason, the gate's facts, quantization-aware training's when it was tried). A
+        refused format writes no file and does not end the run; `files` names the files written.
     Raises:
         UserError: bad options, existing outputs without force, unwritable folder, or a model whose
             maps do not match the dataset.
+        ValueError: `metadata` names a section of the report.
     """
     from fcnpose_tf.training.model import load_model
     from fcnpose_tf.compression.prune import prune_plan, prune_widths
@@ -577,6 +728,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     base_path = Path(base_path)
     options = options.resolved(base_path)
     options.validate()
+    _check_metadata(metadata)
     start = time.perf_counter()
     reporter = progress.resolve(reporter)
     say = reporter.say
@@ -596,23 +748,16 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if floor < options.min_filters:
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
             f"no layer under {floor} filters")
-    report: dict[str, Any] = {
-        "base_model": str(base_path), "method": options.method, "recipe": run.recipe, "options": asdict(options),
-        "evaluation_frames": eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
-        "pck_normalisation": "max(w, h) of the ground-truth keypoints' bounding box",
-        "threads": options.threads, **(metadata or {}),
-    }
-    report.update(measure_base(run))
+    base_step = measure_base(run)
     say(f"[2/{steps}] pruning: {run.method.describe()}")
-    pruned, entries = prune_step(run, importance_step(run, retrain_fold(run)))
-    report.update(entries)
+    pruned, pruned_sections = prune_step(run, importance_step(run, retrain_fold(run)))
     say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")
-    retrained, entries = retrain_step(run, pruned)
-    report.update(entries)
+    retrained, retrained_sections = retrain_step(run, pruned)
     say(f"[4/{steps}] measuring the retrained Keras model")
-    report.update(measure_retrained(run, retrained))
-    fold = report.get("retrain_data", {}).get("fold", options.fold)
-    files, refused = [], []
+    retrained_step = measure_retrained(run, retrained)
+    fold = retrained_sections["retrain_data"]["fold"] if "retrain_data" in retrained_sections else options.fold
+    files: list[Step] = []
+    refused: list[RefusedFormat] = []
     for i, quantize in enumerate(options.quantize):
         say(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
         export, qat = _export_or_refusal(run, retrained, quantize, fold, refused)
@@ -620,19 +765,24 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             _remove_stale(run, quantize)
             continue
         say(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
-        files.append(measure_quantized(run, export, report["retrained"], qat))
-    # "quantized": the first file written (the paper's float16 by default), None when every format was refused
-    report["quantized"], report["other_quantized"] = (files[0] if files else None), files[1:]
-    report["refused"] = refused
+        files.append(measure_quantized(run, export, retrained_step, qat))
     written = {tflite_key(f["quantize"]) for f in files}
-    report["files"] = {k: str(v) for k, v in paths.items() if not k.startswith("tflite_") or k in written}
-    report["seconds"] = round(time.perf_counter() - start, 1)
-    write_json(paths["report"], report, force=force)
+    report = CompressReport(
+        base_model=str(base_path), method=options.method, recipe=run.recipe, options=asdict(options),
+        evaluation_frames=eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
+        pck_normalisation="max(w, h) of the ground-truth keypoints' bounding box", threads=options.threads,
+        metadata=dict(metadata or {}), base=base_step, **pruned_sections, **retrained_sections,
+        retrained=retrained_step,
+        # the first file written (the paper's float16 by default), None when every format was refused
+        quantized=files[0] if files else None, other_quantized=files[1:], refused=refused,
+        files={k: str(v) for k, v in paths.items() if not k.startswith("tflite_") or k in written},
+        seconds=round(time.perf_counter() - start, 1))
+    write_json(paths["report"], report.to_json(), force=force)
     return report
 
 
 def _export_or_refusal(run: _Run, retrained: keras.Model, quantize: str, fold: int | None,
-                       refused: list[dict[str, Any]]) -> tuple[Any, dict[str, Any] | None]:
+                       refused: list[RefusedFormat]) -> tuple[Any, dict[str, Any] | None]:
     """(the written export, the QAT facts if QAT made it), or (None, None) with the refusal appended to `refused`.
 
     A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
@@ -644,8 +794,7 @@ def _export_or_refusal(run: _Run, retrained: keras.Model, quantize: str, fold: i
     except ExportVerificationError as exc:
         ptq = {"reason": exc.reason, **exc.facts}
     run.log(f"  {quantize} refused by its gate: {ptq['reason']}")
-    entry: dict[str, Any] = {"quantize": quantize, "status": "refused", "reason": ptq["reason"],
-                             "post_training": ptq}
+    reason, qat = ptq["reason"], None
     if quantize == FULL_INTEGER and run.options.qat_epochs > 0:
         run.log(f"  post-training int8 refused: quantization-aware training (tfmot), up to {run.options.qat_epochs} "
                 f"epoch(s) from the retrained model on the same training frames, the gate after each")
@@ -655,10 +804,9 @@ def _export_or_refusal(run: _Run, retrained: keras.Model, quantize: str, fold: i
             run.log(f"  quantization-aware int8 passes the gate after {result.epochs_run} epoch(s), "
                     f"{result.seconds / 60:.1f} min")
             return result.export, qat
-        entry["reason"] = f"after {result.epochs_run} epoch(s) of quantization-aware training: {result.reason}"
-        entry["qat"] = qat
+        reason = f"after {result.epochs_run} epoch(s) of quantization-aware training: {result.reason}"
         run.log(f"  quantization-aware int8 refused too ({result.seconds / 60:.1f} min): {result.reason}")
-    refused.append(entry)
+    refused.append(RefusedFormat(quantize, reason, post_training=ptq, qat=qat))
     return None, None
 
 
@@ -676,15 +824,16 @@ def _loss_name(model: Any) -> str:
     return str(getattr(loss, "name", loss))
 
 
-def report_table(report: dict[str, Any], markdown: bool = False) -> str:
+def report_table(report: CompressReport | dict[str, Any], markdown: bool = False) -> str:
     """The compression report as a table: the unpruned model beside each step of the compressed one.
 
+    `report`: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
     Sizes are of the file each row's model ships as (.h5 for Keras, .tflite), in KB (1000 bytes);
     "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
     """
     from fcnpose_tf.tables import format_table
 
-    def row(label: str, step: dict, size_key: str) -> list:
+    def row(label: str, step: Step, size_key: str) -> list:
         m = step["metrics"]
         t = step.get("timing")
         size = step.get(size_key) if size_key else None
@@ -692,21 +841,24 @@ def report_table(report: dict[str, Any], markdown: bool = False) -> str:
                 m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
                 t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
 
-    rows = [row("unpruned (Keras, .h5)", report["base"], "h5_size_bytes"),
-            row("pruned, before retraining", report["pruned_before_retraining"], ""),
-            row("pruned + retrained (Keras, .h5)", report["retrained"], "h5_size_bytes")]
+    if not isinstance(report, CompressReport):
+        report = CompressReport.from_json(report)
+    rows = [row("unpruned (Keras, .h5)", report.base, "h5_size_bytes"),
+            row("pruned, before retraining", report.pruned_before_retraining, ""),
+            row("pruned + retrained (Keras, .h5)", report.retrained, "h5_size_bytes")]
     # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
-    steps = [step for step in [report["quantized"], *report.get("other_quantized", [])] if step]
-    steps += report.get("refused", [])
-    order = list(report["options"]["quantize"]) if isinstance(report["options"]["quantize"], (list, tuple)) else []
-    steps.sort(key=lambda step: order.index(step["quantize"]) if step.get("quantize") in order else len(order))
-    for step in steps:
-        name = step.get("quantize") or report["options"]["quantize"]
-        if step.get("status") == "refused":
+    quantize = report.options["quantize"]
+    order = list(quantize) if isinstance(quantize, (list, tuple)) else []
+    entries: list[tuple[Any, Step | RefusedFormat]] = [(step.get("quantize") or quantize, step)
+                                                       for step in report.tflite_files]
+    entries += [(entry.quantize, entry) for entry in report.refused]
+    entries.sort(key=lambda entry: order.index(entry[0]) if entry[0] in order else len(order))
+    for name, entry in entries:
+        if isinstance(entry, RefusedFormat):
             rows.append([f"{name} TFLite: REFUSED (gate)"] + [None] * 9)
         else:
-            qat = " QAT" if step.get("quantization") == "quantization-aware training" else ""
-            rows.append(row(f"{name}{qat} TFLite (.tflite)", step, "tflite_size_bytes"))
+            qat = " QAT" if entry.get("quantization") == "quantization-aware training" else ""
+            rows.append(row(f"{name}{qat} TFLite (.tflite)", entry, "tflite_size_bytes"))
     return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
                          "infer ms", "FPS e2e"], rows, markdown=markdown,
                         digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])

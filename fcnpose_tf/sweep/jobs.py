@@ -457,19 +457,19 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
                             config.compress_options(job), force=True, reporter=_reporter(config),
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
-    if report["quantized"] is None:  # every format refused by its keypoint gate: the job fails, one line
-        reasons = "; ".join(f"{r['quantize']}: {r['reason']}" for r in report["refused"])
+    if report.quantized is None:  # every format refused by its keypoint gate: the job fails, one line
+        reasons = "; ".join(f"{entry.quantize}: {entry.reason}" for entry in report.refused)
         raise UserError(f"{job.label}: no TFLite file passed its keypoint gate ({reasons})")
     return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
-            "keras": _strip(report["retrained"]),
-            "tflite": _strip(report["quantized"]),
-            **{tflite_section(step["quantize"]): _strip(step) for step in report["other_quantized"]},
-            "pruned_before_retraining": report["pruned_before_retraining"],
-            "base_remeasured": {"timing": report["base"].get("timing")},
-            "retraining": report.get("retraining"),
-            "pruning": report.get("pruning"), "distillation": report.get("distillation"),
-            "verification": report["quantized"].get("export", {}).get("parity"),
-            "files": {k: _relative(v, config.out) for k, v in report["files"].items()}}
+            "keras": _strip(report.retrained),
+            "tflite": _strip(report.quantized),
+            **{tflite_section(step["quantize"]): _strip(step) for step in report.other_quantized},
+            "pruned_before_retraining": report.pruned_before_retraining,
+            "base_remeasured": {"timing": report.base.get("timing")},
+            "retraining": report.retraining,
+            "pruning": report.pruning, "distillation": report.distillation,
+            "verification": report.quantized.get("export", {}).get("parity"),
+            "files": {k: _relative(v, config.out) for k, v in report.files.items()}}
 
 
 @dataclass

@@ -250,7 +250,8 @@ def _fps(step: dict[str, Any] | None) -> float | None:
 
 
 def _update_compress_report(out: Path, record: dict[str, Any], measured: dict[str, dict[str, Any]]) -> None:
-    """Put the new timings into the job's models/NAME_report.json too (base, retrained, quantized)."""
+    """Put the new timings into the job's models/NAME_report.json too (base, retrained, quantized). The file is
+    edited as JSON, not read as a `CompressReport`: one written by an older version keeps every key as it was."""
     report_file = (record.get("files") or {}).get("report")
     if record["kind"] == "base" or not report_file:
         return
