@@ -67,6 +67,8 @@ class TrainingRecord:
     """The keypoint maps' weight in the training loss (the file's config.positive_weight)."""
     input_size: int | None = None
     """The model's input size in pixels (the size it was kept at)."""
+    augment: str | None = None
+    """How its training frames were augmented: "paper" (fixed offline copies) or "online" (fresh every epoch)."""
     raw: dict[str, Any] = field(default_factory=dict, repr=False, hash=False)
     """The whole JSON object, for keys without a field (config, epochs_run, validation...). Not to be changed."""
 
@@ -86,7 +88,8 @@ class TrainingRecord:
                    split=_typed(record.get("split"), str), split_seed=_typed(record.get("split_seed"), int),
                    keypoints=tuple(keypoints) if keypoints is not None else None,
                    positive_weight=float(positive_weight) if positive_weight is not None else None,
-                   input_size=_typed(record.get("input_size"), int), raw=record)
+                   input_size=_typed(record.get("input_size"), int), augment=_typed(record.get("augment"), str),
+                   raw=record)
 
 
 def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:

@@ -367,6 +367,14 @@ TRAIN_AUGMENT = AUGMENT.variant(
 """`train` serves a user's frames, whichever camera set-up they come from: on the new fixed cell the paper's
 copies measured ahead, on random views online augmentation (docs/training.md, "Training on your own frames");
 `data.views` tells the two apart from the frames themselves."""
+INHERITED_AUGMENT = AUGMENT.variant(
+    default=None, paper="paper",
+    help="paper: the paper's fixed offline rotation/padding copies (--augment-copies); online: fresh keypoint-aware "
+         "random transforms for every sample of every epoch (docs/data.md); default: the base model's, from its "
+         "NAME_train.json (online for a model `train` fitted to views that vary), else paper")
+"""`compress` retrains with the augmentation the base model was trained with, as with its keypoint weight: a model
+fine-tuned on views that vary, retrained on the paper's fixed copies of its 192 frames, overfits within a few
+epochs and loses PCK@0.5 (docs/compression.md, "What to expect")."""
 AUGMENT_COPIES = Setting("augment_copies", int, 2, "with --augment paper: offline rotation/padding copies per training frame (the paper: 2)",
                          label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
 INIT = Setting(

@@ -372,3 +372,23 @@ def test_the_table_of_a_report_and_of_its_file_are_the_same():
     lines = table.splitlines()
     assert lines[-2].startswith("int8 TFLite: REFUSED (gate)")  # in --quantize order
     assert lines[-1].startswith("float16 TFLite (.tflite)") and "0.6" in lines[-1]
+
+
+def test_compress_inherits_the_base_models_augmentation(tmp_path):
+    """Left unset, the retraining augments as the base model's training did (its NAME_train.json), as with its
+    keypoint weight; a model without a record, or a record without it, gets the paper's copies; a value given wins."""
+    import json
+
+    from fcnpose_tf.compression.compress import CompressOptions
+
+    base = tmp_path / "views.keras"
+    base.write_bytes(b"")  # only the record beside it is read
+    (tmp_path / "views_train.json").write_text(json.dumps({"augment": "online", "config": {"positive_weight": 20}}))
+    resolved = CompressOptions(rate=0.7).resolved(base)
+    assert (resolved.augment, resolved.positive_weight) == ("online", 20.0)
+    assert "retrained up to 25 epochs with online augmentation on" in resolved.recipe()
+    assert CompressOptions(rate=0.7, augment="paper").resolved(base).augment == "paper"
+    (tmp_path / "views_train.json").write_text(json.dumps({"augment": "sideways"}))
+    assert CompressOptions(rate=0.7).resolved(base).augment == "paper"
+    assert CompressOptions(rate=0.7).resolved(tmp_path / "none.keras").augment == "paper"
+    assert "online" not in CompressOptions(rate=0.7).resolved().recipe()

@@ -33,7 +33,7 @@ def test_a_full_record_reads_into_its_fields():
     record = TrainingRecord.from_json(raw)
     assert record == TrainingRecord(data="nc_train/ur5_synth.json", data_sha256=raw["data_sha256"], fold=2, folds=5,
                                     split="fold 2 of 5", split_seed=0, keypoints=tuple(KEYPOINTS),
-                                    positive_weight=8.0, input_size=288, raw=raw)
+                                    positive_weight=8.0, input_size=288, augment="paper", raw=raw)
     assert record.raw is raw and record.raw["epochs_run"] == 31  # the rest of the file, by key
     assert isinstance(record.keypoints, tuple) and isinstance(record.positive_weight, float)
     with pytest.raises(AttributeError):

@@ -76,7 +76,8 @@ def test_commands_that_differ_use_their_own_variant():
     assert CompressOptions(rate=0.5).learning_rate == 3e-3 and CompressOptions(rate=0.5).lr_patience is None
     assert (train.lr_patience, settings.DEFAULT_TRAIN_LR_PATIENCE, sweep.lr_patience) == (None, 4, 0)
     assert (train.max_minutes, sweep.max_minutes) == (30.0, None)
-    assert (train.augment, compress.augment) == ("auto", "paper")  # train picks per dataset (data.views)
+    assert (train.augment, compress.augment) == ("auto", None)  # train picks per dataset (data.views)
+    # compress retrains as its base model was trained: test_compress_inherits_the_base_models_augmentation
     # compress resolves its criterion per run (taylor for independent filter surgery); the sweep keeps the paper's
     assert compress.importance is None and sweep.importance == settings.IMPORTANCE.default == "l1"
     assert compress.distill == sweep.distill == 0.0 and compress.freeze == 0  # compress retrains every layer

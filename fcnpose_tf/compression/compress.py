@@ -51,7 +51,8 @@ Log = Callable[[str], None]
 @settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
                        settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
                        ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE,
-                       ("learning_rate", settings.COMPRESS_LEARNING_RATE), settings.AUGMENT, settings.AUGMENT_COPIES,
+                       ("learning_rate", settings.COMPRESS_LEARNING_RATE), ("augment", settings.INHERITED_AUGMENT),
+                       settings.AUGMENT_COPIES,
                        settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        ("positive_weight", settings.INHERITED_POSITIVE_WEIGHT),
                        ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
@@ -95,21 +96,25 @@ class CompressOptions:
         """These options with the settings left None chosen for the run: importance (`settings.DEFAULT_COMPRESS_IMPORTANCE`
         for filter surgery with the independent strategy, else the paper's l1: greedy ranking reads kernels only),
         min_filters (`settings.DEFAULT_COMPRESS_MIN_FILTERS` for filter surgery; magnitude pruning keeps every
-        filter), lr_patience (`settings.resolved_lr_patience`) and positive_weight (the one `base_path` was trained
-        with, from its NAME_train.json; else 1, the paper's plain BCE)."""
-        importance, min_filters, positive_weight = self.importance, self.min_filters, self.positive_weight
+        filter), lr_patience (`settings.resolved_lr_patience`), positive_weight and augment (those `base_path` was
+        trained with, from its NAME_train.json; else 1, the paper's plain BCE, and the paper's copies)."""
+        importance, min_filters, positive_weight, augment = (self.importance, self.min_filters, self.positive_weight,
+                                                             self.augment)
         if importance is None:
             independent_surgery = self.method == "l1" and self.strategy == "independent"
             importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
         if min_filters is None:
             min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if self.method == "l1" else 0
+        record = training_record(base_path) if base_path is not None and None in (positive_weight, augment) else None
         if positive_weight is None:
-            record = training_record(base_path) if base_path is not None else None
             positive_weight = float(record.positive_weight or 1.0) if record is not None else 1.0
+        if augment is None:
+            inherited = record.augment if record is not None else None
+            augment = inherited if inherited in settings.AUGMENT.choices else settings.AUGMENT.default
         lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
                                                     settings.DEFAULT_COMPRESS_LR_PATIENCE)
         return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
-                       lr_patience=lr_patience)
+                       lr_patience=lr_patience, augment=augment)
 
     def recipe(self, min_filters_used: int | None = None) -> str:
         """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
@@ -117,7 +122,7 @@ class CompressOptions:
         `min_filters_used` is the floor the surgery could keep (`prune.prune_widths`) when lower than asked."""
         from fcnpose_tf.training.train import loss_name
 
-        if None in (self.importance, self.min_filters, self.lr_patience, self.positive_weight):
+        if None in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment):
             return self.resolved().recipe(min_filters_used)
 
         used = self.min_filters if min_filters_used is None else min_filters_used
@@ -135,8 +140,9 @@ class CompressOptions:
                 f"learning rate {self.learning_rate:g}, halved after {self.lr_patience} stale epochs"
                 if self.lr_patience else f"learning rate {self.learning_rate:g}")
         frozen = f", conv1-{self.freeze} fixed" if self.freeze > 1 else ", conv1 fixed" if self.freeze else ""
-        return (f"{pruned}, retrained up to {epochs} on {loss_name(self.positive_weight or 1.0, self.distill)}, "
-                f"{rate}{frozen}")
+        frames = " with online augmentation" if self.augment == "online" else ""  # the paper's copies: unsaid
+        return (f"{pruned}, retrained up to {epochs}{frames} on "
+                f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}")
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
