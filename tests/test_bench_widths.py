@@ -1,6 +1,6 @@
 """tools/bench_widths.py: its width arithmetic against FCN-Pose, its errors, and that a run prints a row per variant.
 
-No timing is asserted: the figures are what the tool is for (issue #34, item 1).
+No timing is asserted: the figures are what the tool is for (docs/results.md, "Widths the kernels like?").
 """
 
 import importlib.util

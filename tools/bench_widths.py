@@ -1,5 +1,6 @@
 #!/usr/bin/env python
-"""Invoke time of FCN-Pose's convolutions and of whole FCN-Pose models against their channel widths (#34, item 1).
+"""Invoke time of FCN-Pose's convolutions and of whole FCN-Pose models against their channel widths
+(measured: docs/results.md, "Widths the kernels like?").
 
 XNNPACK's int8 and float kernels work on channels in tiles, so a convolution's time need not follow its
 multiply-accumulates (MACs) when the widths change. This tool prints the figures to judge that by; it
