@@ -335,7 +335,8 @@ TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
     requirement=f"auto or a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)",
     help="model input side: auto chooses the smallest multiple of 32 from 224 to 384 at which the arm's keypoint "
          "box spans 140 input pixels in the median frame (224 where the arm spans 5/8 of the frame or more; larger "
-         "where it is smaller, at 1.3-2.9x the compute per frame: docs/training.md, \"Input size\"), and keeps the "
+         "where it is smaller, at 1.3-2.9x the compute per frame: docs/training.md, \"Input size\"), or the starting "
+         "model's own size where the arm spans 140 pixels there too (a next round stays at its size), and keeps the "
          "starting model as saved, at its own size, if it scores higher on the validation frames; or a multiple of 32")
 """`train` serves a user's camera: where the arm is small in the frame, 224 leaves PCK@0.05's radius a few input
 pixels wide and fine localisation falls (measured on the held-out fixed camera: docs/training.md, "Someone else's

@@ -51,6 +51,21 @@ def test_the_choice_is_the_smallest_size_reaching_the_wanted_pixels():
             assert span * (size - settings.INPUT_SIZE_MULTIPLE) < MIN_ARM_INPUT_PX
 
 
+@pytest.mark.parametrize("span, start_size, size", [
+    (0.40, 384, 384), (0.40, 352, 352),   # the arm spans 140 px at the start's size too: the start's size is kept
+    (0.40, 320, 352),                     # 128 px at 320: too few, the smallest size that reaches 140
+    (0.50, 224, 288), (1.0, 224, 224),    # a bundled start (224) changes nothing
+    (0.9, 416, 224), (0.9, 300, 224),     # a size auto never chooses (too large, not a multiple of 32) is not kept
+    (0.0, 384, 224)])                     # unknown span: the default, whatever the start
+def test_choose_input_size_keeps_the_start_size_where_the_arm_is_large_enough(span, start_size, size):
+    assert choose_input_size(span, start_size) == size
+
+
+def test_a_bundled_start_never_changes_the_choice():
+    for span in np.linspace(0.01, 1.0, 200):
+        assert choose_input_size(float(span), AUTO_MIN_INPUT_SIZE) == choose_input_size(float(span))
+
+
 def test_train_takes_auto_or_a_multiple_of_32_and_the_paper_keeps_224():
     setting = settings.TRAIN_INPUT_SIZE
     assert setting.default == "auto" and setting.default_in("paper") == 224
@@ -93,6 +108,11 @@ def test_resolve_input_size_reads_the_frames_and_says_why(tmp_path, capsys):
     assert "--input-size 224 runs 2.9x faster" in out
     size, _ = resolve_input_size(_frames(_small_arm_project(tmp_path / "close", 0.8)))
     assert size == 224 and "faster" not in capsys.readouterr().out
+    # a start trained at 384 on this camera stays at 384 where the arm spans 140 px there (352 would do)
+    size, record = resolve_input_size(_frames(_small_arm_project(tmp_path / "next", 0.42)), start_size=384)
+    assert size == 384 and record["start_input_size"] == 384 and record["chose"] == 384
+    out = capsys.readouterr().out
+    assert "auto -> 384" in out and "the starting model's own size, kept: the smallest size reaching them is 352" in out
 
 
 @pytest.mark.slow
@@ -109,3 +129,14 @@ def test_train_auto_records_the_choice(cli, tmp_path):
     record = json.loads((tmp_path / "m_train.json").read_text())
     assert record["input_size"] == 224 and record["input_size_auto"]["chose"] == 224
     assert load_model(out).input_shape[1:3] == (224, 224)
+    # a next round from a model trained at 256 stays at 256: the arm spans 140 px there too
+    first, second = tmp_path / "r1.keras", tmp_path / "r2.keras"
+    proc = cli("train", *common[:2], "--out", first, *common[4:], "--epochs", "1", "--input-size", "256")
+    assert proc.returncode == 0, proc.stderr
+    common[5] = first
+    proc = cli("train", *common[:2], "--out", second, *common[4:], "--epochs", "1")
+    assert proc.returncode == 0, proc.stderr
+    assert "Input size: auto -> 256" in proc.stdout and "the smallest size reaching them is 224" in proc.stdout
+    record = json.loads((tmp_path / "r2_train.json").read_text())
+    assert record["input_size"] == 256 and record["input_size_auto"]["start_input_size"] == 256
+    assert load_model(second).input_shape[1:3] == (256, 256)

@@ -88,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.training.evaluate import format_timing
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
+    from fcnpose_tf.records import training_record
     from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line,
                                            resolve_augment, resolve_input_size, run_identity, start_on_test_set,
                                            train_fold)
@@ -129,7 +130,9 @@ def run(args: argparse.Namespace) -> int:
         if args.augment == "auto":
             args.augment, metadata["augment_auto"] = resolve_augment(frames)
         if size_was_chosen:
-            args.input_size, metadata["input_size_auto"] = resolve_input_size(frames)
+            start_record = training_record(init) if init is not None else None
+            args.input_size, metadata["input_size_auto"] = resolve_input_size(
+                frames, start_size=start_record.input_size if start_record is not None else None)
     resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,

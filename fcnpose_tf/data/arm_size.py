@@ -49,12 +49,22 @@ def arm_span(frames: Iterable[tuple[np.ndarray, int, int]]) -> float:
     return float(np.median(spans)) if spans else 0.0
 
 
-def choose_input_size(span: float) -> int:
+def choose_input_size(span: float, start_size: int | None = None) -> int:
     """The smallest multiple of 32 from AUTO_MIN_INPUT_SIZE at which an arm spanning `span` of the frame covers
     MIN_ARM_INPUT_PX input pixels; AUTO_MAX_INPUT_SIZE when none up to it does, AUTO_MIN_INPUT_SIZE when the
-    span is unknown (0: no frame with two keypoints)."""
+    span is unknown (0: no frame with two keypoints).
+
+    `start_size`, the input size the starting model was trained at, is kept instead when it is a size `auto`
+    can choose and the arm already spans MIN_ARM_INPUT_PX input pixels there: a model continued on more frames of
+    the same camera (the correction loop's next round) stays at the scale it learnt, and its rounds compare, even
+    when the merged frames' median arm moves a little. The bundled models (224) never change the choice: 224
+    qualifies only when it is the smallest size that does.
+    """
     if span <= 0:
         return AUTO_MIN_INPUT_SIZE
+    if (start_size is not None and AUTO_MIN_INPUT_SIZE <= start_size <= AUTO_MAX_INPUT_SIZE
+            and start_size % INPUT_SIZE_MULTIPLE == 0 and span * start_size >= MIN_ARM_INPUT_PX):
+        return start_size
     for size in range(AUTO_MIN_INPUT_SIZE, AUTO_MAX_INPUT_SIZE + 1, INPUT_SIZE_MULTIPLE):
         if span * size >= MIN_ARM_INPUT_PX:
             return size

@@ -511,20 +511,28 @@ def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> 
                      "chose": augment}
 
 
-def resolve_input_size(frames: Sequence[Any], reporter: Reporter | None = None) -> tuple[int, dict[str, Any]]:
+def resolve_input_size(frames: Sequence[Any], reporter: Reporter | None = None,
+                       start_size: int | None = None) -> tuple[int, dict[str, Any]]:
     """What `input_size="auto"` (train's default) means for these frames (`data.via` frames: keypoints and frame
-    sizes): the smallest input side at which the arm spans enough input pixels (`data.arm_size`); the choice and
-    what it was based on, for NAME_train.json ("input_size_auto"), said through `reporter`."""
+    sizes): the smallest input side at which the arm spans enough input pixels (`data.arm_size`), or the starting
+    model's own size `start_size` when the arm spans enough there; the choice and what it was based on, for
+    NAME_train.json ("input_size_auto"), said through `reporter`."""
     from fcnpose_tf.data.arm_size import MIN_ARM_INPUT_PX, arm_span, choose_input_size
 
     span = arm_span((f.keypoints, f.width, f.height) for f in frames)
-    size = choose_input_size(span)
+    size = choose_input_size(span, start_size)
+    smallest = choose_input_size(span)
     default = settings.INPUT_SIZE.default
     cost = f"; --input-size {default} runs {(size / default) ** 2:.1f}x faster" if size > default else ""
+    kept = (f"; the starting model's own size, kept: the smallest size reaching them is {smallest}"
+            if size != smallest else "")
     progress.resolve(reporter).say(
         f"Input size: auto -> {size} (the arm's keypoint box spans {span:.2f} of the median frame: {span * size:.0f} "
-        f"input pixels at {size}, {MIN_ARM_INPUT_PX} wanted{cost})")
-    return size, {"arm_span": round(span, 4), "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": size}
+        f"input pixels at {size}, {MIN_ARM_INPUT_PX} wanted{kept}{cost})")
+    record = {"arm_span": round(span, 4), "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": size}
+    if start_size is not None:
+        record["start_input_size"] = start_size
+    return size, record
 
 
 def initial_model(init: str | Path, schema: Any, input_size: int | None = None) -> keras.Model:
