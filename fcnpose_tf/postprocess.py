@@ -19,6 +19,11 @@ Rules (see docs/postprocess.md):
 - **Coordinates**: (x, y) in map pixels with the pixel-centre convention (pixel (i, j) has its
   centre at x = j, y = i), so the centroid is the mean of the cluster's pixel indices.
   :func:`decode` maps them to frame pixels with :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
+- **Weighted centroid** (``centroid="weighted"``, not the paper's): the same cluster, its position the mean
+  of its pixel indices weighted by (p - threshold)^2, p the pixel's probability (a logit's sigmoid, a
+  quantized value dequantized): the sure middle of a blob counts more than its rim. Measured against the
+  plain centroid on held-out looks at 288-384 px (docs/postprocess.md): PCK@0.05 +0.02-0.04, the rest
+  unchanged.
 
 How it stays under a millisecond per 224 x 224 frame of 8 maps: all maps are thresholded in one
 contiguous pass (numpy is ~9x slower on a strided per-map slice), de-interleaved with one
@@ -45,8 +50,12 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import keypoints_to_frame
 
-__all__ = ["maps_to_keypoints", "decode", "check_fallback", "describe_decoding", "largest_cluster",
-           "probability_to_logit", "dequantize", "quantized_cut"]
+__all__ = ["maps_to_keypoints", "decode", "check_fallback", "check_centroid", "describe_decoding",
+           "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut", "CENTROIDS"]
+
+CENTROIDS = ("plain", "weighted")
+"""How a keypoint's position is read from its cluster: the plain mean of its pixels (Algorithm 1) or weighted
+by (p - threshold)^2."""
 
 
 def probability_to_logit(threshold: float) -> float:
@@ -263,8 +272,30 @@ def _cut(threshold: float, logits: bool) -> float:
     return t
 
 
+def _weighted_centroid(plane: np.ndarray, weights_at) -> tuple[float, float]:
+    """The largest 4-connected cluster of a 0/1 uint8 plane (Algorithm 1's, ties to the earliest pixel in
+    row-major order), its pixel indices averaged with the weights `weights_at(rows, cols)` (map coordinates);
+    its plain centroid where the weights sum to zero."""
+    x0, y0, w, h = cv2.boundingRect(plane)
+    window = np.ascontiguousarray(plane[y0:y0 + h, x0:x0 + w])
+    n, labels = cv2.connectedComponents(window, connectivity=4, ltype=cv2.CV_32S)
+    flat = labels.ravel()
+    counts = np.bincount(flat, minlength=n)
+    counts[0] = 0
+    tied = counts == counts.max()
+    best = int(flat[np.argmax(tied[flat])])
+    rows, cols = np.divmod(np.flatnonzero(flat == best), w)
+    rows, cols = rows + y0, cols + x0
+    weights = np.asarray(weights_at(rows, cols), np.float64)
+    total = weights.sum()
+    if not total > 0:
+        return float(cols.mean()), float(rows.mean())
+    return float(cols @ weights / total), float(rows @ weights / total)
+
+
 def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
-                     out_kp: np.ndarray, out_conf: np.ndarray, fallback_cut: float | None = None) -> None:
+                     out_kp: np.ndarray, out_conf: np.ndarray, fallback_cut: float | None = None,
+                     weights=None) -> None:
     h, w, c = maps3.shape
     k = c - 1
     # One contiguous comparison over all maps, then one transpose to K planes: far cheaper
@@ -273,18 +304,30 @@ def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
     active = np.greater(maps3, cut)
     planes = cv2.transpose(active.view(np.uint8).reshape(h * w, c))
     for i in range(k):
-        x, y, size = _largest_cluster(planes[i].reshape(h, w), min_size)
+        plane, level = planes[i].reshape(h, w), 0
+        x, y, size = _largest_cluster(plane, min_size)
         if size == 0 and fallback_cut is not None:  # nothing above the threshold: read the map above the fallback
-            x, y, size = _largest_cluster(np.greater(maps3[..., i], fallback_cut).view(np.uint8), min_size)
+            plane, level = np.greater(maps3[..., i], fallback_cut).view(np.uint8), 1
+            x, y, size = _largest_cluster(plane, min_size)
+        if size and weights is not None:
+            x, y = _weighted_centroid(plane, lambda rows, cols: weights(maps3[rows, cols, i], level))
         out_kp[i, 0] = x
         out_kp[i, 1] = y
         out_conf[i] = size
 
 
-def describe_decoding(threshold: float, fallback: float | None) -> str:
+def describe_decoding(threshold: float, fallback: float | None, centroid: str = "plain") -> str:
     """One line naming the decoding, for reports."""
-    text = f"Algorithm 1 (largest cluster above {threshold:g}, its centroid)"
+    weighted = f" weighted by (p - {threshold:g})^2" if centroid == "weighted" else ""
+    text = f"Algorithm 1 (largest cluster above {threshold:g}, its centroid{weighted})"
     return text if fallback is None else f"{text}; a map with none: above {fallback:g} (--fallback)"
+
+
+def check_centroid(centroid: str) -> str:
+    """`centroid` if it is one of CENTROIDS, else UserError."""
+    if centroid not in CENTROIDS:
+        raise UserError(f"centroid must be one of {', '.join(CENTROIDS)}, got {centroid!r}")
+    return centroid
 
 
 def check_fallback(threshold: float, fallback: float | None) -> float | None:
@@ -299,7 +342,8 @@ def check_fallback(threshold: float, fallback: float | None) -> float | None:
 
 def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool = False,
                       quantization: tuple[float, int] | None = None,
-                      min_size: int = 1, fallback: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      min_size: int = 1, fallback: float | None = None,
+                      centroid: str = "plain") -> tuple[np.ndarray, np.ndarray]:
     """Keypoints from FCN-Pose output maps by Expansion Clustering (the paper's Algorithm 1, M = 1).
 
     Args:
@@ -321,6 +365,8 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
             missing at ``threshold`` is read by the same algorithm above ``fallback`` instead (its
             confidence is then that cluster's pixel count). Finds keypoints whose map stays under
             ``threshold`` on unfamiliar views; docs/postprocess.md has the measurements.
+        centroid: "plain" (the paper's: the mean of the cluster's pixel indices) or "weighted" (weighted by
+            (p - t)^2, p the pixel's probability and t the threshold that made the cluster).
 
     Returns:
         (keypoints, confidence): keypoints float64 of shape (C-1, 2), or (N, C-1, 2), holding
@@ -356,19 +402,34 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
     min_size = int(min_size)
     if min_size < 1:
         raise UserError(f"min_size must be at least 1, got {min_size}")
+    weights = None
+    if check_centroid(centroid) == "weighted":
+        levels = (float(threshold), fallback)
+        if quantization is not None:
+            scale, zero_point = float(quantization[0]), int(quantization[1])
+
+            def weights(values, level):
+                return ((values.astype(np.float64) - zero_point) * scale - levels[level]) ** 2
+        elif logits:
+            def weights(values, level):
+                return (1.0 / (1.0 + np.exp(-values.astype(np.float64))) - levels[level]) ** 2
+        else:
+            def weights(values, level):
+                return (values.astype(np.float64) - levels[level]) ** 2
     batch = arr.ndim == 4
     frames = arr if batch else arr[None]
     n, k = frames.shape[0], frames.shape[-1] - 1
     keypoints = np.empty((n, k, 2), np.float64)
     confidence = np.empty((n, k), np.int64)
     for j in range(n):
-        _frame_keypoints(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut)
+        _frame_keypoints(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut, weights)
     return (keypoints, confidence) if batch else (keypoints[0], confidence[0])
 
 
 def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.5, *,
            logits: bool = False, quantization: tuple[float, int] | None = None,
-           min_size: int = 1, fallback: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+           min_size: int = 1, fallback: float | None = None,
+           centroid: str = "plain") -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 
@@ -378,7 +439,7 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     Args:
         maps: H x W x C or N x H x W x C maps with H == W (see :func:`maps_to_keypoints`).
         frame_shape: the original frame's shape, (height, width[, channels]).
-        threshold, logits, quantization, min_size, fallback: as in :func:`maps_to_keypoints`.
+        threshold, logits, quantization, min_size, fallback, centroid: as in :func:`maps_to_keypoints`.
 
     Returns:
         (keypoints, confidence): keypoints (C-1, 2) or (N, C-1, 2) float64, (x, y) in frame pixels
@@ -397,5 +458,5 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     if len(frame_shape) < 2 or min(frame_shape[:2]) < 1:
         raise UserError(f"expected a frame shape (height, width[, channels]), got {tuple(frame_shape)}")
     keypoints, confidence = maps_to_keypoints(arr, threshold, logits=logits, quantization=quantization,
-                                              min_size=min_size, fallback=fallback)
+                                              min_size=min_size, fallback=fallback, centroid=centroid)
     return keypoints_to_frame(keypoints, tuple(frame_shape), h), confidence

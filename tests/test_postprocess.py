@@ -541,3 +541,77 @@ def test_fallback_is_the_same_on_logits_and_quantized_maps():
 def test_fallback_must_be_between_zero_and_the_threshold(fallback):
     with pytest.raises(UserError, match="fallback threshold must be above 0 and below the threshold 0.5"):
         maps_to_keypoints(np.zeros((4, 4, 2), np.float32), 0.5, fallback=fallback)
+
+
+# --------------------------------------------------------------------------------------------
+# --centroid weighted: Algorithm 1's cluster, its pixels weighted by (p - threshold)^2
+# --------------------------------------------------------------------------------------------
+
+def reference_weighted(maps: np.ndarray, threshold: float = 0.5) -> np.ndarray:
+    """Algorithm 1's cluster (the reference above: its size and plain centroid identify it), read as the
+    (p - threshold)^2-weighted mean of its pixel indices, by brute force."""
+    kp, conf = reference_maps_to_keypoints(maps, threshold)
+    out = np.full_like(kp, np.nan)
+    for k in range(maps.shape[-1] - 1):
+        if conf[k] == 0:
+            continue
+        import cv2
+
+        n, labels = cv2.connectedComponents((maps[..., k] > threshold).astype(np.uint8), connectivity=4)
+        for label in range(1, n):
+            rows, cols = np.nonzero(labels == label)
+            if len(rows) == conf[k] and np.allclose([cols.mean(), rows.mean()], kp[k]):
+                w = (maps[rows, cols, k].astype(np.float64) - threshold) ** 2
+                out[k] = [cols @ w / w.sum(), rows @ w / w.sum()]
+                break
+    return out
+
+
+def test_weighted_centroid_leans_to_the_sure_pixels_of_the_same_cluster():
+    maps = np.zeros((6, 8, 3), np.float32)
+    maps[2, 1:4, 0] = [0.6, 0.6, 1.0]        # weights 0.01, 0.01, 0.25
+    maps[4, 6, 0] = 0.99                     # a smaller, surer cluster: not chosen
+    maps[1:3, 5:7, 1] = 0.8                  # even values: the plain centroid
+    kp, conf = maps_to_keypoints(maps, centroid="weighted")
+    plain, plain_conf = maps_to_keypoints(maps)
+    np.testing.assert_array_equal(conf, plain_conf)
+    assert kp[0].tolist() == pytest.approx([(1 * 0.01 + 2 * 0.01 + 3 * 0.25) / 0.27, 2.0])
+    assert plain[0].tolist() == [2.0, 2.0]
+    np.testing.assert_array_equal(kp[1], plain[1])
+    assert maps_to_keypoints(maps[..., 1:], centroid="weighted")[1][0] == 4  # a missing map stays missing
+    assert np.isnan(maps_to_keypoints(np.zeros((4, 4, 2), np.float32), centroid="weighted")[0]).all()
+
+
+def test_weighted_centroid_equals_the_reference_on_random_maps():
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        maps = (rng.random((16, 16, 5)) * rng.choice([0.55, 0.8, 1.0], size=5)).astype(np.float32)
+        kp, _ = maps_to_keypoints(maps, centroid="weighted")
+        np.testing.assert_allclose(kp, reference_weighted(maps), atol=1e-9)
+
+
+def test_weighted_centroid_is_the_same_on_logits_quantized_maps_and_after_a_fallback():
+    rng = np.random.default_rng(8)
+    raw = rng.integers(-128, 128, size=(2, 24, 24, 6)).astype(np.int8)
+    probs = pp.dequantize(raw, 1 / 256, -128)
+    expected, _ = maps_to_keypoints(probs, 0.5, centroid="weighted")
+    got, _ = maps_to_keypoints(raw, 0.5, quantization=(1 / 256, -128), centroid="weighted")
+    np.testing.assert_allclose(got, expected, atol=1e-6)
+    with np.errstate(divide="ignore"):
+        logits = np.log(probs.astype(np.float64)) - np.log1p(-probs.astype(np.float64))
+    by_logits, _ = maps_to_keypoints(logits, 0.5, logits=True, centroid="weighted")
+    np.testing.assert_allclose(by_logits, expected, atol=1e-6)
+    faint = np.zeros((8, 8, 2), np.float32)
+    faint[3, 2:5, 0] = [0.3, 0.3, 0.45]      # only the fallback finds it; weights (p - 0.2)^2
+    kp, conf = maps_to_keypoints(faint, fallback=0.2, centroid="weighted")
+    assert conf[0] == 3 and kp[0].tolist() == pytest.approx([(2 * .01 + 3 * .01 + 4 * .0625) / .0825, 3.0])
+
+
+def test_decode_takes_the_centroid_and_refuses_an_unknown_one():
+    maps = np.zeros((4, 4, 2), np.float32)
+    maps[1, 1:3, 0] = [0.6, 0.9]
+    kp, _ = decode(maps, (8, 8, 3), centroid="weighted")
+    assert kp[0, 0] > decode(maps, (8, 8, 3))[0][0, 0]
+    with pytest.raises(UserError, match="centroid must be one of plain, weighted, got 'middle'"):
+        maps_to_keypoints(maps, centroid="middle")
+    assert pp.describe_decoding(0.5, None, "weighted").endswith("its centroid weighted by (p - 0.5)^2)")

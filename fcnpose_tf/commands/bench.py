@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
     reports = []
     for i, model in enumerate(args.model):
         reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
-                                 args.threshold, progress=print_progress))
+                                 args.threshold, progress=print_progress, centroid=args.centroid))
         print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
     if args.json is not None:
         data = reports[0].to_dict() if len(reports) == 1 else {"models": [r.to_dict() for r in reports]}

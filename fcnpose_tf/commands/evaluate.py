@@ -76,13 +76,13 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.smoothing import params_from_args
 
     model_path = args.model
-    predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
+    predictor = open_model(model_path, args.threads, args.threshold, args.fallback, args.centroid)
     dataset = load_from_args(args)
     indices, description = choose_frames(dataset, model_path, args.split, args.fold)
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema, progress=True)
     print(f"Model: {model_path} ({Path(model_path).stat().st_size:,} bytes)")
     print(f"Data:  {dataset.via_path}, {description}")
-    print(f"Decoding: {describe_decoding(predictor.threshold, predictor.fallback)}")
+    print(f"Decoding: {describe_decoding(predictor.threshold, predictor.fallback, predictor.centroid)}")
     print("PCK normalised by max(bbox w, h) of the ground-truth keypoints; EPE in frame pixels")
     print(format_report(result["metrics"]))
     print(format_timing(result["timing"]))
@@ -96,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         write_json(args.json, {"model": str(model_path), "size_bytes": Path(model_path).stat().st_size,
                                "data": str(dataset.via_path), "frames": description,
-                               "decoding": {"threshold": predictor.threshold, "fallback": predictor.fallback},
+                               "decoding": {"threshold": predictor.threshold, "fallback": predictor.fallback,
+                                            "centroid": predictor.centroid},
                                "metrics": result["metrics"], "timing": result["timing"],
                                **({"sequence": sequence} if sequence is not None else {})}, force=args.force)
         print(f"Report: {args.json}")

@@ -96,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         from fcnpose_tf.training.tfsetup import import_tensorflow_quietly
 
         import_tensorflow_quietly()
-    predictor = open_model(model_path, args.threads, args.threshold, args.fallback)
+    predictor = open_model(model_path, args.threads, args.threshold, args.fallback, args.centroid)
     source = open_source(args.source, refuse_cameras="predict reads image folders, images and videos; for a "
                          "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
     if args.select is not None:

@@ -111,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
     if args.show:
         check_display()
 
-    model = KeypointModel(args.model, args.threads, args.threshold, backend=args.backend, fallback=args.fallback)
+    model = KeypointModel(args.model, args.threads, args.threshold, backend=args.backend, fallback=args.fallback,
+                          centroid=args.centroid)
     if model.backend.skipped:
         print(f"note: using {model.backend.label} ({'; '.join(model.backend.skipped)})", file=sys.stderr)
     writers = []

@@ -210,7 +210,7 @@ def bench_threads(model: KeypointModel, frame: np.ndarray, frames: int, warmup: 
 def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = None, frames: int = 200,
               warmup: int = 10, frame: np.ndarray | None = None, frame_label: str | None = None,
               backend: str = "auto", threshold: float = 0.5,
-              progress: Callable[[str], None] | None = None) -> BenchReport:
+              progress: Callable[[str], None] | None = None, centroid: str = "plain") -> BenchReport:
     """Benchmark a .tflite at each thread count.
 
     Args:
@@ -220,7 +220,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
         warmup: untimed iterations first (XNNPACK packs weights and warms caches on the first runs).
         frame: the BGR frame to process (default: synthetic_frame()).
         frame_label: how the frame is described in the report.
-        backend, threshold: as for KeypointModel.
+        backend, threshold, centroid: as for KeypointModel.
         progress: called with a short message before each thread count.
     Returns:
         A BenchReport; a thread count whose interpreter fails is reported with its error as status.
@@ -233,7 +233,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
     if frame is None:
         frame, frame_label = synthetic_frame(), "synthetic 640x480"
     path = check_tflite_file(model_path)
-    first = KeypointModel(path, counts[0], threshold, backend=backend)  # UserError for a bad model, before timing
+    first = KeypointModel(path, counts[0], threshold, backend=backend, centroid=centroid)  # UserError for a bad model, before timing
     stats = first.stats()
     report = BenchReport(str(model_path), stats.size_bytes, stats.params, stats.macs, stats.weight_dtypes,
                          first.io.describe(), first.io.input.shape[1:], first.io.output.shape[1:],
@@ -246,7 +246,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
             if first is not None:  # counts[0]: reuse the interpreter that was checked above
                 model, first = first, None
             else:
-                model = KeypointModel(path, n, threshold, backend=backend)
+                model = KeypointModel(path, n, threshold, backend=backend, centroid=centroid)
             report.results.append(bench_threads(model, frame, frames, warmup))
         except (RuntimeError, ValueError) as exc:  # an interpreter failure at this count; keep the others
             report.results.append(ThreadResult(n, f"failed: {' '.join(str(exc).split())[:60]}"))

@@ -22,7 +22,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema
-from fcnpose_tf.postprocess import check_fallback
+from fcnpose_tf.postprocess import check_centroid, check_fallback
 from fcnpose_tf.postprocess import decode as decode_maps
 from fcnpose_tf.postprocess import dequantize
 from fcnpose_tf.preprocess import preprocess_frame, preprocess_frame_bytes
@@ -105,6 +105,8 @@ class KeypointPredictor(abc.ABC):
     fallback: float | None = None
     """None (the paper's decoding), or the probability above which a map with nothing above `threshold`
     is read instead (`postprocess.maps_to_keypoints`)."""
+    centroid: str = "plain"
+    """Where in its cluster a keypoint is read: "plain" (the paper's) or "weighted" (`postprocess.CENTROIDS`)."""
     num_threads: int | None
     """Threads of the forward pass (None: the library's default)."""
     schema: KeypointSchema
@@ -145,7 +147,8 @@ class KeypointPredictor(abc.ABC):
     def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
         maps = self.read_maps(copy=False)
-        keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback)
+        keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback,
+                                            centroid=self.centroid)
         del maps
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
@@ -179,6 +182,7 @@ class KeypointModel(KeypointPredictor):
         schema: keypoint names; default UR5 for 9 maps, kp0..kpN otherwise.
         backend: `auto`, `ai_edge_litert`, `tflite_runtime` or `tensorflow`.
         fallback: None, or the probability above which a map empty at `threshold` is read instead.
+        centroid: "plain" (the paper's) or "weighted": where in its cluster a keypoint is read.
     Raises:
         UserError: missing, corrupt or non-FCN-Pose file; no interpreter installed.
     Example:
@@ -188,10 +192,12 @@ class KeypointModel(KeypointPredictor):
     """
 
     def __init__(self, model_path: str | os.PathLike, num_threads: int | None = None, threshold: float = 0.5,
-                 schema: KeypointSchema | None = None, backend: str = "auto", fallback: float | None = None):
+                 schema: KeypointSchema | None = None, backend: str = "auto", fallback: float | None = None,
+                 centroid: str = "plain"):
         if not 0.0 < float(threshold) < 1.0:
             raise UserError(f"threshold must be between 0 and 1 (exclusive), got {threshold}")
         self.fallback = check_fallback(threshold, fallback)
+        self.centroid = check_centroid(centroid)
         self.path = Path(model_path)
         self.num_threads: int = default_num_threads() if num_threads is None else num_threads
         self.backend: Backend
@@ -325,10 +331,11 @@ class KeypointModel(KeypointPredictor):
         spec = self.io.output
         if spec.quantized:
             keypoints, confidence = decode_maps(raw, frame_shape, self.threshold, fallback=self.fallback,
-                                                quantization=(spec.scale, spec.zero_point))
+                                                quantization=(spec.scale, spec.zero_point), centroid=self.centroid)
         else:
             maps = raw if raw.dtype == np.float32 else raw.astype(np.float32)
-            keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback)
+            keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback,
+                                            centroid=self.centroid)
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:

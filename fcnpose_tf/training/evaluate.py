@@ -19,7 +19,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.metrics import keypoint_report
-from fcnpose_tf.postprocess import check_fallback
+from fcnpose_tf.postprocess import check_centroid, check_fallback
 from fcnpose_tf.preprocess import preprocess_frame
 from fcnpose_tf.records import file_sha256, training_record
 from fcnpose_tf.runtime.estimator import KeypointPredictor, schema_for_maps
@@ -63,7 +63,7 @@ class KerasKeypointModel(KeypointPredictor):
     backend_label = "tf_keras (direct call)"
 
     def __init__(self, model: Any, path: str | os.PathLike | None = None, threshold: float = 0.5,
-                 num_threads: int | None = None, fallback: float | None = None):
+                 num_threads: int | None = None, fallback: float | None = None, centroid: str = "plain"):
         if isinstance(model, (str, os.PathLike)):
             from fcnpose_tf.training.model import load_model
 
@@ -79,6 +79,7 @@ class KerasKeypointModel(KeypointPredictor):
         self.path = Path(path) if path else None
         self.threshold = threshold
         self.fallback = check_fallback(threshold, fallback)
+        self.centroid = check_centroid(centroid)
         self.num_threads = num_threads
         self.input_size = int(shape[1])
         self.num_maps = int(model.output_shape[-1])
@@ -102,21 +103,21 @@ class KerasKeypointModel(KeypointPredictor):
 
 
 def open_model(path: str | os.PathLike, threads: int | None = None, threshold: float = 0.5,
-               fallback: float | None = None):
+               fallback: float | None = None, centroid: str = "plain"):
     """A predictor for a .keras/.h5 (tf_keras) or .tflite (LiteRT) file, by its extension (decoding with
-    `threshold` and `fallback`, as `postprocess.maps_to_keypoints`)."""
+    `threshold`, `fallback` and `centroid`, as `postprocess.maps_to_keypoints`)."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: model file not found")
     if path.suffix == ".tflite":
         from fcnpose_tf.runtime.estimator import KeypointModel
 
-        return KeypointModel(path, num_threads=threads, threshold=threshold, fallback=fallback)
+        return KeypointModel(path, num_threads=threads, threshold=threshold, fallback=fallback, centroid=centroid)
     if path.suffix in (".keras", ".h5"):
         from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
         set_tensorflow_threads(threads)
-        return KerasKeypointModel(path, path, threshold, threads, fallback)
+        return KerasKeypointModel(path, path, threshold, threads, fallback, centroid)
     raise UserError(f"{path}: unknown model format; expected .keras, .h5 or .tflite")
 
 
