@@ -171,8 +171,9 @@ def _centroid(size: int, sum_x: int, sum_y: int, x0: int, y0: int, min_size: int
     return (sum_x + x0 * size) / size, (sum_y + y0 * size) / size, size
 
 
-def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, int]:
-    """Largest 4-connected cluster of a C-contiguous 0/1 uint8 plane (see largest_cluster)."""
+def _largest_cluster(plane: np.ndarray, min_size: int, pixels: list | None = None) -> tuple[float, float, int]:
+    """Largest 4-connected cluster of a C-contiguous 0/1 uint8 plane (see largest_cluster). With a list as
+    `pixels`, the kept cluster's (rows, cols) in map coordinates are appended to it (for a weighted centroid)."""
     x0, y0, w, h = cv2.boundingRect(plane)
     if w == 0:
         return math.nan, math.nan, 0
@@ -183,6 +184,9 @@ def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, in
         win = np.ascontiguousarray(win)
     active = cv2.countNonZero(win)
     if active == w * h:  # every pixel of the window active: one cluster, the rectangle's centre
+        if pixels is not None:
+            rows, cols = np.divmod(np.arange(w * h), w)
+            pixels.append((rows + y0, cols + x0))
         return _centroid(active, h * (w * (w - 1) // 2), w * (h * (h - 1) // 2), x0, y0, min_size)
     img, xs, ys = win, None, None
     if 2 * active <= w * h and w * h > _SQUEEZE_MIN_AREA:
@@ -234,7 +238,14 @@ def _largest_cluster(plane: np.ndarray, min_size: int) -> tuple[float, float, in
             rows, cols = np.divmod(np.flatnonzero(lab == best), img.shape[1])
         if xs is not None:
             cols, rows = xs[cols], ys[rows]
+        if pixels is not None:
+            pixels.append((rows + y0, cols + x0))
         return _centroid(len(cols), int(cols.sum()), int(rows.sum()), x0, y0, min_size)
+    if pixels is not None:  # one cluster: every active pixel of the (squeezed) window
+        rows, cols = np.nonzero(img)
+        if xs is not None:
+            cols, rows = xs[cols], ys[rows]
+        pixels.append((rows + y0, cols + x0))
     if xs is None:
         # Window coordinates are map coordinates minus (x0, y0). The binary image moments are
         # exact integers (pixel count, sums of column and row indices), so one division gives a
@@ -272,24 +283,13 @@ def _cut(threshold: float, logits: bool) -> float:
     return t
 
 
-def _weighted_centroid(plane: np.ndarray, weights_at) -> tuple[float, float]:
-    """The largest 4-connected cluster of a 0/1 uint8 plane (Algorithm 1's, ties to the earliest pixel in
-    row-major order), its pixel indices averaged with the weights `weights_at(rows, cols)` (map coordinates);
-    its plain centroid where the weights sum to zero."""
-    x0, y0, w, h = cv2.boundingRect(plane)
-    window = np.ascontiguousarray(plane[y0:y0 + h, x0:x0 + w])
-    n, labels = cv2.connectedComponents(window, connectivity=4, ltype=cv2.CV_32S)
-    flat = labels.ravel()
-    counts = np.bincount(flat, minlength=n)
-    counts[0] = 0
-    tied = counts == counts.max()
-    best = int(flat[np.argmax(tied[flat])])
-    rows, cols = np.divmod(np.flatnonzero(flat == best), w)
-    rows, cols = rows + y0, cols + x0
-    weights = np.asarray(weights_at(rows, cols), np.float64)
+def _weighted_centroid(rows: np.ndarray, cols: np.ndarray, weights: np.ndarray, x: float,
+                       y: float) -> tuple[float, float]:
+    """The cluster's pixel indices averaged with `weights`; (x, y), its plain centroid, where they sum to zero."""
+    weights = np.asarray(weights, np.float64)
     total = weights.sum()
     if not total > 0:
-        return float(cols.mean()), float(rows.mean())
+        return x, y
     return float(cols @ weights / total), float(rows @ weights / total)
 
 
@@ -304,13 +304,14 @@ def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
     active = np.greater(maps3, cut)
     planes = cv2.transpose(active.view(np.uint8).reshape(h * w, c))
     for i in range(k):
-        plane, level = planes[i].reshape(h, w), 0
-        x, y, size = _largest_cluster(plane, min_size)
+        pixels: list | None = None if weights is None else []
+        x, y, size = _largest_cluster(planes[i].reshape(h, w), min_size, pixels)
+        level = 0
         if size == 0 and fallback_cut is not None:  # nothing above the threshold: read the map above the fallback
-            plane, level = np.greater(maps3[..., i], fallback_cut).view(np.uint8), 1
-            x, y, size = _largest_cluster(plane, min_size)
-        if size and weights is not None:
-            x, y = _weighted_centroid(plane, lambda rows, cols: weights(maps3[rows, cols, i], level))
+            pixels, level = (None if weights is None else []), 1
+            x, y, size = _largest_cluster(np.greater(maps3[..., i], fallback_cut).view(np.uint8), min_size, pixels)
+        if size and pixels:
+            x, y = _weighted_centroid(*pixels[0], weights(maps3[pixels[0][0], pixels[0][1], i], level), x, y)
         out_kp[i, 0] = x
         out_kp[i, 1] = y
         out_conf[i] = size

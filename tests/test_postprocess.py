@@ -588,6 +588,15 @@ def test_weighted_centroid_equals_the_reference_on_random_maps():
         maps = (rng.random((16, 16, 5)) * rng.choice([0.55, 0.8, 1.0], size=5)).astype(np.float32)
         kp, _ = maps_to_keypoints(maps, centroid="weighted")
         np.testing.assert_allclose(kp, reference_weighted(maps), atol=1e-9)
+    # far-apart blobs in a large window (its empty lines squeezed out before labelling), uneven values
+    for _ in range(10):
+        maps = np.zeros((64, 64, 4), np.float32)
+        for k in range(3):
+            for _ in range(rng.integers(1, 4)):
+                y, x, size = rng.integers(0, 58), rng.integers(0, 58), rng.integers(1, 6)
+                maps[y:y + size, x:x + size, k] = rng.uniform(0.51, 1.0, (size, size))
+        kp, _ = maps_to_keypoints(maps, centroid="weighted")
+        np.testing.assert_allclose(kp, reference_weighted(maps), atol=1e-9)
 
 
 def test_weighted_centroid_is_the_same_on_logits_quantized_maps_and_after_a_fallback():
