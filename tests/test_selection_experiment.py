@@ -115,3 +115,18 @@ def test_bad_arguments_exit_2(sel, tmp_path, capsys):
     assert stop.value.code == 2
     assert sel.main(common) == 2  # no VIA project in the folder
     assert "no VIA project file" in capsys.readouterr().err
+
+
+def test_a_seed_another_run_holds_is_skipped(sel, tmp_path, capsys):
+    import fcntl
+
+    _project(tmp_path / "lab", 5)
+    _project(tmp_path / "pool", 5)
+    folder = tmp_path / "work" / "seed4"
+    folder.mkdir(parents=True)
+    with (folder / ".lock").open("w") as held:
+        fcntl.flock(held, fcntl.LOCK_EX)
+        assert sel.main(["--work", str(tmp_path / "work"), "--labelled", str(tmp_path / "lab"), "--pool",
+                         str(tmp_path / "pool"), "--test", str(tmp_path / "lab"), "--seeds", "4"]) == 0
+    assert "seed 4: another run of this tool is working on" in capsys.readouterr().out
+    assert not (folder / "round1").exists()

@@ -12,7 +12,8 @@ The protocol of docs/data.md ("Which strategy?"), one round of the correction lo
 Every step is a `fcnpose-tf` command (printed before it runs; `--dry-run` prints them all) except drawing the
 round-1 frames and the correction, which stand in for the person. A step whose output exists is skipped and an
 interrupted training is resumed from its checkpoint, so the experiment continues where it stopped (across
-sessions: each training is 5-15 minutes). The table (strategy x
+sessions: each training is 5-15 minutes); seeds can run in parallel processes (`--seeds 1` beside `--seeds 2`),
+and a seed another process is working on is skipped. The table (strategy x
 seed: test PCK@0.5, PCK@0.05, EPE after one round, and the mean over seeds) is printed and written to
 WORK/results.md and WORK/results.json from whatever has finished.
 
@@ -28,6 +29,7 @@ has tracks to follow), of the same camera as the labelled and test sets:
 from __future__ import annotations
 
 import argparse
+import fcntl
 import json
 import random
 import shlex
@@ -117,6 +119,14 @@ def experiment(args: argparse.Namespace) -> dict:
     results: dict = {}
     for seed in args.seeds:
         folder = args.work / f"seed{seed}"
+        if not args.dry_run:
+            folder.mkdir(parents=True, exist_ok=True)
+            lock = (folder / ".lock").open("w")
+            try:  # held until the process ends: two runs on one work folder share out the seeds
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                print(f"seed {seed}: another run of this tool is working on {folder}; skipped", flush=True)
+                continue
         round1 = folder / "round1" / "labels.json"
         if not round1.exists() and not args.dry_run:
             draw_round1(labelled, labelled_images, args.start_frames, seed, round1)
