@@ -41,6 +41,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fcnpose_tf.data.dataset import resolve_data  # noqa: E402
+from fcnpose_tf.data.via import read_via  # noqa: E402
 from fcnpose_tf.errors import UserError  # noqa: E402
 from fcnpose_tf.fileio import write_json, write_text  # noqa: E402
 
@@ -51,12 +52,13 @@ FIGURES = (("pck@0.5_bbox", "PCK@0.5", 3), ("pck@0.05_bbox", "PCK@0.05", 3), ("e
 
 
 def images_folder(data: Path) -> tuple[Path, Path]:
-    """(VIA file, its images folder) of a DATA folder or file as `train --data` finds them: `images/` beside the
-    VIA file if there is one, else the VIA file's own folder."""
+    """(VIA file, the folder its images are in) of a DATA folder or file, as `train --data` finds them
+    (`data.via.read_via`); UserError when its frames lie in several folders."""
     via_path, images = resolve_data(data, None)
-    if images is None:
-        images = via_path.parent / "images" if (via_path.parent / "images").is_dir() else via_path.parent
-    return via_path, images
+    folders = {Path(frame.image_path).parent for frame in read_via(via_path, images).frames}
+    if len(folders) != 1:
+        raise UserError(f"{via_path}: its images lie in {len(folders)} folders; the experiment needs one")
+    return via_path, folders.pop()
 
 
 def draw_round1(labelled: Path, images_dir: Path, n: int, seed: int, out: Path) -> None:
