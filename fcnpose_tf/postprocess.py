@@ -173,7 +173,9 @@ def _centroid(size: int, sum_x: int, sum_y: int, x0: int, y0: int, min_size: int
 
 def _largest_cluster(plane: np.ndarray, min_size: int, pixels: list | None = None) -> tuple[float, float, int]:
     """Largest 4-connected cluster of a C-contiguous 0/1 uint8 plane (see largest_cluster). With a list as
-    `pixels`, the kept cluster's (rows, cols) in map coordinates are appended to it (for a weighted centroid)."""
+    `pixels`, the kept cluster is appended to it, for a weighted centroid: as its (rows, cols) index arrays in map
+    coordinates, or, where it is every active pixel of their window, as (y0, x0, h, w, mask), the window and its
+    active pixels (an h x w array, nonzero on them; None: all of it)."""
     x0, y0, w, h = cv2.boundingRect(plane)
     if w == 0:
         return math.nan, math.nan, 0
@@ -185,8 +187,7 @@ def _largest_cluster(plane: np.ndarray, min_size: int, pixels: list | None = Non
     active = cv2.countNonZero(win)
     if active == w * h:  # every pixel of the window active: one cluster, the rectangle's centre
         if pixels is not None:
-            rows, cols = np.divmod(np.arange(w * h), w)
-            pixels.append((rows + y0, cols + x0))
+            pixels.append((y0, x0, h, w, None))
         return _centroid(active, h * (w * (w - 1) // 2), w * (h * (h - 1) // 2), x0, y0, min_size)
     img, xs, ys = win, None, None
     if 2 * active <= w * h and w * h > _SQUEEZE_MIN_AREA:
@@ -241,11 +242,12 @@ def _largest_cluster(plane: np.ndarray, min_size: int, pixels: list | None = Non
         if pixels is not None:
             pixels.append((rows + y0, cols + x0))
         return _centroid(len(cols), int(cols.sum()), int(rows.sum()), x0, y0, min_size)
-    if pixels is not None:  # one cluster: every active pixel of the (squeezed) window
-        rows, cols = np.nonzero(img)
-        if xs is not None:
-            cols, rows = xs[cols], ys[rows]
-        pixels.append((rows + y0, cols + x0))
+    if pixels is not None:  # one cluster: every active pixel of the window
+        if xs is None:
+            pixels.append((y0, x0, h, w, win))
+        else:  # far apart in a squeezed window: its pixels
+            rows, cols = np.nonzero(img)
+            pixels.append((ys[rows] + y0, xs[cols] + x0))
     if xs is None:
         # Window coordinates are map coordinates minus (x0, y0). The binary image moments are
         # exact integers (pixel count, sums of column and row indices), so one division gives a
@@ -283,14 +285,26 @@ def _cut(threshold: float, logits: bool) -> float:
     return t
 
 
-def _weighted_centroid(rows: np.ndarray, cols: np.ndarray, weights: np.ndarray, x: float,
+def _weighted_centroid(values: np.ndarray, cluster: tuple, weights, level: int, x: float,
                        y: float) -> tuple[float, float]:
-    """The cluster's pixel indices averaged with `weights`; (x, y), its plain centroid, where they sum to zero."""
-    weights = np.asarray(weights, np.float64)
-    total = weights.sum()
-    if not total > 0:
+    """The cluster's pixel indices averaged with `weights(p, level)` of its map `values` (H x W); (x, y), its
+    plain centroid, where the weights sum to zero. `cluster` is what `_largest_cluster` appended to `pixels`."""
+    if len(cluster) == 2:  # index arrays: the cluster is a small part of its window
+        rows, cols = cluster
+        weight = weights(values[rows, cols], level)
+        total = weight.sum()
+        if not total > 0:
+            return x, y
+        # Elementwise products, not `@`: a dot goes to BLAS, whose threads wait for busy cores
+        return float((cols * weight).sum() / total), float((rows * weight).sum() / total)
+    y0, x0, h, w, mask = cluster
+    image = weights(values[y0:y0 + h, x0:x0 + w], level)  # float64, h x w
+    if mask is not None:
+        image *= mask
+    m = cv2.moments(image)  # float64 moments: the weights' sum, and their sums times the column and row indices
+    if not m["m00"] > 0:
         return x, y
-    return float(cols @ weights / total), float(rows @ weights / total)
+    return x0 + m["m10"] / m["m00"], y0 + m["m01"] / m["m00"]
 
 
 def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
@@ -311,13 +325,13 @@ def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
             pixels, level = (None if weights is None else []), 1
             x, y, size = _largest_cluster(np.greater(maps3[..., i], fallback_cut).view(np.uint8), min_size, pixels)
         if size and pixels:
-            x, y = _weighted_centroid(*pixels[0], weights(maps3[pixels[0][0], pixels[0][1], i], level), x, y)
+            x, y = _weighted_centroid(maps3[..., i], pixels[0], weights, level, x, y)
         out_kp[i, 0] = x
         out_kp[i, 1] = y
         out_conf[i] = size
 
 
-def describe_decoding(threshold: float, fallback: float | None, centroid: str = "plain") -> str:
+def describe_decoding(threshold: float, fallback: float | None, centroid: str = "weighted") -> str:
     """One line naming the decoding, for reports."""
     weighted = f" weighted by (p - {threshold:g})^2" if centroid == "weighted" else ""
     text = f"Algorithm 1 (largest cluster above {threshold:g}, its centroid{weighted})"
@@ -344,7 +358,7 @@ def check_fallback(threshold: float, fallback: float | None) -> float | None:
 def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool = False,
                       quantization: tuple[float, int] | None = None,
                       min_size: int = 1, fallback: float | None = None,
-                      centroid: str = "plain") -> tuple[np.ndarray, np.ndarray]:
+                      centroid: str = "weighted") -> tuple[np.ndarray, np.ndarray]:
     """Keypoints from FCN-Pose output maps by Expansion Clustering (the paper's Algorithm 1, M = 1).
 
     Args:
@@ -430,7 +444,7 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
 def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.5, *,
            logits: bool = False, quantization: tuple[float, int] | None = None,
            min_size: int = 1, fallback: float | None = None,
-           centroid: str = "plain") -> tuple[np.ndarray, np.ndarray]:
+           centroid: str = "weighted") -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 

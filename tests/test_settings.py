@@ -234,3 +234,25 @@ def test_the_sweeps_paper_preset_keeps_the_papers_parameter_counts(rate, params)
     assert (options.min_filters, options.importance, options.retrain_epochs) == (0, "l1", 100)
     pruned = prune_model(build_fcn_pose(input_size=64), options.rate, min_filters=options.min_filters)
     assert pruned.count_params() == params
+
+
+def test_the_librarys_decoders_default_to_the_commands_decoding():
+    """A decoder called without --centroid/--threshold reads maps as `evaluate`, `predict`, `run` and `bench` do."""
+    import inspect
+
+    from fcnpose_tf import postprocess
+    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.runtime import bench, estimator
+    from fcnpose_tf.training import evaluate
+
+    decoders = [postprocess.maps_to_keypoints, postprocess.decode, postprocess.describe_decoding,
+                estimator.KeypointModel, evaluate.KerasKeypointModel, evaluate.open_model, bench.benchmark]
+    for decoder in decoders:
+        parameters = inspect.signature(decoder).parameters
+        assert parameters["centroid"].default == settings.CENTROID.default, decoder
+        if "threshold" in parameters and parameters["threshold"].default is not inspect.Parameter.empty:
+            assert parameters["threshold"].default == settings.THRESHOLD.default, decoder
+    assert estimator.KeypointPredictor.centroid == settings.CENTROID.default
+    assert CompressOptions(rate=0.5).centroid == settings.CENTROID.default == "weighted"
+    assert _parsed("evaluate", "m.keras", "--data", "d").centroid == "weighted"
+    assert _parsed("sweep").centroid == "plain"  # the paper's tables (settings.SWEEP_CENTROID)

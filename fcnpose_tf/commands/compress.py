@@ -79,7 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.INHERITED_AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
                     settings.LR_SCHEDULE, settings.FREEZE, settings.AUGMENT_COPIES,
-                    settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS):
+                    settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS, settings.CENTROID):
         setting.add_to(parser)
     parser.add_argument("--force", action="store_true", help="replace existing output files")
 

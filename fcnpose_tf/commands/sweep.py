@@ -72,6 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     run.add_argument("--num-cpus", type=int, metavar="N",
                      help="ray executor: CPUs of the local Ray instance (default: all cores)")
     settings.SWEEP_THREADS.add_to(run)
+    settings.SWEEP_CENTROID.add_to(parser)
     parser.add_argument("--force", action="store_true",
                         help="redo every job (retraining the base models), also when OUT holds other settings")
     parser.add_argument("--report-only", action="store_true",

@@ -58,7 +58,7 @@ Log = Callable[[str], None]
                        ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
                        ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
                        settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.QAT_EPOCHS,
-                       settings.QAT_LEARNING_RATE)
+                       settings.QAT_LEARNING_RATE, settings.CENTROID)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
@@ -67,7 +67,8 @@ class CompressOptions:
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
     retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
     narrowest a pruned layer may become at the same parameter budget), and qat_epochs / qat_learning_rate
-    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback).
+    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback); centroid: how the
+    table's keypoints are read (`postprocess.CENTROIDS`).
 
     The defaults are `fcnpose-tf compress`'s (`CompressOptions.preset("paper", rate=...)`: the paper's recipe);
     importance, min_filters, lr_patience and positive_weight left None are chosen per run by `resolved`
@@ -507,7 +508,7 @@ class _Run:
 
     def keras_predictor(self, model: keras.Model, path: Path | None = None) -> KerasKeypointModel:
         """`model` as a predictor with the run's threads (`path`: its file, for the report)."""
-        return KerasKeypointModel(model, path, num_threads=self.options.threads)
+        return KerasKeypointModel(model, path, num_threads=self.options.threads, centroid=self.options.centroid)
 
 
 def measure_base(run: _Run) -> Step:
@@ -689,7 +690,7 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: Step, qat: dict[s
 
     path = run.paths[tflite_key(export.quantize)]
     tflite_info = inspect_tflite(path)
-    tfl = KeypointModel(path, num_threads=run.options.threads)
+    tfl = KeypointModel(path, num_threads=run.options.threads, centroid=run.options.centroid)
     return {"quantize": export.quantize, "status": "written",
             "quantization": "quantization-aware training" if qat else "post-training",
             **({"qat": qat} if qat else {}),

@@ -664,13 +664,15 @@ def _compare_keypoints(keras_maps: np.ndarray, tflite_maps: np.ndarray, max_diff
                        keypoint_px: float, keypoint_share: float, what: str) -> _KeypointAgreement:
     from fcnpose_tf.postprocess import maps_to_keypoints
 
-    ref, _ = maps_to_keypoints(keras_maps, threshold)
-    got, _ = maps_to_keypoints(tflite_maps, threshold)
+    # The gate compares Algorithm 1's clusters (the plain centroid is a function of which pixels a cluster holds);
+    # the weighted read also moves with the values inside it, which evaluate measures on the written file.
+    ref, _ = maps_to_keypoints(keras_maps, threshold, centroid="plain")
+    got, _ = maps_to_keypoints(tflite_maps, threshold, centroid="plain")
     # The Keras decoding with every pixel within `margin` of the threshold switched on / off:
     # where these disagree with `ref`, the keypoint rests on pixels a faithful conversion may flip.
     margin = min(max_diff, THRESHOLD_MARGIN)
-    low, _ = maps_to_keypoints(keras_maps, threshold - margin)
-    high, _ = maps_to_keypoints(keras_maps, threshold + margin)
+    low, _ = maps_to_keypoints(keras_maps, threshold - margin, centroid="plain")
+    high, _ = maps_to_keypoints(keras_maps, threshold + margin, centroid="plain")
 
     def same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         missing_a, missing_b = np.isnan(a).any(-1), np.isnan(b).any(-1)

@@ -210,7 +210,7 @@ def bench_threads(model: KeypointModel, frame: np.ndarray, frames: int, warmup: 
 def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = None, frames: int = 200,
               warmup: int = 10, frame: np.ndarray | None = None, frame_label: str | None = None,
               backend: str = "auto", threshold: float = 0.5,
-              progress: Callable[[str], None] | None = None, centroid: str = "plain") -> BenchReport:
+              progress: Callable[[str], None] | None = None, centroid: str = "weighted") -> BenchReport:
     """Benchmark a .tflite at each thread count.
 
     Args:

@@ -105,7 +105,7 @@ class KeypointPredictor(abc.ABC):
     fallback: float | None = None
     """None (the paper's decoding), or the probability above which a map with nothing above `threshold`
     is read instead (`postprocess.maps_to_keypoints`)."""
-    centroid: str = "plain"
+    centroid: str = "weighted"
     """Where in its cluster a keypoint is read: "plain" (the paper's) or "weighted" (`postprocess.CENTROIDS`)."""
     num_threads: int | None
     """Threads of the forward pass (None: the library's default)."""
@@ -193,7 +193,7 @@ class KeypointModel(KeypointPredictor):
 
     def __init__(self, model_path: str | os.PathLike, num_threads: int | None = None, threshold: float = 0.5,
                  schema: KeypointSchema | None = None, backend: str = "auto", fallback: float | None = None,
-                 centroid: str = "plain"):
+                 centroid: str = "weighted"):
         if not 0.0 < float(threshold) < 1.0:
             raise UserError(f"threshold must be between 0 and 1 (exclusive), got {threshold}")
         self.fallback = check_fallback(threshold, fallback)

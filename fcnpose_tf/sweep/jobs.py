@@ -43,11 +43,12 @@ MODELS_DIR = "models"
 KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "patience", "retrain_epochs",
               "retrain_patience", "batch_size", "learning_rate", "lr_patience", "positive_weight", "augment_copies",
               "seed", "threads", "importance", "importance_frames", "distill", "min_filters", "lr_schedule", "freeze",
-              "max_minutes")
+              "max_minutes", "centroid")
 """Settings that change a job's results: a results folder holds jobs of one value of each."""
 
 KEY_DEFAULTS = {"lr_patience": 0, "importance": "l1", "importance_frames": settings.IMPORTANCE_FRAMES.default,
-                "distill": 0.0, "min_filters": 0, "lr_schedule": "plateau", "freeze": 0, "max_minutes": None}
+                "distill": 0.0, "min_filters": 0, "lr_schedule": "plateau", "freeze": 0, "max_minutes": None,
+                "centroid": "plain"}
 """Key fields added after results folders existed, with the value older folders were made with."""
 
 RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience", "importance", "importance_frames", "distill", "min_filters",
@@ -146,6 +147,8 @@ class SweepConfig:
     """conv1..convN kept fixed while a rate job retrains (base models start from random weights: every layer trains)."""
     max_minutes: float | None = settings.SWEEP_MAX_MINUTES.field()
     """Time budget of each base model's training (retraining is bounded by its epochs)."""
+    centroid: str = settings.SWEEP_CENTROID.field()
+    """Where in its cluster a keypoint is read when a job is measured (plain: the paper's Algorithm 1)."""
     threads: int = 1
     """Resolved by the command (`commands.sweep.resolve_threads`): never None here."""
     verbose: int = 1
@@ -394,7 +397,8 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         _log(f"{job.label}: reusing {path}")
         model = load_model(path)
         _log(f"{job.label}: evaluating on {len(val_idx)} validation frames")
-        result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads), dataset, val_idx,
+        result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads,
+                                                       centroid=config.centroid), dataset, val_idx,
                                     dataset.schema)
         validation = {"metrics": result["metrics"], "timing": result["timing"]}
     else:

@@ -110,20 +110,21 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
                         "the job ran")
     files = record.get("files") or {}
     measured: dict[str, dict[str, Any]] = {}
-    threads = config.threads
+    threads, centroid = config.threads, config.centroid
+
+    def keras(path: Path) -> KerasKeypointModel:
+        return KerasKeypointModel(load_model(path), path, num_threads=threads, centroid=centroid)
+
     if record["kind"] == "base":
         path = _checked_file(out, files.get("keras"), "the base model", record.get("model_sha256"))
-        measured["keras"] = _measure(KerasKeypointModel(load_model(path), path, num_threads=threads), dataset,
-                                     indices)
+        measured["keras"] = _measure(keras(path), dataset, indices)
         return measured
     base = base_model_path(out, fold)
     _checked_file(out, str(base.relative_to(out)), "the fold's base model", record.get("base_model_sha256"))
     if (record.get("base_remeasured") or {}).get("timing"):
-        measured["base_remeasured"] = _measure(KerasKeypointModel(load_model(base), base, num_threads=threads),
-                                               dataset, indices)
+        measured["base_remeasured"] = _measure(keras(base), dataset, indices)
     keras_path = _checked_file(out, files.get("keras"), "the compressed Keras model")
-    measured["keras"] = _measure(KerasKeypointModel(load_model(keras_path), keras_path, num_threads=threads),
-                                 dataset, indices)
+    measured["keras"] = _measure(keras(keras_path), dataset, indices)
     from fcnpose_tf.compression.compress import tflite_key
 
     for section in tflite_sections(record):
@@ -131,7 +132,8 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
         # records written before one file per format name the (float16) file "tflite"
         name = files.get(tflite_key(quantize)) if quantize else files.get("tflite")
         tflite_path = _checked_file(out, name, f"the {quantize or 'float16'} TFLite export")
-        measured[section] = _measure(KeypointModel(tflite_path, num_threads=threads), dataset, indices)
+        measured[section] = _measure(KeypointModel(tflite_path, num_threads=threads, centroid=centroid), dataset,
+                                     indices)
     return measured
 
 

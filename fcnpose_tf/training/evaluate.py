@@ -63,7 +63,7 @@ class KerasKeypointModel(KeypointPredictor):
     backend_label = "tf_keras (direct call)"
 
     def __init__(self, model: Any, path: str | os.PathLike | None = None, threshold: float = 0.5,
-                 num_threads: int | None = None, fallback: float | None = None, centroid: str = "plain"):
+                 num_threads: int | None = None, fallback: float | None = None, centroid: str = "weighted"):
         if isinstance(model, (str, os.PathLike)):
             from fcnpose_tf.training.model import load_model
 
@@ -103,7 +103,7 @@ class KerasKeypointModel(KeypointPredictor):
 
 
 def open_model(path: str | os.PathLike, threads: int | None = None, threshold: float = 0.5,
-               fallback: float | None = None, centroid: str = "plain"):
+               fallback: float | None = None, centroid: str = "weighted"):
     """A predictor for a .keras/.h5 (tf_keras) or .tflite (LiteRT) file, by its extension (decoding with
     `threshold`, `fallback` and `centroid`, as `postprocess.maps_to_keypoints`)."""
     path = Path(path)
