@@ -243,10 +243,11 @@ def test_the_librarys_decoders_default_to_the_commands_decoding():
     from fcnpose_tf import postprocess
     from fcnpose_tf.compression.compress import CompressOptions
     from fcnpose_tf.runtime import bench, estimator
-    from fcnpose_tf.training import evaluate
+    from fcnpose_tf.training import evaluate, train
 
     decoders = [postprocess.maps_to_keypoints, postprocess.decode, postprocess.describe_decoding,
-                estimator.KeypointModel, evaluate.KerasKeypointModel, evaluate.open_model, bench.benchmark]
+                estimator.KeypointModel, evaluate.KerasKeypointModel, evaluate.open_model, bench.benchmark,
+                train.train_fold, train.keep_start_if_better]
     for decoder in decoders:
         parameters = inspect.signature(decoder).parameters
         assert parameters["centroid"].default == settings.CENTROID.default, decoder

@@ -406,7 +406,7 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         trained = train_fold(dataset, job.fold, path, config.fit_config(), input_size=config.input_size,
                              augment_copies=config.augment_copies, resume=resume, force=config.force or not resume,
                              metadata={"data": config.data, "trained_by": "fcnpose-tf sweep"},
-                             threads=config.threads, label=f"{job.label} ({path.name})",
+                             threads=config.threads, centroid=config.centroid, label=f"{job.label} ({path.name})",
                              reporter=_reporter(config))
         training = {"reused": False, "resumed": resume, "epochs_run": trained["epochs_run"],
                     "best_epoch": trained["best_epoch"], "best_val_loss": trained["best_val_loss"],

@@ -565,7 +565,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
-               test_start: dict[str, Any] | None = None, size_was_chosen: bool = False) -> dict[str, Any]:
+               test_start: dict[str, Any] | None = None, size_was_chosen: bool = False,
+               centroid: str = "weighted") -> dict[str, Any]:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
@@ -587,6 +588,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         resume, force: as for `fit`.
         metadata: more facts for NAME_train.json; they override the dataset's (e.g. "data" as given).
         threads: TensorFlow threads of the validation timing (None: all cores).
+        centroid: where the measurements read a keypoint in its cluster (`postprocess.CENTROIDS`).
         label: prefix of the progress lines (default: the model path).
         reporter: where messages and progress go (`fcnpose_tf.progress`; default: the current one): bars on a
             terminal, lines in a log, one line per epoch with --quiet, nothing when silent.
@@ -646,7 +648,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         f"{' (time budget reached)' if config.max_minutes and result.seconds >= 60 * config.max_minutes else ''}; "
         f"{result.seconds / 60:.1f} min")
 
-    predictor = KerasKeypointModel(load_model(model_path), model_path, num_threads=threads)
+    predictor = KerasKeypointModel(load_model(model_path), model_path, num_threads=threads, centroid=centroid)
     _, val_idx = dataset.split(fold)
     log(f"{label}: evaluating on {len(val_idx)} validation frames")
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
@@ -654,7 +656,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     record = json.loads(paths["train_json"].read_text())
     if init is not None and size_was_chosen:
         kept = keep_start_if_better(init, dataset, val_idx, report, model_path, input_size, threads=threads,
-                                    reporter=reporter, label=label)
+                                    reporter=reporter, label=label, centroid=centroid)
         if kept is not None:
             record["start_as_saved"], start_predictor, start_report = kept
             if record["start_as_saved"]["chose"] == "start":
@@ -669,7 +671,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 
 def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: dict[str, Any],
                          model_path: Path, input_size: int, *, threads: int | None = None,
-                         reporter: Reporter | None = None, label: str = "") -> tuple[dict[str, Any], Any, dict] | None:
+                         reporter: Reporter | None = None, label: str = "",
+                         centroid: str = "weighted") -> tuple[dict[str, Any], Any, dict] | None:
     """The start as saved is a candidate too when the run trained at another input size than the start's own
     (one `train --input-size auto` chose: a size the user asked for is kept).
 
@@ -693,7 +696,7 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
     reporter = progress.resolve(reporter)
     reporter.say(f"{label}: evaluating the starting model as saved ({start_size}x{start_size}) on the same "
                  f"{len(val_idx)} validation frames")
-    predictor = KerasKeypointModel(start, Path(init), num_threads=threads)
+    predictor = KerasKeypointModel(start, Path(init), num_threads=threads, centroid=centroid)
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
     start_score, trained_score = mean_pck(report["metrics"]), mean_pck(trained_report["metrics"])
     chose = "start" if start_score > trained_score else "trained"
