@@ -18,7 +18,7 @@ from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
 from fcnpose_tf import fileio, progress, settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.training.tfsetup import import_tensorflow_quietly
+from fcnpose_tf.training.tfsetup import import_tensorflow_quietly, set_tensorflow_environment
 
 EXIT_USER_ERROR = 2
 """Bad input, a refused or failed output (a full disk, a name too long): one `error:` line."""
@@ -111,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     However it ends, what the command created and did not complete is removed (the outputs its
     options name, the folders it made, its private temporary folder) and what it completed is named.
     """
-    os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")  # keep TensorFlow's C++ start-up chatter (CUDA probing) off the terminal
+    set_tensorflow_environment()  # before any command imports TensorFlow
     for stream in (sys.stdout, sys.stderr):  # a file name that is not UTF-8 is printed, not a crash
         with contextlib.suppress(AttributeError, ValueError):
             stream.reconfigure(errors="backslashreplace")

@@ -101,3 +101,14 @@ def test_every_command_module_declares_the_outputs_it_creates():
     assert declared["compress"] == ("out_dir",) and declared["export"] == ("out_dir", "json")
     for command in ("train", "evaluate", "bench", "run", "predict", "synth", "sweep"):
         assert declared[command], command
+
+
+def test_commands_set_tensorflows_environment_where_the_user_did_not():
+    from fcnpose_tf.training.tfsetup import TENSORFLOW_ENVIRONMENT, set_tensorflow_environment
+
+    mine = {"TF_ENABLE_ONEDNN_OPTS": "0", "OTHER": "x"}
+    set_tensorflow_environment(mine)
+    assert mine == {"TF_ENABLE_ONEDNN_OPTS": "0", "OTHER": "x", "TF_CPP_MIN_LOG_LEVEL": "3"}  # the user's value kept
+    empty: dict[str, str] = {}
+    set_tensorflow_environment(empty)
+    assert empty == TENSORFLOW_ENVIRONMENT and empty["TF_ENABLE_ONEDNN_OPTS"] == "1"
