@@ -242,12 +242,8 @@ def _largest_cluster(plane: np.ndarray, min_size: int, pixels: list | None = Non
         if pixels is not None:
             pixels.append((rows + y0, cols + x0))
         return _centroid(len(cols), int(cols.sum()), int(rows.sum()), x0, y0, min_size)
-    if pixels is not None:  # one cluster: every active pixel of the window
-        if xs is None:
-            pixels.append((y0, x0, h, w, win))
-        else:  # far apart in a squeezed window: its pixels
-            rows, cols = np.nonzero(img)
-            pixels.append((ys[rows] + y0, xs[cols] + x0))
+    if pixels is not None:  # one cluster: every active pixel of the (unsqueezed) window
+        pixels.append((y0, x0, h, w, win))
     if xs is None:
         # Window coordinates are map coordinates minus (x0, y0). The binary image moments are
         # exact integers (pixel count, sums of column and row indices), so one division gives a
