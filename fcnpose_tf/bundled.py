@@ -53,6 +53,8 @@ ANY_MODEL = KERAS_SUFFIXES + TFLITE_SUFFIXES
 
 BUNDLED_MODELS = {
     "generalist": (f"{GENERALIST_NAME}.keras", "the UR5 generalist, fine-tuned on domain-randomised scenes"),
+    "generalist-p70": (f"{GENERALIST_NAME}_p70.keras", "the generalist pruned at rate 0.7 and retrained on "
+                       "domain-randomised scenes: compress's start at 0.7 for a model fine-tuned from the generalist"),
     "workcell": (f"{BASELINE_NAME}.keras", "the paper-reproduction baseline of one UR5 workcell"),
     "workcell-p70": (f"{BASELINE_NAME}_p70.keras", "the workcell baseline pruned at rate 0.7 and retrained"),
     "workcell-p70-fp16": (f"{BASELINE_NAME}_p70_fp16.tflite", "workcell-p70 as float16 TFLite (the paper's format)"),

@@ -69,6 +69,9 @@ class TrainingRecord:
     """The model's input size in pixels (the size it was kept at)."""
     augment: str | None = None
     """How its training frames were augmented: "paper" (fixed offline copies) or "online" (fresh every epoch)."""
+    init: str | None = None
+    """The model it started from, as `train --init` named it: a bundled name (generalist) or a path; None for a
+    random start (--init none) or not recorded."""
     raw: dict[str, Any] = field(default_factory=dict, repr=False, hash=False)
     """The whole JSON object, for keys without a field (config, epochs_run, validation...). Not to be changed."""
 
@@ -89,7 +92,7 @@ class TrainingRecord:
                    keypoints=tuple(keypoints) if keypoints is not None else None,
                    positive_weight=float(positive_weight) if positive_weight is not None else None,
                    input_size=_typed(record.get("input_size"), int), augment=_typed(record.get("augment"), str),
-                   raw=record)
+                   init=_typed(record.get("init"), str), raw=record)
 
 
 def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
@@ -172,3 +175,27 @@ def host_info() -> dict[str, Any]:
     return {"machine": platform.machine(), "system": platform.platform(terse=True),
             "cpu_count": available_cores(), "python": platform.python_version(),
             "numpy": versions["numpy"], "opencv": versions["opencv"]}
+
+
+def lineage(model_path: str | os.PathLike, max_depth: int = 16) -> list[str]:
+    """What `model_path` was trained from, nearest first: each NAME_train.json's `init` (a bundled name or a path),
+    followed through the records of the files it names (a second round of `train --init round1.keras` leads back
+    to round 1's start). Stops at a random start, a model without a record, a path that is no file, a loop, or
+    `max_depth` steps.
+
+    Example: a model `train` fine-tuned from the generalist -> ["generalist"].
+    """
+    chain: list[str] = []
+    seen = {Path(model_path).resolve()}
+    current: str | os.PathLike = model_path
+    for _ in range(max_depth):
+        record = training_record(current)
+        if record is None or not record.init:
+            break
+        chain.append(record.init)
+        path = Path(record.init)
+        if not path.is_file() or path.resolve() in seen:
+            break
+        seen.add(path.resolve())
+        current = path
+    return chain

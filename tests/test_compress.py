@@ -392,3 +392,107 @@ def test_compress_inherits_the_base_models_augmentation(tmp_path):
     assert CompressOptions(rate=0.7).resolved(base).augment == "paper"
     assert CompressOptions(rate=0.7).resolved(tmp_path / "none.keras").augment == "paper"
     assert "online" not in CompressOptions(rate=0.7).resolved().recipe()
+
+
+@pytest.fixture
+def bundled_pruned_generalist(tmp_path, monkeypatch):
+    """A bundled-models folder whose generalist-p70 is a 64 x 64 FCN-Pose at filter surgery's widths at 0.7 (no layer
+    under 12 filters); returns the folder."""
+    from fcnpose_tf.training.model import build_fcn_pose
+
+    folder = tmp_path / "bundled"
+    folder.mkdir()
+    for name in ("fcnpose_ur5.keras", "fcnpose_ur5_generalist.keras"):
+        (folder / name).write_bytes(b"")  # only their paths are read
+    randomize(build_fcn_pose((30, 15, 12, 12, 8, 8, 12, 12, 15), input_size=64), seed=3).save(
+        folder / "fcnpose_ur5_generalist_p70.keras")
+    monkeypatch.setenv("FCNPOSE_MODELS_DIR", str(folder))
+    return folder
+
+
+def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_generalist(bundled_pruned_generalist,
+                                                                                       tmp_path):
+    """--start auto: generalist-p70 for the generalist itself and for models `train` fine-tuned from it on views that
+    vary (online augmentation; directly or through a round of the correction loop), at the rate and floor whose
+    widths it has; surgery otherwise (a fixed camera, another start), and for --start surgery and magnitude pruning."""
+    from fcnpose_tf.compression.compress import CompressOptions, pruned_start
+    from fcnpose_tf.training.model import build_fcn_pose
+
+    base = build_fcn_pose(input_size=64)
+    path = tmp_path / "mine.keras"
+    path.write_bytes(b"")
+    round2 = tmp_path / "round2.keras"
+    (tmp_path / "round2_train.json").write_text(json.dumps({"init": str(path), "augment": "online"}))
+    expected = bundled_pruned_generalist / "fcnpose_ur5_generalist_p70.keras"
+    lines = []
+
+    def start(options, model_path=path, floor=12):
+        return pruned_start(options.resolved(), model_path, base, floor, lines.append)
+
+    assert CompressOptions(rate=0.7).start == "surgery"  # the default; auto is asked for
+    assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)  # no record: not known to come from the generalist
+    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "generalist", "augment": "paper"}))
+    assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)  # a fixed camera: the paper's copies
+    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "generalist", "augment": "online"}))
+    assert start(CompressOptions(rate=0.7, start="auto")) == ("generalist-p70", expected)
+    assert start(CompressOptions(rate=0.7, start="auto"), round2) == ("generalist-p70", expected)
+    (bundled_pruned_generalist / "fcnpose_ur5_generalist_train.json").write_text(json.dumps({"augment": "online"}))
+    assert start(CompressOptions(rate=0.7, start="auto"), bundled_pruned_generalist / "fcnpose_ur5_generalist.keras") == (
+        "generalist-p70", expected)
+    assert start(CompressOptions(rate=0.7, start="surgery")) == ("surgery", None)
+    assert start(CompressOptions(rate=0.7, method="magnitude", start="auto")) == ("surgery", None)
+    assert lines == []
+    # other widths: another rate, or the paper's floor
+    assert start(CompressOptions(rate=0.5, start="auto")) == ("surgery", None)
+    assert start(CompressOptions(rate=0.7, min_filters=0, start="auto"), floor=0) == ("surgery", None)
+    assert len(lines) == 2 and "generalist-p70's widths are not filter surgery's at rate 0.5" in lines[0]
+    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "workcell", "augment": "online"}))
+    assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)
+    # named explicitly: a bundled name or a file, whatever the base model's lineage
+    assert start(CompressOptions(rate=0.7, start="generalist-p70")) == ("generalist-p70", expected)
+    assert start(CompressOptions(rate=0.5, start=str(expected))) == (str(expected), expected)
+    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "generalist", "augment": "online"}))
+    expected.unlink()  # an installation without the file: surgery, said
+    assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None) and "is missing" in lines[-1]
+
+
+def test_a_pruned_start_is_named_in_the_recipe_and_refused_with_magnitude_pruning():
+    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.errors import UserError
+
+    recipe = CompressOptions(rate=0.7, start="generalist-p70", retrain_epochs=0).recipe(12)
+    assert recipe == ("filter surgery's widths at 0.7 (no layer under 12 filters, same parameter budget), the weights "
+                      "of generalist-p70, not retrained")
+    assert CompressOptions.preset("paper", rate=0.7).start == "surgery"
+    with pytest.raises(UserError, match="--start generalist-p70 gives filter surgery's pruned network its weights"):
+        CompressOptions(rate=0.7, method="magnitude", start="generalist-p70").validate()
+    with pytest.raises(UserError, match="pruned start must be auto, surgery, a bundled name or a .keras file"):
+        CompressOptions(rate=0.7, start=" ").validate()
+
+
+@pytest.mark.slow
+def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths(setup, cli, cli_here, tmp_path):
+    """--start FILE: the network before retraining holds the file's weights (no ranking), the report, the recipe and
+    the retrained model's record name it; a file of other widths is one error line, before any file is written."""
+    from fcnpose_tf.training.model import build_fcn_pose, load_model
+
+    root, data, base = setup
+    start = tmp_path / "pruned.keras"
+    randomize(build_fcn_pose((30, 15, 12, 12, 8, 8, 12, 12, 15), input_size=64), seed=5).save(start)
+    out = tmp_path / "out"
+    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start, "--retrain-epochs", "0",
+               "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "scoring filters" not in proc.stdout
+    for w0, w1 in zip(load_model(start).get_weights(), load_model(out / "base_p70.keras").get_weights()):
+        np.testing.assert_array_equal(w0, w1)
+    report = json.loads((out / "base_p70_report.json").read_text())
+    assert report["pruning"]["start"] == str(start) == report["options"]["start"]
+    assert report["recipe"].startswith(f"filter surgery's widths at 0.7 (no layer under 12 filters, same parameter "
+                                       f"budget), the weights of {start}")
+    refused = tmp_path / "refused"
+    status, _, err = cli_here("compress", "--rate", "0.5", "--model", base, "--data", data, "--start", start,
+                              "--retrain-epochs", "0", "--out-dir", refused)
+    assert status == 2 and "Traceback" not in err
+    assert f"--start {start}: its widths (30, 15, 12, 12, 8, 8, 12, 12, 15, 9) are not filter surgery's" in err
+    assert not refused.exists()

@@ -25,7 +25,7 @@ def _parse(argv, name):
 
 
 @pytest.mark.parametrize("command", sorted(KERAS_COMMANDS))
-@pytest.mark.parametrize("name", ["generalist", "workcell", "workcell-p70"])
+@pytest.mark.parametrize("name", ["generalist", "generalist-p70", "workcell", "workcell-p70"])
 def test_a_keras_model_argument_takes_the_bundled_names(command, name, capsys):
     argv, attribute = KERAS_COMMANDS[command]
     value = getattr(_parse(argv, name), attribute)
@@ -74,7 +74,7 @@ def test_train_init_takes_the_same_names():
 
 def test_a_missing_model_names_the_bundled_ones(tmp_path):
     with pytest.raises(UserError, match="nope.keras: model file not found \\(or one of the bundled models: generalist, "
-                                        "workcell, workcell-p70\\)"):
+                                        "generalist-p70, workcell, workcell-p70\\)"):
         bundled.resolve_model(tmp_path / "nope.keras", bundled.KERAS_SUFFIXES)
     with pytest.raises(UserError, match="init.keras: model file not found"):
         from fcnpose_tf.commands.train import initial_weights

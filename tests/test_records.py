@@ -5,7 +5,7 @@ import json
 
 import pytest
 
-from fcnpose_tf.records import TrainingRecord, training_record
+from fcnpose_tf.records import TrainingRecord, lineage, training_record
 
 KEYPOINTS = ["base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"]
 
@@ -33,7 +33,7 @@ def test_a_full_record_reads_into_its_fields():
     record = TrainingRecord.from_json(raw)
     assert record == TrainingRecord(data="nc_train/ur5_synth.json", data_sha256=raw["data_sha256"], fold=2, folds=5,
                                     split="fold 2 of 5", split_seed=0, keypoints=tuple(KEYPOINTS),
-                                    positive_weight=8.0, input_size=288, augment="paper", raw=raw)
+                                    positive_weight=8.0, input_size=288, augment="paper", init="generalist", raw=raw)
     assert record.raw is raw and record.raw["epochs_run"] == 31  # the rest of the file, by key
     assert isinstance(record.keypoints, tuple) and isinstance(record.positive_weight, float)
     with pytest.raises(AttributeError):
@@ -50,7 +50,7 @@ def test_the_fields_are_the_keys_train_writes():
     """Each field reads the key (or nested key) `train` writes under that name, unchanged."""
     raw = written_by_train()
     record = TrainingRecord.from_json(raw)
-    for name in ("data", "data_sha256", "fold", "folds", "split", "split_seed", "input_size"):
+    for name in ("data", "data_sha256", "fold", "folds", "split", "split_seed", "input_size", "augment", "init"):
         assert getattr(record, name) == raw[name], name
     assert list(record.keypoints) == raw["schema"]["keypoints"]
     assert record.positive_weight == raw["config"]["positive_weight"]
@@ -94,3 +94,22 @@ def test_training_record_reads_the_file_beside_the_model_and_its_derivatives(tmp
 def test_training_record_is_none_for_a_file_that_is_no_record(tmp_path, text):
     (tmp_path / "m_train.json").write_text(text, encoding="latin-1")
     assert training_record(tmp_path / "m.keras") is None
+
+
+def test_lineage_follows_each_records_init_back_to_a_bundled_start(tmp_path):
+    """round2 was trained from round1 (a path), round1 from the generalist: round2's lineage names both, nearest first;
+    a random start, a model without a record and a loop end it."""
+    (tmp_path / "round1_train.json").write_text(json.dumps(written_by_train(init="generalist")))
+    (tmp_path / "round1.keras").write_bytes(b"")
+    (tmp_path / "round2_train.json").write_text(json.dumps(written_by_train(init=str(tmp_path / "round1.keras"))))
+    assert lineage(tmp_path / "round2.keras") == [str(tmp_path / "round1.keras"), "generalist"]
+    assert lineage(tmp_path / "round1.keras") == ["generalist"]
+    assert lineage(tmp_path / "none.keras") == []
+    (tmp_path / "scratch_train.json").write_text(json.dumps(written_by_train(init=None)))
+    assert lineage(tmp_path / "scratch.keras") == []
+    (tmp_path / "gone_train.json").write_text(json.dumps(written_by_train(init=str(tmp_path / "deleted.keras"))))
+    assert lineage(tmp_path / "gone.keras") == [str(tmp_path / "deleted.keras")]
+    for name, parent in (("a", "b"), ("b", "a")):  # a loop of two records
+        (tmp_path / f"{name}.keras").write_bytes(b"")
+        (tmp_path / f"{name}_train.json").write_text(json.dumps(written_by_train(init=str(tmp_path / f"{parent}.keras"))))
+    assert lineage(tmp_path / "a.keras") == [str(tmp_path / "b.keras"), str(tmp_path / "a.keras")]

@@ -72,8 +72,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.RETRAIN_PATIENCE.add_to(parser, "--patience")
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.QAT_EPOCHS, settings.QAT_LEARNING_RATE,
-                    settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.COMPRESS_IMPORTANCE,
-                    settings.IMPORTANCE_FRAMES, settings.DISTILL):
+                    settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.PRUNED_START,
+                    settings.COMPRESS_IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL):
         setting.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.INHERITED_AUGMENT.add_to(parser)

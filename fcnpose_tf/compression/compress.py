@@ -57,7 +57,8 @@ Log = Callable[[str], None]
                        ("positive_weight", settings.INHERITED_POSITIVE_WEIGHT),
                        ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
                        ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
-                       settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.QAT_EPOCHS,
+                       settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.PRUNED_START,
+                       settings.QAT_EPOCHS,
                        settings.QAT_LEARNING_RATE, settings.CENTROID)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
@@ -66,7 +67,8 @@ class CompressOptions:
     positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
     retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
-    narrowest a pruned layer may become at the same parameter budget), and qat_epochs / qat_learning_rate
+    narrowest a pruned layer may become at the same parameter budget), start (the pruned network's weights before
+    retraining: surgery, auto, or a pruned model: `pruned_start`), and qat_epochs / qat_learning_rate
     (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback); centroid: how the
     table's keypoints are read (`postprocess.CENTROIDS`).
 
@@ -89,6 +91,9 @@ class CompressOptions:
         if self.method == "magnitude" and self.min_filters:
             raise UserError(f"--min-filters {self.min_filters} sets the widths of filter surgery's layers (--method "
                             "l1); magnitude pruning keeps every filter (use --min-filters 0)")
+        if self.method == "magnitude" and self.start not in ("auto", "surgery"):
+            raise UserError(f"--start {self.start} gives filter surgery's pruned network its weights (--method l1); "
+                            "magnitude pruning masks the base model's own (use --start surgery)")
         if self.strategy == "greedy" and self.importance in DATA_AWARE:
             raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
                             f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
@@ -131,6 +136,8 @@ class CompressOptions:
             f" (no layer under {used} filters, same parameter budget)" if used == self.min_filters else
             f" (no layer under {used} filters: --min-filters {self.min_filters} lowered to fit the parameter budget)")
         pruned = (f"magnitude pruning at {self.rate:g}" if self.method == "magnitude" else
+                  f"filter surgery's widths at {self.rate:g}{floor}, the weights of {self.start}"
+                  if self.start not in ("auto", "surgery") else
                   f"filter surgery at {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy}"
                   + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
                      else "") + ")")
@@ -387,7 +394,11 @@ class PruningMethod(Protocol):
     def describe(self) -> str:
         """The progress line's words for what is pruned."""
 
-    def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
+    @property
+    def ranks_filters(self) -> bool:
+        """Whether `prune` ranks the base model's filters by an `Importance` (else it is passed None)."""
+
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
         """The pruned model before retraining, and the report sections the method adds (`CompressReport` fields
         by name: pruning, magnitude_sparsity)."""
 
@@ -405,17 +416,27 @@ class FilterPruning:
 
     name, tag = "l1", "p"
 
-    def __init__(self, rate: float, strategy: str, importance: str = "l1", min_filters: int = 0) -> None:
+    def __init__(self, rate: float, strategy: str, importance: str = "l1", min_filters: int = 0,
+                 start: Path | None = None, start_name: str = "") -> None:
         self.rate, self.strategy, self.importance, self.min_filters = rate, strategy, importance, min_filters
-        self.criterion_facts: dict[str, Any] = {"importance": importance}
+        self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
+        self.criterion_facts: dict[str, Any] = {"importance": importance} if start is None else {}
+
+    @property
+    def ranks_filters(self) -> bool:
+        return self.start is None
 
     def describe(self) -> str:
         floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
+        if self.start is not None:
+            return f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
         return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
 
-    def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
         from fcnpose_tf.compression.prune import prune_model
 
+        if self.start is not None:
+            return self._from_start(base)
         start = time.perf_counter()
         pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
                              min_filters=self.min_filters)
@@ -424,17 +445,36 @@ class FilterPruning:
                                     "min_filters": self.min_filters,
                                     "ranking_seconds": round(time.perf_counter() - start, 1)}}
 
+    def _from_start(self, base: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+        """The start model's weights in the network surgery would build from `base` (same widths, the base's input
+        size); UserError when its widths are not surgery's."""
+        from fcnpose_tf.compression.prune import prune_widths
+        from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model
+
+        source = load_model(self.start)
+        widths = (*prune_widths(base, self.rate, self.min_filters)[0], conv_widths(base)[-1])
+        if conv_widths(source) != widths:
+            floor = f" with no layer under {self.min_filters} filters" if self.min_filters > 1 else ""
+            raise UserError(f"--start {self.start_name}: its widths {conv_widths(source)} are not filter surgery's at "
+                            f"--rate {self.rate:g}{floor} on this model, {widths}")
+        pruned = build_fcn_pose(widths[:-1], int(base.input_shape[1]), widths[-1])
+        pruned.set_weights(source.get_weights())
+        return pruned, {"pruning": {"start": self.start_name, "start_file": str(self.start),
+                                    "min_filters": self.min_filters}}
+
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         fit_fn(pruned)
 
     def training_record(self) -> dict[str, Any]:
-        return {"rate": self.rate, "strategy": self.strategy, "min_filters": self.min_filters, **self.criterion_facts}
+        start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
+        return {"rate": self.rate, **start, "min_filters": self.min_filters, **self.criterion_facts}
 
 
 class MagnitudePruning:
     """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at `rate` removes."""
 
     name, tag = "magnitude", "m"
+    ranks_filters = False
 
     def __init__(self, rate: float) -> None:
         self.rate = rate
@@ -443,7 +483,7 @@ class MagnitudePruning:
     def describe(self) -> str:
         return f"magnitude at rate {self.rate:g}"
 
-    def prune(self, base: keras.Model, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
         from fcnpose_tf.compression.prune import magnitude_prune, prune_model
 
         surgery = prune_model(base, self.rate)  # only its parameter count: the same reduction as filter surgery
@@ -463,13 +503,58 @@ class MagnitudePruning:
         return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
 
 
-def pruning_method(options: CompressOptions, min_filters: int | None = None) -> PruningMethod:
+PRUNED_GENERALIST = "generalist-p70"
+"""The bundled pruned generalist (`bundled.BUNDLED_MODELS`): `--start auto`'s choice for a model fine-tuned from the
+generalist, at the widths it has (filter surgery's at 0.7 with no layer under 12 filters)."""
+
+
+def pruned_start(options: CompressOptions, base_path: Path, base: keras.Model, floor: int,
+                 log: Log = lambda line: None) -> tuple[str, Path | None]:
+    """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
+    for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
+    (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
+    and the bundled file has the widths filter surgery gives here (rate, floor); else surgery, which keeps PCK@0.5
+    within 0.01 on fixed-camera models (docs/compression.md, "On your own model").
+    An explicit start is resolved as a model argument (a file, or a bundled name); its widths are checked when it is
+    loaded (`FilterPruning.prune`)."""
+    from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
+    from fcnpose_tf.compression.prune import prune_widths
+    from fcnpose_tf.records import lineage
+    from fcnpose_tf.training.model import conv_widths, load_model
+
+    start = options.start
+    if options.method != "l1" or start == "surgery":
+        return "surgery", None
+    if start != "auto":
+        return start, resolve_model(start, KERAS_SUFFIXES, say=log)
+    generalist = generalist_model().resolve()
+    ancestry = [str(base_path), *lineage(base_path)]
+    if not any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
+               for name in ancestry):
+        return "surgery", None
+    record = training_record(base_path)
+    if record is None or record.augment != "online":  # a fixed camera: the frames show the views it will see
+        return "surgery", None
+    path = models_dir() / BUNDLED_MODELS[PRUNED_GENERALIST][0]
+    if not path.is_file():  # an installation without it
+        log(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
+        return "surgery", None
+    widths = (*prune_widths(base, options.rate, floor)[0], conv_widths(base)[-1])
+    if conv_widths(load_model(path)) != widths:
+        log(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate {options.rate:g} "
+            f"with no layer under {floor} filters, {widths})")
+        return "surgery", None
+    return PRUNED_GENERALIST, path
+
+
+def pruning_method(options: CompressOptions, min_filters: int | None = None, start: Path | None = None) -> PruningMethod:
     """The pruning method `options.method` names; filter surgery keeps no layer under `min_filters` (default
-    options.min_filters; `compress_model` passes the floor that fits the rate's parameter budget)."""
+    options.min_filters; `compress_model` passes the floor that fits the rate's parameter budget) and takes its
+    weights from the pruned model `start` when one is given (`pruned_start`)."""
     if options.method == "magnitude":
         return MagnitudePruning(options.rate)
     floor = options.min_filters if min_filters is None else min_filters
-    return FilterPruning(options.rate, options.strategy, options.importance, floor)
+    return FilterPruning(options.rate, options.strategy, options.importance, floor, start, options.start)
 
 
 # ------------------------------------------------------------------------------------------
@@ -556,8 +641,9 @@ def importance_step(run: _Run, fold: int | None) -> Importance:
                            batch_size=run.options.batch_size)
 
 
-def prune_step(run: _Run, importance: Importance) -> tuple[keras.Model, dict[str, Any]]:
-    """Prune with the run's method (filters ranked by `importance`); measure the result before any retraining.
+def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
+    """Prune with the run's method (filters ranked by `importance`; None when the method takes a pruned start's
+    weights); measure the result before any retraining.
     The pruned model, and its report sections (`CompressReport` fields by name: the method's and
     pruned_before_retraining)."""
     pruned, entries = run.method.prune(run.base, importance)
@@ -748,8 +834,10 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     prune_plan(base, options.rate, strategy=options.strategy)  # a model that is not a plain chain fails here, first
     floor = prune_widths(base, options.rate, options.min_filters)[1] if options.method == "l1" else 0
     check_outputs(base_path, out_dir, options, force)
-    run = _Run(base_path, base, pruning_method(options, floor), options, paths, train_dataset, eval_dataset,
-               eval_indices, force, reporter, options.recipe(floor))
+    start_name, start_path = pruned_start(options, base_path, base, floor, say)
+    options = replace(options, start=start_name)
+    run = _Run(base_path, base, pruning_method(options, floor, start_path), options, paths, train_dataset,
+               eval_dataset, eval_indices, force, reporter, options.recipe(floor))
     steps = 4 + 2 * len(options.quantize)
     say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size})")
     if floor < options.min_filters:
@@ -757,7 +845,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             f"no layer under {floor} filters")
     base_step = measure_base(run)
     say(f"[2/{steps}] pruning: {run.method.describe()}")
-    pruned, pruned_sections = prune_step(run, importance_step(run, retrain_fold(run)))
+    importance = importance_step(run, retrain_fold(run)) if run.method.ranks_filters else None
+    pruned, pruned_sections = prune_step(run, importance)
     say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")
     retrained, retrained_sections = retrain_step(run, pruned)
     say(f"[4/{steps}] measuring the retrained Keras model")

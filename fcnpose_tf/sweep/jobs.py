@@ -96,9 +96,11 @@ def record_matches(record: dict[str, Any] | None, key: dict[str, Any], by_rate: 
     return job_key(record["config_key"], rate) == job_key(key, rate, by_rate)
 
 
-SWEEP_FIXED = ("method", "strategy", "quantize", "calibration_frames", "augment", "qat_epochs", "qat_learning_rate")
+SWEEP_FIXED = ("method", "strategy", "quantize", "calibration_frames", "augment", "qat_epochs", "qat_learning_rate",
+               "start")
 """CompressOptions settings a sweep does not vary: filter surgery with independent ranking, the float16 and int8 files,
-the paper's offline copies, compress's QAT fallback (CompressOptions' defaults). Every other one is the sweep's own."""
+the paper's offline copies, compress's QAT fallback (CompressOptions' defaults), and surgery on each fold's own base
+model as the pruned start (the paper's). Every other one is the sweep's own."""
 
 
 @dataclass(frozen=True)
@@ -188,6 +190,7 @@ class SweepConfig:
 
         fixed = {name: value for name, value in settings.preset_values(CompressOptions, settings.DEFAULT_PRESET).items()
                  if name in SWEEP_FIXED}
+        fixed["start"] = settings.PRUNED_START.paper  # surgery: the paper's protocol
         return CompressOptions(**settings.carried(
             self, CompressOptions, renamed={"patience": "retrain_patience"}, **fixed, rate=float(job.rate),
             fold=job.fold, retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
