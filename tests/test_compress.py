@@ -496,3 +496,28 @@ def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths
     assert status == 2 and "Traceback" not in err
     assert f"--start {start}: its widths (30, 15, 12, 12, 8, 8, 12, 12, 15, 9) are not filter surgery's" in err
     assert not refused.exists()
+    status, out_text, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", "nope",
+                                     "--out-dir", refused)  # a start that names nothing: before the data is read
+    assert status == 2 and len(err.strip().splitlines()) == 1
+    assert err.startswith("error: nope: model file not found (or one of the bundled models: ")
+    assert "loading" not in out_text.lower() and not refused.exists()
+
+
+@pytest.mark.slow
+def test_compress_keeps_a_pruned_start_that_no_retraining_epoch_beats(setup, cli, tmp_path):
+    """A pruned start holds trained weights: its validation loss is epoch 0's, and when retraining only makes it worse
+    (here a learning rate of 50 throws every weight far off) the start is what compress keeps, and says so."""
+    from fcnpose_tf.training.model import build_fcn_pose, load_model
+
+    root, data, base = setup
+    start = tmp_path / "pruned.keras"
+    randomize(build_fcn_pose((30, 15, 12, 12, 8, 8, 12, 12, 15), input_size=64), seed=5).save(start)
+    out = tmp_path / "out"
+    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start, "--retrain-epochs", "1",
+               "--learning-rate", "50", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "the start is kept, unchanged" in proc.stdout
+    for w0, w1 in zip(load_model(start).get_weights(), load_model(out / "base_p70.keras").get_weights()):
+        np.testing.assert_array_equal(w0, w1)
+    report = json.loads((out / "base_p70_report.json").read_text())
+    assert report["retraining"]["start_kept"] is True and report["retraining"]["best_epoch"] == 0

@@ -177,6 +177,39 @@ def test_an_interrupted_run_that_cannot_resume_says_what_to_do_and_leaves_no_che
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
 
 
+def test_a_loss_that_becomes_nan_stops_training_keeps_the_best_epoch_or_writes_nothing(tmp_path, monkeypatch):
+    """A learning rate far too high makes the loss NaN: training stops at that epoch (the weights are lost), the best
+    epoch before it is the model written and the record names the epoch; with no epoch before it, one error line
+    and no file."""
+    from fcnpose_tf.training import train
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.training.model import build_fcn_pose
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
+    tr, va = fold_data(ds, None, 32, 0)
+    original = train._CheckpointAndStop.on_epoch_end
+    nan_from = {"epoch": 1}
+
+    def diverging(self, epoch, logs=None):
+        if epoch >= nan_from["epoch"]:
+            logs = {**logs, "loss": float("nan"), "val_loss": float("nan")}
+        original(self, epoch, logs)
+
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", diverging)
+    out = tmp_path / "m.keras"
+    result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out,
+                       train.FitConfig(epochs=4, patience=5, batch_size=4), reporter=SILENT)
+    assert result.epochs_run == 1 and result.best_epoch == 1 and [h["epoch"] for h in result.history] == [1]
+    assert out.is_file() and not (tmp_path / "m.ckpt").exists()
+    assert json.loads((tmp_path / "m_train.json").read_text())["diverged_at_epoch"] == 2
+    nan_from["epoch"] = 0
+    with pytest.raises(UserError, match=r"^the loss became NaN or infinite in epoch 1 \(learning rate 0.001: try a "
+                                        r"lower --learning-rate\); no epoch before it to keep: .*n.keras not written$"):
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "n.keras",
+                  train.FitConfig(epochs=4, patience=5, batch_size=4), reporter=SILENT)
+    assert not (tmp_path / "n.keras").exists() and not (tmp_path / "n.ckpt").exists()
+
+
 def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
     import tensorflow as tf
     import tf_keras as keras

@@ -87,7 +87,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data import synthcache
-    from fcnpose_tf.bundled import baseline_model
+    from fcnpose_tf.bundled import KERAS_SUFFIXES, baseline_model, resolve_model
     from fcnpose_tf.compression.compress import CompressOptions, check_outputs, compress_model, report_table
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.data.dataset import load_dataset
@@ -103,6 +103,8 @@ def run(args: argparse.Namespace) -> int:
     options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
     options = options.resolved(model_path)  # what the run does with the settings left None (compress_model's choice)
     options.validate()
+    if options.method == "l1" and options.start not in ("auto", "surgery"):
+        resolve_model(options.start, KERAS_SUFFIXES, say=lambda line: None)  # a wrong --start: before the data
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails

@@ -398,6 +398,11 @@ class PruningMethod(Protocol):
     def ranks_filters(self) -> bool:
         """Whether `prune` ranks the base model's filters by an `Importance` (else it is passed None)."""
 
+    @property
+    def trained_start(self) -> bool:
+        """Whether `prune` returns trained weights of the pruned network (a pruned start), whose validation loss the
+        retraining must beat: if no epoch does, the start is kept unchanged (`train.fit`'s start_is_candidate)."""
+
     def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
         """The pruned model before retraining, and the report sections the method adds (`CompressReport` fields
         by name: pruning, magnitude_sparsity)."""
@@ -425,6 +430,10 @@ class FilterPruning:
     @property
     def ranks_filters(self) -> bool:
         return self.start is None
+
+    @property
+    def trained_start(self) -> bool:
+        return self.start is not None
 
     def describe(self) -> str:
         floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
@@ -474,7 +483,7 @@ class MagnitudePruning:
     """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at `rate` removes."""
 
     name, tag = "magnitude", "m"
-    ranks_filters = False
+    ranks_filters = trained_start = False
 
     def __init__(self, rate: float) -> None:
         self.rate = rate
@@ -687,8 +696,13 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
         result = fit(model, sequence, val_data.arrays(),
                      keras_path, options.fit_config(), force=run.force, reporter=run.reporter.lines(),
-                     metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False)
+                     metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False,
+                     start_is_candidate=run.method.trained_start)
         entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
+        if run.method.trained_start:
+            entries["retraining"]["start_kept"] = result.best_epoch == 0
+            if result.best_epoch == 0:
+                run.log("  no epoch beat the pruned start's validation loss: the start is kept, unchanged")
         return result
 
     run.method.retrain(run.base, pruned, fit_fn)

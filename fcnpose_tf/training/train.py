@@ -314,6 +314,10 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         lr_var = self.model.optimizer.learning_rate
         lr = float(keras.backend.get_value(lr_var))
         row = {"epoch": epoch + 1, "loss": float(logs["loss"]), "val_loss": float(logs["val_loss"]), "lr": lr}
+        if not (math.isfinite(row["loss"]) and math.isfinite(row["val_loss"])):  # the weights are lost: stop here
+            self.state["diverged_at"] = epoch + 1
+            self.model.stop_training = True
+            return
         self.state["history"].append(row)
         improved = row["val_loss"] < self.state["best_val_loss"]
         if improved:
@@ -454,6 +458,13 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         raise _resumable(exc, paths, resumable) from None
 
     best = paths["ckpt_best"] if paths["ckpt_best"].is_file() else paths["ckpt_dir"] / "best.h5"
+    if "diverged_at" in state:
+        diverged = (f"the loss became NaN or infinite in epoch {state['diverged_at']} (learning rate "
+                    f"{config.learning_rate:g}: try a lower --learning-rate)")
+        if not best.is_file():
+            remove_tree(paths["ckpt_dir"])
+            raise UserError(f"{diverged}; no epoch before it to keep: {model_path} not written")
+        reporter.say(f"training stopped: {diverged}; the best epoch before it is kept")
     if best.is_file():
         _load_weights(model, best)
     try:
@@ -466,7 +477,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             "start_val_loss": state.get("start_val_loss"),
             "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
             "stopped_early": state["stopped_early"], "stopped_by_time_budget": bool(state.get("out_of_time")),
-            "train_seconds": round(state["seconds"], 1),
+            "diverged_at_epoch": state.get("diverged_at"), "train_seconds": round(state["seconds"], 1),
         }, force=True)
     except WriteError as exc:
         raise _resumable(exc, paths, resumable) from None
