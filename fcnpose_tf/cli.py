@@ -147,8 +147,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             if fileio.stop_signal() is None:  # raised without a signal seen here (a library's own handler)
                 fileio.note_stop_signal(signal.SIGTERM if "SIGTERM" in str(exc) else signal.SIGINT)
             return _end(outputs, None, EXIT_USER_ERROR)
-        except BaseException:  # a defect: its traceback follows, but nothing half-made stays behind
-            outputs.clean_up()
+        except BaseException:
+            if fileio.stop_signal() is not None and not args.debug:
+                # the stop signal's KeyboardInterrupt raised inside C code (TensorFlow tracing a graph) can come out
+                # as another exception (SystemError "bad argument to internal function"): still the stop
+                return _end(outputs, None, EXIT_USER_ERROR)
+            outputs.clean_up()  # a defect: its traceback follows, but nothing half-made stays behind
             raise
         signum = fileio.stop_signal()
         if signum is not None:  # a command that finalised its outputs when stopped (run, predict)

@@ -479,3 +479,27 @@ def test_a_sweep_stopped_by_sigterm_is_named_as_such():
             with stop_on_signals():
                 signal.raise_signal(signal.SIGTERM)
         assert fileio.stop_signal() == signal.SIGTERM
+
+
+def test_a_stop_signal_that_c_code_turned_into_another_exception_still_ends_as_the_stop(cli_here, monkeypatch):
+    """SIGTERM's KeyboardInterrupt raised while C code runs (TensorFlow tracing a graph) can surface as a SystemError
+    ("bad argument to internal function"): after a stop signal any exception ends with the signal's line and status,
+    not a traceback; without one an unexpected exception is still a defect with its traceback."""
+    from fcnpose_tf.commands import synth
+
+    def mangled(args):
+        try:
+            signal.raise_signal(signal.SIGTERM)
+        except KeyboardInterrupt:
+            raise SystemError("Objects/listobject.c:338: bad argument to internal function") from None
+
+    monkeypatch.setattr(synth, "run", mangled)
+    status, _, err = cli_here("synth", "--out", "frames", "--n", "1")
+    assert status == 143 and err.strip().splitlines() == ["terminated (SIGTERM)"]
+
+    def defect(args):
+        raise SystemError("a defect")
+
+    monkeypatch.setattr(synth, "run", defect)
+    with pytest.raises(SystemError, match="a defect"):
+        cli_here("synth", "--out", "frames", "--n", "1")
