@@ -636,13 +636,14 @@ PRUNED_START = Setting(
     "the pruned network's weights before retraining: surgery (the base model's highest-ranked filters, the paper's), "
     "generalist-p70 (the bundled generalist pruned at 0.7 and retrained on domain-randomised frames), or a pruned "
     ".keras file with the widths surgery gives at --rate; auto: generalist-p70 for a model fine-tuned from the "
-    "generalist on views that vary (trained with online augmentation) when the widths match, else surgery "
-    "(default: surgery; docs/compression.md, \"The pruned start\")", label="pruned start",
+    "generalist on views that vary (trained with online augmentation) when the widths match, else surgery. A pruned "
+    "start is kept unchanged when no retraining epoch beats its validation loss (docs/compression.md, \"On your own "
+    "model\")", label="pruned start",
     check=lambda v: bool(v.strip()), requirement="auto, surgery, a bundled name or a .keras file", metavar="START",
     paper="surgery")
 """Where the 70 % network's weights start. Surgery stays the default: on two models fine-tuned on views that vary, the
 bundled pruned generalist gave PCK@0.5 +0.018 and +0.008 over surgery after retraining, but PCK@0.05 -0.067 on one
-of them, and neither reached the 0.02 bar (docs/compression.md, "The pruned start")."""
+of them, and neither reached the 0.02 bar (docs/compression.md, "On your own model")."""
 DISTILL = Setting(
     "distill", float, 0.0,
     "weight W of the unpruned model's maps while retraining: loss = (1 - W) x loss against the ground-truth maps "
