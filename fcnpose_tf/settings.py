@@ -644,6 +644,13 @@ PRUNED_START = Setting(
 """Where the 70 % network's weights start. Surgery stays the default: on two models fine-tuned on views that vary, the
 bundled pruned generalist gave PCK@0.5 +0.018 and +0.008 over surgery after retraining, but PCK@0.05 -0.067 on one
 of them, and neither reached the 0.02 bar (docs/compression.md, "On your own model")."""
+COMPRESS_INPUT_SIZE = INPUT_SIZE.variant(
+    default=None,
+    help=f"the input side the compressed model and files run at, a multiple of {INPUT_SIZE_MULTIPLE} (default: the "
+         "model's own): FCN-Pose is fully convolutional, so the model is rebuilt at this size with its weights, pruned, "
+         "retrained and exported at it, and the files are named NAME_p70_SIZE; a smaller side costs fewer MACs (192: "
+         "0.73x of 224's) and localises coarser (docs/compression.md, \"A smaller input\")")
+"""None keeps the model's own size (the paper's protocol); the sweep always does (each fold's base at its size)."""
 DISTILL = Setting(
     "distill", float, 0.0,
     "weight W of the unpruned model's maps while retraining: loss = (1 - W) x loss against the ground-truth maps "

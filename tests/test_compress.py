@@ -521,3 +521,53 @@ def test_compress_keeps_a_pruned_start_that_no_retraining_epoch_beats(setup, cli
         np.testing.assert_array_equal(w0, w1)
     report = json.loads((out / "base_p70_report.json").read_text())
     assert report["retraining"]["start_kept"] is True and report["retraining"]["best_epoch"] == 0
+
+
+def test_a_model_rebuilt_at_another_input_size_keeps_its_layers_and_weights():
+    """`at_input_size`: FCN-Pose (functional) and a Sequential chain at a new side compute what the network built at
+    that side with the same weights computes; layer names and the input's name kept; a side the five poolings do not
+    divide is refused."""
+    import tf_keras as keras
+
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.training.model import at_input_size, build_fcn_pose
+
+    widths = (8, 8, 8, 8, 8, 8, 8, 8, 8)
+    model = randomize(build_fcn_pose(widths, input_size=64), seed=3)
+    assert at_input_size(model, 64) is model
+    resized = at_input_size(model, 96)
+    assert resized.input_shape == (None, 96, 96, 3) and resized.output_shape == (None, 96, 96, 9)
+    assert [layer.name for layer in resized.layers] == [layer.name for layer in model.layers]
+    built = build_fcn_pose(widths, input_size=96)
+    built.set_weights(model.get_weights())
+    image = np.random.default_rng(0).random((1, 96, 96, 3), dtype=np.float32)
+    np.testing.assert_array_equal(resized(image).numpy(), built(image).numpy())
+    chain = keras.Sequential([keras.Input((64, 64, 3)), keras.layers.Conv2D(4, 3, padding="same", name="c1"),
+                              keras.layers.MaxPooling2D(name="p1"), keras.layers.UpSampling2D(name="u1"),
+                              keras.layers.Conv2D(2, 3, padding="same", name="c2")])
+    wider = at_input_size(chain, 96)
+    assert wider.output_shape == (None, 96, 96, 2)
+    for w0, w1 in zip(chain.get_weights(), wider.get_weights()):
+        np.testing.assert_array_equal(w0, w1)
+    with pytest.raises(UserError, match="multiple of 32"):
+        at_input_size(model, 100)
+
+
+@pytest.mark.slow
+def test_compress_at_another_input_size_names_and_exports_files_at_it(setup, cli, tmp_path):
+    """--input-size 96 on a 64x64 model: the model is rebuilt at 96, retrained and exported at it; the files carry the
+    size in their names, the recipe and the report say it."""
+    from fcnpose_tf.runtime.estimator import KeypointModel
+    from fcnpose_tf.training.model import load_model
+
+    root, data, base = setup
+    out = tmp_path / "out"
+    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--input-size", "96", "--retrain-epochs",
+               "1", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "base model " in proc.stdout and "(96x96, rebuilt from its 64x64)" in proc.stdout
+    assert load_model(out / "base_p70_96.keras").input_shape == (None, 96, 96, 3)
+    assert KeypointModel(out / "base_p70_96_fp16.tflite").input_size == 96
+    report = json.loads((out / "base_p70_96_report.json").read_text())
+    assert report["options"]["input_size"] == 96 and report["recipe"].endswith(", at 96x96")
+    assert not (out / "base_p70.keras").exists()

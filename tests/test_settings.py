@@ -218,6 +218,7 @@ def test_the_sweep_passes_every_setting_on_to_its_runs():
     assert (fit.lr_schedule, fit.max_minutes, fit.learning_rate, fit.freeze) == ("cosine", 5.0, 2e-3, 0)
     options = config.compress_options(Job(1, 0.7))
     assert (options.lr_schedule, options.freeze, options.learning_rate, options.fold) == ("cosine", 2, 2e-3, 1)
+    assert SweepConfig("o", "d", input_size=160).compress_options(Job(0, 0.7)).input_size is None  # the base's own
     held = {f.name for f in dataclasses.fields(SweepConfig)}
     for f in dataclasses.fields(CompressOptions):  # none dropped: the sweep's own, fixed, or the job's
         assert f.name in held | set(SWEEP_FIXED) | {"rate", "fold", "patience"}, f.name

@@ -61,6 +61,38 @@ def matmul_gmac_per_s(threads: int) -> float:
     return float(out.stdout.strip())
 
 
+def interleaved_times(models: list, frames: list, count: int, warmup: int) -> list[list]:
+    """Each model's per-frame `times` (preprocess, invoke, postprocess, end_to_end) on `count` frames, the models
+    taking turns frame by frame in an order reversed every frame, so all see the same load; `warmup` untimed frames
+    each first."""
+    for i in range(warmup):
+        for model in models:
+            model.predict(frames[i % len(frames)])
+    times: list[list] = [[] for _ in models]
+    order = list(range(len(models)))
+    for i in range(count):
+        frame = frames[i % len(frames)]
+        for k in (order if i % 2 == 0 else order[::-1]):
+            times[k].append(models[k].predict(frame).times)
+    return times
+
+
+def latency_stats(times: list) -> dict:
+    """Medians (ms) of one model's `interleaved_times`: preprocess, inference, postprocess, end to end (and its p95),
+    FPS from the end-to-end median, and the median share of pre + post in a frame."""
+    import numpy as np
+
+    from fcnpose_tf.runtime.timing import LatencyLog
+
+    log = LatencyLog(times)
+    s = log.summary()
+    share = (log.values("preprocess") + log.values("postprocess")) / log.values("end_to_end")
+    return {"total_ms_median": s["end_to_end"]["median"], "total_ms_p95": s["end_to_end"]["p95"],
+            "preprocess_ms_median": s["preprocess"]["median"], "inference_ms_median": s["invoke"]["median"],
+            "postprocess_ms_median": s["postprocess"]["median"], "fps_median": 1000.0 / s["end_to_end"]["median"],
+            "pre_post_share_percent": float(100 * np.median(share))}
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--keras", type=Path, help="unpruned Keras model (default: bundled baseline)")
@@ -87,7 +119,6 @@ def main() -> int:
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.training.evaluate import KerasKeypointModel
     from fcnpose_tf.runtime.estimator import KeypointModel
-    from fcnpose_tf.runtime.timing import LatencyLog
     from fcnpose_tf.data.synthcache import heldout_data
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
@@ -120,25 +151,8 @@ def main() -> int:
 
     a = KerasKeypointModel(keras_path, keras_path, num_threads=args.threads)
     others = [KeypointModel(p, num_threads=args.threads) for p in tflite_paths]
-    models = [a] + others
-    for i in range(args.warmup):
-        for model in models:
-            model.predict(frames[i % len(frames)])
-    times: list[list] = [[] for _ in models]
-    order = list(range(len(models)))
-    for i in range(args.frames):
-        frame = frames[i % len(frames)]
-        for k in (order if i % 2 == 0 else order[::-1]):
-            times[k].append(models[k].predict(frame).times)
-
-    def stats(ts):
-        log = LatencyLog(ts)
-        s = log.summary()
-        share = (log.values("preprocess") + log.values("postprocess")) / log.values("end_to_end")
-        return {"total_ms_median": s["end_to_end"]["median"], "total_ms_p95": s["end_to_end"]["p95"],
-                "preprocess_ms_median": s["preprocess"]["median"], "inference_ms_median": s["invoke"]["median"],
-                "postprocess_ms_median": s["postprocess"]["median"], "fps_median": 1000.0 / s["end_to_end"]["median"],
-                "pre_post_share_percent": float(100 * np.median(share))}
+    times = interleaved_times([a] + others, frames, args.frames, args.warmup)
+    stats = latency_stats
 
     from fcnpose_tf.training.model import describe
 

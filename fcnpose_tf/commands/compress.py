@@ -49,6 +49,7 @@ EXAMPLES = """\
   fcnpose-tf compress --rate 0.7 --importance l1       # the paper's L1-norm ranking (default: taylor)
   fcnpose-tf compress --rate 0.7 --min-filters 0       # the paper's widths (default: no layer under 12)
   fcnpose-tf compress --rate 0.7 --distill 0.5         # retrain half on the unpruned model's maps
+  fcnpose-tf compress --rate 0.7 --input-size 192      # files at 192x192: 0.73x the MACs of 224
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --qat-epochs 0  # no QAT fallback
 """
@@ -73,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.QAT_EPOCHS, settings.QAT_LEARNING_RATE,
                     settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.PRUNED_START,
-                    settings.COMPRESS_IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL):
+                    settings.COMPRESS_INPUT_SIZE, settings.COMPRESS_IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL):
         setting.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.INHERITED_AUGMENT.add_to(parser)

@@ -58,7 +58,7 @@ Log = Callable[[str], None]
                        ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
                        ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
                        settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.PRUNED_START,
-                       settings.QAT_EPOCHS,
+                       ("input_size", settings.COMPRESS_INPUT_SIZE), settings.QAT_EPOCHS,
                        settings.QAT_LEARNING_RATE, settings.CENTROID)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
@@ -68,7 +68,8 @@ class CompressOptions:
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
     retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
     narrowest a pruned layer may become at the same parameter budget), start (the pruned network's weights before
-    retraining: surgery, auto, or a pruned model: `pruned_start`), and qat_epochs / qat_learning_rate
+    retraining: surgery, auto, or a pruned model: `pruned_start`), input_size (the side the model is rebuilt, retrained
+    and exported at; None: its own), and qat_epochs / qat_learning_rate
     (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback); centroid: how the
     table's keypoints are read (`postprocess.CENTROIDS`).
 
@@ -141,8 +142,9 @@ class CompressOptions:
                   f"filter surgery at {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy}"
                   + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
                      else "") + ")")
+        size = f", at {self.input_size}x{self.input_size}" if self.input_size else ""
         if self.retrain_epochs == 0:
-            return f"{pruned}, not retrained"
+            return f"{pruned}, not retrained{size}"
         epochs = f"{self.retrain_epochs} epoch{'s' if self.retrain_epochs > 1 else ''}"
         rate = (f"learning rate {self.learning_rate:g} on a cosine" if self.lr_schedule == "cosine" else
                 f"learning rate {self.learning_rate:g}, halved after {self.lr_patience} stale epochs"
@@ -150,7 +152,7 @@ class CompressOptions:
         frozen = f", conv1-{self.freeze} fixed" if self.freeze > 1 else ", conv1 fixed" if self.freeze else ""
         frames = " with online augmentation" if self.augment == "online" else ""  # the paper's copies: unsaid
         return (f"{pruned}, retrained up to {epochs}{frames} on "
-                f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}")
+                f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}{size}")
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
@@ -313,9 +315,9 @@ def tflite_key(quantize: str) -> str:
 
 def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
     """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite (one per --quantize format, key
-    `tflite_key`), NAME_p70_report.json (m70 for magnitude)."""
+    `tflite_key`), NAME_p70_report.json (m70 for magnitude); NAME_p70_192... with --input-size 192."""
     tag = f"{pruning_method(options).tag}{round(options.rate * 100):02d}"
-    stem = f"{base_name}_{tag}"
+    stem = f"{base_name}_{tag}" + (f"_{options.input_size}" if options.input_size else "")
     return {"stem": stem, "keras": f"{stem}.keras",
             **{tflite_key(q): f"{stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize},
             "report": f"{stem}_report.json"}
@@ -829,7 +831,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps do not match the dataset.
         ValueError: `metadata` names a section of the report.
     """
-    from fcnpose_tf.training.model import load_model
+    from fcnpose_tf.training.model import at_input_size, load_model
     from fcnpose_tf.compression.prune import prune_plan, prune_widths
 
     base_path = Path(base_path)
@@ -846,6 +848,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
     prune_plan(base, options.rate, strategy=options.strategy)  # a model that is not a plain chain fails here, first
+    saved_size = int(base.input_shape[1])
+    if options.input_size:
+        base = at_input_size(base, options.input_size)
     floor = prune_widths(base, options.rate, options.min_filters)[1] if options.method == "l1" else 0
     check_outputs(base_path, out_dir, options, force)
     start_name, start_path = pruned_start(options, base_path, base, floor, say)
@@ -853,7 +858,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     run = _Run(base_path, base, pruning_method(options, floor, start_path), options, paths, train_dataset,
                eval_dataset, eval_indices, force, reporter, options.recipe(floor))
     steps = 4 + 2 * len(options.quantize)
-    say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size})")
+    resized = f", rebuilt from its {saved_size}x{saved_size}" if saved_size != run.input_size else ""
+    say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size}{resized})")
     if floor < options.min_filters:
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
             f"no layer under {floor} filters")

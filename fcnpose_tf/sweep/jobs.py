@@ -97,10 +97,11 @@ def record_matches(record: dict[str, Any] | None, key: dict[str, Any], by_rate: 
 
 
 SWEEP_FIXED = ("method", "strategy", "quantize", "calibration_frames", "augment", "qat_epochs", "qat_learning_rate",
-               "start")
+               "start", "input_size")
 """CompressOptions settings a sweep does not vary: filter surgery with independent ranking, the float16 and int8 files,
-the paper's offline copies, compress's QAT fallback (CompressOptions' defaults), and surgery on each fold's own base
-model as the pruned start (the paper's). Every other one is the sweep's own."""
+the paper's offline copies, compress's QAT fallback (CompressOptions' defaults), surgery on each fold's own base
+model as the pruned start (the paper's), at that model's own input size (the sweep's --input-size). Every other one is
+the sweep's own."""
 
 
 @dataclass(frozen=True)

@@ -101,6 +101,21 @@ def conv_widths(model: keras.Model) -> tuple[int, ...]:
     return tuple(int(layer.filters) for layer in model.layers if isinstance(layer, keras.layers.Conv2D))
 
 
+def at_input_size(model: keras.Model, input_size: int) -> keras.Model:
+    """`model` (FCN-Pose, or any fully convolutional chain) at `input_size` x `input_size` with the same layers and
+    weights; `model` itself when already so. UserError for a side that is not a multiple of 32.
+
+    The convolutions do not depend on the input size: a model trained at 224 runs, and retrains, at 192 or 320.
+    """
+    check_input_size(input_size)
+    if tuple(model.input_shape[1:3]) == (input_size, input_size):
+        return model
+    inputs = keras.Input((input_size, input_size, model.input_shape[-1]), name=model.input_names[0])
+    resized = keras.models.clone_model(model, input_tensors=inputs)
+    resized.set_weights(model.get_weights())
+    return resized
+
+
 def chain_layers(model: keras.Model, purpose: str, error: type[UserError] = UserError,
                  check_layer=None) -> list[keras.layers.Layer]:
     """The model's layers after its input, checked to form one unbranched single-input chain.

@@ -554,7 +554,7 @@ def initial_model(init: str | Path, schema: Any, input_size: int | None = None) 
     224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
     record names other keypoints.
     """
-    from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model
+    from fcnpose_tf.training.model import at_input_size, conv_widths, load_model
     from fcnpose_tf.records import training_record
 
     source = load_model(init)
@@ -565,11 +565,7 @@ def initial_model(init: str | Path, schema: Any, input_size: int | None = None) 
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
                         f"{', '.join(schema.keypoints)}; pass --init none to train from scratch, or --init MODEL "
                         "with a model of this schema")
-    if input_size is None or tuple(source.input_shape[1:3]) == (input_size, input_size):
-        return source
-    model = build_fcn_pose(widths[:-1], input_size, widths[-1])
-    model.set_weights(source.get_weights())
-    return model
+    return source if input_size is None else at_input_size(source, input_size)
 
 
 def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: int,
