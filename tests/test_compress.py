@@ -301,6 +301,24 @@ def _report(**changes) -> CompressReport:
     return CompressReport(**{**fields, **changes})
 
 
+def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_rate():
+    """`accuracy_note`: the best file written against the unpruned model; within 0.02 no note; beyond, the loss and a
+    lower rate (the views-that-vary figure above 0.5); no file written, no note."""
+    from fcnpose_tf.compression.compress import accuracy_note
+
+    timing = {"inference_ms": {"mean": 2.0}, "fps": 100.0}
+    written = _step(30, 0.95, quantize="float16", status="written", tflite_size_bytes=600, timing=timing)
+    assert accuracy_note(_report(base=_step(100, 0.96, h5_size_bytes=4000, timing=timing), quantized=written)) is None
+    note = accuracy_note(_report(quantized=_step(30, 0.8, quantize="float16", status="written"),
+                                 other_quantized=[_step(30, 0.85, quantize="int8", status="written")]))
+    assert note == ("note: PCK@0.5 0.850 (int8) is 0.050 below the unpruned model's 0.900 on these frames, more than "
+                    "the 0.02 the paper's files lose; a lower --rate keeps more of it: on views that vary --rate 0.5 "
+                    "held within 0.02 where 0.7 did not (docs/compression.md, \"Views that vary: a lower rate\")")
+    at_half = accuracy_note(_report(options={"quantize": ("float16",), "rate": 0.5}))
+    assert at_half.endswith("more than the 0.02 the paper's files lose; a lower --rate keeps more of it")
+    assert accuracy_note(_report(quantized=None)) is None
+
+
 def test_the_report_is_written_as_its_sections_in_order():
     """`to_json` is the NAME_pXX_report.json object: the sections in the file's order, the caller's metadata in
     its place, a section the run does not have left out (but "quantized", null when every format was refused)."""
