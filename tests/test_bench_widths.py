@@ -3,27 +3,21 @@
 No timing is asserted: the figures are what the tool is for (docs/results.md, "Widths the kernels like?").
 """
 
-import importlib.util
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+from tools_loader import TOOLS, tool
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "bench_widths.py"
+TOOL = TOOLS / "bench_widths.py"
 P70 = "30,15,12,12,8,8,12,12,15"
 ROUNDED = "32,16,8,8,8,8,8,16,16"
 
 
 @pytest.fixture(scope="module")
 def bw():
-    spec = importlib.util.spec_from_file_location("bench_widths", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_widths"] = module  # dataclasses look their module up while the file executes
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop("bench_widths", None)
+    yield from tool("bench_widths")
 
 
 @pytest.fixture

@@ -1,9 +1,7 @@
 """tools/frontier.py: the frontier rule, its refusals, and a run over two tiny files that writes its table, JSON and
 plot. No timing is asserted: the figures are what the tool is for (docs/results.md, "The frontier")."""
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -11,18 +9,12 @@ import pytest
 
 from test_train_evaluate import make_via_folder
 from weights import randomize
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "frontier.py"
+from tools_loader import tool
 
 
 @pytest.fixture(scope="module")
 def frontier():
-    spec = importlib.util.spec_from_file_location("frontier", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["frontier"] = module
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop("frontier", None)
+    yield from tool("frontier")
 
 
 def test_a_file_is_on_the_frontier_unless_another_is_faster_and_at_least_as_accurate(frontier):

@@ -3,10 +3,7 @@
 No training runs here: the experiment's figures are what the tool is for (docs/data.md, "Which strategy?").
 """
 
-import importlib.util
 import json
-import sys
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -15,18 +12,12 @@ import pytest
 from fcnpose_tf.data.via import ViaFrame, read_via, write_via_project
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "selection_experiment.py"
+from tools_loader import tool
 
 
 @pytest.fixture(scope="module")
 def sel():
-    spec = importlib.util.spec_from_file_location("selection_experiment", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["selection_experiment"] = module
-    spec.loader.exec_module(module)
-    yield module
-    sys.modules.pop("selection_experiment", None)
+    yield from tool("selection_experiment")
 
 
 def _project(folder, n, offset=0.0):
