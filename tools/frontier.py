@@ -183,7 +183,7 @@ def plot(result: dict[str, Any], path: Path) -> None:
                   f"{target['ratio']:g}x the unpruned Keras model = {limit:.2f} ms")
     ax.set_ylabel(f"PCK@0.05 on {result['frames_scored']} held-out frames")
     ax.set_title("FCN-Pose files: accuracy against speed")
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="center right", fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
     tmp = path.with_name(f".{path.name}.tmp.png")
