@@ -162,6 +162,34 @@ def test_blobs_and_speckles_in_wide_windows_equal_algorithm_1():
     assert ties >= 8, ties
 
 
+def test_lone_pixels_in_sparse_windows_equal_algorithm_1():
+    """Sparse windows over 1024 px drop their lone pixels before labelling: windows of lone pixels only
+    (diagonal neighbours among them: still lone), of lone pixels and tied 2-4 px clusters, and lone pixels
+    ahead of the largest cluster in raster order."""
+    rng = np.random.default_rng(77)
+    lone_only = 0
+    for trial in range(60):
+        size = int(rng.integers(36, 80))
+        mask = np.zeros((size, size), bool)
+        ys, xs = rng.integers(0, size, (2, int(rng.integers(1, size * size // 40))))
+        mask[ys, xs] = True                                        # speckles, some touching
+        if trial % 3 == 0:                                         # a diagonal chain: lone pixels, each its own cluster
+            r, c = rng.integers(0, size - 6, 2)
+            mask[r + np.arange(5), c + np.arange(5)] = True
+        if trial % 2 == 0:
+            lone = np.zeros_like(mask)                             # keep only pixels with no kept edge neighbour
+            for r, c in np.argwhere(mask):
+                if not ((r and lone[r - 1, c]) or (c and lone[r, c - 1])):
+                    lone[r, c] = True
+            mask = lone
+        mask[0, 0] = mask[-1, -1] = True                           # the window is the whole mask
+        assert np.count_nonzero(mask) * pp._LONE_MAX_DENSITY <= mask.size
+        expected = reference_keypoint(mask)
+        assert largest_cluster(mask) == expected, np.argwhere(mask).tolist()
+        lone_only += expected[2] == 1
+    assert lone_only >= 20, lone_only
+
+
 def test_large_windows_more_than_half_active_equal_algorithm_1():
     """Windows over 1024 px that are more than half active skip the search for empty lines (it could
     never squeeze them): labelled as they are, many clusters and ties included."""
