@@ -6,8 +6,8 @@ RGB and scaled to [0, 1] float32. Keypoints scale with the same factors, so a
 keypoint found in map pixels maps back to frame pixels exactly.
 
 Downscaling is done in two steps: a box filter by the largest whole factor per
-axis that keeps the frame at least the input size (OpenCV's INTER_AREA fast
-path for integer ratios, exact integer arithmetic on uint8), then bilinear to
+axis that divides the side and keeps the frame at least the input size (OpenCV's
+INTER_AREA fast path for whole blocks, exact integer arithmetic on uint8), then bilinear to
 the input size with INTER_LINEAR_EXACT. On a 640x480 frame to 224x224 this takes
 about 0.23 ms against 0.85 ms for INTER_AREA straight to 224 (one core), and
 still averages the pixels it drops (no aliasing of sensor noise). Both steps map
@@ -72,16 +72,37 @@ def preprocess_frame_bytes(frame_bgr: np.ndarray, input_size: int, out: np.ndarr
 
 
 def box_reduce(image: np.ndarray, input_size: int) -> np.ndarray:
-    """Average whole blocks of pixels (per axis the largest factor that keeps the side >= input_size).
+    """Average blocks of pixels: per axis the largest factor that divides the side and keeps it >= input_size
+    (`block_factor`).
 
-    OpenCV's INTER_AREA takes its exact integer path for whole factors; an image less than twice
+    OpenCV's INTER_AREA takes its exact integer path for whole blocks; an image less than twice
     input_size on both sides is returned as is.
     """
     h, w = image.shape[:2]
-    fx, fy = max(1, w // input_size), max(1, h // input_size)
+    fx, fy = block_factor(w, input_size), block_factor(h, input_size)
     if fx == 1 and fy == 1:
         return image
     return cv2.resize(image, (w // fx, h // fy), interpolation=cv2.INTER_AREA)
+
+
+def block_factor(side: int, input_size: int) -> int:
+    """The box reduction's factor along a side: the largest f <= side // input_size that divides `side`,
+    unless the bilinear step after it would then reduce by 2 or more (skipping pixels): then side // input_size.
+
+    A factor that does not divide the side (640 // 192 = 3) sends INTER_AREA to its general fractional
+    path: 640 x 480 to 213 x 240 took 1.5 ms on one core against 0.12 ms for the 2 x 2 blocks to 320 x 240
+    that this picks instead (the bilinear step then reduces by 1.67 rather than 1.11). A side with no such
+    divisor (a prime 601 to 64) keeps the fractional factor, which still averages every pixel.
+
+    Example:
+        >>> block_factor(640, 224), block_factor(640, 192), block_factor(480, 160), block_factor(601, 64)
+        (2, 2, 3, 9)
+    """
+    most = max(1, side // input_size)
+    for factor in range(most, 1, -1):
+        if side % factor == 0:
+            return factor if side // factor < 2 * input_size else most
+    return 1 if side < 2 * input_size else most
 
 
 def frame_to_input_scale(frame_shape: tuple[int, ...], input_size: int) -> np.ndarray:

@@ -94,3 +94,16 @@ def test_pixel_bytes_are_the_float_input_before_scaling_and_fill_a_buffer_in_pla
     np.testing.assert_array_equal(buffer[0], pixels)
     with pytest.raises(UserError, match="C-contiguous 224 x 224 x 3 uint8 buffer"):
         preprocess_frame_bytes(frame, 224, out=np.zeros((224, 224, 3), np.float32))
+
+
+@pytest.mark.parametrize("w, h, size, blocks", [(640, 480, 192, (320, 240)), (640, 480, 160, (160, 160)),
+                                                (1280, 720, 192, (256, 240)), (601, 457, 64, (66, 65)),
+                                                (100, 60, 64, (100, 60))])
+def test_box_reduction_uses_blocks_that_divide_the_frame(w, h, size, blocks):
+    """640 // 192 = 3 does not divide 640: the blocks are 2 x 2 (OpenCV's whole-block path), not a fractional 3.005.
+    A prime side keeps the fractional factor (the bilinear step alone would skip pixels)."""
+    frame = np.random.default_rng(1).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    reduced = box_reduce(frame, size)
+    assert reduced.shape[1::-1] == blocks
+    if (w, h) != blocks:
+        np.testing.assert_array_equal(reduced, cv2.resize(frame, blocks, interpolation=cv2.INTER_AREA))
