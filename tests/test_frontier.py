@@ -23,6 +23,11 @@ def test_a_file_is_on_the_frontier_unless_another_is_faster_and_at_least_as_accu
     assert frontier.pareto_front([(1.0, 0.5), (1.0, 0.5)]) == [True, True]  # equal points dominate neither
 
 
+def test_files_of_the_same_name_are_told_apart_by_their_folder(frontier):
+    files = ["runs/w16/m_p70_int8.tflite", "saved/m_p70_int8.tflite", "runs/c192/m_p70_192_int8.tflite"]
+    assert frontier.file_labels(files) == ["w16/m_p70_int8.tflite", "saved/m_p70_int8.tflite", "m_p70_192_int8.tflite"]
+
+
 def test_bad_files_and_folders_are_one_error_line(frontier, tmp_path, capsys):
     keras_file = tmp_path / "model.keras"
     keras_file.write_bytes(b"x")

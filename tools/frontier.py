@@ -55,6 +55,13 @@ def pareto_front(points: Sequence[tuple[float, float]]) -> list[bool]:
     return front
 
 
+def file_labels(files: Sequence[str]) -> list[str]:
+    """A name per file for the table and plot: the file name, or folder/name where two files share a name
+    (compress writes the same names into every --out-dir)."""
+    names = [Path(f).name for f in files]
+    return [f"{Path(f).parent.name}/{n}" if names.count(n) > 1 else n for f, n in zip(files, names)]
+
+
 def file_format(model: Any) -> str:
     """int8 (integer input and output), float16 (float16 weights) or float32, from the file's tensors."""
     import numpy as np
@@ -133,10 +140,11 @@ def table(result: dict[str, Any], markdown: bool) -> str:
     rows = [[f"A {Path(a['file']).name}", a["format"], a["input_size"], None, a["metrics"]["pck@0.5_bbox"],
              a["metrics"]["pck@0.05_bbox"], a["metrics"]["epe_px"], a["timing"]["inference_ms_median"],
              a["timing"]["total_ms_median"], 1.0, ""]]
+    labels = dict(zip((r["file"] for r in result["files"]), file_labels([r["file"] for r in result["files"]])))
     for r in sorted(result["files"], key=lambda r: r["timing"]["total_ms_median"]):
         marks = ", ".join(m for m, on in (("front", r["front"]), ("shipped", r["shipped"]),
                                           ("target", r["meets_target"])) if on)
-        rows.append([Path(r["file"]).name, r["format"], r["input_size"], r["macs"] / 1e6, r["metrics"]["pck@0.5_bbox"],
+        rows.append([labels[r["file"]], r["format"], r["input_size"], r["macs"] / 1e6, r["metrics"]["pck@0.5_bbox"],
                      r["metrics"]["pck@0.05_bbox"], r["metrics"]["epe_px"], r["timing"]["inference_ms_median"],
                      r["timing"]["total_ms_median"], r["ratio"], marks])
     return format_table(["file", "format", "input", "MMACs", "PCK@0.5", "PCK@0.05", "EPE px", "invoke ms",
@@ -160,8 +168,8 @@ def plot(result: dict[str, Any], path: Path) -> None:
         if chosen:
             ax.scatter([r["timing"]["total_ms_median"] for r in chosen], [r["metrics"]["pck@0.05_bbox"] for r in chosen],
                        marker=marker, s=45, label=fmt, zorder=3)
-    for r in files:
-        ax.annotate(Path(r["file"]).stem.replace("fcnpose_ur5_", ""), (r["timing"]["total_ms_median"],
+    for r, label in zip(files, file_labels([r["file"] for r in files])):
+        ax.annotate(label.removesuffix(".tflite").replace("fcnpose_ur5_", ""), (r["timing"]["total_ms_median"],
                     r["metrics"]["pck@0.05_bbox"]), textcoords="offset points", xytext=(5, 4), fontsize=7)
     front = sorted((r for r in files if r["front"]), key=lambda r: r["timing"]["total_ms_median"])
     ax.plot([r["timing"]["total_ms_median"] for r in front], [r["metrics"]["pck@0.05_bbox"] for r in front],
@@ -208,7 +216,8 @@ def main(argv: list[str] | None = None) -> int:
           f"model, interleaved, {result['threads']} thread(s); medians")
     print(table(result, args.markdown))
     target = result["target"]
-    met = [Path(r["file"]).name for r in result["files"] if r["meets_target"]]
+    met = [label for r, label in zip(result["files"], file_labels([r["file"] for r in result["files"]]))
+           if r["meets_target"]]
     print(f"target (>= {target['ratio']:g}x A at PCK@0.05 >= {target['pck@0.05']:g}): "
           + (", ".join(met) if met else "no file meets it"))
     if args.json:
