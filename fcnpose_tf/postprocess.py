@@ -28,10 +28,10 @@ Rules (see docs/postprocess.md):
 How it stays under a millisecond per 224 x 224 frame of 8 maps: all maps are thresholded in one
 contiguous pass (numpy is ~9x slower on a strided per-map slice), de-interleaved with one
 ``cv2.transpose``, and each map is labelled by ``cv2.connectedComponents`` only inside the bounding
-box of its active pixels (``cv2.boundingRect``); in a big, sparse box the lone pixels (no active edge
-neighbour: clusters of one, the largest only when every cluster is) are dropped first (one ``cv2.dilate``),
-and the empty rows and columns between far-apart active pixels squeezed out. OpenCV's own statistics are not used: they cost per pixel of the
-labelled area, background included; cluster sizes come from the labels (of the active pixels only
+box of its active pixels (``cv2.boundingRect``); in a big, sparse box the lone pixels (no active
+edge neighbour: clusters of one, the largest only when every cluster is) are dropped first (one
+``cv2.dilate``), and the empty rows and columns between far-apart active pixels squeezed out.
+OpenCV's own statistics are not used: they cost per pixel of the labelled area, background included; cluster sizes come from the labels (of the active pixels only
 when the window is sparse), the centroid from exact integer sums of the kept cluster's pixel
 coordinates (read from the labels; ``cv2.moments`` of the window when it holds one cluster), a fully
 active window's in closed form. Labelling itself is the floor: on coin-flip maps (thousands of
