@@ -33,9 +33,10 @@ edge neighbour: clusters of one, the largest only when every cluster is) are dro
 ``cv2.dilate``), and the empty rows and columns between far-apart active pixels squeezed out.
 OpenCV's own statistics are not used: they cost per pixel of the labelled area, background
 included; cluster sizes come from the labels (of the active pixels only when the window is
-sparse), the centroid from exact integer sums of the kept cluster's pixel coordinates (read from the labels; ``cv2.moments`` of the window when it holds one cluster), a fully
-active window's in closed form. Labelling itself is the floor: on coin-flip maps (thousands of
-clusters per map) it is ~70 % of the frame (docs/postprocess.md, section 4).
+sparse), the centroid from exact integer sums of the kept cluster's pixel coordinates (read from
+the labels; ``cv2.moments`` of the window when it holds one cluster), a fully active window's in
+closed form. Labelling itself is the floor: on coin-flip maps (thousands of clusters per map) it
+is ~70 % of the frame (docs/postprocess.md, section 4).
 ``tools/bench_postprocess.py`` measures this against the plain per-map
 ``cv2.connectedComponentsWithStats``.
 """
