@@ -25,6 +25,7 @@ import argparse
 import importlib.util
 import json
 import os
+import re
 import sys
 from pathlib import Path
 from typing import Any, Sequence
@@ -168,9 +169,15 @@ def plot(result: dict[str, Any], path: Path) -> None:
         if chosen:
             ax.scatter([r["timing"]["total_ms_median"] for r in chosen], [r["metrics"]["pck@0.05_bbox"] for r in chosen],
                        marker=marker, s=45, label=fmt, zorder=3)
-    for r, label in zip(files, file_labels([r["file"] for r in files])):
-        ax.annotate(label.removesuffix(".tflite").replace("fcnpose_ur5_", ""), (r["timing"]["total_ms_median"],
-                    r["metrics"]["pck@0.05_bbox"]), textcoords="offset points", xytext=(5, 4), fontsize=7)
+    # One label per model: its files in several formats (NAME_int8, NAME_fp16) share it, at the fastest one.
+    named = set()
+    for r, label in sorted(zip(files, file_labels([r["file"] for r in files])),
+                           key=lambda pair: pair[0]["timing"]["total_ms_median"]):
+        name = re.sub(r"_(int8|fp16|fp16native)$", "", label.removesuffix(".tflite")).replace("fcnpose_ur5_", "")
+        if name not in named:
+            named.add(name)
+            ax.annotate(name, (r["timing"]["total_ms_median"], r["metrics"]["pck@0.05_bbox"]),
+                        textcoords="offset points", xytext=(5, -10), fontsize=7)
     front = sorted((r for r in files if r["front"]), key=lambda r: r["timing"]["total_ms_median"])
     ax.plot([r["timing"]["total_ms_median"] for r in front], [r["metrics"]["pck@0.05_bbox"] for r in front],
             "k--", lw=1, label="frontier", zorder=2)
