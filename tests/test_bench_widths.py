@@ -12,6 +12,7 @@ from tools_loader import TOOLS, tool
 
 TOOL = TOOLS / "bench_widths.py"
 P70 = "30,15,12,12,8,8,12,12,15"
+P70_FLOOR12 = tuple(int(w) for w in P70.split(","))  # the 70 % widths with a floor of 12 (the default until 2026-11-28)
 ROUNDED = "32,16,8,8,8,8,8,16,16"
 
 
@@ -39,7 +40,7 @@ def test_nearest_multiples_and_floor_ceil(bw):
     assert bw.nearest_multiples(30, 4) == (28, 32)
     assert bw.floor_ceil_multiples(30, 8) == (24, 32)
     assert bw.floor_ceil_multiples(5, 8) == (8,)
-    nearest, every = bw.rounded_lists(bw.P70_WIDTHS, 8)
+    nearest, every = bw.rounded_lists(P70_FLOOR12, 8)
     assert len(nearest) == 2 ** 4 and len(every) == 2 ** 7  # four 12s tie; 8, 8 are multiples already
     assert tuple(int(w) for w in ROUNDED.split(",")) in nearest
     assert all(w % 8 == 0 and w >= 8 for ws in every for w in ws)
@@ -49,8 +50,8 @@ def test_parameter_and_mac_arithmetic_matches_build_fcn_pose(bw):
     from fcnpose_tf.training.model import NUM_POOLS, UPSAMPLE_FACTORS, build_fcn_pose, describe
 
     assert (bw.NUM_POOLS, bw.UPSAMPLE_FACTORS) == (NUM_POOLS, UPSAMPLE_FACTORS)
-    assert bw.fcn_params(bw.P70_WIDTHS) == 14_344
-    for widths in (bw.P70_WIDTHS, (32, 16, 8, 8, 8, 8, 8, 16, 16), (1, 2, 3, 4, 5, 6, 7, 8, 9)):
+    assert bw.fcn_params(P70_FLOOR12) == 14_344 and bw.fcn_params(bw.P70_WIDTHS) == 14_611
+    for widths in (bw.P70_WIDTHS, P70_FLOOR12, (32, 16, 8, 8, 8, 8, 8, 16, 16), (1, 2, 3, 4, 5, 6, 7, 8, 9)):
         model = build_fcn_pose(widths, input_size=64)
         rows = [row for row in describe(model) if row.kind == "Conv2D"]
         assert bw.fcn_params(widths) == model.count_params()

@@ -15,6 +15,9 @@ REPORT_KEYS_L1 = ["base_model", "method", "recipe", "options", "evaluation_frame
 """The keys of a retrained filter-surgery run's NAME_p70_report.json, in order, as written before the report was a
 `CompressReport` (with the command's metadata "preset")."""
 
+P70_WIDTHS = (15, 15, 15, 15, 8, 8, 15, 15, 15)
+"""Filter surgery's widths at 0.7 with compress's default floor (no layer under 15 filters): 14,611 parameters."""
+
 
 @pytest.fixture(scope="module")
 def setup(tmp_path_factory):
@@ -48,18 +51,18 @@ def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
     # the file is CompressReport.to_json(): its sections in this order, the command's "preset" among the facts
     assert list(report) == REPORT_KEYS_L1
     assert CompressReport.from_json(report).to_json() == report
-    # the default --min-filters 12: no layer under 12 filters (conv5/conv6 keep all 8) within the keep rule's
+    # the default --min-filters 15: no layer under 15 filters (conv5/conv6 keep all 8) within the keep rule's
     # 14,668 parameters, instead of the paper's widths (39, 20, 10, 5, 3, 3, 5, 10, 20)
-    assert report["retrained"]["params"] == 14344 == report["quantized"]["params"]
-    assert report["retrained"]["widths"] == [30, 15, 12, 12, 8, 8, 12, 12, 15, 9]
+    assert report["retrained"]["params"] == 14611 == report["quantized"]["params"]
+    assert report["retrained"]["widths"] == [*P70_WIDTHS, 9]
     assert report["pruned_before_retraining"]["widths"] == report["retrained"]["widths"]
-    assert report["pruning"]["min_filters"] == report["options"]["min_filters"] == 12
-    assert report["recipe"].startswith("filter surgery at 0.7 (no layer under 12 filters, same parameter budget), ")
+    assert report["pruning"]["min_filters"] == report["options"]["min_filters"] == 15
+    assert report["recipe"].startswith("filter surgery at 0.7 (no layer under 15 filters, same parameter budget), ")
     assert report["quantized"]["tflite_size_bytes"] == (out / "base_p70_fp16.tflite").stat().st_size < 45_000
     for step in ("base", "pruned_before_retraining", "retrained", "quantized"):
         assert "pck@0.05_bbox" in report[step]["metrics"]
     assert report["quantized"]["timing"]["threads"] == 1
-    assert "14,344" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
+    assert "14,611" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
     # the table: sizes of each row's own file in KB, PCK always with 3 decimals, FPS labelled end to end
     header = next(line for line in proc.stdout.splitlines() if line.startswith("model "))
     assert "size KB" in header and "FPS e2e" in header
@@ -148,22 +151,22 @@ def test_recipe_names_the_floor_and_a_lowered_one():
     assert options.recipe(5).startswith("filter surgery at 0.9 (no layer under 5 filters: --min-filters 12 lowered "
                                         "to fit the parameter budget), filters ranked by taylor")
     assert CompressOptions.preset("paper", rate=0.7).recipe(0).startswith("filter surgery at 0.7, filters ranked by l1")
-    assert CompressOptions(rate=0.7).recipe().startswith("filter surgery at 0.7 (no layer under 12 filters")
+    assert CompressOptions(rate=0.7).recipe().startswith("filter surgery at 0.7 (no layer under 15 filters")
 
 
 @pytest.mark.slow
 def test_a_floor_that_does_not_fit_is_lowered_and_said(setup, cli):
-    """At 0.9 FCN-Pose has 2,480 parameters: five layers of 12 do not fit, so compress keeps no layer under 5."""
+    """At 0.9 FCN-Pose has 2,480 parameters: five layers of 15 do not fit, so compress keeps no layer under 5."""
     root, data, base = setup
     out = root / "floor"
     proc = cli("compress", "--rate", "0.9", "--model", base, "--data", data, "--retrain-epochs", "0",
                "--importance", "l1", "--quantize", "float16", "--out-dir", out, "--threads", "1")
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "--min-filters 12 does not fit the parameter budget of rate 0.9: no layer under 5 filters" in proc.stdout
+    assert "--min-filters 15 does not fit the parameter budget of rate 0.9: no layer under 5 filters" in proc.stdout
     report = json.loads((out / "base_p90_report.json").read_text())
     assert report["retrained"]["widths"] == [6, 5, 5, 5, 5, 5, 5, 5, 5, 9] and report["retrained"]["params"] <= 2480
-    assert report["pruning"]["min_filters"] == 5 and report["options"]["min_filters"] == 12
-    assert "(no layer under 5 filters: --min-filters 12 lowered to fit the parameter budget)" in report["recipe"]
+    assert report["pruning"]["min_filters"] == 5 and report["options"]["min_filters"] == 15
+    assert "(no layer under 5 filters: --min-filters 15 lowered to fit the parameter budget)" in report["recipe"]
 
 
 @pytest.mark.slow
@@ -415,14 +418,14 @@ def test_compress_inherits_the_base_models_augmentation(tmp_path):
 @pytest.fixture
 def bundled_pruned_generalist(tmp_path, monkeypatch):
     """A bundled-models folder whose generalist-p70 is a 64 x 64 FCN-Pose at filter surgery's widths at 0.7 (no layer
-    under 12 filters); returns the folder."""
+    under 15 filters); returns the folder."""
     from fcnpose_tf.training.model import build_fcn_pose
 
     folder = tmp_path / "bundled"
     folder.mkdir()
     for name in ("fcnpose_ur5.keras", "fcnpose_ur5_generalist.keras"):
         (folder / name).write_bytes(b"")  # only their paths are read
-    randomize(build_fcn_pose((30, 15, 12, 12, 8, 8, 12, 12, 15), input_size=64), seed=3).save(
+    randomize(build_fcn_pose(P70_WIDTHS, input_size=64), seed=3).save(
         folder / "fcnpose_ur5_generalist_p70.keras")
     monkeypatch.setenv("FCNPOSE_MODELS_DIR", str(folder))
     return folder
@@ -444,7 +447,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     expected = bundled_pruned_generalist / "fcnpose_ur5_generalist_p70.keras"
     lines = []
 
-    def start(options, model_path=path, floor=12):
+    def start(options, model_path=path, floor=15):
         return pruned_start(options.resolved(), model_path, base, floor, lines.append)
 
     assert CompressOptions(rate=0.7).start == "surgery"  # the default; auto is asked for
@@ -478,8 +481,8 @@ def test_a_pruned_start_is_named_in_the_recipe_and_refused_with_magnitude_prunin
     from fcnpose_tf.compression.compress import CompressOptions
     from fcnpose_tf.errors import UserError
 
-    recipe = CompressOptions(rate=0.7, start="generalist-p70", retrain_epochs=0).recipe(12)
-    assert recipe == ("filter surgery's widths at 0.7 (no layer under 12 filters, same parameter budget), the weights "
+    recipe = CompressOptions(rate=0.7, start="generalist-p70", retrain_epochs=0).recipe(15)
+    assert recipe == ("filter surgery's widths at 0.7 (no layer under 15 filters, same parameter budget), the weights "
                       "of generalist-p70, not retrained")
     assert CompressOptions.preset("paper", rate=0.7).start == "surgery"
     with pytest.raises(UserError, match="--start generalist-p70 gives filter surgery's pruned network its weights"):
@@ -496,7 +499,7 @@ def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths
 
     root, data, base = setup
     start = tmp_path / "pruned.keras"
-    randomize(build_fcn_pose((30, 15, 12, 12, 8, 8, 12, 12, 15), input_size=64), seed=5).save(start)
+    randomize(build_fcn_pose(P70_WIDTHS, input_size=64), seed=5).save(start)
     out = tmp_path / "out"
     proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start, "--retrain-epochs", "0",
                "--quantize", "float16", "--out-dir", out, "--threads", "1")
@@ -506,13 +509,13 @@ def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths
         np.testing.assert_array_equal(w0, w1)
     report = json.loads((out / "base_p70_report.json").read_text())
     assert report["pruning"]["start"] == str(start) == report["options"]["start"]
-    assert report["recipe"].startswith(f"filter surgery's widths at 0.7 (no layer under 12 filters, same parameter "
+    assert report["recipe"].startswith(f"filter surgery's widths at 0.7 (no layer under 15 filters, same parameter "
                                        f"budget), the weights of {start}")
     refused = tmp_path / "refused"
     status, _, err = cli_here("compress", "--rate", "0.5", "--model", base, "--data", data, "--start", start,
                               "--retrain-epochs", "0", "--out-dir", refused)
     assert status == 2 and "Traceback" not in err
-    assert f"--start {start}: its widths (30, 15, 12, 12, 8, 8, 12, 12, 15, 9) are not filter surgery's" in err
+    assert f"--start {start}: its widths ({', '.join(map(str, P70_WIDTHS))}, 9) are not filter surgery's" in err
     assert not refused.exists()
     status, out_text, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", "nope",
                                      "--out-dir", refused)  # a start that names nothing: before the data is read
@@ -529,7 +532,7 @@ def test_compress_keeps_a_pruned_start_that_no_retraining_epoch_beats(setup, cli
 
     root, data, base = setup
     start = tmp_path / "pruned.keras"
-    randomize(build_fcn_pose((30, 15, 12, 12, 8, 8, 12, 12, 15), input_size=64), seed=5).save(start)
+    randomize(build_fcn_pose(P70_WIDTHS, input_size=64), seed=5).save(start)
     out = tmp_path / "out"
     proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start, "--retrain-epochs", "1",
                "--learning-rate", "50", "--quantize", "float16", "--out-dir", out, "--threads", "1")

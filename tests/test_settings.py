@@ -172,7 +172,7 @@ def test_compress_options_mean_what_compress_means():
 
     recommended = CompressOptions(rate=0.7).resolved()
     assert (recommended.importance, recommended.min_filters, recommended.learning_rate, recommended.lr_patience) == \
-        ("taylor", 12, 3e-3, 3)
+        ("taylor", 15, 3e-3, 3)
     assert recommended.quantize == ("float16", "int8")
     paper = CompressOptions.preset("paper", rate=0.7).resolved()
     assert (paper.importance, paper.min_filters, paper.learning_rate, paper.lr_patience, paper.positive_weight) == \

@@ -72,7 +72,7 @@ from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.settings import check_input_size
 from fcnpose_tf.tables import format_table
 
-P70_WIDTHS: tuple[int, ...] = (30, 15, 12, 12, 8, 8, 12, 12, 15)
+P70_WIDTHS: tuple[int, ...] = (15, 15, 15, 15, 8, 8, 15, 15, 15)
 """conv1..conv9 of the shipped 70 %-pruned model (saved_models/fcnpose_ur5_p70.keras; the test checks it)."""
 NUM_MAPS = 9
 """conv10's filters: 8 keypoints + the skeleton map (kept by every width list here)."""

@@ -516,7 +516,7 @@ class MagnitudePruning:
 
 PRUNED_GENERALIST = "generalist-p70"
 """The bundled pruned generalist (`bundled.BUNDLED_MODELS`): `--start auto`'s choice for a model fine-tuned from the
-generalist, at the widths it has (filter surgery's at 0.7 with no layer under 12 filters)."""
+generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
 
 
 def pruned_start(options: CompressOptions, base_path: Path, base: keras.Model, floor: int,
