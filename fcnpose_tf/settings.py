@@ -619,9 +619,10 @@ DEFAULT_COMPRESS_MIN_FILTERS = 15
 rule leaves FCN-Pose's conv5 and conv6 with 3 filters at 0.7, through which every keypoint's position passes; with
 no layer under 15 filters the same parameter budget (14,611 of 14,668) goes to the bottleneck and conv1/conv2 get
 narrower (widths 15, 15, 15, 15, 8, 8, 15, 15, 15: 123.0 M MACs at 224 instead of the paper widths' 234.2 M). At 70 %
-on the default data, int8 files: PCK@0.05 0.698 -> 0.883, EPE 11.7 -> 8.0 px; on the hardest proxy (held-out random views,
-two runs, each pair from one model) it beat the floor of 12, the default before it, by PCK@0.5 +0.016 and PCK@0.05 +0.014 on
-average, with 25 % fewer MACs (docs/compression.md, "The narrowest layer")."""
+on the default data, int8 files: PCK@0.05 0.698 -> 0.883, EPE 11.7 -> 8.0 px. Against the floor of 12, the default before
+it: on the hardest proxy (held-out random views, three pairs of runs) PCK@0.5 +0.009, PCK@0.05 +0.019, EPE -2.0 px on
+average; on the bundled task PCK@0.05 level, PCK@0.5 -0.005 and EPE +1.2 px; 25 % fewer MACs (docs/compression.md, "The
+narrowest layer")."""
 COMPRESS_MIN_FILTERS = MIN_FILTERS.variant(
     default=None,
     help=f"no pruned layer narrower than N filters (all of a layer that has fewer), the other layers pruned harder "
