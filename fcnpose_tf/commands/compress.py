@@ -13,7 +13,8 @@ chooses how filters are ranked: first-order Taylor on 256 training frames by def
 the paper's L1 norm on fine localisation), --importance l1 for the paper's, l2, or mean activation;
 --min-filters N keeps every layer at least N filters wide within the parameter budget the paper's
 per-layer rule gives at --rate (by default FCN-Pose's bottleneck keeps 8 filters instead of 3 at 0.7, and
-conv1 15 instead of 39; --min-filters 0 is the paper's widths); --distill W mixes the unpruned model's maps into the retraining loss.
+conv1 15 instead of 39; --min-filters 0 is the paper's widths); --distill W mixes the unpruned model's maps
+into the retraining loss.
 
 A format whose file fails its keypoint gate is a row, not a failure: the run goes on, the table and
 NAME_p70_report.json ("refused") show the format as REFUSED with the gate's reason, and the last
