@@ -50,7 +50,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.preprocess import keypoints_to_frame
+from fcnpose_tf.preprocess import FrameView, keypoints_to_frame
 
 __all__ = ["maps_to_keypoints", "decode", "check_fallback", "check_centroid", "describe_decoding",
            "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut", "CENTROIDS"]
@@ -468,17 +468,18 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
 def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.5, *,
            logits: bool = False, quantization: tuple[float, int] | None = None,
            min_size: int = 1, fallback: float | None = None,
-           centroid: str = "weighted") -> tuple[np.ndarray, np.ndarray]:
+           centroid: str = "weighted", view: FrameView | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 
-    The maps must be square (the model's input is the whole frame resized to S x S, and the maps
-    have the input's size), so frame pixels follow from map pixels by the inverse of that resize.
+    The maps have the model input's size, and the input is the view's crop of the frame (the whole frame
+    when `view` is None) resized to it, so frame pixels follow from map pixels by the inverse of that resize.
 
     Args:
-        maps: H x W x C or N x H x W x C maps with H == W (see :func:`maps_to_keypoints`).
+        maps: H x W x C or N x H x W x C maps (see :func:`maps_to_keypoints`).
         frame_shape: the original frame's shape, (height, width[, channels]).
         threshold, logits, quantization, min_size, fallback, centroid: as in :func:`maps_to_keypoints`.
+        view: the model's `FrameView` (its crop); None: the whole frame at the maps' size.
 
     Returns:
         (keypoints, confidence): keypoints (C-1, 2) or (N, C-1, 2) float64, (x, y) in frame pixels
@@ -492,10 +493,12 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     """
     arr = _check_maps(maps)
     h, w = arr.shape[-3], arr.shape[-2]
-    if h != w:
-        raise UserError(f"expected square maps (H == W) to map keypoints back to the frame, got {h} x {w}")
+    if view is None:
+        view = FrameView(h, w)
+    elif view.shape != (h, w):
+        raise UserError(f"maps of {h} x {w} do not match the model's {view.height} x {view.width} input")
     if len(frame_shape) < 2 or min(frame_shape[:2]) < 1:
         raise UserError(f"expected a frame shape (height, width[, channels]), got {tuple(frame_shape)}")
     keypoints, confidence = maps_to_keypoints(arr, threshold, logits=logits, quantization=quantization,
                                               min_size=min_size, fallback=fallback, centroid=centroid)
-    return keypoints_to_frame(keypoints, tuple(frame_shape), h), confidence
+    return keypoints_to_frame(keypoints, tuple(frame_shape), view), confidence

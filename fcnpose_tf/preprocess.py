@@ -1,9 +1,11 @@
 """Frame preprocessing shared by training and the Pi runtime (numpy + OpenCV only).
 
-A frame (H x W x 3, uint8, BGR as OpenCV reads it) is resized to the model's
-square input (no letterbox: the paper resizes the whole frame), converted to
-RGB and scaled to [0, 1] float32. Keypoints scale with the same factors, so a
-keypoint found in map pixels maps back to frame pixels exactly.
+What a model sees of a frame is its `FrameView`: a box of the frame (the whole frame, as in the paper,
+or a workspace crop chosen from the training annotations) resized to the model's H x W input (no
+letterbox). A frame (H x W x 3, uint8, BGR as OpenCV reads it) is cropped to the box, resized to the
+input, converted to RGB and scaled to [0, 1] float32. Keypoints move with the same offset and factors,
+so a keypoint found in map pixels maps back to frame pixels exactly. Wherever a view is taken, an int
+S means the whole frame at S x S.
 
 Downscaling is done in two steps: a box filter by the largest whole factor per
 axis that divides the side and keeps the frame at least the input size (OpenCV's
@@ -28,43 +30,171 @@ platforms to ~1e-5, but its output is off the 1/255 grid.
 
 from __future__ import annotations
 
+import json
 import os
+from dataclasses import dataclass
+from typing import Any, Union
 
 import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
 
+Box = tuple[int, int, int, int]
+"""(x, y, width, height) of a box in frame pixels: columns x..x+width-1, rows y..y+height-1."""
 
-def preprocess_frame(frame_bgr: np.ndarray, input_size: int, out: np.ndarray | None = None) -> np.ndarray:
-    """Resize a BGR uint8 frame to input_size x input_size RGB float32 in [0, 1].
 
-    `out` (input_size x input_size x 3 float32) may be given to reuse a buffer.
+@dataclass(frozen=True)
+class FrameView:
+    """What a model sees of a frame: `crop` (the whole frame when None) resized to height x width.
+
+    The crop is part of the model: chosen by `train` from the training annotations (a fixed camera's
+    workspace), saved inside the .keras file and every exported .tflite (`to_json`), and applied by every
+    command and the Pi runtime. It is stated in pixels of frames of `frame_size`; frames of another size
+    get the same box scaled per axis (a camera set to another resolution of the same view).
+
+    Example:
+        >>> view = FrameView(224, 288, crop=(80, 60, 480, 360), frame_size=(640, 480))
+        >>> view.box((480, 640, 3)), view.box((960, 1280, 3))
+        ((80, 60, 480, 360), (160, 120, 960, 720))
     """
+
+    height: int
+    width: int
+    crop: Box | None = None
+    frame_size: tuple[int, int] | None = None
+    """(width, height) of the frames `crop` is stated in; None with no crop."""
+
+    def __post_init__(self) -> None:
+        if self.height < 1 or self.width < 1:
+            raise UserError(f"input size must be positive, got {self.height} x {self.width}")
+        if (self.crop is None) != (self.frame_size is None):
+            raise UserError("a crop needs the frame size it is stated in, and only a crop has one")
+        if self.crop is not None:
+            x, y, w, h = self.crop
+            fw, fh = self.frame_size
+            if w < 1 or h < 1 or x < 0 or y < 0 or x + w > fw or y + h > fh:
+                raise UserError(f"crop {self.crop} (x, y, width, height) does not lie inside its {fw} x {fh} frame")
+
+    @classmethod
+    def of(cls, view: ViewLike) -> FrameView:
+        """A view from an int S (the whole frame at S x S), an (H, W) pair, or a view (returned as is)."""
+        if isinstance(view, FrameView):
+            return view
+        if isinstance(view, (tuple, list)) and len(view) == 2:
+            return cls(int(view[0]), int(view[1]))
+        if isinstance(view, (int, np.integer)) and not isinstance(view, bool):
+            return cls(int(view), int(view))
+        raise UserError(f"expected an input size S, (height, width) or a FrameView, got {view!r}")
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(height, width) of the model's input."""
+        return self.height, self.width
+
+    @property
+    def square(self) -> bool:
+        return self.height == self.width
+
+    def box(self, frame_shape: tuple[int, ...]) -> Box:
+        """The crop in pixels of a frame of `frame_shape` (height, width[, channels]); the whole frame without one."""
+        fh, fw = int(frame_shape[0]), int(frame_shape[1])
+        if self.crop is None:
+            return 0, 0, fw, fh
+        if self.frame_size == (fw, fh):
+            return self.crop
+        x, y, w, h = self.crop
+        sx, sy = fw / self.frame_size[0], fh / self.frame_size[1]
+        x0, y0 = int(round(x * sx)), int(round(y * sy))
+        x1, y1 = int(round((x + w) * sx)), int(round((y + h) * sy))
+        return x0, y0, max(1, min(fw, x1) - x0), max(1, min(fh, y1) - y0)
+
+    def cropped(self, frame: np.ndarray) -> np.ndarray:
+        """The part of `frame` the model sees (a numpy view, no copy)."""
+        x, y, w, h = self.box(frame.shape)
+        return frame if self.crop is None else frame[y:y + h, x:x + w]
+
+    def crop_sample(self, frame: np.ndarray, keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(the part of `frame` the view sees, C-contiguous; K x 2 keypoints in its pixels, NaN kept): a training
+        sample as the model sees it before the resize. A keypoint outside the crop stays outside it."""
+        if self.crop is None:
+            return frame, keypoints
+        x, y, _, _ = self.box(frame.shape)
+        return np.ascontiguousarray(self.cropped(frame)), np.asarray(keypoints, np.float64) - (x, y)
+
+    def scale(self, frame_shape: tuple[int, ...]) -> np.ndarray:
+        """(sx, sy) multiplying crop pixel coordinates into model-input pixel coordinates."""
+        _, _, w, h = self.box(frame_shape)
+        return np.array([self.width / w, self.height / h], np.float64)
+
+    def with_input(self, height: int, width: int) -> FrameView:
+        """The same crop at another input size."""
+        return FrameView(int(height), int(width), self.crop, self.frame_size)
+
+    def describe(self) -> str:
+        """E.g. `224x288 over the crop x 80-559, y 60-419 of 640x480 frames` or `224x224 over the whole frame`."""
+        size = f"{self.height}x{self.width}"
+        if self.crop is None:
+            return f"{size} over the whole frame"
+        x, y, w, h = self.crop
+        return (f"{size} over the crop x {x}-{x + w - 1}, y {y}-{y + h - 1} of "
+                f"{self.frame_size[0]}x{self.frame_size[1]} frames")
+
+    def to_json(self) -> dict[str, Any]:
+        """The view as stored in model files and records: input_height, input_width, crop_xywh, crop_frame_wh."""
+        return {"input_height": self.height, "input_width": self.width,
+                "crop_xywh": list(self.crop) if self.crop is not None else None,
+                "crop_frame_wh": list(self.frame_size) if self.frame_size is not None else None}
+
+    @classmethod
+    def from_json(cls, record: Any) -> FrameView:
+        """The view of a `to_json` object; UserError for anything else."""
+        try:
+            crop, frame = record.get("crop_xywh"), record.get("crop_frame_wh")
+            return cls(int(record["input_height"]), int(record["input_width"]),
+                       tuple(int(v) for v in crop) if crop is not None else None,
+                       tuple(int(v) for v in frame) if frame is not None else None)
+        except (AttributeError, KeyError, TypeError, ValueError) as exc:
+            raise UserError(f"not a frame view record: {json.dumps(record, default=str)[:200]}") from exc
+
+
+ViewLike = Union[int, tuple[int, int], FrameView]
+"""Anything `FrameView.of` takes: an input side S (the whole frame at S x S), (height, width), or a view."""
+
+
+def preprocess_frame(frame_bgr: np.ndarray, view: ViewLike, out: np.ndarray | None = None) -> np.ndarray:
+    """The model's input for a BGR uint8 frame: its view's box resized to H x W, RGB float32 in [0, 1].
+
+    `view` is a `FrameView` or an int S (the whole frame at S x S); `out` (H x W x 3 float32) may be
+    given to reuse a buffer.
+    """
+    view = FrameView.of(view)
     if out is None:
-        out = np.empty((input_size, input_size, 3), np.float32)
-    np.multiply(preprocess_frame_bytes(frame_bgr, input_size), np.float32(1.0 / 255.0), out=out, casting="unsafe")
+        out = np.empty((view.height, view.width, 3), np.float32)
+    np.multiply(preprocess_frame_bytes(frame_bgr, view), np.float32(1.0 / 255.0), out=out, casting="unsafe")
     return out
 
 
-def preprocess_frame_bytes(frame_bgr: np.ndarray, input_size: int, out: np.ndarray | None = None) -> np.ndarray:
+def preprocess_frame_bytes(frame_bgr: np.ndarray, view: ViewLike, out: np.ndarray | None = None) -> np.ndarray:
     """The resized RGB frame as uint8 bytes: `preprocess_frame` before its scaling to [0, 1].
 
-    ``preprocess_frame(f, s) == preprocess_frame_bytes(f, s) / 255`` exactly, so a model whose
+    ``preprocess_frame(f, v) == preprocess_frame_bytes(f, v) / 255`` exactly, so a model whose
     input is uint8 with scale 1/255 and zero point 0 (the int8 export) takes these bytes as they
-    are. `out` (input_size x input_size x 3 uint8, C-contiguous, e.g. the interpreter's input
-    tensor) receives them without a copy.
+    are. `out` (H x W x 3 uint8, C-contiguous, e.g. the interpreter's input tensor) receives them
+    without a copy.
     """
     if frame_bgr is None or frame_bgr.ndim != 3 or frame_bgr.shape[2] != 3:
         shape = None if frame_bgr is None else frame_bgr.shape
         raise UserError(f"expected a colour frame of shape H x W x 3, got {shape}")
-    small = box_reduce(frame_bgr, input_size)
-    if small.shape[:2] != (input_size, input_size):
-        small = cv2.resize(small, (input_size, input_size), interpolation=cv2.INTER_LINEAR_EXACT)
+    view = FrameView.of(view)
+    height, width = view.shape
+    small = box_reduce(view.cropped(frame_bgr), (height, width))
+    if small.shape[:2] != (height, width):
+        small = cv2.resize(small, (width, height), interpolation=cv2.INTER_LINEAR_EXACT)
     if out is None:
         return cv2.cvtColor(small, cv2.COLOR_BGR2RGB)
-    if out.shape != (input_size, input_size, 3) or out.dtype != np.uint8 or not out.flags.c_contiguous:
-        raise UserError(f"expected a C-contiguous {input_size} x {input_size} x 3 uint8 buffer, "
+    if out.shape != (height, width, 3) or out.dtype != np.uint8 or not out.flags.c_contiguous:
+        raise UserError(f"expected a C-contiguous {height} x {width} x 3 uint8 buffer, "
                         f"got {out.dtype} {out.shape}")
     result = cv2.cvtColor(small, cv2.COLOR_BGR2RGB, dst=out)
     if result is not out and not np.shares_memory(result, out):  # OpenCV allocated instead of filling `out`
@@ -72,15 +202,16 @@ def preprocess_frame_bytes(frame_bgr: np.ndarray, input_size: int, out: np.ndarr
     return out
 
 
-def box_reduce(image: np.ndarray, input_size: int) -> np.ndarray:
-    """Average blocks of pixels: per axis the largest factor that divides the side and keeps it >= input_size
-    (`block_factor`).
+def box_reduce(image: np.ndarray, input_size: int | tuple[int, int]) -> np.ndarray:
+    """Average blocks of pixels: per axis the largest factor that divides the side and keeps it >= the input's
+    side (`block_factor`); `input_size` is S or (height, width).
 
     OpenCV's INTER_AREA takes its exact integer path for whole blocks; an image less than twice
-    input_size on both sides is returned as is.
+    the input on both sides is returned as is.
     """
+    height, width = (input_size, input_size) if np.isscalar(input_size) else input_size
     h, w = image.shape[:2]
-    fx, fy = block_factor(w, input_size), block_factor(h, input_size)
+    fx, fy = block_factor(w, int(width)), block_factor(h, int(height))
     if fx == 1 and fy == 1:
         return image
     return cv2.resize(image, (w // fx, h // fy), interpolation=cv2.INTER_AREA)
@@ -106,25 +237,25 @@ def block_factor(side: int, input_size: int) -> int:
     return 1 if side < 2 * input_size else most
 
 
-def frame_to_input_scale(frame_shape: tuple[int, ...], input_size: int) -> np.ndarray:
-    """(sx, sy) multiplying frame pixel coordinates into model-input pixel coordinates."""
-    h, w = frame_shape[:2]
-    return np.array([input_size / w, input_size / h], np.float64)
-
-
-def keypoints_to_input(keypoints: np.ndarray, frame_shape: tuple[int, ...], input_size: int) -> np.ndarray:
-    """Scale K x 2 (x, y) frame-pixel keypoints to model-input pixels (NaN stays NaN).
+def keypoints_to_input(keypoints: np.ndarray, frame_shape: tuple[int, ...], view: ViewLike) -> np.ndarray:
+    """Move K x 2 (x, y) frame-pixel keypoints to model-input pixels (NaN stays NaN).
 
     Coordinates follow the pixel-centre convention of OpenCV and VIA (pixel i's
-    centre is at i), so scaling goes through the pixel edges: (x + 0.5) * s - 0.5,
-    which is how cv2.resize places pixel centres.
+    centre is at i), so scaling goes through the pixel edges: (x - x0 + 0.5) * s - 0.5
+    for a crop starting at column x0, which is how cv2.resize places pixel centres.
+    A keypoint outside the view's crop lands outside the input (below 0 or past its side).
     """
-    return (np.asarray(keypoints, np.float64) + 0.5) * frame_to_input_scale(frame_shape, input_size) - 0.5
+    view = FrameView.of(view)
+    x, y, _, _ = view.box(frame_shape)
+    return (np.asarray(keypoints, np.float64) - (x, y) + 0.5) * view.scale(frame_shape) - 0.5
 
 
-def keypoints_to_frame(keypoints: np.ndarray, frame_shape: tuple[int, ...], map_size: int) -> np.ndarray:
-    """Scale K x 2 keypoints from map/model-input pixels back to frame pixels (NaN stays NaN)."""
-    return (np.asarray(keypoints, np.float64) + 0.5) / frame_to_input_scale(frame_shape, map_size) - 0.5
+def keypoints_to_frame(keypoints: np.ndarray, frame_shape: tuple[int, ...], view: ViewLike) -> np.ndarray:
+    """Move K x 2 keypoints from map/model-input pixels back to frame pixels (NaN stays NaN): the inverse of
+    `keypoints_to_input` for the same view."""
+    view = FrameView.of(view)
+    x, y, _, _ = view.box(frame_shape)
+    return (np.asarray(keypoints, np.float64) + 0.5) / view.scale(frame_shape) - 0.5 + (x, y)
 
 
 def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.ndarray | None:

@@ -409,11 +409,20 @@ def test_decode_maps_keypoints_to_frame_pixels():
     assert decode(one[None].repeat(2, 0), frame_shape, centroid="plain")[0].shape == (2, 1, 2)
 
 
-def test_decode_keeps_missing_and_rejects_non_square_maps():
+def test_decode_keeps_missing_and_maps_h_by_w_maps_through_their_view():
+    from fcnpose_tf.preprocess import FrameView
+
     kp, conf = decode(np.zeros((16, 16, 3)), (100, 100), centroid="plain")
     assert np.isnan(kp).all() and conf.tolist() == [0, 0]
-    with pytest.raises(UserError, match="square"):
-        decode(np.zeros((16, 8, 3)), (100, 100), centroid="plain")
+    maps = np.zeros((16, 8, 2), np.float32)
+    maps[3, 5, 0] = 1.0  # row 3, column 5 of a 16 x 8 (H x W) map
+    kp, _ = decode(maps, (160, 40), centroid="plain")  # whole frame: 40 wide (5x), 160 high (10x)
+    np.testing.assert_allclose(kp[0], [(5 + 0.5) * 5 - 0.5, (3 + 0.5) * 10 - 0.5])
+    view = FrameView(16, 8, crop=(10, 20, 16, 32), frame_size=(40, 160))  # a 16 x 32 crop at (10, 20): 2x
+    kp, _ = decode(maps, (160, 40), centroid="plain", view=view)
+    np.testing.assert_allclose(kp[0], [10 + (5 + 0.5) * 2 - 0.5, 20 + (3 + 0.5) * 2 - 0.5])
+    with pytest.raises(UserError, match="do not match"):
+        decode(np.zeros((16, 16, 3)), (100, 100), centroid="plain", view=view)
     with pytest.raises(UserError, match="frame shape"):
         decode(np.zeros((16, 16, 3)), (100,), centroid="plain")
 

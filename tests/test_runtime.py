@@ -181,7 +181,8 @@ def bad_models(tmp_path_factory):
         "vector_input": keras.Sequential([keras.Input((16,)), keras.layers.Dense(4)]),
         "grey_input": keras.Sequential([keras.Input((SIZE, SIZE, 1)), keras.layers.Conv2D(9, 3, padding="same")]),
         "one_map": keras.Sequential([keras.Input((SIZE, SIZE, 3)), keras.layers.Conv2D(1, 3, padding="same")]),
-        "non_square": keras.Sequential([keras.Input((32, SIZE, 3)), keras.layers.Conv2D(9, 3, padding="same")]),
+        "maps_not_input_size": keras.Sequential([keras.Input((SIZE, SIZE, 3)), keras.layers.MaxPooling2D(2),
+                                                 keras.layers.Conv2D(9, 3, padding="same")]),
     }
     paths = {}
     for name, model in models.items():
@@ -263,7 +264,7 @@ def test_no_backend_is_a_user_error(monkeypatch):
 
 def test_model_io_is_read_from_the_model(structured):
     model = KeypointModel(structured[1], num_threads=1)
-    assert (model.input_size, model.map_size, model.num_maps) == (SIZE, SIZE, 9)
+    assert (model.view.shape, model.view.crop, model.num_maps) == ((SIZE, SIZE), None, 9)
     assert model.io.input.dtype == np.float32 and model.io.input.shape == (1, SIZE, SIZE, 3)
     assert model.schema is UR5
     assert model.num_threads == 1
@@ -305,10 +306,10 @@ def test_missing_corrupt_and_foreign_files(tmp_path, structured):
 
 
 @pytest.mark.parametrize("name, message", [
-    ("vector_input", r"input shape \[1, 16\], expected \[1, S, S, 3\]"),
+    ("vector_input", r"input shape \[1, 16\], expected \[1, H, W, 3\]"),
     ("grey_input", r"input shape \[1, 64, 64, 1\]"),
     ("one_map", r"output shape \[1, 64, 64, 1\], expected \[1, H, W, C\] maps with C >= 2"),
-    ("non_square", "not square"),
+    ("maps_not_input_size", "output maps 32x32 differ from the 64x64 input"),
 ])
 def test_non_fcn_pose_models_are_refused(bad_models, name, message):
     with pytest.raises(UserError, match=message):

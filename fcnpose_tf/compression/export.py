@@ -51,6 +51,7 @@ import numpy as np
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
 from fcnpose_tf import settings
+from fcnpose_tf.preprocess import ViewLike
 from fcnpose_tf.settings import QUANTIZE_MODES
 
 if TYPE_CHECKING:  # TensorFlow is imported only when converting
@@ -280,6 +281,32 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
     return _pixel_scaled_input(data) if quantize == FULL_INTEGER else data
 
 
+def _with_view(data: bytes, model: keras.Model) -> bytes:
+    """The file with the model's crop and input size in its metadata (`runtime.tflite_metadata.VIEW_METADATA`),
+    where the runtime reads it; a whole-frame model's file as converted."""
+    import json
+
+    from fcnpose_tf.runtime.tflite_metadata import VIEW_METADATA
+    from fcnpose_tf.training.model import given_view
+
+    view = given_view(model)
+    if view is None or view.crop is None:
+        return data
+    from ai_edge_litert import schema_py_generated as schema
+    import flatbuffers
+
+    tree = schema.ModelT.InitFromPackedBuf(data, 0)
+    buffer = schema.BufferT()
+    buffer.data = list(json.dumps(view.to_json(), sort_keys=True).encode("utf-8"))
+    tree.buffers.append(buffer)
+    entry = schema.MetadataT()
+    entry.name, entry.buffer = VIEW_METADATA.encode("utf-8"), len(tree.buffers) - 1
+    tree.metadata = [*(tree.metadata or []), entry]
+    builder = flatbuffers.Builder(len(data) + 1024)
+    builder.Finish(tree.Pack(builder), file_identifier=b"TFL3")
+    return bytes(builder.Output())
+
+
 def _pixel_scaled_input(data: bytes) -> bytes:
     """The int8 file with its uint8 input read as pixel / 255 (scale 1/255, zero point 0).
 
@@ -308,7 +335,7 @@ def _pixel_scaled_input(data: bytes) -> bytes:
     return bytes(builder.Output())
 
 
-def export_frames(quantize: str, input_size: int, train_dataset: Any, train_indices: Sequence[int],
+def export_frames(quantize: str, input_size: ViewLike, train_dataset: Any, train_indices: Sequence[int],
                   check_dataset: Any, check_indices: Sequence[int], calibration_count: int,
                   seed: int = settings.CALIBRATION_SEED.default) -> tuple[np.ndarray, np.ndarray | None]:
     """Real frames for `export_tflite`: (sample_frames, calibration_frames or None).
@@ -331,7 +358,7 @@ def export_frames(quantize: str, input_size: int, train_dataset: Any, train_indi
     return samples, calibration
 
 
-def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_size: int,
+def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_size: ViewLike,
                        seed: int = settings.CALIBRATION_SEED.default) -> np.ndarray:
     """`count` frames drawn (seeded, without replacement) from `indices` of `dataset`, preprocessed as
     the runtime does: the representative data of a full-integer export.
@@ -390,7 +417,7 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
                         f"real frames, got {len(frames)} sample frame(s)")
     start = time.perf_counter()
     graph, rewrites = _inference_graph(model) if fold_upsampling else (model, ())
-    data = _convert(graph, quantize, input_shape, calibration)
+    data = _with_view(_convert(graph, quantize, input_shape, calibration), model if reference is None else reference)
     convert_seconds = time.perf_counter() - start
     start = time.perf_counter()
     # Always against the original model: the rewrite is checked together with the conversion.

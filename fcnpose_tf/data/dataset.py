@@ -32,7 +32,7 @@ from fcnpose_tf.data.splits import Splits, load_or_create_splits
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
-from fcnpose_tf.preprocess import keypoints_to_input, preprocess_frame, read_image
+from fcnpose_tf.preprocess import FrameView, ViewLike, keypoints_to_input, preprocess_frame, read_image
 from fcnpose_tf.progress import report_items
 
 
@@ -160,7 +160,7 @@ def load_dataset(data: str | os.PathLike, images: str | os.PathLike | None = Non
 
 
 class TrainingData:
-    """Model-ready arrays for some dataset frames at one input size, with offline augmented copies.
+    """Model-ready arrays for some dataset frames at one input view (crop and size), with offline augmented copies.
 
     Rows are the frames of `indices` in the given order, then (when
     augment_copies > 0) `augment_copies` augmented copies of each of them, copy
@@ -169,53 +169,55 @@ class TrainingData:
     depend only on (seed, its dataset index), so they are the same in every fold.
 
     Attributes:
-        images: N x S x S x 3 uint8 RGB (preprocess_frame's output times 255).
-        maps: N x S x S x (K+1) uint8 in {0, 1}: keypoint discs, then the skeleton.
+        images: N x H x W x 3 uint8 RGB (preprocess_frame's output times 255).
+        maps: N x H x W x (K+1) uint8 in {0, 1}: keypoint discs, then the skeleton.
         keypoints: N x K x 2 float64 keypoints in input pixels (NaN missing).
         source: N dataset indices each row comes from.
         kinds: N strings: "original", or the augmentation kind of the copy.
         frame_sizes: N x 2 (width, height) of the source frames, to map keypoints back.
     """
 
-    def __init__(self, dataset: Dataset, indices: Iterable[int], input_size: int, augment_copies: int = 0,
+    def __init__(self, dataset: Dataset, indices: Iterable[int], input_size: ViewLike, augment_copies: int = 0,
                  seed: int = 0, *, augment_config: AugmentConfig = AugmentConfig(), radius: float | None = None,
                  thickness: float | None = None, progress: bool = False):
         indices = np.asarray(list(indices), dtype=np.int64)
-        if input_size < 1:
-            raise UserError(f"input size must be positive, got {input_size}")
+        view = FrameView.of(input_size)
         if augment_copies < 0:
             raise UserError(f"augmentation copies must be >= 0, got {augment_copies}")
         if indices.size and (indices.min() < 0 or indices.max() >= len(dataset)):
             raise UserError(f"sample indices must be between 0 and {len(dataset) - 1}")
         self.dataset = dataset
         self.schema = dataset.schema
-        self.input_size = int(input_size)
+        self.view = view
+        self.input_size = view.shape
         self.augment_copies = int(augment_copies)
         self.seed = int(seed)
         n = len(indices) * (1 + self.augment_copies)
-        s, k = self.input_size, self.schema.num_keypoints
-        self.images = np.zeros((n, s, s, 3), np.uint8)
-        self.maps = np.zeros((n, s, s, self.schema.num_maps), np.uint8)
+        (h, w), k = view.shape, self.schema.num_keypoints
+        self.images = np.zeros((n, h, w, 3), np.uint8)
+        self.maps = np.zeros((n, h, w, self.schema.num_maps), np.uint8)
         self.keypoints = np.full((n, k, 2), np.nan)
         self.source = np.zeros(n, np.int64)
         self.frame_sizes = np.zeros((n, 2), np.int64)
         self.kinds: list[str] = [""] * n
-        buffer = np.empty((s, s, 3), np.float32)
+        buffer = np.empty((h, w, 3), np.float32)
+        whole = FrameView(h, w)
 
         def put(row: int, index: int, frame: np.ndarray, kps: np.ndarray, kind: str) -> None:
-            preprocess_frame(frame, s, out=buffer)
+            preprocess_frame(frame, whole, out=buffer)
             np.rint(buffer * 255.0, out=buffer)
             self.images[row] = buffer
-            scaled = keypoints_to_input(kps, frame.shape, s)
+            scaled = keypoints_to_input(kps, frame.shape, whole)
             self.keypoints[row] = scaled
-            self.maps[row] = make_target_maps(scaled, s, self.schema, radius, thickness)
+            self.maps[row] = make_target_maps(scaled, whole, self.schema, radius, thickness)
             self.source[row] = index
             self.frame_sizes[row] = (frame.shape[1], frame.shape[0])
             self.kinds[row] = kind
 
-        for j, index in enumerate(report_items(indices, progress, f"frames at {s}x{s}")):
-            frame = dataset.load_image(int(index))
-            kps = dataset.samples[int(index)].keypoints
+        for j, index in enumerate(report_items(indices, progress, f"frames at {view.describe()}")):
+            # the view's crop first, then the frame as the paper's whole frame: augmentation rotates and pads
+            # the crop, which is what the model sees
+            frame, kps = view.crop_sample(dataset.load_image(int(index)), dataset.samples[int(index)].keypoints)
             put(j, int(index), frame, kps, "original")
             if self.augment_copies:
                 rng = np.random.default_rng([self.seed, int(index)])
@@ -245,7 +247,7 @@ class TrainingData:
         return _sequence_class()(self, batch_size, shuffle, seed)
 
 
-def fold_data(dataset: Dataset, fold: int | None, input_size: int, augment_copies: int = 2, seed: int = 0,
+def fold_data(dataset: Dataset, fold: int | None, input_size: ViewLike, augment_copies: int = 2, seed: int = 0,
               augment: str = "paper", *, progress: bool = False, **kwargs):
     """(training data, validation data without augmentation) for a fold.
 

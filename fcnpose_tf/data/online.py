@@ -30,6 +30,7 @@ import numpy as np
 from fcnpose_tf.data.augment import _albumentations, inside_frame
 from fcnpose_tf.data.masks import make_target_maps
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.preprocess import FrameView, ViewLike, keypoints_to_input
 from fcnpose_tf.progress import report_items
 
 
@@ -97,6 +98,7 @@ def _geometry(config: OnlineAugmentConfig):
 
 
 def _appearance(config: OnlineAugmentConfig, input_size: int):
+    """Colour, blur, noise, compression and holes; `input_size` is the input's shorter side."""
     A = _albumentations()
     hole = max(1, int(round(config.max_hole_fraction * input_size)))
     return A.Compose([
@@ -117,13 +119,13 @@ def sample_rng(seed: int, epoch: int, index: int) -> np.random.Generator:
 
 
 class OnlineAugmenter:
-    """Draws augmented (image, keypoints) pairs at the input side from cached working-size frames."""
+    """Draws augmented (image, keypoints) pairs at the input size from cached working-size frames."""
 
-    def __init__(self, input_size: int, config: OnlineAugmentConfig = OnlineAugmentConfig()):
-        self.input_size = int(input_size)
+    def __init__(self, input_size: ViewLike, config: OnlineAugmentConfig = OnlineAugmentConfig()):
+        self.input_size = FrameView.of(input_size).shape
         self.config = config
         self._geometry = _geometry(config)
-        self._appearance = _appearance(config, self.input_size)
+        self._appearance = _appearance(config, min(self.input_size))
 
     def _seed(self, compose, rng: np.random.Generator) -> None:
         state = int(rng.integers(2 ** 63))
@@ -138,11 +140,9 @@ class OnlineAugmenter:
             keypoints: K x 2 (x, y) in that frame's pixels, NaN rows missing.
             rng: the sample's generator (`sample_rng`).
         Returns:
-            (S x S x 3 uint8 RGB image, K x 2 keypoints in input pixels, NaN missing).
+            (H x W x 3 uint8 RGB image, K x 2 keypoints in input pixels, NaN missing).
         """
         import cv2
-
-        from fcnpose_tf.preprocess import keypoints_to_input
 
         h, w = image_rgb.shape[:2]
         kps = np.asarray(keypoints, np.float64).reshape(-1, 2)
@@ -156,8 +156,7 @@ class OnlineAugmenter:
             if inside_frame(candidate, w, h):
                 warped, moved = out["image"], candidate
                 break
-        small = cv2.resize(np.ascontiguousarray(warped), (self.input_size, self.input_size),
-                           interpolation=cv2.INTER_AREA)
+        small = cv2.resize(np.ascontiguousarray(warped), self.input_size[::-1], interpolation=cv2.INTER_AREA)
         self._seed(self._appearance, rng)
         small = self._appearance(image=small)["image"]
         return np.ascontiguousarray(small), keypoints_to_input(moved, (h, w), self.input_size)
@@ -165,7 +164,8 @@ class OnlineAugmenter:
 
 def working_frame(frame_bgr: np.ndarray, keypoints: np.ndarray, input_size: int, work_scale: float
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """A frame as cached for online augmentation: RGB, short side work_scale x input side (never enlarged).
+    """A frame as cached for online augmentation: RGB, short side work_scale x `input_size` (the input's shorter
+    side; never enlarged).
 
     Keypoints scale through the pixel edges, as `preprocess.keypoints_to_input` does.
     """
@@ -188,7 +188,7 @@ class OnlineTrainingData:
     paper's two offline copies give), frames visited in a seeded shuffled order.
     """
 
-    def __init__(self, dataset, indices: Iterable[int], input_size: int, seed: int = 0,
+    def __init__(self, dataset, indices: Iterable[int], input_size: ViewLike, seed: int = 0,
                  config: OnlineAugmentConfig = OnlineAugmentConfig(), samples_per_epoch: int | None = None,
                  radius: float | None = None, thickness: float | None = None, progress: bool = False):
         self.indices = np.asarray(list(indices), dtype=np.int64)
@@ -196,7 +196,8 @@ class OnlineTrainingData:
             raise UserError("no training frames to augment")
         self.dataset = dataset
         self.schema = dataset.schema
-        self.input_size = int(input_size)
+        self.view = FrameView.of(input_size)
+        self.input_size = self.view.shape
         self.seed = int(seed)
         self.config = config
         self.samples_per_epoch = int(samples_per_epoch or 3 * len(self.indices))
@@ -205,9 +206,9 @@ class OnlineTrainingData:
         self.radius, self.thickness = radius, thickness
         self.frames: list[np.ndarray] = []
         self.keypoints: list[np.ndarray] = []
-        for index in report_items(self.indices, progress, f"frames for online augmentation at {input_size}"):
-            frame = dataset.load_image(int(index))
-            rgb, kps = working_frame(frame, dataset.samples[int(index)].keypoints, self.input_size, config.work_scale)
+        for index in report_items(self.indices, progress, f"frames for online augmentation at {self.view.describe()}"):
+            frame, kps = self.view.crop_sample(dataset.load_image(int(index)), dataset.samples[int(index)].keypoints)
+            rgb, kps = working_frame(frame, kps, min(self.input_size), config.work_scale)
             self.frames.append(rgb)
             self.keypoints.append(kps)
         self.augmenter = OnlineAugmenter(self.input_size, config)
@@ -230,16 +231,16 @@ class OnlineTrainingData:
         return np.concatenate([rng.permutation(len(self.indices)) for _ in range(reps)])[:self.samples_per_epoch]
 
     def sample(self, epoch: int, row: int, frame: int) -> tuple[np.ndarray, np.ndarray]:
-        """(S x S x 3 uint8 image, S x S x C uint8 maps) of row `row` of `epoch`, showing cached frame `frame`."""
+        """(H x W x 3 uint8 image, H x W x C uint8 maps) of row `row` of `epoch`, showing cached frame `frame`."""
         image, kps = self.augmenter(self.frames[frame], self.keypoints[frame], sample_rng(self.seed, epoch, row))
         return image, make_target_maps(kps, self.input_size, self.schema, self.radius, self.thickness)
 
     def batch(self, epoch: int, rows: Sequence[int]) -> tuple[np.ndarray, np.ndarray]:
         """Float32 (images in [0, 1], maps) for rows of `epoch`."""
         frames = self.order(epoch)
-        s = self.input_size
-        images = np.empty((len(rows), s, s, 3), np.float32)
-        maps = np.empty((len(rows), s, s, self.schema.num_maps), np.float32)
+        h, w = self.input_size
+        images = np.empty((len(rows), h, w, 3), np.float32)
+        maps = np.empty((len(rows), h, w, self.schema.num_maps), np.float32)
         for j, row in enumerate(rows):
             image, target = self.sample(epoch, int(row), int(frames[int(row)]))
             np.multiply(image, np.float32(1.0 / 255.0), out=images[j], casting="unsafe")

@@ -25,9 +25,9 @@ from fcnpose_tf.keypoints import UR5, KeypointSchema
 from fcnpose_tf.postprocess import check_centroid, check_fallback
 from fcnpose_tf.postprocess import decode as decode_maps
 from fcnpose_tf.postprocess import dequantize
-from fcnpose_tf.preprocess import preprocess_frame, preprocess_frame_bytes
+from fcnpose_tf.preprocess import FrameView, preprocess_frame, preprocess_frame_bytes
 from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
-                                            load_interpreter, model_stats)
+                                            load_interpreter, model_stats, read_view)
 
 
 def schema_for_maps(num_maps: int) -> KeypointSchema:
@@ -92,12 +92,12 @@ class KeypointPredictor(abc.ABC):
 
     A backend implements `set_input` (preprocess a frame into the model's input), `invoke` (the
     forward pass), `read_maps` (the output maps of the last forward pass) and `backend_label`; it
-    sets `input_size`, `num_maps`, `threshold` and `num_threads`. Decoding and `predict` are
+    sets `view`, `num_maps`, `threshold` and `num_threads`. Decoding and `predict` are
     shared, so every backend maps keypoints back to frame pixels and times its stages the same way.
     """
 
-    input_size: int
-    """Side of the square model input (frames are resized to it)."""
+    view: FrameView
+    """What the model sees of a frame: its crop (or the whole frame) resized to the H x W input."""
     num_maps: int
     """Output maps: one per keypoint, then the skeleton map."""
     threshold: float
@@ -141,14 +141,20 @@ class KeypointPredictor(abc.ABC):
         threads = "default threads" if self.num_threads is None else \
             f"{self.num_threads} thread{'s' if self.num_threads != 1 else ''}"
         name = getattr(self, "path", None)
-        return (f"{Path(name).name if name else 'model'} ({self.input_size}x{self.input_size}x3 -> "
-                f"{self.num_maps} maps), {self.backend_label}, {threads}")
+        return (f"{Path(name).name if name else 'model'} ({self.view.height}x{self.view.width}x3 -> "
+                f"{self.num_maps} maps{self._crop_words()}), {self.backend_label}, {threads}")
+
+    def _crop_words(self) -> str:
+        if self.view.crop is None:
+            return ""
+        x, y, w, h = self.view.crop
+        return f"; crop {w}x{h} at ({x}, {y}) of {self.view.frame_size[0]}x{self.view.frame_size[1]}"
 
     def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
         maps = self.read_maps(copy=False)
         keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback,
-                                            centroid=self.centroid)
+                                            centroid=self.centroid, view=self.view)
         del maps
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
@@ -176,7 +182,8 @@ class KeypointModel(KeypointPredictor):
     """An FCN-Pose .tflite model ready to run on frames (LiteRT).
 
     Args:
-        model_path: the .tflite file (1 x S x S x 3 image in, 1 x S x S x C maps out).
+        model_path: the .tflite file (1 x H x W x 3 image in, 1 x H x W x C maps out; its crop, when it has one,
+            in its metadata: `runtime.interpreter.read_view`).
         num_threads: interpreter threads; None = all cores.
         threshold: probability above which a map pixel belongs to a keypoint (post-processing).
         schema: keypoint names; default UR5 for 9 maps, kp0..kpN otherwise.
@@ -208,28 +215,18 @@ class KeypointModel(KeypointPredictor):
         if self.schema.num_maps != self.io.num_maps:
             raise UserError(f"{self.path}: {self.io.num_maps} output maps, but schema {self.schema.name!r} "
                             f"needs {self.schema.num_maps} ({self.schema.num_keypoints} keypoints + skeleton)")
-        size = self.io.input_size
+        self.view = read_view(self.path, self.io)
         self._input = self.interpreter.tensor(self.io.input.index)
         self._output = self.interpreter.tensor(self.io.output.index)
         # Float32 input, or uint8 holding pixel / 255 (the int8 export): preprocessing writes straight into
         # the interpreter's buffer. Any other input type goes through one float32 scratch buffer.
         direct = self.io.input.dtype == np.float32 or self.io.input.holds_pixel_bytes
-        self._scratch_in = None if direct else np.empty((size, size, 3), np.float32)
+        self._scratch_in = None if direct else np.empty((*self.view.shape, 3), np.float32)
         self._scratch_out = (np.empty(self.io.output.shape[1:], np.float32)
                              if self.io.output.quantized else None)
         self._stats: ModelStats | None = None
 
     # -- properties ----------------------------------------------------------------------------------
-    @property
-    def input_size(self) -> int:
-        """Side of the square model input (frames are resized to it)."""
-        return self.io.input_size
-
-    @property
-    def map_size(self) -> int:
-        """Side of the square output maps."""
-        return self.io.map_size
-
     @property
     def num_maps(self) -> int:
         return self.io.num_maps
@@ -246,8 +243,8 @@ class KeypointModel(KeypointPredictor):
         return self.backend.label
 
     def describe(self) -> str:
-        """One line: file, shapes, backend and threads."""
-        return (f"{self.path.name} ({self.io.describe()}), {self.backend_label}, "
+        """One line: file, shapes, crop, backend and threads."""
+        return (f"{self.path.name} ({self.io.describe()}{self._crop_words()}), {self.backend_label}, "
                 f"{self.num_threads} thread{'s' if self.num_threads != 1 else ''}")
 
     # -- the three stages ----------------------------------------------------------------------------
@@ -260,7 +257,7 @@ class KeypointModel(KeypointPredictor):
     def preprocess_into(self, frame_bgr: np.ndarray, buffer: np.ndarray) -> None:
         """The model's input for a frame, written into `buffer` (S x S x 3 of the input's dtype: the
         interpreter's own tensor, or a `new_input` staging buffer of the pipelined run)."""
-        size = self.io.input_size
+        size = self.view
         spec = self.io.input
         if spec.holds_pixel_bytes:
             preprocess_frame_bytes(frame_bgr, size, out=buffer)
@@ -306,11 +303,11 @@ class KeypointModel(KeypointPredictor):
     pipelinable = True
 
     def new_input(self) -> np.ndarray:
-        """A staging buffer for `preprocess_into`: S x S x 3 of the input tensor's dtype."""
+        """A staging buffer for `preprocess_into`: H x W x 3 of the input tensor's dtype."""
         return np.empty(self.io.input.shape[1:], self.io.input.dtype)
 
     def new_output(self) -> np.ndarray:
-        """A buffer for the raw output `forward` copies out: M x M x C of the output tensor's dtype."""
+        """A buffer for the raw output `forward` copies out: H x W x C of the output tensor's dtype."""
         return np.empty(self.io.output.shape[1:], self.io.output.dtype)
 
     def forward(self, staged: np.ndarray, raw_output: np.ndarray) -> float:
@@ -331,11 +328,12 @@ class KeypointModel(KeypointPredictor):
         spec = self.io.output
         if spec.quantized:
             keypoints, confidence = decode_maps(raw, frame_shape, self.threshold, fallback=self.fallback,
-                                                quantization=(spec.scale, spec.zero_point), centroid=self.centroid)
+                                                quantization=(spec.scale, spec.zero_point), centroid=self.centroid,
+                                                view=self.view)
         else:
             maps = raw if raw.dtype == np.float32 else raw.astype(np.float32)
             keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback,
-                                            centroid=self.centroid)
+                                                centroid=self.centroid, view=self.view)
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:

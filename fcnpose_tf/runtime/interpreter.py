@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,7 +22,9 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.nativelog import native_stderr_captured
+from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.records import distribution_version
+from fcnpose_tf.runtime.tflite_metadata import VIEW_METADATA, read_metadata
 from fcnpose_tf.system import available_cores
 
 BACKENDS: tuple[str, ...] = ("ai_edge_litert", "tflite_runtime", "tensorflow")
@@ -169,20 +172,15 @@ class TensorSpec:
 
 @dataclass(frozen=True)
 class ModelIO:
-    """The input and output an FCN-Pose .tflite must have: 1xSxSx3 image in, 1xMxMxC maps out (C >= 2)."""
+    """The input and output an FCN-Pose .tflite must have: 1xHxWx3 image in, 1xHxWxC maps out (C >= 2)."""
 
     input: TensorSpec
     output: TensorSpec
 
     @property
-    def input_size(self) -> int:
-        """Side of the square model input in pixels."""
-        return self.input.shape[1]
-
-    @property
-    def map_size(self) -> int:
-        """Side of the square output maps in pixels (the input size for FCN-Pose)."""
-        return self.output.shape[1]
+    def input_shape(self) -> tuple[int, int]:
+        """(height, width) of the model input in pixels."""
+        return self.input.shape[1], self.input.shape[2]
 
     @property
     def num_maps(self) -> int:
@@ -206,15 +204,15 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
     signature = [int(d) for d in inputs[0].get("shape_signature", spec_in.shape)]
     if any(d < 0 for d in signature[1:]):  # allocated as [1, 1, 1, 3]: keypoints would land at the frame centre
         raise UserError(f"{path}: the input size is not fixed (shape signature {signature}); the runtime needs "
-                        "a fixed S x S input: export the model with one, e.g. "
+                        "a fixed H x W input: export the model with one, e.g. "
                         "fcnpose_tf.compression.export.write_tflite(model, 'model.tflite', input_size=224), or build it on "
                         "tf_keras.Input((224, 224, 3))")
     shape = spec_in.shape
     if len(shape) != 4 or shape[0] != 1 or shape[3] != 3:
-        raise UserError(f"{path}: input shape {list(shape)}, expected [1, S, S, 3] (one RGB image; "
+        raise UserError(f"{path}: input shape {list(shape)}, expected [1, H, W, 3] (one RGB image; "
                         "not an FCN-Pose model)")
-    if shape[1] != shape[2] or shape[1] < 1:
-        raise UserError(f"{path}: input {shape[1]}x{shape[2]} is not square; FCN-Pose takes an S x S image")
+    if min(shape[1], shape[2]) < 1:
+        raise UserError(f"{path}: input {shape[1]}x{shape[2]} is empty")
     if not any(spec_in.dtype == np.dtype(t) for t in _INPUT_DTYPES):
         raise UserError(f"{path}: input type {spec_in.dtype.name}, expected float32, float16, uint8 or int8")
     if np.issubdtype(spec_in.dtype, np.integer) and not spec_in.quantized:
@@ -223,12 +221,32 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
     if len(shape) != 4 or shape[0] != 1 or shape[3] < 2:
         raise UserError(f"{path}: output shape {list(shape)}, expected [1, H, W, C] maps with C >= 2 "
                         "(keypoints + skeleton; not an FCN-Pose model)")
-    if shape[1] != shape[2]:
-        raise UserError(f"{path}: output maps {shape[1]}x{shape[2]} are not square")
+    if tuple(shape[1:3]) != tuple(spec_in.shape[1:3]):
+        raise UserError(f"{path}: output maps {shape[1]}x{shape[2]} differ from the {spec_in.shape[1]}x"
+                        f"{spec_in.shape[2]} input (FCN-Pose maps have the input's size)")
     if not (np.issubdtype(spec_out.dtype, np.floating) or spec_out.quantized):
         raise UserError(f"{path}: output type {spec_out.dtype.name} without quantization parameters; "
                         "expected probability maps")
     return ModelIO(spec_in, spec_out)
+
+
+def read_view(path: str | os.PathLike, io: ModelIO) -> FrameView:
+    """What a .tflite model sees of a frame: the view in its metadata (`tflite_metadata.VIEW_METADATA`), else the
+    whole frame at its input size; UserError when the stored view does not fit the file's input."""
+    try:
+        stored = read_metadata(path).get(VIEW_METADATA)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: its metadata cannot be read ({exc})") from exc
+    if stored is None:
+        return FrameView(*io.input_shape)
+    try:
+        view = FrameView.from_json(json.loads(stored.decode("utf-8")))
+    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
+        raise UserError(f"{path}: its {VIEW_METADATA} metadata is not a frame view ({exc})") from exc
+    if view.shape != io.input_shape:
+        raise UserError(f"{path}: its stored view ({view.describe()}) does not fit its "
+                        f"{io.input_shape[0]}x{io.input_shape[1]} input")
+    return view
 
 
 @dataclass(frozen=True)

@@ -68,28 +68,29 @@ class KerasKeypointModel(KeypointPredictor):
             from fcnpose_tf.training.model import load_model
 
             path, model = model, load_model(model)
-        from fcnpose_tf.training.model import check_fixed_input
+        from fcnpose_tf.training.model import check_fixed_input, view_of
 
         check_fixed_input(model, path)
         shape = model.input_shape
-        if len(shape) != 4 or shape[1] != shape[2] or shape[3] != 3 or len(model.output_shape) != 4:
+        if len(shape) != 4 or shape[3] != 3 or len(model.output_shape) != 4 \
+                or tuple(model.output_shape[1:3]) != tuple(shape[1:3]):
             raise UserError(f"{path or model.name}: not an FCN-Pose model (input {shape}, output "
-                            f"{model.output_shape}); expected S x S x 3 in, S x S x C maps out")
+                            f"{model.output_shape}); expected H x W x 3 in, H x W x C maps out")
         self.model = model
         self.path = Path(path) if path else None
         self.threshold = threshold
         self.fallback = check_fallback(threshold, fallback)
         self.centroid = check_centroid(centroid)
         self.num_threads = num_threads
-        self.input_size = int(shape[1])
+        self.view = view_of(model)
         self.num_maps = int(model.output_shape[-1])
         self.schema = schema_for_maps(self.num_maps)
-        self._x = np.empty((1, self.input_size, self.input_size, 3), np.float32)
+        self._x = np.empty((1, *self.view.shape, 3), np.float32)
         self._maps: np.ndarray | None = None
 
     def set_input(self, frame_bgr: np.ndarray) -> None:
         """Preprocess a BGR uint8 frame into the model's one-frame input batch."""
-        preprocess_frame(frame_bgr, self.input_size, out=self._x[0])
+        preprocess_frame(frame_bgr, self.view, out=self._x[0])
 
     def invoke(self) -> None:
         """Call the model on the current input (its maps as a numpy array)."""

@@ -5,11 +5,17 @@
 
 Every Conv2D is 3x3 'same'; conv1..conv9 use ReLU, conv10 a sigmoid with one
 map per keypoint plus the skeleton map. Upsampling factors are 2, 2, 2 and 4,
-so an input of S x S (S a multiple of 32) gives S x S maps.
+so an input of H x W (both multiples of 32) gives H x W maps.
+
+What the model sees of a frame (its `preprocess.FrameView`: a crop and the input size) travels with it: in
+memory as `view_of(model)` (set by `load_model`, `with_view`, kept by `at_input_size` and `inference_copy`),
+on disk inside the .keras file (an extra entry of its zip, `VIEW_ENTRY`) or the .h5 file (a root attribute), so
+that one model file is enough; a model file without one sees the whole frame.
 """
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -17,6 +23,7 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.metrics import conv_macs
+from fcnpose_tf.preprocess import FrameView, ViewLike
 from fcnpose_tf.settings import INPUT_SIZE, INPUT_SIZE_MULTIPLE, check_input_size  # noqa: F401 - re-exported
 
 DEFAULT_WIDTHS: tuple[int, ...] = (128, 64, 32, 16, 8, 8, 16, 32, 64)
@@ -28,14 +35,31 @@ SIZE_MULTIPLE = INPUT_SIZE_MULTIPLE
 """2**NUM_POOLS: an input side the five poolings divide exactly (checked by `check_input_size`)."""
 
 
-def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: int = DEFAULT_INPUT_SIZE,
+VIEW_ENTRY = "fcnpose_tf_view.json"
+"""The .keras zip entry (and .h5 root attribute) holding the model's `FrameView` as JSON."""
+_VIEW_ATTRIBUTE = "_fcnpose_tf_view"
+
+
+def input_shape_of(input_size: ViewLike) -> tuple[int, int]:
+    """(height, width) of an input size given as S, (H, W) or a view; UserError unless both are multiples of 32."""
+    if isinstance(input_size, FrameView):
+        height, width = input_size.shape
+    elif isinstance(input_size, (tuple, list)) and len(input_size) == 2:
+        height, width = input_size
+    else:
+        height = width = input_size
+    return check_input_size(height), check_input_size(width)
+
+
+def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: ViewLike = DEFAULT_INPUT_SIZE,
                    num_maps: int = DEFAULT_NUM_MAPS, name: str = "fcn_pose") -> keras.Model:
     """Build FCN-Pose with the given widths of conv1..conv9 (conv10 has `num_maps` filters).
 
     Args:
         widths: filters of conv1..conv9; the paper's are (128, 64, 32, 16, 8, 8, 16, 32, 64).
             Pruned models are the same network with smaller widths.
-        input_size: side of the square RGB input, a multiple of 32.
+        input_size: the RGB input: S (S x S), (H, W) or a `FrameView` (its crop is kept: `view_of`); every side a
+            multiple of 32.
         num_maps: output maps, keypoints + 1 skeleton map (9 for a UR5).
     Returns:
         An uncompiled tf_keras Model with layers named conv1..conv10, pool1..pool5, up1..up4.
@@ -45,7 +69,7 @@ def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: int = DEF
         >>> build_fcn_pose().count_params()
         131705
     """
-    check_input_size(input_size)
+    height, width = input_shape_of(input_size)
     widths = tuple(int(w) for w in widths)
     if len(widths) != 9 or min(widths) < 1:
         raise UserError(f"widths must be 9 positive filter counts (conv1..conv9), got {widths}")
@@ -55,7 +79,7 @@ def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: int = DEF
     def conv(x, filters, index, activation="relu"):
         return keras.layers.Conv2D(filters, 3, padding="same", activation=activation, name=f"conv{index}")(x)
 
-    inputs = keras.Input((input_size, input_size, 3), name="image")
+    inputs = keras.Input((height, width, 3), name="image")
     x = inputs
     for i in range(NUM_POOLS):
         x = conv(x, widths[i], i + 1)
@@ -66,7 +90,73 @@ def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: int = DEF
         if i + 7 <= 9:
             x = conv(x, widths[i + 6], i + 7)
     outputs = conv(x, num_maps, 10, activation="sigmoid")
-    return keras.Model(inputs, outputs, name=name)
+    model = keras.Model(inputs, outputs, name=name)
+    return with_view(model, input_size) if isinstance(input_size, FrameView) else model
+
+
+def given_view(model: keras.Model) -> FrameView | None:
+    """The view `model` was given (`with_view`, `load_model` of a file that stores one), or None."""
+    return getattr(model, _VIEW_ATTRIBUTE, None)
+
+
+def view_of(model: keras.Model) -> FrameView:
+    """What `model` sees of a frame: the view it was given (`given_view`), else the whole frame at its input size."""
+    view = given_view(model)
+    if view is not None:
+        return view
+    shape = model.input_shape
+    return FrameView(int(shape[1]), int(shape[2]))
+
+
+def with_view(model: keras.Model, view: ViewLike) -> keras.Model:
+    """`model` with its view set (returned for chaining); UserError when the view's size is not the model's input."""
+    view = FrameView.of(view)
+    shape = tuple(model.input_shape[1:3])
+    if shape != view.shape:
+        raise UserError(f"{model.name}: a {shape[0]}x{shape[1]} input cannot take the view {view.describe()}")
+    object.__setattr__(model, _VIEW_ATTRIBUTE, view)  # past Keras' attribute tracking: not a layer or weight
+    return model
+
+
+def read_stored_view(path) -> FrameView | None:
+    """The view stored in a .keras or .h5 model file, or None (none stored: the whole frame)."""
+    import zipfile
+    from pathlib import Path
+
+    path = Path(path)
+    try:
+        if path.suffix == ".keras":
+            with zipfile.ZipFile(path) as archive:
+                if VIEW_ENTRY not in archive.namelist():
+                    return None
+                text = archive.read(VIEW_ENTRY).decode("utf-8")
+        else:
+            import h5py
+
+            with h5py.File(path, "r") as h5:
+                value = h5.attrs.get(VIEW_ENTRY)
+            if value is None:
+                return None
+            text = value.decode("utf-8") if isinstance(value, bytes) else str(value)
+        return FrameView.from_json(json.loads(text))
+    except (OSError, ValueError, KeyError, zipfile.BadZipFile, RecursionError) as exc:
+        raise UserError(f"{path}: its stored frame view cannot be read ({type(exc).__name__}: {exc})") from exc
+
+
+def _store_view(path, view: FrameView) -> None:
+    """Add the view to a model file just written (before it is renamed into place)."""
+    import zipfile
+    from pathlib import Path
+
+    text = json.dumps(view.to_json(), sort_keys=True)
+    if Path(path).suffix == ".keras":
+        with zipfile.ZipFile(path, "a") as archive:
+            archive.writestr(VIEW_ENTRY, text)
+    else:
+        import h5py
+
+        with h5py.File(path, "a") as h5:
+            h5.attrs[VIEW_ENTRY] = text
 
 
 @dataclass(frozen=True)
@@ -101,19 +191,21 @@ def conv_widths(model: keras.Model) -> tuple[int, ...]:
     return tuple(int(layer.filters) for layer in model.layers if isinstance(layer, keras.layers.Conv2D))
 
 
-def at_input_size(model: keras.Model, input_size: int) -> keras.Model:
-    """`model` (FCN-Pose, or any fully convolutional chain) at `input_size` x `input_size` with the same layers and
+def at_input_size(model: keras.Model, input_size: ViewLike) -> keras.Model:
+    """`model` (FCN-Pose, or any fully convolutional chain) at another input size with the same layers and
     weights; `model` itself when already so. UserError for a side that is not a multiple of 32.
 
-    The convolutions do not depend on the input size: a model trained at 224 runs, and retrains, at 192 or 320.
+    `input_size` is S, (H, W) (the model's own crop kept) or a `FrameView` (its crop taken). The convolutions do
+    not depend on the input size: a model trained at 224 runs, and retrains, at 192, 320 or 224 x 288.
     """
-    check_input_size(input_size)
-    if tuple(model.input_shape[1:3]) == (input_size, input_size):
-        return model
-    inputs = keras.Input((input_size, input_size, model.input_shape[-1]), name=model.input_names[0])
+    height, width = input_shape_of(input_size)
+    view = input_size if isinstance(input_size, FrameView) else view_of(model).with_input(height, width)
+    if tuple(model.input_shape[1:3]) == (height, width):
+        return with_view(model, view)
+    inputs = keras.Input((height, width, model.input_shape[-1]), name=model.input_names[0])
     resized = keras.models.clone_model(model, input_tensors=inputs)
     resized.set_weights(model.get_weights())
-    return resized
+    return with_view(resized, view)
 
 
 def chain_layers(model: keras.Model, purpose: str, error: type[UserError] = UserError,
@@ -175,11 +267,12 @@ def inference_copy(model: keras.Model) -> keras.Model:
     for source, layer in zip(model.layers, clone.layers):  # per layer: a model's weight order puts frozen ones last
         layer.set_weights(source.get_weights())
         layer.trainable = True  # frozen layers are a training-time choice, not part of the model
-    return clone
+    return with_view(clone, view_of(model))
 
 
 def save_for_inference(model: keras.Model, path) -> None:
-    """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count."""
+    """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count, and the
+    model's view (`view_of`) when it is not the whole frame at its input size."""
     from pathlib import Path
 
     clone = inference_copy(model)
@@ -187,6 +280,9 @@ def save_for_inference(model: keras.Model, path) -> None:
         Path(path).write_bytes(h5_bytes(clone))
     else:
         clone.save(path)  # .keras: a zip written by Python (HDF5 only in memory inside it)
+    view = view_of(model)
+    if view.crop is not None:
+        _store_view(path, view)
 
 
 def load_model(path) -> keras.Model:
@@ -206,16 +302,22 @@ def load_model(path) -> keras.Model:
         raise UserError(f"{path}: cannot be read as a Keras model ({type(exc).__name__}: "
                         f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from exc
     check_fixed_input(model, path)
+    view = read_stored_view(path)
+    if view is not None:
+        if view.shape != tuple(model.input_shape[1:3]):
+            raise UserError(f"{path}: its stored view ({view.describe()}) does not fit its "
+                            f"{model.input_shape[1]}x{model.input_shape[2]} input")
+        with_view(model, view)
     return model
 
 
 def check_fixed_input(model: keras.Model, path=None) -> None:
     """UserError, saying how to fix it, for a model whose input height or width is not fixed (None).
 
-    Every command runs FCN-Pose at one S x S size (preprocessing, target maps, the static TFLite input).
+    Every command runs FCN-Pose at one H x W size (preprocessing, target maps, the static TFLite input).
     """
     shape = model.input_shape
     if isinstance(shape, tuple) and len(shape) == 4 and (shape[1] is None or shape[2] is None):
         raise UserError(f"{path or model.name}: the input size is not fixed (input shape {shape}); FCN-Pose runs "
-                        "at one S x S size: rebuild the model on tf_keras.Input((S, S, 3)) (S a multiple of 32, "
-                        "e.g. 224), copy the weights over (new.set_weights(old.get_weights())) and save that")
+                        "at one H x W size: rebuild the model on tf_keras.Input((H, W, 3)) (multiples of 32, "
+                        "e.g. 224 x 224), copy the weights over (new.set_weights(old.get_weights())) and save that")

@@ -1,0 +1,158 @@
+"""A model's frame view (a workspace crop and an H x W input): exact keypoint mapping, carried in every model
+file, read by the Pi runtime without TensorFlow."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.preprocess import FrameView, keypoints_to_frame, keypoints_to_input, preprocess_frame
+from test_runtime import no_tf_env  # noqa: F401 - fixture
+from weights import randomize
+
+VIEW = FrameView(64, 96, crop=(200, 90, 360, 240), frame_size=(640, 480))
+
+
+def _blob_frame(w, h, centre, sigma):
+    x = np.arange(w)[None, :] - centre[0]
+    y = np.arange(h)[:, None] - centre[1]
+    blob = 255.0 * np.exp(-(x ** 2 + y ** 2) / (2 * sigma ** 2))
+    return np.repeat(np.round(blob).astype(np.uint8)[..., None], 3, axis=2)
+
+
+def _centroid(image):
+    v = image[..., 0].astype(np.float64)
+    ys, xs = np.mgrid[:v.shape[0], :v.shape[1]]
+    return np.array([(v * xs).sum() / v.sum(), (v * ys).sum() / v.sum()])
+
+
+@pytest.mark.parametrize("frame_wh", [(640, 480), (1280, 960)])
+def test_a_blob_lands_where_the_crop_mapping_says_and_maps_back_exactly(frame_wh):
+    w, h = frame_wh
+    centre = np.array([0.55 * w + 0.3, 0.41 * h - 0.2])
+    frame = _blob_frame(w, h, centre, sigma=w / 60)
+    out = preprocess_frame(frame, VIEW)
+    assert out.shape == (64, 96, 3)
+    expected = keypoints_to_input(centre[None], frame.shape, VIEW)[0]
+    np.testing.assert_allclose(_centroid(out), expected, atol=0.05)
+    np.testing.assert_allclose(keypoints_to_frame(expected[None], frame.shape, VIEW)[0], centre, atol=1e-9)
+
+
+def test_the_box_scales_with_the_frame_and_a_point_outside_the_crop_lands_outside_the_input():
+    assert VIEW.box((480, 640, 3)) == (200, 90, 360, 240)
+    assert VIEW.box((960, 1280)) == (400, 180, 720, 480)
+    outside = keypoints_to_input(np.array([[100.0, 100.0], [600.0, 400.0]]), (480, 640), VIEW)
+    assert outside[0, 0] < 0 and outside[1, 0] > 96 and outside[1, 1] > 64
+    whole = FrameView(64, 96)
+    assert whole.box((480, 640)) == (0, 0, 640, 480) and whole.cropped(np.zeros((4, 5, 3))).shape == (4, 5, 3)
+
+
+def test_views_round_trip_as_json_and_bad_ones_are_refused():
+    assert FrameView.from_json(json.loads(json.dumps(VIEW.to_json()))) == VIEW
+    assert FrameView.of(224) == FrameView(224, 224) and FrameView.of((224, 288)).shape == (224, 288)
+    with pytest.raises(UserError, match="inside its 640 x 480 frame"):
+        FrameView(64, 96, crop=(500, 0, 200, 100), frame_size=(640, 480))
+    with pytest.raises(UserError, match="frame size"):
+        FrameView(64, 96, crop=(0, 0, 10, 10))
+    with pytest.raises(UserError, match="not a frame view"):
+        FrameView.from_json({"input_height": 64})
+    assert "crop x 200-559, y 90-329 of 640x480" in VIEW.describe()
+
+
+def test_target_maps_and_training_rows_are_h_by_w():
+    from fcnpose_tf.data.masks import make_target_maps
+    from fcnpose_tf.keypoints import UR5
+
+    kps = np.full((UR5.num_keypoints, 2), np.nan)
+    kps[0] = (90.0, 10.0)  # near the right edge of a 96-wide map, where a square S = 64 map would clip it
+    maps = make_target_maps(kps, (64, 96), UR5)
+    assert maps.shape == (64, 96, UR5.num_maps) and maps[10, 90, 0] == 1 and maps[10, 60, 0] == 0
+
+
+@pytest.mark.parametrize("suffix", [".keras", ".h5"])
+def test_the_view_is_saved_inside_the_model_file_and_kept_by_resizing(tmp_path, suffix):
+    from fcnpose_tf.training.model import at_input_size, build_fcn_pose, load_model, save_for_inference, view_of
+
+    model = build_fcn_pose(input_size=VIEW)
+    assert model.input_shape == (None, 64, 96, 3) and view_of(model) == VIEW
+    save_for_inference(model, tmp_path / f"m{suffix}")
+    loaded = load_model(tmp_path / f"m{suffix}")
+    assert view_of(loaded) == VIEW
+    assert view_of(at_input_size(loaded, (96, 128))) == VIEW.with_input(96, 128)
+    plain = build_fcn_pose(input_size=(64, 96))
+    save_for_inference(plain, tmp_path / f"plain{suffix}")
+    assert view_of(load_model(tmp_path / f"plain{suffix}")) == FrameView(64, 96)
+
+
+def _frames(n=4, seed=0):
+    rng = np.random.default_rng(seed)
+    frames = []
+    for _ in range(n):
+        frame = cv2.GaussianBlur(rng.integers(0, 256, (480, 640, 3), dtype=np.uint8), (0, 0), 9)
+        frames.append(np.ascontiguousarray(frame))
+    return frames
+
+
+@pytest.fixture(scope="module")
+def cropped_tflite(tmp_path_factory):
+    from fcnpose_tf.compression.export import write_tflite
+    from fcnpose_tf.training.model import build_fcn_pose, save_for_inference
+
+    folder = tmp_path_factory.mktemp("cropped")
+    model = randomize(build_fcn_pose(input_size=VIEW), seed=3)
+    samples = np.stack([preprocess_frame(f, VIEW) for f in _frames()])
+    write_tflite(model, folder / "m.tflite", "float32", sample_frames=samples)
+    save_for_inference(model, folder / "m.keras")
+    return folder
+
+
+def test_the_tflite_carries_its_view_in_its_metadata(cropped_tflite):
+    from fcnpose_tf.compression.export import inspect_tflite
+    from fcnpose_tf.runtime.tflite_metadata import VIEW_METADATA, read_metadata
+
+    stored = read_metadata(cropped_tflite / "m.tflite")
+    assert FrameView.from_json(json.loads(stored[VIEW_METADATA])) == VIEW
+    # the hand-read entries are the schema's own
+    schema_read = inspect_tflite(cropped_tflite / "m.tflite")["metadata"]
+    assert set(schema_read) == set(stored) and schema_read[VIEW_METADATA] == stored[VIEW_METADATA].decode()
+    with pytest.raises(ValueError, match="not a TFLite FlatBuffer"):
+        read_metadata(b"\x10\x00\x00\x00short")
+
+
+def test_the_pi_runtime_reads_the_crop_without_tensorflow_and_agrees_with_keras(no_tf_env, cropped_tflite,
+                                                                                tmp_path):
+    from fcnpose_tf.training.evaluate import KerasKeypointModel
+
+    frames = _frames()
+    for i, frame in enumerate(frames):
+        cv2.imwrite(str(tmp_path / f"f{i}.png"), frame)
+    keras_model = KerasKeypointModel(cropped_tflite / "m.keras", num_threads=1)
+    expected = [keras_model.predict(f).keypoints for f in frames]
+    code = (
+        "import json, sys, cv2\n"
+        "from fcnpose_tf.runtime.estimator import KeypointModel\n"
+        f"m = KeypointModel({str(cropped_tflite / 'm.tflite')!r}, num_threads=1)\n"
+        f"out = [m.predict(cv2.imread({str(tmp_path)!r} + f'/f{{i}}.png')).keypoints.tolist() for i in range({len(frames)})]\n"
+        "print(json.dumps({'view': m.view.to_json(), 'kps': out, "
+        "'tf': [k for k in sys.modules if k.split('.')[0] in ('tensorflow', 'tf_keras', 'keras')]}))\n")
+    result = subprocess.run([sys.executable, "-c", code], env=no_tf_env, capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    answer = json.loads(result.stdout.strip().splitlines()[-1])
+    assert answer["tf"] == [] and FrameView.from_json(answer["view"]) == VIEW
+    got = np.array(answer["kps"], np.float64)
+    want = np.stack(expected)
+    assert np.isfinite(want).sum() >= 8  # the random model finds keypoints to compare
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    found = np.isfinite(want)
+    assert np.abs(got[found] - want[found]).max() <= 0.5
+    # and every keypoint lies inside the crop: the model cannot see beyond it
+    x, y, w, h = VIEW.crop
+    points = want.reshape(-1, 2)[np.isfinite(want.reshape(-1, 2)).all(axis=1)]
+    assert (points[:, 0] >= x - 0.5).all() and (points[:, 0] <= x + w - 0.5).all()
+    assert (points[:, 1] >= y - 0.5).all() and (points[:, 1] <= y + h - 0.5).all()
