@@ -54,6 +54,26 @@ def conv_macs(out_h: int, out_w: int, k_h: int, k_w: int, c_in: int, c_out: int)
     return int(out_h) * int(out_w) * int(k_h) * int(k_w) * int(c_in) * int(c_out)
 
 
+FCN_POSE_WIDTHS: tuple[int, ...] = (128, 64, 32, 16, 8, 8, 16, 32, 64)
+"""conv1..conv9 of the paper's FCN-Pose (training.model.DEFAULT_WIDTHS)."""
+FCN_POSE_P70_WIDTHS: tuple[int, ...] = (15, 15, 15, 15, 8, 8, 15, 15, 15)
+"""conv1..conv9 after `compress --rate 0.7` on its defaults (no layer under 15 filters): the bundled 70 % files."""
+_FCN_POSE_SCALES = (1, 2, 4, 8, 16, 32, 16, 8, 4, 1)
+"""The resolution divisor of conv1..conv10 (five 2x poolings, then upsampling by 2, 2, 2 and 4)."""
+
+
+def fcn_pose_macs(input_shape: tuple[int, int], widths: Sequence[int] = FCN_POSE_WIDTHS, num_maps: int = 9) -> int:
+    """Multiply-accumulates of FCN-Pose for one frame at an H x W input, from its layer shapes alone (no model).
+
+    Example:
+        >>> fcn_pose_macs((224, 224))
+        1481675328
+    """
+    h, w = int(input_shape[0]), int(input_shape[1])
+    channels = (3, *widths, num_maps)
+    return sum(conv_macs(h // d, w // d, 3, 3, channels[i], channels[i + 1]) for i, d in enumerate(_FCN_POSE_SCALES))
+
+
 # ---------------------------------------------------------------------------- inputs
 
 def _pair(pred: Any, gt: Any) -> tuple[np.ndarray, np.ndarray]:

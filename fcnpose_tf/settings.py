@@ -317,30 +317,50 @@ INPUT_SIZE = Setting(
 AUTO_INPUT_SIZE = "auto"
 
 
-def input_size_or_auto(text: str) -> int | str:
-    """argparse type of train's --input-size: auto (chosen from the arm's size in the frames) or a whole number
-    (checked against FCN-Pose's multiple of 32 by the setting)."""
+def input_size_or_auto(text: str) -> int | str | tuple[int, int]:
+    """argparse type of train's --input-size: auto (chosen from where the arm is and how large), a whole number S
+    (S x S) or HxW (e.g. 224x288; each checked against FCN-Pose's multiple of 32 by the setting)."""
     if text.strip().lower() == AUTO_INPUT_SIZE:
         return AUTO_INPUT_SIZE
     try:
-        return int(text)
+        parts = [int(part) for part in text.lower().replace(" ", "").split("x")]
     except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"expected auto or a positive multiple of {INPUT_SIZE_MULTIPLE}, got {text!r}") from None
+        parts = []
+    if len(parts) == 1:
+        return parts[0]
+    if len(parts) == 2:
+        return parts[0], parts[1]
+    raise argparse.ArgumentTypeError(
+        f"expected auto, S or HxW (multiples of {INPUT_SIZE_MULTIPLE}, e.g. 224 or 224x288), got {text!r}")
+
+
+def _input_shape_ok(value: Any) -> bool:
+    if _is_type(value, int):
+        return INPUT_SIZE.check(value)
+    return (isinstance(value, tuple) and len(value) == 2 and all(_is_type(v, int) and INPUT_SIZE.check(v)
+                                                                   for v in value))
 
 
 TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
-    default=AUTO_INPUT_SIZE, type=str, parse=input_size_or_auto, metavar="N|auto",
-    check=lambda v: v == AUTO_INPUT_SIZE or (_is_type(v, int) and INPUT_SIZE.check(v)),
-    requirement=f"auto or a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)",
-    help="model input side: auto chooses the smallest multiple of 32 from 224 to 384 at which the arm's keypoint "
-         "box spans 140 input pixels in the median frame (224 where the arm spans 5/8 of the frame or more; larger "
-         "where it is smaller, at 1.3-2.9x the compute per frame: docs/training.md, \"Input size\"), or the starting "
-         "model's own size where the arm spans 140 pixels there too (a next round stays at its size), and keeps the "
-         "starting model as saved, at its own size, if it scores higher on the validation frames; or a multiple of 32")
-"""`train` serves a user's camera: where the arm is small in the frame, 224 leaves PCK@0.05's radius a few input
-pixels wide and fine localisation falls (measured on the held-out fixed camera: docs/training.md, "Someone else's
-arm"); `data.arm_size` measures the arm and chooses. The paper's preset keeps the paper's 224."""
+    default=AUTO_INPUT_SIZE, type=str, parse=input_size_or_auto, metavar="auto|S|HxW",
+    check=lambda v: v == AUTO_INPUT_SIZE or _input_shape_ok(v),
+    requirement=f"auto, S or HxW (positive multiples of {INPUT_SIZE_MULTIPLE}: FCN-Pose pools 5 times by 2)",
+    help="the model's input: auto takes the region's own aspect (a fixed camera's workspace crop, or the whole "
+         "frame) and the fewest pixels, up to 224x288's, at which the arm's keypoint box spans 140 input pixels in "
+         "the median frame (docs/training.md, \"Input size\"), or the starting model's own view where the arm spans "
+         "140 pixels there too and its crop holds every keypoint, and keeps the starting model as saved if it scores "
+         "higher on the validation frames; or S (S x S) or HxW, multiples of 32")
+"""`train` serves a user's camera: where the arm is small in the input, PCK@0.05's radius is a few input pixels
+wide and fine localisation falls (measured on the held-out fixed camera: docs/training.md, "Someone else's
+arm"); `data.arm_size` measures where the arm is and how large, and chooses. The paper's preset keeps the paper's
+224 x 224 over the whole frame."""
+TRAIN_CROP = Setting(
+    "crop", str, "auto", "auto: the network sees only the workspace of a fixed camera (the box holding every "
+    "training keypoint, 5 %% more on each side, at the input's aspect), the whole frame where views vary; none: the "
+    "whole frame (the paper's); the crop is part of the model: stored in it and in every export, applied by every "
+    "command and the Pi runtime", label="crop", choices=("auto", "none"), paper="none")
+"""A fixed camera's arm never leaves its workspace, so pixels outside it are spent on nothing
+(docs/training.md, "Input size")."""
 FOLDS = Setting("folds", int, 5, "K of the K-fold cross-validation splits (the paper: 5)", label="folds",
                 check=lambda v: v >= 2, requirement="at least 2", metavar="K")
 TRAIN_FOLDS = FOLDS.variant(

@@ -48,8 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.add_preset_argument(parser)
     for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
                     settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
-                    settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.TRAIN_INPUT_SIZE, settings.TRAIN_AUGMENT,
-                    settings.AUGMENT_COPIES, settings.TRAIN_FOLDS):
+                    settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP,
+                    settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
@@ -90,14 +90,14 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.records import training_record
     from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line,
-                                           resolve_augment, resolve_input_size, run_identity, start_on_test_set,
+                                           resolve_augment, resolve_view, run_identity, start_on_test_set,
                                            train_fold)
 
     init = initial_weights(args.init)
     config = FitConfig(**settings.values_from_args(args, FitConfig))  # settings left None: chosen per run (resolved)
     config.validate()
-    for setting in (settings.TRAIN_INPUT_SIZE, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS,
-                    settings.FOLD, settings.THREADS):
+    for setting in (settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
+                    settings.TRAIN_FOLDS, settings.FOLD, settings.THREADS):
         setting.validate(getattr(args, setting.name))
     if args.out.suffix not in (".keras", ".h5"):
         raise UserError(f"{args.out}: --out must end in .keras or .h5")
@@ -122,21 +122,28 @@ def run(args: argparse.Namespace) -> int:
                       "preset": args.preset}
     # auto settings are resolved before the checkpoint check: a checkpoint records what ran
     size_was_chosen = args.input_size == settings.AUTO_INPUT_SIZE
-    if args.augment == "auto" or size_was_chosen:
-        from fcnpose_tf.data.via import read_via
+    from fcnpose_tf.data.via import read_via
+    from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, view_variation
 
-        frames = read_via(via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible,
-                          skip_bad=args.skip_bad).frames
-        if args.augment == "auto":
-            args.augment, metadata["augment_auto"] = resolve_augment(frames)
-        if size_was_chosen:
-            start_record = training_record(init) if init is not None else None
-            args.input_size, metadata["input_size_auto"] = resolve_input_size(
-                frames, start_size=start_record.input_size if start_record is not None else None)
+    frames = read_via(via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible,
+                      skip_bad=args.skip_bad).frames
+    if args.augment == "auto":
+        args.augment, metadata["augment_auto"] = resolve_augment(frames)
+        fixed_camera = args.augment == "paper"
+    else:
+        fixed_camera = args.crop == "auto" and view_variation([f.image_path for f in frames]) \
+            <= FIXED_CAMERA_MAX_VARIATION
+    start_view = None
+    if size_was_chosen and init is not None:
+        from fcnpose_tf.training.model import load_model, view_of
+
+        start_view = view_of(load_model(init))
+    view, metadata["view_auto"] = resolve_view(frames, args.input_size, args.crop, fixed_camera, start=start_view)
+    args.input_size = view
     resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
-                         identity=run_identity(via_path, resolved, input_size=args.input_size, fold=fold, folds=k,
+                         identity=run_identity(via_path, resolved, input_size=view.to_json(), fold=fold, folds=k,
                                                augment=args.augment, augment_copies=args.augment_copies,
                                                split_seed=args.split_seed))
     dataset = load_from_args(args)  # --folds K or a --fold: K folds required of the data; else the hold-out split

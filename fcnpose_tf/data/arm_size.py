@@ -1,12 +1,14 @@
-"""How large is the arm in a dataset's frames? `train --input-size auto` chooses the model's input side by it.
+"""Where the arm is in a dataset's frames and how large: `train --input-size auto` chooses the model's view by it
+(the crop of the frame the network sees and its H x W input).
 
-The model sees the whole frame resized to a square (no letterbox), so an arm whose keypoints span a
-fraction `s` of the frame (the larger of width and height, each against the frame's own) spans `s * N`
-pixels of an N x N input. Fine localisation is judged against the arm's size (PCK@0.05: within 5 % of the
-keypoint box), and the network cannot place a keypoint much finer than a few of its input pixels: where
-the arm is small in the frame, that radius shrinks to a few input pixels at 224 and fine localisation
-falls, whatever the training. `choose_input_size` takes the smallest input side (a multiple of 32, from
-224) at which the median frame's arm spans MIN_ARM_INPUT_PX input pixels, up to AUTO_MAX_INPUT_SIZE.
+Fine localisation is judged against the arm's size (PCK@0.05: within 5 % of the keypoint box), and the network
+cannot place a keypoint much finer than a few of its input pixels: where the arm spans few input pixels, fine
+localisation falls, whatever the training. Input pixels cost every epoch and every Pi frame, so they go where the
+arm is: for one fixed camera, `workspace_box` is the box that holds every training keypoint plus
+WORKSPACE_MARGIN of it on each side (the arm never leaves its workspace); the input takes that region's own
+aspect (`aspect_input`) instead of squeezing it into a square. `choose_view` then takes the smallest such input at
+which the median frame's arm spans MIN_ARM_INPUT_PX input pixels, and never more than AUTO_MAX_INPUT_PIXELS:
+beyond that the input buys little per pixel (docs/training.md, "Input size").
 
 Measured (docs/training.md, "Someone else's arm"): on a wide-angle fixed camera whose arm spans 0.39 of the
 frame, PCK@0.05 0.673 at 224 (an 87-px arm), 0.733 at 320 (125 px) and 0.773 at 384 (149 px); on a
@@ -15,18 +17,31 @@ fixed cell whose arm spans 0.53, 0.879 at 224 (118 px) and 0.929 at 320.
 
 from __future__ import annotations
 
-from typing import Iterable
+from typing import Iterable, Sequence
 
 import numpy as np
 
-from fcnpose_tf.settings import INPUT_SIZE, INPUT_SIZE_MULTIPLE
+from fcnpose_tf.preprocess import Box, FrameView
+from fcnpose_tf.settings import INPUT_SIZE_MULTIPLE
 
 MIN_ARM_INPUT_PX = 140
 """The arm's keypoint box should span at least this many input pixels: PCK@0.05's radius is then 7 of them."""
-AUTO_MAX_INPUT_SIZE = 384
-"""The largest side `auto` chooses: 2.94x the multiply-adds of 224 per frame (and a third of its frame rate)."""
-AUTO_MIN_INPUT_SIZE = INPUT_SIZE.default
-"""The smallest side `auto` chooses: the paper's 224, the size every bundled model was trained at."""
+AUTO_MAX_INPUT_PIXELS = 224 * 288
+"""The most input pixels `auto` spends: 224 x 288, 1.29x the multiply-adds of the paper's 224 x 224 (1.9 G a
+frame unpruned) — on a 2-core machine shared with another job an epoch at 384 x 384 took 150-240 s, and the
+30-minute budget trained 6-8 epochs."""
+AUTO_MIN_SIDE = 128
+"""The shortest input side `auto` considers."""
+AUTO_MAX_SIDE = 384
+"""The longest input side `auto` considers."""
+WORKSPACE_MARGIN = 0.05
+"""Added on each side of the training keypoints' box, as a share of its size: on the held-out fixed camera and the
+new cell no test keypoint fell outside the box with 0.02 (0.6 % of the new cell's did with none)."""
+
+
+def _points(keypoints) -> np.ndarray:
+    points = np.asarray(keypoints, np.float64).reshape(-1, 2)
+    return points[np.isfinite(points).all(axis=1)]
 
 
 def arm_span(frames: Iterable[tuple[np.ndarray, int, int]]) -> float:
@@ -40,8 +55,7 @@ def arm_span(frames: Iterable[tuple[np.ndarray, int, int]]) -> float:
     """
     spans = []
     for keypoints, width, height in frames:
-        points = np.asarray(keypoints, np.float64).reshape(-1, 2)
-        points = points[np.isfinite(points).all(axis=1)]
+        points = _points(keypoints)
         if len(points) < 2 or width <= 0 or height <= 0:
             continue
         extent = points.max(axis=0) - points.min(axis=0)
@@ -49,23 +63,98 @@ def arm_span(frames: Iterable[tuple[np.ndarray, int, int]]) -> float:
     return float(np.median(spans)) if spans else 0.0
 
 
-def choose_input_size(span: float, start_size: int | None = None) -> int:
-    """The smallest multiple of 32 from AUTO_MIN_INPUT_SIZE at which an arm spanning `span` of the frame covers
-    MIN_ARM_INPUT_PX input pixels; AUTO_MAX_INPUT_SIZE when none up to it does, AUTO_MIN_INPUT_SIZE when the
-    span is unknown (0: no frame with two keypoints).
+def workspace_box(frames: Sequence[tuple[np.ndarray, int, int]], margin: float = WORKSPACE_MARGIN) -> Box | None:
+    """The box (x, y, width, height in frame pixels) holding every keypoint of `frames`, grown by `margin` of its size
+    on each side and kept inside the frame; None when the frames differ in size or hold fewer than two keypoints."""
+    sizes = {(int(w), int(h)) for _, w, h in frames}
+    points = [_points(k) for k, _, _ in frames]
+    points = np.concatenate(points) if points else np.empty((0, 2))
+    if len(sizes) != 1 or len(points) < 2:
+        return None
+    (fw, fh), = sizes
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    grow = margin * (hi - lo)
+    x0, y0 = (int(np.floor(v)) for v in np.maximum(lo - grow, 0))
+    x1, y1 = (int(np.ceil(v)) + 1 for v in np.minimum(hi + grow, (fw - 1, fh - 1)))
+    return x0, y0, max(1, x1 - x0), max(1, y1 - y0)
 
-    `start_size`, the input size the starting model was trained at, is kept instead when it is a size `auto`
-    can choose and the arm already spans MIN_ARM_INPUT_PX input pixels there: a model continued on more frames of
-    the same camera (the correction loop's next round) stays at the scale it learnt, and its rounds compare, even
-    when the merged frames' median arm moves a little. The bundled models (224) never change the choice: 224
-    qualifies only when it is the smallest size that does.
+
+def fit_aspect(box: Box, aspect: float, frame_wh: tuple[int, int]) -> Box:
+    """`box` grown along one axis (about its centre, shifted to stay inside the frame) to width / height = `aspect`,
+    so the input's pixels are square in the frame; an axis the frame is too small for stops at the frame."""
+    x, y, w, h = box
+    fw, fh = frame_wh
+    if w / h < aspect:
+        w2, h2 = min(fw, int(round(h * aspect))), h
+    else:
+        w2, h2 = w, min(fh, int(round(w / aspect)))
+    x2 = int(np.clip(round(x + w / 2 - w2 / 2), 0, fw - w2))
+    y2 = int(np.clip(round(y + h / 2 - h2 / 2), 0, fh - h2))
+    return x2, y2, w2, h2
+
+
+def aspect_inputs(aspect: float) -> list[tuple[int, int]]:
+    """(height, width) inputs, multiples of 32, whose aspect is closest to `aspect` for each height, fewest pixels
+    first."""
+    m = INPUT_SIZE_MULTIPLE
+    shapes = set()
+    for height in range(AUTO_MIN_SIDE, AUTO_MAX_SIDE + 1, m):
+        width = int(round(height * aspect / m)) * m
+        if AUTO_MIN_SIDE <= width <= AUTO_MAX_SIDE:
+            shapes.add((height, width))
+    return sorted(shapes, key=lambda s: (s[0] * s[1], s))
+
+
+def arm_input_px(frames: Sequence[tuple[np.ndarray, int, int]], view: FrameView) -> float:
+    """Median over frames of the arm's keypoint box in input pixels under `view`: max(width, height) after the
+    crop's resize to the input."""
+    spans = []
+    for keypoints, width, height in frames:
+        points = _points(keypoints)
+        if len(points) < 2:
+            continue
+        _, _, bw, bh = view.box((height, width))
+        extent = points.max(axis=0) - points.min(axis=0)
+        spans.append(max(extent[0] * view.width / bw, extent[1] * view.height / bh))
+    return float(np.median(spans)) if spans else 0.0
+
+
+def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: bool,
+                start: FrameView | None = None) -> FrameView:
+    """The view `train --input-size auto` takes for these frames (keypoints, frame width, frame height).
+
+    The region: the workspace (`workspace_box`, fitted to the input's aspect) for one fixed camera whose frames
+    share one size, else the whole frame. The input: the fewest pixels, at the region's aspect, at which the
+    median arm spans MIN_ARM_INPUT_PX input pixels, capped at AUTO_MAX_INPUT_PIXELS (the most pixels within the
+    cap when no input reaches it). `start` (the starting model's own view) is kept instead when its crop holds
+    every keypoint of the frames and the arm spans MIN_ARM_INPUT_PX there: the correction loop's next round stays
+    at the view it learnt.
     """
-    if span <= 0:
-        return AUTO_MIN_INPUT_SIZE
-    if (start_size is not None and AUTO_MIN_INPUT_SIZE <= start_size <= AUTO_MAX_INPUT_SIZE
-            and start_size % INPUT_SIZE_MULTIPLE == 0 and span * start_size >= MIN_ARM_INPUT_PX):
-        return start_size
-    for size in range(AUTO_MIN_INPUT_SIZE, AUTO_MAX_INPUT_SIZE + 1, INPUT_SIZE_MULTIPLE):
-        if span * size >= MIN_ARM_INPUT_PX:
-            return size
-    return AUTO_MAX_INPUT_SIZE
+    sizes = {(int(w), int(h)) for _, w, h in frames} or {(640, 480)}
+    frame_wh = max(sizes)
+    if start is not None and _holds(start, frames) and arm_input_px(frames, start) >= MIN_ARM_INPUT_PX:
+        return start
+    box = workspace_box(frames) if fixed_camera else None
+    region = box or (0, 0, frame_wh[0], frame_wh[1])
+    best = None
+    for height, width in aspect_inputs(region[2] / region[3]):
+        if height * width > AUTO_MAX_INPUT_PIXELS:
+            break
+        if box is None:
+            view = FrameView(height, width)
+        else:
+            view = FrameView(height, width, fit_aspect(box, width / height, frame_wh), frame_wh)
+        best = view
+        if arm_input_px(frames, view) >= MIN_ARM_INPUT_PX:
+            break
+    return best if best is not None else FrameView(224, 224)
+
+
+def _holds(view: FrameView, frames: Sequence[tuple[np.ndarray, int, int]]) -> bool:
+    """True when every keypoint of the frames lies inside the view's crop (always, for the whole frame)."""
+    for keypoints, width, height in frames:
+        x, y, w, h = view.box((height, width))
+        points = _points(keypoints)
+        if len(points) and ((points < (x - 0.5, y - 0.5)).any() or (points > (x + w - 0.5, y + h - 0.5)).any()):
+            return False
+    return True

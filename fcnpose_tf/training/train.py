@@ -31,7 +31,7 @@ from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
-from fcnpose_tf.training.model import save_for_inference
+from fcnpose_tf.training.model import given_view, save_for_inference, view_of, with_view
 from fcnpose_tf.progress import Reporter
 
 
@@ -419,7 +419,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     try:
         if resume:
             state = json.loads(paths["ckpt_state"].read_text())
-            model = keras.models.load_model(paths["ckpt_model"])  # with optimizer state
+            model = with_view(keras.models.load_model(paths["ckpt_model"]), view_of(model))  # with optimizer state
             if state["epoch"] >= config.epochs or state.get("stopped_early"):
                 reporter.say(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
         else:
@@ -469,7 +469,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         _load_weights(model, best)
     try:
         with atomic_path(model_path, force=True) as tmp:
-            save_for_inference(inference_model(model) if inference_model else model, tmp)
+            kept = inference_model(model) if inference_model else model
+            save_for_inference(kept if given_view(model) is None else with_view(kept, view_of(model)), tmp)
         write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], state["best_epoch"],
                           config.positive_weight, config.distill, start_val_loss=state.get("start_val_loss"))
         write_json(paths["train_json"], {
@@ -522,33 +523,51 @@ def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> 
                      "chose": augment}
 
 
-def resolve_input_size(frames: Sequence[Any], reporter: Reporter | None = None,
-                       start_size: int | None = None) -> tuple[int, dict[str, Any]]:
-    """What `input_size="auto"` (train's default) means for these frames (`data.via` frames: keypoints and frame
-    sizes): the smallest input side at which the arm spans enough input pixels (`data.arm_size`), or the starting
-    model's own size `start_size` when the arm spans enough there; the choice and what it was based on, for
-    NAME_train.json ("input_size_auto"), said through `reporter`."""
-    from fcnpose_tf.data.arm_size import MIN_ARM_INPUT_PX, arm_span, choose_input_size
+def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera: bool,
+                 reporter: Reporter | None = None, start: Any = None) -> tuple[Any, dict[str, Any]]:
+    """The view a run trains at (`preprocess.FrameView`) for `train --input-size` and `--crop`, and what it was based
+    on, for NAME_train.json ("view_auto"), said through `reporter`.
 
-    span = arm_span((f.keypoints, f.width, f.height) for f in frames)
-    size = choose_input_size(span, start_size)
-    smallest = choose_input_size(span)
-    default = settings.INPUT_SIZE.default
-    cost = f"; --input-size {default} runs {(size / default) ** 2:.1f}x faster" if size > default else ""
-    kept = (f"; the starting model's own size, kept: the smallest size reaching them is {smallest}"
-            if size != smallest else "")
+    `input_size` "auto" chooses crop and input together (`data.arm_size.choose_view`; `start`, the starting model's
+    view, is kept where it still fits); S or (H, W) is the user's input, over the workspace crop when `crop` is
+    "auto" and the camera is fixed, else over the whole frame. `frames` are `data.via` frames (keypoints, frame
+    sizes)."""
+    from fcnpose_tf.data.arm_size import MIN_ARM_INPUT_PX, arm_input_px, choose_view, fit_aspect, workspace_box
+    from fcnpose_tf.metrics import FCN_POSE_P70_WIDTHS, fcn_pose_macs
+    from fcnpose_tf.preprocess import FrameView
+
+    boxes = [(f.keypoints, f.width, f.height) for f in frames]
+    use_crop = crop == "auto" and fixed_camera
+    if input_size == settings.AUTO_INPUT_SIZE:
+        view = choose_view(boxes, use_crop, start=start)
+        if crop == "none" and view.crop is not None:
+            view = FrameView(view.height, view.width)
+    else:
+        view = FrameView.of(input_size)
+        box = workspace_box(boxes) if use_crop else None
+        if box is not None:
+            frame_wh = (frames[0].width, frames[0].height)
+            view = FrameView(view.height, view.width, fit_aspect(box, view.width / view.height, frame_wh), frame_wh)
+    arm_px = arm_input_px(boxes, view)
+    macs = fcn_pose_macs(view.shape)
+    kept = "; the starting model's own view, kept" if start is not None and view == start else ""
+    where = ("one fixed camera: its workspace" if view.crop is not None else
+             "the whole frame" + ("" if not use_crop and crop == "none" else
+                                  " (views vary)" if not fixed_camera else " (frames of several sizes)"))
     progress.resolve(reporter).say(
-        f"Input size: auto -> {size} (the arm's keypoint box spans {span:.2f} of the median frame: {span * size:.0f} "
-        f"input pixels at {size}, {MIN_ARM_INPUT_PX} wanted{kept}{cost})")
-    record = {"arm_span": round(span, 4), "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": size}
-    if start_size is not None:
-        record["start_input_size"] = start_size
-    return size, record
+        f"View: {view.describe()} ({where}{kept}); the arm's keypoint box spans {arm_px:.0f} input pixels in the "
+        f"median frame ({MIN_ARM_INPUT_PX} wanted); {macs / 1e9:.2f} G multiply-adds a frame unpruned, "
+        f"{fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) / 1e6:.0f} M at 70 %")
+    record = {"arm_input_px": round(arm_px, 1), "min_arm_input_px": MIN_ARM_INPUT_PX, "crop": crop,
+              "fixed_camera": bool(fixed_camera), "chose": view.to_json(), "macs": macs}
+    if start is not None:
+        record["start_view"] = start.to_json()
+    return view, record
 
 
-def initial_model(init: str | Path, schema: Any, input_size: int | None = None) -> keras.Model:
-    """FCN-Pose at `input_size` (None: the size it was saved at) holding the weights of the model file `init`
-    (trained at any input size).
+def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> keras.Model:
+    """FCN-Pose at `input_size` (S, (H, W) or a `FrameView` whose crop it takes; None: the view it was saved with)
+    holding the weights of the model file `init` (trained at any input size).
 
     The convolutions do not depend on the input size, so a model pretrained at 160 starts a run at
     224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
@@ -568,7 +587,7 @@ def initial_model(init: str | Path, schema: Any, input_size: int | None = None) 
     return source if input_size is None else at_input_size(source, input_size)
 
 
-def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: int,
+def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: Any,
                augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
@@ -588,7 +607,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         model_path: where the best model goes (.keras or .h5); the run's files go beside it.
         config: optimisation settings (those left None chosen by `FitConfig.resolved` for `init` and `augment`);
             `config.seed` also seeds the augmentation.
-        input_size: the model's input side (a multiple of 32).
+        input_size: the model's view: S (S x S over the whole frame), (H, W) or a `preprocess.FrameView` (a crop
+            and its input size, e.g. `resolve_view`'s); sides multiples of 32.
         augment_copies: offline augmented copies per training frame (augment "paper").
         augment: "paper" (fixed offline copies) or "online" (fresh random transforms every epoch).
         init: a model whose weights training starts from (same input size and maps), else a fresh one.
@@ -611,11 +631,14 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         UserError: an `init` model that does not fit the data or input size, or anything `fit` refuses.
     """
     from fcnpose_tf.data.dataset import fold_data
+    from fcnpose_tf.preprocess import FrameView
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.records import file_sha256
     from fcnpose_tf.training.model import build_fcn_pose, load_model
 
     model_path = Path(model_path)
+    view = FrameView.of(input_size)
+    input_size = view.height if view.square and view.crop is None else list(view.shape)  # as records state it
     label = label or str(model_path)
     reporter = progress.resolve(reporter)
     log = reporter.say
@@ -626,24 +649,24 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                                                else "random weights or online augmentation")
             + "; --positive-weight sets it)")
     config = config.resolved(trained_start=init is not None, augment=augment)
-    identity = run_identity(dataset.via_path, config, input_size=input_size, augment=augment,
+    identity = run_identity(dataset.via_path, config, input_size=view.to_json(), augment=augment,
                             augment_copies=augment_copies,
                             fold=fold, folds=dataset.splits.k, split_seed=dataset.splits.seed)
     check_checkpoint(model_path, resume=resume, force=force, identity=identity)  # before any frame is prepared
     num_maps = dataset.schema.num_maps
     if init is not None and not resume:
-        model = initial_model(init, dataset.schema, input_size)
+        model = initial_model(init, dataset.schema, view)
     else:
-        model = build_fcn_pose(input_size=input_size, num_maps=num_maps)
+        model = build_fcn_pose(input_size=view, num_maps=num_maps)
     folds = dataset.splits.k
     split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {folds}"
-    train_data, val_data = fold_data(dataset, fold, input_size, augment_copies, config.seed, augment,
+    train_data, val_data = fold_data(dataset, fold, view, augment_copies, config.seed, augment,
                                      progress=reporter)
     log(f"{label}: {'resuming' if resume else 'training'} on {split_name}: {train_data.describe()}, "
-        f"{len(val_data)} validation frames, {input_size}x{input_size}, up to {config.epochs} epochs")
+        f"{len(val_data)} validation frames, {view.describe()}, up to {config.epochs} epochs")
     facts = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path), "num_frames": len(dataset),
              "split": split_name, "fold": fold, "folds": folds, "split_seed": dataset.splits.seed,
-             "input_size": input_size, "augment": augment,
+             "input_size": input_size, "view": view.to_json(), "augment": augment,
              "augment_copies": augment_copies if augment == "paper" else None, "train_samples": len(train_data),
              "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
@@ -662,12 +685,13 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     paths = run_paths(model_path)
     record = json.loads(paths["train_json"].read_text())
     if init is not None and size_was_chosen:
-        kept = keep_start_if_better(init, dataset, val_idx, report, model_path, input_size, threads=threads,
+        kept = keep_start_if_better(init, dataset, val_idx, report, model_path, view, threads=threads,
                                     reporter=reporter, label=label, centroid=centroid)
         if kept is not None:
             record["start_as_saved"], start_predictor, start_report = kept
             if record["start_as_saved"]["chose"] == "start":
-                predictor, report, record["input_size"] = start_predictor, start_report, start_predictor.input_size
+                predictor, report = start_predictor, start_report
+                record["input_size"], record["view"] = start_predictor.view.height, start_predictor.view.to_json()
     record["validation"] = {"metrics": report["metrics"], "timing": report["timing"]}
     if test_data is not None:
         log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
@@ -677,11 +701,11 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 
 
 def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: dict[str, Any],
-                         model_path: Path, input_size: int, *, threads: int | None = None,
+                         model_path: Path, view: Any, *, threads: int | None = None,
                          reporter: Reporter | None = None, label: str = "",
                          centroid: str = "weighted") -> tuple[dict[str, Any], Any, dict] | None:
-    """The start as saved is a candidate too when the run trained at another input size than the start's own
-    (one `train --input-size auto` chose: a size the user asked for is kept).
+    """The start as saved is a candidate too when the run trained at another view (`preprocess.FrameView`: crop and
+    input size) than the start's own (one `train --input-size auto` chose: a size the user asked for is kept).
 
     `fit` already keeps the start when no epoch beats it at the run's size (epoch 0); a start pretrained at
     another size may still be better at its own, e.g. a generalist pretrained at 224 on views like the user's,
@@ -696,12 +720,15 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
     from fcnpose_tf.metrics import mean_pck
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
 
+    from fcnpose_tf.training.model import view_of
+
     start = initial_model(init, dataset.schema)
-    start_size = int(start.input_shape[1])
-    if start_size == input_size:
+    start_view = view_of(start)
+    if start_view == view:
         return None
+    start_size, input_size = start_view.describe(), view.describe()
     reporter = progress.resolve(reporter)
-    reporter.say(f"{label}: evaluating the starting model as saved ({start_size}x{start_size}) on the same "
+    reporter.say(f"{label}: evaluating the starting model as saved ({start_size}) on the same "
                  f"{len(val_idx)} validation frames")
     predictor = KerasKeypointModel(start, Path(init), num_threads=threads, centroid=centroid)
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
@@ -712,12 +739,13 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
     if chose == "start":
         with atomic_path(model_path, force=True) as tmp:
             save_for_inference(start, tmp)
-        reporter.say(f"{label}: kept the starting model as saved, at its own input size {start_size} ({figures}); "
-                     f"--input-size {start_size} trains at that size")
+        reporter.say(f"{label}: kept the starting model as saved, at its own view {start_size} ({figures}); "
+                     f"--input-size {start_view.height}x{start_view.width}"
+                     f"{' --crop none' if start_view.crop is None else ''} trains at that view")
     else:
         reporter.say(f"{label}: kept the trained model ({figures})")
-    entry = {"input_size": start_size, "start_mean_pck": round(start_score, 4),
-             "trained_mean_pck": round(trained_score, 4), "trained_input_size": input_size, "chose": chose}
+    entry = {"input_size": start_view.height, "view": start_view.to_json(), "start_mean_pck": round(start_score, 4),
+             "trained_mean_pck": round(trained_score, 4), "trained_view": view.to_json(), "chose": chose}
     return entry, predictor, report
 
 
