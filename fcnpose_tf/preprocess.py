@@ -96,6 +96,11 @@ class FrameView:
     def square(self) -> bool:
         return self.height == self.width
 
+    @property
+    def size_record(self) -> int | list[int]:
+        """The input size as records state it: S for S x S, [H, W] otherwise (the crop is recorded apart, `to_json`)."""
+        return self.height if self.square else [self.height, self.width]
+
     def box(self, frame_shape: tuple[int, ...]) -> Box:
         """The crop in pixels of a frame of `frame_shape` (height, width[, channels]); the whole frame without one."""
         fh, fw = int(frame_shape[0]), int(frame_shape[1])

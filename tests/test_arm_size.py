@@ -1,4 +1,5 @@
-"""`train --input-size auto`: the arm's size in the frames, the input side chosen from it, and how train records it."""
+"""`train --input-size auto`: where the arm is and how large, the view chosen from it (a fixed camera's workspace
+crop at its own aspect, the fewest input pixels up to the cap), and how train records it."""
 
 import json
 
@@ -6,11 +7,13 @@ import numpy as np
 import pytest
 
 from fcnpose_tf import settings
-from fcnpose_tf.data.arm_size import (AUTO_MAX_INPUT_SIZE, AUTO_MIN_INPUT_SIZE, MIN_ARM_INPUT_PX, arm_span,
-                                      choose_input_size)
+from fcnpose_tf.data.arm_size import (AUTO_MAX_INPUT_PIXELS, MIN_ARM_INPUT_PX, WORKSPACE_MARGIN, arm_input_px,
+                                      arm_span, aspect_inputs, choose_view, fit_aspect, workspace_box)
 from fcnpose_tf.data.via import ViaFrame, write_via_project
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
+from fcnpose_tf.metrics import FCN_POSE_P70_WIDTHS, fcn_pose_macs
+from fcnpose_tf.preprocess import FrameView
 
 
 def _box(x0, y0, w, h):
@@ -23,7 +26,6 @@ def test_arm_span_is_the_median_of_the_larger_side_against_the_frame():
               (_box(0, 0, 64, 240), 640, 480),      # 0.1 / 0.5 -> 0.5
               (_box(0, 0, 64, 48), 640, 480)]       # 0.1
     assert arm_span(frames) == pytest.approx(0.5)
-    # missing keypoints do not count; a frame with fewer than two visible ones has no box and is skipped
     partly = _box(0, 0, 320, 240)
     partly[0] = np.nan  # the box shrinks to the remaining points
     single = np.full((8, 2), np.nan)
@@ -32,111 +34,123 @@ def test_arm_span_is_the_median_of_the_larger_side_against_the_frame():
     assert arm_span([(single, 640, 480)]) == 0.0 and arm_span([]) == 0.0
 
 
-@pytest.mark.parametrize("span, size", [
-    (1.0, 224), (MIN_ARM_INPUT_PX / 224, 224),   # the arm spans 140 px at 224 already
-    (0.62, 256), (0.53, 288), (0.50, 288),        # the random-view proxies (0.50-0.54)
-    (0.388, 384),                                 # the held-out fixed camera's wide lens
-    (0.2, 384), (0.0, 224)])                      # too small for any size: the largest; unknown: the default
-def test_choose_input_size(span, size):
-    assert choose_input_size(span) == size
+def test_the_workspace_holds_every_keypoint_with_its_margin_inside_the_frame():
+    frames = [(_box(100, 50, 100, 200), 640, 480), (_box(300, 100, 100, 200), 640, 480)]
+    x, y, w, h = workspace_box(frames)
+    grow = WORKSPACE_MARGIN * np.array([300, 250])  # the union box is 100..400 x 50..300
+    assert x == int(np.floor(100 - grow[0])) and y == int(np.floor(50 - grow[1]))
+    assert x + w - 1 == int(np.ceil(400 + grow[0])) and y + h - 1 == int(np.ceil(300 + grow[1]))
+    edge = workspace_box([(_box(0, 0, 639, 479), 640, 480)])
+    assert edge == (0, 0, 640, 480)
+    assert workspace_box([(_box(0, 0, 10, 10), 640, 480), (_box(0, 0, 10, 10), 320, 240)]) is None  # two sizes
 
 
-def test_the_choice_is_the_smallest_size_reaching_the_wanted_pixels():
-    for span in np.linspace(0.01, 1.0, 200):
-        size = choose_input_size(float(span))
-        assert AUTO_MIN_INPUT_SIZE <= size <= AUTO_MAX_INPUT_SIZE and size % settings.INPUT_SIZE_MULTIPLE == 0
-        if size < AUTO_MAX_INPUT_SIZE:
-            assert span * size >= MIN_ARM_INPUT_PX
-        if size > AUTO_MIN_INPUT_SIZE:
-            assert span * (size - settings.INPUT_SIZE_MULTIPLE) < MIN_ARM_INPUT_PX
+def test_fit_aspect_grows_one_axis_about_the_centre_and_stays_in_the_frame():
+    assert fit_aspect((100, 100, 200, 200), 1.5, (640, 480)) == (50, 100, 300, 200)
+    assert fit_aspect((0, 100, 200, 100), 1.0, (640, 480)) == (0, 50, 200, 200)
+    assert fit_aspect((500, 0, 140, 480), 2.0, (640, 480))[::2] == (0, 640)  # as wide as the frame allows
+    for shape in aspect_inputs(4 / 3):
+        assert shape[0] % 32 == 0 and shape[1] % 32 == 0
+    assert (224, 288) in aspect_inputs(4 / 3) and (224, 224) in aspect_inputs(1.0)
 
 
-@pytest.mark.parametrize("span, start_size, size", [
-    (0.40, 384, 384), (0.40, 352, 352),   # the arm spans 140 px at the start's size too: the start's size is kept
-    (0.40, 320, 352),                     # 128 px at 320: too few, the smallest size that reaches 140
-    (0.50, 224, 288), (1.0, 224, 224),    # a bundled start (224) changes nothing
-    (0.9, 416, 224), (0.9, 300, 224),     # a size auto never chooses (too large, not a multiple of 32) is not kept
-    (0.0, 384, 224)])                     # unknown span: the default, whatever the start
-def test_choose_input_size_keeps_the_start_size_where_the_arm_is_large_enough(span, start_size, size):
-    assert choose_input_size(span, start_size) == size
+def test_a_fixed_camera_gets_its_workspace_at_its_aspect_and_views_that_vary_the_whole_frame():
+    # an arm 80 x 160 px moving inside a 160 x 200 workspace of 640 x 480 frames
+    frames = [(_box(200 + 8 * i, 150 + 4 * i, 80, 160), 640, 480) for i in range(11)]
+    view = choose_view(frames, fixed_camera=True)
+    assert view.crop is not None and view.frame_size == (640, 480)
+    x, y, w, h = view.crop
+    assert abs(w / h - view.width / view.height) < 0.02  # square pixels
+    assert arm_input_px(frames, view) >= MIN_ARM_INPUT_PX and view.height * view.width <= AUTO_MAX_INPUT_PIXELS
+    # the fewest pixels that reach it: the next smaller input of that aspect does not
+    smaller = [s for s in aspect_inputs(w / h) if s[0] * s[1] < view.height * view.width]
+    if smaller:
+        assert arm_input_px(frames, FrameView(*smaller[-1], fit_aspect(workspace_box(frames), smaller[-1][1] /
+                                                                       smaller[-1][0], (640, 480)), (640, 480))) \
+            < MIN_ARM_INPUT_PX
+    whole = choose_view(frames, fixed_camera=False)
+    assert whole.crop is None and whole.height * whole.width > view.height * view.width
 
 
-def test_a_bundled_start_never_changes_the_choice():
-    for span in np.linspace(0.01, 1.0, 200):
-        assert choose_input_size(float(span), AUTO_MIN_INPUT_SIZE) == choose_input_size(float(span))
+def test_an_arm_too_small_for_the_cap_gets_the_most_pixels_within_it():
+    frames = [(_box(10 + i, 10, 60, 60), 640, 480) for i in range(3)]
+    view = choose_view(frames, fixed_camera=False)
+    assert view == FrameView(224, 288)
+    assert fcn_pose_macs(view.shape) <= 1.91e9 and fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) <= 160e6
 
 
-def test_train_takes_auto_or_a_multiple_of_32_and_the_paper_keeps_224():
+def test_a_start_view_is_kept_only_while_it_holds_the_frames():
+    frames = [(_box(200 + 8 * i, 150 + 4 * i, 80, 160), 640, 480) for i in range(11)]
+    start = FrameView(256, 256, (160, 110, 260, 260), (640, 480))  # holds x 200-360, y 150-350
+    assert arm_input_px(frames, start) >= MIN_ARM_INPUT_PX
+    assert choose_view(frames, True, start=start) == start
+    moved = frames + [(_box(600, 10, 30, 30), 640, 480)]  # a keypoint outside the start's crop
+    assert choose_view(moved, True, start=start) != start
+
+
+def test_train_takes_auto_s_or_hxw_and_the_paper_keeps_224_over_the_whole_frame():
     setting = settings.TRAIN_INPUT_SIZE
     assert setting.default == "auto" and setting.default_in("paper") == 224
+    assert settings.TRAIN_CROP.default == "auto" and settings.TRAIN_CROP.default_in("paper") == "none"
     assert setting.parse("auto") == "auto" and setting.parse(" Auto ") == "auto" and setting.parse("320") == 320
+    assert setting.parse("224x288") == (224, 288) and setting.validate((224, 288)) == (224, 288)
     assert setting.validate("auto") == "auto" and setting.validate(384) == 384
-    for bad in (100, 0, -32, "big", 2.5, True):
-        with pytest.raises(UserError, match="input size must be auto or a positive multiple of 32"):
+    for bad in (100, 0, -32, "big", 2.5, True, (224, 100)):
+        with pytest.raises(UserError, match="input size must be auto, S or HxW"):
             setting.validate(bad)
-    # everywhere else the input size stays a number
     with pytest.raises(UserError, match="input size must be a positive multiple of 32"):
         settings.INPUT_SIZE.validate("auto")
 
 
-def _small_arm_project(folder, span, n=6, size=(640, 480)):
+def _project(folder, boxes, size=(640, 480)):
     (folder / "images").mkdir(parents=True)
     import cv2
 
     w, h = size
     frames = []
-    for i in range(n):
-        cv2.imwrite(str(folder / "images" / f"f{i}.png"), np.zeros((h, w, 3), np.uint8))
-        frames.append(ViaFrame(f"f{i}.png", w, h, _box(20 + i, 30, span * w, span * h * 0.5)))
+    for i, box in enumerate(boxes):
+        cv2.imwrite(str(folder / "images" / f"f{i}.png"), np.full((h, w, 3), 90, np.uint8))
+        frames.append(ViaFrame(f"f{i}.png", w, h, _box(*box)))
     write_via_project(folder / "labels.json", frames, UR5)
     return folder / "labels.json"
 
 
-def _frames(via_path):
+def test_resolve_view_says_what_it_chose_and_what_it_costs(tmp_path, capsys):
+    from fcnpose_tf.data.arm_size import resolve_view
     from fcnpose_tf.data.via import read_via
 
-    return read_via(via_path).frames
-
-
-def test_resolve_input_size_reads_the_frames_and_says_why(tmp_path, capsys):
-    from fcnpose_tf.training.train import resolve_input_size
-
-    size, record = resolve_input_size(_frames(_small_arm_project(tmp_path / "wide", 0.39)))
-    assert size == 384 and record == {"arm_span": 0.39, "min_arm_input_px": MIN_ARM_INPUT_PX, "chose": 384}
+    frames = read_via(_project(tmp_path / "cell", [(200 + 8 * i, 150 + 4 * i, 80, 160) for i in range(11)])).frames
+    view, record = resolve_view(frames, "auto", "auto", fixed_camera=True)
     out = capsys.readouterr().out
-    assert "Input size: auto -> 384 (the arm's keypoint box spans 0.39 of the median frame: 150 input pixels" in out
-    assert "--input-size 224 runs 2.9x faster" in out
-    size, _ = resolve_input_size(_frames(_small_arm_project(tmp_path / "close", 0.8)))
-    assert size == 224 and "faster" not in capsys.readouterr().out
-    # a start trained at 384 on this camera stays at 384 where the arm spans 140 px there (352 would do)
-    size, record = resolve_input_size(_frames(_small_arm_project(tmp_path / "next", 0.42)), start_size=384)
-    assert size == 384 and record["start_input_size"] == 384 and record["chose"] == 384
-    out = capsys.readouterr().out
-    assert "auto -> 384" in out and "the starting model's own size, kept: the smallest size reaching them is 352" in out
+    assert view.crop is not None and record["chose"] == view.to_json() and record["fixed_camera"] is True
+    assert f"View: {view.describe()} (one fixed camera: its workspace)" in out
+    assert f"{fcn_pose_macs(view.shape) / 1e9:.2f} G multiply-adds a frame unpruned" in out
+    none, _ = resolve_view(frames, "auto", "none", fixed_camera=True)
+    assert none.crop is None
+    given, _ = resolve_view(frames, (224, 288), "auto", fixed_camera=True)
+    assert given.shape == (224, 288) and given.crop is not None
+    x, y, w, h = given.crop
+    assert abs(w / h - 288 / 224) < 0.02
 
 
 @pytest.mark.slow
-def test_train_auto_records_the_choice(cli, tmp_path):
-    from fcnpose_tf.training.model import load_model
+def test_train_auto_records_the_view_and_the_model_carries_its_crop(cli, tmp_path):
+    from fcnpose_tf.training.model import load_model, view_of
 
-    data = _small_arm_project(tmp_path / "frames", 0.9)
+    data = _project(tmp_path / "frames", [(200 + 8 * i, 150 + 4 * i, 60, 120) for i in range(6)])
     out = tmp_path / "m.keras"
     common = ["--data", data, "--out", out, "--init", "none", "--augment", "paper", "--augment-copies", "0",
-              "--batch-size", "4", "--threads", "1", "--quiet"]
-    proc = cli("train", *common, "--epochs", "1")
+              "--batch-size", "4", "--threads", "1", "--quiet", "--epochs", "1"]
+    proc = cli("train", *common)
     assert proc.returncode == 0, proc.stderr
-    assert "Input size: auto -> 224 (the arm's keypoint box spans 0.90 of the median frame" in proc.stdout
+    assert "View: " in proc.stdout and "(one fixed camera: its workspace)" in proc.stdout
     record = json.loads((tmp_path / "m_train.json").read_text())
-    assert record["input_size"] == 224 and record["input_size_auto"]["chose"] == 224
-    assert load_model(out).input_shape[1:3] == (224, 224)
-    # a next round from a model trained at 256 stays at 256: the arm spans 140 px there too
-    first, second = tmp_path / "r1.keras", tmp_path / "r2.keras"
-    proc = cli("train", *common[:2], "--out", first, *common[4:], "--epochs", "1", "--input-size", "256")
+    view = FrameView.from_json(record["view"])
+    assert view.crop is not None and record["view_auto"]["chose"] == record["view"]
+    assert view_of(load_model(out)) == view
+    # a next round from that model keeps its view: its crop holds the frames and the arm spans enough there
+    second = tmp_path / "r2.keras"
+    proc = cli("train", *common[:2], "--out", second, *common[4:6], str(out), *common[6:])
     assert proc.returncode == 0, proc.stderr
-    common[5] = first
-    proc = cli("train", *common[:2], "--out", second, *common[4:], "--epochs", "1")
-    assert proc.returncode == 0, proc.stderr
-    assert "Input size: auto -> 256" in proc.stdout and "the smallest size reaching them is 224" in proc.stdout
-    record = json.loads((tmp_path / "r2_train.json").read_text())
-    assert record["input_size"] == 256 and record["input_size_auto"]["start_input_size"] == 256
-    assert load_model(second).input_shape[1:3] == (256, 256)
+    assert "the starting model's own view, kept" in proc.stdout
+    assert view_of(load_model(second)) == view

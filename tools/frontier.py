@@ -120,7 +120,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     rows[0].update(format="Keras float32", input_size=int(keras_model.model.input_shape[1]), timing=keras_stats)
     for row, model, ts in zip(rows[1:], models, times[1:]):
         stats = bench.latency_stats(ts)
-        row.update(format=file_format(model), input_size=model.input_size, macs=int(model.stats().macs),
+        row.update(format=file_format(model), input_size=model.view.size_record, macs=int(model.stats().macs),
                    size_bytes=model.stats().size_bytes, timing=stats,
                    ratio=keras_stats["total_ms_median"] / stats["total_ms_median"])
     points = [(r["timing"]["total_ms_median"], r["metrics"]["pck@0.05_bbox"]) for r in rows[1:]]

@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from fcnpose_tf import settings
 from fcnpose_tf.data.args import add_data_arguments, load_from_args
 
 NAME = "data"
@@ -49,7 +50,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     inspect.add_argument("--out", type=Path, help="write a preview PNG here")
     inspect.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     inspect.add_argument("--samples", type=int, default=6, help="frames in the preview")
-    inspect.add_argument("--input-size", type=int, default=224, help="model input side for the target maps")
+    inspect.add_argument("--input-size", type=settings.input_size_or_auto, default=settings.AUTO_INPUT_SIZE,
+                         metavar="auto|S|HxW",
+                         help="the model input for the target maps and the preview: auto (default) is what `train` "
+                              "would choose for these frames, printed with its reasons; S or HxW (multiples of 32)")
+    inspect.add_argument("--crop", choices=("auto", "none"), default="auto",
+                         help="as train --crop: auto shows a fixed camera's workspace crop, none the whole frame")
     inspect.add_argument("--augment-copies", type=int, default=2,
                          help="augmented copies per training frame (for the counts; the preview shows one)")
     inspect.add_argument("--seed", type=int, default=0, help="augmentation seed")
@@ -93,8 +99,7 @@ def _inspect(args: argparse.Namespace) -> int:
     from fcnpose_tf.fileio import check_writable
     from fcnpose_tf.tables import format_table
 
-    if args.input_size < 8:
-        raise UserError(f"--input-size must be at least 8, got {args.input_size}")
+    settings.TRAIN_INPUT_SIZE.validate(args.input_size)
     if args.samples < 1:
         raise UserError(f"--samples must be at least 1, got {args.samples}")
     if args.augment_copies < 0:
@@ -143,15 +148,24 @@ def _inspect(args: argparse.Namespace) -> int:
     print(format_table(["Split", "Train frames", "Val frames", f"Train samples (+{copies} copies each)"], rows))
     if not ds.splits.folds:
         print(f"  (too few frames for {ds.splits.k} folds)")
-    s = args.input_size
-    print(f"\nTarget maps at {s}x{s}: discs of radius {default_radius(s):.3g} px, skeleton lines "
-          f"{default_thickness(s):.3g} px thick (the paper's 6 px and 30 px at 224, scaled)")
+    from fcnpose_tf.data.arm_size import resolve_view
+    from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
+
+    variation = view_variation([sample.image_path for sample in ds.samples])
+    fixed_camera = choose_augment(variation) == "paper"
+    print(f"\nWhat `train` on its defaults chooses for these frames: augmentation {choose_augment(variation)} "
+          f"({'one fixed camera' if fixed_camera else 'views that vary'}: the frames differ from their median by "
+          f"{variation:.2f} std; a fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION}), and")
+    view, _ = resolve_view(ds.samples, args.input_size, args.crop, fixed_camera)
+    short = min(view.shape)
+    print(f"Target maps at {view.height}x{view.width}: discs of radius {default_radius(short):.3g} px, skeleton lines "
+          f"{default_thickness(short):.3g} px thick (the paper's 6 px and 30 px at 224, scaled)")
 
     if args.out is not None:
-        image = preview_image(ds, args.samples, s, args.seed)
+        image = preview_image(ds, args.samples, view, args.seed)
         _write_png(args.out, image, args.force)
-        print(f"Preview: {args.out} ({min(args.samples, len(ds))} frames; columns: keypoints and skeleton, "
-              "target maps, an augmented copy with its maps)")
+        print(f"Preview: {args.out} ({min(args.samples, len(ds))} frames as the model sees them, {view.describe()}; "
+              "columns: keypoints and skeleton, target maps, an augmented copy with its maps)")
     return 0
 
 
@@ -223,25 +237,30 @@ def _caption(tile, text: str):
 
 
 def _upscale(image):
+    """The image scaled to _TILE rows, its aspect kept."""
     import cv2
 
-    return cv2.resize(image, (_TILE, _TILE), interpolation=cv2.INTER_NEAREST if image.shape[0] < _TILE
+    width = int(round(_TILE * image.shape[1] / image.shape[0]))
+    return cv2.resize(image, (width, _TILE), interpolation=cv2.INTER_NEAREST if image.shape[0] < _TILE
                       else cv2.INTER_AREA)
 
 
-def preview_image(dataset, samples: int, input_size: int, seed: int = 0):
-    """A BGR grid: per frame, (keypoints + skeleton | target maps | an augmented copy's maps), plus a legend."""
+def preview_image(dataset, samples: int, input_size, seed: int = 0):
+    """A BGR grid: per frame, (keypoints + skeleton | target maps | an augmented copy's maps), plus a legend; each
+    tile is the model's input (`input_size`: S, (H, W) or a `FrameView` with its crop) scaled to _TILE rows."""
     import cv2
     import numpy as np
 
     from fcnpose_tf.data.dataset import TrainingData
     from fcnpose_tf.draw import draw_keypoints, keypoint_colour
+    from fcnpose_tf.preprocess import FrameView
 
+    view = FrameView.of(input_size)
     count = min(samples, len(dataset))
     indices = np.unique(np.linspace(0, len(dataset) - 1, count).round().astype(int))
-    data = TrainingData(dataset, indices, input_size, augment_copies=1, seed=seed)
+    data = TrainingData(dataset, indices, view, augment_copies=1, seed=seed)
     n = len(indices)
-    scale = _TILE / input_size
+    scale = _TILE / view.height
     rows = []
     for j in range(n):
         original, augmented = j, n + j
@@ -250,7 +269,7 @@ def preview_image(dataset, samples: int, input_size: int, seed: int = 0):
                               point_scale=scale, copy=False)
         left = _caption(left, dataset.samples[int(indices[j])].filename)
         middle = np.ascontiguousarray(_upscale(_overlay_maps(data.images[original], data.maps[original])))
-        middle = _caption(middle, f"target maps ({input_size}x{input_size})")
+        middle = _caption(middle, f"target maps ({view.height}x{view.width})")
         right = _upscale(_overlay_maps(data.images[augmented], data.maps[augmented]))
         right = draw_keypoints(right, data.keypoints[augmented], dataset.schema, labels=False, scale=_DOT_SCALE,
                                point_scale=scale, copy=False)

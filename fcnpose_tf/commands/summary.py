@@ -1,6 +1,7 @@
 """Print the paper-style layer table, parameters, MACs and file size of a model.
 
-Without MODEL, the unpruned FCN-Pose at the given --input-size (default 224).
+Without MODEL, the unpruned FCN-Pose at the given --input-size (default 224; HxW for another aspect). A model's
+view (the crop of the frame it sees, if any) is printed under its table.
 MACs are multiply-accumulates of all convolutions for one frame; FLOPs = 2 x MACs.
 """
 
@@ -14,6 +15,7 @@ USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf summary                                  # the paper's FCN-Pose at 224x224
   fcnpose-tf summary --input-size 64
+  fcnpose-tf summary --input-size 224x288             # a 4:3 input: 1.29x the MACs of 224x224
   fcnpose-tf summary saved_models/fcnpose_ur5.keras   # a trained or pruned model
 """
 
@@ -24,17 +26,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("model", nargs="?", type=model_argument(KERAS_SUFFIXES), metavar="MODEL",
                         help=f"a .keras/.h5 model file, or a bundled one by name ({names_help(KERAS_SUFFIXES)}); "
                              "default: build FCN-Pose")
-    parser.add_argument("--input-size", type=int, default=224,
-                        help="input side when building the default model (multiple of 32)")
+    from fcnpose_tf.settings import input_size_or_auto
+
+    parser.add_argument("--input-size", type=input_size_or_auto, default=224, metavar="S|HxW",
+                        help="input when building the default model: S (S x S) or HxW, multiples of 32")
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf.training.model import build_fcn_pose, describe, load_model
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.preprocess import FrameView
+    from fcnpose_tf.training.model import build_fcn_pose, describe, load_model, view_of
     from fcnpose_tf.tables import format_table
 
     if args.model is None:
-        model = build_fcn_pose(input_size=args.input_size)
-        title = f"Model: FCN-Pose (unpruned, {args.input_size}x{args.input_size})"
+        if args.input_size == "auto":
+            raise UserError("--input-size auto is chosen from a dataset (train, data inspect); give S or HxW here")
+        view = FrameView.of(args.input_size)
+        model = build_fcn_pose(input_size=view.shape)
+        title = f"Model: FCN-Pose (unpruned, {view.height}x{view.width})"
     else:
         model = load_model(args.model)
         title = f"Model: {args.model}"
@@ -49,4 +58,5 @@ def run(args: argparse.Namespace) -> int:
     if args.model is not None:
         size = args.model.stat().st_size
         print(f"File size:        {size:,} bytes ({size / 1e6:.3f} MB)")
+        print(f"View:             {view_of(model).describe()}")
     return 0

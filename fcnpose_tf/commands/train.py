@@ -90,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.records import training_record
     from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line,
-                                           resolve_augment, resolve_view, run_identity, start_on_test_set,
+                                           resolve_augment, run_identity, start_on_test_set,
                                            train_fold)
 
     init = initial_weights(args.init)
@@ -122,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
                       "preset": args.preset}
     # auto settings are resolved before the checkpoint check: a checkpoint records what ran
     size_was_chosen = args.input_size == settings.AUTO_INPUT_SIZE
+    from fcnpose_tf.data.arm_size import resolve_view
     from fcnpose_tf.data.via import read_via
     from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, view_variation
 

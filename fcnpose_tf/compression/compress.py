@@ -31,6 +31,7 @@ import numpy as np
 from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
+from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.fileio import check_writable, write_json
 from fcnpose_tf.records import file_sha256, training_record
@@ -460,7 +461,7 @@ class FilterPruning:
         """The start model's weights in the network surgery would build from `base` (same widths, the base's input
         size); UserError when its widths are not surgery's."""
         from fcnpose_tf.compression.prune import prune_widths
-        from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model
+        from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model, view_of
 
         source = load_model(self.start)
         widths = (*prune_widths(base, self.rate, self.min_filters)[0], conv_widths(base)[-1])
@@ -468,7 +469,7 @@ class FilterPruning:
             floor = f" with no layer under {self.min_filters} filters" if self.min_filters > 1 else ""
             raise UserError(f"--start {self.start_name}: its widths {conv_widths(source)} are not filter surgery's at "
                             f"--rate {self.rate:g}{floor} on this model, {widths}")
-        pruned = build_fcn_pose(widths[:-1], int(base.input_shape[1]), widths[-1])
+        pruned = build_fcn_pose(widths[:-1], view_of(base), widths[-1])
         pruned.set_weights(source.get_weights())
         return pruned, {"pruning": {"start": self.start_name, "start_file": str(self.start),
                                     "min_filters": self.min_filters}}
@@ -591,8 +592,11 @@ class _Run:
     """The retraining's training data (`data.dataset.fold_data`), kept for quantization-aware training."""
 
     @property
-    def input_size(self) -> int:
-        return int(self.base.input_shape[1])
+    def input_size(self) -> FrameView:
+        """What the base model sees of a frame (its crop and input size): every step prepares frames this way."""
+        from fcnpose_tf.training.model import view_of
+
+        return view_of(self.base)
 
     def measure(self, predictor: Any, label: str, timing: bool = True) -> dict:
         """Metrics (and timing) of a predictor on the run's frames."""
@@ -657,7 +661,10 @@ def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, d
     weights); measure the result before any retraining.
     The pruned model, and its report sections (`CompressReport` fields by name: the method's and
     pruned_before_retraining)."""
+    from fcnpose_tf.training.model import with_view
+
     pruned, entries = run.method.prune(run.base, importance)
+    pruned = with_view(pruned, run.input_size)  # the crop is part of the model: surgery keeps the base's
     entries["pruned_before_retraining"] = {**model_facts(pruned), **run.measure(
         run.keras_predictor(pruned), "the pruned model before retraining", timing=False)}
     return pruned, entries
@@ -684,7 +691,8 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
                                                 "train_samples": len(train_data), "val_frames": len(val_data)}}
     metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
-                "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size,
+                "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size.size_record,
+                "view": run.input_size.to_json(),
                 "recipe": run.recipe}
     sequence = train_data.sequence(options.batch_size, seed=options.seed)
     if options.distill > 0:
@@ -831,7 +839,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps do not match the dataset.
         ValueError: `metadata` names a section of the report.
     """
-    from fcnpose_tf.training.model import at_input_size, load_model
+    from fcnpose_tf.training.model import at_input_size, load_model, view_of
     from fcnpose_tf.compression.prune import prune_plan, prune_widths
 
     base_path = Path(base_path)
@@ -848,7 +856,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
     prune_plan(base, options.rate, strategy=options.strategy)  # a model that is not a plain chain fails here, first
-    saved_size = int(base.input_shape[1])
+    saved_view = view_of(base)
     if options.input_size:
         base = at_input_size(base, options.input_size)
     floor = prune_widths(base, options.rate, options.min_filters)[1] if options.method == "l1" else 0
@@ -858,8 +866,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     run = _Run(base_path, base, pruning_method(options, floor, start_path), options, paths, train_dataset,
                eval_dataset, eval_indices, force, reporter, options.recipe(floor))
     steps = 4 + 2 * len(options.quantize)
-    resized = f", rebuilt from its {saved_size}x{saved_size}" if saved_size != run.input_size else ""
-    say(f"[1/{steps}] base model {base_path} ({run.input_size}x{run.input_size}{resized})")
+    resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
+    say(f"[1/{steps}] base model {base_path} ({run.input_size.describe()}{resized})")
     if floor < options.min_filters:
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
             f"no layer under {floor} filters")

@@ -17,11 +17,14 @@ fixed cell whose arm spans 0.53, 0.879 at 224 (118 px) and 0.929 at 320.
 
 from __future__ import annotations
 
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from fcnpose_tf import progress, settings
+from fcnpose_tf.metrics import FCN_POSE_P70_WIDTHS, fcn_pose_macs
 from fcnpose_tf.preprocess import Box, FrameView
+from fcnpose_tf.progress import Reporter
 from fcnpose_tf.settings import INPUT_SIZE_MULTIPLE
 
 MIN_ARM_INPUT_PX = 140
@@ -158,3 +161,41 @@ def _holds(view: FrameView, frames: Sequence[tuple[np.ndarray, int, int]]) -> bo
         if len(points) and ((points < (x - 0.5, y - 0.5)).any() or (points > (x + w - 0.5, y + h - 0.5)).any()):
             return False
     return True
+
+
+def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera: bool,
+                 reporter: Reporter | None = None, start: FrameView | None = None) -> tuple[FrameView, dict[str, Any]]:
+    """The view a run trains at (`preprocess.FrameView`) for `train --input-size` and `--crop`, and what it was based
+    on, for NAME_train.json ("view_auto"), said through `reporter`.
+
+    `input_size` "auto" chooses crop and input together (`data.arm_size.choose_view`; `start`, the starting model's
+    view, is kept where it still fits); S or (H, W) is the user's input, over the workspace crop when `crop` is
+    "auto" and the camera is fixed, else over the whole frame. `frames` are `data.via` frames (keypoints, frame
+    sizes)."""
+    boxes = [(f.keypoints, f.width, f.height) for f in frames]
+    use_crop = crop == "auto" and fixed_camera
+    if input_size == settings.AUTO_INPUT_SIZE:
+        view = choose_view(boxes, use_crop, start=start)
+        if crop == "none" and view.crop is not None:
+            view = FrameView(view.height, view.width)
+    else:
+        view = FrameView.of(input_size)
+        box = workspace_box(boxes) if use_crop else None
+        if box is not None:
+            frame_wh = (frames[0].width, frames[0].height)
+            view = FrameView(view.height, view.width, fit_aspect(box, view.width / view.height, frame_wh), frame_wh)
+    arm_px = arm_input_px(boxes, view)
+    macs = fcn_pose_macs(view.shape)
+    kept = "; the starting model's own view, kept" if start is not None and view == start else ""
+    where = ("one fixed camera: its workspace" if view.crop is not None else
+             "the whole frame" + ("" if not use_crop and crop == "none" else
+                                  " (views vary)" if not fixed_camera else " (frames of several sizes)"))
+    progress.resolve(reporter).say(
+        f"View: {view.describe()} ({where}{kept}); the arm's keypoint box spans {arm_px:.0f} input pixels in the "
+        f"median frame ({MIN_ARM_INPUT_PX} wanted); {macs / 1e9:.2f} G multiply-adds a frame unpruned, "
+        f"{fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) / 1e6:.0f} M at 70 %")
+    record = {"arm_input_px": round(arm_px, 1), "min_arm_input_px": MIN_ARM_INPUT_PX, "crop": crop,
+              "fixed_camera": bool(fixed_camera), "chose": view.to_json(), "macs": macs}
+    if start is not None:
+        record["start_view"] = start.to_json()
+    return view, record

@@ -25,7 +25,7 @@ from fcnpose_tf.keypoints import UR5, KeypointSchema
 from fcnpose_tf.postprocess import check_centroid, check_fallback
 from fcnpose_tf.postprocess import decode as decode_maps
 from fcnpose_tf.postprocess import dequantize
-from fcnpose_tf.preprocess import FrameView, preprocess_frame, preprocess_frame_bytes
+from fcnpose_tf.preprocess import Box, FrameView, preprocess_frame, preprocess_frame_bytes
 from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
                                             load_interpreter, model_stats, read_view)
 
@@ -51,6 +51,11 @@ class StageTimes:
         return self.preprocess_ms + self.invoke_ms + self.postprocess_ms
 
 
+CROP_EDGE_SHARE = 0.02
+"""A found keypoint this share of the crop's width (height) from its left or right (top or bottom) border is "at the
+crop's edge" (`Prediction.at_crop_edge`)."""
+
+
 @dataclass(frozen=True)
 class Prediction:
     """Keypoints of one frame: K x 2 (x, y) in frame pixels (NaN = not found) and K confidences.
@@ -63,11 +68,27 @@ class Prediction:
     confidence: np.ndarray
     times: StageTimes
     frame_shape: tuple[int, ...]
+    crop: Box | None = None
+    """The box of the frame the model saw (x, y, width, height), when the model reads a crop (`preprocess.FrameView`):
+    no keypoint can be found outside it."""
 
     @property
     def found(self) -> np.ndarray:
         """Boolean mask of the keypoints that were found."""
         return ~np.isnan(self.keypoints).any(axis=1)
+
+    def at_crop_edge(self, share: float = CROP_EDGE_SHARE) -> np.ndarray:
+        """Boolean mask of the found keypoints within `share` of the crop's size from its border: the arm may reach
+        past the crop there (a pose outside the workspace the model was trained on), and a keypoint beyond it is
+        placed at the border or not found. All False without a crop."""
+        if self.crop is None:
+            return np.zeros(len(self.keypoints), bool)
+        x, y, w, h = self.crop
+        margin = share * np.array([w, h], np.float64)
+        with np.errstate(invalid="ignore"):
+            low = self.keypoints < np.array([x - 0.5, y - 0.5]) + margin
+            high = self.keypoints > np.array([x + w - 0.5, y + h - 0.5]) - margin
+        return self.found & (low | high).any(axis=1)
 
     def records(self, schema: KeypointSchema, decimals: int = 2) -> list[dict]:
         """One {name, x, y, confidence} per keypoint; x and y are None for a keypoint not found."""
@@ -168,7 +189,11 @@ class KeypointPredictor(abc.ABC):
         keypoints, confidence = self.decode(frame_bgr.shape)
         t3 = time.perf_counter()
         times = StageTimes((t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3)
-        return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape))
+        return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape), self.crop_box(frame_bgr.shape))
+
+    def crop_box(self, frame_shape: tuple[int, ...]) -> Box | None:
+        """The box of a frame of this shape the model reads, when it reads a crop; None for the whole frame."""
+        return self.view.box(frame_shape) if self.view.crop is not None else None
 
     def warmup(self, frame_shape: tuple[int, int, int] = (480, 640, 3), runs: int = 1) -> None:
         """Run `runs` untimed frames of this shape, so the first real frame pays no start-up cost

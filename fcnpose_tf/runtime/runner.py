@@ -57,6 +57,8 @@ class RunSummary:
 
     frames: int = 0
     skipped: int = 0
+    crop_edge_frames: int = 0
+    """Frames with a keypoint at the edge of the model's crop (`Prediction.at_crop_edge`)."""
     dropped: int = 0
     end_reason: str = ""
     wall_s: float = 0.0
@@ -100,6 +102,11 @@ class RunSummary:
             lines.append(f"Delivered: {self.delivered_fps:.1f} frames/s, {self._mode()}; per frame "
                          f"{d['median']:.1f} ms p50, {d['p95']:.1f} ms p95 from read to records written "
                          f"({DELIVERED_DEFINITION})")
+        if model.view.crop is not None:
+            lines.append(f"Crop:    the model sees {model.view.describe()}; {self.crop_edge_frames} of {self.frames} "
+                         f"frames had a keypoint at its edge (the records' crop_edge): an arm reaching past the "
+                         f"crop is placed at its border or not found: retrain on frames of those poses "
+                         f"(docs/training.md, \"Input size\")")
         if len(self.capture_to_keypoints_ms):
             d = describe_ms(self.capture_to_keypoints_ms)
             lines.append(f"Latency: capture to keypoints written {d['median']:.1f} ms p50, {d['p95']:.1f} ms p95, "
@@ -305,7 +312,8 @@ class _Delivery:
         t0 = time.perf_counter()
         keypoints, confidence = self.model.decode_output(worker.outputs[slot], frame.image.shape)
         times = StageTimes(preprocess_ms, invoke_ms, (time.perf_counter() - t0) * 1e3)
-        return self.deliver(frame, Prediction(keypoints, confidence, times, tuple(frame.image.shape)), read_at)
+        return self.deliver(frame, Prediction(keypoints, confidence, times, tuple(frame.image.shape),
+                                              self.model.crop_box(frame.image.shape)), read_at)
 
     def deliver(self, frame: Frame, prediction: Prediction, read_at: float) -> bool:
         summary = self.summary
@@ -315,6 +323,7 @@ class _Delivery:
                                                                      frame_time_s(frame, self.source)))
         summary.latency.add(prediction.times)
         self.rolling.add(prediction.times.total_ms)
+        summary.crop_edge_frames += bool(prediction.at_crop_edge().any())
         with signals_deferred():  # Ctrl-C/SIGTERM take effect after a frame's records, hook and count
             for writer in self.writers:
                 writer.write(frame, prediction)

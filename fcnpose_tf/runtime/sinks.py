@@ -48,6 +48,10 @@ def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -
     record["latency_ms"] = {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
                             "postprocess": round(t.postprocess_ms, 3)}
     record["keypoints"] = prediction.records(schema)
+    if prediction.crop is not None:  # what the model saw, and the keypoints the arm may carry past it
+        edge = prediction.at_crop_edge()
+        record["crop_xywh"] = list(prediction.crop)
+        record["crop_edge"] = [name for name, at_edge in zip(schema.keypoints, edge) if at_edge]
     return record
 
 

@@ -283,13 +283,23 @@ def compile_for_training(model: keras.Model, learning_rate: float, positive_weig
     return model
 
 
+BUDGET_MIN_EPOCHS = 15
+"""Fewer epochs than this in the time budget earn a warning after the first one: fine-tuning from the generalist
+reached its best validation loss at epoch 16 on the held-out fixed camera (26 epochs at 384) and was still improving
+after 42 on held-out random views (docs/training.md); on a 2-core machine shared with another job an epoch at 384 x
+384 took 150-240 s, 6-8 epochs in 30 minutes."""
+
+
 class _CheckpointAndStop(keras.callbacks.Callback):
-    """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early."""
+    """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early; say the epoch's
+    time and the run's ETA, and after the first epoch whether the time budget allows the epochs fine-tuning needs."""
 
     def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0,
                  max_minutes: float | None = None, rate_of_progress: Callable[[float], float] | None = None,
-                 epochs: int = 1):
+                 epochs: int = 1, say: Callable[[str], None] | None = None):
         super().__init__()
+        self.say = say
+        self.first_epoch = int(state["epoch"])
         self.paths = paths
         self.state = state
         self.patience = patience
@@ -341,6 +351,27 @@ class _CheckpointAndStop(keras.callbacks.Callback):
             self.model.stop_training = True
         if self.state["out_of_time"]:  # a resume with a larger --max-minutes continues
             self.model.stop_training = True
+        if self.say is not None:
+            self._say_progress(epoch + 1)
+
+    def _say_progress(self, done: int) -> None:
+        """The epoch's line (time, best so far, ETA), and after this run's first epoch the budget's warning."""
+        epoch_s = (self.trained_seconds() - self.seconds_before) / max(1, done - self.first_epoch)
+        left = self.epochs - done
+        if self.max_seconds is not None:
+            left = min(left, max(0, math.ceil((self.max_seconds - self.state["seconds"]) / epoch_s)))
+        stopping = self.model.stop_training
+        eta = "done" if stopping or left == 0 else f"ETA {left * epoch_s / 60:.0f} min ({left} more epochs at most)"
+        self.say(f"epoch {done}: {epoch_s:.0f} s/epoch, best validation loss {self.state['best_val_loss']:.5f} at "
+                 f"epoch {self.state['best_epoch']}; {eta}")
+        if done == self.first_epoch + 1 and self.max_seconds is not None:
+            affordable = int(self.max_seconds // epoch_s)
+            if affordable < min(BUDGET_MIN_EPOCHS, self.epochs):
+                self.say(f"note: at {epoch_s:.0f} s an epoch the {self.max_seconds / 60:g}-minute budget trains about "
+                         f"{affordable} epochs, fewer than the {BUDGET_MIN_EPOCHS} fine-tuning needed on the proxies; "
+                         f"give it --max-minutes {math.ceil(BUDGET_MIN_EPOCHS * epoch_s / 60)}, or fewer input "
+                         "pixels (--input-size auto: the workspace crop at 224x288 at most), or a machine with "
+                         "fewer other jobs")
 
 
 def _save_weights(model: keras.Model, path: Path) -> None:
@@ -430,6 +461,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             if start_is_candidate:
                 state["start_val_loss"] = state["best_val_loss"] = _validation_loss(model, val_data,
                                                                                     config.batch_size)
+                reporter.say(f"epoch 0 (the starting model): validation loss {state['start_val_loss']:.5f}")
                 with parts_of(paths["ckpt_dir"]), atomic_path(paths["ckpt_best"], force=True) as tmp:
                     _save_weights(model, tmp)
 
@@ -437,7 +469,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         if config.lr_schedule == "cosine":
             schedule = functools.partial(cosine_rate, learning_rate=config.learning_rate)
         callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes,
-                                      schedule, epochs=config.epochs)
+                                      schedule, epochs=config.epochs, say=reporter.say)
         if state["epoch"] < config.epochs and not state["stopped_early"]:
             if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have
                 train_data.epoch = state["epoch"]
@@ -523,48 +555,6 @@ def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> 
                      "chose": augment}
 
 
-def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera: bool,
-                 reporter: Reporter | None = None, start: Any = None) -> tuple[Any, dict[str, Any]]:
-    """The view a run trains at (`preprocess.FrameView`) for `train --input-size` and `--crop`, and what it was based
-    on, for NAME_train.json ("view_auto"), said through `reporter`.
-
-    `input_size` "auto" chooses crop and input together (`data.arm_size.choose_view`; `start`, the starting model's
-    view, is kept where it still fits); S or (H, W) is the user's input, over the workspace crop when `crop` is
-    "auto" and the camera is fixed, else over the whole frame. `frames` are `data.via` frames (keypoints, frame
-    sizes)."""
-    from fcnpose_tf.data.arm_size import MIN_ARM_INPUT_PX, arm_input_px, choose_view, fit_aspect, workspace_box
-    from fcnpose_tf.metrics import FCN_POSE_P70_WIDTHS, fcn_pose_macs
-    from fcnpose_tf.preprocess import FrameView
-
-    boxes = [(f.keypoints, f.width, f.height) for f in frames]
-    use_crop = crop == "auto" and fixed_camera
-    if input_size == settings.AUTO_INPUT_SIZE:
-        view = choose_view(boxes, use_crop, start=start)
-        if crop == "none" and view.crop is not None:
-            view = FrameView(view.height, view.width)
-    else:
-        view = FrameView.of(input_size)
-        box = workspace_box(boxes) if use_crop else None
-        if box is not None:
-            frame_wh = (frames[0].width, frames[0].height)
-            view = FrameView(view.height, view.width, fit_aspect(box, view.width / view.height, frame_wh), frame_wh)
-    arm_px = arm_input_px(boxes, view)
-    macs = fcn_pose_macs(view.shape)
-    kept = "; the starting model's own view, kept" if start is not None and view == start else ""
-    where = ("one fixed camera: its workspace" if view.crop is not None else
-             "the whole frame" + ("" if not use_crop and crop == "none" else
-                                  " (views vary)" if not fixed_camera else " (frames of several sizes)"))
-    progress.resolve(reporter).say(
-        f"View: {view.describe()} ({where}{kept}); the arm's keypoint box spans {arm_px:.0f} input pixels in the "
-        f"median frame ({MIN_ARM_INPUT_PX} wanted); {macs / 1e9:.2f} G multiply-adds a frame unpruned, "
-        f"{fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) / 1e6:.0f} M at 70 %")
-    record = {"arm_input_px": round(arm_px, 1), "min_arm_input_px": MIN_ARM_INPUT_PX, "crop": crop,
-              "fixed_camera": bool(fixed_camera), "chose": view.to_json(), "macs": macs}
-    if start is not None:
-        record["start_view"] = start.to_json()
-    return view, record
-
-
 def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> keras.Model:
     """FCN-Pose at `input_size` (S, (H, W) or a `FrameView` whose crop it takes; None: the view it was saved with)
     holding the weights of the model file `init` (trained at any input size).
@@ -638,7 +628,6 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 
     model_path = Path(model_path)
     view = FrameView.of(input_size)
-    input_size = view.height if view.square and view.crop is None else list(view.shape)  # as records state it
     label = label or str(model_path)
     reporter = progress.resolve(reporter)
     log = reporter.say
@@ -666,7 +655,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         f"{len(val_data)} validation frames, {view.describe()}, up to {config.epochs} epochs")
     facts = {"data": str(dataset.via_path), "data_sha256": file_sha256(dataset.via_path), "num_frames": len(dataset),
              "split": split_name, "fold": fold, "folds": folds, "split_seed": dataset.splits.seed,
-             "input_size": input_size, "view": view.to_json(), "augment": augment,
+             "input_size": view.size_record, "view": view.to_json(), "augment": augment,
              "augment_copies": augment_copies if augment == "paper" else None, "train_samples": len(train_data),
              "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
@@ -691,7 +680,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
             record["start_as_saved"], start_predictor, start_report = kept
             if record["start_as_saved"]["chose"] == "start":
                 predictor, report = start_predictor, start_report
-                record["input_size"], record["view"] = start_predictor.view.height, start_predictor.view.to_json()
+                record["input_size"], record["view"] = start_predictor.view.size_record, start_predictor.view.to_json()
     record["validation"] = {"metrics": report["metrics"], "timing": report["timing"]}
     if test_data is not None:
         log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
@@ -744,7 +733,7 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
                      f"{' --crop none' if start_view.crop is None else ''} trains at that view")
     else:
         reporter.say(f"{label}: kept the trained model ({figures})")
-    entry = {"input_size": start_view.height, "view": start_view.to_json(), "start_mean_pck": round(start_score, 4),
+    entry = {"input_size": start_view.size_record, "view": start_view.to_json(), "start_mean_pck": round(start_score, 4),
              "trained_mean_pck": round(trained_score, 4), "trained_view": view.to_json(), "chose": chose}
     return entry, predictor, report
 

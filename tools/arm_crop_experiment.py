@@ -1,0 +1,104 @@
+#!/usr/bin/env python3
+"""Would a per-frame crop around the arm reach what a static workspace crop cannot? (maintainers only)
+
+A fixed camera's workspace can span most of the frame (the held-out fixed camera's: 0.84 x 1.0 of it), so a static
+crop gives its arm few more pixels than the whole frame. Top-down pose estimators (RTMPose, MoveNet, MediaPipe) read
+a crop around the subject instead: found by a first pass, or by the previous frame on video. This script measures
+that lever with the package's own commands, on datasets of crops it writes:
+
+    prepare --data D_train --out C_train --copies 3 --jitter 0.15    # crops around the labelled arm, jittered
+    prepare --data D_test --out C_test_gt                             # the oracle: crops around the labelled arm
+    prepare --data D_test --out C_test_pass1 --boxes-from FIRST.keras # a real first pass: FIRST's keypoints' box
+    fcnpose-tf train --data C_train --input-size 192 --crop none --augment paper --out M.keras --test-data C_test_gt
+    fcnpose-tf evaluate M.keras --data C_test_pass1 --split all
+
+A crop is a square of side max(box width, box height) x (1 + 2 x margin) about the keypoint box's centre, moved
+inside the frame; `--jitter J` moves its centre by up to J of its side and scales it by 1 +- J, copy by copy (a
+first pass's error). Crops keep the frame's pixels (no resizing), so EPE stays in frame pixels; a keypoint the crop
+cut off is unlabelled in it, and counted missing by `evaluate`, which is what a second pass could not see. With
+`--boxes-from`, a frame whose first pass found fewer than two keypoints keeps the whole frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+
+def square_crop(box_lo: np.ndarray, box_hi: np.ndarray, margin: float, frame_wh: tuple[int, int],
+                shift: np.ndarray = np.zeros(2), scale: float = 1.0) -> tuple[int, int, int, int]:
+    """(x, y, side_w, side_h) of the square crop about a keypoint box, inside the frame."""
+    fw, fh = frame_wh
+    side = max(box_hi - box_lo) * (1 + 2 * margin) * scale
+    side = int(round(min(max(side, 16), fw, fh)))
+    centre = (box_lo + box_hi) / 2 + shift * side
+    x = int(np.clip(round(centre[0] - side / 2), 0, fw - side))
+    y = int(np.clip(round(centre[1] - side / 2), 0, fh - side))
+    return x, y, side, side
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="action", required=True)
+    prep = sub.add_parser("prepare", help="write a dataset of crops around the arm")
+    prep.add_argument("--data", type=Path, required=True, help="a dataset folder (VIA project + images)")
+    prep.add_argument("--out", type=Path, required=True, help="the crops' dataset folder (new)")
+    prep.add_argument("--margin", type=float, default=0.25, help="added on each side, share of the box's side")
+    prep.add_argument("--copies", type=int, default=1, help="crops per frame")
+    prep.add_argument("--jitter", type=float, default=0.0, help="random shift (share of the side) and scale")
+    prep.add_argument("--boxes-from", type=Path, help="a model whose keypoints on the whole frame give the box")
+    prep.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args(argv)
+
+    import cv2
+
+    from fcnpose_tf.data.dataset import resolve_data
+    from fcnpose_tf.data.via import ViaFrame, read_via, write_via_project
+    from fcnpose_tf.preprocess import read_image
+
+    via_path, images = resolve_data(args.data, None)
+    annotations = read_via(via_path, images)
+    predictor = None
+    if args.boxes_from is not None:
+        from fcnpose_tf.training.evaluate import open_model
+
+        predictor = open_model(args.boxes_from)
+    (args.out / "images").mkdir(parents=True, exist_ok=False)
+    rng = np.random.default_rng(args.seed)
+    frames, whole = [], 0
+    for frame in annotations.frames:
+        image = read_image(frame.image_path)
+        if predictor is not None:
+            found = predictor.predict(image).keypoints
+            points = found[np.isfinite(found).all(axis=1)]
+        else:
+            points = frame.keypoints[np.isfinite(frame.keypoints).all(axis=1)]
+        for copy in range(args.copies):
+            if len(points) < 2:
+                crop, whole = (0, 0, frame.width, frame.height), whole + 1
+            else:
+                shift = rng.uniform(-args.jitter, args.jitter, 2) if args.jitter else np.zeros(2)
+                scale = 1 + rng.uniform(-args.jitter, args.jitter) if args.jitter else 1.0
+                crop = square_crop(points.min(axis=0), points.max(axis=0), args.margin, (frame.width, frame.height),
+                                   shift, scale)
+            x, y, w, h = crop
+            kps = frame.keypoints - (x, y)
+            outside = ~((kps >= -0.5) & (kps <= (w - 0.5, h - 0.5))).all(axis=1)
+            kps[outside] = np.nan
+            name = f"{Path(frame.filename).stem}_c{copy}.png"
+            cv2.imwrite(str(args.out / "images" / name), np.ascontiguousarray(image[y:y + h, x:x + w]))
+            frames.append(ViaFrame(name, w, h, kps))
+    write_via_project(args.out / "crops.json", frames, annotations.schema)
+    sides = [f.width for f in frames]
+    print(f"{args.out}: {len(frames)} crops of {len(annotations.frames)} frames; side median {np.median(sides):.0f} px "
+          f"(p10 {np.percentile(sides, 10):.0f}, p90 {np.percentile(sides, 90):.0f}); "
+          f"{sum(int(np.isnan(f.keypoints).any()) for f in frames)} crops cut a keypoint off; "
+          f"{whole} whole frames (first pass found < 2 keypoints)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
