@@ -355,10 +355,12 @@ wide and fine localisation falls (measured on the held-out fixed camera: docs/tr
 arm"); `data.arm_size` measures where the arm is and how large, and chooses. The paper's preset keeps the paper's
 224 x 224 over the whole frame."""
 TRAIN_CROP = Setting(
-    "crop", str, "auto", "auto: the network sees only the workspace of a fixed camera (the box holding every "
-    "training keypoint, 5 %% more on each side, at the input's aspect), the whole frame where views vary; none: the "
-    "whole frame (the paper's); the crop is part of the model: stored in it and in every export, applied by every "
-    "command and the Pi runtime", label="crop", choices=("auto", "none"), paper="none")
+    "crop", str, "auto", "what of the frame the network sees: auto: with --input-size auto, a fixed camera's workspace "
+    "(the box holding every training keypoint, 5 %% more on each side, at the input's aspect) and the whole frame "
+    "where views vary; with a given --input-size, the whole frame (as before crops existed); workspace: the "
+    "workspace crop at any input size; none: the whole frame (the paper's). The crop is part of the model: stored "
+    "in it and in every export, applied by every command and the Pi runtime", label="crop",
+    choices=("auto", "workspace", "none"), paper="none")
 """A fixed camera's arm never leaves its workspace, so pixels outside it are spent on nothing
 (docs/training.md, "Input size")."""
 FOLDS = Setting("folds", int, 5, "K of the K-fold cross-validation splits (the paper: 5)", label="folds",

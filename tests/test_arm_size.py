@@ -123,11 +123,13 @@ def test_resolve_view_says_what_it_chose_and_what_it_costs(tmp_path, capsys):
     view, record = resolve_view(frames, "auto", "auto", fixed_camera=True)
     out = capsys.readouterr().out
     assert view.crop is not None and record["chose"] == view.to_json() and record["fixed_camera"] is True
-    assert f"View: {view.describe()} (one fixed camera: its workspace)" in out
+    assert f"View: {view.describe()} (its workspace: one fixed camera)" in out
     assert f"{fcn_pose_macs(view.shape) / 1e9:.2f} G multiply-adds a frame unpruned" in out
     none, _ = resolve_view(frames, "auto", "none", fixed_camera=True)
     assert none.crop is None
-    given, _ = resolve_view(frames, (224, 288), "auto", fixed_camera=True)
+    given, _ = resolve_view(frames, (224, 288), "auto", fixed_camera=True)  # a given size: the whole frame, as before
+    assert given == FrameView(224, 288)
+    given, _ = resolve_view(frames, (224, 288), "workspace", fixed_camera=True)
     assert given.shape == (224, 288) and given.crop is not None
     x, y, w, h = given.crop
     assert abs(w / h - 288 / 224) < 0.02
@@ -143,7 +145,7 @@ def test_train_auto_records_the_view_and_the_model_carries_its_crop(cli, tmp_pat
               "--batch-size", "4", "--threads", "1", "--quiet", "--epochs", "1"]
     proc = cli("train", *common)
     assert proc.returncode == 0, proc.stderr
-    assert "View: " in proc.stdout and "(one fixed camera: its workspace)" in proc.stdout
+    assert "View: " in proc.stdout and "(its workspace: one fixed camera)" in proc.stdout
     record = json.loads((tmp_path / "m_train.json").read_text())
     view = FrameView.from_json(record["view"])
     assert view.crop is not None and record["view_auto"]["chose"] == record["view"]

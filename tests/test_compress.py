@@ -588,7 +588,7 @@ def test_compress_at_another_input_size_names_and_exports_files_at_it(setup, cli
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "base model " in proc.stdout and "(96x96, rebuilt from its 64x64)" in proc.stdout
     assert load_model(out / "base_p70_96.keras").input_shape == (None, 96, 96, 3)
-    assert KeypointModel(out / "base_p70_96_fp16.tflite").input_size == 96
+    assert KeypointModel(out / "base_p70_96_fp16.tflite").view.shape == (96, 96)
     report = json.loads((out / "base_p70_96_report.json").read_text())
     assert report["options"]["input_size"] == 96 and report["recipe"].endswith(", at 96x96")
     assert not (out / "base_p70.keras").exists()

@@ -132,8 +132,8 @@ def run(args: argparse.Namespace) -> int:
         args.augment, metadata["augment_auto"] = resolve_augment(frames)
         fixed_camera = args.augment == "paper"
     else:
-        fixed_camera = args.crop == "auto" and view_variation([f.image_path for f in frames]) \
-            <= FIXED_CAMERA_MAX_VARIATION
+        fixed_camera = args.crop == "auto" and size_was_chosen and \
+            view_variation([f.image_path for f in frames]) <= FIXED_CAMERA_MAX_VARIATION
     start_view = None
     if size_was_chosen and init is not None:
         from fcnpose_tf.training.model import load_model, view_of
@@ -144,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
     resolved = config.resolved(trained_start=init is not None, augment=args.augment)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
-                         identity=run_identity(via_path, resolved, input_size=view.to_json(), fold=fold, folds=k,
+                         identity=run_identity(via_path, resolved, input_size=view.size_record,
+                                               crop=view.to_json()["crop_xywh"], fold=fold, folds=k,
                                                augment=args.augment, augment_copies=args.augment_copies,
                                                split_seed=args.split_seed))
     dataset = load_from_args(args)  # --folds K or a --fold: K folds required of the data; else the hold-out split

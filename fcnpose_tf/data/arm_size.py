@@ -168,16 +168,17 @@ def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera
     """The view a run trains at (`preprocess.FrameView`) for `train --input-size` and `--crop`, and what it was based
     on, for NAME_train.json ("view_auto"), said through `reporter`.
 
-    `input_size` "auto" chooses crop and input together (`data.arm_size.choose_view`; `start`, the starting model's
-    view, is kept where it still fits); S or (H, W) is the user's input, over the workspace crop when `crop` is
-    "auto" and the camera is fixed, else over the whole frame. `frames` are `data.via` frames (keypoints, frame
+    `input_size` "auto" chooses crop and input together (`choose_view`, the workspace crop where `crop` is "auto"
+    and the camera is fixed; `start`, the starting model's view, is kept where it still fits); S or (H, W) is the
+    user's input, over the whole frame unless `crop` is "workspace". `frames` are `data.via` frames (keypoints, frame
     sizes)."""
     boxes = [(f.keypoints, f.width, f.height) for f in frames]
-    use_crop = crop == "auto" and fixed_camera
-    if input_size == settings.AUTO_INPUT_SIZE:
+    chosen = input_size == settings.AUTO_INPUT_SIZE
+    use_crop = crop == "workspace" or (crop == "auto" and chosen and fixed_camera)
+    if chosen:
         view = choose_view(boxes, use_crop, start=start)
-        if crop == "none" and view.crop is not None:
-            view = FrameView(view.height, view.width)
+        if crop == "none" and view.crop is not None:  # a start's own crop, refused
+            view = choose_view(boxes, False)
     else:
         view = FrameView.of(input_size)
         box = workspace_box(boxes) if use_crop else None
@@ -187,9 +188,9 @@ def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera
     arm_px = arm_input_px(boxes, view)
     macs = fcn_pose_macs(view.shape)
     kept = "; the starting model's own view, kept" if start is not None and view == start else ""
-    where = ("one fixed camera: its workspace" if view.crop is not None else
-             "the whole frame" + ("" if not use_crop and crop == "none" else
-                                  " (views vary)" if not fixed_camera else " (frames of several sizes)"))
+    where = ("its workspace" + (": one fixed camera" if fixed_camera else "") if view.crop is not None else
+             "the whole frame" + (" (views vary)" if chosen and crop == "auto" and not fixed_camera else
+                                  " (frames of several sizes)" if use_crop else ""))
     progress.resolve(reporter).say(
         f"View: {view.describe()} ({where}{kept}); the arm's keypoint box spans {arm_px:.0f} input pixels in the "
         f"median frame ({MIN_ARM_INPUT_PX} wanted); {macs / 1e9:.2f} G multiply-adds a frame unpruned, "

@@ -127,7 +127,7 @@ def check_outputs(model_path: Path, force: bool = False) -> None:
         check_writable(path, force)
 
 
-RESUME_SETTINGS = ("input_size", "augment", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
+RESUME_SETTINGS = ("input_size", "crop", "augment", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
                    "learning_rate", "positive_weight", "lr_patience", "lr_schedule", "freeze")
 """The settings that change what a run learns: a checkpoint is resumed only with the same ones (and data).
 Epochs and patience may change: continuing a run for longer is what --resume is for."""
@@ -638,7 +638,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                                                else "random weights or online augmentation")
             + "; --positive-weight sets it)")
     config = config.resolved(trained_start=init is not None, augment=augment)
-    identity = run_identity(dataset.via_path, config, input_size=view.to_json(), augment=augment,
+    identity = run_identity(dataset.via_path, config, input_size=view.size_record, crop=view.to_json()["crop_xywh"],
+                            augment=augment,
                             augment_copies=augment_copies,
                             fold=fold, folds=dataset.splits.k, split_seed=dataset.splits.seed)
     check_checkpoint(model_path, resume=resume, force=force, identity=identity)  # before any frame is prepared
