@@ -136,11 +136,12 @@ class FrameView:
         """The same crop at another input size."""
         return FrameView(int(height), int(width), self.crop, self.frame_size)
 
-    def describe(self) -> str:
-        """E.g. `224x288 over the crop x 80-559, y 60-419 of 640x480 frames` or `224x224 over the whole frame`."""
+    def describe(self, whole: str = " over the whole frame") -> str:
+        """E.g. `224x288 over the crop x 80-559, y 60-419 of 640x480 frames` or `224x224 over the whole frame` (`whole`
+        after the size when there is no crop)."""
         size = f"{self.height}x{self.width}"
         if self.crop is None:
-            return f"{size} over the whole frame"
+            return f"{size}{whole}"
         x, y, w, h = self.crop
         return (f"{size} over the crop x {x}-{x + w - 1}, y {y}-{y + h - 1} of "
                 f"{self.frame_size[0]}x{self.frame_size[1]} frames")

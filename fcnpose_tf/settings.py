@@ -674,7 +674,8 @@ COMPRESS_INPUT_SIZE = INPUT_SIZE.variant(
     help=f"the input side the compressed model and files run at, a multiple of {INPUT_SIZE_MULTIPLE} (default: the "
          "model's own): FCN-Pose is fully convolutional, so the model is rebuilt at this size with its weights, pruned, "
          "retrained and exported at it, and the files are named NAME_p70_SIZE; a smaller side costs fewer MACs (192: "
-         "0.73x of 224's) and localises coarser (docs/compression.md, \"A smaller input\")")
+         "0.73x of 224's) and localises coarser (docs/compression.md, \"A smaller input\"); for a model whose input "
+         "is H x W, the height, the width following at the same aspect (a multiple of 32), the crop kept")
 """None keeps the model's own size (the paper's protocol); the sweep always does (each fold's base at its size)."""
 DISTILL = Setting(
     "distill", float, 0.0,

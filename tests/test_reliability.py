@@ -173,7 +173,7 @@ def test_sigterm_right_after_a_record_is_written_is_counted_with_it(tmp_path, su
         raise KeyboardInterrupt("terminated (SIGTERM)")
 
     frame = SimpleNamespace(index=0, timestamp=0.0, name="f.png", media_time_s=None, image=np.zeros((4, 4, 3)))
-    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5),
+    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5), crop=None,
                                  records=lambda schema: [{"name": n, "x": None, "y": None, "confidence": 0.0}
                                                          for n in schema.keypoints])
     writer = open_record_writer(tmp_path / f"k{suffix}", UR5)
@@ -214,7 +214,7 @@ def _fake_frame_and_prediction():
     import numpy as np
 
     frame = SimpleNamespace(index=0, timestamp=0.0, name="f.png", media_time_s=None, image=np.zeros((4, 4, 3)))
-    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5),
+    prediction = SimpleNamespace(times=SimpleNamespace(preprocess_ms=1.0, invoke_ms=2.0, postprocess_ms=0.5), crop=None,
                                  records=lambda schema: [{"name": n, "x": 1.5, "y": None, "confidence": 0.5}
                                                          for n in schema.keypoints])
     return frame, prediction

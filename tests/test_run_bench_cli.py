@@ -151,7 +151,7 @@ def test_run_user_errors(capsys, tmp_path, monkeypatch, model_path, video, args,
 def test_bad_models_are_user_errors(capsys, tmp_path, dense_model, video, command):
     extra = ["--source", video] if command == "run" else ["--frames", "2"]
     code, _, err = _run(capsys, command, dense_model, *extra)
-    _one_line_error(code, err, "input shape [1, 16], expected [1, S, S, 3]")
+    _one_line_error(code, err, "input shape [1, 16], expected [1, H, W, 3]")
     corrupt = tmp_path / "corrupt.tflite"
     corrupt.write_bytes(b"\x1c\x00\x00\x00TFL3" + bytes(64))
     code, _, err = _run(capsys, command, corrupt, *extra)

@@ -135,17 +135,19 @@ def test_the_start_as_saved_is_a_candidate_when_training_ran_at_another_size(tmp
     def trained_scoring(value):
         return {"metrics": {"pck@0.5_bbox": value, "pck@0.2_bbox": value, "pck@0.05_bbox": value}}
 
-    entry, _, report = keep_start_if_better(start, data, val_idx, trained_scoring(1.0), trained_path, 64,
+    from fcnpose_tf.preprocess import FrameView
+
+    entry, _, report = keep_start_if_better(start, data, val_idx, trained_scoring(1.0), trained_path, FrameView(64, 64),
                                             reporter=SILENT)
     assert entry["chose"] == "trained" and entry["input_size"] == 224 and entry["trained_mean_pck"] == 1.0
     assert load_model(trained_path).input_shape[1] == 64  # untouched
-    entry, predictor, report = keep_start_if_better(start, data, val_idx, trained_scoring(0.0), trained_path, 64,
-                                                    reporter=SILENT)
-    assert entry["chose"] == "start" and entry["start_mean_pck"] > 0 and predictor.input_size == 224
+    entry, predictor, report = keep_start_if_better(start, data, val_idx, trained_scoring(0.0), trained_path,
+                                                    FrameView(64, 64), reporter=SILENT)
+    assert entry["chose"] == "start" and entry["start_mean_pck"] > 0 and predictor.view == FrameView(224, 224)
     kept, bundled = load_model(trained_path), load_model(start)
     assert kept.input_shape[1] == 224
     assert all(np.array_equal(a, b) for a, b in zip(kept.get_weights(), bundled.get_weights()))
-    assert keep_start_if_better(start, data, val_idx, trained_scoring(1.0), trained_path, 224,
+    assert keep_start_if_better(start, data, val_idx, trained_scoring(1.0), trained_path, FrameView(224, 224),
                                 reporter=SILENT) is None  # same size: fit's epoch 0 already was this candidate
 
 
@@ -161,10 +163,10 @@ def test_train_at_the_size_auto_chose_also_weighs_the_start_at_its_own_size(tmp_
                "--augment-copies", "0", "--batch-size", "4", "--quiet", "--threads", "1")
     assert proc.returncode == 0, proc.stdout + proc.stderr
     record = json.loads((tmp_path / "arm_train.json").read_text())
-    chosen = record["input_size_auto"]["chose"]
+    chosen = record["view_auto"]["chose"]
     entry = record["start_as_saved"]
-    assert chosen >= 224 and entry["input_size"] == 64 and entry["trained_input_size"] == chosen
+    assert chosen["input_height"] >= 128 and entry["input_size"] == 64 and entry["trained_view"] == chosen
     assert entry["chose"] in ("start", "trained")
-    assert record["input_size"] == (64 if entry["chose"] == "start" else chosen)
-    assert load_model(out).input_shape[1] == record["input_size"]
+    assert record["view"] == (entry["view"] if entry["chose"] == "start" else chosen)
+    assert list(load_model(out).input_shape[1:3]) == [record["view"]["input_height"], record["view"]["input_width"]]
     assert f"on the same {record['val_frames']} validation frames" in proc.stdout

@@ -857,8 +857,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
                         f"{train_dataset.schema.num_maps}")
     prune_plan(base, options.rate, strategy=options.strategy)  # a model that is not a plain chain fails here, first
     saved_view = view_of(base)
-    if options.input_size:
-        base = at_input_size(base, options.input_size)
+    if options.input_size:  # the height; an H x W input keeps its aspect
+        width = max(32, int(round(options.input_size * saved_view.width / saved_view.height / 32)) * 32)
+        base = at_input_size(base, (options.input_size, width))
     floor = prune_widths(base, options.rate, options.min_filters)[1] if options.method == "l1" else 0
     check_outputs(base_path, out_dir, options, force)
     start_name, start_path = pruned_start(options, base_path, base, floor, say)

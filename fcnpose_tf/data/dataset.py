@@ -214,7 +214,7 @@ class TrainingData:
             self.frame_sizes[row] = (frame.shape[1], frame.shape[0])
             self.kinds[row] = kind
 
-        for j, index in enumerate(report_items(indices, progress, f"frames at {view.describe()}")):
+        for j, index in enumerate(report_items(indices, progress, f"frames at {view.describe(whole='')}")):
             # the view's crop first, then the frame as the paper's whole frame: augmentation rotates and pads
             # the crop, which is what the model sees
             frame, kps = view.crop_sample(dataset.load_image(int(index)), dataset.samples[int(index)].keypoints)

@@ -206,7 +206,8 @@ class OnlineTrainingData:
         self.radius, self.thickness = radius, thickness
         self.frames: list[np.ndarray] = []
         self.keypoints: list[np.ndarray] = []
-        for index in report_items(self.indices, progress, f"frames for online augmentation at {self.view.describe()}"):
+        label = f"frames for online augmentation at {self.view.describe(whole='')}"
+        for index in report_items(self.indices, progress, label):
             frame, kps = self.view.crop_sample(dataset.load_image(int(index)), dataset.samples[int(index)].keypoints)
             rgb, kps = working_frame(frame, kps, min(self.input_size), config.work_scale)
             self.frames.append(rgb)
