@@ -54,6 +54,17 @@ def test_fit_aspect_grows_one_axis_about_the_centre_and_stays_in_the_frame():
     assert (224, 288) in aspect_inputs(4 / 3) and (224, 224) in aspect_inputs(1.0)
 
 
+def test_crop_sides_grow_to_whole_reduction_blocks_inside_the_frame():
+    from fcnpose_tf.data.arm_size import block_friendly
+    from fcnpose_tf.preprocess import block_factor
+
+    box = block_friendly((38, 1, 547, 479), (224, 256), (640, 480))
+    assert box == (38, 0, 548, 480) and 548 % block_factor(548, 256) == 0 and 480 % block_factor(480, 224) == 0
+    assert block_friendly((0, 0, 640, 479), (224, 256), (640, 480)) == (0, 0, 640, 480)
+    assert block_friendly((100, 100, 300, 200), (224, 256), (640, 480)) == (100, 100, 300, 200)  # factor 1: as is
+    assert block_friendly((635, 0, 5, 9), (2, 2), (640, 480))[0] + 6 <= 640  # grown and moved inside
+
+
 def test_a_fixed_camera_gets_its_workspace_at_its_aspect_and_views_that_vary_the_whole_frame():
     # an arm 80 x 160 px moving inside a 160 x 200 workspace of 640 x 480 frames
     frames = [(_box(200 + 8 * i, 150 + 4 * i, 80, 160), 640, 480) for i in range(11)]

@@ -96,6 +96,25 @@ def fit_aspect(box: Box, aspect: float, frame_wh: tuple[int, int]) -> Box:
     return x2, y2, w2, h2
 
 
+def block_friendly(box: Box, input_shape: tuple[int, int], frame_wh: tuple[int, int]) -> Box:
+    """`box` with each side grown to a multiple of its reduction factor (side // input side), inside the frame, so
+    preprocessing's box filter takes OpenCV's whole-block path: a 547 x 479 crop to 256 x 224 took 2.9 ms a frame,
+    548 x 480 0.67 ms (`preprocess.block_factor`)."""
+    x, y, w, h = box
+    out = []
+    for start, side, size, frame in ((x, w, input_shape[1], frame_wh[0]), (y, h, input_shape[0], frame_wh[1])):
+        factor = side // size
+        if factor >= 2:
+            grown = -(-side // factor) * factor
+            if grown > frame:
+                grown = side
+            start = int(min(max(0, start - (grown - side) // 2), frame - grown))
+            side = grown
+        out.append((start, side))
+    (x, w), (y, h) = out
+    return x, y, w, h
+
+
 def aspect_inputs(aspect: float) -> list[tuple[int, int]]:
     """(height, width) inputs, multiples of 32, whose aspect is closest to `aspect` for each height, fewest pixels
     first."""
@@ -146,7 +165,8 @@ def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: boo
         if box is None:
             view = FrameView(height, width)
         else:
-            view = FrameView(height, width, fit_aspect(box, width / height, frame_wh), frame_wh)
+            view = FrameView(height, width, block_friendly(fit_aspect(box, width / height, frame_wh), (height, width),
+                                                           frame_wh), frame_wh)
         best = view
         if arm_input_px(frames, view) >= MIN_ARM_INPUT_PX:
             break
@@ -184,7 +204,8 @@ def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera
         box = workspace_box(boxes) if use_crop else None
         if box is not None:
             frame_wh = (frames[0].width, frames[0].height)
-            view = FrameView(view.height, view.width, fit_aspect(box, view.width / view.height, frame_wh), frame_wh)
+            view = FrameView(view.height, view.width, block_friendly(fit_aspect(box, view.width / view.height, frame_wh),
+                                                                     view.shape, frame_wh), frame_wh)
     arm_px = arm_input_px(boxes, view)
     macs = fcn_pose_macs(view.shape)
     kept = "; the starting model's own view, kept" if start is not None and view == start else ""
