@@ -13,23 +13,11 @@ import pytest
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import FrameView, keypoints_to_frame, keypoints_to_input, preprocess_frame
+from test_preprocess import _blob_frame, _centroid
 from test_runtime import no_tf_env  # noqa: F401 - fixture
 from weights import randomize
 
 VIEW = FrameView(64, 96, crop=(200, 90, 360, 240), frame_size=(640, 480))
-
-
-def _blob_frame(w, h, centre, sigma):
-    x = np.arange(w)[None, :] - centre[0]
-    y = np.arange(h)[:, None] - centre[1]
-    blob = 255.0 * np.exp(-(x ** 2 + y ** 2) / (2 * sigma ** 2))
-    return np.repeat(np.round(blob).astype(np.uint8)[..., None], 3, axis=2)
-
-
-def _centroid(image):
-    v = image[..., 0].astype(np.float64)
-    ys, xs = np.mgrid[:v.shape[0], :v.shape[1]]
-    return np.array([(v * xs).sum() / v.sum(), (v * ys).sum() / v.sum()])
 
 
 @pytest.mark.parametrize("frame_wh", [(640, 480), (1280, 960)])
