@@ -75,17 +75,19 @@ def test_frames_are_bgr_at_the_configured_size(standin):
 
 
 def test_only_the_newest_frame_is_kept_and_drops_are_counted(standin):
-    standin["fps"] = 500  # a 2 ms sensor; the consumer below takes 20 ms per frame
+    standin["fps"] = 500  # a 2 ms sensor; the consumer below takes 50 ms per frame
     src = rsources.Picamera2Source(0)
     seen = []
     for frame in src:
         seen.append(frame.index)
-        time.sleep(0.02)
+        time.sleep(0.05)
         if len(seen) == 8:
             break
     src.close()
     assert seen == sorted(seen) and len(set(seen)) == 8
-    assert np.diff(seen).mean() > 3  # stale frames were dropped, not queued
+    # stale frames were dropped, not queued (a queue hands over 0, 1, 2, ...); how many depends on how often the
+    # stand-in's thread runs, which a loaded machine slows down, so only that some were
+    assert np.diff(seen).max() > 1
     assert src.dropped == seen[-1] + 1 - len(seen) > 0
     assert not src._thread.is_alive() and _events(standin)[-2:] == ["stop", "close"]
 

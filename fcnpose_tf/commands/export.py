@@ -61,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.export import (MIN_FRAMES_BY_MODE, ExportOptions, ExportVerificationError, export_frames,
                                                finish_formats, write_tflite)
     from fcnpose_tf.fileio import check_writable, write_json
-    from fcnpose_tf.training.model import load_model
+    from fcnpose_tf.training.model import load_model, view_of
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         args.data = synthcache.default_training_data()
     dataset = load_from_args(args)
     train, val = dataset.split(None)
-    size = int(model.input_shape[1])
+    view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W
     available = min(len(val) + len(train), max(MIN_FRAMES_BY_MODE.values()))  # what export_frames can gather
     short = [q for q in paths if MIN_FRAMES_BY_MODE[q] > available]
     if short:  # known before anything is converted: refuse before writing any file
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
                         f"{len(val) + len(train)} (add frames, or leave {', '.join(short)} out of --quantize)")
     rows, records, refused = [], [], []
     for quantize, path in paths.items():
-        samples, calibration = export_frames(quantize, size, dataset, train, dataset, val, options.calibration_frames,
+        samples, calibration = export_frames(quantize, view, dataset, train, dataset, val, options.calibration_frames,
                                              options.seed)
         try:
             export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
