@@ -120,12 +120,17 @@ class FrameView:
         return frame if self.crop is None else frame[y:y + h, x:x + w]
 
     def crop_sample(self, frame: np.ndarray, keypoints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(the part of `frame` the view sees, C-contiguous; K x 2 keypoints in its pixels, NaN kept): a training
-        sample as the model sees it before the resize. A keypoint outside the crop stays outside it."""
+        """(the part of `frame` the view sees, C-contiguous; K x 2 keypoints in its pixels): a training sample as the
+        model sees it before the resize. A keypoint outside the crop is not in the picture: NaN (missing), as a
+        keypoint outside the frame is in an annotation."""
         if self.crop is None:
             return frame, keypoints
-        x, y, _, _ = self.box(frame.shape)
-        return np.ascontiguousarray(self.cropped(frame)), np.asarray(keypoints, np.float64) - (x, y)
+        x, y, w, h = self.box(frame.shape)
+        moved = np.asarray(keypoints, np.float64) - (x, y)
+        with np.errstate(invalid="ignore"):
+            outside = ((moved < -0.5) | (moved > (w - 0.5, h - 0.5))).any(axis=1)
+        moved[outside] = np.nan
+        return np.ascontiguousarray(self.cropped(frame)), moved
 
     def scale(self, frame_shape: tuple[int, ...]) -> np.ndarray:
         """(sx, sy) multiplying crop pixel coordinates into model-input pixel coordinates."""

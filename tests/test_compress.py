@@ -592,3 +592,24 @@ def test_compress_at_another_input_size_names_and_exports_files_at_it(setup, cli
     report = json.loads((out / "base_p70_96_report.json").read_text())
     assert report["options"]["input_size"] == 96 and report["recipe"].endswith(", at 96x96")
     assert not (out / "base_p70.keras").exists()
+
+
+@pytest.mark.slow
+def test_compress_keeps_the_base_models_crop_in_every_file(setup, cli, tmp_path):
+    """A base model that reads a crop of the frame (train --input-size auto's workspace) is pruned, retrained and
+    exported over the same crop: the .keras and every .tflite carry it, and the Pi runtime reads it back."""
+    from fcnpose_tf.preprocess import FrameView
+    from fcnpose_tf.runtime.estimator import KeypointModel
+    from fcnpose_tf.training.model import load_model, save_for_inference, view_of, with_view
+
+    root, data, base = setup
+    view = FrameView(64, 64, crop=(8, 4, 72, 64), frame_size=(96, 72))
+    cropped = tmp_path / "cropped.keras"
+    save_for_inference(with_view(load_model(base), view), cropped)
+    out = tmp_path / "out"
+    proc = cli("compress", "--rate", "0.7", "--model", cropped, "--data", data, "--retrain-epochs", "1",
+               "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert f"base model {cropped} ({view.describe()})" in proc.stdout
+    assert view_of(load_model(out / "cropped_p70.keras")) == view
+    assert KeypointModel(out / "cropped_p70_fp16.tflite").view == view

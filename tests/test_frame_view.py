@@ -144,3 +144,13 @@ def test_the_pi_runtime_reads_the_crop_without_tensorflow_and_agrees_with_keras(
     points = want.reshape(-1, 2)[np.isfinite(want.reshape(-1, 2)).all(axis=1)]
     assert (points[:, 0] >= x - 0.5).all() and (points[:, 0] <= x + w - 0.5).all()
     assert (points[:, 1] >= y - 0.5).all() and (points[:, 1] <= y + h - 0.5).all()
+
+
+def test_a_keypoint_outside_the_crop_is_missing_in_the_training_sample():
+    frame = np.zeros((480, 640, 3), np.uint8)
+    kps = np.array([[250.0, 100.0], [100.0, 100.0], [np.nan, np.nan], [559.5, 329.5]])
+    crop, moved = VIEW.crop_sample(frame, kps)
+    assert crop.shape == (240, 360, 3) and crop.flags.c_contiguous
+    np.testing.assert_allclose(moved[0], [50.0, 10.0])
+    assert np.isnan(moved[1]).all() and np.isnan(moved[2]).all()  # outside the crop; missing already
+    np.testing.assert_allclose(moved[3], [359.5, 239.5])  # the last pixel's outer edge is still inside

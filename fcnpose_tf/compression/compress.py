@@ -868,7 +868,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
                eval_dataset, eval_indices, force, reporter, options.recipe(floor))
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
-    say(f"[1/{steps}] base model {base_path} ({run.input_size.describe()}{resized})")
+    say(f"[1/{steps}] base model {base_path} ({run.input_size.describe(whole='')}{resized})")
     if floor < options.min_filters:
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
             f"no layer under {floor} filters")
