@@ -163,7 +163,7 @@ def test_train_auto_records_the_view_and_the_model_carries_its_crop(cli, tmp_pat
     assert view_of(load_model(out)) == view
     # a next round from that model keeps its view: its crop holds the frames and the arm spans enough there
     second = tmp_path / "r2.keras"
-    proc = cli("train", *common[:2], "--out", second, *common[4:6], str(out), *common[6:])
+    proc = cli("train", *common[:2], "--out", second, "--init", str(out), *common[6:])
     assert proc.returncode == 0, proc.stderr
     assert "the starting model's own view, kept" in proc.stdout
     assert view_of(load_model(second)) == view
