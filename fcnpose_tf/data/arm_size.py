@@ -210,8 +210,8 @@ def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera
     macs = fcn_pose_macs(view.shape)
     kept = "; the starting model's own view, kept" if start is not None and view == start else ""
     where = ("its workspace" + (": one fixed camera" if fixed_camera else "") if view.crop is not None else
-             "the whole frame" + (" (views vary)" if chosen and crop == "auto" and not fixed_camera else
-                                  " (frames of several sizes)" if use_crop else ""))
+             "the whole frame" + (": views vary" if chosen and crop == "auto" and not fixed_camera else
+                                  ": frames of several sizes" if use_crop else ""))
     progress.resolve(reporter).say(
         f"View: {view.describe()} ({where}{kept}); the arm's keypoint box spans {arm_px:.0f} input pixels in the "
         f"median frame ({MIN_ARM_INPUT_PX} wanted); {macs / 1e9:.2f} G multiply-adds a frame unpruned, "
