@@ -36,7 +36,9 @@ def test_summary_of_a_saved_model_reports_size(cli_here, tmp_path):
 @pytest.mark.parametrize("args, message", [
     (["summary", "--input-size", "100"], "multiple of 32"),
     (["summary", "missing.keras"], "missing.keras: model file not found"),
-    (["summary", "--input-size", "abc"], "invalid int value"),
+    (["summary", "--input-size", "abc"], "expected auto, S or HxW"),
+    (["summary", "--input-size", "224x100"], "multiple of 32"),
+    (["summary", "--input-size", "auto"], "--input-size auto is chosen from a dataset"),
     (["no-such-command"], "invalid choice"),
 ])
 def test_user_errors_are_one_line_exit_2(cli_here, args, message, tmp_path, monkeypatch):
