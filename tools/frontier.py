@@ -117,7 +117,7 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     frames = [dataset.load_image(i) for i in indices[:50]]
     times = bench.interleaved_times([keras_model, *models], frames, args.frames, args.warmup)
     keras_stats = bench.latency_stats(times[0])
-    rows[0].update(format="Keras float32", input_size=int(keras_model.model.input_shape[1]), timing=keras_stats)
+    rows[0].update(format="Keras float32", input_size=keras_model.view.size_record, timing=keras_stats)
     for row, model, ts in zip(rows[1:], models, times[1:]):
         stats = bench.latency_stats(ts)
         row.update(format=file_format(model), input_size=model.view.size_record, macs=int(model.stats().macs),

@@ -252,8 +252,8 @@ def cmd_maps(args: argparse.Namespace) -> int:
              backend=backend, xnnpack=xnnpack, output_scale=spec_out.scale, output_zero_point=spec_out.zero_point,
              output_quantized=spec_out.quantized)
     os.replace(tmp, args.out)
-    size = spec_in.shape[1]
-    print(f"  {backend}: {len(maps)} frames at {size}x{size} ({runtime.io.describe()}) -> maps {maps.shape[1:]} "
+    size = f"{spec_in.shape[1]}x{spec_in.shape[2]}"
+    print(f"  {backend}: {len(maps)} frames at {size} ({runtime.io.describe()}) -> maps {maps.shape[1:]} "
           f"(min {maps.min():.4f}, max {maps.max():.4f}); XNNPACK delegate: {'yes' if xnnpack else 'NO'}")
     if args.require_xnnpack and not xnnpack:
         raise CheckError("LiteRT did not report its XNNPACK delegate (on a Pi it does): check the emulated "
