@@ -235,7 +235,9 @@ def block_factor(side: int, input_size: int) -> int:
     A factor that does not divide the side (640 // 192 = 3) sends INTER_AREA to its general fractional
     path: 640 x 480 to 213 x 240 took 1.5 ms on one core against 0.12 ms for the 2 x 2 blocks to 320 x 240
     that this picks instead (the bilinear step then reduces by 1.67 rather than 1.11). A side with no such
-    divisor (a prime 601 to 64) keeps the fractional factor, which still averages every pixel.
+    divisor (a prime 601 to 64) keeps the fractional factor, which still averages every pixel, but is neither
+    fast nor bit-exact across platforms (a 547-wide crop to 256: 2.9 ms, and 1.2 px of keypoint difference on
+    arm64), which is why `data.arm_size.block_friendly` rounds crop sides.
 
     Example:
         >>> block_factor(640, 224), block_factor(640, 192), block_factor(480, 160), block_factor(601, 64)
