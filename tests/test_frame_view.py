@@ -154,3 +154,14 @@ def test_a_keypoint_outside_the_crop_is_missing_in_the_training_sample():
     np.testing.assert_allclose(moved[0], [50.0, 10.0])
     assert np.isnan(moved[1]).all() and np.isnan(moved[2]).all()  # outside the crop; missing already
     np.testing.assert_allclose(moved[3], [359.5, 239.5])  # the last pixel's outer edge is still inside
+
+
+def test_keypoints_at_an_inner_border_of_the_crop_are_flagged_and_the_frames_own_edge_is_not():
+    from fcnpose_tf.runtime.estimator import Prediction, StageTimes
+
+    times = StageTimes(0.0, 0.0, 0.0)
+    crop = (200, 0, 360, 480)  # the crop spans the frame's height: its top and bottom are the frame's
+    kps = np.array([[203.0, 200.0], [556.0, 200.0], [380.0, 2.0], [380.0, 477.0], [380.0, 200.0], [np.nan, np.nan]])
+    edge = Prediction(kps, np.ones(6), times, (480, 640, 3), crop).at_crop_edge()
+    assert edge.tolist() == [True, True, False, False, False, False]
+    assert not Prediction(kps, np.ones(6), times, (480, 640, 3)).at_crop_edge().any()  # no crop, no edge

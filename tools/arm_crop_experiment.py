@@ -12,6 +12,12 @@ that lever with the package's own commands, on datasets of crops it writes:
     fcnpose-tf train --data C_train --input-size 192 --crop none --augment paper --out M.keras --test-data C_test_gt
     fcnpose-tf evaluate M.keras --data C_test_pass1 --split all
 
+and what a model that reads a static crop does when the arm leaves it (frames shifted sideways so that part of the
+arm lies outside the model's crop; the keypoints outside counted as lost, placed at the crop's border, or elsewhere,
+and how many such frames `run`'s crop_edge flags):
+
+    leave --model M_int8.tflite --data D_test --shift -150
+
 A crop is a square of side max(box width, box height) x (1 + 2 x margin) about the keypoint box's centre, moved
 inside the frame; `--jitter J` moves its centre by up to J of its side and scales it by 1 +- J, copy by copy (a
 first pass's error). Crops keep the frame's pixels (no resizing), so EPE stays in frame pixels; a keypoint the crop
@@ -51,7 +57,14 @@ def main(argv: list[str] | None = None) -> int:
     prep.add_argument("--jitter", type=float, default=0.0, help="random shift (share of the side) and scale")
     prep.add_argument("--boxes-from", type=Path, help="a model whose keypoints on the whole frame give the box")
     prep.add_argument("--seed", type=int, default=0)
+    leave = sub.add_parser("leave", help="shift frames so the arm leaves a crop model's crop; count what happens")
+    leave.add_argument("--model", type=Path, required=True, help="a .tflite or .keras model that reads a crop")
+    leave.add_argument("--data", type=Path, required=True, help="a dataset folder (VIA project + images)")
+    leave.add_argument("--shift", type=int, default=-150, help="pixels to move every frame's content sideways")
+    leave.add_argument("--share", type=float, default=None, help="the crop-edge band (default: run's)")
     args = parser.parse_args(argv)
+    if args.action == "leave":
+        return leave_crop(args)
 
     import cv2
 
@@ -97,6 +110,53 @@ def main(argv: list[str] | None = None) -> int:
           f"(p10 {np.percentile(sides, 10):.0f}, p90 {np.percentile(sides, 90):.0f}); "
           f"{sum(int(np.isnan(f.keypoints).any()) for f in frames)} crops cut a keypoint off; "
           f"{whole} whole frames (first pass found < 2 keypoints)")
+    return 0
+
+
+def leave_crop(args: argparse.Namespace) -> int:
+    """Frames shifted by --shift px (the vacated strip black): keypoints that land outside the model's crop, and what
+    the model reports for them."""
+    from fcnpose_tf.data.dataset import resolve_data
+    from fcnpose_tf.data.via import read_via
+    from fcnpose_tf.preprocess import read_image
+    from fcnpose_tf.training.evaluate import open_model
+
+    model = open_model(args.model)
+    if model.view.crop is None:
+        print(f"{args.model}: reads the whole frame; nothing to leave")
+        return 2
+    via_path, images = resolve_data(args.data, None)
+    counts = {"outside": 0, "lost": 0, "at the border": 0, "elsewhere": 0, "frames with one outside": 0,
+              "of those flagged": 0, "frames flagged with none outside": 0, "frames": 0}
+    for frame in read_via(via_path, images).frames:
+        image = read_image(frame.image_path)
+        shifted = np.zeros_like(image)
+        dx = args.shift
+        if dx < 0:
+            shifted[:, :dx] = image[:, -dx:]
+        else:
+            shifted[:, dx:] = image[:, :image.shape[1] - dx]
+        truth = frame.keypoints + (dx, 0)
+        truth[(truth[:, 0] < -0.5) | (truth[:, 0] > image.shape[1] - 0.5)] = np.nan  # out of the frame: unlabelled
+        prediction = model.predict(shifted)
+        x, y, w, h = prediction.crop
+        with np.errstate(invalid="ignore"):
+            outside = ((truth < (x - 0.5, y - 0.5)) | (truth > (x + w - 0.5, y + h - 0.5))).any(axis=1)
+        found = prediction.found
+        edge = prediction.at_crop_edge() if args.share is None else prediction.at_crop_edge(args.share)
+        counts["frames"] += 1
+        counts["outside"] += int(outside.sum())
+        counts["lost"] += int((outside & ~found).sum())
+        counts["at the border"] += int((outside & edge).sum())
+        counts["elsewhere"] += int((outside & found & ~edge).sum())
+        if outside.any():
+            counts["frames with one outside"] += 1
+            counts["of those flagged"] += int(edge.any())
+        elif edge.any():
+            counts["frames flagged with none outside"] += 1
+    print(f"{args.model} ({model.view.describe()}), frames of {via_path} shifted by {args.shift} px:")
+    for name, value in counts.items():
+        print(f"  {name}: {value}")
     return 0
 
 
