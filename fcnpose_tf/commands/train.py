@@ -3,8 +3,9 @@
 By default it fine-tunes the bundled UR5 generalist (pretrained on domain-randomised scenes) on
 your frames (augmentation chosen from the frames: the paper's 2 fixed copies per frame for one fixed
 camera, fresh random transforms every epoch when the views vary), keypoint pixels weighted 8 on one
-fixed camera (20 when the views vary or from scratch), the input side chosen from the arm's size in the
-frames (224 where the arm spans 5/8 of the frame, up to 384 where it is small), the learning rate halved after
+fixed camera (20 when the views vary or from scratch), the view chosen from where the arm is and how large (a
+fixed camera's workspace crop, part of the model and its exports, at its own aspect; at most 224x288 input
+pixels), the learning rate halved after
 4 epochs without progress and a 30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe
 is the last example below. Without --folds the model trains on the 80/20 hold-out split; --folds K
 trains one model per fold of the dataset's stored K-fold splits (or only --fold k) and reports mean
@@ -29,7 +30,8 @@ EXAMPLES = """\
   fcnpose-tf train --data my_frames/ --out models/arm.keras --resume                     # after Ctrl-C
   fcnpose-tf train --data my_frames/ --out models/arm.keras --max-minutes 90             # a longer budget
   fcnpose-tf train --data my_frames/ --out models/arm.keras --folds 5                    # 5-fold CV
-  fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 224  # fastest on the Pi
+  fcnpose-tf train --data labels.json --images frames/ --out models/arm.keras --input-size 224  # the whole frame
+  fcnpose-tf train --data my_frames/ --out models/arm.keras --input-size 384 --crop none  # finer, 2.6x the MACs
   fcnpose-tf train --data my_frames/ --out models/arm.keras --augment online   # fresh transforms, whatever the views
   fcnpose-tf train --data merged.json --out models/arm2.keras --init models/arm.keras --test-data test/  # a round
   fcnpose-tf train --data data/ur5 --out models/paper.keras --preset paper  # the paper's recipe (from scratch)
