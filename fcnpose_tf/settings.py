@@ -345,9 +345,10 @@ TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
     default=AUTO_INPUT_SIZE, type=str, parse=input_size_or_auto, metavar="auto|S|HxW",
     check=lambda v: v == AUTO_INPUT_SIZE or _input_shape_ok(v),
     requirement=f"auto, S or HxW (positive multiples of {INPUT_SIZE_MULTIPLE}: FCN-Pose pools 5 times by 2)",
-    help="the model's input: auto takes the region's own aspect (a fixed camera's workspace crop, or the whole "
-         "frame) and the fewest pixels, up to 224x288's, at which the arm's keypoint box spans 140 input pixels in "
-         "the median frame (docs/training.md, \"Input size\"), or the starting model's own view where the arm spans "
+    help="the model's input: auto takes a fixed camera's workspace crop at its own aspect and the fewest pixels, "
+         "up to 224x288's, at which the arm's keypoint box spans 140 input pixels in the median frame (where views "
+         "vary: the whole frame at the smallest square side from 224 to 384 that does; docs/training.md, \"Input "
+         "size\"), or the starting model's own view where the arm spans "
          "140 pixels there too and its crop holds every keypoint, and keeps the starting model as saved if it scores "
          "higher on the validation frames; or S (S x S) or HxW, multiples of 32")
 """`train` serves a user's camera: where the arm is small in the input, PCK@0.05's radius is a few input pixels

@@ -84,10 +84,17 @@ def test_a_fixed_camera_gets_its_workspace_at_its_aspect_and_views_that_vary_the
 
 
 def test_an_arm_too_small_for_the_cap_gets_the_most_pixels_within_it():
-    frames = [(_box(10 + i, 10, 60, 60), 640, 480) for i in range(3)]
-    view = choose_view(frames, fixed_camera=False)
-    assert view == FrameView(224, 288)
+    frames = [(_box(10 + 40 * i, 10 + 40 * i, 60, 60), 640, 480) for i in range(10)]  # a workspace of 420 x 420
+    view = choose_view(frames, fixed_camera=True)
+    assert view.shape == (224, 224) and view.crop is not None  # 256 x 256 is past the cap
+    assert arm_input_px(frames, view) < MIN_ARM_INPUT_PX
     assert fcn_pose_macs(view.shape) <= 1.91e9 and fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) <= 160e6
+
+
+@pytest.mark.parametrize("span, side", [(1.0, 224), (0.625, 224), (0.53, 288), (0.39, 384), (0.1, 384)])
+def test_views_that_vary_keep_the_square_side_measured_there(span, side):
+    frames = [(_box(5 + i, 5, span * 640, span * 480 * 0.5), 640, 480) for i in range(5)]
+    assert choose_view(frames, fixed_camera=False) == FrameView(side, side)
 
 
 def test_a_start_view_is_kept_only_while_it_holds_the_frames():

@@ -30,11 +30,16 @@ from fcnpose_tf.settings import INPUT_SIZE_MULTIPLE
 MIN_ARM_INPUT_PX = 140
 """The arm's keypoint box should span at least this many input pixels: PCK@0.05's radius is then 7 of them."""
 AUTO_MAX_INPUT_PIXELS = 224 * 288
-"""The most input pixels `auto` spends: 224 x 288, 1.29x the multiply-adds of the paper's 224 x 224 (1.9 G a
+"""The most input pixels `auto` spends on a fixed camera's workspace: 224 x 288, 1.29x the multiply-adds of the paper's 224 x 224 (1.9 G a
 frame unpruned) — on a 2-core machine shared with another job an epoch at 384 x 384 took 150-240 s, and the
 30-minute budget trained 6-8 epochs."""
 AUTO_MIN_SIDE = 128
-"""The shortest input side `auto` considers."""
+"""The shortest input side `auto` considers for a workspace crop."""
+WHOLE_FRAME_MIN_SIDE = 224
+"""The smallest square side `auto` takes over the whole frame (views that vary). On held-out random views (the
+hardest proxy) 224 x 288 over the whole frame (1.91 G) gave PCK@0.05 0.356 / EPE 29.2 px where 288 x 288 (2.44 G)
+gave 0.375-0.400 / 25.6-27.0 px and 224 x 224 0.306 (docs/results.md, 2026-11-28): with no workspace to crop to,
+fewer pixels only cost accuracy, so views that vary keep the square rule measured before."""
 AUTO_MAX_SIDE = 384
 """The longest input side `auto` considers."""
 WORKSPACE_MARGIN = 0.05
@@ -145,10 +150,12 @@ def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: boo
                 start: FrameView | None = None) -> FrameView:
     """The view `train --input-size auto` takes for these frames (keypoints, frame width, frame height).
 
-    The region: the workspace (`workspace_box`, fitted to the input's aspect) for one fixed camera whose frames
-    share one size, else the whole frame. The input: the fewest pixels, at the region's aspect, at which the
-    median arm spans MIN_ARM_INPUT_PX input pixels, capped at AUTO_MAX_INPUT_PIXELS (the most pixels within the
-    cap when no input reaches it). `start` (the starting model's own view) is kept instead when its crop holds
+    For one fixed camera whose frames share one size: the workspace (`workspace_box`, fitted to the input's aspect)
+    at the fewest pixels, at its aspect, at which the median arm spans MIN_ARM_INPUT_PX input pixels, capped at
+    AUTO_MAX_INPUT_PIXELS (the most pixels within the cap when no input reaches it). Otherwise (views that vary)
+    the whole frame at the smallest square side from WHOLE_FRAME_MIN_SIDE to AUTO_MAX_SIDE that gives the arm
+    MIN_ARM_INPUT_PX pixels (AUTO_MAX_SIDE when none does): there 288 x 288 measured ahead of 224 x 288 (see
+    WHOLE_FRAME_MIN_SIDE). `start` (the starting model's own view) is kept instead when its crop holds
     every keypoint of the frames and the arm spans MIN_ARM_INPUT_PX there: the correction loop's next round stays
     at the view it learnt.
     """
@@ -157,18 +164,18 @@ def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: boo
     if start is not None and _holds(start, frames) and arm_input_px(frames, start) >= MIN_ARM_INPUT_PX:
         return start
     box = workspace_box(frames) if fixed_camera else None
-    region = box or (0, 0, frame_wh[0], frame_wh[1])
+    if box is None:
+        for side in range(WHOLE_FRAME_MIN_SIDE, AUTO_MAX_SIDE + 1, INPUT_SIZE_MULTIPLE):
+            if arm_input_px(frames, FrameView(side, side)) >= MIN_ARM_INPUT_PX:
+                return FrameView(side, side)
+        return FrameView(AUTO_MAX_SIDE, AUTO_MAX_SIDE)
     best = None
-    for height, width in aspect_inputs(region[2] / region[3]):
+    for height, width in aspect_inputs(box[2] / box[3]):
         if height * width > AUTO_MAX_INPUT_PIXELS:
             break
-        if box is None:
-            view = FrameView(height, width)
-        else:
-            view = FrameView(height, width, block_friendly(fit_aspect(box, width / height, frame_wh), (height, width),
-                                                           frame_wh), frame_wh)
-        best = view
-        if arm_input_px(frames, view) >= MIN_ARM_INPUT_PX:
+        best = FrameView(height, width, block_friendly(fit_aspect(box, width / height, frame_wh), (height, width),
+                                                       frame_wh), frame_wh)
+        if arm_input_px(frames, best) >= MIN_ARM_INPUT_PX:
             break
     return best if best is not None else FrameView(224, 224)
 
