@@ -90,7 +90,6 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.training.evaluate import format_timing
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.records import training_record
     from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line,
                                            resolve_augment, run_identity, start_on_test_set,
                                            train_fold)
