@@ -54,8 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          metavar="auto|S|HxW",
                          help="the model input for the target maps and the preview: auto (default) is what `train` "
                               "would choose for these frames, printed with its reasons; S or HxW (multiples of 32)")
-    inspect.add_argument("--crop", choices=("auto", "none"), default="auto",
-                         help="as train --crop: auto shows a fixed camera's workspace crop, none the whole frame")
+    inspect.add_argument("--crop", choices=settings.TRAIN_CROP.choices, default=settings.TRAIN_CROP.default,
+                         help="as train --crop: auto shows a fixed camera's workspace crop with --input-size auto, "
+                              "workspace the crop at any input size, none the whole frame")
     inspect.add_argument("--augment-copies", type=int, default=2,
                          help="augmented copies per training frame (for the counts; the preview shows one)")
     inspect.add_argument("--seed", type=int, default=0, help="augmentation seed")
