@@ -8,7 +8,7 @@ import pytest
 
 from fcnpose_tf import settings
 from fcnpose_tf.data.arm_size import (AUTO_MAX_INPUT_PIXELS, MIN_ARM_INPUT_PX, WORKSPACE_MARGIN, arm_input_px,
-                                      arm_span, aspect_inputs, choose_view, fit_aspect, workspace_box)
+                                      aspect_inputs, choose_view, fit_aspect, workspace_box)
 from fcnpose_tf.data.via import ViaFrame, write_via_project
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
@@ -19,19 +19,6 @@ from fcnpose_tf.preprocess import FrameView
 def _box(x0, y0, w, h):
     """Eight keypoints whose bounding box is (x0, y0, w, h)."""
     return np.array([[x0, y0], [x0 + w, y0 + h]] + [[x0 + w / 2, y0 + h / 2]] * 6, float)
-
-
-def test_arm_span_is_the_median_of_the_larger_side_against_the_frame():
-    frames = [(_box(10, 10, 320, 120), 640, 480),   # 0.5 of the width, 0.25 of the height -> 0.5
-              (_box(0, 0, 64, 240), 640, 480),      # 0.1 / 0.5 -> 0.5
-              (_box(0, 0, 64, 48), 640, 480)]       # 0.1
-    assert arm_span(frames) == pytest.approx(0.5)
-    partly = _box(0, 0, 320, 240)
-    partly[0] = np.nan  # the box shrinks to the remaining points
-    single = np.full((8, 2), np.nan)
-    single[3] = (5, 5)
-    assert arm_span([(partly, 640, 480), (single, 640, 480)]) == pytest.approx(160 / 640)
-    assert arm_span([(single, 640, 480)]) == 0.0 and arm_span([]) == 0.0
 
 
 def test_the_workspace_holds_every_keypoint_with_its_margin_inside_the_frame():
@@ -104,6 +91,11 @@ def test_a_start_view_is_kept_only_while_it_holds_the_frames():
     assert choose_view(frames, True, start=start) == start
     moved = frames + [(_box(600, 10, 30, 30), 640, 480)]  # a keypoint outside the start's crop
     assert choose_view(moved, True, start=start) != start
+    # a whole-frame start (the bundled generalist's 224 x 224) does not replace a fixed camera's workspace crop
+    large = [(_box(150 + 4 * i, 40, 200, 400), 640, 480) for i in range(5)]
+    assert arm_input_px(large, FrameView(288, 288)) >= MIN_ARM_INPUT_PX
+    assert choose_view(large, True, start=FrameView(288, 288)).crop is not None
+    assert choose_view(large, False, start=FrameView(288, 288)) == FrameView(288, 288)  # views that vary: kept
 
 
 def test_train_takes_auto_s_or_hxw_and_the_paper_keeps_224_over_the_whole_frame():

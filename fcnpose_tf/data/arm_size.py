@@ -6,9 +6,10 @@ cannot place a keypoint much finer than a few of its input pixels: where the arm
 localisation falls, whatever the training. Input pixels cost every epoch and every Pi frame, so they go where the
 arm is: for one fixed camera, `workspace_box` is the box that holds every training keypoint plus
 WORKSPACE_MARGIN of it on each side (the arm never leaves its workspace); the input takes that region's own
-aspect (`aspect_input`) instead of squeezing it into a square. `choose_view` then takes the smallest such input at
-which the median frame's arm spans MIN_ARM_INPUT_PX input pixels, and never more than AUTO_MAX_INPUT_PIXELS:
-beyond that the input buys little per pixel (docs/training.md, "Input size").
+aspect (`aspect_inputs`) instead of squeezing it into a square. `choose_view` then takes the smallest such input
+at which the median frame's arm spans MIN_ARM_INPUT_PX input pixels, and never more than AUTO_MAX_INPUT_PIXELS
+(docs/training.md, "Input size"). Where the views vary there is no workspace, and the whole frame keeps the square
+side measured best there (WHOLE_FRAME_MIN_SIDE to AUTO_MAX_SIDE).
 
 Measured (docs/training.md, "Someone else's arm"): on a wide-angle fixed camera whose arm spans 0.39 of the
 frame, PCK@0.05 0.673 at 224 (an 87-px arm), 0.733 at 320 (125 px) and 0.773 at 384 (149 px); on a
@@ -17,7 +18,7 @@ fixed cell whose arm spans 0.53, 0.879 at 224 (118 px) and 0.929 at 320.
 
 from __future__ import annotations
 
-from typing import Any, Iterable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -30,8 +31,8 @@ from fcnpose_tf.settings import INPUT_SIZE_MULTIPLE
 MIN_ARM_INPUT_PX = 140
 """The arm's keypoint box should span at least this many input pixels: PCK@0.05's radius is then 7 of them."""
 AUTO_MAX_INPUT_PIXELS = 224 * 288
-"""The most input pixels `auto` spends on a fixed camera's workspace: 224 x 288, 1.29x the multiply-adds of the paper's 224 x 224 (1.9 G a
-frame unpruned) — on a 2-core machine shared with another job an epoch at 384 x 384 took 150-240 s, and the
+"""The most input pixels `auto` spends on a fixed camera's workspace: 224 x 288, 1.29x the multiply-adds of the
+paper's 224 x 224 (1.9 G a frame unpruned) — on a 2-core machine shared with another job an epoch at 384 x 384 took 150-240 s, and the
 30-minute budget trained 6-8 epochs."""
 AUTO_MIN_SIDE = 128
 """The shortest input side `auto` considers for a workspace crop."""
@@ -50,25 +51,6 @@ new cell no test keypoint fell outside the box with 0.02 (0.6 % of the new cell'
 def _points(keypoints) -> np.ndarray:
     points = np.asarray(keypoints, np.float64).reshape(-1, 2)
     return points[np.isfinite(points).all(axis=1)]
-
-
-def arm_span(frames: Iterable[tuple[np.ndarray, int, int]]) -> float:
-    """Median over frames of the arm's size in the frame: max(box width / frame width, box height / frame height).
-
-    Args:
-        frames: (keypoints K x 2 with NaN for missing, frame width, frame height) per frame; frames with fewer
-            than two visible keypoints have no box and are skipped.
-    Returns:
-        The median fraction (0-1], or 0.0 when no frame has a box.
-    """
-    spans = []
-    for keypoints, width, height in frames:
-        points = _points(keypoints)
-        if len(points) < 2 or width <= 0 or height <= 0:
-            continue
-        extent = points.max(axis=0) - points.min(axis=0)
-        spans.append(max(extent[0] / width, extent[1] / height))
-    return float(np.median(spans)) if spans else 0.0
 
 
 def workspace_box(frames: Sequence[tuple[np.ndarray, int, int]], margin: float = WORKSPACE_MARGIN) -> Box | None:
@@ -156,14 +138,16 @@ def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: boo
     the whole frame at the smallest square side from WHOLE_FRAME_MIN_SIDE to AUTO_MAX_SIDE that gives the arm
     MIN_ARM_INPUT_PX pixels (AUTO_MAX_SIDE when none does): there 288 x 288 measured ahead of 224 x 288 (see
     WHOLE_FRAME_MIN_SIDE). `start` (the starting model's own view) is kept instead when its crop holds
-    every keypoint of the frames and the arm spans MIN_ARM_INPUT_PX there: the correction loop's next round stays
-    at the view it learnt.
+    every keypoint of the frames, the arm spans MIN_ARM_INPUT_PX there and it is of the kind the rule would take
+    (a crop for a workspace, the whole frame otherwise): the correction loop's next round stays at the view it
+    learnt.
     """
     sizes = {(int(w), int(h)) for _, w, h in frames} or {(640, 480)}
     frame_wh = max(sizes)
-    if start is not None and _holds(start, frames) and arm_input_px(frames, start) >= MIN_ARM_INPUT_PX:
-        return start
     box = workspace_box(frames) if fixed_camera else None
+    if (start is not None and (start.crop is None) == (box is None) and _holds(start, frames)
+            and arm_input_px(frames, start) >= MIN_ARM_INPUT_PX):
+        return start  # a start of the same kind (a crop for a workspace, the whole frame otherwise) that still fits
     if box is None:
         for side in range(WHOLE_FRAME_MIN_SIDE, AUTO_MAX_SIDE + 1, INPUT_SIZE_MULTIPLE):
             if arm_input_px(frames, FrameView(side, side)) >= MIN_ARM_INPUT_PX:
