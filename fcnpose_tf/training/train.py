@@ -31,7 +31,7 @@ from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
-from fcnpose_tf.training.model import given_view, save_for_inference, view_of, with_view
+from fcnpose_tf.training.model import save_for_inference, view_of, with_view
 from fcnpose_tf.progress import Reporter
 
 
@@ -502,7 +502,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     try:
         with atomic_path(model_path, force=True) as tmp:
             kept = inference_model(model) if inference_model else model
-            save_for_inference(kept if given_view(model) is None else with_view(kept, view_of(model)), tmp)
+            save_for_inference(with_view(kept, view_of(model)), tmp)  # the view, also past an inference_model
         write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], state["best_epoch"],
                           config.positive_weight, config.distill, start_val_loss=state.get("start_val_loss"))
         write_json(paths["train_json"], {
@@ -709,8 +709,6 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
     """
     from fcnpose_tf.metrics import mean_pck
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
-
-    from fcnpose_tf.training.model import view_of
 
     start = initial_model(init, dataset.schema)
     start_view = view_of(start)
