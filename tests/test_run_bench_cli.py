@@ -92,6 +92,23 @@ def test_run_never_overwrites_without_force(capsys, tmp_path, model_path, video)
     assert len(out.read_text().splitlines()) == 8
 
 
+def test_run_force_keeps_the_earlier_records_when_it_fails_before_a_frame(capsys, tmp_path, model_path, video):
+    kept = {tmp_path / "k.jsonl": "precious\n", tmp_path / "k.csv": "a,b\n1,2\n"}
+    for path, text in kept.items():
+        path.write_text(text)
+    outs = [arg for path in kept for arg in ("--out", path)]
+    code, _, err = _run(capsys, "run", model_path, "--source", video, *outs, "--force",
+                        "--save-video", tmp_path / "o.xyz")
+    _one_line_error(code, err, "unknown video type")
+    unreadable = tmp_path / "frames"
+    unreadable.mkdir()
+    (unreadable / "a.png").write_bytes(b"not a png")
+    code, _, err = _run(capsys, "run", model_path, "--source", unreadable, *outs, "--force")
+    assert code == 2, err
+    assert {path: path.read_text() for path in kept} == kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "k.csv", "k.jsonl"]
+
+
 def test_run_single_image_csv_and_video(capsys, tmp_path, model_path):
     image = tmp_path / "frame.png"
     cv2.imwrite(str(image), quadrant_frame(400, 300, "bl"))

@@ -626,8 +626,15 @@ def test_jsonl_flushes_every_frame_and_refuses_overwrite(tmp_path):
     writer.close()
     with pytest.raises(UserError, match="already exists"):
         JsonlWriter(path, UR5)
-    JsonlWriter(path, UR5, force=True).close()
-    assert path.read_text() == ""
+    before = path.read_text()
+    JsonlWriter(path, UR5, force=True).close()  # no record written: the earlier file is not replaced
+    assert path.read_text() == before
+    replacing = JsonlWriter(path, UR5, force=True)
+    replacing.write(_frame(7), _prediction())
+    assert path.read_text() == before  # replaced only when the new records are closed
+    replacing.close()
+    assert [json.loads(line)["frame"] for line in path.read_text().splitlines()] == [7]
+    assert [p.name for p in tmp_path.iterdir()] == ["k.jsonl"]  # no temporary left beside it
 
 
 def test_csv_columns_and_missing_cells(tmp_path):

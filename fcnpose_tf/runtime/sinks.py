@@ -1,9 +1,11 @@
 """Where keypoints go: JSON Lines or CSV records flushed per frame, and a video with the overlay drawn.
 
 Record files stream: each frame's line is written and flushed before the next
-frame is read, so a crash or kill loses at most the frame in flight. They are
-written directly under their final name (so `tail -f` works) and are never
-replaced unless `force` is given. A saved video is written to a temporary
+frame is read, so a crash or kill loses at most the frame in flight. A new one
+is written directly under its final name (so `tail -f` works); one that
+`force` replaces stays whole until the run has written a complete record: the
+new records go to a temporary file beside it, renamed over it when they are
+closed (a run that ends before its first record leaves the earlier file as it was). A saved video is written to a temporary
 name (`fileio.temporary_path`: one a SIGKILL stranded is removed by the next
 run with the same target) and renamed into place when it is closed, so an
 existing video is only replaced by a complete one; a disk that fills up ends
@@ -61,7 +63,8 @@ class RecordWriter:
     Each record is one line, written whole in one call and counted while SIGINT and SIGTERM are
     held back, so `count` always equals the lines in the file. A write that fails (a full disk)
     truncates the file back to its last complete record and raises UserError naming the path,
-    the reason and the records kept.
+    the reason and the records kept. A file that `force` replaces is written beside it (`staging`) and
+    renamed over it by `close` once it holds a complete record.
     """
 
     def __init__(self, path: str | os.PathLike, schema: KeypointSchema, force: bool = False):
@@ -70,12 +73,15 @@ class RecordWriter:
         self.count = 0
         self._size = 0  # bytes of the complete records (and header) written so far
         try:
+            self.staging = temporary_path(self.path) if force and self.path.exists() else None
+            if self.staging is not None:
+                set_default_permissions(self.staging)
             # "x": a file that appeared since the check is still not overwritten; unbuffered: one write per line
-            self._fh = open(self.path, "wb" if force else "xb", buffering=0)
+            self._fh = open(self.staging or self.path, "wb" if self.staging else "xb", buffering=0)
         except FileExistsError:
             raise UserError(f"{self.path}: already exists; pass --force to replace it") from None
         except OSError as exc:
-            raise UserError(f"{self.path}: cannot be written ({exc.strerror})") from None
+            raise UserError(f"{self.path}: cannot be written ({os_error_reason(exc)})") from None
 
     def write(self, frame: Frame, prediction: Prediction) -> None:
         """Append one frame's record line and hand it to the operating system."""
@@ -100,9 +106,18 @@ class RecordWriter:
         raise NotImplementedError
 
     def close(self) -> None:
-        """Close the file; one that holds a complete record is a completed output (named however the command ends)."""
+        """Close the file; one that holds a complete record is a completed output (named however the command ends).
+
+        A replacing file (`staging`) is renamed over the earlier one only then; without a record it is dropped."""
         if not self._fh.closed:
             self._fh.close()
+        if self.staging is not None:
+            staging, self.staging = self.staging, None
+            if self.count:
+                with signals_deferred():
+                    os.replace(staging, self.path)
+            else:
+                staging.unlink(missing_ok=True)
         if self.count:
             record_completed(self.path)
 
