@@ -164,3 +164,40 @@ def test_merged_rounds_train(tmp_path):
     ds = load_dataset(out)
     train, val = fold_data(ds, None, 32, 0, progress=False)
     assert len(train) + len(val) == 10 and train.arrays()[0].shape[1:] == (32, 32, 3)
+
+
+def test_frames_whose_name_and_size_run_together_alike_are_both_kept(tmp_path, capsys):
+    # VIA keys a frame by its name and byte size run together: `x.png` of 1SSS bytes and `x.png1` of SSS bytes
+    # both give `x.png1SSS`. Both frames are kept, under two keys.
+    rng = np.random.default_rng(3)
+    second = tmp_path / "round2" / "images" / "x.png1"
+    second.parent.mkdir(parents=True)
+    ok, png = cv2.imencode(".png", rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    second.write_bytes(png.tobytes())
+    first = tmp_path / "round1" / "images" / "x.png"
+    first.parent.mkdir(parents=True)
+    ok, png = cv2.imencode(".png", rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+    first.write_bytes(png.tobytes().ljust(int("1" + str(second.stat().st_size)), b"\0"))  # PNG readers stop at IEND
+    a, kps_a = _round(tmp_path / "round1", ["x.png"], seed=0)
+    b, kps_b = _round(tmp_path / "round2", ["x.png1"], seed=1)
+    assert next(iter(json.loads(a.read_text())["_via_img_metadata"])) == \
+        next(iter(json.loads(b.read_text())["_via_img_metadata"]))
+    out = tmp_path / "merged.json"
+    status, captured = _merge(a, b, "--out", out, capsys=capsys)
+    assert status == 0, captured.err
+    assert "2 frames" in captured.out
+    ds = load_dataset(out)
+    assert sorted(s.image_path.name for s in ds.samples) == ["x.png", "x.png1"]
+    for sample in ds.samples:
+        np.testing.assert_allclose(sample.keypoints, {**kps_a, **kps_b}[sample.image_path.name], atol=1e-3)
+
+
+def test_a_prediction_project_keeps_frames_whose_keys_run_together_alike(tmp_path):
+    frames = [ViaFrame("x.png", 64, 48, np.full((8, 2), 5.0), size=1300),
+              ViaFrame("x.png1", 64, 48, np.full((8, 2), 9.0), size=300)]
+    write_via_project(tmp_path / "p.json", frames)
+    metadata = json.loads((tmp_path / "p.json").read_text())["_via_img_metadata"]
+    assert list(metadata) == ["x.png1300", "x.png1300#2"]
+    assert [m["filename"] for m in metadata.values()] == ["x.png", "x.png1"]
+    with pytest.raises(Exception, match="appears twice"):
+        write_via_project(tmp_path / "q.json", frames[:1] * 2)

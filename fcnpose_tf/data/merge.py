@@ -167,7 +167,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
             meta["filename"] = Path(_relative(entry.image.resolve(), base)).as_posix()
             result.stored_with_path.append(filename)
         size = meta.get("size", -1)
-        metadata[f"{meta['filename']}{size}"] = meta
+        metadata[_via.image_key(meta["filename"], size, metadata)] = meta
     for kind in ("region", "file"):
         for name, spec in project["_via_attributes"][kind].items():
             attributes[kind].setdefault(name, spec)

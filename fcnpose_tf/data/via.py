@@ -17,7 +17,7 @@ import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Container, Sequence
 
 import numpy as np
 
@@ -60,6 +60,19 @@ def _number(value: float) -> int | float:
     return int(value) if value.is_integer() else value
 
 
+def image_key(filename: str, size: int, taken: Container[str]) -> str:
+    """The key of a frame in a VIA project's `_via_img_metadata`: VIA's own, the file name and byte size run
+    together (`a.png` of 11 bytes: `a.png11`), unless another frame in `taken` holds it (`a.png1` of 1 byte has
+    the same): then `#2`, `#3`, ... is appended, so that no frame's entry replaces another's. VIA keeps the key
+    it loads as the frame's id, so either form opens in it."""
+    key = f"{filename}{size}"
+    unique, n = key, 1
+    while unique in taken:
+        n += 1
+        unique = f"{key}#{n}"
+    return unique
+
+
 def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, attribute: str = "keypoint",
                      base_dir: str | os.PathLike | None = None, project_name: str = "fcnpose",
                      image_dir: str | os.PathLike | None = None) -> dict:
@@ -77,6 +90,7 @@ def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, a
         default_filepath = os.path.relpath(image_dir, base_dir) if base_dir is not None else os.fspath(image_dir)
         default_filepath = "" if default_filepath == "." else default_filepath.rstrip("/") + "/"
     metadata: dict[str, dict] = {}
+    seen: set[tuple[str, int]] = set()
     for frame in frames:
         if frame.keypoints.shape != (schema.num_keypoints, 2):
             raise UserError(f"frame {frame.filename!r}: expected {schema.num_keypoints} x 2 keypoints "
@@ -91,10 +105,10 @@ def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, a
                     "region_attributes": {attribute: name}}
                    for name, (x, y) in zip(schema.keypoints, frame.keypoints)
                    if math.isfinite(x) and math.isfinite(y)]
-        key = f"{frame.filename}{size}"
-        if key in metadata:
+        if (frame.filename, size) in seen:
             raise UserError(f"frame {frame.filename!r} (size {size}) appears twice")
-        metadata[key] = {"filename": frame.filename, "size": size, "regions": regions, "file_attributes": {}}
+        seen.add((frame.filename, size))
+        metadata[image_key(frame.filename, size, metadata)] = {"filename": frame.filename, "size": size, "regions": regions, "file_attributes": {}}
     return {
         "_via_settings": {
             "ui": {"annotation_editor_height": 25, "annotation_editor_fontsize": 0.8,
