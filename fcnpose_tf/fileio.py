@@ -20,6 +20,7 @@ import re
 import shutil
 import signal
 import socket
+import stat
 import tempfile
 import threading
 from pathlib import Path
@@ -201,6 +202,34 @@ def os_error_reason(exc: OSError) -> str:
         text = os.strerror(int(found.group(1))) if found else (str(exc).strip().splitlines() or [""])[0]
     text = text or type(exc).__name__
     return text[:1].lower() + text[1:]
+
+
+_FILE_KINDS = ((stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+               (stat.S_ISBLK, "a block device"), (stat.S_ISDIR, "a folder"))
+
+
+def special_file_kind(path: str | os.PathLike) -> str | None:
+    """What `path` is when it exists and is not a regular file (`a named pipe`, `a socket`, `a character device`,
+    `a block device`, `a folder`), else None. Opening a named pipe waits for a writer, in native code that no
+    signal interrupts: inputs are checked with this before a library opens them."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    return next((kind for test, kind in _FILE_KINDS if test(mode)), None)
+
+
+def read_regular_file(path: str | os.PathLike) -> bytes:
+    """The bytes of a regular file. OSError for anything else, found without blocking: a named pipe is opened
+    non-blocking and refused (EINVAL, `not a regular file`), so a signal still ends the command."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))
+    try:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "not a regular file", os.fspath(path))
+        with os.fdopen(fd, "rb", closefd=False) as file:
+            return file.read()
+    finally:
+        os.close(fd)
 
 
 @contextlib.contextmanager

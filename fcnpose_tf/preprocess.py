@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import read_regular_file
 
 Box = tuple[int, int, int, int]
 """(x, y, width, height) of a box in frame pixels: columns x..x+width-1, rows y..y+height-1."""
@@ -276,15 +277,19 @@ def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.nda
 
     The bytes are read by numpy and decoded from memory, so any file name the file system holds works
     (`cv2.imread` passes the name as UTF-8 and crashes the process on a name that is not); an OSError
-    (missing, a folder, no permission) reads as None, as with `cv2.imread`.
+    (missing, a folder, no permission, a named pipe: `fileio.read_regular_file`) reads as None, as with
+    `cv2.imread`, and so does a header OpenCV refuses to decode (one that claims 40000 x 40000 pixels).
     """
     try:
-        data = np.fromfile(os.fspath(path), dtype=np.uint8)
+        data = np.frombuffer(read_regular_file(path), dtype=np.uint8)
     except (OSError, ValueError):
         return None
     if data.size == 0:
         return None
-    return cv2.imdecode(data, flags)
+    try:
+        return cv2.imdecode(data, flags)
+    except cv2.error:
+        return None
 
 
 def opencv_name(path: str | os.PathLike) -> str:

@@ -1,10 +1,12 @@
 """Frame preprocessing: the two-step resize keeps keypoint coordinates exact and is used for every size."""
 
+import os
+
 import cv2
 import numpy as np
 import pytest
 
-from fcnpose_tf.preprocess import box_reduce, keypoints_to_frame, keypoints_to_input, preprocess_frame
+from fcnpose_tf.preprocess import box_reduce, keypoints_to_frame, keypoints_to_input, preprocess_frame, read_image
 
 
 def _blob_frame(w, h, centre, sigma=6.0):
@@ -107,3 +109,18 @@ def test_box_reduction_uses_blocks_that_divide_the_frame(w, h, size, blocks):
     assert reduced.shape[1::-1] == blocks
     if (w, h) != blocks:
         np.testing.assert_array_equal(reduced, cv2.resize(frame, blocks, interpolation=cv2.INTER_AREA))
+
+
+def test_read_image_gives_none_for_a_header_opencv_refuses_and_for_a_named_pipe(tmp_path):
+    import struct
+    import zlib
+
+    ok, png = cv2.imencode(".png", np.zeros((8, 8, 3), np.uint8))
+    data = bytearray(png.tobytes())
+    data[16:24] = struct.pack(">II", 40000, 40000)  # IHDR's width and height; its CRC recomputed below
+    data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])))
+    (tmp_path / "huge.png").write_bytes(bytes(data))
+    assert read_image(tmp_path / "huge.png") is None  # cv2.imdecode raises on it
+    if hasattr(os, "mkfifo"):
+        os.mkfifo(tmp_path / "pipe.png")
+        assert read_image(tmp_path / "pipe.png") is None  # at once: no writer is waited for

@@ -7,6 +7,10 @@ runs without TensorFlow live in test_runtime.py.
 from __future__ import annotations
 
 import json
+import os
+import signal
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -276,3 +280,30 @@ def test_run_smooth_filters_the_records(capsys, tmp_path, model_path, video):
     lo, hi = np.minimum(raw[1:], smooth[:-1])[ok], np.maximum(raw[1:], smooth[:-1])[ok]
     assert np.all((smooth[1:][ok] >= lo - 0.01) & (smooth[1:][ok] <= hi + 0.01))
     assert np.all(np.abs(smooth[1:] - raw[1:])[moved] > 0.01)  # pulled back, not copied
+
+
+@pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
+@pytest.mark.parametrize("command, name", [("run", "feed.mp4"), ("run", "feed.png"), ("predict", "feed.mp4"),
+                                           ("data", "labels.json")])
+def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, model_path, command, name):
+    # Opening a FIFO blocks, in OpenCV's native code, until something writes to it: no signal ended the command.
+    fifo = tmp_path / name
+    os.mkfifo(fifo)
+    args = {"run": ["run", model_path, "--source", fifo, "--out", tmp_path / "k.jsonl"],
+            "predict": ["predict", model_path, "--source", fifo, "--via", tmp_path / "p.json"],
+            "data": ["data", "inspect", fifo]}[command]
+    proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", *map(str, args)], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        _, err = proc.communicate(timeout=120)
+    except subprocess.TimeoutExpired:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.communicate(timeout=20)
+            pytest.fail(f"{command} waited on the named pipe (ended by SIGTERM)")
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            pytest.fail(f"{command} waited on the named pipe and ignored SIGTERM")
+    assert proc.returncode == 2, err
+    assert err.strip().splitlines()[-1].startswith(f"error: {fifo}: is a named pipe"), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [name]

@@ -31,6 +31,7 @@ from fcnpose_tf.data.masks import make_target_maps
 from fcnpose_tf.data.splits import Splits, load_or_create_splits
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import special_file_kind
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.preprocess import FrameView, ViewLike, keypoints_to_input, preprocess_frame, read_image
 from fcnpose_tf.progress import report_items
@@ -121,6 +122,10 @@ def resolve_data(data: str | os.PathLike, images: str | os.PathLike | None = Non
         return candidates[0], Path(images) if images is not None else None
     if data.is_file():
         return data, Path(images) if images is not None else None
+    kind = special_file_kind(data)
+    if kind is not None:
+        raise UserError(f"{data}: is {kind}; expected a dataset folder (one VIA .json file + images) or a VIA .json "
+                        "file")
     raise UserError(f"{data}: not found; expected a dataset folder (one VIA .json file + images) or a VIA .json file")
 
 

@@ -23,6 +23,7 @@ import numpy as np
 
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import read_regular_file, special_file_kind
 from fcnpose_tf.keypoints import UR5, KeypointSchema
 
 VIA_DATA_FORMAT_VERSION = "2.0.10"
@@ -195,12 +196,13 @@ class _FrameProblem(Exception):
 
 
 def _load_json(path: Path):
+    kind = special_file_kind(path)
+    if kind is not None:
+        raise UserError(f"{path}: is {kind}, expected a VIA .json file") from None
     try:
-        raw = path.read_bytes()
+        raw = read_regular_file(path)
     except FileNotFoundError:
         raise UserError(f"{path}: VIA file not found") from None
-    except IsADirectoryError:
-        raise UserError(f"{path}: is a folder, expected a VIA .json file") from None
     except OSError as exc:
         raise UserError(f"{path}: cannot read ({exc.strerror})") from None
     try:

@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import special_file_kind
 from fcnpose_tf.nativelog import NativeOutput, native_stderr_captured
 from fcnpose_tf.preprocess import opencv_name, read_image
 
@@ -554,6 +555,9 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
     if not path.exists():
         expected = "a video file" if refuse_cameras else "a camera index, /dev/videoN, picamera2, a video file"
         raise UserError(f"{path}: no such file or folder (expected {expected}, an image folder or an image)")
+    kind = special_file_kind(path)
+    if kind is not None:
+        raise UserError(f"{path}: is {kind}, not a video or image file (a stream is read from a camera or a URL)")
     if path.suffix.lower() in IMAGE_SUFFIXES:
         if read_image(path) is None:
             raise UserError(f"{path}: cannot be read as an image")
