@@ -8,7 +8,6 @@ MACs are multiply-accumulates of all convolutions for one frame; FLOPs = 2 x MAC
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 
 NAME = "summary"
 USES_TENSORFLOW = True

@@ -136,7 +136,7 @@ def quantize_aware(graph: keras.Model) -> keras.Model:
         return qk.quantize_model(graph)
     except (RuntimeError, ValueError) as exc:  # tfmot: "Layer X:<class ...> is not supported ..."
         detail = str(exc).strip().splitlines()
-        raise UserError(f"model {model.name}: quantization-aware training cannot wrap it "
+        raise UserError(f"model {graph.name}: quantization-aware training cannot wrap it "
                         f"({detail[0] if detail else type(exc).__name__})") from exc
 
 
