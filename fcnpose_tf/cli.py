@@ -35,6 +35,22 @@ class _Parser(argparse.ArgumentParser):
         namespace, extras = super().parse_known_args(args, namespace)
         return settings.fill_from_preset(self, namespace), extras  # options left out: the command's --preset
 
+    def parse_args(self, args=None, namespace=None):  # noqa: D102 - argparse API
+        namespace, extras = self.parse_known_args(args, namespace)
+        if extras:  # refused by the (sub)command that was given, so the pointer names its --help
+            self._chosen(namespace).error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace
+
+    def _chosen(self, namespace: argparse.Namespace) -> argparse.ArgumentParser:
+        """The innermost subcommand parser that `namespace` went through (`fcnpose-tf data merge`), else this one."""
+        parser = self
+        while True:
+            found = next((action.choices.get(getattr(namespace, action.dest, None)) for action in parser._actions
+                          if isinstance(action, argparse._SubParsersAction)), None)
+            if found is None:
+                return parser
+            parser = found
+
 
 class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaultsHelpFormatter):
     """Examples kept as written; defaults shown only where there is one worth showing."""

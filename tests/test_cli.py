@@ -59,6 +59,17 @@ def test_corrupt_model_file(cli_here, tmp_path):
     assert "Traceback" not in err
 
 
+@pytest.mark.parametrize("args, pointer", [
+    (["run", "m.tflite", "--source", "0", "--bogus"], "fcnpose-tf run --help"),
+    (["data", "merge", "a.json", "--out", "b.json", "--bogus"], "fcnpose-tf data merge --help"),
+    (["--bogus"], "fcnpose-tf --help"),
+])
+def test_an_unknown_option_points_to_the_help_of_the_command_given(cli_here, args, pointer):
+    status, _, err = cli_here(*args)
+    assert status == 2
+    assert err.strip().splitlines() == [f"error: unrecognized arguments: --bogus (see `{pointer}`)"]
+
+
 def test_every_command_help_shows_an_example(cli_here):
     from fcnpose_tf.commands import COMMAND_MODULES
     import importlib
