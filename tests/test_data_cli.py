@@ -107,3 +107,18 @@ def test_keypoint_attribute_option_reaches_the_reader(tmp_path, capsys):
     assert "unknown keypoint label 'zzz'" in capsys.readouterr().err
     assert main(["data", "inspect", str(tmp_path), "--keypoint-attr", "joint", "--skip-bad"]) == 0
     assert "4 usable, 1 dropped" in capsys.readouterr().out
+
+
+def test_frame_names_that_are_not_utf8_load_and_split(cli_here, tmp_path):
+    # `predict --via` on a folder holding `fram\xe9_000.png` (Latin-1) writes such a name into its VIA file
+    via, _ = write_dataset(tmp_path / "set", n=6)
+    odd = "fram\udce9_000.png"  # the name as Python holds the byte \xe9 (surrogateescape)
+    (tmp_path / "set" / "images" / "frame_000.png").rename(tmp_path / "set" / "images" / odd)
+    project = json.loads(via.read_text())
+    metadata = project["_via_img_metadata"]
+    key = next(k for k in metadata if metadata[k]["filename"] == "frame_000.png")
+    metadata[key]["filename"] = odd
+    via.write_text(json.dumps(project))
+    status, out, err = cli_here("data", "inspect", via)
+    assert status == 0, err
+    assert "6 usable, 0 dropped" in out

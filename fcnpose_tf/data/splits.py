@@ -107,7 +107,7 @@ def splits_path(via_path: str | os.PathLike) -> Path:
 
 
 def _fingerprint(names: Sequence[str]) -> str:
-    return hashlib.sha256("\n".join(names).encode("utf-8")).hexdigest()
+    return hashlib.sha256("\n".join(names).encode("utf-8", "surrogatepass")).hexdigest()
 
 
 def splits_to_dict(splits: Splits, names: Sequence[str]) -> dict:
