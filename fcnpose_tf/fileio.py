@@ -10,6 +10,7 @@ numpy-free, TensorFlow-free.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import errno
 import glob
@@ -202,6 +203,32 @@ def os_error_reason(exc: OSError) -> str:
         text = os.strerror(int(found.group(1))) if found else (str(exc).strip().splitlines() or [""])[0]
     text = text or type(exc).__name__
     return text[:1].lower() + text[1:]
+
+
+def native_name(path: str | os.PathLike) -> str:
+    """A name for `path` that native code taking UTF-8 names can open: OpenCV's VideoCapture and VideoWriter,
+    LiteRT's and TensorFlow's model loaders.
+
+    They pass names as UTF-8, and crash the process (OpenCV) or raise TypeError (pybind11) on one that is not
+    (`clip\\xe9.mp4`): such a path is reached through a symbolic link of a plain name, its suffix kept, in a new
+    temporary folder (the command's own, removed when it ends; outside the CLI, removed at exit).
+    """
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        pass
+    folder = tempfile.mkdtemp(prefix="fcnpose-tf-name.")
+    atexit.register(shutil.rmtree, folder, True)
+    suffix = os.path.splitext(text)[1]
+    try:
+        suffix.encode("utf-8")
+    except UnicodeEncodeError:
+        suffix = ""
+    link = os.path.join(folder, "file" + suffix)  # the suffix picks the format (a container, .keras or .h5)
+    os.symlink(os.path.abspath(text), link)
+    return link
 
 
 _FILE_KINDS = ((stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),

@@ -292,30 +292,3 @@ def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.nda
         return None
 
 
-def opencv_name(path: str | os.PathLike) -> str:
-    """A name for `path` that OpenCV's VideoCapture and VideoWriter can take.
-
-    OpenCV passes names to its native code as UTF-8 and crashes the process on one that is not
-    (`clip\\xe9.mp4`): such a path is reached through a symbolic link of a plain name in a new
-    temporary folder (the command's own, removed when it ends; outside the CLI, removed at exit).
-    """
-    text = os.fspath(path)
-    try:
-        text.encode("utf-8")
-        return text
-    except UnicodeEncodeError:
-        pass
-    import atexit
-    import shutil
-    import tempfile
-
-    folder = tempfile.mkdtemp(prefix="fcnpose-tf-name.")
-    atexit.register(shutil.rmtree, folder, True)
-    suffix = os.path.splitext(text)[1]
-    try:
-        suffix.encode("utf-8")
-    except UnicodeEncodeError:
-        suffix = ""
-    link = os.path.join(folder, "file" + suffix)  # the suffix picks OpenCV's container
-    os.symlink(os.path.abspath(text), link)
-    return link

@@ -30,6 +30,10 @@ def test_summary_of_a_saved_model_reports_size(cli_here, tmp_path):
     status, out, err = cli_here("summary", path)
     assert status == 0, err
     assert "(64, 64, 9)" in out and "File size:" in out
+    odd = path.rename(tmp_path / "m\udce9.keras")  # a name that is not UTF-8 (the byte \xe9): loaded all the same
+    status, out, err = cli_here("summary", odd)
+    assert status == 0, err
+    assert "(64, 64, 9)" in out
 
 
 @pytest.mark.slow

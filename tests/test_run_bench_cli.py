@@ -307,3 +307,10 @@ def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, model_pa
     assert proc.returncode == 2, err
     assert err.strip().splitlines()[-1].startswith(f"error: {fifo}: is a named pipe"), err
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
+
+
+def test_a_model_whose_path_is_not_utf8_loads(capsys, tmp_path, model_path):
+    odd = tmp_path / "m\udce9.tflite"  # the byte \xe9 in the name (Latin-1), as Python holds it
+    odd.write_bytes(model_path.read_bytes())
+    code, out, err = _run(capsys, "bench", odd, "--frames", 2, "--threads", 1)
+    assert code == 0, err

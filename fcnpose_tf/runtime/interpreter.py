@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import native_name
 from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.nativelog import native_stderr_captured
 from fcnpose_tf.preprocess import FrameView
@@ -126,7 +127,7 @@ def load_interpreter(path: str | os.PathLike, num_threads: int | None = None,
     found = find_backend(backend)
     try:
         with native_stderr_captured():  # LiteRT's `INFO: Created ... XNNPACK delegate` and its own error lines
-            interpreter = found.interpreter_class(model_path=str(path), num_threads=threads)
+            interpreter = found.interpreter_class(model_path=native_name(path), num_threads=threads)
             interpreter.allocate_tensors()
     except (ValueError, RuntimeError) as exc:
         detail = " ".join(str(exc).split()) or type(exc).__name__

@@ -28,10 +28,9 @@ import numpy as np
 
 from fcnpose_tf.draw import draw_keypoints
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import (check_writable, full_disk_error, os_error_reason, record_completed,
+from fcnpose_tf.fileio import (check_writable, full_disk_error, native_name, os_error_reason, record_completed,
                                set_default_permissions, signals_deferred, temporary_path)
 from fcnpose_tf.keypoints import KeypointSchema
-from fcnpose_tf.preprocess import opencv_name
 from fcnpose_tf.runtime.estimator import Prediction
 from fcnpose_tf.runtime.sources import Frame, quiet_opencv
 
@@ -252,7 +251,7 @@ class VideoSink:
             h, w = image.shape[:2]
             self.size = (w, h)
             with quiet_opencv():
-                writer = cv2.VideoWriter(opencv_name(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps,
+                writer = cv2.VideoWriter(native_name(self._tmp), cv2.VideoWriter_fourcc(*self.codec), self.fps,
                                          self.size)
             if not writer.isOpened():
                 with quiet_opencv():

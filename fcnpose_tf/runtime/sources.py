@@ -27,9 +27,9 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import special_file_kind
+from fcnpose_tf.fileio import native_name, special_file_kind
 from fcnpose_tf.nativelog import NativeOutput, native_stderr_captured
-from fcnpose_tf.preprocess import opencv_name, read_image
+from fcnpose_tf.preprocess import read_image
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".pbm"})
 """File name endings read as still images (anything else that exists is tried as a video)."""
@@ -133,7 +133,7 @@ class VideoSource(FrameSource):
         self.decoder_messages: list[str] = []  # FFmpeg's lines while frames were read
         self.damaged_frames = 0  # reads during which FFmpeg printed something
         with quiet_opencv() as native:
-            self._cap = cv2.VideoCapture(opencv_name(path), cv2.CAP_ANY, self.DECODE_PARAMS)
+            self._cap = cv2.VideoCapture(native_name(path), cv2.CAP_ANY, self.DECODE_PARAMS)
         if not self._cap.isOpened():
             self._cap.release()
             detail = f": {native.last_line()}" if native.last_line() else ""

@@ -22,6 +22,7 @@ from typing import Sequence
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import native_name
 from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.preprocess import FrameView, ViewLike
 from fcnpose_tf.settings import INPUT_SIZE, INPUT_SIZE_MULTIPLE, check_input_size  # noqa: F401 - re-exported
@@ -133,7 +134,7 @@ def read_stored_view(path) -> FrameView | None:
         else:
             import h5py
 
-            with h5py.File(path, "r") as h5:
+            with h5py.File(native_name(path), "r") as h5:
                 value = h5.attrs.get(VIEW_ENTRY)
             if value is None:
                 return None
@@ -297,7 +298,7 @@ def load_model(path) -> keras.Model:
         raise UserError(f"{path}: expected a Keras model file (.keras or .h5)"
                         + ("; use a .tflite with `run`, `bench` or `evaluate`" if path.suffix == ".tflite" else ""))
     try:
-        model = keras.models.load_model(path, compile=False)
+        model = keras.models.load_model(native_name(path), compile=False)
     except Exception as exc:  # keras raises many types for a corrupt file
         raise UserError(f"{path}: cannot be read as a Keras model ({type(exc).__name__}: "
                         f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from exc
