@@ -309,11 +309,15 @@ INPUT_SIZE_MULTIPLE = 32
 # Model and data
 # ------------------------------------------------------------------------------------------
 
+MAX_INPUT_SIDE = 1024
+"""An input side at most: 1024 x 1024 costs 21x the paper's 224 x 224 (31 G multiply-adds a frame) and a training
+batch of 8 needs about 3 GB; a larger side is a typing slip, refused before anything is allocated."""
+
 INPUT_SIZE = Setting(
     "input_size", int, 224, f"model input side, a multiple of {INPUT_SIZE_MULTIPLE}; 320 or 384 localise finer where "
     "the arm is small in the frame, at 2-3x the compute (docs/training.md, \"Someone else's arm\")", label="input size",
-    check=lambda v: v > 0 and v % INPUT_SIZE_MULTIPLE == 0,
-    requirement=f"a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2)")
+    check=lambda v: 0 < v <= MAX_INPUT_SIDE and v % INPUT_SIZE_MULTIPLE == 0,
+    requirement=f"a positive multiple of {INPUT_SIZE_MULTIPLE} (FCN-Pose pools 5 times by 2), at most {MAX_INPUT_SIDE}")
 AUTO_INPUT_SIZE = "auto"
 
 
@@ -344,7 +348,8 @@ def _input_shape_ok(value: Any) -> bool:
 TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
     default=AUTO_INPUT_SIZE, type=str, parse=input_size_or_auto, metavar="auto|S|HxW",
     check=lambda v: v == AUTO_INPUT_SIZE or _input_shape_ok(v),
-    requirement=f"auto, S or HxW (positive multiples of {INPUT_SIZE_MULTIPLE}: FCN-Pose pools 5 times by 2)",
+    requirement=f"auto, S or HxW (positive multiples of {INPUT_SIZE_MULTIPLE}: FCN-Pose pools 5 times by 2; at most "
+                f"{MAX_INPUT_SIDE})",
     help="the model's input: auto takes a fixed camera's workspace crop at its own aspect and the fewest pixels, "
          "up to 224x288's, at which the arm's keypoint box spans 140 input pixels in the median frame (where views "
          "vary: the whole frame at the smallest square side from 224 to 384 that does; docs/training.md, \"Input "

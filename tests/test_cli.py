@@ -42,6 +42,8 @@ def test_summary_of_a_saved_model_reports_size(cli_here, tmp_path):
     (["summary", "missing.keras"], "missing.keras: model file not found"),
     (["summary", "--input-size", "abc"], "expected auto, S or HxW"),
     (["summary", "--input-size", "224x100"], "multiple of 32"),
+    (["summary", "--input-size", "99968"], "at most 1024"),
+    (["data", "inspect", "missing", "--input-size", "100000"], "at most 1024"),
     (["summary", "--input-size", "auto"], "--input-size auto is chosen from a dataset"),
     (["no-such-command"], "invalid choice"),
 ])

@@ -207,7 +207,7 @@ def test_via_project_has_the_keypoints_as_named_points(tmp_path):
 
 
 def test_bad_arguments_raise_user_errors(tmp_path):
-    with pytest.raises(UserError, match="at least 1"):
+    with pytest.raises(UserError, match="between 1 and"):
         generate(tmp_path / "x", n=0, width=W, height=H, progress=False)
     with pytest.raises(UserError, match="too small"):
         generate(tmp_path / "x", n=1, width=16, height=H, progress=False)
@@ -247,9 +247,12 @@ def _tree(folder):
 @pytest.mark.parametrize("bad, message", [
     (dict(tight_framing=1.5), "--tight-framing must be between 0 and 1"),
     (dict(tight_framing=float("nan")), "--tight-framing must be between 0 and 1"),
-    (dict(n=0), "--n must be at least 1"),
+    (dict(n=0), "--n must be between 1 and 1,000,000"),
+    (dict(n=10**12), "--n must be between 1 and 1,000,000"),
     (dict(workers=0), "--workers must be at least 1"),
     (dict(width=8), "too small"),
+    (dict(width=100000), "too large"),
+    (dict(scene="workcell", motion_fps=float("inf")), "--motion needs a frame rate above 0 and at most 1000"),
     (dict(scene="lab"), "unknown scene"),
 ])
 def test_force_with_a_bad_option_leaves_the_existing_set_untouched(tmp_path, bad, message):
@@ -283,7 +286,7 @@ def test_cli_writes_a_dataset_and_a_preview(cli, tmp_path):
 
 
 @pytest.mark.parametrize("args, message", [
-    (["--n", "0"], "--n must be at least 1"),
+    (["--n", "0"], "--n must be between 1 and"),
     (["--n", "x"], "invalid int value"),
     (["--workers", "0"], "--workers must be at least 1"),
 ])

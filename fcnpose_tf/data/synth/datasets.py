@@ -152,6 +152,14 @@ def _staging_folder(out_dir: Path) -> Path:
     return fileio.make_folder(out_dir / f"{STAGING_PREFIX}{os.getpid()}")
 
 
+MAX_FRAMES = 1_000_000
+"""`--n` at most: a million frames of 640 x 480 fill about 300 GB; more is a typing slip, refused before any work."""
+MAX_SIDE = 8192
+"""`--width`/`--height` at most (8K): the scene is drawn at the frame's size, 190 MB a frame at 8192 x 8192."""
+MAX_MOTION_FPS = 1000.0
+"""`--motion` at most: a frame rate a camera has (infinity or 1e300 would make the steps between frames zero)."""
+
+
 def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, width: int = 640, height: int = 480,
                      workers: int | None = None, force: bool = False, progress: bool = True,
                      tight_framing: float = DEFAULT_TIGHT_FRAMING, scene: str = DEFAULT_SCENE,
@@ -171,7 +179,7 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     also written as OUT/motion.mp4.
 
     Raises:
-        UserError: n < 1, a frame size below 32x32, workers < 1, an unknown scene, look family or label
+        UserError: n outside 1..MAX_FRAMES, a frame side below 32 or above MAX_SIDE, workers < 1, an unknown scene, look family or label
             convention, tight_framing outside
             [0, 1], or an output folder that is not empty (without force), not a folder, or not writable.
             Every option is checked before anything in out_dir is touched.
@@ -180,17 +188,19 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     from fcnpose_tf.data.splits import splits_path
     from fcnpose_tf.data.via import ViaFrame, write_via_project
 
-    if int(n) != n or n < 1:
-        raise UserError(f"--n must be at least 1, got {n}")
+    if int(n) != n or not 1 <= n <= MAX_FRAMES:
+        raise UserError(f"--n must be between 1 and {MAX_FRAMES:,}, got {n}")
     if width < 32 or height < 32:
         raise UserError(f"frame size {width}x{height} is too small; expected at least 32x32")
+    if max(width, height) > MAX_SIDE:
+        raise UserError(f"frame size {width}x{height} is too large; expected sides of at most {MAX_SIDE} pixels")
     if scene not in SCENES:
         raise UserError(f"unknown scene {scene!r}; expected one of {', '.join(SCENES)}")
     look_family(looks)
     check_labels(labels)
-    if motion_fps is not None and (not motion_fps > 0 or scene != "workcell"):
-        raise UserError(f"--motion needs a frame rate above 0 and --scene workcell, got {motion_fps} FPS with "
-                        f"--scene {scene}")
+    if motion_fps is not None and (not 0 < motion_fps <= MAX_MOTION_FPS or scene != "workcell"):
+        raise UserError(f"--motion needs a frame rate above 0 and at most {MAX_MOTION_FPS} and --scene workcell, "
+                        f"got {motion_fps} FPS with --scene {scene}")
     workers = default_workers() if workers is None else int(workers)
     if workers < 1:
         raise UserError(f"--workers must be at least 1, got {workers}")
