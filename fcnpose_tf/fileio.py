@@ -231,6 +231,33 @@ def native_name(path: str | os.PathLike) -> str:
     return link
 
 
+MAX_JSON_DEPTH = 64
+"""JSON this package reads is nested a few levels (a VIA project: 6); deeper is refused, before code that walks it
+recursively (a deep copy, the indented writer) meets Python's recursion limit."""
+
+
+class JsonTooDeep(ValueError):
+    """A JSON document nested more than MAX_JSON_DEPTH levels."""
+
+
+def parse_json(text: str) -> Any:
+    """`json.loads(text)`, or JsonTooDeep for a document nested more than MAX_JSON_DEPTH levels (checked without
+    recursion); json.JSONDecodeError as json.loads raises it."""
+    too_deep = JsonTooDeep(f"JSON nested more than {MAX_JSON_DEPTH} levels deep")
+    try:
+        value = json.loads(text)
+    except RecursionError:
+        raise too_deep from None
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        children = item.values() if isinstance(item, dict) else item if isinstance(item, list) else ()
+        if children and depth >= MAX_JSON_DEPTH:
+            raise too_deep
+        stack.extend((child, depth + 1) for child in children)
+    return value
+
+
 _FILE_KINDS = ((stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
                (stat.S_ISBLK, "a block device"), (stat.S_ISDIR, "a folder"))
 

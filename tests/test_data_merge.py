@@ -145,7 +145,7 @@ def test_a_missing_image_is_an_error_naming_the_frame_or_left_out_with_skip_bad(
 
 def test_merge_needs_two_inputs_and_a_json_output(tmp_path, capsys):
     a, _ = _round(tmp_path / "r1", ["f0.png"], seed=0)
-    status, captured = _merge(a, "--out", tmp_path / "m.json", capsys=capsys)
+    status, captured = _merge(a, b, "--out", tmp_path / "m.json", capsys=capsys)
     assert status == 2 and "at least two VIA projects" in captured.err
     status, captured = _merge(a, a, "--out", tmp_path / "m.json", capsys=capsys)
     assert status == 2 and "given twice" in captured.err
@@ -201,3 +201,15 @@ def test_a_prediction_project_keeps_frames_whose_keys_run_together_alike(tmp_pat
     assert [m["filename"] for m in metadata.values()] == ["x.png", "x.png1"]
     with pytest.raises(Exception, match="appears twice"):
         write_via_project(tmp_path / "q.json", frames[:1] * 2)
+
+
+def test_attributes_nested_hundreds_of_levels_are_refused_in_one_line(tmp_path, capsys):
+    a, _ = _round(tmp_path / "round1", ["a.png"], seed=0)
+    b, _ = _round(tmp_path / "round2", ["b.png"], seed=1)
+    project = json.loads(a.read_text())
+    next(iter(project["_via_img_metadata"].values()))["file_attributes"]["note"] = json.loads("[" * 500 + "]" * 500)
+    a.write_text(json.dumps(project))
+    status, captured = _merge(a, b, "--out", tmp_path / "m.json", capsys=capsys)
+    assert status == 2
+    assert captured.err.strip().splitlines() == [f"error: {a}: not a VIA project (JSON nested more than 64 levels deep)"]
+    assert not (tmp_path / "m.json").exists()

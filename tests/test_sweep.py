@@ -275,6 +275,18 @@ def test_report_only_needs_a_sweep(tmp_path):
         write_report(tmp_path)
 
 
+@pytest.mark.parametrize("text, message", [
+    ("[" * 400 + "]" * 400, "nested more than 64 levels deep"),
+    ('{"config": {"rates": ' + "[" * 300 + "]" * 300 + "}}", "nested more than 64 levels deep"),
+    ('{"config": {}}', "no configuration with a list of rates"),
+    ("[1, 2]", "no configuration with a list of rates"),
+])
+def test_report_only_refuses_a_broken_sweep_file_in_one_line(tmp_path, text, message):
+    (tmp_path / "sweep.json").write_text(text)
+    with pytest.raises(UserError, match=message):
+        write_report(tmp_path)
+
+
 def test_report_modules_import_no_tensorflow_or_ray():
     code = ("import sys, fcnpose_tf.sweep, fcnpose_tf.sweep.report, fcnpose_tf.commands.sweep; "
             "bad = [m for m in ('tensorflow', 'tf_keras', 'ray', 'matplotlib') if m in sys.modules]; "

@@ -23,7 +23,7 @@ import numpy as np
 
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import read_regular_file, special_file_kind
+from fcnpose_tf.fileio import JsonTooDeep, parse_json, read_regular_file, special_file_kind
 from fcnpose_tf.keypoints import UR5, KeypointSchema
 
 VIA_DATA_FORMAT_VERSION = "2.0.10"
@@ -212,9 +212,9 @@ def _load_json(path: Path):
     if not text.strip():
         raise UserError(f"{path}: empty file; expected a VIA project or region-data export (JSON)")
     try:
-        return json.loads(text)
-    except RecursionError:  # [[[[...]]]]: Python's parser gives up; no VIA project is nested so deep
-        raise UserError(f"{path}: not a VIA project (JSON nested too deeply to read)") from None
+        return parse_json(text)
+    except JsonTooDeep as exc:  # [[[[...]]]]: no VIA project is nested so deep
+        raise UserError(f"{path}: not a VIA project ({exc})") from None
     except json.JSONDecodeError as exc:
         hint = " (the file looks truncated)" if exc.pos >= len(text.rstrip()) else ""
         raise UserError(f"{path}: invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}{hint}") from None

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -27,7 +26,7 @@ from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import atomic_path, write_json, write_text
+from fcnpose_tf.fileio import atomic_path, os_error_reason, parse_json, write_json, write_text
 from fcnpose_tf.records import library_versions, machine_info
 from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, plan_jobs, read_record, tflite_sections
 from fcnpose_tf.sweep.rates import describe_per_rate, rate_label
@@ -212,13 +211,17 @@ def read_sweep(out: str | Path) -> dict[str, Any]:
     """OUT/sweep.json: the sweep's configuration and its runs; UserError if there is none."""
     path = Path(out) / SWEEP_FILE
     try:
-        data = json.loads(path.read_text("utf-8"))
-        data["config"]["rates"]  # noqa: B018 - shape check
-        return data
+        data = parse_json(path.read_text("utf-8"))
     except FileNotFoundError:
         raise UserError(f"{path}: not found; {out} holds no sweep (run `fcnpose-tf sweep --out {out}` first)") from None
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise UserError(f"{path}: not a sweep file ({exc})") from None
+    except OSError as exc:
+        raise UserError(f"{path}: cannot be read ({os_error_reason(exc)})") from None
+    except ValueError as exc:  # not UTF-8, not JSON, nested too deep
+        raise UserError(f"{path}: not a sweep file ({str(exc).splitlines()[0]})") from None
+    config = data.get("config") if isinstance(data, dict) else None
+    if not isinstance(config, dict) or not isinstance(config.get("rates"), list):
+        raise UserError(f"{path}: not a sweep file (it has no configuration with a list of rates)")
+    return data
 
 
 def collect(out: str | Path, config: dict[str, Any]) -> SweepResults:
