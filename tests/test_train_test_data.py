@@ -110,6 +110,20 @@ def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_tr
     assert not out.exists() and not (tmp_path / "m.ckpt").exists()
 
 
+def test_a_start_that_is_no_keypoint_model_and_a_single_frame_are_refused_in_one_line(tmp_path, cli_here):
+    import tf_keras as keras
+
+    dense = tmp_path / "dense.keras"
+    keras.Sequential([keras.Input((64, 64, 3)), keras.layers.Flatten(), keras.layers.Dense(4)]).save(dense)
+    data = make_via_folder(tmp_path / "frames", n=6, size=(64, 64))
+    status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "a.keras", "--init", dense, *TRAIN)
+    assert status == 2 and err.strip().splitlines()[-1].startswith(f"error: {dense}: not a keypoint-map model")
+    one = make_via_folder(tmp_path / "one", n=1, size=(64, 64))
+    status, _, err = cli_here("train", "--data", one, "--out", tmp_path / "b.keras", *TRAIN)
+    assert status == 2 and "1 usable frame; training needs at least 2" in err.strip().splitlines()[-1]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dense.keras", "frames", "one"]
+
+
 def _synth_frames(folder, n, seed):
     from fcnpose_tf.data.synth import generate
 

@@ -263,6 +263,9 @@ def fold_data(dataset: Dataset, fold: int | None, input_size: ViewLike, augment_
     Extra keyword arguments (augment_config, radius, thickness) go to TrainingData.
     """
     train_idx, val_idx = dataset.split(fold)
+    if len(train_idx) == 0 or len(val_idx) == 0:
+        raise UserError(f"{dataset.via_path}: {len(dataset)} usable frame{'s' if len(dataset) != 1 else ''}; training "
+                        "needs at least 2, one to learn from and one held out for validation (annotate more frames)")
     if augment == "online":
         from fcnpose_tf.data.online import OnlineTrainingData
 

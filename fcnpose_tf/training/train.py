@@ -568,6 +568,10 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
 
     source = load_model(init)
     widths = conv_widths(source)
+    out_shape, in_shape = tuple(source.output_shape), tuple(source.input_shape)
+    if not widths or len(out_shape) != 4 or out_shape[1:3] != in_shape[1:3]:
+        raise UserError(f"{init}: not a keypoint-map model (input {in_shape[1:]}, output {out_shape[1:]}); --init "
+                        "takes an FCN-Pose model file that train or compress wrote, whose maps have its input's size")
     trained_for = record.keypoints if (record := training_record(init)) is not None else None
     if widths[-1] != schema.num_maps or (trained_for is not None and list(trained_for) != list(schema.keypoints)):
         names = ", ".join(trained_for) if trained_for else f"{widths[-1] - 1} keypoints"
