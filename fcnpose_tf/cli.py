@@ -12,7 +12,7 @@ import importlib
 import os
 import signal
 import sys
-from typing import Sequence
+from typing import Callable, Sequence
 
 from fcnpose_tf import __version__
 from fcnpose_tf.commands import COMMAND_MODULES
@@ -137,34 +137,49 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.print_help()
         return 2
     private_temp = args._private_temp(args) if callable(args._private_temp) else args._private_temp
-    reporter = progress.Reporter(quiet=bool(getattr(args, "quiet", False)))  # --quiet: no bars (logs)
+
+    def command() -> int:
+        plan_outputs(args)
+        if args._uses_tensorflow:
+            import_tensorflow_quietly()
+        return args._run(args)
+
+    return run_guarded(command, debug=args.debug, private_temp=private_temp, quiet=bool(getattr(args, "quiet", False)))
+
+
+def run_guarded(work: Callable[[], int | None], *, debug: bool = False, private_temp: bool = True,
+                quiet: bool = False) -> int:
+    """Run `work` through the one exit path (see `main`) and return its exit status.
+
+    A UserError or OSError is one `error:` line and status 2, a stop signal its own line and 130/143; what
+    `work` created and did not complete is removed. `debug` re-raises instead (the full traceback);
+    `private_temp` gives it a private temporary folder; `quiet` turns progress bars into log lines.
+    """
+    reporter = progress.Reporter(quiet=quiet)
     with progress.using(reporter), fileio.command_outputs() as outputs, fileio.stop_signals_handled(), \
             (fileio.private_temporary_folder() if private_temp else contextlib.nullcontext()):
         try:
-            plan_outputs(args)
-            if args._uses_tensorflow:
-                import_tensorflow_quietly()
-            status = int(args._run(args) or 0)
+            status = int(work() or 0)
         except UserError as exc:
-            if args.debug:
+            if debug:
                 outputs.clean_up()
                 raise
             return _end(outputs, str(exc), EXIT_USER_ERROR)
         except OSError as exc:  # a path the file system refused (a name too long, a full disk, no permission)
-            if args.debug:
+            if debug:
                 outputs.clean_up()
                 raise
             where = f"{os.fsdecode(exc.filename)}: " if isinstance(exc.filename, (str, bytes, os.PathLike)) else ""
             return _end(outputs, where + fileio.os_error_reason(exc), EXIT_USER_ERROR)
         except KeyboardInterrupt as exc:
-            if args.debug:
+            if debug:
                 outputs.clean_up()
                 raise
             if fileio.stop_signal() is None:  # raised without a signal seen here (a library's own handler)
                 fileio.note_stop_signal(signal.SIGTERM if "SIGTERM" in str(exc) else signal.SIGINT)
             return _end(outputs, None, EXIT_USER_ERROR)
         except BaseException:
-            if fileio.stop_signal() is not None and not args.debug:
+            if fileio.stop_signal() is not None and not debug:
                 # the stop signal's KeyboardInterrupt raised inside C code (TensorFlow tracing a graph) can come out
                 # as another exception (SystemError "bad argument to internal function"): still the stop
                 return _end(outputs, None, EXIT_USER_ERROR)
@@ -176,6 +191,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(reason + _kept(outputs), file=sys.stderr, flush=True)
             return stop_status
         return status
+
+
+def run_tool(tool_main: Callable[[], int | None]) -> int:
+    """The exit path of a maintainer script in tools/ (`sys.exit(run_tool(main))`): the package's user errors as
+    one `error:` line and status 2, not a traceback, and what it created and did not complete removed."""
+    set_tensorflow_environment()
+    return run_guarded(tool_main, private_temp=False)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,6 @@ cut off is unlabelled in it, and counted missing by `evaluate`, which is what a 
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -161,4 +160,6 @@ def leave_crop(args: argparse.Namespace) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fcnpose_tf.cli import run_tool
+
+    raise SystemExit(run_tool(main))

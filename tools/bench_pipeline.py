@@ -20,7 +20,6 @@ A video to measure: `fcnpose-tf synth --out /tmp/seq --n 300 --motion 30` writes
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -65,7 +64,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--invokes", type=int, default=200, help="bare invokes per round for the invoke-only FPS")
     parser.add_argument("--json", type=Path, help="also write the per-round figures here")
+    parser.add_argument("--force", action="store_true", help="overwrite --json if it exists")
     args = parser.parse_args(argv)
+
+    from fcnpose_tf.fileio import check_writable, write_json
+
+    if args.json:
+        check_writable(args.json, args.force)  # before the measurement, not after
 
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.runtime.sources import open_source
@@ -116,10 +121,12 @@ def main(argv: list[str] | None = None) -> int:
     print("Delivered FPS: frames/s from the first frame's records written to the last's; latency: from the "
           "source handing a frame over to its records written.")
     if args.json:
-        args.json.write_text(json.dumps({"video": str(args.video), "threads": args.threads, "rounds": rounds,
-                                         "load_average": load}, indent=2) + "\n")
+        write_json(args.json, {"video": str(args.video), "threads": args.threads, "rounds": rounds,
+                               "load_average": load}, force=args.force)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fcnpose_tf.cli import run_tool
+
+    raise SystemExit(run_tool(main))

@@ -29,7 +29,6 @@ subprocess): what a well-tuned float32 kernel reaches on these cores, which no c
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -110,8 +109,13 @@ def main() -> int:
     parser.add_argument("--warmup", type=int, default=10)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--json", type=Path, help="write the figures as JSON")
+    parser.add_argument("--force", action="store_true", help="overwrite --json if it exists")
     args = parser.parse_args()
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    if args.json:
+        from fcnpose_tf.fileio import check_writable
+
+        check_writable(args.json, args.force)  # before the measurement, not after
 
     import numpy as np
 
@@ -198,10 +202,14 @@ def main() -> int:
               + (f" = {need:.1f} GMAC/s on its {v['macs'] / 1e6:.1f} M MACs (it runs {v['gmac_per_s']:.1f}; "
                  f"A runs {keras_stats['gmac_per_s']:.1f}; float32 matmul here {matmul:.1f})" if need else " (impossible: pre + post alone exceed it)"))
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        from fcnpose_tf.fileio import write_json
+
+        write_json(args.json, result, force=args.force)
     tmp.cleanup()
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fcnpose_tf.cli import run_tool
+
+    raise SystemExit(run_tool(main))

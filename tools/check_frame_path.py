@@ -14,7 +14,6 @@ the same files and frames must give the same bits.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -56,4 +55,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fcnpose_tf.cli import run_tool
+
+    raise SystemExit(run_tool(main))

@@ -177,4 +177,6 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from fcnpose_tf.cli import run_tool
+
+    raise SystemExit(run_tool(main))

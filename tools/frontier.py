@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import os
 import re
 import sys
@@ -86,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--target-pck", type=float, default=TARGET_PCK, help="PCK@0.05 the target ratio must keep")
     parser.add_argument("--plot", type=Path, help="write PCK@0.05 against end-to-end ms as a PNG")
     parser.add_argument("--json", type=Path, help="write every figure as JSON")
+    parser.add_argument("--force", action="store_true", help="overwrite --json and --plot if they exist")
     parser.add_argument("--markdown", action="store_true", help="print the table as Markdown")
     return parser
 
@@ -210,14 +210,15 @@ def plot(result: dict[str, Any], path: Path) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+    from fcnpose_tf.fileio import check_writable, write_json
+
     for path in args.tflite + ([args.shipped] if args.shipped else []):
         if not path.is_file() or path.suffix != ".tflite":
             print(f"error: {path}: not a .tflite file", file=sys.stderr)
             return 2
     for out in (args.plot, args.json):
-        if out is not None and not out.parent.is_dir():
-            print(f"error: {out.parent}: no such folder", file=sys.stderr)
-            return 2
+        if out is not None:
+            check_writable(out, args.force)  # before the measurement, not after
     result = measure(args)
     print(f"{result['frames_scored']} frames of {result['data']} scored; {result['frames_timed']} frames timed per "
           f"model, interleaved, {result['threads']} thread(s); medians")
@@ -228,11 +229,13 @@ def main(argv: list[str] | None = None) -> int:
     print(f"target (>= {target['ratio']:g}x A at PCK@0.05 >= {target['pck@0.05']:g}): "
           + (", ".join(met) if met else "no file meets it"))
     if args.json:
-        args.json.write_text(json.dumps(result, indent=2) + "\n")
+        write_json(args.json, result, force=args.force)
     if args.plot:
         plot(result, args.plot)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fcnpose_tf.cli import run_tool
+
+    raise SystemExit(run_tool(main))

@@ -131,4 +131,6 @@ Speed: docs/runtime.md ("Full-integer int8"), measured with `tools/bench_speedup
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from fcnpose_tf.cli import run_tool
+
+    raise SystemExit(run_tool(main))
