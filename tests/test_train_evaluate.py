@@ -177,6 +177,35 @@ def test_an_interrupted_run_that_cannot_resume_says_what_to_do_and_leaves_no_che
     assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
 
 
+def test_a_stop_after_the_last_epoch_of_a_run_that_cannot_resume_leaves_no_checkpoint(tmp_path, monkeypatch):
+    """A SIGTERM while compress writes its retrained model left the checkpoint, and the next compress then asked
+    for a --resume it does not have; a checkpoint a SIGKILL left is removed by the next such run."""
+    from fcnpose_tf.training import train
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.training.model import build_fcn_pose
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
+    tr, va = fold_data(ds, None, 32, 0)
+    out = tmp_path / "m_p70.keras"
+
+    def stopped_while_saving(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    with monkeypatch.context() as patch:
+        patch.setattr(train, "save_for_inference", stopped_while_saving)
+        with pytest.raises(UserError, match="stopped after 1 of 1 epochs; this run cannot be resumed"):
+            train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out,
+                      train.FitConfig(epochs=1, batch_size=4), reporter=SILENT, resumable=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"]
+    stale = train.run_paths(out)["ckpt_dir"]  # as a SIGKILL leaves it
+    stale.mkdir()
+    for name in ("ckpt_state", "ckpt_model"):
+        train.run_paths(out)[name].write_text("{}")
+    train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, train.FitConfig(epochs=1, batch_size=4),
+              reporter=SILENT, resumable=False)
+    assert out.is_file() and not stale.exists()
+
+
 def test_a_loss_that_becomes_nan_stops_training_keeps_the_best_epoch_or_writes_nothing(tmp_path, monkeypatch):
     """A learning rate far too high makes the loss NaN: training stops at that epoch (the weights are lost), the best
     epoch before it is the model written and the record names the epoch; with no epoch before it, one error line

@@ -147,13 +147,18 @@ def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> dict
 
 
 def check_checkpoint(model_path: str | Path, *, resume: bool, force: bool,
-                     identity: dict[str, Any] | None = None) -> None:
+                     identity: dict[str, Any] | None = None, resumable: bool = True) -> None:
     """Refuse (UserError) a resume without a checkpoint, a checkpoint neither resumed nor forced away, and a
-    resume whose data or RESUME_SETTINGS differ from those the checkpoint was started with.
+    resume whose data or RESUME_SETTINGS differ from those the checkpoint was started with. For a caller that
+    cannot resume (`resumable=False`: compress), a checkpoint a killed run left behind is of no use to anyone:
+    it is removed.
 
     Cheap (reads state.json only): commands call it before they prepare any data.
     """
     paths = run_paths(Path(model_path))
+    if not resumable:
+        remove_tree(paths["ckpt_dir"])
+        return
     has_ckpt = paths["ckpt_state"].is_file() and paths["ckpt_model"].is_file()
     if resume and not has_ckpt:
         raise UserError(f"{paths['ckpt_dir']}: no checkpoint to resume from")
@@ -438,7 +443,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     if model_path.suffix not in (".keras", ".h5"):
         raise UserError(f"{model_path}: the model file must end in .keras or .h5")
     paths = run_paths(model_path)
-    check_checkpoint(model_path, resume=resume, force=force, identity=identity)
+    check_checkpoint(model_path, resume=resume, force=force, identity=identity, resumable=resumable)
     if not resume:
         check_outputs(model_path, force)
         if paths["ckpt_dir"].exists():
@@ -477,18 +482,32 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                       initial_epoch=state["epoch"], epochs=config.epochs, callbacks=[*callbacks, callback],
                       verbose=reporter.keras_verbose)
     except KeyboardInterrupt:
-        if not resumable or not paths["ckpt_state"].is_file():  # nothing to resume: no epoch-0 leftovers either
-            remove_tree(paths["ckpt_dir"])
-            if resumable:
-                raise UserError("interrupted before the first epoch ended: nothing to resume; run the command "
-                                "again to start over") from None
-            raise UserError(f"stopped after {state['epoch']} of {config.epochs} epochs; this run cannot be resumed (its "
-                            "checkpoint is removed): run the same command again to start it over") from None
-        raise UserError(f"interrupted after {state['epoch']} complete epochs; "
-                        f"continue with --resume (checkpoint in {paths['ckpt_dir']})") from None
+        raise _interrupted(state, config, paths, resumable) from None
     except WriteError as exc:
         raise _resumable(exc, paths, resumable) from None
+    try:
+        return _finish(model, model_path, state, config, paths, resumable, reporter, inference_model, metadata)
+    except KeyboardInterrupt:  # a stop while the model is written: no file was renamed into place
+        raise _interrupted(state, config, paths, resumable) from None
 
+
+def _interrupted(state: dict[str, Any], config: FitConfig, paths: dict[str, Path], resumable: bool) -> UserError:
+    """The error a stop signal ends `fit` with; a checkpoint no one can resume is removed first."""
+    if not resumable or not paths["ckpt_state"].is_file():  # nothing to resume: no epoch-0 leftovers either
+        remove_tree(paths["ckpt_dir"])
+        if resumable:
+            return UserError("interrupted before the first epoch ended: nothing to resume; run the command "
+                             "again to start over")
+        return UserError(f"stopped after {state['epoch']} of {config.epochs} epochs; this run cannot be resumed (its "
+                         "checkpoint is removed): run the same command again to start it over")
+    return UserError(f"interrupted after {state['epoch']} complete epochs; "
+                     f"continue with --resume (checkpoint in {paths['ckpt_dir']})")
+
+
+def _finish(model: keras.Model, model_path: Path, state: dict[str, Any], config: FitConfig, paths: dict[str, Path],
+            resumable: bool, reporter: Any, inference_model: Any, metadata: dict[str, Any] | None) -> FitResult:
+    """After the last epoch: the best epoch's weights saved as `model_path`, with its loss curves and record; the
+    checkpoint removed."""
     best = paths["ckpt_best"] if paths["ckpt_best"].is_file() else paths["ckpt_dir"] / "best.h5"
     if "diverged_at" in state:
         diverged = (f"the loss became NaN or infinite in epoch {state['diverged_at']} (learning rate "
