@@ -258,6 +258,20 @@ def parse_json(text: str) -> Any:
     return value
 
 
+def entry_problem(exc: BaseException) -> str:
+    """What was wrong in a file of ours whose reader met `exc`, in words rather than Python's: a KeyError is
+    `no 'num_frames' entry`, a TypeError or AttributeError `an entry holds the wrong kind of value`, a ValueError
+    its message's first line."""
+    if isinstance(exc, KeyError) and exc.args:
+        return f"no {str(exc.args[0])!r} entry"
+    python_words = ("invalid literal", "not enough values", "too many values", "could not convert")
+    if isinstance(exc, (TypeError, AttributeError, IndexError)) or str(exc).startswith(python_words):
+        return "an entry holds the wrong kind of value"
+    if isinstance(exc, RecursionError):
+        return f"JSON nested more than {MAX_JSON_DEPTH} levels deep"
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+
+
 _FILE_KINDS = ((stat.S_ISFIFO, "a named pipe"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
                (stat.S_ISBLK, "a block device"), (stat.S_ISDIR, "a folder"))
 

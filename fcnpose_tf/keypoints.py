@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import entry_problem
 
 
 @dataclass(frozen=True)
@@ -59,8 +60,10 @@ class KeypointSchema:
         try:
             return cls(str(data["name"]), tuple(str(k) for k in data["keypoints"]),
                        tuple((int(a), int(b)) for a, b in data["edges"]))
-        except (KeyError, TypeError, ValueError) as exc:
-            raise UserError(f"invalid keypoint schema {data!r}: {exc}") from None
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            shown = repr(data) if len(repr(data)) <= 200 else repr(data)[:200] + "..."
+            raise UserError(f"invalid keypoint schema {shown}: expected name, keypoints (a list of names) and "
+                            f"edges (pairs of keypoint numbers) ({entry_problem(exc)})") from None
 
 
 UR5 = KeypointSchema.chain("ur5", ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"))

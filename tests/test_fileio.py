@@ -133,3 +133,26 @@ def test_ctrl_c_and_a_kill_stop_the_block_whatever_sigint_was_inherited_as(inher
         assert signal.getsignal(signal.SIGTERM) == term_before
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+@pytest.mark.parametrize("exc, words", [
+    (KeyError("num_frames"), "no 'num_frames' entry"),
+    (TypeError("'int' object is not subscriptable"), "an entry holds the wrong kind of value"),
+    (ValueError("invalid literal for int() with base 10: 'q'"), "an entry holds the wrong kind of value"),
+    (ValueError("not enough values to unpack (expected 2, got 1)"), "an entry holds the wrong kind of value"),
+    (ValueError("seed must be a whole number\nmore"), "seed must be a whole number"),
+])
+def test_entry_problem_says_what_was_wrong_in_words(exc, words):
+    from fcnpose_tf.fileio import entry_problem
+
+    assert entry_problem(exc) == words
+
+
+def test_a_bad_splits_file_and_schema_are_described_in_words(tmp_path):
+    from fcnpose_tf.data.splits import splits_from_dict
+    from fcnpose_tf.keypoints import KeypointSchema
+
+    with pytest.raises(UserError, match=r"not a valid splits file \(no 'frames_sha256' entry\)"):
+        splits_from_dict({"num_frames": 2}, ["a", "b"], "x.splits.json")
+    with pytest.raises(UserError, match=r"\(no 'edges' entry\)$"):
+        KeypointSchema.from_dict({"name": "a", "keypoints": ["x"]})

@@ -12,7 +12,6 @@ evaluation all see the same folds.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -150,8 +149,8 @@ def splits_from_dict(data: dict, names: Sequence[str], source: str = "splits") -
                       holdout, folds)
     except UserError:
         raise
-    except (KeyError, TypeError, ValueError) as exc:
-        raise UserError(f"{source}: not a valid splits file ({type(exc).__name__}: {exc}); delete it to split "
+    except (KeyError, TypeError, ValueError, AttributeError, IndexError) as exc:
+        raise UserError(f"{source}: not a valid splits file ({fileio.entry_problem(exc)}); delete it to split "
                         "again") from None
 
 
@@ -174,9 +173,9 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
     path = splits_path(via_path)
     if path.exists() and not resplit:
         try:
-            data = json.loads(path.read_text("utf-8"))
-        except (OSError, ValueError, RecursionError) as exc:
-            reason = "JSON nested too deeply to read" if isinstance(exc, RecursionError) else exc
+            data = fileio.parse_json(path.read_text("utf-8"))
+        except (OSError, ValueError) as exc:
+            reason = fileio.os_error_reason(exc) if isinstance(exc, OSError) else fileio.entry_problem(exc)
             raise UserError(f"{path}: cannot read splits file ({reason}); delete it to split again") from None
         splits = splits_from_dict(data, names, str(path))
         if (splits.seed, splits.k) != (seed, k) or abs(splits.val_fraction - val_fraction) > 1e-9:

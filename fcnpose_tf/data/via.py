@@ -241,16 +241,25 @@ def _schema_from_attributes(data: dict, attribute: str) -> KeypointSchema | None
         return None
 
 
+def _json_kind(value) -> str:
+    """What a JSON value is, in JSON's words: `null`, `true`, `a number`, `a string`, `a list`, `an object`."""
+    if value is None or isinstance(value, bool):
+        return json.dumps(value)
+    if isinstance(value, (int, float)):
+        return "a number"
+    return {str: "a string", list: "a list", dict: "an object"}.get(type(value), type(value).__name__)
+
+
 def _split_file(path: Path, data) -> tuple[dict, dict]:
     """(image metadata keyed by VIA key, settings) of a VIA 2 project or region-data export."""
     if not isinstance(data, dict):
         raise UserError(f"{path}: expected a JSON object (VIA 2 project or region-data export), "
-                        f"got a JSON {type(data).__name__}")
+                        f"got {_json_kind(data)}")
     if "_via_img_metadata" in data:
         metadata = data["_via_img_metadata"]
         if not isinstance(metadata, dict):
             raise UserError(f"{path}: _via_img_metadata: expected an object keyed by filename+size, "
-                            f"got {type(metadata).__name__}")
+                            f"got {_json_kind(metadata)}")
         settings = data.get("_via_settings") if isinstance(data.get("_via_settings"), dict) else {}
         return metadata, settings
     if {"project", "file", "metadata"} <= set(data) or "_via_project" in data:
@@ -339,7 +348,7 @@ def _region_label(region_attributes, attribute: str, where: str) -> str | None:
     if region_attributes is None:
         return None
     if not isinstance(region_attributes, dict):
-        raise _FrameProblem(f"{where}: region_attributes must be an object, got {type(region_attributes).__name__}")
+        raise _FrameProblem(f"{where}: region_attributes must be an object, got {_json_kind(region_attributes)}")
     value = region_attributes.get(attribute)
     if value is None or value == "":
         return None
@@ -366,7 +375,7 @@ def _parse_frame(meta: dict, key: str, schema: KeypointSchema, attribute: str,
     if isinstance(regions, dict):  # VIA 1.x region exports key regions by "0", "1", ...
         regions = [regions[k] for k in sorted(regions, key=lambda k: (len(str(k)), str(k)))]
     if not isinstance(regions, list):
-        raise _FrameProblem(f"{label}: 'regions' must be a list, got {type(regions).__name__}")
+        raise _FrameProblem(f"{label}: 'regions' must be a list, got {_json_kind(regions)}")
     size = meta.get("size", -1)
     size = int(size) if _is_number(size) or (isinstance(size, str) and size.lstrip("-").isdigit()) else -1
 
@@ -476,7 +485,7 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
     for key, meta in metadata.items():
         try:
             if not isinstance(meta, dict):
-                raise _FrameProblem(f"entry {key!r}: expected an object, got {type(meta).__name__}")
+                raise _FrameProblem(f"entry {key!r}: expected an object, got {_json_kind(meta)}")
             filename = meta.get("filename")
             if isinstance(filename, str) and filename in seen:
                 raise _FrameProblem(f"frame {filename!r}: duplicate frame (entries {seen[filename]!r} and {key!r})")

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import native_name
+from fcnpose_tf.fileio import entry_problem, native_name
 from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.nativelog import native_stderr_captured
 from fcnpose_tf.preprocess import FrameView
@@ -242,8 +242,8 @@ def read_view(path: str | os.PathLike, io: ModelIO) -> FrameView:
         return FrameView(*io.input_shape)
     try:
         view = FrameView.from_json(json.loads(stored.decode("utf-8")))
-    except (UnicodeDecodeError, ValueError, RecursionError) as exc:
-        raise UserError(f"{path}: its {VIEW_METADATA} metadata is not a frame view ({exc})") from exc
+    except (ValueError, KeyError, TypeError, RecursionError) as exc:
+        raise UserError(f"{path}: its {VIEW_METADATA} metadata is not a frame view ({entry_problem(exc)})") from exc
     if view.shape != io.input_shape:
         raise UserError(f"{path}: its stored view ({view.describe()}) does not fit its "
                         f"{io.input_shape[0]}x{io.input_shape[1]} input")

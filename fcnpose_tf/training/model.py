@@ -22,7 +22,7 @@ from typing import Sequence
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.fileio import native_name
+from fcnpose_tf.fileio import entry_problem, native_name
 from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.preprocess import FrameView, ViewLike
 from fcnpose_tf.settings import INPUT_SIZE, INPUT_SIZE_MULTIPLE, check_input_size  # noqa: F401 - re-exported
@@ -140,8 +140,8 @@ def read_stored_view(path) -> FrameView | None:
                 return None
             text = value.decode("utf-8") if isinstance(value, bytes) else str(value)
         return FrameView.from_json(json.loads(text))
-    except (OSError, ValueError, KeyError, zipfile.BadZipFile, RecursionError) as exc:
-        raise UserError(f"{path}: its stored frame view cannot be read ({type(exc).__name__}: {exc})") from exc
+    except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, RecursionError) as exc:
+        raise UserError(f"{path}: its stored frame view cannot be read ({entry_problem(exc)})") from exc
 
 
 def _store_view(path, view: FrameView) -> None:
