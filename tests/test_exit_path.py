@@ -503,3 +503,23 @@ def test_a_stop_signal_that_c_code_turned_into_another_exception_still_ends_as_t
     monkeypatch.setattr(synth, "run", defect)
     with pytest.raises(SystemError, match="a defect"):
         cli_here("synth", "--out", "frames", "--n", "1")
+
+
+def test_synth_on_a_full_disk_names_the_output_folder_not_its_staging_folder(tmp_path, capsys, monkeypatch):
+    from fcnpose_tf import fileio
+
+    original, calls = fileio.write_bytes, []
+
+    def write_bytes(path, data, force=False):
+        calls.append(path)
+        if len(calls) == 2:
+            raise fileio.WriteError(f"{path}: no space left on device")
+        return original(path, data, force)
+
+    monkeypatch.setattr(fileio, "write_bytes", write_bytes)
+    out = tmp_path / "set"
+    status = main(["synth", "--out", str(out), "--n", "3", "--width", "64", "--height", "48", "--workers", "1",
+                   "--no-progress"])
+    line = _one_error_line(status, capsys.readouterr().err)
+    assert line == f"error: {out}: no space left on device"
+    assert list(tmp_path.iterdir()) == []

@@ -179,9 +179,8 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     also written as OUT/motion.mp4.
 
     Raises:
-        UserError: n outside 1..MAX_FRAMES, a frame side below 32 or above MAX_SIDE, workers < 1, an unknown scene, look family or label
-            convention, tight_framing outside
-            [0, 1], or an output folder that is not empty (without force), not a folder, or not writable.
+        UserError: n outside 1..MAX_FRAMES, a frame side below 32 or above MAX_SIDE, workers < 1, an unknown
+            scene, look family or label convention, tight_framing outside [0, 1], or an output folder that is not empty (without force), not a folder, or not writable.
             Every option is checked before anything in out_dir is touched.
     """
     from fcnpose_tf import fileio
@@ -223,39 +222,52 @@ def generate_dataset(out_dir: str | os.PathLike, n: int = 500, seed: int = 0, wi
     # the frames are parts of the set: a failure before its VIA file is written keeps none of them as an
     # output of its own, whether a worker process or this one wrote it
     reporter = reporting.current() if progress else reporting.Reporter(silent=True)
-    with fileio.parts_of(out_dir), reporter.counter(n, "synth") as bar:
-        if workers == 1:
-            for task in tasks:
-                records.append(_render_and_write(task))
-                bar.update()
-        else:
-            import multiprocessing
-
-            ctx = multiprocessing.get_context("spawn")  # safe even when the caller has threads (TF, OpenCV)
-            with ctx.Pool(workers, initializer=_init_worker) as pool:
-                for record in pool.imap_unordered(_render_and_write, tasks, chunksize=4):
-                    records.append(record)
+    try:
+        with fileio.parts_of(out_dir), reporter.counter(n, "synth") as bar:
+            if workers == 1:
+                for task in tasks:
+                    records.append(_render_and_write(task))
                     bar.update()
-        records.sort(key=lambda r: r.index)
-        frames = [ViaFrame(r.filename, width, height, r.keypoints, size=r.size) for r in records]
-        if motion_fps is not None:
-            _write_video(staging / MOTION_VIDEO, [staging / r.filename for r in records], motion_fps, width, height)
-        with fileio.signals_deferred():  # the earlier set is replaced whole, or not at all
-            write_via_project(staging / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)  # a full disk fails here
-            keep = {r.filename for r in records}
-            for stale in image_dir.glob("synth_*.png"):  # what belonged to the set being replaced
-                if stale.name not in keep:
-                    stale.unlink()
-            splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
-            for record in records:
-                os.replace(staging / record.filename, image_dir / record.filename)
+            else:
+                import multiprocessing
+
+                ctx = multiprocessing.get_context("spawn")  # safe even when the caller has threads (TF, OpenCV)
+                with ctx.Pool(workers, initializer=_init_worker) as pool:
+                    for record in pool.imap_unordered(_render_and_write, tasks, chunksize=4):
+                        records.append(record)
+                        bar.update()
+            records.sort(key=lambda r: r.index)
+            frames = [ViaFrame(r.filename, width, height, r.keypoints, size=r.size) for r in records]
             if motion_fps is not None:
-                os.replace(staging / MOTION_VIDEO, out_dir / MOTION_VIDEO)
-            via_path = out_dir / VIA_FILENAME
-            os.replace(staging / VIA_FILENAME, via_path)
-            staging.rmdir()
+                _write_video(staging / MOTION_VIDEO, [staging / r.filename for r in records], motion_fps, width, height)
+            with fileio.signals_deferred():  # the earlier set is replaced whole, or not at all
+                # a full disk fails here
+                write_via_project(staging / VIA_FILENAME, frames, UR5, attribute="keypoint", force=True)
+                keep = {r.filename for r in records}
+                for stale in image_dir.glob("synth_*.png"):  # what belonged to the set being replaced
+                    if stale.name not in keep:
+                        stale.unlink()
+                splits_path(out_dir / VIA_FILENAME).unlink(missing_ok=True)  # folds of the set being replaced
+                for record in records:
+                    os.replace(staging / record.filename, image_dir / record.filename)
+                if motion_fps is not None:
+                    os.replace(staging / MOTION_VIDEO, out_dir / MOTION_VIDEO)
+                via_path = out_dir / VIA_FILENAME
+                os.replace(staging / VIA_FILENAME, via_path)
+                staging.rmdir()
+    except fileio.WriteError as exc:  # `OUT/.synth-new.PID/synth_00007.png: no space left on device`
+        raise fileio.WriteError(_named_as_output(str(exc), staging, out_dir)) from None
     return SynthReport(Path(via_path), records, time.perf_counter() - start, workers, int(width), int(height), looks,
                        labels, motion_fps)
+
+
+def _named_as_output(message: str, staging: Path, out_dir: Path) -> str:
+    """A write error's `PATH: reason` about a file in the staging folder, told of the output folder the user named
+    (`OUT: no space left on device`); any other message as it is."""
+    if not message.startswith(str(staging)):
+        return message
+    _, _, reason = message[len(str(staging)):].partition(": ")  # the staged files' own names hold no ": "
+    return f"{out_dir}: {reason}"
 
 
 MOTION_VIDEO = "motion.mp4"
