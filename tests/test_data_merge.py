@@ -145,7 +145,7 @@ def test_a_missing_image_is_an_error_naming_the_frame_or_left_out_with_skip_bad(
 
 def test_merge_needs_two_inputs_and_a_json_output(tmp_path, capsys):
     a, _ = _round(tmp_path / "r1", ["f0.png"], seed=0)
-    status, captured = _merge(a, b, "--out", tmp_path / "m.json", capsys=capsys)
+    status, captured = _merge(a, "--out", tmp_path / "m.json", capsys=capsys)
     assert status == 2 and "at least two VIA projects" in captured.err
     status, captured = _merge(a, a, "--out", tmp_path / "m.json", capsys=capsys)
     assert status == 2 and "given twice" in captured.err
