@@ -1,7 +1,7 @@
 """Training, retraining and compression settings, each defined once: name, type, default, check, help.
 
 The `train`, `compress` and `sweep` commands generate their options from these definitions
-(`Setting.add_to`), and `train.FitConfig`, `compress.CompressOptions` and `sweep.jobs.SweepConfig`
+(`Setting.add_to`), and `train.FitConfig`, `options.CompressOptions` and `sweep.jobs.SweepConfig`
 declare their fields with them (`Setting.field`), so a default, its check and its error message
 live here only. Where two commands use the same setting with a different default (base training
 against retraining, one training run against a sweep of many), both variants are defined below,
@@ -11,7 +11,7 @@ Every setting has a value per preset (PRESETS): `recommended`, the default every
 best on a user's frames), and `paper`, the paper's recipe. A command's `--preset` and a config class's
 `preset(name, ...)` read the same values, so `CompressOptions(rate=0.7)` is `compress --rate 0.7` and
 `CompressOptions.preset("paper", rate=0.7)` is `compress --preset paper --rate 0.7`. A value of None
-("auto") is resolved per run by the library (`train.FitConfig.resolved`, `compress.CompressOptions.resolved`),
+("auto") is resolved per run by the library (`train.FitConfig.resolved`, `options.CompressOptions.resolved`),
 never by a command.
 
 Imports only the standard library: the CLI builds its parser from this module on a Pi without

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from fcnpose_tf.compression.compress import CompressReport, RefusedFormat, report_table
+from fcnpose_tf.compression.report import CompressReport, RefusedFormat, report_table
 from test_train_evaluate import make_via_folder
 from weights import randomize
 
@@ -144,7 +144,7 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli):
 
 
 def test_recipe_names_the_floor_and_a_lowered_one():
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
 
     options = CompressOptions(rate=0.9, min_filters=12, importance="taylor", retrain_epochs=0)
     assert options.recipe().startswith("filter surgery at 0.9 (no layer under 12 filters, same parameter budget), ")
@@ -270,7 +270,7 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli, cli_
 
 
 def test_compress_options_refuse_combinations_no_run_can_do():
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.errors import UserError
 
     with pytest.raises(UserError, match="--importance taylor ranks filters for filter surgery"):
@@ -307,7 +307,7 @@ def _report(**changes) -> CompressReport:
 def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_rate():
     """`accuracy_note`: the best file written against the unpruned model; within 0.02 no note; beyond, the loss and a
     lower rate (the views-that-vary figure above 0.5); no file written, no note."""
-    from fcnpose_tf.compression.compress import accuracy_note
+    from fcnpose_tf.compression.report import accuracy_note
 
     timing = {"inference_ms": {"mean": 2.0}, "fps": 100.0}
     written = _step(30, 0.95, quantize="float16", status="written", tflite_size_bytes=600, timing=timing)
@@ -376,7 +376,8 @@ def test_a_written_report_reads_back_older_ones_too():
 
 
 def test_report_metadata_cannot_replace_a_section(tmp_path):
-    from fcnpose_tf.compression.compress import CompressOptions, compress_model
+    from fcnpose_tf.compression.compress import compress_model
+    from fcnpose_tf.compression.options import CompressOptions
 
     with pytest.raises(ValueError, match="report metadata cannot hold base, method: a section of the report"):
         _report(metadata={"method": "x", "base": {}, "preset": "paper"})
@@ -400,7 +401,7 @@ def test_compress_inherits_the_base_models_augmentation(tmp_path):
     keypoint weight; a model without a record, or a record without it, gets the paper's copies; a value given wins."""
     import json
 
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
 
     base = tmp_path / "views.keras"
     base.write_bytes(b"")  # only the record beside it is read
@@ -436,7 +437,8 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     """--start auto: generalist-p70 for the generalist itself and for models `train` fine-tuned from it on views that
     vary (online augmentation; directly or through a round of the correction loop), at the rate and floor whose
     widths it has; surgery otherwise (a fixed camera, another start), and for --start surgery and magnitude pruning."""
-    from fcnpose_tf.compression.compress import CompressOptions, pruned_start
+    from fcnpose_tf.compression.methods import pruned_start
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.training.model import build_fcn_pose
 
     base = build_fcn_pose(input_size=64)
@@ -478,7 +480,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
 
 
 def test_a_pruned_start_is_named_in_the_recipe_and_refused_with_magnitude_pruning():
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.errors import UserError
 
     recipe = CompressOptions(rate=0.7, start="generalist-p70", retrain_epochs=0).recipe(15)

@@ -24,7 +24,7 @@ TRAIN = ["train", "--data", "d", "--out", "m.keras"]
 
 
 def test_a_default_changed_in_settings_reaches_every_command_and_config(monkeypatch):
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
     from fcnpose_tf.training.train import FitConfig
 
@@ -59,7 +59,7 @@ def test_train_weights_keypoints_less_when_fine_tuning_on_one_fixed_camera(train
 
 
 def test_commands_that_differ_use_their_own_variant():
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
     from fcnpose_tf.training.train import FitConfig
 
@@ -86,7 +86,7 @@ def test_commands_that_differ_use_their_own_variant():
 
 
 def _config(kind, **values):
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
     from fcnpose_tf.training.train import FitConfig
 
@@ -123,7 +123,7 @@ def test_the_cli_refuses_with_the_settings_message(cli, tmp_path):
 def _cli_configs(preset):
     """Each command's configs as its parser leaves them with no option but --preset (and what it requires)."""
     from fcnpose_tf.commands.sweep import config_from_args
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.export import ExportOptions
     from fcnpose_tf.training.train import FitConfig
 
@@ -139,7 +139,7 @@ def _cli_configs(preset):
 
 def _api_configs(preset):
     """The same configs from the library: the class's defaults, or its `preset`."""
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.export import ExportOptions
     from fcnpose_tf.sweep.jobs import SweepConfig
     from fcnpose_tf.training.train import FitConfig
@@ -168,7 +168,7 @@ def test_the_api_and_the_cli_mean_the_same_with_no_options(preset):
 
 
 def test_compress_options_mean_what_compress_means():
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
 
     recommended = CompressOptions(rate=0.7).resolved()
     assert (recommended.importance, recommended.min_filters, recommended.learning_rate, recommended.lr_patience) == \
@@ -209,7 +209,7 @@ def test_train_preset_paper_is_the_papers_recipe():
 def test_the_sweep_passes_every_setting_on_to_its_runs():
     import dataclasses
 
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.sweep.jobs import SWEEP_FIXED, Job, SweepConfig
     from fcnpose_tf.training.train import FitConfig
 
@@ -242,7 +242,7 @@ def test_the_librarys_decoders_default_to_the_commands_decoding():
     import inspect
 
     from fcnpose_tf import postprocess
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.runtime import bench, estimator
     from fcnpose_tf.training import evaluate, train
 

@@ -710,7 +710,7 @@ def test_a_rate_job_whose_every_format_is_refused_fails_with_one_line(tmp_path, 
     import types
 
     import fcnpose_tf.compression.compress
-    from fcnpose_tf.compression.compress import CompressReport, RefusedFormat
+    from fcnpose_tf.compression.report import CompressReport, RefusedFormat
     from fcnpose_tf.sweep import jobs
 
     base = jobs.base_model_path(tmp_path, 0)

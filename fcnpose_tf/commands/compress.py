@@ -38,7 +38,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from fcnpose_tf.compression.compress import CompressReport
+    from fcnpose_tf.compression.report import CompressReport
 
 NAME = "compress"
 USES_TENSORFLOW = True
@@ -92,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data import synthcache
     from fcnpose_tf.bundled import KERAS_SUFFIXES, baseline_model, resolve_model
-    from fcnpose_tf.compression.compress import (CompressOptions, accuracy_note, check_outputs, compress_model,
-                                                 report_table)
+    from fcnpose_tf.compression.compress import compress_model
+    from fcnpose_tf.compression.options import CompressOptions, check_outputs
+    from fcnpose_tf.compression.report import accuracy_note, report_table
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
@@ -174,7 +175,7 @@ def run(args: argparse.Namespace) -> int:
 def _finish(report: CompressReport, model_path: Path, out_dir: Path, options, named: bool) -> int:
     """Name every file written; the exit status (see the module doc): 2 when a named format was refused or no
     .tflite file was written, else 0."""
-    from fcnpose_tf.compression.compress import output_paths
+    from fcnpose_tf.compression.options import output_paths
     from fcnpose_tf.compression.export import finish_formats
 
     written = [Path(p) for p in report.files.values()]

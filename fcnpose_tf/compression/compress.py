@@ -1,371 +1,54 @@
 """The paper's whole compression for one rate: prune, retrain, quantize, and measure every step.
 
-    base model ──► filter surgery at rate r, filters ranked by an importance criterion (L1 by
-                   default; or tfmot magnitude pruning) ──► retrain (optionally distilled from
-                   the base model's maps) ──► TFLite export (float16 by default), verified against Keras
+    base model ──► filter surgery at rate r, filters ranked by an importance criterion (first-order
+                   Taylor by default, the paper's L1 with --preset paper; or tfmot magnitude pruning)
+                   ──► retrain (optionally distilled from the base model's maps) ──► TFLite export
+                   (float16 and int8 by default), verified against Keras
     measured at each step on the same frames: PCK@0.5/0.2/0.05 (bbox), EPE, PCK-AUC,
     parameters, MACs, file sizes, inference time and FPS (Keras and TFLite, thread count stated).
 
 `compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
 the steps below in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
-export_step, measure_quantized), each returning its part of the report (a `CompressReport`, written as
-NAME_pXX_report.json). A format whose file fails its gate is a "refused" entry of the report (a `RefusedFormat`),
-not the end of the run; post-training int8 refused falls back to quantization-aware training (`qat_step`,
-`fcnpose_tf.compression.qat`). A pruning method is a `PruningMethod` object (`FilterPruning` with an importance
-criterion from `fcnpose_tf.compression.importance`, `MagnitudePruning`); both retrain through `train.fit`.
+export_step, measure_quantized), each returning its part of the report. Beside it:
+`fcnpose_tf.compression.options` (what a run is asked: `CompressOptions`, the files it writes),
+`fcnpose_tf.compression.methods` (how: a `PruningMethod`, `FilterPruning` with an importance criterion from
+`fcnpose_tf.compression.importance` or `MagnitudePruning`; both retrain through `train.fit`) and
+`fcnpose_tf.compression.report` (what it measured: the `CompressReport` written as NAME_pXX_report.json, its table).
+A format whose file fails its gate is a "refused" entry of the report (a `RefusedFormat`), not the end of the run;
+post-training int8 refused falls back to quantization-aware training (`qat_step`, `fcnpose_tf.compression.qat`).
 """
 
 from __future__ import annotations
 
 import gzip
 import os
-import tempfile
 import time
-import warnings
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Protocol, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from fcnpose_tf import progress, settings
+from fcnpose_tf import progress
+from fcnpose_tf.compression.methods import Log, PruningMethod, pruned_start, pruning_method
+from fcnpose_tf.compression.options import CompressOptions, check_outputs, output_names, tflite_key
+from fcnpose_tf.compression.report import (CompressReport, RefusedFormat, Step, _check_metadata, file_sizes,
+                                           model_facts)
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
 from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.progress import Reporter
-from fcnpose_tf.fileio import check_writable, write_json
+from fcnpose_tf.fileio import write_json
 from fcnpose_tf.records import file_sha256, training_record
 
 if TYPE_CHECKING:
     import tf_keras as keras
 
     from fcnpose_tf.compression.importance import Importance
-    from fcnpose_tf.training.train import FitConfig, FitResult
+    from fcnpose_tf.training.train import FitResult
 
 # TensorFlow is imported inside the functions: `sweep.jobs` and the CLI import this module (or
 # read its settings) without needing TensorFlow until a compression runs.
-
-METHODS = settings.METHOD.choices
-Log = Callable[[str], None]
-
-
-@settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
-                       settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
-                       ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE,
-                       ("learning_rate", settings.COMPRESS_LEARNING_RATE), ("augment", settings.INHERITED_AUGMENT),
-                       settings.AUGMENT_COPIES,
-                       settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
-                       ("positive_weight", settings.INHERITED_POSITIVE_WEIGHT),
-                       ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
-                       ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
-                       settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.PRUNED_START,
-                       ("input_size", settings.COMPRESS_INPUT_SIZE), settings.QAT_EPOCHS,
-                       settings.QAT_LEARNING_RATE, settings.CENTROID)
-class CompressOptions:
-    """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
-    calibration_frames (int8), and the retraining's
-    retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
-    positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
-    importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
-    retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
-    narrowest a pruned layer may become at the same parameter budget), start (the pruned network's weights before
-    retraining: surgery, auto, or a pruned model: `pruned_start`), input_size (the side the model is rebuilt, retrained
-    and exported at; None: its own), and qat_epochs / qat_learning_rate
-    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback); centroid: how the
-    table's keypoints are read (`postprocess.CENTROIDS`).
-
-    The defaults are `fcnpose-tf compress`'s (`CompressOptions.preset("paper", rate=...)`: the paper's recipe);
-    importance, min_filters, lr_patience and positive_weight left None are chosen per run by `resolved`
-    (`compress_model` calls it). Defaults, checks and meanings: `fcnpose_tf.settings`."""
-
-    def validate(self) -> None:
-        """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
-        from fcnpose_tf.compression.importance import DATA_AWARE
-
-        settings.validate_fields(self)
-        settings.check_lr_schedule(self.lr_schedule, self.lr_patience or 0)
-        if self.method == "magnitude" and self.importance not in (None, "l1"):
-            raise UserError(f"--importance {self.importance} ranks filters for filter surgery (--method l1); "
-                            "magnitude pruning zeroes the smallest weights")
-        if self.method == "magnitude" and self.freeze:
-            raise UserError(f"--freeze {self.freeze} keeps the first convolutions of filter surgery's model fixed; "
-                            "magnitude pruning retrains every weight it masks (use --freeze 0)")
-        if self.method == "magnitude" and self.min_filters:
-            raise UserError(f"--min-filters {self.min_filters} sets the widths of filter surgery's layers (--method "
-                            "l1); magnitude pruning keeps every filter (use --min-filters 0)")
-        if self.method == "magnitude" and self.start not in ("auto", "surgery"):
-            raise UserError(f"--start {self.start} gives filter surgery's pruned network its weights (--method l1); "
-                            "magnitude pruning masks the base model's own (use --start surgery)")
-        if self.strategy == "greedy" and self.importance in DATA_AWARE:
-            raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
-                            f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
-
-    def resolved(self, base_path: str | os.PathLike | None = None) -> CompressOptions:
-        """These options with the settings left None chosen for the run: importance (`settings.DEFAULT_COMPRESS_IMPORTANCE`
-        for filter surgery with the independent strategy, else the paper's l1: greedy ranking reads kernels only),
-        min_filters (`settings.DEFAULT_COMPRESS_MIN_FILTERS` for filter surgery; magnitude pruning keeps every
-        filter), lr_patience (`settings.resolved_lr_patience`), positive_weight and augment (those `base_path` was
-        trained with, from its NAME_train.json; else 1, the paper's plain BCE, and the paper's copies)."""
-        importance, min_filters, positive_weight, augment = (self.importance, self.min_filters, self.positive_weight,
-                                                             self.augment)
-        if importance is None:
-            independent_surgery = self.method == "l1" and self.strategy == "independent"
-            importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
-        if min_filters is None:
-            min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if self.method == "l1" else 0
-        record = training_record(base_path) if base_path is not None and None in (positive_weight, augment) else None
-        if positive_weight is None:
-            positive_weight = float(record.positive_weight or 1.0) if record is not None else 1.0
-        if augment is None:
-            inherited = record.augment if record is not None else None
-            augment = inherited if inherited in settings.AUGMENT.choices else settings.AUGMENT.default
-        lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
-                                                    settings.DEFAULT_COMPRESS_LR_PATIENCE)
-        return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
-                       lr_patience=lr_patience, augment=augment)
-
-    def recipe(self, min_filters_used: int | None = None) -> str:
-        """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
-
-        `min_filters_used` is the floor the surgery could keep (`prune.prune_widths`) when lower than asked."""
-        from fcnpose_tf.training.train import loss_name
-
-        if None in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment):
-            return self.resolved().recipe(min_filters_used)
-
-        used = self.min_filters if min_filters_used is None else min_filters_used
-        floor = "" if used <= 1 else (
-            f" (no layer under {used} filters, same parameter budget)" if used == self.min_filters else
-            f" (no layer under {used} filters: --min-filters {self.min_filters} lowered to fit the parameter budget)")
-        pruned = (f"magnitude pruning at {self.rate:g}" if self.method == "magnitude" else
-                  f"filter surgery's widths at {self.rate:g}{floor}, the weights of {self.start}"
-                  if self.start not in ("auto", "surgery") else
-                  f"filter surgery at {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy}"
-                  + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
-                     else "") + ")")
-        size = f", at {self.input_size}x{self.input_size}" if self.input_size else ""
-        if self.retrain_epochs == 0:
-            return f"{pruned}, not retrained{size}"
-        epochs = f"{self.retrain_epochs} epoch{'s' if self.retrain_epochs > 1 else ''}"
-        rate = (f"learning rate {self.learning_rate:g} on a cosine" if self.lr_schedule == "cosine" else
-                f"learning rate {self.learning_rate:g}, halved after {self.lr_patience} stale epochs"
-                if self.lr_patience else f"learning rate {self.learning_rate:g}")
-        frozen = f", conv1-{self.freeze} fixed" if self.freeze > 1 else ", conv1 fixed" if self.freeze else ""
-        frames = " with online augmentation" if self.augment == "online" else ""  # the paper's copies: unsaid
-        return (f"{pruned}, retrained up to {epochs}{frames} on "
-                f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}{size}")
-
-    def fit_config(self) -> FitConfig:
-        """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
-        from fcnpose_tf.training.train import FitConfig
-
-        return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1), max_minutes=None))
-
-
-# ------------------------------------------------------------------------------------------
-# The report: what a run measured and wrote (NAME_pXX_report.json)
-# ------------------------------------------------------------------------------------------
-
-Step = dict[str, Any]
-"""One measured step of the report, as written: the model's facts (widths, params, macs, flops, nonzero_weights; a
-TFLite file's params, macs, flops), its file sizes (h5_size_bytes, h5_gzip_size_bytes, keras_size_bytes; a TFLite
-file's tflite_size_bytes, tflite_gzip_size_bytes), "metrics" and "timing" (none for the pruned model before
-retraining). A TFLite file's also holds "quantize", "status" ("written"), "quantization", "export"
-(`TFLiteExport.to_dict`), "tflite_ops" and, when quantization-aware training made it, "qat"."""
-
-
-@dataclass(frozen=True)
-class RefusedFormat:
-    """A --quantize format whose file failed its keypoint gate: no file written, a row of the table. Written as
-    {"quantize", "status": "refused", "reason", "post_training"[, "qat"]}."""
-
-    quantize: str
-    """The format (float16, int8, ...)."""
-    reason: str
-    """Why it was refused: the gate's reason (after quantization-aware training, that training's)."""
-    post_training: dict[str, Any] = field(default_factory=dict)
-    """The post-training file's gate: its "reason" and the facts it measured."""
-    qat: dict[str, Any] | None = None
-    """Quantization-aware training's facts, when it was tried (int8 with --qat-epochs above 0)."""
-
-    def to_json(self) -> dict[str, Any]:
-        """The entry as the report's "refused" list holds it ("qat" only when tried)."""
-        return {"quantize": self.quantize, "status": "refused", "reason": self.reason,
-                "post_training": self.post_training, **({"qat": self.qat} if self.qat is not None else {})}
-
-    @classmethod
-    def from_json(cls, entry: dict[str, Any]) -> RefusedFormat:
-        """The entry of a parsed report's "refused" list."""
-        return cls(quantize=entry["quantize"], reason=entry["reason"],
-                   post_training=entry.get("post_training") or {}, qat=entry.get("qat"))
-
-
-def _if_any() -> Any:
-    """A section only some runs have: None when the run has none, and then not written."""
-    return field(default=None, metadata={"if_any": True})
-
-
-@dataclass(frozen=True, kw_only=True)
-class CompressReport:
-    """What `compress_model` measured and wrote: one field per top-level key of NAME_pXX_report.json, in the
-    file's order (`to_json`). The measured steps stay JSON objects (`Step`); a refused format is a `RefusedFormat`.
-    A section only some runs have (pruning, magnitude_sparsity, retrain_data, distillation, retraining) is None
-    when the run has none and is then not written; "quantized" is written either way (null: every format refused)."""
-
-    base_model: str
-    """The model that was compressed, its file as given."""
-    method: str
-    """The pruning method: l1 (filter surgery, whatever the criterion) or magnitude."""
-    recipe: str
-    """One line naming how the file was made (`CompressOptions.recipe`); "" read back from a report older than it."""
-    options: dict[str, Any]
-    """The settings used, `CompressOptions` as a dict (those left None chosen for the run)."""
-    evaluation_frames: str
-    """The frames every step was measured on, in words."""
-    pck_normalisation: str
-    """What PCK's distances are divided by."""
-    threads: int | None
-    """CPU threads of the timed inference (None: all cores)."""
-    metadata: dict[str, Any] = field(default_factory=dict)
-    """The caller's further facts (`compress_model(metadata=...)`, e.g. the command's "preset"), written as top-level
-    keys here; read back from a file, every key without a field (e.g. the sweep's "retimed")."""
-    base: Step
-    """The unpruned model (Keras)."""
-    pruning: dict[str, Any] | None = _if_any()
-    """Filter surgery's criterion and its facts, strategy, min_filters (the floor used), ranking_seconds."""
-    magnitude_sparsity: float | None = _if_any()
-    """Magnitude pruning's fraction of zeroed weights (the parameter reduction of filter surgery at the rate)."""
-    pruned_before_retraining: Step
-    """The pruned model before any retraining (Keras, no timing)."""
-    retrain_data: dict[str, Any] | None = _if_any()
-    """What the retraining trained on: data, fold, train_samples, val_frames (None: not retrained)."""
-    distillation: dict[str, Any] | None = _if_any()
-    """The base model as a teacher while retraining: weight and its facts (None: --distill 0)."""
-    retraining: dict[str, Any] | None = _if_any()
-    """How the retraining went (`retraining_report`); None: not retrained."""
-    retrained: Step
-    """The retrained model as saved (Keras, NAME_pXX.keras)."""
-    quantized: Step | None
-    """The first TFLite file written (the paper's float16 by default); None when every format was refused."""
-    other_quantized: list[Step] = field(default_factory=list)
-    """The other TFLite files written, in --quantize order."""
-    refused: list[RefusedFormat] = field(default_factory=list)
-    """The formats whose file failed its gate (nothing written for them)."""
-    files: dict[str, str]
-    """The files written, by `output_names` key (keras, tflite_fp16, ..., report)."""
-    seconds: float
-    """Wall time of the run."""
-
-    def __post_init__(self) -> None:
-        _check_metadata(self.metadata)
-
-    @property
-    def tflite_files(self) -> list[Step]:
-        """The TFLite files written: "quantized" first, then "other_quantized"."""
-        return [step for step in [self.quantized, *self.other_quantized] if step is not None]
-
-    def to_json(self) -> dict[str, Any]:
-        """The report as NAME_pXX_report.json holds it: the fields in order, `metadata`'s keys in its place, a
-        section only some runs have left out when None."""
-        report: dict[str, Any] = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if f.name == "metadata":
-                report.update(value)
-            elif f.name == "refused":
-                report[f.name] = [entry.to_json() for entry in value]
-            elif value is not None or not f.metadata.get("if_any"):
-                report[f.name] = value
-        return report
-
-    @classmethod
-    def from_json(cls, report: dict[str, Any]) -> CompressReport:
-        """The report of a parsed NAME_pXX_report.json (to read a written one back, e.g. for its table). Keys that
-        reports held before "recipe", "other_quantized" and "refused" existed read as "", [] and [] (one file,
-        and a refused format ended those runs); a key without a field goes to `metadata`.
-
-        Raises:
-            TypeError: not a JSON object.
-            ValueError: a key every report holds is missing.
-        """
-        if not isinstance(report, dict):
-            raise TypeError(f"a compress report is a JSON object, not {type(report).__name__}")
-        names = {f.name for f in fields(cls)} - {"metadata"}
-        optional = {f.name for f in fields(cls) if f.metadata.get("if_any")} | {"recipe", "other_quantized", "refused"}
-        missing = sorted(names - optional - report.keys())
-        if missing:
-            raise ValueError(f"not a compress report: no {', '.join(missing)}")
-        values = {k: v for k, v in report.items() if k in names}
-        values.setdefault("recipe", "")
-        values["other_quantized"] = list(values.get("other_quantized") or [])
-        values["refused"] = [RefusedFormat.from_json(entry) for entry in values.get("refused") or []]
-        return cls(**values, metadata={k: v for k, v in report.items() if k not in names})
-
-
-def _check_metadata(metadata: dict[str, Any] | None) -> None:
-    """ValueError if a key of a report's further facts is one of its sections (it would overwrite it)."""
-    clash = sorted(set(metadata or {}) & {f.name for f in fields(CompressReport)})
-    if clash:
-        raise ValueError(f"report metadata cannot hold {', '.join(clash)}: a section of the report")
-
-
-def tflite_key(quantize: str) -> str:
-    """The key of a TFLite file in a run's names and paths (and the report's "files"): tflite_fp16, tflite_int8."""
-    return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
-
-
-def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
-    """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite (one per --quantize format, key
-    `tflite_key`), NAME_p70_report.json (m70 for magnitude); NAME_p70_192... with --input-size 192."""
-    tag = f"{pruning_method(options).tag}{round(options.rate * 100):02d}"
-    stem = f"{base_name}_{tag}" + (f"_{options.input_size}" if options.input_size else "")
-    return {"stem": stem, "keras": f"{stem}.keras",
-            **{tflite_key(q): f"{stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize},
-            "report": f"{stem}_report.json"}
-
-
-def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
-    """Every file a run writes into `out_dir`: the models, the report and (when retraining) the training side files."""
-    from fcnpose_tf.training.train import output_files
-
-    names = output_names(Path(base_path).stem, options)
-    paths = [Path(out_dir) / name for key, name in names.items() if key != "stem"]
-    if options.retrain_epochs > 0:
-        paths += [p for p in output_files(paths[0]) if p not in paths]
-    return paths
-
-
-def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions,
-                  force: bool = False) -> None:
-    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
-    for path in output_paths(base_path, out_dir, options):
-        check_writable(path, force)
-
-
-def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
-    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
-    from fcnpose_tf.training.model import h5_bytes, inference_copy, save_for_inference
-
-    with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
-        warnings.simplefilter("ignore", UserWarning)
-        h5 = h5_bytes(inference_copy(model))
-    sizes = {"h5_size_bytes": len(h5), "h5_gzip_size_bytes": len(gzip.compress(h5, 9))}
-    with tempfile.TemporaryDirectory() as tmp:
-        if keras_path is None:
-            keras_path = Path(tmp) / "m.keras"
-            save_for_inference(model, keras_path)
-        sizes["keras_size_bytes"] = keras_path.stat().st_size
-    return sizes
-
-
-def model_facts(model: keras.Model) -> dict[str, Any]:
-    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
-    from fcnpose_tf.training.model import conv_widths, describe
-
-    rows = describe(model)
-    macs = sum(r.macs for r in rows)
-    return {"widths": list(conv_widths(model)), "params": int(model.count_params()), "macs": int(macs),
-            "flops": int(2 * macs), "nonzero_weights": int(sum(np.count_nonzero(w) for w in model.get_weights()))}
 
 
 def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, log: Log,
@@ -377,196 +60,6 @@ def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, l
     if timing:
         out["timing"] = result["timing"]
     return out
-
-
-# ------------------------------------------------------------------------------------------
-# Pruning methods: one interface, one object per method
-# ------------------------------------------------------------------------------------------
-
-FitFn = Callable[..., "FitResult"]
-"""`fit_fn(model, callbacks=(), inference_model=None)`: the retraining `fit`, writing NAME_pXX.keras."""
-
-
-class PruningMethod(Protocol):
-    """How a method prunes the base model and retrains the result through the same `fit`."""
-
-    name: str
-    tag: str
-    """First letter of the output names' rate tag: p70 (filters removed), m70 (weights zeroed)."""
-
-    def describe(self) -> str:
-        """The progress line's words for what is pruned."""
-
-    @property
-    def ranks_filters(self) -> bool:
-        """Whether `prune` ranks the base model's filters by an `Importance` (else it is passed None)."""
-
-    @property
-    def trained_start(self) -> bool:
-        """Whether `prune` returns trained weights of the pruned network (a pruned start), whose validation loss the
-        retraining must beat: if no epoch does, the start is kept unchanged (`train.fit`'s start_is_candidate)."""
-
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
-        """The pruned model before retraining, and the report sections the method adds (`CompressReport` fields
-        by name: pruning, magnitude_sparsity)."""
-
-    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
-        """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
-
-    def training_record(self) -> dict[str, Any]:
-        """What the retraining's NAME_train.json says about the method."""
-
-
-class FilterPruning:
-    """The paper's method: remove the least important filters (exact layer surgery); the paper ranks them by
-    L1 norm, `fcnpose_tf.compression.importance` holds the other criteria. The method is named "l1" in reports and
-    options for that reason; the criterion is recorded beside it."""
-
-    name, tag = "l1", "p"
-
-    def __init__(self, rate: float, strategy: str, importance: str = "l1", min_filters: int = 0,
-                 start: Path | None = None, start_name: str = "") -> None:
-        self.rate, self.strategy, self.importance, self.min_filters = rate, strategy, importance, min_filters
-        self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
-        self.criterion_facts: dict[str, Any] = {"importance": importance} if start is None else {}
-
-    @property
-    def ranks_filters(self) -> bool:
-        return self.start is None
-
-    @property
-    def trained_start(self) -> bool:
-        return self.start is not None
-
-    def describe(self) -> str:
-        floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
-        if self.start is not None:
-            return f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
-        return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
-
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.compression.prune import prune_model
-
-        if self.start is not None:
-            return self._from_start(base)
-        start = time.perf_counter()
-        pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
-                             min_filters=self.min_filters)
-        self.criterion_facts = importance.describe()
-        return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
-                                    "min_filters": self.min_filters,
-                                    "ranking_seconds": round(time.perf_counter() - start, 1)}}
-
-    def _from_start(self, base: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
-        """The start model's weights in the network surgery would build from `base` (same widths, the base's input
-        size); UserError when its widths are not surgery's."""
-        from fcnpose_tf.compression.prune import prune_widths
-        from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model, view_of
-
-        source = load_model(self.start)
-        widths = (*prune_widths(base, self.rate, self.min_filters)[0], conv_widths(base)[-1])
-        if conv_widths(source) != widths:
-            floor = f" with no layer under {self.min_filters} filters" if self.min_filters > 1 else ""
-            raise UserError(f"--start {self.start_name}: its widths {conv_widths(source)} are not filter surgery's at "
-                            f"--rate {self.rate:g}{floor} on this model, {widths}")
-        pruned = build_fcn_pose(widths[:-1], view_of(base), widths[-1])
-        pruned.set_weights(source.get_weights())
-        return pruned, {"pruning": {"start": self.start_name, "start_file": str(self.start),
-                                    "min_filters": self.min_filters}}
-
-    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
-        fit_fn(pruned)
-
-    def training_record(self) -> dict[str, Any]:
-        start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
-        return {"rate": self.rate, **start, "min_filters": self.min_filters, **self.criterion_facts}
-
-
-class MagnitudePruning:
-    """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at `rate` removes."""
-
-    name, tag = "magnitude", "m"
-    ranks_filters = trained_start = False
-
-    def __init__(self, rate: float) -> None:
-        self.rate = rate
-        self.sparsity = 0.0
-
-    def describe(self) -> str:
-        return f"magnitude at rate {self.rate:g}"
-
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.compression.prune import magnitude_prune, prune_model
-
-        surgery = prune_model(base, self.rate)  # only its parameter count: the same reduction as filter surgery
-        self.sparsity = 1.0 - model_facts(surgery)["params"] / model_facts(base)["params"]
-        return magnitude_prune(base, self.sparsity), {"magnitude_sparsity": round(self.sparsity, 6)}
-
-    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
-        import tensorflow_model_optimization as tfmot
-
-        from fcnpose_tf.compression.prune import magnitude_prune
-
-        # the same masks as `prune` (computed from the base's weights), kept while fit retrains
-        magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(
-            wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
-
-    def training_record(self) -> dict[str, Any]:
-        return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
-
-
-PRUNED_GENERALIST = "generalist-p70"
-"""The bundled pruned generalist (`bundled.BUNDLED_MODELS`): `--start auto`'s choice for a model fine-tuned from the
-generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
-
-
-def pruned_start(options: CompressOptions, base_path: Path, base: keras.Model, floor: int,
-                 log: Log = lambda line: None) -> tuple[str, Path | None]:
-    """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
-    for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
-    (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
-    and the bundled file has the widths filter surgery gives here (rate, floor); else surgery, which keeps PCK@0.5
-    within 0.01 on fixed-camera models (docs/compression.md, "On your own model").
-    An explicit start is resolved as a model argument (a file, or a bundled name); its widths are checked when it is
-    loaded (`FilterPruning.prune`)."""
-    from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
-    from fcnpose_tf.compression.prune import prune_widths
-    from fcnpose_tf.records import lineage
-    from fcnpose_tf.training.model import conv_widths, load_model
-
-    start = options.start
-    if options.method != "l1" or start == "surgery":
-        return "surgery", None
-    if start != "auto":
-        return start, resolve_model(start, KERAS_SUFFIXES, say=log)
-    generalist = generalist_model().resolve()
-    ancestry = [str(base_path), *lineage(base_path)]
-    if not any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
-               for name in ancestry):
-        return "surgery", None
-    record = training_record(base_path)
-    if record is None or record.augment != "online":  # a fixed camera: the frames show the views it will see
-        return "surgery", None
-    path = models_dir() / BUNDLED_MODELS[PRUNED_GENERALIST][0]
-    if not path.is_file():  # an installation without it
-        log(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
-        return "surgery", None
-    widths = (*prune_widths(base, options.rate, floor)[0], conv_widths(base)[-1])
-    if conv_widths(load_model(path)) != widths:
-        log(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate {options.rate:g} "
-            f"with no layer under {floor} filters, {widths})")
-        return "surgery", None
-    return PRUNED_GENERALIST, path
-
-
-def pruning_method(options: CompressOptions, min_filters: int | None = None, start: Path | None = None) -> PruningMethod:
-    """The pruning method `options.method` names; filter surgery keeps no layer under `min_filters` (default
-    options.min_filters; `compress_model` passes the floor that fits the rate's parameter budget) and takes its
-    weights from the pruned model `start` when one is given (`pruned_start`)."""
-    if options.method == "magnitude":
-        return MagnitudePruning(options.rate)
-    floor = options.min_filters if min_filters is None else min_filters
-    return FilterPruning(options.rate, options.strategy, options.importance, floor, start, options.start)
 
 
 # ------------------------------------------------------------------------------------------
@@ -949,69 +442,3 @@ def _loss_name(model: Any) -> str:
     return str(getattr(loss, "name", loss))
 
 
-PCK_DROP_BUDGET = 0.02
-"""PCK@0.5 a compressed file may lose against the unpruned model on the measured frames: the paper's files stay
-within it at the rates it ships, and so do the bundled 70 % files and three fixed-camera users' (docs/compression.md,
-"On your own model"). Beyond it `accuracy_note` says so."""
-VARIED_VIEWS_RATE = 0.5
-"""The rate that kept PCK@0.5 within PCK_DROP_BUDGET on both views-that-vary models measured, where 0.7 did not
-(docs/compression.md, "Views that vary: a lower rate")."""
-
-
-def accuracy_note(report: CompressReport) -> str | None:
-    """One line when the most accurate file written lost more than PCK_DROP_BUDGET of the unpruned model's PCK@0.5
-    on the measured frames (None otherwise, and when no file was written): how much, and what to try."""
-    if not report.tflite_files:
-        return None
-    base = report.base["metrics"]["pck@0.5_bbox"]
-    best = max(report.tflite_files, key=lambda step: step["metrics"]["pck@0.5_bbox"])
-    drop = base - best["metrics"]["pck@0.5_bbox"]
-    if drop <= PCK_DROP_BUDGET:
-        return None
-    rate = report.options["rate"]
-    advice = (f"a lower --rate keeps more of it: on views that vary --rate {VARIED_VIEWS_RATE:g} held within "
-              f"{PCK_DROP_BUDGET:g} where 0.7 did not (docs/compression.md, \"Views that vary: a lower rate\")"
-              if rate > VARIED_VIEWS_RATE else "a lower --rate keeps more of it")
-    return (f"note: PCK@0.5 {best['metrics']['pck@0.5_bbox']:.3f} ({best['quantize']}) is {drop:.3f} below the "
-            f"unpruned model's {base:.3f} on these frames, more than the {PCK_DROP_BUDGET:g} the paper's files lose; "
-            f"{advice}")
-
-
-def report_table(report: CompressReport | dict[str, Any], markdown: bool = False) -> str:
-    """The compression report as a table: the unpruned model beside each step of the compressed one.
-
-    `report`: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
-    Sizes are of the file each row's model ships as (.h5 for Keras, .tflite), in KB (1000 bytes);
-    "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
-    """
-    from fcnpose_tf.tables import format_table
-
-    def row(label: str, step: Step, size_key: str) -> list:
-        m = step["metrics"]
-        t = step.get("timing")
-        size = step.get(size_key) if size_key else None
-        return [label, step["params"], step["macs"] / 1e6, size / 1e3 if size else None,
-                m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
-                t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
-
-    if not isinstance(report, CompressReport):
-        report = CompressReport.from_json(report)
-    rows = [row("unpruned (Keras, .h5)", report.base, "h5_size_bytes"),
-            row("pruned, before retraining", report.pruned_before_retraining, ""),
-            row("pruned + retrained (Keras, .h5)", report.retrained, "h5_size_bytes")]
-    # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
-    quantize = report.options["quantize"]
-    order = list(quantize) if isinstance(quantize, (list, tuple)) else []
-    entries: list[tuple[Any, Step | RefusedFormat]] = [(step.get("quantize") or quantize, step)
-                                                       for step in report.tflite_files]
-    entries += [(entry.quantize, entry) for entry in report.refused]
-    entries.sort(key=lambda entry: order.index(entry[0]) if entry[0] in order else len(order))
-    for name, entry in entries:
-        if isinstance(entry, RefusedFormat):
-            rows.append([f"{name} TFLite: REFUSED (gate)"] + [None] * 9)
-        else:
-            qat = " QAT" if entry.get("quantization") == "quantization-aware training" else ""
-            rows.append(row(f"{name}{qat} TFLite (.tflite)", entry, "tflite_size_bytes"))
-    return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
-                         "infer ms", "FPS e2e"], rows, markdown=markdown,
-                        digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])

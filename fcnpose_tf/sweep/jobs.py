@@ -33,7 +33,7 @@ from fcnpose_tf.records import file_sha256, library_versions, machine_info, trai
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
 
 if TYPE_CHECKING:
-    from fcnpose_tf.compression.compress import CompressOptions
+    from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.training.train import FitConfig
 
 RECORD_VERSION = 1
@@ -187,7 +187,7 @@ class SweepConfig:
     def compress_options(self, job: Job) -> CompressOptions:
         """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained): every
         CompressOptions setting the sweep's, those of SWEEP_FIXED at CompressOptions' defaults."""
-        from fcnpose_tf.compression.compress import CompressOptions
+        from fcnpose_tf.compression.options import CompressOptions
 
         fixed = {name: value for name, value in settings.preset_values(CompressOptions, settings.DEFAULT_PRESET).items()
                  if name in SWEEP_FIXED}
@@ -388,7 +388,7 @@ def _reporter(config: SweepConfig) -> Any:
 
 
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
-    from fcnpose_tf.compression.compress import file_sizes, model_facts
+    from fcnpose_tf.compression.report import file_sizes, model_facts
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.training.model import load_model
     from fcnpose_tf.training.train import run_paths, train_fold

@@ -125,7 +125,7 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
         measured["base_remeasured"] = _measure(keras(base), dataset, indices)
     keras_path = _checked_file(out, files.get("keras"), "the compressed Keras model")
     measured["keras"] = _measure(keras(keras_path), dataset, indices)
-    from fcnpose_tf.compression.compress import tflite_key
+    from fcnpose_tf.compression.options import tflite_key
 
     for section in tflite_sections(record):
         quantize = record[section].get("quantize")

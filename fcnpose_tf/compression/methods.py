@@ -1,0 +1,211 @@
+"""How filters or weights are removed: one `PruningMethod` interface, one object per method.
+
+`FilterPruning` is the paper's exact layer surgery (`fcnpose_tf.compression.prune`), its filters ranked by an
+importance criterion (`fcnpose_tf.compression.importance`) or its widths taken from a pruned start
+(`pruned_start`); `MagnitudePruning` is tfmot's weight masking. Both retrain through `train.fit`.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Protocol
+
+from fcnpose_tf.compression.report import model_facts
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.records import training_record
+
+if TYPE_CHECKING:
+    import tf_keras as keras
+
+    from fcnpose_tf.compression.importance import Importance
+    from fcnpose_tf.compression.options import CompressOptions
+    from fcnpose_tf.training.train import FitResult
+
+Log = Callable[[str], None]
+"""Where a step says what it does: `Reporter.say` or print."""
+
+FitFn = Callable[..., "FitResult"]
+"""`fit_fn(model, callbacks=(), inference_model=None)`: the retraining `fit`, writing NAME_pXX.keras."""
+
+
+class PruningMethod(Protocol):
+    """How a method prunes the base model and retrains the result through the same `fit`."""
+
+    name: str
+
+    def describe(self) -> str:
+        """The progress line's words for what is pruned."""
+
+    @property
+    def ranks_filters(self) -> bool:
+        """Whether `prune` ranks the base model's filters by an `Importance` (else it is passed None)."""
+
+    @property
+    def trained_start(self) -> bool:
+        """Whether `prune` returns trained weights of the pruned network (a pruned start), whose validation loss the
+        retraining must beat: if no epoch does, the start is kept unchanged (`train.fit`'s start_is_candidate)."""
+
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
+        """The pruned model before retraining, and the report sections the method adds (`CompressReport` fields
+        by name: pruning, magnitude_sparsity)."""
+
+    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
+
+    def training_record(self) -> dict[str, Any]:
+        """What the retraining's NAME_train.json says about the method."""
+
+
+class FilterPruning:
+    """The paper's method: remove the least important filters (exact layer surgery); the paper ranks them by
+    L1 norm, `fcnpose_tf.compression.importance` holds the other criteria. The method is named "l1" in reports and
+    options for that reason; the criterion is recorded beside it."""
+
+    name = "l1"
+
+    def __init__(self, rate: float, strategy: str, importance: str = "l1", min_filters: int = 0,
+                 start: Path | None = None, start_name: str = "") -> None:
+        self.rate, self.strategy, self.importance, self.min_filters = rate, strategy, importance, min_filters
+        self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
+        self.criterion_facts: dict[str, Any] = {"importance": importance} if start is None else {}
+
+    @property
+    def ranks_filters(self) -> bool:
+        return self.start is None
+
+    @property
+    def trained_start(self) -> bool:
+        return self.start is not None
+
+    def describe(self) -> str:
+        floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
+        if self.start is not None:
+            return f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
+        return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
+
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
+        from fcnpose_tf.compression.prune import prune_model
+
+        if self.start is not None:
+            return self._from_start(base)
+        start = time.perf_counter()
+        pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
+                             min_filters=self.min_filters)
+        self.criterion_facts = importance.describe()
+        return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
+                                    "min_filters": self.min_filters,
+                                    "ranking_seconds": round(time.perf_counter() - start, 1)}}
+
+    def _from_start(self, base: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+        """The start model's weights in the network surgery would build from `base` (same widths, the base's input
+        size); UserError when its widths are not surgery's."""
+        from fcnpose_tf.compression.prune import prune_widths
+        from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model, view_of
+
+        source = load_model(self.start)
+        widths = (*prune_widths(base, self.rate, self.min_filters)[0], conv_widths(base)[-1])
+        if conv_widths(source) != widths:
+            floor = f" with no layer under {self.min_filters} filters" if self.min_filters > 1 else ""
+            raise UserError(f"--start {self.start_name}: its widths {conv_widths(source)} are not filter surgery's at "
+                            f"--rate {self.rate:g}{floor} on this model, {widths}")
+        pruned = build_fcn_pose(widths[:-1], view_of(base), widths[-1])
+        pruned.set_weights(source.get_weights())
+        return pruned, {"pruning": {"start": self.start_name, "start_file": str(self.start),
+                                    "min_filters": self.min_filters}}
+
+    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        fit_fn(pruned)
+
+    def training_record(self) -> dict[str, Any]:
+        start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
+        return {"rate": self.rate, **start, "min_filters": self.min_filters, **self.criterion_facts}
+
+
+class MagnitudePruning:
+    """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at `rate` removes."""
+
+    name = "magnitude"
+    ranks_filters = trained_start = False
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.sparsity = 0.0
+
+    def describe(self) -> str:
+        return f"magnitude at rate {self.rate:g}"
+
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
+        from fcnpose_tf.compression.prune import magnitude_prune, prune_model
+
+        surgery = prune_model(base, self.rate)  # only its parameter count: the same reduction as filter surgery
+        self.sparsity = 1.0 - model_facts(surgery)["params"] / model_facts(base)["params"]
+        return magnitude_prune(base, self.sparsity), {"magnitude_sparsity": round(self.sparsity, 6)}
+
+    def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        import tensorflow_model_optimization as tfmot
+
+        from fcnpose_tf.compression.prune import magnitude_prune
+
+        # the same masks as `prune` (computed from the base's weights), kept while fit retrains
+        magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(
+            wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
+
+    def training_record(self) -> dict[str, Any]:
+        return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
+
+
+PRUNED_GENERALIST = "generalist-p70"
+"""The bundled pruned generalist (`bundled.BUNDLED_MODELS`): `--start auto`'s choice for a model fine-tuned from the
+generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
+
+
+def pruned_start(options: CompressOptions, base_path: Path, base: keras.Model, floor: int,
+                 log: Log = lambda line: None) -> tuple[str, Path | None]:
+    """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
+    for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
+    (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
+    and the bundled file has the widths filter surgery gives here (rate, floor); else surgery, which keeps PCK@0.5
+    within 0.01 on fixed-camera models (docs/compression.md, "On your own model").
+    An explicit start is resolved as a model argument (a file, or a bundled name); its widths are checked when it is
+    loaded (`FilterPruning.prune`)."""
+    from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
+    from fcnpose_tf.compression.prune import prune_widths
+    from fcnpose_tf.records import lineage
+    from fcnpose_tf.training.model import conv_widths, load_model
+
+    start = options.start
+    if options.method != "l1" or start == "surgery":
+        return "surgery", None
+    if start != "auto":
+        return start, resolve_model(start, KERAS_SUFFIXES, say=log)
+    generalist = generalist_model().resolve()
+    ancestry = [str(base_path), *lineage(base_path)]
+    if not any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
+               for name in ancestry):
+        return "surgery", None
+    record = training_record(base_path)
+    if record is None or record.augment != "online":  # a fixed camera: the frames show the views it will see
+        return "surgery", None
+    path = models_dir() / BUNDLED_MODELS[PRUNED_GENERALIST][0]
+    if not path.is_file():  # an installation without it
+        log(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
+        return "surgery", None
+    widths = (*prune_widths(base, options.rate, floor)[0], conv_widths(base)[-1])
+    if conv_widths(load_model(path)) != widths:
+        log(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate {options.rate:g} "
+            f"with no layer under {floor} filters, {widths})")
+        return "surgery", None
+    return PRUNED_GENERALIST, path
+
+
+def pruning_method(options: CompressOptions, min_filters: int | None = None, start: Path | None = None) -> PruningMethod:
+    """The pruning method `options.method` names; filter surgery keeps no layer under `min_filters` (default
+    options.min_filters; `compress_model` passes the floor that fits the rate's parameter budget) and takes its
+    weights from the pruned model `start` when one is given (`pruned_start`)."""
+    if options.method == "magnitude":
+        return MagnitudePruning(options.rate)
+    floor = options.min_filters if min_filters is None else min_filters
+    return FilterPruning(options.rate, options.strategy, options.importance, floor, start, options.start)
+
+

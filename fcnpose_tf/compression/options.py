@@ -1,0 +1,175 @@
+"""What a compression run is asked to do: `CompressOptions` (resolved and validated once) and the files it writes.
+
+The options are the `compress` command's settings (`fcnpose_tf.settings`), the same for `sweep`; `output_names`
+and `output_paths` name every file a run writes, so a command can refuse an existing one before any work.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import replace
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from fcnpose_tf import settings
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.fileio import check_writable
+from fcnpose_tf.records import training_record
+
+if TYPE_CHECKING:
+    from fcnpose_tf.training.train import FitConfig
+
+METHODS = settings.METHOD.choices
+
+
+@settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
+                       settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
+                       ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE,
+                       ("learning_rate", settings.COMPRESS_LEARNING_RATE), ("augment", settings.INHERITED_AUGMENT),
+                       settings.AUGMENT_COPIES,
+                       settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
+                       ("positive_weight", settings.INHERITED_POSITIVE_WEIGHT),
+                       ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
+                       ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
+                       settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.PRUNED_START,
+                       ("input_size", settings.COMPRESS_INPUT_SIZE), settings.QAT_EPOCHS,
+                       settings.QAT_LEARNING_RATE, settings.CENTROID)
+class CompressOptions:
+    """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
+    calibration_frames (int8), and the retraining's
+    retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
+    positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
+    importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
+    retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
+    narrowest a pruned layer may become at the same parameter budget), start (the pruned network's weights before
+    retraining: surgery, auto, or a pruned model: `pruned_start`), input_size (the side the model is rebuilt, retrained
+    and exported at; None: its own), and qat_epochs / qat_learning_rate
+    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback); centroid: how the
+    table's keypoints are read (`postprocess.CENTROIDS`).
+
+    The defaults are `fcnpose-tf compress`'s (`CompressOptions.preset("paper", rate=...)`: the paper's recipe);
+    importance, min_filters, lr_patience and positive_weight left None are chosen per run by `resolved`
+    (`compress_model` calls it). Defaults, checks and meanings: `fcnpose_tf.settings`."""
+
+    def validate(self) -> None:
+        """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
+        from fcnpose_tf.compression.importance import DATA_AWARE
+
+        settings.validate_fields(self)
+        settings.check_lr_schedule(self.lr_schedule, self.lr_patience or 0)
+        if self.method == "magnitude" and self.importance not in (None, "l1"):
+            raise UserError(f"--importance {self.importance} ranks filters for filter surgery (--method l1); "
+                            "magnitude pruning zeroes the smallest weights")
+        if self.method == "magnitude" and self.freeze:
+            raise UserError(f"--freeze {self.freeze} keeps the first convolutions of filter surgery's model fixed; "
+                            "magnitude pruning retrains every weight it masks (use --freeze 0)")
+        if self.method == "magnitude" and self.min_filters:
+            raise UserError(f"--min-filters {self.min_filters} sets the widths of filter surgery's layers (--method "
+                            "l1); magnitude pruning keeps every filter (use --min-filters 0)")
+        if self.method == "magnitude" and self.start not in ("auto", "surgery"):
+            raise UserError(f"--start {self.start} gives filter surgery's pruned network its weights (--method l1); "
+                            "magnitude pruning masks the base model's own (use --start surgery)")
+        if self.strategy == "greedy" and self.importance in DATA_AWARE:
+            raise UserError(f"--strategy greedy re-ranks kernels without the removed input channels; the "
+                            f"{self.importance} criterion ranks filters by their outputs (use --strategy independent)")
+
+    def resolved(self, base_path: str | os.PathLike | None = None) -> CompressOptions:
+        """These options with the settings left None chosen for the run: importance (`settings.DEFAULT_COMPRESS_IMPORTANCE`
+        for filter surgery with the independent strategy, else the paper's l1: greedy ranking reads kernels only),
+        min_filters (`settings.DEFAULT_COMPRESS_MIN_FILTERS` for filter surgery; magnitude pruning keeps every
+        filter), lr_patience (`settings.resolved_lr_patience`), positive_weight and augment (those `base_path` was
+        trained with, from its NAME_train.json; else 1, the paper's plain BCE, and the paper's copies)."""
+        importance, min_filters, positive_weight, augment = (self.importance, self.min_filters, self.positive_weight,
+                                                             self.augment)
+        if importance is None:
+            independent_surgery = self.method == "l1" and self.strategy == "independent"
+            importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
+        if min_filters is None:
+            min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if self.method == "l1" else 0
+        record = training_record(base_path) if base_path is not None and None in (positive_weight, augment) else None
+        if positive_weight is None:
+            positive_weight = float(record.positive_weight or 1.0) if record is not None else 1.0
+        if augment is None:
+            inherited = record.augment if record is not None else None
+            augment = inherited if inherited in settings.AUGMENT.choices else settings.AUGMENT.default
+        lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
+                                                    settings.DEFAULT_COMPRESS_LR_PATIENCE)
+        return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
+                       lr_patience=lr_patience, augment=augment)
+
+    def recipe(self, min_filters_used: int | None = None) -> str:
+        """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
+
+        `min_filters_used` is the floor the surgery could keep (`prune.prune_widths`) when lower than asked."""
+        from fcnpose_tf.training.train import loss_name
+
+        if None in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment):
+            return self.resolved().recipe(min_filters_used)
+
+        used = self.min_filters if min_filters_used is None else min_filters_used
+        floor = "" if used <= 1 else (
+            f" (no layer under {used} filters, same parameter budget)" if used == self.min_filters else
+            f" (no layer under {used} filters: --min-filters {self.min_filters} lowered to fit the parameter budget)")
+        pruned = (f"magnitude pruning at {self.rate:g}" if self.method == "magnitude" else
+                  f"filter surgery's widths at {self.rate:g}{floor}, the weights of {self.start}"
+                  if self.start not in ("auto", "surgery") else
+                  f"filter surgery at {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy}"
+                  + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
+                     else "") + ")")
+        size = f", at {self.input_size}x{self.input_size}" if self.input_size else ""
+        if self.retrain_epochs == 0:
+            return f"{pruned}, not retrained{size}"
+        epochs = f"{self.retrain_epochs} epoch{'s' if self.retrain_epochs > 1 else ''}"
+        rate = (f"learning rate {self.learning_rate:g} on a cosine" if self.lr_schedule == "cosine" else
+                f"learning rate {self.learning_rate:g}, halved after {self.lr_patience} stale epochs"
+                if self.lr_patience else f"learning rate {self.learning_rate:g}")
+        frozen = f", conv1-{self.freeze} fixed" if self.freeze > 1 else ", conv1 fixed" if self.freeze else ""
+        frames = " with online augmentation" if self.augment == "online" else ""  # the paper's copies: unsaid
+        return (f"{pruned}, retrained up to {epochs}{frames} on "
+                f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}{size}")
+
+    def fit_config(self) -> FitConfig:
+        """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
+        from fcnpose_tf.training.train import FitConfig
+
+        return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1), max_minutes=None))
+
+
+
+RATE_TAGS = {"l1": "p", "magnitude": "m"}
+"""First letter of the output names' rate tag, per --method: p70 (filters removed), m70 (weights zeroed)."""
+
+
+def tflite_key(quantize: str) -> str:
+    """The key of a TFLite file in a run's names and paths (and the report's "files"): tflite_fp16, tflite_int8."""
+    return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
+
+
+def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
+    """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite (one per --quantize format, key
+    `tflite_key`), NAME_p70_report.json (m70 for magnitude); NAME_p70_192... with --input-size 192."""
+    tag = f"{RATE_TAGS[options.method]}{round(options.rate * 100):02d}"
+    stem = f"{base_name}_{tag}" + (f"_{options.input_size}" if options.input_size else "")
+    return {"stem": stem, "keras": f"{stem}.keras",
+            **{tflite_key(q): f"{stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize},
+            "report": f"{stem}_report.json"}
+
+
+def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
+    """Every file a run writes into `out_dir`: the models, the report and (when retraining) the training side files."""
+    from fcnpose_tf.training.train import output_files
+
+    names = output_names(Path(base_path).stem, options)
+    paths = [Path(out_dir) / name for key, name in names.items() if key != "stem"]
+    if options.retrain_epochs > 0:
+        paths += [p for p in output_files(paths[0]) if p not in paths]
+    return paths
+
+
+def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions,
+                  force: bool = False) -> None:
+    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
+    for path in output_paths(base_path, out_dir, options):
+        check_writable(path, force)
+
+

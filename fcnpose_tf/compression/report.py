@@ -1,0 +1,253 @@
+"""What a compression run measured and wrote: `CompressReport` (NAME_pXX_report.json), its table, and the note
+`compress` prints when the compressed files lost more accuracy than the paper's.
+"""
+
+from __future__ import annotations
+
+import gzip
+import tempfile
+import warnings
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import tf_keras as keras
+
+Step = dict[str, Any]
+"""One measured step of the report, as written: the model's facts (widths, params, macs, flops, nonzero_weights; a
+TFLite file's params, macs, flops), its file sizes (h5_size_bytes, h5_gzip_size_bytes, keras_size_bytes; a TFLite
+file's tflite_size_bytes, tflite_gzip_size_bytes), "metrics" and "timing" (none for the pruned model before
+retraining). A TFLite file's also holds "quantize", "status" ("written"), "quantization", "export"
+(`TFLiteExport.to_dict`), "tflite_ops" and, when quantization-aware training made it, "qat"."""
+
+
+@dataclass(frozen=True)
+class RefusedFormat:
+    """A --quantize format whose file failed its keypoint gate: no file written, a row of the table. Written as
+    {"quantize", "status": "refused", "reason", "post_training"[, "qat"]}."""
+
+    quantize: str
+    """The format (float16, int8, ...)."""
+    reason: str
+    """Why it was refused: the gate's reason (after quantization-aware training, that training's)."""
+    post_training: dict[str, Any] = field(default_factory=dict)
+    """The post-training file's gate: its "reason" and the facts it measured."""
+    qat: dict[str, Any] | None = None
+    """Quantization-aware training's facts, when it was tried (int8 with --qat-epochs above 0)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The entry as the report's "refused" list holds it ("qat" only when tried)."""
+        return {"quantize": self.quantize, "status": "refused", "reason": self.reason,
+                "post_training": self.post_training, **({"qat": self.qat} if self.qat is not None else {})}
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> RefusedFormat:
+        """The entry of a parsed report's "refused" list."""
+        return cls(quantize=entry["quantize"], reason=entry["reason"],
+                   post_training=entry.get("post_training") or {}, qat=entry.get("qat"))
+
+
+def _if_any() -> Any:
+    """A section only some runs have: None when the run has none, and then not written."""
+    return field(default=None, metadata={"if_any": True})
+
+
+@dataclass(frozen=True, kw_only=True)
+class CompressReport:
+    """What `compress_model` measured and wrote: one field per top-level key of NAME_pXX_report.json, in the
+    file's order (`to_json`). The measured steps stay JSON objects (`Step`); a refused format is a `RefusedFormat`.
+    A section only some runs have (pruning, magnitude_sparsity, retrain_data, distillation, retraining) is None
+    when the run has none and is then not written; "quantized" is written either way (null: every format refused)."""
+
+    base_model: str
+    """The model that was compressed, its file as given."""
+    method: str
+    """The pruning method: l1 (filter surgery, whatever the criterion) or magnitude."""
+    recipe: str
+    """One line naming how the file was made (`CompressOptions.recipe`); "" read back from a report older than it."""
+    options: dict[str, Any]
+    """The settings used, `CompressOptions` as a dict (those left None chosen for the run)."""
+    evaluation_frames: str
+    """The frames every step was measured on, in words."""
+    pck_normalisation: str
+    """What PCK's distances are divided by."""
+    threads: int | None
+    """CPU threads of the timed inference (None: all cores)."""
+    metadata: dict[str, Any] = field(default_factory=dict)
+    """The caller's further facts (`compress_model(metadata=...)`, e.g. the command's "preset"), written as top-level
+    keys here; read back from a file, every key without a field (e.g. the sweep's "retimed")."""
+    base: Step
+    """The unpruned model (Keras)."""
+    pruning: dict[str, Any] | None = _if_any()
+    """Filter surgery's criterion and its facts, strategy, min_filters (the floor used), ranking_seconds."""
+    magnitude_sparsity: float | None = _if_any()
+    """Magnitude pruning's fraction of zeroed weights (the parameter reduction of filter surgery at the rate)."""
+    pruned_before_retraining: Step
+    """The pruned model before any retraining (Keras, no timing)."""
+    retrain_data: dict[str, Any] | None = _if_any()
+    """What the retraining trained on: data, fold, train_samples, val_frames (None: not retrained)."""
+    distillation: dict[str, Any] | None = _if_any()
+    """The base model as a teacher while retraining: weight and its facts (None: --distill 0)."""
+    retraining: dict[str, Any] | None = _if_any()
+    """How the retraining went (`retraining_report`); None: not retrained."""
+    retrained: Step
+    """The retrained model as saved (Keras, NAME_pXX.keras)."""
+    quantized: Step | None
+    """The first TFLite file written (the paper's float16 by default); None when every format was refused."""
+    other_quantized: list[Step] = field(default_factory=list)
+    """The other TFLite files written, in --quantize order."""
+    refused: list[RefusedFormat] = field(default_factory=list)
+    """The formats whose file failed its gate (nothing written for them)."""
+    files: dict[str, str]
+    """The files written, by `output_names` key (keras, tflite_fp16, ..., report)."""
+    seconds: float
+    """Wall time of the run."""
+
+    def __post_init__(self) -> None:
+        _check_metadata(self.metadata)
+
+    @property
+    def tflite_files(self) -> list[Step]:
+        """The TFLite files written: "quantized" first, then "other_quantized"."""
+        return [step for step in [self.quantized, *self.other_quantized] if step is not None]
+
+    def to_json(self) -> dict[str, Any]:
+        """The report as NAME_pXX_report.json holds it: the fields in order, `metadata`'s keys in its place, a
+        section only some runs have left out when None."""
+        report: dict[str, Any] = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if f.name == "metadata":
+                report.update(value)
+            elif f.name == "refused":
+                report[f.name] = [entry.to_json() for entry in value]
+            elif value is not None or not f.metadata.get("if_any"):
+                report[f.name] = value
+        return report
+
+    @classmethod
+    def from_json(cls, report: dict[str, Any]) -> CompressReport:
+        """The report of a parsed NAME_pXX_report.json (to read a written one back, e.g. for its table). Keys that
+        reports held before "recipe", "other_quantized" and "refused" existed read as "", [] and [] (one file,
+        and a refused format ended those runs); a key without a field goes to `metadata`.
+
+        Raises:
+            TypeError: not a JSON object.
+            ValueError: a key every report holds is missing.
+        """
+        if not isinstance(report, dict):
+            raise TypeError(f"a compress report is a JSON object, not {type(report).__name__}")
+        names = {f.name for f in fields(cls)} - {"metadata"}
+        optional = {f.name for f in fields(cls) if f.metadata.get("if_any")} | {"recipe", "other_quantized", "refused"}
+        missing = sorted(names - optional - report.keys())
+        if missing:
+            raise ValueError(f"not a compress report: no {', '.join(missing)}")
+        values = {k: v for k, v in report.items() if k in names}
+        values.setdefault("recipe", "")
+        values["other_quantized"] = list(values.get("other_quantized") or [])
+        values["refused"] = [RefusedFormat.from_json(entry) for entry in values.get("refused") or []]
+        return cls(**values, metadata={k: v for k, v in report.items() if k not in names})
+
+
+def _check_metadata(metadata: dict[str, Any] | None) -> None:
+    """ValueError if a key of a report's further facts is one of its sections (it would overwrite it)."""
+    clash = sorted(set(metadata or {}) & {f.name for f in fields(CompressReport)})
+    if clash:
+        raise ValueError(f"report metadata cannot hold {', '.join(clash)}: a section of the report")
+
+
+def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
+    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
+    from fcnpose_tf.training.model import h5_bytes, inference_copy, save_for_inference
+
+    with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
+        warnings.simplefilter("ignore", UserWarning)
+        h5 = h5_bytes(inference_copy(model))
+    sizes = {"h5_size_bytes": len(h5), "h5_gzip_size_bytes": len(gzip.compress(h5, 9))}
+    with tempfile.TemporaryDirectory() as tmp:
+        if keras_path is None:
+            keras_path = Path(tmp) / "m.keras"
+            save_for_inference(model, keras_path)
+        sizes["keras_size_bytes"] = keras_path.stat().st_size
+    return sizes
+
+
+def model_facts(model: keras.Model) -> dict[str, Any]:
+    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
+    from fcnpose_tf.training.model import conv_widths, describe
+
+    rows = describe(model)
+    macs = sum(r.macs for r in rows)
+    return {"widths": list(conv_widths(model)), "params": int(model.count_params()), "macs": int(macs),
+            "flops": int(2 * macs), "nonzero_weights": int(sum(np.count_nonzero(w) for w in model.get_weights()))}
+
+
+PCK_DROP_BUDGET = 0.02
+"""PCK@0.5 a compressed file may lose against the unpruned model on the measured frames: the paper's files stay
+within it at the rates it ships, and so do the bundled 70 % files and three fixed-camera users' (docs/compression.md,
+"On your own model"). Beyond it `accuracy_note` says so."""
+VARIED_VIEWS_RATE = 0.5
+"""The rate that kept PCK@0.5 within PCK_DROP_BUDGET on both views-that-vary models measured, where 0.7 did not
+(docs/compression.md, "Views that vary: a lower rate")."""
+
+
+def accuracy_note(report: CompressReport) -> str | None:
+    """One line when the most accurate file written lost more than PCK_DROP_BUDGET of the unpruned model's PCK@0.5
+    on the measured frames (None otherwise, and when no file was written): how much, and what to try."""
+    if not report.tflite_files:
+        return None
+    base = report.base["metrics"]["pck@0.5_bbox"]
+    best = max(report.tflite_files, key=lambda step: step["metrics"]["pck@0.5_bbox"])
+    drop = base - best["metrics"]["pck@0.5_bbox"]
+    if drop <= PCK_DROP_BUDGET:
+        return None
+    rate = report.options["rate"]
+    advice = (f"a lower --rate keeps more of it: on views that vary --rate {VARIED_VIEWS_RATE:g} held within "
+              f"{PCK_DROP_BUDGET:g} where 0.7 did not (docs/compression.md, \"Views that vary: a lower rate\")"
+              if rate > VARIED_VIEWS_RATE else "a lower --rate keeps more of it")
+    return (f"note: PCK@0.5 {best['metrics']['pck@0.5_bbox']:.3f} ({best['quantize']}) is {drop:.3f} below the "
+            f"unpruned model's {base:.3f} on these frames, more than the {PCK_DROP_BUDGET:g} the paper's files lose; "
+            f"{advice}")
+
+
+def report_table(report: CompressReport | dict[str, Any], markdown: bool = False) -> str:
+    """The compression report as a table: the unpruned model beside each step of the compressed one.
+
+    `report`: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
+    Sizes are of the file each row's model ships as (.h5 for Keras, .tflite), in KB (1000 bytes);
+    "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
+    """
+    from fcnpose_tf.tables import format_table
+
+    def row(label: str, step: Step, size_key: str) -> list:
+        m = step["metrics"]
+        t = step.get("timing")
+        size = step.get(size_key) if size_key else None
+        return [label, step["params"], step["macs"] / 1e6, size / 1e3 if size else None,
+                m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
+                t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
+
+    if not isinstance(report, CompressReport):
+        report = CompressReport.from_json(report)
+    rows = [row("unpruned (Keras, .h5)", report.base, "h5_size_bytes"),
+            row("pruned, before retraining", report.pruned_before_retraining, ""),
+            row("pruned + retrained (Keras, .h5)", report.retrained, "h5_size_bytes")]
+    # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
+    quantize = report.options["quantize"]
+    order = list(quantize) if isinstance(quantize, (list, tuple)) else []
+    entries: list[tuple[Any, Step | RefusedFormat]] = [(step.get("quantize") or quantize, step)
+                                                       for step in report.tflite_files]
+    entries += [(entry.quantize, entry) for entry in report.refused]
+    entries.sort(key=lambda entry: order.index(entry[0]) if entry[0] in order else len(order))
+    for name, entry in entries:
+        if isinstance(entry, RefusedFormat):
+            rows.append([f"{name} TFLite: REFUSED (gate)"] + [None] * 9)
+        else:
+            qat = " QAT" if entry.get("quantization") == "quantization-aware training" else ""
+            rows.append(row(f"{name}{qat} TFLite (.tflite)", entry, "tflite_size_bytes"))
+    return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
+                         "infer ms", "FPS e2e"], rows, markdown=markdown,
+                        digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])
