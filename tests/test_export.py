@@ -430,3 +430,25 @@ def test_export_with_too_few_frames_for_int8_refuses_before_writing_anything(cli
     assert status == 2, err
     assert err.strip().splitlines()[-1].startswith("error: int8 export is verified on keypoints of at least 16")
     assert not (tmp_path / "out").exists()
+
+
+def test_export_without_data_calibrates_on_the_frames_the_model_was_trained_on(cli_here, tmp_path):
+    """A user's model names its training frames in NAME_train.json: without --data, export takes those, not the
+    bundled synthetic frames (someone else's arm). Here they are too few for int8, which says so at once."""
+    import json
+
+    from fcnpose_tf.records import file_sha256
+    from fcnpose_tf.training.model import build_fcn_pose
+    from test_train_evaluate import make_via_folder
+
+    via = make_via_folder(tmp_path / "frames", n=6) / "labels.json"
+    model = tmp_path / "m.keras"
+    build_fcn_pose(input_size=64).save(model)
+    (tmp_path / "m_train.json").write_text(json.dumps({"data": str(via), "data_sha256": file_sha256(via)}))
+    status, out, err = cli_here("export", model, "--quantize", "float16,int8", "--out-dir", tmp_path / "out",
+                                "--threads", "1")
+    assert status == 2, err
+    assert f"Data: {via}, the frames m.keras was trained on" in out
+    assert err.strip().splitlines()[-1].startswith("error: int8 export is verified on keypoints of at least 16")
+    assert f"{via} has 6" in err
+    assert not (tmp_path / "out").exists()

@@ -5,9 +5,10 @@ NAME_p70_int8.tflite (full integer, calibrated on 100 training frames: the faste
 Raspberry Pi 3/4), each verified against Keras before it is written, and NAME_p70_report.json,
 and prints the unpruned model beside every step and each file:
 parameters, MACs, size, PCK@0.5/0.2/0.05 (normalised by max(bbox w, h)), EPE, inference time
-and FPS. With no --model and no --data it compresses the bundled baseline, retrains on the
-first 400 of the 1,200 synthetic frames the baseline was trained on, and measures on 100
-held-out synthetic frames (both sets generated once into a cache). --method magnitude runs
+and FPS. Without --data it retrains on the frames the model was trained on (its NAME_train.json names
+them), else on the first 400 of the 1,200 synthetic frames the bundled baseline was trained on; with no
+--model and no --data it compresses the bundled baseline and measures on 100 held-out synthetic frames
+(both sets generated once into a cache). --method magnitude runs
 tfmot's unstructured pruning to the same parameter reduction instead, for comparison. --importance
 chooses how filters are ranked: first-order Taylor on 256 training frames by default (measured ahead of
 the paper's L1 norm on fine localisation), --importance l1 for the paper's, l2, or mean activation;
@@ -95,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.compress import compress_model
     from fcnpose_tf.compression.options import CompressOptions, check_outputs
     from fcnpose_tf.compression.report import accuracy_note, report_table
-    from fcnpose_tf.data.args import load_from_args
+    from fcnpose_tf.data.args import default_data, load_from_args
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
@@ -117,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         check_outputs(model_path, args.out_dir, options, args.force)  # before the data is prepared
         set_tensorflow_threads(args.threads)
         if args.data is None:
-            args.data = synthcache.default_training_data()
+            args.data = default_data(model_path)
         train_dataset = load_from_args(args)
         if args.test_data is not None:
             eval_dataset = load_dataset(args.test_data)

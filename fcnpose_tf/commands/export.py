@@ -4,9 +4,10 @@ One file per --quantize format, next to the model unless --out-dir says otherwis
 (the paper's float16), NAME_int8.tflite (full integer: int8 weights and activations calibrated on
 --calibration-frames training frames, a uint8 pixel input; the fastest file on a Raspberry Pi 3/4),
 NAME_fp32.tflite, NAME_int8w.tflite, NAME_fp16native.tflite (float16 with reduced-precision metadata:
-computed in float16 on a Raspberry Pi 5, docs/raspberry-pi.md). Frames come from --data (default: the synthetic frames the
-bundled models were trained on): int8 is calibrated on the training split's frames and every file
-is verified on the validation split's first 16 frames, never calibrated on them.
+computed in float16 on a Raspberry Pi 5, docs/raspberry-pi.md). Frames come from --data (default:
+the frames the model was trained on, as its NAME_train.json names them, else the synthetic frames the
+bundled models were trained on): int8 is calibrated on the training split's frames and every file is
+verified on the validation split's first 16 frames, never calibrated on them.
 
 A format whose file fails its keypoint gate is a row, not a failure: the others are still written,
 the table (and --json's "refused") shows it as REFUSED with the gate's reason, and the last lines
@@ -55,8 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
-    from fcnpose_tf.data import synthcache
-    from fcnpose_tf.data.args import load_from_args
+    from fcnpose_tf.data.args import default_data, load_from_args
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.compression.export import (MIN_FRAMES_BY_MODE, ExportOptions, ExportVerificationError, export_frames,
                                                finish_formats, write_tflite)
@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     set_tensorflow_threads(options.threads)
     model = load_model(args.model)
     if args.data is None:
-        args.data = synthcache.default_training_data()
+        args.data = default_data(args.model)
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W

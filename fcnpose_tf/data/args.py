@@ -53,3 +53,34 @@ def load_from_args(args: argparse.Namespace) -> Any:
         folds = FOLDS.default
     return load_dataset(args.data, args.images, attribute=args.keypoint_attr, min_visible=args.min_visible,
                         skip_bad=args.skip_bad, folds=folds, split_seed=args.split_seed, resplit=args.resplit)
+
+
+def recorded_data(model_path: str | Path) -> Path | None:
+    """The annotation file `model_path` was trained on, as its NAME_train.json records it (`records.training_record`),
+    when that file is still there unchanged (the same SHA-256); None otherwise. A relative path is looked up from
+    the current folder, then from the model's."""
+    from fcnpose_tf.records import file_sha256, training_record
+
+    record = training_record(model_path)
+    if record is None or not record.data or not record.data_sha256:
+        return None
+    recorded = Path(record.data)
+    for candidate in (recorded, Path(model_path).parent / recorded) if not recorded.is_absolute() else (recorded,):
+        try:
+            if candidate.is_file() and file_sha256(candidate) == record.data_sha256:
+                return candidate
+        except OSError:
+            continue
+    return None
+
+
+def default_data(model_path: str | Path, say: Any = print) -> Path:
+    """`--data` left out: the frames `model_path` was trained on (`recorded_data`), else the synthetic frames the
+    bundled models were trained on. Says which."""
+    from fcnpose_tf.data import synthcache
+
+    recorded = recorded_data(model_path)
+    if recorded is not None:
+        say(f"Data: {recorded}, the frames {Path(model_path).name} was trained on (its training record)")
+        return recorded
+    return synthcache.default_training_data()
