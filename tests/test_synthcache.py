@@ -81,3 +81,22 @@ def test_an_edit_in_any_source_changes_the_fingerprint(tmp_path, monkeypatch, ed
 def test_default_fingerprint_hashes_the_installed_sources():
     assert synthcache.generator_fingerprint() == synthcache.generator_fingerprint(synthcache.generator_sources())
     assert len(synthcache.generator_fingerprint()) == 12
+
+
+def test_a_set_another_process_cached_first_is_taken_not_an_error(tmp_path, monkeypatch):
+    """Two compress runs started together both generate the default set; the second to finish finds the folder
+    in place (rename: directory not empty) and uses it."""
+    from fcnpose_tf.data import synth
+
+    monkeypatch.setenv("FCNPOSE_CACHE", str(tmp_path))
+    real_generate = synth.generate
+
+    def generate_while_another_finishes(out, **kwargs):
+        real_generate(out, **kwargs)
+        other = synthcache.cache_dir() / f"synth-{synthcache.generator_fingerprint()}" / "ur5_n2_seed5_64x48"
+        real_generate(other, **kwargs)  # the other process's rename lands first
+
+    monkeypatch.setattr(synth, "generate", generate_while_another_finishes)
+    folder = synthcache.synthetic_dataset(2, 5, 64, 48)
+    assert (folder / "ur5_synth.json").is_file()
+    assert sorted(p.name for p in folder.parent.iterdir()) == ["ur5_n2_seed5_64x48"]  # our copy is gone

@@ -104,7 +104,11 @@ def synthetic_dataset(n: int, seed: int, width: int = 640, height: int = 480) ->
     try:
         generate(tmp, n=n, seed=seed, width=width, height=height, force=True)
         os.chmod(tmp, 0o755)  # mkdtemp makes it private; the cache is ordinary data
-        os.replace(tmp, folder)
+        try:
+            os.replace(tmp, folder)
+        except OSError:  # another process (a second compress) put the same set there first: theirs is as good
+            if not (folder / "ur5_synth.json").is_file():
+                raise
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
