@@ -1,7 +1,8 @@
 """Keypoints and skeleton drawn on a BGR image: one palette and one style for every picture.
 
-Used by the synthetic-data preview (`data.synth.preview`), `data inspect`'s preview and the runtime's
-video overlay (`runtime.sinks`), so it belongs to the Pi-side core: numpy and OpenCV only.
+Used by the synthetic-data preview (`data.synth.preview`), `data inspect`'s preview, `evaluate --pictures`
+(`draw_truth_and_prediction`) and the runtime's video overlay (`runtime.sinks`), so it belongs to the Pi-side core:
+numpy and OpenCV only.
 """
 
 from __future__ import annotations
@@ -97,3 +98,63 @@ def _draw_names(out: np.ndarray, kp: np.ndarray, visible: list[int], schema: Key
             cv2.line(out, _fixed(kp[k]), _fixed(anchor), color, 1, cv2.LINE_AA, _SHIFT)
         cv2.putText(out, name, org, _FONT, font_scale, (0, 0, 0), 3, cv2.LINE_AA)
         cv2.putText(out, name, org, _FONT, font_scale, color, 1, cv2.LINE_AA)
+
+
+def zoom_on(image_bgr: np.ndarray, points: np.ndarray, side: int = 640, margin: float = 0.3
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """The part of the image around the finite `points` (their box grown by `margin` of its larger side on each
+    side, at least 32 px), resized so that its longer side is `side` pixels, and the affine map (2 x 3) from image
+    to zoomed pixel-centre coordinates. The whole image when no point is finite."""
+    h, w = image_bgr.shape[:2]
+    pts = np.asarray(points, np.float64).reshape(-1, 2)
+    pts = pts[np.isfinite(pts).all(axis=1)]
+    if len(pts):
+        lo, hi = pts.min(axis=0), pts.max(axis=0)
+        pad = max(float((hi - lo).max()) * margin, 32.0)
+        x0, y0 = (int(np.clip(np.floor(v - pad), 0, m - 1)) for v, m in zip(lo, (w, h)))
+        x1, y1 = (int(np.clip(np.ceil(v + pad), 0, m - 1)) + 1 for v, m in zip(hi, (w, h)))
+    else:
+        x0, y0, x1, y1 = 0, 0, w, h
+    s = side / max(x1 - x0, y1 - y0)
+    zoomed = cv2.resize(image_bgr[y0:y1, x0:x1], (max(1, round((x1 - x0) * s)), max(1, round((y1 - y0) * s))),
+                        interpolation=cv2.INTER_LINEAR if s > 1 else cv2.INTER_AREA)
+    # pixel centres: (x - x0 + 0.5) * s - 0.5
+    return zoomed, np.array([[s, 0, (0.5 - x0) * s - 0.5], [0, s, (0.5 - y0) * s - 0.5]])
+
+
+def draw_truth_and_prediction(image_bgr: np.ndarray, truth: np.ndarray, predicted: np.ndarray,
+                              schema: KeypointSchema = UR5, caption: str | None = None, zoom: bool = True
+                              ) -> np.ndarray:
+    """The prediction drawn as everywhere (skeleton, dots, names) over the ground truth: a ring per annotated
+    keypoint in its colour, a line from the ring to the predicted dot (the error), and a cross in the ring where
+    the model found nothing. `zoom`: only the part of the frame around both (`zoom_on`), 640 px on its longer side,
+    so that an error of a few pixels shows. `caption` goes in a dark band along the top."""
+    truth = np.asarray(truth, np.float64)
+    predicted = np.asarray(predicted, np.float64)
+    if zoom:
+        image_bgr, affine = zoom_on(image_bgr, np.concatenate([truth, predicted]))
+        truth, predicted = (pts @ affine[:, :2].T + affine[:, 2] for pts in (truth, predicted))
+    out = draw_keypoints(image_bgr, predicted, schema)
+    h, w = out.shape[:2]
+    scale = max(0.6, max(h, w) / 640)
+    r = max(4, round(7 * scale))
+    line = max(1, round(scale))
+    for k in range(schema.num_keypoints):
+        if not np.isfinite(truth[k]).all():
+            continue
+        colour = keypoint_colour(k)
+        if np.isfinite(predicted[k]).all():
+            cv2.line(out, _fixed(truth[k]), _fixed(predicted[k]), colour, line, cv2.LINE_AA, _SHIFT)
+        else:
+            for dx, dy in ((1, 1), (1, -1)):
+                a, b = truth[k] - (dx * r * 0.7, dy * r * 0.7), truth[k] + (dx * r * 0.7, dy * r * 0.7)
+                cv2.line(out, _fixed(a), _fixed(b), colour, line + 1, cv2.LINE_AA, _SHIFT)
+        cv2.circle(out, _fixed(truth[k]), (r + 1) << _SHIFT, (0, 0, 0), line + 2, cv2.LINE_AA, _SHIFT)
+        cv2.circle(out, _fixed(truth[k]), r << _SHIFT, colour, line, cv2.LINE_AA, _SHIFT)
+    if caption:
+        font_scale = max(0.45, 0.5 * scale)
+        (_, th), base = cv2.getTextSize(caption, _FONT, font_scale, 1)
+        band = th + base + 8
+        out[:band] = (out[:band] * 0.35).astype(out.dtype)
+        cv2.putText(out, caption, (6, band - base - 4), _FONT, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return out

@@ -39,7 +39,8 @@ from fcnpose_tf.errors import UserError
 __all__ = [
     "DEFAULT_ALPHAS", "DEFAULT_MAX_PX", "conv_macs", "bbox_sizes", "errors_px", "normalized_errors",
     "pck", "pck_per_keypoint", "pck_curve_px", "pck_auc_px", "epe", "epe_per_keypoint",
-    "missing_fraction", "pck_key", "auc_key", "keypoint_report", "format_report", "mean_pck",
+    "missing_fraction", "pck_key", "auc_key", "keypoint_report", "format_report", "mean_pck", "frame_errors",
+    "worst_frames",
 ]
 
 DEFAULT_ALPHAS: tuple[float, ...] = (0.5, 0.2, 0.05)
@@ -153,6 +154,24 @@ def normalized_errors(pred: Any, gt: Any) -> np.ndarray:
     ok = size > 0  # NaN compares False: frames without visible GT stay NaN
     out[ok] = err[ok] / size[ok, None]
     return out
+
+
+def frame_errors(pred: Any, gt: Any) -> np.ndarray:
+    """How wrong each frame is, for ranking frames: the mean over its annotated keypoints of the error as a share of
+    its ground-truth bbox size, max(w, h), each capped at 0.5 (PCK@0.5's threshold: a keypoint on the wrong part
+    of the arm), a missing prediction counted at the cap. N floats; NaN for a frame with nothing to score."""
+    err = np.minimum(normalized_errors(pred, gt), 0.5)  # +inf (missing) becomes the cap; NaN (excluded) stays
+    scored = np.isfinite(err)
+    with np.errstate(invalid="ignore"):
+        return np.where(scored.any(axis=1), np.nansum(np.where(scored, err, 0.0), axis=1) /
+                        np.maximum(scored.sum(axis=1), 1), np.nan)
+
+
+def worst_frames(pred: Any, gt: Any, count: int) -> list[int]:
+    """Positions of the `count` frames with the largest `frame_errors`, worst first (ties: the earlier frame)."""
+    err = frame_errors(pred, gt)
+    order = sorted((i for i in range(len(err)) if np.isfinite(err[i])), key=lambda i: (-err[i], i))
+    return order[:max(int(count), 0)]
 
 
 # ---------------------------------------------------------------------------- PCK

@@ -70,3 +70,22 @@ def test_drawer_is_pi_side_core(module):
     code = (f"import sys, {module}; bad = [m for m in ('tensorflow', 'tf_keras', 'albumentations') "
             "if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_zoom_on_maps_points_to_the_zoomed_pixels_and_the_errors_are_drawn():
+    from fcnpose_tf.draw import draw_truth_and_prediction, zoom_on
+
+    image = np.zeros((480, 640, 3), np.uint8)
+    image[200, 300] = 255  # a marker at (300, 200)
+    points = np.array([[280.0, 180.0], [320.0, 220.0]])
+    zoomed, affine = zoom_on(image, points, side=640)
+    x, y = np.array([300.0, 200.0]) @ affine[:, :2].T + affine[:, 2]
+    assert max(zoomed.shape[:2]) == 640
+    assert zoomed[int(round(y)), int(round(x))].max() > 0  # the marker is where the map says
+    truth = np.full((8, 2), np.nan)
+    predicted = np.full((8, 2), np.nan)
+    truth[0], predicted[0] = (100, 100), (140, 100)
+    truth[1] = (200, 200)  # missed: a cross in its ring
+    picture = draw_truth_and_prediction(np.zeros((480, 640, 3), np.uint8), truth, predicted, caption="#1 a.png")
+    assert picture.shape[2] == 3 and picture[:10].max() > 0  # the caption band
+    assert picture.reshape(-1, 3).max(axis=1).astype(bool).mean() > 0.001

@@ -239,3 +239,18 @@ def test_format_report_table():
 
 def test_docstring_examples():
     assert doctest.testmod(metrics).failed == 0
+
+
+def test_frame_errors_rank_frames_by_their_share_of_the_box_with_a_miss_at_the_cap():
+    from fcnpose_tf.metrics import frame_errors, worst_frames
+
+    gt = np.array([[[0.0, 0.0], [100.0, 0.0]]] * 4)  # box side 100
+    pred = gt.copy()
+    pred[0, 0] += (10, 0)  # 0.1 and 0: mean 0.05
+    pred[1, 1] = np.nan  # a miss counts 0.5: mean 0.25
+    pred[2, 0] += (300, 0)  # 3.0 capped at 0.5: mean 0.25 (ties keep the earlier frame first)
+    gt[3] = np.nan  # nothing to score
+    pred[3] = np.nan
+    np.testing.assert_allclose(frame_errors(pred, gt)[:3], [0.05, 0.25, 0.25])
+    assert np.isnan(frame_errors(pred, gt)[3])
+    assert worst_frames(pred, gt, 2) == [1, 2] and worst_frames(pred, gt, 10) == [1, 2, 0]

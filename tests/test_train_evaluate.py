@@ -2,6 +2,7 @@
 
 import json
 from dataclasses import fields
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -489,3 +490,26 @@ def test_frozen_layers_keep_their_weights_and_the_saved_model_matches_the_traine
         from fcnpose_tf.training.train import freeze_first_convolutions
 
         freeze_first_convolutions(build_fcn_pose(input_size=32), 10)
+
+
+@pytest.mark.slow
+def test_evaluate_names_the_worst_frames_and_draws_them(trained, cli_here, tmp_path):
+    data, out, _ = trained
+    other = make_via_folder(tmp_path / "other", n=5, seed=6)
+    pictures = tmp_path / "worst"
+    status, stdout, err = cli_here("evaluate", out, "--data", other, "--worst", "3", "--pictures", pictures,
+                                   "--json", tmp_path / "r.json")
+    assert status == 0, err
+    rows = json.loads((tmp_path / "r.json").read_text())["worst_frames"]
+    assert [r["rank"] for r in rows] == [1, 2, 3]
+    assert [r["score"] for r in rows] == sorted((r["score"] for r in rows), reverse=True)
+    names = {p.name for p in (other / "images").iterdir()}
+    assert all(r["frame"] in names and r["frame"] in stdout for r in rows)
+    assert "Worst 3 frames" in stdout and f"Pictures: {pictures} (3 PNG)" in stdout
+    drawn = sorted(p.name for p in pictures.iterdir())
+    assert drawn == [f"{r['rank']:02d}_{Path(r['frame']).stem}.png" for r in rows]
+    assert cv2.imread(str(pictures / drawn[0])).shape[2] == 3
+    status, _, err = cli_here("evaluate", out, "--data", other, "--pictures", pictures)  # before any work
+    assert status == 2 and "already holds files; pass --force" in err
+    status, _, err = cli_here("evaluate", out, "--data", other, "--worst", "0", "--pictures", tmp_path / "p2")
+    assert status == 2 and "--pictures draws the --worst frames" in err

@@ -7,6 +7,11 @@ and std over at least 50 frames after warm-up; FPS = 1 / (preprocess + inference
 
 Which frames: on the dataset a model was trained on (recorded in NAME_train.json), its
 validation split; on any other dataset, every frame (--split overrides).
+
+The worst frames are listed by name (--worst N, 5 by default): ranked by the mean over their annotated keypoints
+of each error as a share of the frame's keypoint box, capped at 0.5, a missing keypoint counted at the cap.
+--pictures DIR draws them: the prediction over the ground truth (a ring per annotated keypoint, a line to where
+the model put it, a cross where it found nothing) - the frames to correct or to add more of.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "evaluate"
-OUTPUTS = ("json",)
+OUTPUTS = ("json", "pictures")
 USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf synth --out heldout --n 100 --seed 1
@@ -25,6 +30,7 @@ EXAMPLES = """\
   fcnpose-tf evaluate workcell-p70-fp16 --data heldout --threads 1   # a bundled model by name
   fcnpose-tf evaluate generalist --data my_frames/        # the generalist on your frames, before fine-tuning
   fcnpose-tf evaluate models/arm.keras --data my_frames/ --fold 2 --json fold2.json
+  fcnpose-tf evaluate models/arm.keras --data test_frames/ --worst 10 --pictures worst/   # see the mistakes
 """
 
 
@@ -47,8 +53,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the frames, in the VIA file's order, are a video at this frame rate (synth --motion): "
                              "also report jitter and lag")
     add_smoothing_arguments(parser)
+    parser.add_argument("--worst", type=int, default=5, metavar="N",
+                        help="list the N worst frames by name (0: none)")
+    parser.add_argument("--pictures", type=Path, metavar="DIR",
+                        help="draw the --worst frames here (PNG): prediction over ground truth, each error a line")
     parser.add_argument("--json", type=Path, metavar="OUT.json", help="also write the report as JSON")
-    parser.add_argument("--force", action="store_true", help="replace an existing --json file")
+    parser.add_argument("--force", action="store_true", help="replace an existing --json file or pictures")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -68,6 +78,10 @@ def run(args: argparse.Namespace) -> int:
             raise UserError(f"--fold must be between 0 and {k - 1}, got {args.fold}")
     if args.json is not None:
         check_writable(args.json, args.force)
+    if args.worst < 0:
+        raise UserError(f"--worst must be 0 or more, got {args.worst}")
+    if args.pictures is not None:
+        check_pictures_folder(args.pictures, args.force, args.worst)
     if args.sequence is not None and not args.sequence > 0:
         raise UserError(f"--sequence needs the frame rate (above 0), got {args.sequence}")
     if args.smooth and args.sequence is None:
@@ -86,6 +100,11 @@ def run(args: argparse.Namespace) -> int:
     print("PCK normalised by max(bbox w, h) of the ground-truth keypoints; EPE in frame pixels")
     print(format_report(result["metrics"]))
     print(format_timing(result["timing"]))
+    worst = worst_frame_rows(result["predictions"], result["ground_truth"], dataset, indices, args.worst)
+    if worst:
+        print(format_worst(worst))
+    if args.pictures is not None and worst:
+        print(f"Pictures: {write_pictures(args.pictures, worst, result, dataset, indices, args.force)}")
     sequence = None
     if args.sequence is not None:
         from fcnpose_tf.training.evaluate import format_sequence, sequence_report
@@ -98,7 +117,75 @@ def run(args: argparse.Namespace) -> int:
                                "data": str(dataset.via_path), "frames": description,
                                "decoding": {"threshold": predictor.threshold, "fallback": predictor.fallback,
                                             "centroid": predictor.centroid},
-                               "metrics": result["metrics"], "timing": result["timing"],
+                               "metrics": result["metrics"], "timing": result["timing"], "worst_frames": worst,
                                **({"sequence": sequence} if sequence is not None else {})}, force=args.force)
         print(f"Report: {args.json}")
     return 0
+
+
+def check_pictures_folder(folder: Path, force: bool, worst: int) -> None:
+    """Refuse, before any work, a --pictures folder that holds files (without --force), or is a file, or --worst 0."""
+    from fcnpose_tf.errors import UserError
+
+    if worst == 0:
+        raise UserError("--pictures draws the --worst frames: give --worst 1 or more")
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{folder}: exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not force:
+        raise UserError(f"{folder}: already holds files; pass --force to write the pictures among them")
+
+
+def worst_frame_rows(pred, gt, dataset, indices, count: int) -> list[dict]:
+    """The `count` worst frames (`metrics.worst_frames`) as JSON-ready rows: the frame's name, its score, its EPE over
+    the keypoints found, the keypoints missed, and its worst keypoint."""
+    import numpy as np
+
+    from fcnpose_tf.metrics import errors_px, frame_errors, worst_frames
+
+    score, errors = frame_errors(pred, gt), errors_px(pred, gt)
+    names = dataset.schema.keypoints
+    rows = []
+    for rank, j in enumerate(worst_frames(pred, gt, count), 1):
+        found = errors[j][np.isfinite(errors[j])]
+        scored = np.where(np.isnan(errors[j]), -1.0, errors[j])
+        k = int(np.argmax(scored))
+        rows.append({"rank": rank, "frame": dataset.samples[indices[j]].filename, "position": j,
+                     "score": round(float(score[j]), 4),
+                     "epe_px": round(float(found.mean()), 2) if found.size else None,
+                     "missing": int(np.isinf(errors[j]).sum()), "worst_keypoint": names[k],
+                     "worst_keypoint_px": round(float(errors[j][k]), 2) if np.isfinite(errors[j][k]) else None})
+    return rows
+
+
+def format_worst(rows: list[dict]) -> str:
+    from fcnpose_tf.tables import format_table
+
+    table = [[r["rank"], r["frame"], r["score"], "-" if r["epe_px"] is None else r["epe_px"], r["missing"],
+              r["worst_keypoint"] + (f" {r['worst_keypoint_px']} px" if r["worst_keypoint_px"] is not None
+                                     else " (missed)")] for r in rows]
+    return (f"Worst {len(rows)} frame{'s' if len(rows) != 1 else ''} (mean error as a share of the keypoint box, "
+            "capped at 0.5; a missed keypoint counts 0.5):\n"
+            + format_table(["rank", "frame", "score", "EPE px", "missed", "worst keypoint"], table))
+
+
+def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indices, force: bool) -> str:
+    """One PNG per worst frame in `folder` (RANK_NAME.png): `draw.draw_truth_and_prediction` with a caption."""
+    import cv2
+
+    from fcnpose_tf.draw import draw_truth_and_prediction
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.fileio import make_folder, write_bytes
+
+    make_folder(folder)
+    for row in rows:
+        j = row["position"]
+        image = dataset.load_image(indices[j])
+        caption = (f"#{row['rank']} {row['frame']}: score {row['score']:.3f}, EPE "
+                   f"{'-' if row['epe_px'] is None else row['epe_px']} px, {row['missing']} missed")
+        picture = draw_truth_and_prediction(image, result["ground_truth"][j], result["predictions"][j],
+                                            dataset.schema, caption)
+        ok, png = cv2.imencode(".png", picture)
+        if not ok:
+            raise UserError(f"{folder}: cannot encode the picture of {row['frame']}")
+        write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", png.tobytes(), force=force)
+    return f"{folder} ({len(rows)} PNG)"
