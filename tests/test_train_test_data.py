@@ -52,6 +52,11 @@ def test_the_test_line_compares_start_and_end_and_says_when_the_end_is_worse():
     assert line.endswith("(start: generalist); no figure worse than the start")
     assert format_test_set_line({**test, "start": start, "end": worse}).endswith(
         "; WORSE than the start in PCK@0.5, EPE")
+    more_missing = {**better, "missing_fraction": 0.019}  # tripled from 0.006 in a user's round 2
+    assert format_test_set_line({**test, "start": {**start, "missing_fraction": 0.006}, "end": more_missing}).endswith(
+        "; WORSE than the start in missing")
+    assert format_test_set_line({**test, "start": start, "end": {**better, "epe_px": 4.004}}).endswith(
+        "no figure worse than the start")  # 4.00 -> 4.00 as printed
     none = format_test_set_line({**test, "start_model": None, "start": None, "end": better})
     assert "EPE 3.50 px" in none and none.endswith("no starting model to compare (--init none: random weights)")
 
@@ -101,6 +106,17 @@ def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_tr
     status, _, err = cli_here("train", "--data", data, "--out", out, "--test-data", data / "labels.json", *TRAIN)
     assert status == 2 and "6 of its 6 frames are also frames of --data" in err
     assert "never trained on" in err and len(err.strip().splitlines()) == 1
+    import shutil  # the same frames copied under another folder and names: still the training frames
+
+    copy = tmp_path / "copy"
+    shutil.copytree(data, copy, ignore=shutil.ignore_patterns("*.splits.json"))
+    project = json.loads((copy / "labels.json").read_text())
+    for meta in project["_via_img_metadata"].values():
+        (copy / "images" / meta["filename"]).rename(copy / "images" / f"x_{meta['filename']}")
+        meta["filename"] = f"x_{meta['filename']}"
+    (copy / "labels.json").write_text(json.dumps(project))
+    status, _, err = cli_here("train", "--data", data, "--out", out, "--test-data", copy / "labels.json", *TRAIN)
+    assert status == 2 and "6 of its 6 frames are also frames of --data" in err, err
     other = KeypointSchema.chain("arm3", ("base", "elbow", "tip"))
     write_via_project(tmp_path / "frames" / "images" / "arm3.json",
                       [ViaFrame("cam_00.jpg", 64, 64, np.full((3, 2), 20.0))], other)

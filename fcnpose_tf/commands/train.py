@@ -182,6 +182,25 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _training_images(dataset, image: Path) -> set[Path]:
+    """The image itself when it is one of the training frames: the same file, or another file with the same bytes
+    (a copy under another name or folder); else an empty set."""
+    import filecmp
+
+    by_size = getattr(dataset, "_images_by_size", None)
+    if by_size is None:
+        by_size = {}
+        for sample in dataset.samples:
+            by_size.setdefault(sample.image_path.stat().st_size, []).append(sample.image_path)
+        dataset._images_by_size = by_size
+    try:
+        candidates = by_size.get(image.stat().st_size, [])
+        same = any(image.resolve() == c.resolve() or filecmp.cmp(image, c, shallow=False) for c in candidates)
+    except OSError:
+        return set()
+    return {image} if same else set()
+
+
 def _load_test_data(args: argparse.Namespace, dataset):
     """The --test-data set, loaded as --data is (same keypoint attribute, drops) without writing splits beside it;
     refused when its schema differs from the data's or it shares frames with the training data."""
@@ -194,12 +213,11 @@ def _load_test_data(args: argparse.Namespace, dataset):
         raise UserError(f"--test-data {test.via_path}: keypoint schema {test.schema.name!r} "
                         f"({', '.join(test.schema.keypoints)}) differs from the data's {dataset.schema.name!r} "
                         f"({', '.join(dataset.schema.keypoints)})")
-    trained_on = {s.image_path.resolve() for s in dataset.samples}
-    shared = [s.filename for s in test.samples if s.image_path.resolve() in trained_on]
+    shared = [s.filename for s in test.samples if s.image_path in _training_images(dataset, s.image_path)]
     if shared:
         raise UserError(f"--test-data {test.via_path}: {len(shared)} of its {len(test)} frames are also frames of "
                         f"--data {dataset.via_path} ({', '.join(shared[:3])}{', ...' if len(shared) > 3 else ''}); "
-                        "a test set must hold frames never trained on")
+                        "a test set must hold frames never trained on (the same images, under any name)")
     return test
 
 

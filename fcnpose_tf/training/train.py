@@ -814,8 +814,8 @@ def format_test_set_line(test: dict[str, Any]) -> str:
             continue
         parts.append(f"{name} {num(start.get(key), decimals)} -> {num(end.get(key), decimals)}{unit}")
         a, b = start.get(key), end.get(key)
-        if key != "missing_fraction" and a is not None and b is not None and sign * (b - a) < 0:
-            worse.append(name)
+        if a is not None and b is not None and sign * (round(b, decimals) - round(a, decimals)) < 0:
+            worse.append(name)  # as printed: a change below the last digit shown is not a change
     head = f"Test set {test['data']} ({test['num_frames']} frames): "
     if start is None:
         return head + ", ".join(parts) + "; no starting model to compare (--init none: random weights)"
