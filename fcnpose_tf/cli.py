@@ -81,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
         cmd.set_defaults(_run=module.run, _uses_tensorflow=getattr(module, "USES_TENSORFLOW", False),
                          _outputs=getattr(module, "OUTPUTS", ()),
                          _resumable=getattr(module, "RESUMABLE_OUTPUTS", ()),
+                         _written=getattr(module, "written_outputs", None),
                          _private_temp=getattr(module, "PRIVATE_TEMP", True))
     return parser
 
@@ -93,6 +94,19 @@ def plan_outputs(args: argparse.Namespace) -> None:
             for path in value if isinstance(value, (list, tuple)) else [value]:
                 if path is not None and os.fspath(path) != "":
                     fileio.plan_output(path, resumable=resumable)
+
+
+def refuse_existing_outputs(args: argparse.Namespace) -> None:
+    """UserError for an output file the command's options name that exists, without --force: every command refuses
+    one, and this says so before the command imports anything heavy. Folders are left to the command, and so are
+    the outputs a command's `written_outputs(args)` leaves out (train's --out with --folds or --resume)."""
+    if getattr(args, "force", False):
+        return
+    for name in args._written(args) if args._written is not None else args._outputs:
+        value = getattr(args, name, None)
+        for path in value if isinstance(value, (list, tuple)) else [value]:
+            if path is not None and os.fspath(path) != "" and os.path.isfile(path):
+                raise UserError(f"{path}: already exists; pass --force to replace it")
 
 
 def _kept(outputs: fileio.CommandOutputs) -> str:
@@ -140,6 +154,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def command() -> int:
         plan_outputs(args)
+        refuse_existing_outputs(args)  # in a second, not after TensorFlow's import
         if args._uses_tensorflow:
             import_tensorflow_quietly()
         return args._run(args)

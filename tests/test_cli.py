@@ -131,3 +131,22 @@ def test_commands_set_tensorflows_environment_where_the_user_did_not():
     empty: dict[str, str] = {}
     set_tensorflow_environment(empty)
     assert empty == TENSORFLOW_ENVIRONMENT and empty["TF_ENABLE_ONEDNN_OPTS"] == "1"
+
+
+@pytest.mark.parametrize("args", [
+    ["train", "--data", "frames", "--out", "exists.keras"],
+    ["evaluate", "--data", "frames", "--json", "exists.keras"],
+    ["export", "m.keras", "--json", "exists.keras"],
+])
+def test_an_existing_output_is_refused_before_tensorflow_is_imported(tmp_path, args):
+    import subprocess
+    import sys
+
+    (tmp_path / "exists.keras").write_text("mine")
+    code = ("import sys; from fcnpose_tf.cli import main; status = main(sys.argv[1:]); "
+            "assert 'tensorflow' not in sys.modules, 'TensorFlow was imported first'; sys.exit(status)")
+    proc = subprocess.run([sys.executable, "-c", code, *args], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "error: exists.keras: already exists; pass --force to replace it"
+    assert (tmp_path / "exists.keras").read_text() == "mine"

@@ -77,6 +77,12 @@ def initial_weights(init: str) -> Path | None:
     return resolve_model(init, KERAS_SUFFIXES)
 
 
+def written_outputs(args: argparse.Namespace) -> tuple[str, ...]:
+    """The output options written under the name given, refused up front when they exist (`cli`): --out, unless
+    folds write NAME_foldK.keras instead or --resume continues into it."""
+    return () if args.resume or args.folds or args.fold is not None else ("out",)
+
+
 def fold_model_path(out: Path, fold: int | None) -> Path:
     """NAME.keras for the hold-out split, NAME_foldK.keras for fold K."""
     return out if fold is None else out.with_name(f"{out.stem}_fold{fold}{out.suffix}")
