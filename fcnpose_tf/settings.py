@@ -448,16 +448,33 @@ RETRAIN_EPOCHS_BY_RATE = RETRAIN_EPOCHS.variant(
     help="retraining epochs after pruning, with early stopping (the paper: up to 100); RATES=E items give some "
          "rates their own budget, e.g. 10,0.6:0.9:0.1=40 (heavier pruning needs longer to converge)")
 """The sweep's form: one budget, or one per rate (read by `sweep.rates.parse_per_rate_epochs`)."""
+def minutes_or_none(text: str) -> float | None:
+    """argparse type of the time budgets: a number of minutes, or `none` (no budget)."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected minutes or none, got {text!r}") from None
+
+
 MAX_MINUTES = Setting(
     "max_minutes", float, None, "time budget: no new epoch starts after this many minutes of training (default: "
-    "none; the epochs and early stopping decide)", label="time budget", check=lambda v: v > 0,
-    requirement="a positive number of minutes", metavar="MIN")
+    "none; the epochs and early stopping decide)", label="time budget", check=lambda v: v > 0 and math.isfinite(v),
+    requirement="a positive number of minutes, or none", metavar="MIN", parse=minutes_or_none)
 TRAIN_MAX_MINUTES = MAX_MINUTES.variant(
     help="time budget: no new epoch starts after this many minutes of training (the paper's 500 epochs would "
          "take days here; none: the epochs and early stopping decide)", default=30.0)
 """`train` sets its budget by time, not by the paper's 500 epochs: 30 minutes on 2 CPU cores fine-tunes a
 bundled model on a few hundred frames (docs/training.md, "Training on your own frames"). Compression and
 the sweep keep epoch budgets (their tables compare rates at equal epochs)."""
+COMPRESS_MAX_MINUTES = MAX_MINUTES.variant(
+    default=10.0, paper=None,
+    help="retraining time budget: no new retraining epoch starts after this many minutes (none: the epochs and "
+         "early stopping decide, the same epochs on any machine)")
+"""A user's model fine-tuned at 384 retrained 25 epochs for 42 minutes on 2 shared cores; 10 minutes of retraining
+and the steps around it end `compress` in about 15 (docs/compression.md, "Time budget"). The bundled baseline's
+retraining ends before it on an idle 2-core machine; the paper's preset has none (its 100 epochs decide)."""
 SWEEP_MAX_MINUTES = MAX_MINUTES.variant(
     help="time budget of each base model's training: no new epoch starts after this many minutes (default: none; "
          "the epochs and early stopping decide)")

@@ -184,10 +184,10 @@ def test_compress_options_mean_what_compress_means():
     greedy = CompressOptions(rate=0.7, strategy="greedy").resolved()
     assert greedy.importance == "l1"  # greedy ranking reads kernels only
     assert CompressOptions(rate=0.7, method="magnitude").resolved().min_filters == 0
-    for options in (recommended, paper):  # retraining has an epoch budget, no time budget: a valid FitConfig
-        fit_config = options.fit_config()
+    for options, minutes in ((recommended, 10.0), (paper, None)):  # an epoch budget, and a time budget but the
+        fit_config = options.fit_config()                               # paper's: a valid FitConfig
         fit_config.validate()  # what fit() checks first
-        assert fit_config.max_minutes is None and fit_config.epochs == options.retrain_epochs
+        assert fit_config.max_minutes == minutes and fit_config.epochs == options.retrain_epochs
 
 
 def test_train_preset_paper_is_the_papers_recipe():

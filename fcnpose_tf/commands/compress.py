@@ -51,7 +51,8 @@ EXAMPLES = """\
   fcnpose-tf compress --rate 0.7 --method magnitude    # tfmot unstructured sparsity, for comparison
   fcnpose-tf compress --rate 0.7 --quantize float16    # the paper's file only
   fcnpose-tf compress --rate 0.7 --importance l1       # the paper's L1-norm ranking (default: taylor)
-  fcnpose-tf compress --rate 0.7 --min-filters 0       # the paper's widths (default: no layer under 12)
+  fcnpose-tf compress --rate 0.7 --min-filters 0       # the paper's widths (default: no layer under 15)
+  fcnpose-tf compress --rate 0.7 --max-minutes 30      # a longer retraining budget (default: 10 minutes)
   fcnpose-tf compress --rate 0.7 --distill 0.5         # retrain half on the unpruned model's maps
   fcnpose-tf compress --rate 0.7 --input-size 192      # files at 192x192: 0.73x the MACs of 224
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/
@@ -75,6 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "held-out synthetic frames)")
     settings.RETRAIN_EPOCHS.add_to(parser)
     settings.RETRAIN_PATIENCE.add_to(parser, "--patience")
+    settings.COMPRESS_MAX_MINUTES.add_to(parser)
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.QAT_EPOCHS, settings.QAT_LEARNING_RATE,
                     settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.PRUNED_START,

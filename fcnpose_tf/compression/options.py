@@ -24,7 +24,8 @@ METHODS = settings.METHOD.choices
 
 @settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
                        settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
-                       ("patience", settings.RETRAIN_PATIENCE), settings.BATCH_SIZE,
+                       ("patience", settings.RETRAIN_PATIENCE), ("max_minutes", settings.COMPRESS_MAX_MINUTES),
+                       settings.BATCH_SIZE,
                        ("learning_rate", settings.COMPRESS_LEARNING_RATE), ("augment", settings.INHERITED_AUGMENT),
                        settings.AUGMENT_COPIES,
                        settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
@@ -132,7 +133,7 @@ class CompressOptions:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
         from fcnpose_tf.training.train import FitConfig
 
-        return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1), max_minutes=None))
+        return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1)))
 
 
 
