@@ -68,3 +68,21 @@ class KeypointSchema:
 
 UR5 = KeypointSchema.chain("ur5", ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"))
 """The paper's 8 UR5 keypoints, base to tool, joined in a chain."""
+
+
+def _spelling(name: str) -> str:
+    return "".join(ch for ch in name.lower() if ch.isalnum())
+
+
+def spelling_hint(names: Sequence[str], reference: Sequence[str] = UR5.keypoints, whose: str = "UR5's") -> str | None:
+    """When `names` are the `reference` keypoints spelt another way (`wrist_1`, `Wrist-1` for `wrist1`: the same
+    letters and digits, in the same order) but not the same strings, a sentence that says so and how to fix it;
+    else None. Such names make a new schema, which no model trained on `reference` can start."""
+    names, reference = list(names), list(reference)
+    if names == reference or [_spelling(n) for n in names] != [_spelling(n) for n in reference]:
+        return None
+    pairs = [(a, b) for a, b in zip(names, reference) if a != b]
+    more = ", ..." if len(pairs) > 3 else ""
+    return (f"did you mean {', '.join(b for _, b in pairs[:3])}{more}? The keypoint names differ from {whose} only "
+            f"in spelling ({', '.join(f'{a} for {b}' for a, b in pairs[:3])}{more}): rename them in the VIA file's "
+            "keypoint options and points")

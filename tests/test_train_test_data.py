@@ -200,3 +200,25 @@ def test_train_at_the_size_auto_chose_also_weighs_the_start_at_its_own_size(tmp_
     assert record["view"] == (entry["view"] if entry["chose"] == "start" else chosen)
     assert list(load_model(out).input_shape[1:3]) == [record["view"]["input_height"], record["view"]["input_width"]]
     assert f"on the same {record['val_frames']} validation frames" in proc.stdout
+
+
+def test_keypoint_names_spelt_another_way_are_pointed_out(tmp_path, cli_here):
+    from fcnpose_tf.data.via import ViaFrame, write_via_project
+    from fcnpose_tf.keypoints import UR5, KeypointSchema, spelling_hint
+
+    names = ("base", "shoulder", "elbow", "wrist_1", "wrist_2", "Wrist-3", "flange", "tool")
+    assert spelling_hint(names) == ("did you mean wrist1, wrist2, wrist3? The keypoint names differ from UR5's only in "
+                                    "spelling (wrist_1 for wrist1, wrist_2 for wrist2, Wrist-3 for wrist3): rename "
+                                    "them in the VIA file's keypoint options and points")
+    assert spelling_hint(UR5.keypoints) is None and spelling_hint(("a", "b")) is None
+    data = make_via_folder(tmp_path / "frames", n=6, size=(64, 64))
+    project = data / "labels.json"
+    frames = [ViaFrame(f.filename, 64, 64, f.keypoints) for f in __import__("fcnpose_tf.data.via", fromlist=["x"])
+              .read_via(project).frames]
+    project.unlink()
+    write_via_project(project, frames, KeypointSchema.chain("mine", names))
+    status, out, err = cli_here("data", "inspect", data)
+    assert status == 0, err
+    assert "note: did you mean wrist1, wrist2, wrist3?" in out
+    status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "m.keras", *TRAIN)
+    assert status == 2 and "did you mean wrist1, wrist2, wrist3? The keypoint names differ from" in err

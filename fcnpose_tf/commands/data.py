@@ -98,6 +98,7 @@ def _inspect(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.masks import default_radius, default_thickness
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable
+    from fcnpose_tf.keypoints import spelling_hint
     from fcnpose_tf.tables import format_table
 
     settings.TRAIN_INPUT_SIZE.validate(args.input_size)
@@ -116,6 +117,9 @@ def _inspect(args: argparse.Namespace) -> int:
     print(f"Dataset: {ds.via_path}  (images: {', '.join(sorted(map(str, folder)))})")
     print(f"Schema:  {schema.name}, {schema.num_keypoints} keypoints ({', '.join(schema.keypoints)}), "
           f"{schema.num_maps} target maps")
+    hint = spelling_hint(schema.keypoints)
+    if hint:
+        print(f"note: {hint}; as they are, no bundled model can start the training")
     print(f"Frames:  {len(ds)} usable, {ds.num_dropped} dropped "
           f"(threshold: at least {ds.min_visible} of {schema.num_keypoints} keypoints visible)")
     sizes = Counter((s.width, s.height) for s in ds.samples)

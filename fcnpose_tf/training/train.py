@@ -582,8 +582,9 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
     224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
     record names other keypoints.
     """
-    from fcnpose_tf.training.model import at_input_size, conv_widths, load_model
+    from fcnpose_tf.keypoints import spelling_hint
     from fcnpose_tf.records import training_record
+    from fcnpose_tf.training.model import at_input_size, conv_widths, load_model
 
     source = load_model(init)
     widths = conv_widths(source)
@@ -594,9 +595,10 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
     trained_for = record.keypoints if (record := training_record(init)) is not None else None
     if widths[-1] != schema.num_maps or (trained_for is not None and list(trained_for) != list(schema.keypoints)):
         names = ", ".join(trained_for) if trained_for else f"{widths[-1] - 1} keypoints"
+        hint = spelling_hint(schema.keypoints, trained_for, f"{Path(init).name}'s") if trained_for else None
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
-                        f"{', '.join(schema.keypoints)}; pass --init none to train from scratch, or --init MODEL "
-                        "with a model of this schema")
+                        f"{', '.join(schema.keypoints)}; " + (f"{hint}" if hint else
+                        "pass --init none to train from scratch, or --init MODEL with a model of this schema"))
     return source if input_size is None else at_input_size(source, input_size)
 
 
