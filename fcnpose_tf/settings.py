@@ -12,7 +12,7 @@ best on a user's frames), and `paper`, the paper's recipe. A command's `--preset
 `preset(name, ...)` read the same values, so `CompressOptions(rate=0.7)` is `compress --rate 0.7` and
 `CompressOptions.preset("paper", rate=0.7)` is `compress --preset paper --rate 0.7`. A value of None
 ("auto") is resolved per run by the library (`train.FitConfig.resolved`, `options.CompressOptions.resolved`),
-never by a command.
+except `train`'s view and augmentation, which its command resolves from the frames before the checkpoint check.
 
 Imports only the standard library: the CLI builds its parser from this module on a Pi without
 TensorFlow or numpy, and `sweep.jobs` (which imports no numpy) embeds it.

@@ -69,9 +69,9 @@ class ExportOptions:
 DEFAULT_QUANTIZE = settings.QUANTIZE.default[0]
 """The format of one file when none is named: the first of the default formats (float16, the paper's)."""
 FULL_INTEGER = "int8"
+"""The full-integer mode: calibrated on real frames, integer input and output."""
 FLOAT16_NATIVE = "float16-native"
 """float16 with reduced-precision metadata: computed in float16 where the CPU can (a Pi 5)."""
-"""The full-integer mode: calibrated on real frames, integer input and output."""
 INT8_INPUT_SCALE = 1.0 / 255.0
 """Scale of the int8 file's uint8 input (zero point 0): one step per grey level of the resized frame."""
 MAP_ATOL = 1e-2
