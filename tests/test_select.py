@@ -138,6 +138,7 @@ def test_predict_select_writes_only_the_picked_video_frames(capsys, tmp_path, cl
                           "--threads", 1)
     assert code == 0, err
     assert "Selected 2 of 12 processed frames by uniform, at least 10 frame(s) apart (only 2 fit" in out
+    assert out.split("Selected")[1].splitlines()[0].endswith(": frame 0, frame 11")  # a video's frames by number
     saved = sorted(p.name for p in (via.parent / "images").iterdir())
     assert saved == ["clip_000000.png", "clip_000011.png"]  # one second apart at 10 FPS: the ends
     assert [f.filename for f in read_via(via, min_visible=0).frames] == saved
@@ -165,6 +166,8 @@ def test_predict_select_on_images_by_disagree_references_the_picked_images(capsy
     assert "each frame predicted 3 times" in err and "Selected 2 of 5 processed frames by disagree" in out
     frames = read_via(via, min_visible=0).frames
     assert len(frames) == 2 and all(f.image_path.parent.resolve() == folder.resolve() for f in frames)
+    picked = out.split("Selected")[1].splitlines()[0].split(": ", 1)[1]
+    assert sorted(name.split(" ")[0] for name in picked.split(", ")) == sorted(f.filename for f in frames)
     assert not (tmp_path / "images").exists()
 
 

@@ -160,12 +160,14 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
         raise UserError(f"{args.source}: no frame was processed ({summary.end_reason}); no VIA file written")
     picks = scores.pick(args.select, gap)
     wanted = {record.index: record for record in picks}
+    names: dict[int, str] = {}  # a picked image's file name; a video's frames by number
     again = open_source(args.source, refuse_cameras="predict reads image folders, images and videos")
     with _via_collection(args, predictor, again) as collected:
         for frame in again:
             record = wanted.get(frame.index)
             if record is None:
                 continue
+            names[frame.index] = Path(frame.name).name if again.kind == "images" else f"frame {frame.index}"
             if tuple(frame.image.shape) != record.shape:
                 raise UserError(f"{args.source}: frame {frame.index} reads as {frame.image.shape} now, "
                                 f"{record.shape} when scored; the source changed while predict ran")
@@ -180,7 +182,7 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
     fewer = (f" (only {len(picks)} fit {gap} frames apart in {len(scores.records)} processed frames)"
              if len(picks) < args.select else "")
     print(f"Selected {len(picks)} of {len(scores.records)} processed frames by {args.by}, at least {gap} frame(s) "
-          f"apart{fewer}: " + ", ".join(f"{r.index}" + (f" ({score[r.index]:.3g})" if args.by != "uniform" else "")
+          f"apart{fewer}: " + ", ".join(names[r.index] + (f" ({score[r.index]:.3g})" if args.by != "uniform" else "")
                                        for r in picks))
     print(f"{written}: {collected.describe()}")
     return 0
