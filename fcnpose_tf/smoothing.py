@@ -45,6 +45,11 @@ class OneEuroParams:
     d_cutoff_hz: float = DEFAULT_D_CUTOFF_HZ
     max_coast: int = DEFAULT_MAX_COAST
 
+    def describe(self) -> str:
+        """`One-Euro filter (cut-off 0.5 Hz at rest + 0.03 Hz per px/s, speed cut-off 1 Hz, coasting 2 frames)`."""
+        return (f"One-Euro filter (cut-off {self.min_cutoff_hz:g} Hz at rest + {self.beta:g} Hz per px/s, speed "
+                f"cut-off {self.d_cutoff_hz:g} Hz, coasting {self.max_coast} frame{'s' if self.max_coast != 1 else ''})")
+
     def check(self) -> "OneEuroParams":
         from fcnpose_tf.errors import UserError
 
@@ -130,3 +135,14 @@ def params_from_args(args) -> OneEuroParams | None:
     if not getattr(args, "smooth", False):
         return None
     return OneEuroParams(args.smooth_min_cutoff, args.smooth_beta, DEFAULT_D_CUTOFF_HZ, args.smooth_coast).check()
+
+
+def frame_step_px(previous: np.ndarray | None, current: np.ndarray) -> float | None:
+    """How far the keypoints moved since the previous frame: the mean distance over the keypoints found in both
+    (frame pixels), None when none was. On an arm at rest this is all jitter."""
+    if previous is None:
+        return None
+    both = np.isfinite(previous).all(axis=1) & np.isfinite(current).all(axis=1)
+    if not both.any():
+        return None
+    return float(np.hypot(*(current[both] - previous[both]).T).mean())

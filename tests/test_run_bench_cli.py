@@ -314,3 +314,18 @@ def test_a_model_whose_path_is_not_utf8_loads(capsys, tmp_path, model_path):
     odd.write_bytes(model_path.read_bytes())
     code, out, err = _run(capsys, "bench", odd, "--frames", 2, "--threads", 1)
     assert code == 0, err
+
+
+def test_run_reports_how_steady_the_keypoints_are_and_what_smoothing_did(capsys, tmp_path, model_path, video):
+    from fcnpose_tf.smoothing import frame_step_px
+
+    assert frame_step_px(None, np.zeros((2, 2))) is None
+    assert frame_step_px(np.array([[0.0, 0.0], [np.nan, 0.0]]), np.array([[3.0, 4.0], [1.0, 1.0]])) == 5.0
+    code, out, err = _run(capsys, "run", model_path, "--source", video, "--threads", 1)
+    assert code == 0, err
+    assert "Steadiness: keypoints moved a median" in out and "--smooth filters it" in out
+    code, out, err = _run(capsys, "run", model_path, "--source", video, "--threads", 1, "--smooth")
+    assert code == 0, err
+    line = next(line for line in out.splitlines() if line.startswith("Smoothing: One-Euro filter (cut-off"))
+    raw, written = (float(part.split(" px")[0].split()[-1]) for part in line.split("; ")[1].split(", ")[:2])
+    assert written < raw  # the quadrant patch jumps every frame: the filter holds the keypoints back

@@ -23,6 +23,7 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence, TextIO
 
 import cv2
+import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import signals_deferred
@@ -30,7 +31,7 @@ from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction, StageTim
 from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
 from fcnpose_tf.runtime.sources import Frame, FrameSource
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms
-from fcnpose_tf.smoothing import KeypointSmoother, OneEuroParams
+from fcnpose_tf.smoothing import KeypointSmoother, OneEuroParams, frame_step_px
 
 WINDOW_NAME = "fcnpose-tf"
 
@@ -72,6 +73,12 @@ class RunSummary:
     """perf_counter() when the first and the last frame's records were written (the delivered rate's span)."""
     pipelined: bool = False
     """The invoke ran on its own thread, overlapping the other stages (`runtime.pipeline`)."""
+    smoothing: OneEuroParams | None = None
+    """The filter the keypoints went through (`run --smooth`), or None."""
+    raw_steps_px: array = field(default_factory=lambda: array("d"))
+    """Per pair of consecutive frames, how far the model's keypoints moved (`smoothing.frame_step_px`)."""
+    steps_px: array = field(default_factory=lambda: array("d"))
+    """The same for the keypoints written (smoothed with --smooth)."""
     outputs: list[str] = field(default_factory=list)
 
     @property
@@ -102,6 +109,15 @@ class RunSummary:
             lines.append(f"Delivered: {self.delivered_fps:.1f} frames/s, {self._mode()}; per frame "
                          f"{d['median']:.1f} ms p50, {d['p95']:.1f} ms p95 from read to records written "
                          f"({DELIVERED_DEFINITION})")
+        if len(self.raw_steps_px):
+            raw = float(np.median(self.raw_steps_px))
+            if self.smoothing is None:
+                lines.append(f"Steadiness: keypoints moved a median {raw:.2f} px from frame to frame (all of it "
+                             "jitter where the arm stands still; --smooth filters it)")
+            else:
+                lines.append(f"Smoothing: {self.smoothing.describe()}; keypoints moved a median {raw:.2f} px from "
+                             f"frame to frame as the model found them, {float(np.median(self.steps_px)):.2f} px as "
+                             "written (all of it jitter where the arm stands still)")
         if model.view.crop is not None:
             lines.append(f"Crop:    the model sees {model.view.describe()}; {self.crop_edge_frames} of {self.frames} "
                          f"frames had a keypoint at its edge (the records' crop_edge): an arm reaching past the "
@@ -190,7 +206,7 @@ def run_stream(model: KeypointPredictor, source: FrameSource, writers: Sequence[
         The RunSummary; `end_reason` says why the loop ended (Ctrl-C included: KeyboardInterrupt
         during the loop ends it cleanly).
     """
-    summary = RunSummary(pipelined=bool(pipelined and model.pipelinable))
+    summary = RunSummary(pipelined=bool(pipelined and model.pipelinable), smoothing=smooth)
     delivery = _Delivery(model, source, summary, writers, video, show, max_frames, progress, fps_window,
                          on_frame, smooth)
     frames_iter = iter(source)
@@ -298,6 +314,8 @@ class _Delivery:
         self.writers, self.video, self.show, self.max_frames = writers, video, show, max_frames
         self.progress, self.on_frame, self.smooth = progress, on_frame, smooth
         self.smoother: KeypointSmoother | None = None
+        self.last_raw: np.ndarray | None = None  # the previous frame's keypoints, as found and as written
+        self.last_written: np.ndarray | None = None
         self.rolling = RollingFps(fps_window)
         self.start = time.perf_counter()
 
@@ -317,10 +335,17 @@ class _Delivery:
 
     def deliver(self, frame: Frame, prediction: Prediction, read_at: float) -> bool:
         summary = self.summary
+        raw = prediction.keypoints
         if self.smooth is not None:
             self.smoother = self.smoother or KeypointSmoother(len(prediction.keypoints), self.smooth)
             prediction = replace(prediction, keypoints=self.smoother(prediction.keypoints,
                                                                      frame_time_s(frame, self.source)))
+        for steps, previous, current in ((summary.raw_steps_px, self.last_raw, raw),
+                                         (summary.steps_px, self.last_written, prediction.keypoints)):
+            step = frame_step_px(previous, current)
+            if step is not None:
+                steps.append(step)
+        self.last_raw, self.last_written = raw, prediction.keypoints
         summary.latency.add(prediction.times)
         self.rolling.add(prediction.times.total_ms)
         summary.crop_edge_frames += bool(prediction.at_crop_edge().any())
