@@ -213,3 +213,32 @@ def test_attributes_nested_hundreds_of_levels_are_refused_in_one_line(tmp_path, 
     assert status == 2
     assert captured.err.strip().splitlines() == [f"error: {a}: not a VIA project (JSON nested more than 64 levels deep)"]
     assert not (tmp_path / "m.json").exists()
+
+
+def test_round_two_never_validates_on_round_ones_training_frames(tmp_path, capsys):
+    """Round 1's stored hold-out split travels with its frames: the merged project's validation frames are round 1's
+    validation frames plus new ones, so the start-as-candidate check is not biased toward the round-1 model."""
+    from fcnpose_tf.data.via import SPLIT_ATTRIBUTE
+
+    a, _ = _round(tmp_path / "round1", [f"a_{i:02d}.png" for i in range(20)], seed=0)
+    first = load_dataset(a)  # stores round 1's splits, as train did
+    round1_train = {first.names[i] for i in first.split()[0]}
+    round1_val = {first.names[i] for i in first.split()[1]}
+    b, _ = _round(tmp_path / "round2", [f"b_{i:02d}.png" for i in range(20)], seed=1)
+    out = tmp_path / "merged" / "labels.json"
+    status, captured = _merge(a, b, "--out", out, capsys=capsys)
+    assert status == 0, captured.err
+    assert "20 keep the training or validation role the inputs' splits gave them" in captured.out
+    assert json.loads(out.read_text())["_via_attributes"]["file"][SPLIT_ATTRIBUTE]["type"] == "dropdown"
+    merged = load_dataset(out)
+    train, val = ({merged.names[i] for i in part} for part in merged.split())
+    assert round1_val <= val and not (round1_train & val)
+    assert len(val) == 8 and len(val - round1_val) == 8 - len(round1_val)  # 20 % of 40, new frames fill it
+    # a third round merged with the merged project keeps every role again
+    c, _ = _round(tmp_path / "round3", [f"c_{i:02d}.png" for i in range(10)], seed=2)
+    out3 = tmp_path / "merged3" / "labels.json"
+    status, captured = _merge(out, c, "--out", out3, capsys=capsys)
+    assert status == 0, captured.err
+    third = load_dataset(out3)
+    val3 = {third.names[i] for i in third.split()[1]}
+    assert val <= val3 and not (train & val3)

@@ -176,6 +176,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
 def _merge(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.merge import merge_via_projects
+    from fcnpose_tf.data.via import SPLIT_ATTRIBUTE
     from fcnpose_tf.data.splits import splits_path
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, write_json
@@ -197,6 +198,10 @@ def _merge(args: argparse.Namespace) -> int:
                      + ", ".join(result.replaced[:5]) + (", ..." if len(result.replaced) > 5 else ""))
     if result.skipped:
         notes.append(f"{len(result.skipped)} bad frame(s) left out (--skip-bad)")
+    if result.roles_kept:
+        notes.append(f"{result.roles_kept} keep the training or validation role the inputs' splits gave them "
+                     f"(file attribute {SPLIT_ATTRIBUTE}): the merged project validates only on frames no earlier "
+                     "round trained on, and new frames fill its validation set")
     print(f"Merged: {args.out}: {result.num_frames} frames, schema {result.schema.name} "
           f"({result.schema.num_keypoints} keypoints)" + (f"; {'; '.join(notes)}" if notes else ""))
     for message in result.skipped[:10]:

@@ -159,7 +159,8 @@ def load_dataset(data: str | os.PathLike, images: str | os.PathLike | None = Non
         raise UserError(f"{via_path}: no usable frames ({why})")
     splits, spath, status = load_or_create_splits(via_path, [s.filename for s in samples], k=folds,
                                                   val_fraction=val_fraction, seed=split_seed,
-                                                  write=write_splits, resplit=resplit)
+                                                  write=write_splits, resplit=resplit,
+                                                  roles=[f.split for f in ann.frames])
     return Dataset(via_path, ann.schema, samples, splits, spath, status, dict(ann.dropped), list(ann.problems),
                    attribute, ann.min_visible, ann.ignored_regions)
 

@@ -48,10 +48,27 @@ class MergeResult:
     skipped: list[str] = field(default_factory=list)
     image_folders: list[Path] = field(default_factory=list)
     stored_with_path: list[str] = field(default_factory=list)
+    roles_kept: int = 0
+    """Frames whose hold-out role (train or validation) in an input's stored splits, or in its own SPLIT_ATTRIBUTE,
+    the merged project keeps (`via.SPLIT_ATTRIBUTE`): a later round never validates on an earlier round's training
+    frames."""
 
     @property
     def num_frames(self) -> int:
         return len(self.project["_via_img_metadata"])
+
+
+def _stored_roles(via_path: Path) -> dict[str, str]:
+    """{frame name: "train" or "val"} from the hold-out split stored beside a VIA file (`<stem>.splits.json`, what
+    `data inspect` and `train` wrote for it); empty when there is none or it cannot be read."""
+    from fcnpose_tf.data.splits import splits_path
+    from fcnpose_tf.fileio import parse_json
+
+    try:
+        holdout = parse_json(splits_path(via_path).read_text("utf-8"))["holdout"]
+        return {**{str(name): "train" for name in holdout["train"]}, **{str(name): "val" for name in holdout["val"]}}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
 
 
 def _same_image(a: Path, b: Path) -> bool:
@@ -121,8 +138,14 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
             found = (data.get("_via_attributes") or {}).get(kind) if isinstance(data, dict) else None
             for name, spec in (found or {}).items() if isinstance(found, dict) else ():
                 attributes[kind].setdefault(name, copy.deepcopy(spec))
+        roles = _stored_roles(via_path)
         for frame in annotations.frames:
             entry = _Entry(via_path, copy.deepcopy(raw[frame.filename]), Path(frame.image_path))
+            role = frame.split or roles.get(frame.filename)
+            if role is not None:
+                if not isinstance(entry.meta.get("file_attributes"), dict):
+                    entry.meta["file_attributes"] = {}
+                entry.meta["file_attributes"][_via.SPLIT_ATTRIBUTE] = role
             named = merged.setdefault(frame.filename, [])
             earlier = next((e for e in named if _same_image(e.image, entry.image)), None)
             if earlier is None:
@@ -168,6 +191,9 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
             result.stored_with_path.append(filename)
         size = meta.get("size", -1)
         metadata[_via.image_key(meta["filename"], size, metadata)] = meta
+    result.roles_kept = sum(_via.SPLIT_ATTRIBUTE in (meta.get("file_attributes") or {}) for meta in metadata.values())
+    if result.roles_kept:
+        attributes["file"].setdefault(_via.SPLIT_ATTRIBUTE, copy.deepcopy(_via.SPLIT_ATTRIBUTE_SPEC))
     for kind in ("region", "file"):
         for name, spec in project["_via_attributes"][kind].items():
             attributes[kind].setdefault(name, spec)

@@ -52,15 +52,29 @@ def _permutation(n: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).permutation(n)
 
 
-def holdout_split(n: int, val_fraction: float = 0.2, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(train, val) sorted indices: round(n * val_fraction) frames for validation (at least 1 when n >= 2)."""
+def holdout_split(n: int, val_fraction: float = 0.2, seed: int = 0, roles: Sequence[str | None] | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(train, val) sorted indices: round(n * val_fraction) frames for validation (at least 1 when n >= 2).
+
+    `roles` (per frame "train", "val" or None) keeps the frames an earlier round gave a role in it (`data merge`
+    carries them as the VIA file attribute `via.SPLIT_ATTRIBUTE`), so round 2's validation frames are never round
+    1's training frames; the frames without one fill the validation set up to its size, by the seed. Without
+    roles the split is the seeded permutation's, as before."""
     if not 0 < val_fraction < 1:
         raise UserError(f"validation fraction must be between 0 and 1, got {val_fraction}")
     n_val = int(round(n * val_fraction))
     if n >= 2:
         n_val = min(max(n_val, 1), n - 1)
     perm = _permutation(n, seed)
-    return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+    if roles is None or not any(roles):
+        return np.sort(perm[n_val:]), np.sort(perm[:n_val])
+    fixed_val = [i for i in perm if roles[i] == "val"]
+    free = [i for i in perm if roles[i] not in ("train", "val")]
+    val = fixed_val + free[:max(n_val - len(fixed_val), 0)]
+    if n >= 2 and len(val) == 0 and free:
+        val = free[:1]
+    val_set = set(val)
+    return np.array(sorted(i for i in range(n) if i not in val_set), np.int64), np.array(sorted(val), np.int64)
 
 
 def check_fold_count(k: int, n: int, source: str = "the dataset") -> int:
@@ -87,8 +101,10 @@ def kfold_split(n: int, k: int = 5, seed: int = 0) -> list[tuple[np.ndarray, np.
     return [(np.setdiff1d(all_idx, part), np.sort(part)) for part in parts]
 
 
-def make_splits(n: int, k: int = 5, val_fraction: float = 0.2, seed: int = 0) -> Splits:
-    """Hold-out and K-fold splits of n frames from one seeded permutation.
+def make_splits(n: int, k: int = 5, val_fraction: float = 0.2, seed: int = 0,
+                roles: Sequence[str | None] | None = None) -> Splits:
+    """Hold-out and K-fold splits of n frames from one seeded permutation (the hold-out keeps `roles`, see
+    `holdout_split`).
 
     With fewer than K frames there are no folds (Splits.get(fold) says so); with
     one frame the hold-out validation set is empty.
@@ -96,7 +112,7 @@ def make_splits(n: int, k: int = 5, val_fraction: float = 0.2, seed: int = 0) ->
     if k < 2:
         raise UserError(f"number of folds must be at least 2, got {k}")
     folds = kfold_split(n, k, seed) if n >= k else []
-    return Splits(seed, k, val_fraction, holdout_split(n, val_fraction, seed), tuple(folds))
+    return Splits(seed, k, val_fraction, holdout_split(n, val_fraction, seed, roles), tuple(folds))
 
 
 def splits_path(via_path: str | os.PathLike) -> Path:
@@ -156,7 +172,8 @@ def splits_from_dict(data: dict, names: Sequence[str], source: str = "splits") -
 
 def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: int | None = None,
                           val_fraction: float = 0.2, seed: int = 0, write: bool = True,
-                          resplit: bool = False) -> tuple[Splits, Path, str]:
+                          resplit: bool = False, roles: Sequence[str | None] | None = None
+                          ) -> tuple[Splits, Path, str]:
     """The dataset's stored splits, or new ones saved beside the VIA file (when `write`).
 
     `k`: the K folds asked for, refused (`check_fold_count`) when there are fewer frames; None:
@@ -183,7 +200,7 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
                             f"{splits.val_fraction:g}, but seed {seed}, {k} folds, {val_fraction:g} were asked for; "
                             "use the stored settings, or pass --resplit to replace them")
         return splits, path, "loaded"
-    splits = make_splits(len(names), k, val_fraction, seed)
+    splits = make_splits(len(names), k, val_fraction, seed, roles)
     if not write:
         return splits, path, "not saved"
     try:

@@ -45,6 +45,9 @@ class ViaFrame:
     keypoints: np.ndarray
     size: int = -1
     image_path: Path | None = field(default=None, compare=False)
+    split: str | None = field(default=None, compare=False)
+    """The hold-out role an earlier round gave the frame ("train" or "val", the file attribute SPLIT_ATTRIBUTE that
+    `data merge` writes), or None."""
 
     def __post_init__(self):
         self.keypoints = np.asarray(self.keypoints, np.float64).reshape(-1, 2)
@@ -59,6 +62,17 @@ def _number(value: float) -> int | float:
     """A coordinate as VIA stores it: an int when whole, else a float rounded to 1/1000 px."""
     value = round(float(value), 3)
     return int(value) if value.is_integer() else value
+
+
+SPLIT_ATTRIBUTE = "fcnpose_split"
+"""The VIA file attribute holding a frame's hold-out role from an earlier round ("train" or "val"): `data merge`
+writes it from the inputs' stored splits, and new splits keep it (`splits.holdout_split`). It shows in VIA as a
+dropdown, where a person can change it."""
+SPLIT_ROLES = ("train", "val")
+SPLIT_ATTRIBUTE_SPEC = {"type": "dropdown", "description": "fcnpose-tf: the frame's hold-out role from an earlier "
+                        "round (train or val), kept when the merged project is split", "options": {"train": "",
+                        "val": ""}, "default_options": {}}
+"""The attribute's declaration in a VIA project's `_via_attributes["file"]`."""
 
 
 def image_key(filename: str, size: int, taken: Container[str]) -> str:
@@ -429,7 +443,10 @@ def _parse_frame(meta: dict, key: str, schema: KeypointSchema, attribute: str,
         if not (-0.5 - t <= x <= width - 0.5 + t and -0.5 - t <= y <= height - 0.5 + t):
             raise _FrameProblem(f"{where}: point ({x:g}, {y:g}) is outside the {width}x{height} image")
         keypoints[k] = (min(max(x, -0.5), width - 0.5), min(max(y, -0.5), height - 0.5))
-    return ViaFrame(filename, width, height, keypoints, size, image_path), ignored
+    file_attributes = meta.get("file_attributes")
+    split = file_attributes.get(SPLIT_ATTRIBUTE) if isinstance(file_attributes, dict) else None
+    return ViaFrame(filename, width, height, keypoints, size, image_path,
+                    split if split in SPLIT_ROLES else None), ignored
 
 
 def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = None, *, attribute: str = "keypoint",
