@@ -258,3 +258,21 @@ def test_the_librarys_decoders_default_to_the_commands_decoding():
     assert CompressOptions(rate=0.5).centroid == settings.CENTROID.default == "weighted"
     assert _parsed("evaluate", "m.keras", "--data", "d").centroid == "weighted"
     assert _parsed("sweep").centroid == "plain"  # the paper's tables (settings.SWEEP_CENTROID)
+
+
+def test_compress_time_budget_reaches_the_retraining_and_a_bad_one_is_refused(cli_here):
+    from fcnpose_tf.cli import build_parser
+    from fcnpose_tf.compression.options import CompressOptions
+
+    assert CompressOptions(rate=0.7).fit_config().max_minutes == 10.0
+    assert CompressOptions(rate=0.7, max_minutes=2.5).fit_config().max_minutes == 2.5
+    assert CompressOptions.preset("paper", rate=0.7).fit_config().max_minutes is None
+    parser = build_parser()
+    assert parser.parse_args(["compress", "--rate", "0.7", "--max-minutes", "none"]).max_minutes is None
+    assert parser.parse_args(["compress", "--rate", "0.7", "--max-minutes", "7.5"]).max_minutes == 7.5
+    for bad in ("0", "-3", "inf"):
+        status, _, err = cli_here("compress", "--rate", "0.7", "--max-minutes", bad)
+        assert status == 2 and err.strip().splitlines()[-1].startswith(
+            "error: time budget must be a positive number of minutes, or none"), err
+    status, _, err = cli_here("compress", "--rate", "0.7", "--max-minutes", "soon")
+    assert status == 2 and "expected minutes or none, got 'soon'" in err
