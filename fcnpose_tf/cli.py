@@ -81,7 +81,8 @@ def build_parser() -> argparse.ArgumentParser:
         cmd.set_defaults(_run=module.run, _uses_tensorflow=getattr(module, "USES_TENSORFLOW", False),
                          _outputs=getattr(module, "OUTPUTS", ()),
                          _resumable=getattr(module, "RESUMABLE_OUTPUTS", ()),
-                         _written=getattr(module, "written_outputs", None),
+                         _written=getattr(module, "written_outputs", None)
+                         or (lambda args, names=getattr(module, "FILE_OUTPUTS", ()): names),
                          _private_temp=getattr(module, "PRIVATE_TEMP", True))
     return parser
 
@@ -98,11 +99,12 @@ def plan_outputs(args: argparse.Namespace) -> None:
 
 def refuse_existing_outputs(args: argparse.Namespace) -> None:
     """UserError for an output file the command's options name that exists, without --force: every command refuses
-    one, and this says so before the command imports anything heavy. Folders are left to the command, and so are
-    the outputs a command's `written_outputs(args)` leaves out (train's --out with --folds or --resume)."""
+    one, and this says so before the command imports anything heavy. Which outputs are files: the command module's
+    FILE_OUTPUTS, or its `written_outputs(args)` (train's --out, unless --folds or --resume); folders are left to
+    the command."""
     if getattr(args, "force", False):
         return
-    for name in args._written(args) if args._written is not None else args._outputs:
+    for name in args._written(args):
         value = getattr(args, name, None)
         for path in value if isinstance(value, (list, tuple)) else [value]:
             if path is not None and os.fspath(path) != "" and os.path.isfile(path):

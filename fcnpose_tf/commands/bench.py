@@ -19,6 +19,8 @@ from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "bench"
 OUTPUTS = ("json",)
+FILE_OUTPUTS = ("json",)
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 MAX_FRAME_SIDE = 8192
 """The largest synthetic frame side --frame-size takes (8192x8192 is 200 MB of pixels)."""
 EXAMPLES = """\

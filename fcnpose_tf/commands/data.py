@@ -21,6 +21,8 @@ from fcnpose_tf.data.args import add_data_arguments, load_from_args
 
 NAME = "data"
 OUTPUTS = ("out",)
+FILE_OUTPUTS = ("out",)
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 EXAMPLES = """\
   fcnpose-tf data inspect demo                          # counts, drops and folds of a dataset folder
   fcnpose-tf data inspect demo --out preview.png        # plus frames with keypoints, skeleton and maps

@@ -23,6 +23,8 @@ from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "evaluate"
 OUTPUTS = ("json", "pictures")
+FILE_OUTPUTS = ("json",)
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 USES_TENSORFLOW = True
 EXAMPLES = """\
   fcnpose-tf synth --out heldout --n 100 --seed 1

@@ -29,6 +29,8 @@ from pathlib import Path
 NAME = "export"
 USES_TENSORFLOW = True
 OUTPUTS = ("out_dir", "json")
+FILE_OUTPUTS = ("json",)
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 EXAMPLES = """\
   fcnpose-tf export saved_models/fcnpose_ur5_p70.keras --quantize int8     # -> saved_models/fcnpose_ur5_p70_int8.tflite
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --out-dir models/  # float16 and int8 files

@@ -23,6 +23,8 @@ from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "predict"
 OUTPUTS = ("via",)
+FILE_OUTPUTS = ("via",)
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 EXAMPLES = """\
   fcnpose-tf predict generalist --source frames/ --via frames/pre.json     # a bundled model by name
   fcnpose-tf predict models/arm.keras --source clip.mp4 --every 10 --via clip_labels/pre.json

@@ -23,6 +23,8 @@ PIPELINE_DEFAULT = True
 """`run` pipelines by default: more frames/s than the sequential loop in every measured round
 (docs/runtime.md, "Pipelined run"); --no-pipeline gives the lower per-frame latency."""
 OUTPUTS = ("out", "save_video", "via")
+FILE_OUTPUTS = ("out", "save_video", "via")
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 EXAMPLES = """\
   fcnpose-tf run model.tflite --source 0 --show                        # camera 0 in a window
   fcnpose-tf run model.tflite --source /dev/video0 --out k.jsonl --threads 4

@@ -15,6 +15,8 @@ from pathlib import Path
 
 NAME = "synth"
 OUTPUTS = ("out", "preview")
+FILE_OUTPUTS = ("preview",)
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 """Options naming what the command creates: removed again if it fails or is stopped before completing them."""
 EXAMPLES = """\
   fcnpose-tf synth --out data/synth --n 500 --seed 0          # training frames, 640x480
