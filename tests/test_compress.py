@@ -615,3 +615,29 @@ def test_compress_keeps_the_base_models_crop_in_every_file(setup, cli, tmp_path)
     assert f"base model {cropped} ({view.describe()})" in proc.stdout
     assert view_of(load_model(out / "cropped_p70.keras")) == view
     assert KeypointModel(out / "cropped_p70_fp16.tflite").view == view
+
+
+@pytest.mark.slow
+def test_several_rates_in_one_run_give_a_file_set_and_rows_each_and_name_the_best(setup, cli_here):
+    root, data, base = setup
+    out = root / "rates"
+    status, stdout, err = cli_here("compress", "--rates", "0.7,0.3", "--model", base, "--data", data,
+                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", out,
+                                   "--threads", "1")
+    assert status == 0, err
+    assert {"base_p30_fp16.tflite", "base_p70_fp16.tflite", "base_p30_report.json",
+            "base_p70_report.json"} <= {p.name for p in out.iterdir()}
+    assert "Compression at rates 0.3, 0.7" in stdout
+    assert "rate 0.3: float16 TFLite (.tflite)" in stdout and "rate 0.7: float16 TFLite (.tflite)" in stdout
+    assert stdout.count("unpruned (Keras, .h5)") == 1
+    note = next(line for line in stdout.splitlines() if "PCK@0.5 budget" in line or "no rate kept" in line)
+    reports = {r: json.loads((out / f"base_p{r}_report.json").read_text()) for r in (30, 70)}
+    base_pck = reports[30]["base"]["metrics"]["pck@0.5_bbox"]
+    within = [r for r in (30, 70)
+              if base_pck - reports[r]["quantized"]["metrics"]["pck@0.5_bbox"] <= 0.02]
+    if within:
+        assert note.startswith(f"Best rate within the 0.02 PCK@0.5 budget: {max(within) / 100:g}")
+    else:
+        assert note.startswith("note: no rate kept PCK@0.5 within 0.02")
+    status, _, err = cli_here("compress", "--rate", "0.5", "--rates", "0.3,0.5", "--model", base, "--data", data)
+    assert status == 2 and "--rate and --rates both given" in err

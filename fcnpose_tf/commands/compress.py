@@ -53,6 +53,7 @@ EXAMPLES = """\
   fcnpose-tf compress --rate 0.7 --importance l1       # the paper's L1-norm ranking (default: taylor)
   fcnpose-tf compress --rate 0.7 --min-filters 0       # the paper's widths (default: no layer under 15)
   fcnpose-tf compress --rate 0.7 --max-minutes 30      # a longer retraining budget (default: 10 minutes)
+  fcnpose-tf compress --rates 0.5,0.6,0.7 --model models/arm.keras --data my_frames/  # the trade-off, one table
   fcnpose-tf compress --rate 0.7 --distill 0.5         # retrain half on the unpruned model's maps
   fcnpose-tf compress --rate 0.7 --input-size 192      # files at 192x192: 0.73x the MACs of 224
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/
@@ -65,6 +66,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.data.args import add_data_arguments
 
     settings.RATE.add_to(parser)
+    parser._option_string_actions["--rate"].required = False  # or --rates
+    parser.add_argument("--rates", type=_rate_list, metavar="R,R,...",
+                        help="several rates of one model in one run instead of --rate: a file set and a table row "
+                             "set per rate, and the highest rate within the paper's PCK@0.5 budget named")
     settings.add_preset_argument(parser)
     from fcnpose_tf.bundled import KERAS_SUFFIXES, model_argument, names_help
 
@@ -91,7 +96,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--force", action="store_true", help="replace existing output files")
 
 
+def _rate_list(text: str) -> tuple[float, ...]:
+    """argparse type of --rates: `0.5,0.6,0.7` (each checked by the rate setting when the options are made)."""
+    try:
+        rates = tuple(float(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected rates separated by commas, e.g. 0.5,0.6,0.7, got {text!r}") from None
+    if len(rates) < 2 or len(set(rates)) != len(rates):
+        raise argparse.ArgumentTypeError(f"expected two or more different rates, got {text!r} (one rate: --rate)")
+    return tuple(sorted(rates))
+
+
 def run(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     from fcnpose_tf import settings
     from fcnpose_tf.data import synthcache
     from fcnpose_tf.bundled import KERAS_SUFFIXES, baseline_model, resolve_model
@@ -106,18 +124,27 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.system import available_cores
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
+    if args.rate is not None and args.rates is not None:
+        raise UserError("--rate and --rates both given: one rate is --rate R, several --rates R,R,...")
+    if args.rate is None and args.rates is None:
+        raise UserError("give the pruning rate: --rate R, or --rates R,R,... for several in one run")
+    rates = args.rates or (args.rate,)
+    args.rate = rates[0]
     model_path = args.model
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
-    options = options.resolved(model_path)  # what the run does with the settings left None (compress_model's choice)
-    options.validate()
+    every = [replace(options, rate=rate).resolved(model_path) for rate in rates]  # None settings: the run's choice
+    for each in every:
+        each.validate()
+    options = every[0]
     if options.method == "l1" and options.start not in ("auto", "surgery"):
         resolve_model(options.start, KERAS_SUFFIXES, say=lambda line: None)  # a wrong --start: before the data
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails
-        check_outputs(model_path, args.out_dir, options, args.force)  # before the data is prepared
+        for each in every:
+            check_outputs(model_path, args.out_dir, each, args.force)  # before the data is prepared
         set_tensorflow_threads(args.threads)
         if args.data is None:
             args.data = default_data(model_path)
@@ -137,8 +164,12 @@ def run(args: argparse.Namespace) -> int:
             _, val = train_dataset.split(args.fold)
             eval_indices = [int(i) for i in val]
             description = f"{len(val)} validation frames of {train_dataset.via_path}"
-        report = compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, options,
-                                force=args.force, eval_description=description, metadata={"preset": args.preset})
+        reports = [compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, each,
+                                  force=args.force, eval_description=description, metadata={"preset": args.preset})
+                   for each in every]
+    if len(reports) > 1:
+        return _several_rates(reports, model_path, args.out_dir, every, named, description)
+    report = reports[0]
     threads = args.threads if args.threads is not None else f"all {available_cores()}"
     print(f"\nCompression at rate {args.rate:g} ({report.recipe}); measured on {description}; "
           f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
@@ -173,6 +204,21 @@ def run(args: argparse.Namespace) -> int:
     if note:
         print(note)
     return _finish(report, model_path, args.out_dir, options, named)
+
+
+def _several_rates(reports: list, model_path: Path, out_dir: Path, every: list, named: bool, description: str) -> int:
+    """`--rates`: one table of every rate's rows, the best rate within the PCK budget named, every file named."""
+    from fcnpose_tf.compression.report import best_rate_note, rates_table
+
+    rates = ", ".join(f"{report.options['rate']:g}" for report in reports)
+    print(f"\nCompression at rates {rates} ({reports[0].recipe}); "
+          f"measured on {description}; PCK normalised by max(bbox w, h); one report per rate")
+    print(rates_table(reports))
+    print(best_rate_note(reports))
+    status = 0
+    for report, options in zip(reports, every):
+        status = max(status, _finish(report, model_path, out_dir, options, named))
+    return status
 
 
 def _finish(report: CompressReport, model_path: Path, out_dir: Path, options, named: bool) -> int:

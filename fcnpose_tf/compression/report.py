@@ -9,7 +9,7 @@ import tempfile
 import warnings
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
@@ -213,6 +213,39 @@ def accuracy_note(report: CompressReport) -> str | None:
             f"{advice}")
 
 
+def _row(label: str, step: Step, size_key: str) -> list:
+    """A table row: the step's parameters, MACs, file size, accuracy and timing."""
+    m = step["metrics"]
+    t = step.get("timing")
+    size = step.get(size_key) if size_key else None
+    return [label, step["params"], step["macs"] / 1e6, size / 1e3 if size else None,
+            m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
+            t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
+
+
+def _file_rows(report: CompressReport, prefix: str = "") -> list[list]:
+    """One row per --quantize format, in the order asked: its file's, or REFUSED."""
+    # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
+    quantize = report.options["quantize"]
+    order = list(quantize) if isinstance(quantize, (list, tuple)) else []
+    entries: list[tuple[Any, Step | RefusedFormat]] = [(step.get("quantize") or quantize, step)
+                                                       for step in report.tflite_files]
+    entries += [(entry.quantize, entry) for entry in report.refused]
+    entries.sort(key=lambda entry: order.index(entry[0]) if entry[0] in order else len(order))
+    rows = []
+    for name, entry in entries:
+        if isinstance(entry, RefusedFormat):
+            rows.append([f"{prefix}{name} TFLite: REFUSED (gate)"] + [None] * 9)
+        else:
+            qat = " QAT" if entry.get("quantization") == "quantization-aware training" else ""
+            rows.append(_row(f"{prefix}{name}{qat} TFLite (.tflite)", entry, "tflite_size_bytes"))
+    return rows
+
+
+_COLUMNS = ["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px", "infer ms", "FPS e2e"]
+_DIGITS = [None, None, 1, 1, 3, 3, 3, 2, 2, 1]
+
+
 def report_table(report: CompressReport | dict[str, Any], markdown: bool = False) -> str:
     """The compression report as a table: the unpruned model beside each step of the compressed one.
 
@@ -222,32 +255,44 @@ def report_table(report: CompressReport | dict[str, Any], markdown: bool = False
     """
     from fcnpose_tf.tables import format_table
 
-    def row(label: str, step: Step, size_key: str) -> list:
-        m = step["metrics"]
-        t = step.get("timing")
-        size = step.get(size_key) if size_key else None
-        return [label, step["params"], step["macs"] / 1e6, size / 1e3 if size else None,
-                m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
-                t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
-
     if not isinstance(report, CompressReport):
         report = CompressReport.from_json(report)
-    rows = [row("unpruned (Keras, .h5)", report.base, "h5_size_bytes"),
-            row("pruned, before retraining", report.pruned_before_retraining, ""),
-            row("pruned + retrained (Keras, .h5)", report.retrained, "h5_size_bytes")]
-    # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
-    quantize = report.options["quantize"]
-    order = list(quantize) if isinstance(quantize, (list, tuple)) else []
-    entries: list[tuple[Any, Step | RefusedFormat]] = [(step.get("quantize") or quantize, step)
-                                                       for step in report.tflite_files]
-    entries += [(entry.quantize, entry) for entry in report.refused]
-    entries.sort(key=lambda entry: order.index(entry[0]) if entry[0] in order else len(order))
-    for name, entry in entries:
-        if isinstance(entry, RefusedFormat):
-            rows.append([f"{name} TFLite: REFUSED (gate)"] + [None] * 9)
-        else:
-            qat = " QAT" if entry.get("quantization") == "quantization-aware training" else ""
-            rows.append(row(f"{name}{qat} TFLite (.tflite)", entry, "tflite_size_bytes"))
-    return format_table(["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px",
-                         "infer ms", "FPS e2e"], rows, markdown=markdown,
-                        digits=[None, None, 1, 1, 3, 3, 3, 2, 2, 1])
+    rows = [_row("unpruned (Keras, .h5)", report.base, "h5_size_bytes"),
+            _row("pruned, before retraining", report.pruned_before_retraining, ""),
+            _row("pruned + retrained (Keras, .h5)", report.retrained, "h5_size_bytes"), *_file_rows(report)]
+    return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
+
+
+def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> str:
+    """Several rates of one model in one table (`compress --rates`): the unpruned model once (the first report's
+    measurement), then per rate its retrained Keras model and its files, each row named by its rate."""
+    from fcnpose_tf.tables import format_table
+
+    rows = [_row("unpruned (Keras, .h5)", reports[0].base, "h5_size_bytes")]
+    for report in reports:
+        prefix = f"rate {report.options['rate']:g}: "
+        rows += [_row(f"{prefix}retrained (Keras, .h5)", report.retrained, "h5_size_bytes"),
+                 *_file_rows(report, prefix)]
+    return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
+
+
+def best_rate_note(reports: Sequence[CompressReport]) -> str:
+    """One line naming the highest rate whose most accurate file stayed within PCK_DROP_BUDGET of the unpruned
+    model's PCK@0.5 (`compress --rates`), with how much each higher rate lost; or that none did."""
+    base = reports[0].base["metrics"]["pck@0.5_bbox"]
+
+    def drop(report: CompressReport) -> float | None:
+        if not report.tflite_files:
+            return None
+        return base - max(step["metrics"]["pck@0.5_bbox"] for step in report.tflite_files)
+
+    measured = sorted(((report.options["rate"], drop(report)) for report in reports), key=lambda pair: pair[0])
+    kept = [(rate, d) for rate, d in measured if d is not None and d <= PCK_DROP_BUDGET]
+    beyond = ", ".join(f"{rate:g} loses {d:.3f}" if d is not None else f"{rate:g} wrote no file"
+                       for rate, d in measured if d is None or d > PCK_DROP_BUDGET)
+    if not kept:
+        return (f"note: no rate kept PCK@0.5 within {PCK_DROP_BUDGET:g} of the unpruned model's {base:.3f} on these "
+                f"frames ({beyond}); try lower rates")
+    rate, d = kept[-1]
+    return (f"Best rate within the {PCK_DROP_BUDGET:g} PCK@0.5 budget: {rate:g} (its best file {d:+.3f} below the "
+            f"unpruned model's {base:.3f})" + (f"; {beyond}" if beyond else ""))
