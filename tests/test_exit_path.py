@@ -404,21 +404,27 @@ def test_bench_frame_size_is_bounded(capsys, monkeypatch):
     _one_error_line(status, capsys.readouterr().err, "--frame-size 30000x30000", "at most 8192")
 
 
-def test_predict_on_a_full_disk_names_no_frame_and_leaves_no_folder(tmp_path, tflite_model, capsys, monkeypatch):
-    """The third saved frame finds the disk full: the frames saved are parts of a project never written."""
+def _disk_full_at_write(n: int, monkeypatch) -> None:
+    """`fileio.write_bytes` fails as a full disk does (`PATH: no space left on device`) at its n-th call."""
     from fcnpose_tf import fileio
-    from test_runtime import RED_CYCLE, quadrant_frame, write_video
 
-    video = write_video(tmp_path / "clip.avi", [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(8)])
     original, calls = fileio.write_bytes, []
 
     def write_bytes(path, data, force=False):
         calls.append(path)
-        if len(calls) == 3:
+        if len(calls) == n:
             raise fileio.WriteError(f"{path}: no space left on device")
         return original(path, data, force)
 
     monkeypatch.setattr(fileio, "write_bytes", write_bytes)
+
+
+def test_predict_on_a_full_disk_names_no_frame_and_leaves_no_folder(tmp_path, tflite_model, capsys, monkeypatch):
+    """The third saved frame finds the disk full: the frames saved are parts of a project never written."""
+    from test_runtime import RED_CYCLE, quadrant_frame, write_video
+
+    video = write_video(tmp_path / "clip.avi", [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(8)])
+    _disk_full_at_write(3, monkeypatch)
     status = main(["predict", str(tflite_model), "--source", str(video), "--threads", "1",
                    "--via", str(tmp_path / "p" / "pre.json")])
     line = _one_error_line(status, capsys.readouterr().err, "no space left on device")
@@ -506,17 +512,7 @@ def test_a_stop_signal_that_c_code_turned_into_another_exception_still_ends_as_t
 
 
 def test_synth_on_a_full_disk_names_the_output_folder_not_its_staging_folder(tmp_path, capsys, monkeypatch):
-    from fcnpose_tf import fileio
-
-    original, calls = fileio.write_bytes, []
-
-    def write_bytes(path, data, force=False):
-        calls.append(path)
-        if len(calls) == 2:
-            raise fileio.WriteError(f"{path}: no space left on device")
-        return original(path, data, force)
-
-    monkeypatch.setattr(fileio, "write_bytes", write_bytes)
+    _disk_full_at_write(2, monkeypatch)
     out = tmp_path / "set"
     status = main(["synth", "--out", str(out), "--n", "3", "--width", "64", "--height", "48", "--workers", "1",
                    "--no-progress"])
