@@ -217,5 +217,15 @@ def run_tool(tool_main: Callable[[], int | None]) -> int:
     return run_guarded(tool_main, private_temp=False)
 
 
+def console_main() -> int:
+    """The `fcnpose-tf` command and `python -m fcnpose_tf`: `main`, after which a Ctrl-C or SIGTERM that arrives
+    while the interpreter winds down (TensorFlow's finalizers, threads joined) ends the process as the signal's
+    default action does, not with an `Exception ignored ... KeyboardInterrupt` traceback after the command's line."""
+    status = main()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, signal.SIG_DFL)
+    return status
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console_main())

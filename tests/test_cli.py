@@ -150,3 +150,18 @@ def test_an_existing_output_is_refused_before_tensorflow_is_imported(tmp_path, a
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines()[-1] == "error: exists.keras: already exists; pass --force to replace it"
     assert (tmp_path / "exists.keras").read_text() == "mine"
+
+
+def test_the_console_command_leaves_stop_signals_to_their_default_action_for_the_wind_down(monkeypatch):
+    import signal
+
+    from fcnpose_tf import cli
+
+    monkeypatch.setattr(cli, "main", lambda: 0)
+    before = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert cli.console_main() == 0
+        assert all(signal.getsignal(signum) == signal.SIG_DFL for signum in before)
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
