@@ -707,12 +707,41 @@ DISTILL = Setting(
     "alone, as the paper does", label="distillation weight", check=lambda v: 0 <= v <= 1,
     requirement="a number in [0, 1]", metavar="W")
 """0 keeps the paper's retraining loss exactly; docs/compression.md measures other weights."""
-QUANTIZE_MODES = ("float32", "float16", "int8-weights", "int8", "float16-native")
-"""TFLite formats (fcnpose_tf.compression.export): float32, float16 weights (the paper's), dynamic-range int8 weights,
-full-integer int8 (int8 weights and activations, uint8 pixel input; the fastest on a Pi 3/4), and float16
-with the converter's reduced-precision metadata (computed in float16 on CPUs with float16 arithmetic, a Pi 5)."""
-QUANTIZE_FILE_TAGS = {"float32": "fp32", "float16": "fp16", "int8-weights": "int8w", "int8": "int8",
-                      "float16-native": "fp16native"}
+@dataclasses.dataclass(frozen=True)
+class TFLiteFormat:
+    """One TFLite format `--quantize` names: its file, its keypoint gate, its conversion's needs.
+
+    The gate (`fcnpose_tf.compression.export`) compares the file's maps with the Keras model's within `map_atol`
+    and its keypoints within `keypoint_px` map pixels, on at least `min_frames` real frames, where `keypoint_share`
+    of the keypoints compared must agree (a keypoint lost or gained always fails); `calibrated` formats need
+    calibration frames; `fold_upsampling` is whether the export rewrites the decoder's upsampling by default."""
+
+    name: str
+    file_tag: str
+    """The TFLite file name's suffix: NAME_p70_fp16.tflite."""
+    map_atol: float
+    keypoint_px: float
+    keypoint_share: float
+    min_frames: int
+    calibrated: bool = False
+    fold_upsampling: bool = False
+
+
+TFLITE_FORMATS = {f.name: f for f in (
+    TFLiteFormat("float32", "fp32", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1),
+    TFLiteFormat("float16", "fp16", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1),
+    TFLiteFormat("int8-weights", "int8w", map_atol=0.2, keypoint_px=2.0, keypoint_share=1.0, min_frames=1),
+    TFLiteFormat("int8", "int8", map_atol=1.0, keypoint_px=2.0, keypoint_share=0.95, min_frames=16, calibrated=True,
+                 fold_upsampling=True),
+    TFLiteFormat("float16-native", "fp16native", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1),
+)}
+"""The one table of TFLite formats (why each gate is what it is: `fcnpose_tf.compression.export`): float32, float16
+weights (the paper's), dynamic-range int8 weights, full-integer int8 (int8 weights and activations, uint8 pixel
+input; the fastest on a Pi 3/4), and float16 with the converter's reduced-precision metadata (computed in float16
+on CPUs with float16 arithmetic, a Pi 5)."""
+QUANTIZE_MODES = tuple(TFLITE_FORMATS)
+"""The formats' names, in the table's order."""
+QUANTIZE_FILE_TAGS = {name: f.file_tag for name, f in TFLITE_FORMATS.items()}
 """A TFLite file name's suffix per format: NAME_p70_fp16.tflite, NAME_p70_int8.tflite."""
 
 

@@ -52,7 +52,7 @@ from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
 from fcnpose_tf import settings
 from fcnpose_tf.preprocess import ViewLike
-from fcnpose_tf.settings import QUANTIZE_MODES
+from fcnpose_tf.settings import QUANTIZE_MODES, TFLITE_FORMATS
 
 if TYPE_CHECKING:  # TensorFlow is imported only when converting
     import tf_keras as keras
@@ -90,14 +90,15 @@ KEYPOINT_PX = 1.0
 # accepts any map that is a probability (the sigmoid output stays in [0, 1]).
 # float16-native is gated as float16: where the gate runs (x86, a Pi 4) it computes in float32 like the float16
 # file; on a Pi 5 its float16 arithmetic is checked by tools/pi_emulated_check.sh --cpu cortex-a76.
-MAP_ATOL_BY_MODE = {"float32": 1e-2, "float16": 1e-2, "int8-weights": 0.2, "int8": 1.0, "float16-native": 1e-2}
-KEYPOINT_PX_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 2.0, "int8": 2.0, "float16-native": 1.0}
+# The values live in one table, `settings.TFLITE_FORMATS`; these are its columns by format.
+MAP_ATOL_BY_MODE = {name: f.map_atol for name, f in TFLITE_FORMATS.items()}
+KEYPOINT_PX_BY_MODE = {name: f.keypoint_px for name, f in TFLITE_FORMATS.items()}
 # Share of the compared keypoints that must lie within keypoint_px; a keypoint found by one model
 # and not by the other (lost or gained) always fails. For int8: at least 95 % within 2 map px.
-KEYPOINT_SHARE_BY_MODE = {"float32": 1.0, "float16": 1.0, "int8-weights": 1.0, "int8": 0.95, "float16-native": 1.0}
+KEYPOINT_SHARE_BY_MODE = {name: f.keypoint_share for name, f in TFLITE_FORMATS.items()}
 # Real frames the keypoint gate needs: int8 is refused on fewer than 16 (a share of 95 % means
 # little on two frames); the other modes compare maps value by value and accept any number.
-MIN_FRAMES_BY_MODE = {"float32": 1, "float16": 1, "int8-weights": 1, "int8": 16, "float16-native": 1}
+MIN_FRAMES_BY_MODE = {name: f.min_frames for name, f in TFLITE_FORMATS.items()}
 DEFAULT_SAMPLES = 2
 # Default of export_tflite / to_tflite `fold_upsampling`. Off: folding makes the 70% model's forward
 # pass ~1.35x faster here but stores f*f phase kernels, so its float16 file grows from 40,304 to
@@ -108,8 +109,7 @@ FOLD_UPSAMPLING = False
 # tools/bench_speedup.py on the bundled 70% model, one thread (docs/runtime.md, "Full-integer int8"):
 # folded, the int8 file's forward pass is 1.37x faster (2.85 vs 3.90 ms; its frame 1.28x), for 65 KB
 # instead of 27 KB; the float modes keep the plain network (FOLD_UPSAMPLING, above).
-FOLD_UPSAMPLING_BY_MODE = {"float32": FOLD_UPSAMPLING, "float16": FOLD_UPSAMPLING,
-                           "int8-weights": FOLD_UPSAMPLING, "int8": True, "float16-native": FOLD_UPSAMPLING}
+FOLD_UPSAMPLING_BY_MODE = {name: f.fold_upsampling or FOLD_UPSAMPLING for name, f in TFLITE_FORMATS.items()}
 # Map values within this much of the threshold are "on the threshold": which side they fall on is
 # arbitrary for maps only this accurate, so keypoints resting on such pixels are not compared.
 THRESHOLD_MARGIN = 1e-2
