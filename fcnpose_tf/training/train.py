@@ -373,10 +373,9 @@ class _CheckpointAndStop(keras.callbacks.Callback):
             affordable = int(self.max_seconds // epoch_s)
             if affordable < min(BUDGET_MIN_EPOCHS, self.epochs):
                 self.say(f"note: at {epoch_s:.0f} s an epoch the {self.max_seconds / 60:g}-minute budget trains about "
-                         f"{affordable} epochs, fewer than the {BUDGET_MIN_EPOCHS} fine-tuning needed on the proxies; "
-                         f"give it --max-minutes {math.ceil(BUDGET_MIN_EPOCHS * epoch_s / 60)}, or fewer input "
-                         "pixels (--input-size auto: the workspace crop at 224x288 at most), or a machine with "
-                         "fewer other jobs")
+                         f"{affordable} epochs, fewer than the {BUDGET_MIN_EPOCHS} that fine-tuning and retraining "
+                         f"needed on the proxies; give it --max-minutes {math.ceil(BUDGET_MIN_EPOCHS * epoch_s / 60)}, "
+                         "or fewer input pixels (--input-size), or a machine with fewer other jobs")
 
 
 def _save_weights(model: keras.Model, path: Path) -> None:
