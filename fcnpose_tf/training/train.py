@@ -366,7 +366,8 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         if self.max_seconds is not None:
             left = min(left, max(0, math.ceil((self.max_seconds - self.state["seconds"]) / epoch_s)))
         stopping = self.model.stop_training
-        eta = "done" if stopping or left == 0 else f"ETA {left * epoch_s / 60:.0f} min ({left} more epochs at most)"
+        eta = "done" if stopping or left == 0 else \
+            f"ETA {left * epoch_s / 60:.0f} min ({left} more epoch{'s' if left != 1 else ''} at most)"
         self.say(f"epoch {done}: {epoch_s:.0f} s/epoch, best validation loss {self.state['best_val_loss']:.5f} at "
                  f"epoch {self.state['best_epoch']}; {eta}")
         if done == self.first_epoch + 1 and self.max_seconds is not None:
