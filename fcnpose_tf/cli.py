@@ -157,7 +157,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     def command() -> int:
         plan_outputs(args)
         refuse_existing_outputs(args)  # in a second, not after TensorFlow's import
-        if args._uses_tensorflow:
+        uses = args._uses_tensorflow
+        if uses(args) if callable(uses) else uses:  # a command may need it only for some inputs (evaluate M.keras)
             import_tensorflow_quietly()
         return args._run(args)
 

@@ -935,3 +935,15 @@ def test_frame_path_does_not_recompute_the_tensor_specs(monkeypatch):
     assert calls == []
     assert {"holds_pixel_bytes", "quantized"} <= model.io.input.__dict__.keys()  # cached on the spec
     assert "quantized" in model.io.output.__dict__
+
+
+def test_evaluate_of_a_tflite_file_works_without_tensorflow(no_tf_env, structured, tmp_path):
+    from test_via import write_dataset
+
+    via, _ = write_dataset(tmp_path / "frames", n=4, size=(64, 48))
+    result = _py(no_tf_env, "-m", "fcnpose_tf", "evaluate", structured[1], "--data", via, "--threads", "1",
+                 "--worst", "2", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert "all 4 frames" in result.stdout and "pck@0.5_bbox" in result.stdout and "Worst 2 frames" in result.stdout
+    result = _py(no_tf_env, "-m", "fcnpose_tf", "evaluate", tmp_path / "m.keras", "--data", via, cwd=tmp_path)
+    assert result.returncode == 2 and "this command needs TensorFlow" in result.stderr  # a .keras does

@@ -25,7 +25,13 @@ NAME = "evaluate"
 OUTPUTS = ("json", "pictures")
 FILE_OUTPUTS = ("json",)
 """The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
-USES_TENSORFLOW = True
+
+
+def USES_TENSORFLOW(args: argparse.Namespace) -> bool:  # noqa: N802 - the name every command module declares
+    """A .tflite is evaluated with the LiteRT interpreter alone (a Pi install); a .keras/.h5 needs TensorFlow."""
+    return Path(args.model).suffix != ".tflite"
+
+
 EXAMPLES = """\
   fcnpose-tf synth --out heldout --n 100 --seed 1
   fcnpose-tf evaluate --data heldout                       # the bundled baseline on unseen frames
