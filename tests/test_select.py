@@ -164,6 +164,10 @@ def test_predict_select_on_images_by_disagree_references_the_picked_images(capsy
                           "--by", "disagree", "--threads", 1)
     assert code == 0, err
     assert "each frame predicted 3 times" in err and "Selected 2 of 5 processed frames by disagree" in out
+    assert "--by jump scores how far" not in err
+    code, _, err = _run(capsys, "predict", BUNDLED_P70, "--source", folder, "--via", tmp_path / "jump.json",
+                        "--select", "2", "--by", "jump", "--threads", 1)
+    assert code == 0 and "note: --by jump scores how far the keypoints moved" in err  # a folder is no video
     frames = read_via(via, min_visible=0).frames
     assert len(frames) == 2 and all(f.image_path.parent.resolve() == folder.resolve() for f in frames)
     picked = out.split("Selected")[1].splitlines()[0].split(": ", 1)[1]

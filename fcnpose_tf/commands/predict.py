@@ -148,6 +148,10 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
 
     gap = args.min_gap or default_min_gap(source.fps, source.kind)
     scores = FrameScores(args.by, predictor)
+    if args.by == "jump" and source.kind == "images":
+        print("note: --by jump scores how far the keypoints moved since the previous frame, so it reads the "
+              "folder's images in name order as a video; for stills that are not a sequence use --by uncertain or "
+              "disagree", file=sys.stderr)
     try:
         print(f"{predictor.describe()}; {source.describe()}; scoring frames for --select {args.select} --by {args.by}"
               f"{' (each frame predicted 3 times: plain, flipped, zoomed out)' if args.by == 'disagree' else ''}",
