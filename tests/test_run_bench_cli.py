@@ -210,6 +210,13 @@ def test_bench_several_models_one_table_each(capsys, tmp_path, model_path):
     data = json.loads(out.read_text())
     assert [Path(m["model"]).name for m in data["models"]] == [int8.name, Path(model_path).name]
     assert all(m["results"][0]["threads"] == 1 for m in data["models"])
+    comparison = stdout.split("Comparison (the models ran one after the other")[1].splitlines()
+    assert f"FPS vs {int8.name}" in comparison[1]
+    first, second = comparison[3], comparison[4]
+    assert int8.name in first and first.rstrip().endswith("1.00x")
+    fps = [float(data["models"][i]["results"][0]["fps_end_to_end"]) for i in (0, 1)]
+    assert Path(model_path).name in second
+    assert float(second.split()[-1].rstrip("x")) == pytest.approx(fps[1] / fps[0], abs=0.011)  # JSON FPS is rounded
 
 
 def test_bench_on_a_real_image(capsys, tmp_path, model_path):

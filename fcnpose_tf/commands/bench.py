@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, write_json
-    from fcnpose_tf.runtime.bench import benchmark, load_frame, print_progress
+    from fcnpose_tf.runtime.bench import benchmark, comparison_table, load_frame, print_progress
     from fcnpose_tf.runtime.sources import parse_size
 
     threads = args.threads or None
@@ -74,6 +74,9 @@ def run(args: argparse.Namespace) -> int:
         reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
                                  args.threshold, progress=print_progress, centroid=args.centroid))
         print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
+    if len(reports) > 1:
+        print("\nComparison (the models ran one after the other; for a speed claim, repeat in the other order):")
+        print(comparison_table(reports, markdown=args.markdown))
     if args.json is not None:
         data = reports[0].to_dict() if len(reports) == 1 else {"models": [r.to_dict() for r in reports]}
         write_json(args.json, data, force=args.force)

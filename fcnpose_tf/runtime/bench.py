@@ -177,6 +177,29 @@ class BenchReport:
                 "host": dict(self.host), "results": [r.to_dict() for r in self.results]}
 
 
+def comparison_table(reports: list[BenchReport], markdown: bool = False) -> str:
+    """Several models' benchmarks side by side (`bench A.tflite B.tflite`): per thread count and model its MACs,
+    end-to-end p50 and FPS, invoke-only FPS, and its end-to-end FPS as a multiple of the first model's at that
+    thread count. The models ran one after the other, not interleaved: for a speed claim, repeat in both orders."""
+    first = {r.threads: r for r in reports[0].results if r.ok}
+    rows = []
+    for threads in sorted({r.threads for report in reports for r in report.results}):
+        for report in reports:
+            r = next((r for r in report.results if r.threads == threads), None)
+            if r is None or not r.ok:
+                rows.append((threads, Path(report.model).name, None, None, None, None,
+                             r.status if r is not None else "not run"))
+                continue
+            base = first.get(threads)
+            ratio = f"{r.fps_end_to_end / base.fps_end_to_end:.2f}x" if base else None
+            rows.append((threads, Path(report.model).name,
+                         round(report.macs / 1e6, 1) if report.macs is not None else None,
+                         round(r.end_to_end["median"], 2), round(r.fps_end_to_end, 1), round(r.fps_invoke, 1),
+                         ratio))
+    return format_table(["Threads", "Model", "MMACs", "E2E p50 (ms)", "FPS", "FPS invoke",
+                         f"FPS vs {Path(reports[0].model).name}"], rows, markdown=markdown)
+
+
 def load_frame(path: str | os.PathLike | None, size: tuple[int, int] = (640, 480)) -> tuple[np.ndarray, str]:
     """The benchmark frame: an image file, or the synthetic frame of `size`; with its description."""
     if path is None:
