@@ -72,7 +72,7 @@ def build_parser() -> argparse.ArgumentParser:
     for module_name in COMMAND_MODULES:
         module = importlib.import_module(f"fcnpose_tf.commands.{module_name}")
         doc = (module.__doc__ or "").strip()
-        summary = doc.splitlines()[0] if doc else module_name
+        summary = " ".join(doc.split("\n\n")[0].split()) if doc else module_name  # the first sentence, whole
         cmd = sub.add_parser(module.NAME, help=summary, description=doc, formatter_class=_Formatter,
                              epilog="examples:\n" + module.EXAMPLES.rstrip())
         cmd.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,

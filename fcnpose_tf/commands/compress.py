@@ -1,4 +1,4 @@
-"""Compress FCN-Pose as the paper does: filter pruning, retraining, float16 TFLite — and measure it.
+"""Compress FCN-Pose as the paper does: filter pruning, retraining, float16 and int8 TFLite — and measure it.
 
 Writes NAME_p70.keras (pruned, retrained), NAME_p70_fp16.tflite (the paper's float16 file) and
 NAME_p70_int8.tflite (full integer, calibrated on 100 training frames: the fastest file on a
