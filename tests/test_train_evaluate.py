@@ -500,7 +500,10 @@ def test_evaluate_names_the_worst_frames_and_draws_them(trained, cli_here, tmp_p
     status, stdout, err = cli_here("evaluate", out, "--data", other, "--worst", "3", "--pictures", pictures,
                                    "--json", tmp_path / "r.json")
     assert status == 0, err
-    rows = json.loads((tmp_path / "r.json").read_text())["worst_frames"]
+    report = json.loads((tmp_path / "r.json").read_text())
+    rows = report["worst_frames"]
+    assert [f["frame"] for f in report["per_frame"]] == sorted(p.name for p in (other / "images").iterdir())
+    assert all(len(f["errors_px"]) == 8 and set(f["missed"]) <= set(UR5.keypoints) for f in report["per_frame"])
     assert [r["rank"] for r in rows] == [1, 2, 3]
     assert [r["score"] for r in rows] == sorted((r["score"] for r in rows), reverse=True)
     names = {p.name for p in (other / "images").iterdir()}

@@ -1,3 +1,5 @@
+    """Every scored frame's keypoint errors for --json ("per_frame"): {"frame", "errors_px": per keypoint, null
+    where it has no ground truth or the model missed it, "missed": the keypoints the model missed}."""
 """Measure a .keras or .tflite FCN-Pose on a dataset: PCK, pixel error, inference time and FPS.
 
 PCK@0.5/0.2/0.05 are normalised by max(w, h) of the ground-truth keypoints' bounding box
@@ -126,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
                                "decoding": {"threshold": predictor.threshold, "fallback": predictor.fallback,
                                             "centroid": predictor.centroid},
                                "metrics": result["metrics"], "timing": result["timing"], "worst_frames": worst,
+                               "per_frame": frame_rows(result["predictions"], result["ground_truth"], dataset, indices),
                                **({"sequence": sequence} if sequence is not None else {})}, force=args.force)
         print(f"Report: {args.json}")
     return 0
@@ -163,6 +166,20 @@ def worst_frame_rows(pred, gt, dataset, indices, count: int) -> list[dict]:
                      "missing": int(np.isinf(errors[j]).sum()), "worst_keypoint": names[k],
                      "worst_keypoint_px": round(float(errors[j][k]), 2) if np.isfinite(errors[j][k]) else None})
     return rows
+
+
+def frame_rows(pred, gt, dataset, indices) -> list[dict]:
+    """Every scored frame's keypoint errors for --json ("per_frame"): {"frame", "errors_px": per keypoint, null where it has no
+    ground truth or the model missed it, "missed": the keypoints the model missed}."""
+    import numpy as np
+
+    from fcnpose_tf.metrics import errors_px
+
+    errors, names = errors_px(pred, gt), dataset.schema.keypoints
+    return [{"frame": dataset.samples[i].filename,
+             "errors_px": [round(float(e), 3) if np.isfinite(e) else None for e in errors[j]],
+             "missed": [names[k] for k in range(len(names)) if np.isinf(errors[j][k])]}
+            for j, i in enumerate(indices)]
 
 
 def format_worst(rows: list[dict]) -> str:
