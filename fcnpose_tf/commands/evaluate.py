@@ -1,5 +1,3 @@
-    """Every scored frame's keypoint errors for --json ("per_frame"): {"frame", "errors_px": per keypoint, null
-    where it has no ground truth or the model missed it, "missed": the keypoints the model missed}."""
 """Measure a .keras or .tflite FCN-Pose on a dataset: PCK, pixel error, inference time and FPS.
 
 PCK@0.5/0.2/0.05 are normalised by max(w, h) of the ground-truth keypoints' bounding box
@@ -169,8 +167,8 @@ def worst_frame_rows(pred, gt, dataset, indices, count: int) -> list[dict]:
 
 
 def frame_rows(pred, gt, dataset, indices) -> list[dict]:
-    """Every scored frame's keypoint errors for --json ("per_frame"): {"frame", "errors_px": per keypoint, null where it has no
-    ground truth or the model missed it, "missed": the keypoints the model missed}."""
+    """Every scored frame's keypoint errors for --json ("per_frame"): {"frame", "errors_px": per keypoint, null
+    where it has no ground truth or the model missed it, "missed": the keypoints the model missed}."""
     import numpy as np
 
     from fcnpose_tf.metrics import errors_px
