@@ -217,6 +217,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {path}: not a .tflite file", file=sys.stderr)
             return 2
     for out in (args.plot, args.json):
+        if out is not None and not out.parent.is_dir():
+            print(f"error: {out.parent}: no such folder", file=sys.stderr)
+            return 2
         if out is not None:
             check_writable(out, args.force)  # before the measurement, not after
     result = measure(args)
