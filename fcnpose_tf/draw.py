@@ -7,6 +7,8 @@ numpy and OpenCV only.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import cv2
 import numpy as np
 
@@ -158,3 +160,24 @@ def draw_truth_and_prediction(image_bgr: np.ndarray, truth: np.ndarray, predicte
         out[:band] = (out[:band] * 0.35).astype(out.dtype)
         cv2.putText(out, caption, (6, band - base - 4), _FONT, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
     return out
+
+
+def contact_sheet(images: Sequence[np.ndarray], columns: int = 3, tile_width: int | None = None) -> np.ndarray:
+    """BGR images tiled row by row (`columns` a row, the last row filled with black), each resized to `tile_width`
+    pixels wide when given, padded with black to the tallest, framed by a 2 px white line."""
+    if not images:
+        raise ValueError("no images to tile")
+    tiles = []
+    for image in images:
+        if tile_width is not None and image.shape[1] != tile_width:
+            f = tile_width / image.shape[1]
+            image = cv2.resize(image, (tile_width, max(1, int(round(image.shape[0] * f)))),
+                               interpolation=cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR)
+        tiles.append(image)
+    th, tw = max(t.shape[0] for t in tiles), max(t.shape[1] for t in tiles)
+    tiles = [cv2.copyMakeBorder(t, 0, th - t.shape[0], 0, tw - t.shape[1], cv2.BORDER_CONSTANT, value=(0, 0, 0))
+             for t in tiles]
+    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % columns)
+    rows = [np.hstack([cv2.copyMakeBorder(t, 2, 2, 2, 2, cv2.BORDER_CONSTANT, value=(255, 255, 255))
+                       for t in tiles[i:i + columns]]) for i in range(0, len(tiles), columns)]
+    return np.ascontiguousarray(np.vstack(rows))

@@ -508,10 +508,12 @@ def test_evaluate_names_the_worst_frames_and_draws_them(trained, cli_here, tmp_p
     assert [r["score"] for r in rows] == sorted((r["score"] for r in rows), reverse=True)
     names = {p.name for p in (other / "images").iterdir()}
     assert all(r["frame"] in names and r["frame"] in stdout for r in rows)
-    assert "Worst 3 frames" in stdout and f"Pictures: {pictures} (3 PNG)" in stdout
-    drawn = sorted(p.name for p in pictures.iterdir())
+    assert "Worst 3 frames" in stdout and f"Pictures: {pictures} (3 PNG and contact_sheet.png)" in stdout
+    drawn = sorted(p.name for p in pictures.iterdir() if p.name != "contact_sheet.png")
     assert drawn == [f"{r['rank']:02d}_{Path(r['frame']).stem}.png" for r in rows]
     assert cv2.imread(str(pictures / drawn[0])).shape[2] == 3
+    sheet = cv2.imread(str(pictures / "contact_sheet.png"))
+    assert sheet.shape[1] == 3 * (320 + 4)  # three tiles of 320 px, each framed by 2 px
     status, _, err = cli_here("evaluate", out, "--data", other, "--pictures", pictures)  # before any work
     assert status == 2 and "already holds files; pass --force" in err
     status, _, err = cli_here("evaluate", out, "--data", other, "--worst", "0", "--pictures", tmp_path / "p2")

@@ -193,13 +193,11 @@ def format_worst(rows: list[dict]) -> str:
 
 def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indices, force: bool) -> str:
     """One PNG per worst frame in `folder` (RANK_NAME.png): `draw.draw_truth_and_prediction` with a caption."""
-    import cv2
-
-    from fcnpose_tf.draw import draw_truth_and_prediction
-    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.draw import contact_sheet, draw_truth_and_prediction
     from fcnpose_tf.fileio import make_folder, write_bytes
 
     make_folder(folder)
+    pictures = []
     for row in rows:
         j = row["position"]
         image = dataset.load_image(indices[j])
@@ -207,8 +205,19 @@ def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indice
                    f"{'-' if row['epe_px'] is None else row['epe_px']} px, {row['missing']} missed")
         picture = draw_truth_and_prediction(image, result["ground_truth"][j], result["predictions"][j],
                                             dataset.schema, caption)
-        ok, png = cv2.imencode(".png", picture)
-        if not ok:
-            raise UserError(f"{folder}: cannot encode the picture of {row['frame']}")
-        write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", png.tobytes(), force=force)
-    return f"{folder} ({len(rows)} PNG)"
+        pictures.append(picture)
+        write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", _png(picture, folder), force=force)
+    sheet = contact_sheet(pictures, columns=min(3, len(pictures)), tile_width=320)
+    write_bytes(folder / "contact_sheet.png", _png(sheet, folder), force=force)
+    return f"{folder} ({len(rows)} PNG and contact_sheet.png)"
+
+
+def _png(image, folder: Path) -> bytes:
+    import cv2
+
+    from fcnpose_tf.errors import UserError
+
+    ok, png = cv2.imencode(".png", image)
+    if not ok:
+        raise UserError(f"{folder}: cannot encode a picture as PNG")
+    return png.tobytes()

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.data.synth.datasets import IMAGE_DIR, SynthReport
-from fcnpose_tf.draw import draw_keypoints
+from fcnpose_tf.draw import contact_sheet, draw_keypoints
 from fcnpose_tf.errors import UserError
 
 
@@ -25,12 +25,7 @@ def preview_grid(frames: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | Non
         tile = cv2.resize(image, (tile_width, int(round(image.shape[0] * f))),
                           interpolation=cv2.INTER_AREA if f < 1 else cv2.INTER_LINEAR)
         tiles.append(draw_keypoints(tile, keypoints, labels=labels, occluded=occluded, point_scale=f))
-    th = max(t.shape[0] for t in tiles)
-    tiles = [cv2.copyMakeBorder(t, 0, th - t.shape[0], 0, 0, cv2.BORDER_CONSTANT, value=(0, 0, 0)) for t in tiles]
-    tiles += [np.zeros_like(tiles[0])] * (-len(tiles) % columns)
-    rows = [np.hstack([cv2.copyMakeBorder(t, 2, 2, 2, 2, cv2.BORDER_CONSTANT, value=(255, 255, 255))
-                       for t in tiles[i:i + columns]]) for i in range(0, len(tiles), columns)]
-    return np.ascontiguousarray(np.vstack(rows))
+    return contact_sheet(tiles, columns)
 
 
 def write_preview(report: SynthReport, path: str | os.PathLike, count: int = 6, force: bool = False) -> Path:
