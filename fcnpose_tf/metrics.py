@@ -167,10 +167,10 @@ def frame_errors(pred: Any, gt: Any) -> np.ndarray:
                         np.maximum(scored.sum(axis=1), 1), np.nan)
 
 
-def worst_frames(pred: Any, gt: Any, count: int) -> list[int]:
-    """Positions of the `count` frames with the largest `frame_errors`, worst first (ties: the earlier frame)."""
-    err = frame_errors(pred, gt)
-    order = sorted((i for i in range(len(err)) if np.isfinite(err[i])), key=lambda i: (-err[i], i))
+def worst_frames(scores: np.ndarray, count: int) -> list[int]:
+    """Positions of the `count` frames with the largest `frame_errors` scores, worst first (ties: the earlier
+    frame; a frame with nothing scored, NaN, never)."""
+    order = sorted((i for i in range(len(scores)) if np.isfinite(scores[i])), key=lambda i: (-scores[i], i))
     return order[:max(int(count), 0)]
 
 

@@ -253,4 +253,5 @@ def test_frame_errors_rank_frames_by_their_share_of_the_box_with_a_miss_at_the_c
     pred[3] = np.nan
     np.testing.assert_allclose(frame_errors(pred, gt)[:3], [0.05, 0.25, 0.25])
     assert np.isnan(frame_errors(pred, gt)[3])
-    assert worst_frames(pred, gt, 2) == [1, 2] and worst_frames(pred, gt, 10) == [1, 2, 0]
+    scores = frame_errors(pred, gt)
+    assert worst_frames(scores, 2) == [1, 2] and worst_frames(scores, 10) == [1, 2, 0]

@@ -154,7 +154,7 @@ def worst_frame_rows(pred, gt, dataset, indices, count: int) -> list[dict]:
     score, errors = frame_errors(pred, gt), errors_px(pred, gt)
     names = dataset.schema.keypoints
     rows = []
-    for rank, j in enumerate(worst_frames(pred, gt, count), 1):
+    for rank, j in enumerate(worst_frames(score, count), 1):
         found = errors[j][np.isfinite(errors[j])]
         scored = np.where(np.isnan(errors[j]), -1.0, errors[j])
         k = int(np.argmax(scored))

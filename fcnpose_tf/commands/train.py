@@ -190,8 +190,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _training_images(dataset, image: Path) -> set[Path]:
     """The image itself when it is one of the training frames: the same file, or another file with the same bytes
-    (a copy under another name or folder); else an empty set."""
-    import filecmp
+    (a copy under another name or folder: `data.merge.same_image`); else an empty set."""
+    from fcnpose_tf.data.merge import same_image
 
     by_size = getattr(dataset, "_images_by_size", None)
     if by_size is None:
@@ -201,7 +201,7 @@ def _training_images(dataset, image: Path) -> set[Path]:
         dataset._images_by_size = by_size
     try:
         candidates = by_size.get(image.stat().st_size, [])
-        same = any(image.resolve() == c.resolve() or filecmp.cmp(image, c, shallow=False) for c in candidates)
+        same = any(same_image(image, c) for c in candidates)
     except OSError:
         return set()
     return {image} if same else set()

@@ -23,6 +23,7 @@ from typing import Sequence
 
 from fcnpose_tf.data import via as _via
 from fcnpose_tf.data.dataset import resolve_data
+from fcnpose_tf.data.splits import stored_roles
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
 
@@ -58,20 +59,9 @@ class MergeResult:
         return len(self.project["_via_img_metadata"])
 
 
-def _stored_roles(via_path: Path) -> dict[str, str]:
-    """{frame name: "train" or "val"} from the hold-out split stored beside a VIA file (`<stem>.splits.json`, what
-    `data inspect` and `train` wrote for it); empty when there is none or it cannot be read."""
-    from fcnpose_tf.data.splits import splits_path
-    from fcnpose_tf.fileio import parse_json
-
-    try:
-        holdout = parse_json(splits_path(via_path).read_text("utf-8"))["holdout"]
-        return {**{str(name): "train" for name in holdout["train"]}, **{str(name): "val" for name in holdout["val"]}}
-    except (OSError, ValueError, KeyError, TypeError):
-        return {}
-
-
-def _same_image(a: Path, b: Path) -> bool:
+def same_image(a: Path, b: Path) -> bool:
+    """The same image: one file (a path, a link) or two files of the same bytes. What `data merge` and `train
+    --test-data` call one frame."""
     try:
         return a.resolve() == b.resolve() or os.path.samefile(a, b) or filecmp.cmp(a, b, shallow=False)
     except OSError:
@@ -138,7 +128,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
             found = (data.get("_via_attributes") or {}).get(kind) if isinstance(data, dict) else None
             for name, spec in (found or {}).items() if isinstance(found, dict) else ():
                 attributes[kind].setdefault(name, copy.deepcopy(spec))
-        roles = _stored_roles(via_path)
+        roles = stored_roles(via_path)
         for frame in annotations.frames:
             entry = _Entry(via_path, copy.deepcopy(raw[frame.filename]), Path(frame.image_path))
             role = frame.split or roles.get(frame.filename)
@@ -147,7 +137,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
                     entry.meta["file_attributes"] = {}
                 entry.meta["file_attributes"][_via.SPLIT_ATTRIBUTE] = role
             named = merged.setdefault(frame.filename, [])
-            earlier = next((e for e in named if _same_image(e.image, entry.image)), None)
+            earlier = next((e for e in named if same_image(e.image, entry.image)), None)
             if earlier is None:
                 named.append(entry)
                 continue
@@ -186,7 +176,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
             found = _via._find_image(filename, dirs)
         except _via._FrameProblem:
             found = None
-        if found is None or not _same_image(found, entry.image):  # the name alone would find another file
+        if found is None or not same_image(found, entry.image):  # the name alone would find another file
             meta["filename"] = Path(_relative(entry.image.resolve(), base)).as_posix()
             result.stored_with_path.append(filename)
         size = meta.get("size", -1)
@@ -206,4 +196,4 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
     return result
 
 
-__all__ = ["MergeResult", "PREFER_CHOICES", "merge_via_projects"]
+__all__ = ["MergeResult", "PREFER_CHOICES", "merge_via_projects", "same_image"]

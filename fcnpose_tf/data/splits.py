@@ -170,6 +170,16 @@ def splits_from_dict(data: dict, names: Sequence[str], source: str = "splits") -
                         "again") from None
 
 
+def stored_roles(via_path: str | os.PathLike) -> dict[str, str]:
+    """{frame name: "train" or "val"}: the hold-out split stored beside a VIA file (what `data inspect` and `train`
+    wrote for it), for `data merge` to carry; empty when there is none or it cannot be read."""
+    try:
+        holdout = fileio.parse_json(splits_path(via_path).read_text("utf-8"))["holdout"]
+        return {**{str(name): "train" for name in holdout["train"]}, **{str(name): "val" for name in holdout["val"]}}
+    except (OSError, ValueError, KeyError, TypeError):
+        return {}
+
+
 def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: int | None = None,
                           val_fraction: float = 0.2, seed: int = 0, write: bool = True,
                           resplit: bool = False, roles: Sequence[str | None] | None = None
