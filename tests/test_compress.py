@@ -439,6 +439,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     widths it has; surgery otherwise (a fixed camera, another start), and for --start surgery and magnitude pruning."""
     from fcnpose_tf.compression.methods import pruned_start
     from fcnpose_tf.compression.options import CompressOptions
+    from fcnpose_tf.compression.prune import plan_widths
     from fcnpose_tf.training.model import build_fcn_pose
 
     base = build_fcn_pose(input_size=64)
@@ -450,7 +451,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     lines = []
 
     def start(options, model_path=path, floor=15):
-        return pruned_start(options.resolved(), model_path, base, floor, lines.append)
+        return pruned_start(options.resolved(), model_path, plan_widths(base, options.rate, floor), lines.append)
 
     assert CompressOptions(rate=0.7).start == "surgery"  # the default; auto is asked for
     assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)  # no record: not known to come from the generalist

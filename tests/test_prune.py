@@ -13,8 +13,9 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
+from fcnpose_tf.compression.report import model_facts
 from fcnpose_tf.compression.prune import (chain_param_count, filter_l1_norms, floored_widths, keep_count,
-                                          kept_filters, magnitude_prune, prune_model, prune_plan, prune_widths,
+                                          kept_filters, magnitude_prune, plan_widths, prune_model, prune_plan,
                                           pruned_widths, weight_sparsity)
 
 # tfmot 0.8.1 still imports distutils' LooseVersion
@@ -244,9 +245,18 @@ def reference_floored_widths(rate, floor):
 def test_min_filters_widths_match_an_independent_search(rate, floor):
     model = build_fcn_pose(input_size=32)
     widths, used = prune_widths(model, rate, floor)
+    plan = plan_widths(model, rate, floor)
+    pruned = prune_model(model, rate, min_filters=floor, widths=plan)
+    assert (plan.params, plan.macs) == (model_facts(pruned)["params"], model_facts(pruned)["macs"])
     assert (widths, used) == reference_floored_widths(rate, floor)
     assert all(w >= min(n, used) for n, w in zip(DEFAULT_WIDTHS, widths))
     assert chain_param_count(model, widths) == built_params(widths) <= built_params(pruned_widths(DEFAULT_WIDTHS, rate))
+
+
+def prune_widths(model, rate, floor):
+    """The pruned layers' widths and the floor used, as `plan_widths` plans them."""
+    plan = plan_widths(model, rate, floor)
+    return plan.pruned_widths, plan.floor
 
 
 def test_min_filters_known_widths():
@@ -271,7 +281,11 @@ def test_chain_param_count_counts_batchnorm_and_biases():
         for rate, floor in ((0.5, 0), (0.5, 5), (0.7, 0)):
             plan = prune_plan(model, rate, min_filters=floor)
             kept = [len(plan[name]) for name in ("conv1", "conv2", "conv3")]
-            assert chain_param_count(model, kept) == prune_model(model, rate, min_filters=floor).count_params()
+            pruned = prune_model(model, rate, min_filters=floor)
+            assert chain_param_count(model, kept) == pruned.count_params()
+            widths = plan_widths(model, rate, floor)  # what the surgery builds, costed without building it
+            assert widths.widths == conv_widths(pruned)
+            assert (widths.params, widths.macs) == (model_facts(pruned)["params"], model_facts(pruned)["macs"])
 
 
 @pytest.mark.slow
@@ -512,3 +526,11 @@ def test_magnitude_prune_keeps_masks_while_retraining():
 def test_magnitude_prune_bad_sparsity(sparsity):
     with pytest.raises(UserError, match="sparsity"):
         magnitude_prune(build_fcn_pose(input_size=32), sparsity)
+
+
+def test_the_examples_in_the_docstrings_hold():
+    import doctest
+
+    from fcnpose_tf.compression import prune
+
+    assert doctest.testmod(prune).failed == 0

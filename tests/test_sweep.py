@@ -721,7 +721,8 @@ def test_a_rate_job_whose_every_format_is_refused_fails_with_one_line(tmp_path, 
                             quantized=None, files={}, seconds=0.0, refused=[RefusedFormat("float16", "keypoint 3 lost"),
                                                                             RefusedFormat("int8", "2.5 px > 2 px")])
     monkeypatch.setattr(fcnpose_tf.compression.compress, "compress_model", lambda *a, **k: report)
-    config = types.SimpleNamespace(out=tmp_path, folds=2, verbose=0, compress_options=lambda job: None)
+    options = types.SimpleNamespace(checked=lambda base: None)
+    config = types.SimpleNamespace(out=tmp_path, folds=2, verbose=0, compress_options=lambda job: options)
     dataset = types.SimpleNamespace(split=lambda fold: ([0, 1], [2, 3]))
     with pytest.raises(UserError, match=r"no TFLite file passed its keypoint gate \(float16: keypoint 3 lost; int8"):
         jobs._run_rate(config, jobs.Job(0, 0.7), dataset)

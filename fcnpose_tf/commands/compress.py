@@ -134,9 +134,7 @@ def run(args: argparse.Namespace) -> int:
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
-    every = [replace(options, rate=rate).resolved(model_path) for rate in rates]  # None settings: the run's choice
-    for each in every:
-        each.validate()
+    every = [replace(options, rate=rate).checked(model_path) for rate in rates]  # None settings: the run's choice
     options = every[0]
     if options.method == "l1" and options.start not in ("auto", "surgery"):
         resolve_model(options.start, KERAS_SUFFIXES, say=lambda line: None)  # a wrong --start: before the data

@@ -31,7 +31,7 @@ import numpy as np
 
 from fcnpose_tf import progress
 from fcnpose_tf.compression.methods import Log, PruningMethod, pruned_start, pruning_method
-from fcnpose_tf.compression.options import CompressOptions, check_outputs, output_names, tflite_key
+from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
 from fcnpose_tf.compression.report import (CompressReport, RefusedFormat, Step, _check_metadata, file_sizes,
                                            model_facts)
 from fcnpose_tf.errors import UserError
@@ -315,9 +315,11 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         eval_dataset, eval_indices: the frames every step is measured on.
         out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite (one file per `options.quantize` format) and
             NAME_p70_report.json go.
-        options: rate, method, strategy, quantize, calibration frames, retraining settings, threads (those left
-            None chosen by `CompressOptions.resolved` for `base_path`; the report's "options" holds the values used).
-        force: replace existing output files.
+        options: rate, method, strategy, quantize, calibration frames, retraining settings, threads, as
+            `CompressOptions.checked(base_path)` returns them (resolved and validated once, by the caller; the
+            report's "options" holds the values used).
+        force: replace existing output files; the caller refuses them before any work (`options.check_outputs`),
+            else a run that finds one writes nothing at its end.
         reporter: where the step lines and progress go (`fcnpose_tf.progress`; default: the current one): data
             preparation's progress, then the retraining one line per epoch; nothing when silent.
         metadata: more facts for the report (e.g. the command's "preset"), top-level keys of its file.
@@ -328,17 +330,18 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         (`RefusedFormat`: reason, the gate's facts, quantization-aware training's when it was tried). A
         refused format writes no file and does not end the run; `files` names the files written.
     Raises:
-        UserError: bad options, existing outputs without force, unwritable folder, or a model whose
+        UserError: an existing output without force, an unwritable folder, or a model whose
             maps do not match the dataset.
-        ValueError: `metadata` names a section of the report.
+        ValueError: `metadata` names a section of the report, or options not resolved (`CompressOptions.checked`).
     """
     from fcnpose_tf.training.model import at_input_size, load_model, view_of
-    from fcnpose_tf.compression.prune import prune_plan, prune_widths
+    from fcnpose_tf.compression.prune import check_chain, plan_widths
 
     base_path = Path(base_path)
-    options = options.resolved(base_path)
-    options.validate()
     _check_metadata(metadata)
+    if not options.is_resolved:
+        raise ValueError("compress_model takes the options of CompressOptions.checked(base_path), every "
+                         "per-run choice made")
     start = time.perf_counter()
     reporter = progress.resolve(reporter)
     say = reporter.say
@@ -348,23 +351,22 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
-    prune_plan(base, options.rate, strategy=options.strategy)  # a model that is not a plain chain fails here, first
+    check_chain(base)  # a model that is not a plain chain of supported layers fails here, first
     saved_view = view_of(base)
     if options.input_size:  # the height; an H x W input keeps its aspect
         width = max(32, int(round(options.input_size * saved_view.width / saved_view.height / 32)) * 32)
         base = at_input_size(base, (options.input_size, width))
-    floor = prune_widths(base, options.rate, options.min_filters)[1] if options.method == "l1" else 0
-    check_outputs(base_path, out_dir, options, force)
-    start_name, start_path = pruned_start(options, base_path, base, floor, say)
+    plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0)
+    start_name, start_path = pruned_start(options, base_path, plan, say)
     options = replace(options, start=start_name)
-    run = _Run(base_path, base, pruning_method(options, floor, start_path), options, paths, train_dataset,
-               eval_dataset, eval_indices, force, reporter, options.recipe(floor))
+    run = _Run(base_path, base, pruning_method(options, plan, start_path), options, paths, train_dataset,
+               eval_dataset, eval_indices, force, reporter, options.recipe(plan.floor))
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
     say(f"[1/{steps}] base model {base_path} ({run.input_size.describe(whole='')}{resized})")
-    if floor < options.min_filters:
+    if plan.floor < options.min_filters:
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
-            f"no layer under {floor} filters")
+            f"no layer under {plan.floor} filters")
     base_step = measure_base(run)
     say(f"[2/{steps}] pruning: {run.method.describe()}")
     importance = importance_step(run, retrain_fold(run)) if run.method.ranks_filters else None

@@ -11,7 +11,6 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 
-from fcnpose_tf.compression.report import model_facts
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.records import training_record
 
@@ -20,6 +19,7 @@ if TYPE_CHECKING:
 
     from fcnpose_tf.compression.importance import Importance
     from fcnpose_tf.compression.options import CompressOptions
+    from fcnpose_tf.compression.prune import WidthPlan
     from fcnpose_tf.training.train import FitResult
 
 Log = Callable[[str], None]
@@ -60,13 +60,14 @@ class PruningMethod(Protocol):
 class FilterPruning:
     """The paper's method: remove the least important filters (exact layer surgery); the paper ranks them by
     L1 norm, `fcnpose_tf.compression.importance` holds the other criteria. The method is named "l1" in reports and
-    options for that reason; the criterion is recorded beside it."""
+    options for that reason; the criterion is recorded beside it. The widths are the run's `WidthPlan`."""
 
     name = "l1"
 
-    def __init__(self, rate: float, strategy: str, importance: str = "l1", min_filters: int = 0,
+    def __init__(self, plan: WidthPlan, strategy: str, importance: str = "l1",
                  start: Path | None = None, start_name: str = "") -> None:
-        self.rate, self.strategy, self.importance, self.min_filters = rate, strategy, importance, min_filters
+        self.plan, self.strategy, self.importance = plan, strategy, importance
+        self.rate, self.min_filters = plan.rate, plan.floor
         self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
         self.criterion_facts: dict[str, Any] = {"importance": importance} if start is None else {}
 
@@ -91,7 +92,7 @@ class FilterPruning:
             return self._from_start(base)
         start = time.perf_counter()
         pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
-                             min_filters=self.min_filters)
+                             min_filters=self.min_filters, widths=self.plan)
         self.criterion_facts = importance.describe()
         return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
                                     "min_filters": self.min_filters,
@@ -100,11 +101,10 @@ class FilterPruning:
     def _from_start(self, base: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
         """The start model's weights in the network surgery would build from `base` (same widths, the base's input
         size); UserError when its widths are not surgery's."""
-        from fcnpose_tf.compression.prune import prune_widths
         from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model, view_of
 
         source = load_model(self.start)
-        widths = (*prune_widths(base, self.rate, self.min_filters)[0], conv_widths(base)[-1])
+        widths = self.plan.widths
         if conv_widths(source) != widths:
             floor = f" with no layer under {self.min_filters} filters" if self.min_filters > 1 else ""
             raise UserError(f"--start {self.start_name}: its widths {conv_widths(source)} are not filter surgery's at "
@@ -123,23 +123,23 @@ class FilterPruning:
 
 
 class MagnitudePruning:
-    """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at `rate` removes."""
+    """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at the plan's rate removes (the plan: the
+    paper's keep rule, no floor)."""
 
     name = "magnitude"
     ranks_filters = trained_start = False
 
-    def __init__(self, rate: float) -> None:
-        self.rate = rate
+    def __init__(self, plan: WidthPlan) -> None:
+        self.rate, self.plan = plan.rate, plan
         self.sparsity = 0.0
 
     def describe(self) -> str:
         return f"magnitude at rate {self.rate:g}"
 
     def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.compression.prune import magnitude_prune, prune_model
+        from fcnpose_tf.compression.prune import magnitude_prune
 
-        surgery = prune_model(base, self.rate)  # only its parameter count: the same reduction as filter surgery
-        self.sparsity = 1.0 - model_facts(surgery)["params"] / model_facts(base)["params"]
+        self.sparsity = 1.0 - self.plan.params / base.count_params()  # the same reduction as filter surgery
         return magnitude_prune(base, self.sparsity), {"magnitude_sparsity": round(self.sparsity, 6)}
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
@@ -160,17 +160,16 @@ PRUNED_GENERALIST = "generalist-p70"
 generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
 
 
-def pruned_start(options: CompressOptions, base_path: Path, base: keras.Model, floor: int,
+def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan,
                  log: Log = lambda line: None) -> tuple[str, Path | None]:
     """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
     for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
     (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
-    and the bundled file has the widths filter surgery gives here (rate, floor); else surgery, which keeps PCK@0.5
+    and the bundled file has the widths filter surgery gives here (`plan`); else surgery, which keeps PCK@0.5
     within 0.01 on fixed-camera models (docs/compression.md, "On your own model").
     An explicit start is resolved as a model argument (a file, or a bundled name); its widths are checked when it is
     loaded (`FilterPruning.prune`)."""
     from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
-    from fcnpose_tf.compression.prune import prune_widths
     from fcnpose_tf.records import lineage
     from fcnpose_tf.training.model import conv_widths, load_model
 
@@ -191,21 +190,19 @@ def pruned_start(options: CompressOptions, base_path: Path, base: keras.Model, f
     if not path.is_file():  # an installation without it
         log(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
         return "surgery", None
-    widths = (*prune_widths(base, options.rate, floor)[0], conv_widths(base)[-1])
-    if conv_widths(load_model(path)) != widths:
+    if conv_widths(load_model(path)) != plan.widths:
         log(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate {options.rate:g} "
-            f"with no layer under {floor} filters, {widths})")
+            f"with no layer under {plan.floor} filters, {plan.widths})")
         return "surgery", None
     return PRUNED_GENERALIST, path
 
 
-def pruning_method(options: CompressOptions, min_filters: int | None = None, start: Path | None = None) -> PruningMethod:
-    """The pruning method `options.method` names; filter surgery keeps no layer under `min_filters` (default
-    options.min_filters; `compress_model` passes the floor that fits the rate's parameter budget) and takes its
-    weights from the pruned model `start` when one is given (`pruned_start`)."""
+def pruning_method(options: CompressOptions, plan: WidthPlan, start: Path | None = None) -> PruningMethod:
+    """The pruning method `options.method` names, at the widths of `plan` (`prune.plan_widths` at the options' rate,
+    with their floor for filter surgery and none for magnitude pruning); filter surgery takes its weights from the
+    pruned model `start` when one is given (`pruned_start`)."""
     if options.method == "magnitude":
-        return MagnitudePruning(options.rate)
-    floor = options.min_filters if min_filters is None else min_filters
-    return FilterPruning(options.rate, options.strategy, options.importance, floor, start, options.start)
+        return MagnitudePruning(plan)
+    return FilterPruning(plan, options.strategy, options.importance, start, options.start)
 
 

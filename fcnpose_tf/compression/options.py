@@ -49,8 +49,8 @@ class CompressOptions:
     table's keypoints are read (`postprocess.CENTROIDS`).
 
     The defaults are `fcnpose-tf compress`'s (`CompressOptions.preset("paper", rate=...)`: the paper's recipe);
-    importance, min_filters, lr_patience and positive_weight left None are chosen per run by `resolved`
-    (`compress_model` calls it). Defaults, checks and meanings: `fcnpose_tf.settings`."""
+    importance, min_filters, lr_patience, positive_weight and augment left None are chosen per run by `resolved`
+    (`checked` resolves and validates them once, for `compress_model`). Defaults, checks and meanings: `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
         """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
@@ -98,13 +98,25 @@ class CompressOptions:
         return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
                        lr_patience=lr_patience, augment=augment)
 
+    @property
+    def is_resolved(self) -> bool:
+        """Whether every setting `resolved` chooses per run has been chosen."""
+        return None not in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment)
+
+    def checked(self, base_path: str | os.PathLike | None = None) -> CompressOptions:
+        """These options resolved for `base_path` (`resolved`) and validated (`validate`): what `compress_model`
+        takes, checked once by its caller."""
+        options = self.resolved(base_path)
+        options.validate()
+        return options
+
     def recipe(self, min_filters_used: int | None = None) -> str:
         """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
 
-        `min_filters_used` is the floor the surgery could keep (`prune.prune_widths`) when lower than asked."""
+        `min_filters_used` is the floor the surgery could keep (`prune.WidthPlan.floor`) when lower than asked."""
         from fcnpose_tf.training.train import loss_name
 
-        if None in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment):
+        if not self.is_resolved:
             return self.resolved().recipe(min_filters_used)
 
         used = self.min_filters if min_filters_used is None else min_filters_used

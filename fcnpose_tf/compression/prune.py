@@ -24,6 +24,7 @@ import math
 import numbers
 from decimal import Decimal
 from fractions import Fraction
+from dataclasses import dataclass
 from typing import Callable, Iterable, Sequence, Union
 
 import numpy as np
@@ -254,6 +255,11 @@ def _chain(model: keras.Model) -> list[keras.layers.Layer]:
     return layers
 
 
+def check_chain(model: keras.Model) -> None:
+    """UserError unless `model` is one chain of the layers filter surgery understands with a Conv2D to prune."""
+    _chain(model)
+
+
 def _check_supported(layer: keras.layers.Layer) -> None:
     if type(layer) is keras.layers.Conv2D:
         if layer.data_format != "channels_last":
@@ -290,48 +296,96 @@ def chain_param_count(model: keras.Model, kept: Sequence[int]) -> int:
     Counts what the surgery leaves: each Conv2D's kernel (and bias) on the channels that reach it, and a
     BatchNormalization's per-channel weights on the channels that pass it; other layers have none here.
     """
-    return _param_counter(model)(kept)
+    return _counter(model)(kept)[0]
 
 
-def _param_counter(model: keras.Model) -> Callable[[Sequence[int]], int]:
-    """`chain_param_count` for one model, its chain read once."""
+def _counter(model: keras.Model) -> Callable[[Sequence[int]], tuple[int, int]]:
+    """(parameters, MACs) of `model` after its Conv2D layers but the last keep the given counts; its chain read once.
+
+    MACs are the convolutions' (`metrics.conv_macs`, as `model_facts` counts them): a layer's output size does not
+    change with its width."""
+    from fcnpose_tf.metrics import conv_macs
+
     layers = _chain(model)
     pruned = sum(type(layer) is keras.layers.Conv2D for layer in layers) - 1
-    steps = []  # (kernel area or None for BatchNormalization, bias?, output width or None, weights per channel)
+    steps = []  # (kernel area, bias?, filters, output pixels) of a Conv2D; (None, .., .., weights per channel) of BN
     for layer in layers:
         if type(layer) is keras.layers.Conv2D:
-            steps.append((layer.kernel_size[0] * layer.kernel_size[1], layer.use_bias, layer.filters, 0))
+            height, width = layer.output_shape[1:3]
+            steps.append((layer.kernel_size[0] * layer.kernel_size[1], layer.use_bias, layer.filters,
+                          conv_macs(height, width, 1, 1, 1, 1)))
         elif isinstance(layer, keras.layers.BatchNormalization):
             steps.append((None, False, None, len(layer.get_weights())))
     channels_in = int(model.inputs[0].shape[-1])
 
-    def count(kept: Sequence[int]) -> int:
+    def count(kept: Sequence[int]) -> tuple[int, int]:
         if len(kept) != pruned:
             raise UserError(f"model {model.name} prunes {pruned} Conv2D layers, got {len(kept)} widths")
-        widths, channels, total = iter(kept), channels_in, 0
-        for area, bias, filters, per_channel in steps:
+        widths, channels, params, macs = iter(kept), channels_in, 0, 0
+        for area, bias, filters, extra in steps:
             if area is None:
-                total += per_channel * channels
+                params += extra * channels
                 continue
             width = next(widths, filters)  # the output layer keeps its filters
-            total += area * channels * width + (width if bias else 0)
+            params += area * channels * width + (width if bias else 0)
+            macs += extra * area * channels * width
             channels = width
-        return total
+        return params, macs
 
     return count
 
 
-def prune_widths(model: keras.Model, rate: Rate, min_filters: int = 0) -> tuple[tuple[int, ...], int]:
-    """How many filters each Conv2D but the last keeps at `rate`, and the floor used (`floored_widths`).
+@dataclass(frozen=True)
+class WidthPlan:
+    """How wide every Conv2D of a chain becomes at a rate, computed once (`plan_widths`) and read by every step that
+    needs it (the surgery, a pruned start's check, magnitude pruning's sparsity, the recipe, the report).
 
-    With ``min_filters`` 0 (the paper's rule) every layer keeps ``n - floor(n * rate)``.
+    Attributes:
+        rate: the fraction of filters to remove asked for.
+        min_filters: the narrowest layer asked for (0: the paper's keep rule).
+        floor: the narrowest layer the parameter budget allowed (`floored_widths`; below min_filters only at high
+            rates).
+        widths: filters of every Conv2D after pruning, the output layer's (never pruned) last.
+        params: parameters of the pruned network.
+        macs: multiply-accumulates of its convolutions for one frame at the model's input size.
     """
+
+    rate: float
+    min_filters: int
+    floor: int
+    widths: tuple[int, ...]
+    params: int
+    macs: int
+
+    @property
+    def pruned_widths(self) -> tuple[int, ...]:
+        """The widths of the layers that are pruned (every Conv2D but the output layer)."""
+        return self.widths[:-1]
+
+
+def plan_widths(model: keras.Model, rate: Rate, min_filters: int = 0) -> WidthPlan:
+    """How many filters each Conv2D keeps at `rate`, with no layer under `min_filters` (`floored_widths`; 0: every
+    layer keeps ``n - floor(n * rate)``), and what the pruned network costs; the model is not changed.
+
+    Raises:
+        UserError: a bad rate or floor, or a model that is not a plain chain of supported layers.
+    Example:
+        >>> from fcnpose_tf.training.model import build_fcn_pose
+        >>> plan = plan_widths(build_fcn_pose(), 0.7, 15)
+        >>> plan.widths, plan.floor, plan.params
+        ((15, 15, 15, 15, 8, 8, 15, 15, 15, 9), 15, 14611)
+    """
+    counter = _counter(model)
     convs = [layer for layer in _chain(model) if type(layer) is keras.layers.Conv2D]
-    return floored_widths([conv.filters for conv in convs[:-1]], rate, min_filters, _param_counter(model))
+    kept, floor = floored_widths([conv.filters for conv in convs[:-1]], rate, min_filters,
+                                 lambda counts: counter(counts)[0])
+    params, macs = counter(kept)
+    return WidthPlan(float(rate), int(min_filters), floor, (*kept, int(convs[-1].filters)), params, macs)
 
 
 def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
-               importance: Importance | None = None, min_filters: int = 0) -> dict[str, np.ndarray]:
+               importance: Importance | None = None, min_filters: int = 0,
+               widths: WidthPlan | None = None) -> dict[str, np.ndarray]:
     """Which filters every Conv2D keeps at `rate`, without changing the model.
 
     Args:
@@ -343,6 +397,7 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
         importance: the criterion scoring each filter (`fcnpose_tf.compression.importance`); default the L1 norm.
         min_filters: no layer narrower than this (all its filters if it has fewer), the parameter budget
             of `rate` kept by pruning the other layers harder (`floored_widths`); 0 is the paper's rule.
+        widths: the model's `plan_widths` at `rate` and `min_filters` when the caller has it (not computed again).
     Returns:
         Layer name -> sorted kept filter indices, for every Conv2D in order. The output layer (the
         last Conv2D) keeps all its filters.
@@ -357,7 +412,7 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
     if greedy and not hasattr(importance, "filter_scores"):
         raise UserError(f"the greedy strategy ranks kernels without the removed input channels; the "
                         f"{importance.name} criterion does not rank kernels (use --strategy independent)")
-    counts, _ = prune_widths(model, rate, min_filters)
+    counts = (widths or plan_widths(model, rate, min_filters)).pruned_widths
     layers = _chain(model)
     convs = [layer for layer in layers if type(layer) is keras.layers.Conv2D]
     scores = None if greedy else importance(model)
@@ -380,7 +435,8 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
 # --------------------------------------------------------------------------------------------
 
 def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent",
-                importance: Importance | None = None, min_filters: int = 0) -> keras.Model:
+                importance: Importance | None = None, min_filters: int = 0,
+                widths: WidthPlan | None = None) -> keras.Model:
     """Remove the least important filters (default: smallest L1 norms) from every Conv2D but the output layer.
 
     Every Conv2D except the last keeps ``n - floor(n * rate)`` filters (the highest scores of
@@ -405,6 +461,7 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
             None is the L1 norm, the paper's.
         min_filters: the narrowest a layer may become, the parameter budget of `rate` kept
             (`floored_widths`); 0 (default) is the paper's keep rule.
+        widths: the model's `plan_widths` at `rate` and `min_filters` when the caller has it (not computed again).
     Returns:
         A new, uncompiled tf_keras model (Sequential if the input was) with the same layer names.
     Raises:
@@ -416,7 +473,7 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
         >>> conv_widths(small), small.count_params()
         ((39, 20, 10, 5, 3, 3, 5, 10, 20, 9), 14668)
     """
-    plan = prune_plan(model, rate, strategy=strategy, importance=importance, min_filters=min_filters)
+    plan = prune_plan(model, rate, strategy=strategy, importance=importance, min_filters=min_filters, widths=widths)
     layers = _chain(model)
     source = model.inputs[0]
     new_layers: list[keras.layers.Layer] = []

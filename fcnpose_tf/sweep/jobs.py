@@ -463,7 +463,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     base_sha256 = file_sha256(base)
     _log(f"{job.label}: compressing {base.name}")
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
-                            config.compress_options(job), force=True, reporter=_reporter(config),
+                            config.compress_options(job).checked(base), force=True, reporter=_reporter(config),
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
     if report.quantized is None:  # every format refused by its keypoint gate: the job fails, one line
         reasons = "; ".join(f"{entry.quantize}: {entry.reason}" for entry in report.refused)
