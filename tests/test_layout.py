@@ -74,3 +74,11 @@ def test_no_import_circle():
 
 def test_the_circle_check_finds_one():
     assert circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_the_pi_runtime_imports_nothing_of_the_training_side_or_the_correction_loop():
+    graph = import_graph()
+    runtime = {name for name in graph if name.startswith("fcnpose_tf.runtime")}
+    reached = {target for name in runtime for target in graph[name]}
+    assert not {t for t in reached if t.startswith(("fcnpose_tf.data", "fcnpose_tf.correction", "fcnpose_tf.training",
+                                                    "fcnpose_tf.compression", "fcnpose_tf.sweep"))}

@@ -839,7 +839,7 @@ def test_runtime_modules_import_without_tensorflow(no_tf_env):
         import fcnpose_tf.runtime as rt
         names = [m.name for m in pkgutil.iter_modules(rt.__path__, "fcnpose_tf.runtime.")]
         for name in names + ["fcnpose_tf.commands.run", "fcnpose_tf.commands.bench", "fcnpose_tf.commands.predict",
-                             "fcnpose_tf.runtime.prelabel", "fcnpose_tf.training.evaluate", "fcnpose_tf.cli"]:
+                             "fcnpose_tf.correction.prelabel", "fcnpose_tf.training.evaluate", "fcnpose_tf.cli"]:
             importlib.import_module(name)
         for attr in rt.__all__:
             getattr(rt, attr)

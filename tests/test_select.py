@@ -11,7 +11,7 @@ import pytest
 
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.runtime.sources import Frame
-from fcnpose_tf.runtime.selection import (FrameRecord, FrameScores, default_min_gap, flip_back, pick_spread, pick_uniform,
+from fcnpose_tf.correction.selection import (FrameRecord, FrameScores, default_min_gap, flip_back, pick_spread, pick_uniform,
                                           zoom_out)
 from test_predict import BUNDLED_P70
 from test_run_bench_cli import _one_line_error, _run
@@ -192,7 +192,7 @@ def test_a_stopped_selection_writes_the_picks_of_the_frames_scored_and_exits_143
     import os
     import signal
 
-    from fcnpose_tf.runtime import selection
+    from fcnpose_tf.correction import selection
 
     original = selection.FrameScores.add
 

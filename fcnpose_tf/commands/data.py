@@ -177,7 +177,7 @@ def _inspect(args: argparse.Namespace) -> int:
 
 
 def _merge(args: argparse.Namespace) -> int:
-    from fcnpose_tf.data.merge import merge_via_projects
+    from fcnpose_tf.correction.merge import merge_via_projects
     from fcnpose_tf.data.via import SPLIT_ATTRIBUTE
     from fcnpose_tf.data.splits import splits_path
     from fcnpose_tf.errors import UserError

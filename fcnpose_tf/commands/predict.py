@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.evaluate import open_model
     from fcnpose_tf.fileio import stop_signals_as_interrupt
-    from fcnpose_tf.runtime.prelabel import check_via_output
+    from fcnpose_tf.correction.prelabel import check_via_output
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
     from fcnpose_tf.smoothing import params_from_args
@@ -121,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
 def _via_collection(args: argparse.Namespace, predictor, source):
     """The VIA file of --via, collected from `source`'s frames: discarded if anything fails or stops the command
     before it is closed (nothing half-written), `source` closed either way."""
-    from fcnpose_tf.runtime.prelabel import ViaPredictions
+    from fcnpose_tf.correction.prelabel import ViaPredictions
 
     collected = None
     try:
@@ -144,7 +144,7 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
     from fcnpose_tf.runtime.estimator import Prediction
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
-    from fcnpose_tf.runtime.selection import FrameScores, default_min_gap
+    from fcnpose_tf.correction.selection import FrameScores, default_min_gap
 
     gap = args.min_gap or default_min_gap(source.fps, source.kind)
     scores = FrameScores(args.by, predictor)

@@ -86,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
 
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, stop_signals_as_interrupt
-    from fcnpose_tf.runtime.prelabel import ViaPredictions, check_via_output
+    from fcnpose_tf.correction.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
     from fcnpose_tf.runtime.sinks import VideoSink, open_record_writer, parse_outputs

@@ -190,8 +190,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _training_images(dataset, image: Path) -> set[Path]:
     """The image itself when it is one of the training frames: the same file, or another file with the same bytes
-    (a copy under another name or folder: `data.merge.same_image`); else an empty set."""
-    from fcnpose_tf.data.merge import same_image
+    (a copy under another name or folder: `correction.merge.same_image`); else an empty set."""
+    from fcnpose_tf.correction.merge import same_image
 
     by_size = getattr(dataset, "_images_by_size", None)
     if by_size is None:
