@@ -735,7 +735,7 @@ TFLITE_FORMATS = {f.name: f for f in (
                  fold_upsampling=True),
     TFLiteFormat("float16-native", "fp16native", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1),
 )}
-"""The one table of TFLite formats (why each gate is what it is: `fcnpose_tf.compression.export`): float32, float16
+"""The one table of TFLite formats (why each gate is what it is: docs/compression.md, "Verification"): float32, float16
 weights (the paper's), dynamic-range int8 weights, full-integer int8 (int8 weights and activations, uint8 pixel
 input; the fastest on a Pi 3/4), and float16 with the converter's reduced-precision metadata (computed in float16
 on CPUs with float16 arithmetic, a Pi 5)."""

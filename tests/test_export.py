@@ -6,8 +6,9 @@ import tf_keras as keras
 
 from fcnpose_tf.compression import export as export_module
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.compression.export import (ExportVerificationError, export_tflite, inspect_tflite, run_tflite, to_tflite,
-                                           verify_tflite, write_tflite)
+from fcnpose_tf.compression.export import export_tflite, to_tflite, write_tflite
+from fcnpose_tf.compression.verify import ExportVerificationError, _interpreter, run_tflite, verify_tflite
+from fcnpose_tf.compression.tflite_file import inspect_tflite
 from fcnpose_tf.training.model import build_fcn_pose
 from fcnpose_tf.compression.prune import prune_model
 from weights import randomize
@@ -342,7 +343,7 @@ def test_int8_is_full_integer_with_a_pixel_byte_input(fcn64_int8):
     (inp,), (out,) = info["inputs"], info["outputs"]
     assert inp["dtype"] == "UINT8" and inp["shape"] == [1, 64, 64, 3]
     assert out["dtype"] == "INT8" and out["shape"] == [1, 64, 64, 9]
-    interpreter = export_module._interpreter(fcn64_int8.data)
+    interpreter = _interpreter(fcn64_int8.data)
     scale, zero_point = interpreter.get_input_details()[0]["quantization"]
     assert scale == pytest.approx(1 / 255, rel=1e-7) and zero_point == 0
     assert interpreter.get_output_details()[0]["quantization"] == (pytest.approx(1 / 256), -128)  # the sigmoid's
@@ -357,7 +358,7 @@ def test_int8_input_scale_is_pinned_whatever_the_calibration_range(fcn64):
     dim = 0.25 + 0.5 * frames(64, n=8, seed=6)  # pixels in [0.25, 0.75)
     data = export_tflite(fcn64, "int8", sample_frames=dim[:1].repeat(16, 0), calibration_frames=dim,
                          check_keypoints=False).data
-    scale, zero_point = export_module._interpreter(data).get_input_details()[0]["quantization"]
+    scale, zero_point = _interpreter(data).get_input_details()[0]["quantization"]
     assert scale == pytest.approx(1 / 255, rel=1e-7) and zero_point == 0
 
 

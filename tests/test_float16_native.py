@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from fcnpose_tf.compression.export import inspect_tflite, to_tflite
+from fcnpose_tf.compression.export import to_tflite
+
+from fcnpose_tf.compression.tflite_file import inspect_tflite
 from fcnpose_tf.training.model import build_fcn_pose
 from fcnpose_tf.settings import QUANTIZE, QUANTIZE_FILE_TAGS
 from test_runtime import RED_CYCLE, _structured_model, quadrant_frame

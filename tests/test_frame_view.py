@@ -101,7 +101,7 @@ def cropped_tflite(tmp_path_factory):
 
 
 def test_the_tflite_carries_its_view_in_its_metadata(cropped_tflite):
-    from fcnpose_tf.compression.export import inspect_tflite
+    from fcnpose_tf.compression.tflite_file import inspect_tflite
     from fcnpose_tf.runtime.tflite_metadata import VIEW_METADATA, read_metadata
 
     stored = read_metadata(cropped_tflite / "m.tflite")

@@ -5,7 +5,8 @@ import pytest
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.compression.export import _interpreter, export_tflite, run_tflite
+from fcnpose_tf.compression.export import export_tflite
+from fcnpose_tf.compression.verify import _interpreter, run_tflite
 from fcnpose_tf.compression.inference_graph import (DepthToSpace, UnsupportedGraphError, describe_folds, fold_kernel,
                                                     fold_upsampling, foldable_pairs)
 from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose
@@ -149,7 +150,6 @@ def test_folded_export_runs_depth_to_space_and_matches_the_original(p70_64):
 @pytest.mark.slow
 def test_runtime_counts_a_folded_file_as_the_original_network(p70_64, tmp_path):
     """The Pi runtime's parameter and MAC counts of a folded file are the Keras model's, not the phase kernels'."""
-    from fcnpose_tf.training.model import describe
     from fcnpose_tf.runtime.estimator import KeypointModel
 
     path = tmp_path / "folded.tflite"

@@ -17,7 +17,7 @@ draws no conclusion itself. Three modes:
     which the model includes, as the exported network runs it: with --fold auto (default) the int8 model is
     folded (`fcnpose_tf.compression.inference_graph.fold_upsampling`: one convolution at the low resolution
     with f*f*C_OUT filters, then DEPTH_TO_SPACE; the "kernel c_out" column) and the float16 model is not,
-    as `fcnpose_tf.compression.export` does (FOLD_UPSAMPLING_BY_MODE); --fold on / off forces either.
+    as `fcnpose_tf.compression.export` does (settings.TFLITE_FORMATS' fold_upsampling); --fold on / off forces either.
     Pooling is not included. The int8 model has an int8 input and output (as inside the network, no
     QUANTIZE/DEQUANTIZE op at its ends), calibrated on random activations in [0, 1); the float16 model is
     what export's float16 mode writes (float16 weights, float32 input and output). C_OUT is a range A:B
@@ -85,7 +85,7 @@ NUM_POOLS = 5
 UPSAMPLE_FACTORS = (2, 2, 2, 4)
 FORMATS = ("int8", "float16")
 CALIBRATION_FRAMES = 8
-INT8_SAMPLE_FRAMES = 16  # export_tflite's minimum for int8 (MIN_FRAMES_BY_MODE)
+INT8_SAMPLE_FRAMES = 16  # export_tflite's minimum for int8 (settings.TFLITE_FORMATS' min_frames)
 
 
 # ---------------------------------------------------------------------------- FCN-Pose arithmetic
@@ -381,9 +381,9 @@ def fold_choice(fold: str) -> bool | None:
 
 
 def default_fold(fmt: str) -> bool:
-    from fcnpose_tf.compression.export import FOLD_UPSAMPLING_BY_MODE
+    from fcnpose_tf.settings import TFLITE_FORMATS
 
-    return bool(FOLD_UPSAMPLING_BY_MODE[fmt])
+    return bool(TFLITE_FORMATS[fmt].fold_upsampling)
 
 
 # ---------------------------------------------------------------------------- modes

@@ -60,8 +60,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data.args import default_data, load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.compression.export import (MIN_FRAMES_BY_MODE, ExportOptions, ExportVerificationError, export_frames,
-                                               finish_formats, write_tflite)
+    from fcnpose_tf.compression.export import ExportOptions, export_frames, finish_formats, write_tflite
+    from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.training.model import load_model, view_of
     from fcnpose_tf.tables import format_table
@@ -83,11 +83,11 @@ def run(args: argparse.Namespace) -> int:
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W
-    available = min(len(val) + len(train), max(MIN_FRAMES_BY_MODE.values()))  # what export_frames can gather
-    short = [q for q in paths if MIN_FRAMES_BY_MODE[q] > available]
+    available = min(len(val) + len(train), max(f.min_frames for f in settings.TFLITE_FORMATS.values()))  # what export_frames can gather
+    short = [q for q in paths if settings.TFLITE_FORMATS[q].min_frames > available]
     if short:  # known before anything is converted: refuse before writing any file
         raise UserError(f"{', '.join(short)} export is verified on keypoints of at least "
-                        f"{max(MIN_FRAMES_BY_MODE[q] for q in short)} real frames; {dataset.via_path} has "
+                        f"{max(settings.TFLITE_FORMATS[q].min_frames for q in short)} real frames; {dataset.via_path} has "
                         f"{len(val) + len(train)} (add frames, or leave {', '.join(short)} out of --quantize)")
     rows, records, refused = [], [], []
     for quantize, path in paths.items():

@@ -288,7 +288,7 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
 def measure_quantized(run: _Run, export: Any, retrained_facts: Step, qat: dict[str, Any] | None = None) -> Step:
     """One TFLite file: its format, how it was quantized, size (plain and gzip), export facts, operators, metrics and
     timing (`qat`: the quantization-aware training that made it, with the post-training refusal it replaced)."""
-    from fcnpose_tf.compression.export import inspect_tflite
+    from fcnpose_tf.compression.tflite_file import inspect_tflite
     from fcnpose_tf.runtime.estimator import KeypointModel
 
     path = run.paths[tflite_key(export.quantize)]
@@ -407,7 +407,8 @@ def _export_or_refusal(run: _Run, retrained: keras.Model, quantize: str, fold: i
 
     A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
     falls back to quantization-aware training (`options.qat_epochs` > 0)."""
-    from fcnpose_tf.compression.export import FULL_INTEGER, ExportVerificationError
+    from fcnpose_tf.compression.export import FULL_INTEGER
+    from fcnpose_tf.compression.verify import ExportVerificationError
 
     try:
         return export_step(run, retrained, quantize, fold), None

@@ -10,8 +10,9 @@ upsampled tensor is never built, and the folded convolution has 16 x the output 
 the TFLite CPU kernels (XNNPACK) vectorise far better than FCN-Pose's 9 maps.
 ``tools/bench_speedup.py`` and docs/runtime.md have the measured effect.
 
-`fcnpose_tf.compression.export` applies it when asked (`fold_upsampling=True`; off by default, see
-`export.FOLD_UPSAMPLING` for why), and verifies the file against the original Keras model. The
+`fcnpose_tf.compression.export` applies it per format (`settings.TFLITE_FORMATS`' fold_upsampling: on for int8,
+whose forward pass it speeds up; off for the float formats, whose files it would make larger; docs/runtime.md;
+`fold_upsampling=` overrides it) and verifies the file against the original Keras model. The
 rewritten model is for inference only: train and save the original.
 """
 

@@ -231,7 +231,8 @@ def train_until_gate(model: keras.Model, sequence: Any, calibration: Any,
     import tf_keras as keras
 
     from fcnpose_tf.training.distill import TeacherTargets
-    from fcnpose_tf.compression.export import ExportVerificationError, _inference_graph
+    from fcnpose_tf.compression.export import _inference_graph
+    from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.training.train import training_loss
 
     if isinstance(epochs, bool) or not isinstance(epochs, int) or epochs < 0:
