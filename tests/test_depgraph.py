@@ -464,3 +464,25 @@ def test_refusals_name_the_layer(flavour):
     assert "scale (Multiply)" in _refusal(broadcast)
     with pytest.raises(UserError, match="tf_keras or Keras 3 model"):
         prune_graph(object(), 0.5)
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_two_inputs_two_outputs_and_a_dense_on_feature_maps(flavour):
+    K = FLAVOURS[flavour]
+    left, right = K.Input((16, 16, 3), name="left"), K.Input((16, 16, 1), name="right")
+    a = conv(K, 8, "a", activation="relu")(left)
+    b = K.layers.Dense(8, activation="relu", name="pixelwise")(conv(K, 6, "b", activation="relu")(right))
+    x = conv(K, 12, "joint", activation="relu")(K.layers.Concatenate(name="cat")([a, b]))
+    model = randomize(K.Model([left, right], [conv(K, 2, "out1", 1)(x), K.layers.Dense(3, name="out2")(x)]))
+    plan, small = plan_graph(model, 0.5), prune_graph(model, 0.5)
+    assert [small.get_layer(n).filters for n in ("a", "b", "joint", "out1")] == [4, 3, 6, 2]
+    assert small.get_layer("pixelwise").units == 4 and small.get_layer("out2").units == 3
+    x = [inputs_for(K.Model(left, a)), inputs_for(K.Model(right, b), seed=3)]
+    assert_same(run(small, x), run(zero_readers(model, plan), x))
+    assert_same(run(small, x), run(kill_removed_filters(model, plan), x))
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_an_unbuilt_model_is_refused(flavour):
+    K = FLAVOURS[flavour]
+    assert "not built" in _refusal(K.Sequential([K.layers.Conv2D(4, 3), K.layers.Conv2D(2, 1)]))
