@@ -8,6 +8,7 @@ Every architecture is built with either Keras and pruned at three rates; two che
       in a BatchNormalization after them, so they output exactly 0) computes what the pruned model computes.
 """
 
+import doctest
 import functools
 
 import keras as keras3
@@ -16,6 +17,7 @@ import pytest
 import tf_keras
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.compression import depgraph
 from fcnpose_tf.compression.depgraph import dependency_graph, plan_graph, prune_graph
 from fcnpose_tf.compression.prune import keep_count, prune_model
 from fcnpose_tf.training.model import build_fcn_pose, conv_widths
@@ -493,3 +495,7 @@ def test_two_inputs_two_outputs_and_a_dense_on_feature_maps(flavour):
 def test_an_unbuilt_model_is_refused(flavour):
     K = FLAVOURS[flavour]
     assert "not built" in _refusal(K.Sequential([K.layers.Conv2D(4, 3), K.layers.Conv2D(2, 1)]))
+
+
+def test_docstring_examples():
+    assert doctest.testmod(depgraph).failed == 0

@@ -176,11 +176,13 @@ class DependencyGraph(Context):
         for op in self.ops:
             in_maps = [self.maps[key] for key in op.inputs]
             self.maps[op.output] = op.rule.output_map(op.layer, in_maps, op.in_shapes, op.out_shape, self)
-            if op.rule.mixes_channels(op.layer, op.in_shapes):
-                self._freeze(self.maps[op.output], f"{op.layer.name} mixes channels")
+        # The first reason given is the one a group reports.
         for tensor in model.outputs:
             self._freeze(self.maps[_key(tensor)], f"reaches output {_key(tensor)[0]}")
         self._keep(keep)
+        for op in self.ops:
+            if op.rule.mixes_channels(op.layer, op.in_shapes):
+                self._freeze(self.maps[op.output], f"{op.layer.name} mixes channels")
         self.groups = self._groups()
 
     # Context, for the rules
@@ -199,6 +201,11 @@ class DependencyGraph(Context):
         self._owner.extend([owner] * count)
         self._blocks[owner] = np.arange(start, start + count, dtype=np.int64)
         return self._blocks[owner]
+
+    @property
+    def size(self) -> int:
+        """The number of channels made in the model (model inputs included), before any coupling."""
+        return len(self._parent)
 
     def channels_of(self, owner: str) -> np.ndarray:
         """The channels (graph-wide numbers) a producer or model input makes, one per filter."""
@@ -458,7 +465,7 @@ def _group_scores(graph: DependencyGraph, group: ChannelGroup, scorer, reduce) -
 
 
 def _layer_channels(graph: DependencyGraph, plans: list[GroupPlan]) -> dict[str, LayerChannels]:
-    alive = np.ones(len(graph._owner), dtype=bool)  # per graph-wide channel
+    alive = np.ones(graph.size, dtype=bool)  # per graph-wide channel
     for plan in plans:
         for producer in plan.group.producers:
             channels = graph.channels_of(producer)
