@@ -1,0 +1,366 @@
+"""What every supported Keras layer does to the channels it reads, for the dependency graph of `depgraph`.
+
+A *channel map* is an int array, one entry per element of a tensor's last axis, naming the channel ("atom")
+that element carries. A layer's rule says how its output's map follows from its inputs' maps, which of its
+weights belong to which channels (so surgery can slice them), how its config changes when channels go, and how
+many multiply-accumulates it costs. The rules work for tf_keras (Keras 2) and Keras 3 alike: `rule_for` is
+given the Keras module the model was built with and matches the layer's exact class in it (a subclass of a
+supported layer may change its behaviour, so it is refused).
+
+Kinds of layers:
+
+    producer     Conv2D, Conv2DTranspose, SeparableConv2D (its pointwise filters), Dense: new channels
+    depthwise    DepthwiseConv2D (depth_multiplier 1): per-channel weights, channels follow the input
+    per-channel  BatchNormalization (channel axis), PReLU: per-channel weights sliced with their channel
+    mixing       LayerNormalization (channel axis), Softmax / softmax activations on the channel axis: they mix
+                 channels, so the channels through them are never pruned (the dependency graph freezes them)
+    pass-through activations, pooling, global pooling, UpSampling2D, Resizing, ZeroPadding2D, Cropping2D,
+                 dropout and noise layers: the channels pass unchanged
+    merge        Add, Subtract, Multiply, Average, Maximum, Minimum (and Concatenate off the channel axis):
+                 all inputs carry one channel set, coupled channel by channel
+    concatenate  Concatenate on the channel axis: the inputs' channels side by side, at their offsets
+    flatten      Flatten, and Reshape to one axis: every spatial position repeats the channel map
+    reshape      Reshape that keeps the channel axis's length: the map passes unchanged
+"""
+
+from __future__ import annotations
+
+import math
+from types import ModuleType
+from typing import Any, Sequence
+
+import numpy as np
+
+from fcnpose_tf.errors import UserError
+
+_MIXING_ACTIVATIONS = ("softmax", "log_softmax")
+
+SUPPORTED = ("Conv2D, Conv2DTranspose, SeparableConv2D, DepthwiseConv2D, Dense, BatchNormalization, "
+             "LayerNormalization, activations, pooling, UpSampling2D, Resizing, ZeroPadding2D, Cropping2D, "
+             "dropout, Add/Subtract/Multiply/Average/Maximum/Minimum, Concatenate, Flatten and Reshape")
+
+
+def unsupported(layer: Any, why: str = "") -> UserError:
+    """The one-line refusal naming `layer` and its type (and why, if given)."""
+    return UserError(f"unsupported layer {layer.name} ({type(layer).__name__}){': ' + why if why else ''}; "
+                     f"graph pruning handles {SUPPORTED} layers")
+
+
+class Context:
+    """What a rule needs from the graph being built: new channels and the coupling of two maps."""
+
+    def new_channels(self, layer: Any, count: int) -> np.ndarray:
+        """A map of `count` new channels produced by `layer`."""
+        raise NotImplementedError
+
+    def couple(self, first: np.ndarray, second: np.ndarray) -> None:
+        """Channels at the same position of the two maps are removed together."""
+        raise NotImplementedError
+
+
+class Rule:
+    """The pass-through rule; the other kinds override what differs."""
+
+    kind = "pass-through"
+
+    def check(self, layer: Any, in_shapes: Sequence[tuple], out_shape: tuple) -> None:
+        """Raise `unsupported` for a setting the rule cannot handle."""
+        if getattr(layer, "data_format", "channels_last") != "channels_last":
+            raise unsupported(layer, "channels_first data format")
+        if len(in_shapes) != 1:
+            raise unsupported(layer, f"it reads {len(in_shapes)} tensors")
+
+    def output_map(self, layer: Any, in_maps: list[np.ndarray], in_shapes: Sequence[tuple],
+                   out_shape: tuple, context: Context) -> np.ndarray:
+        """The output's channel map."""
+        return in_maps[0]
+
+    def mixes_channels(self, layer: Any, in_shapes: Sequence[tuple]) -> bool:
+        """True if the layer mixes its output channels (so none of them may be removed)."""
+        return False
+
+    def slice_weights(self, layer: Any, weights: list[np.ndarray], kept_in: list[np.ndarray],
+                      kept_out: np.ndarray) -> list[np.ndarray]:
+        """The layer's weights for the kept input positions and kept output positions."""
+        return weights
+
+    def new_config(self, layer: Any, config: dict, kept_in: list[np.ndarray], kept_out: np.ndarray) -> dict:
+        """The layer's config after the surgery."""
+        return config
+
+    def macs(self, layer: Any, in_shapes: Sequence[tuple], out_shape: tuple, widths_in: list[int],
+             width_out: int) -> int | None:
+        """Multiply-accumulates per sample at these widths (None if a spatial size is unknown)."""
+        return 0
+
+
+class Activation(Rule):
+    """Activation, ReLU and the like; a softmax over the channel axis mixes channels."""
+
+    def mixes_channels(self, layer: Any, in_shapes: Sequence[tuple]) -> bool:
+        return _activation_mixes(getattr(layer, "activation", None))
+
+
+class Softmax(Rule):
+    """The Softmax layer: mixes channels when it normalises over the last axis."""
+
+    def mixes_channels(self, layer: Any, in_shapes: Sequence[tuple]) -> bool:
+        axes = layer.axis if isinstance(layer.axis, (list, tuple)) else [layer.axis]
+        rank = len(in_shapes[0])
+        return any(a % rank == rank - 1 for a in axes)
+
+
+class PerChannel(Rule):
+    """BatchNormalization, PReLU, LayerNormalization: weights whose last axis is the channel axis."""
+
+    kind = "per-channel"
+
+    def __init__(self, mixes: bool = False) -> None:
+        self.mixes = mixes
+        if mixes:
+            self.kind = "mixing"
+
+    def check(self, layer: Any, in_shapes: Sequence[tuple], out_shape: tuple) -> None:
+        super().check(layer, in_shapes, out_shape)
+        rank = len(in_shapes[0])
+        if hasattr(layer, "axis"):  # the normalisations
+            axes = layer.axis if isinstance(layer.axis, (list, tuple)) else [layer.axis]
+            if sorted(a % rank for a in axes) != [rank - 1]:
+                raise unsupported(layer, f"normalises axis {layer.axis}, not the channel axis only")
+
+    def mixes_channels(self, layer: Any, in_shapes: Sequence[tuple]) -> bool:
+        return self.mixes
+
+    def slice_weights(self, layer, weights, kept_in, kept_out):
+        # gamma, beta, moving statistics (C,); PReLU's alpha (..., C), or (..., 1) when shared over channels
+        return [w[..., kept_in[0]] if w.ndim and w.shape[-1] != 1 else w for w in weights]
+
+
+class Merge(Rule):
+    """Elementwise merges: every input carries the same channels, position by position."""
+
+    kind = "merge"
+
+    def check(self, layer, in_shapes, out_shape):
+        if len({shape[-1] for shape in in_shapes}) != 1:
+            raise unsupported(layer, f"its inputs have different channel counts {[s[-1] for s in in_shapes]} "
+                                     "(broadcasting over channels)")
+
+    def output_map(self, layer, in_maps, in_shapes, out_shape, context):
+        for other in in_maps[1:]:
+            context.couple(in_maps[0], other)
+        return in_maps[0]
+
+
+class Concatenate(Merge):
+    """Concatenate: on the channel axis the maps go side by side; on another axis it couples like a merge."""
+
+    kind = "concatenate"
+
+    def _on_channels(self, layer, rank: int) -> bool:
+        return layer.axis % rank == rank - 1
+
+    def check(self, layer, in_shapes, out_shape):
+        if not self._on_channels(layer, len(in_shapes[0])):
+            super().check(layer, in_shapes, out_shape)
+
+    def output_map(self, layer, in_maps, in_shapes, out_shape, context):
+        if self._on_channels(layer, len(in_shapes[0])):
+            return np.concatenate(in_maps)
+        return super().output_map(layer, in_maps, in_shapes, out_shape, context)
+
+
+class Flatten(Rule):
+    """Flatten: position (spatial k, channel c) of the output is channel c, for every k."""
+
+    kind = "flatten"
+
+    def output_map(self, layer, in_maps, in_shapes, out_shape, context):
+        return np.tile(in_maps[0], _product(in_shapes[0][1:-1], "flatten", layer))
+
+
+class Reshape(Rule):
+    """Reshape keeping the channel axis's length (the map passes) or to one axis (as Flatten)."""
+
+    kind = "reshape"
+
+    def _flattens(self, layer, in_shapes, out_shape) -> bool:
+        return len(out_shape) == 2 and len(in_shapes[0]) > 2
+
+    def check(self, layer, in_shapes, out_shape):
+        super().check(layer, in_shapes, out_shape)
+        if not (out_shape[-1] == in_shapes[0][-1] or self._flattens(layer, in_shapes, out_shape)):
+            raise unsupported(layer, f"reshapes {in_shapes[0]} to {out_shape}, moving the channel axis")
+
+    def output_map(self, layer, in_maps, in_shapes, out_shape, context):
+        if out_shape[-1] == in_shapes[0][-1]:
+            return in_maps[0]
+        return np.tile(in_maps[0], _product(in_shapes[0][1:-1], "reshape", layer))
+
+    def new_config(self, layer, config, kept_in, kept_out):
+        target = list(config["target_shape"])
+        if target[-1] != -1:
+            target[-1] = int(len(kept_out))
+        config["target_shape"] = tuple(target)
+        return config
+
+
+class Depthwise(Rule):
+    """DepthwiseConv2D with depth_multiplier 1: kernel (kh, kw, C, 1) and bias (C,) follow the input channels."""
+
+    kind = "depthwise"
+
+    def check(self, layer, in_shapes, out_shape):
+        super().check(layer, in_shapes, out_shape)
+        if layer.depth_multiplier != 1:
+            raise unsupported(layer, f"depth_multiplier {layer.depth_multiplier} (only 1 is handled)")
+
+    def mixes_channels(self, layer, in_shapes):
+        return _activation_mixes(layer.activation)
+
+    def slice_weights(self, layer, weights, kept_in, kept_out):
+        return [weights[0][:, :, kept_in[0], :]] + [b[kept_in[0]] for b in weights[1:]]
+
+    def macs(self, layer, in_shapes, out_shape, widths_in, width_out):
+        kh, kw = layer.kernel_size
+        return _area(out_shape) * kh * kw * widths_in[0] if _area(out_shape) is not None else None
+
+
+class Producer(Rule):
+    """A layer making new channels: its output axis is where its filters are, its input axis reads channels.
+
+    Args:
+        kind: "conv" (Conv2D), "transpose" (Conv2DTranspose), "separable" (SeparableConv2D) or "dense".
+    """
+
+    def __init__(self, kind: str) -> None:
+        self.kind = kind
+
+    def width(self, layer) -> int:
+        """The layer's filter (unit) count."""
+        return int(layer.units if self.kind == "dense" else layer.filters)
+
+    def check(self, layer, in_shapes, out_shape):
+        super().check(layer, in_shapes, out_shape)
+        if getattr(layer, "groups", 1) != 1:
+            raise unsupported(layer, f"grouped convolution (groups={layer.groups})")
+
+    def output_map(self, layer, in_maps, in_shapes, out_shape, context):
+        return context.new_channels(layer, self.width(layer))
+
+    def mixes_channels(self, layer, in_shapes):
+        return _activation_mixes(layer.activation)
+
+    def filter_kernel(self, weights: list[np.ndarray]) -> np.ndarray:
+        """The kernel that holds the filters, with the filter axis last."""
+        if self.kind == "transpose":  # (kh, kw, filters, cin)
+            return np.moveaxis(weights[0], 2, 3)
+        if self.kind == "separable":  # depthwise (kh, kw, cin, dm), pointwise (1, 1, cin * dm, filters)
+            return weights[1]
+        return weights[0]
+
+    def slice_weights(self, layer, weights, kept_in, kept_out):
+        rows = kept_in[0]
+        if self.kind == "conv":
+            kernels = [weights[0][:, :, rows, :][..., kept_out]]
+            rest = weights[1:]
+        elif self.kind == "transpose":
+            kernels = [weights[0][:, :, kept_out, :][..., rows]]
+            rest = weights[1:]
+        elif self.kind == "separable":
+            multiplier = weights[0].shape[-1]
+            pointwise_rows = (rows[:, None] * multiplier + np.arange(multiplier)).ravel()
+            kernels = [weights[0][:, :, rows, :], weights[1][:, :, pointwise_rows, :][..., kept_out]]
+            rest = weights[2:]
+        else:
+            kernels = [weights[0][rows, :][:, kept_out]]
+            rest = weights[1:]
+        return kernels + [b[kept_out] for b in rest]
+
+    def new_config(self, layer, config, kept_in, kept_out):
+        config["units" if self.kind == "dense" else "filters"] = int(len(kept_out))
+        return config
+
+    def macs(self, layer, in_shapes, out_shape, widths_in, width_out):
+        cin = widths_in[0]
+        if self.kind == "dense":
+            positions = _product(out_shape[1:-1], None, layer)
+            return None if positions is None else positions * cin * width_out
+        kh, kw = layer.kernel_size
+        if self.kind == "transpose":  # every input pixel scatters a kh x kw x filters patch
+            area = _area(in_shapes[0])
+            return None if area is None else area * kh * kw * cin * width_out
+        area = _area(out_shape)
+        if area is None:
+            return None
+        if self.kind == "separable":
+            multiplier = layer.depth_multiplier
+            return area * (kh * kw * cin * multiplier + cin * multiplier * width_out)
+        return area * kh * kw * cin * width_out
+
+
+def _activation_mixes(activation: Any) -> bool:
+    name = getattr(activation, "__name__", str(activation))
+    return name in _MIXING_ACTIVATIONS
+
+
+def _area(shape: tuple) -> int | None:
+    return _product(shape[1:-1], None, None)
+
+
+def _product(dims: Sequence, what: str | None, layer: Any) -> int | None:
+    if any(d is None for d in dims):
+        if what is None:
+            return None
+        raise unsupported(layer, f"cannot {what} a tensor of unknown size {tuple(dims)}")
+    return int(math.prod(int(d) for d in dims))
+
+
+def _rule_table(keras: ModuleType) -> dict[type, Rule]:
+    layers = keras.layers
+    table: dict[type, Rule] = {
+        layers.Conv2D: Producer("conv"),
+        layers.Conv2DTranspose: Producer("transpose"),
+        layers.SeparableConv2D: Producer("separable"),
+        layers.Dense: Producer("dense"),
+        layers.DepthwiseConv2D: Depthwise(),
+        layers.BatchNormalization: PerChannel(),
+        layers.PReLU: PerChannel(),
+        layers.LayerNormalization: PerChannel(mixes=True),
+        layers.Softmax: Softmax(),
+        layers.Concatenate: Concatenate(),
+        layers.Flatten: Flatten(),
+        layers.Reshape: Reshape(),
+    }
+    for name in ("Add", "Subtract", "Multiply", "Average", "Maximum", "Minimum"):
+        table[getattr(layers, name)] = Merge()
+    for name in ("Activation", "ReLU", "LeakyReLU", "ELU", "ThresholdedReLU"):
+        if hasattr(layers, name):
+            table[getattr(layers, name)] = Activation()
+    for name in ("MaxPooling2D", "AveragePooling2D", "GlobalAveragePooling2D", "GlobalMaxPooling2D",
+                 "UpSampling2D", "Resizing", "ZeroPadding2D", "Cropping2D", "Dropout", "SpatialDropout2D",
+                 "GaussianDropout", "GaussianNoise"):
+        table[getattr(layers, name)] = Rule()
+    return table
+
+
+_TABLES: dict[str, dict[type, Rule]] = {}
+
+
+def rule_for(layer: Any, keras: ModuleType) -> Rule:
+    """The rule of `layer`'s exact class in the Keras module `keras` (tf_keras or keras).
+
+    Raises:
+        UserError: for a nested model or a layer type without a rule ("unsupported layer NAME (TYPE)").
+    """
+    table = _TABLES.get(keras.__name__)
+    if table is None:
+        table = _TABLES[keras.__name__] = _rule_table(keras)
+    rule = table.get(type(layer))
+    if rule is None:
+        if isinstance(layer, keras.Model):
+            raise UserError(f"layer {layer.name} ({type(layer).__name__}) is a nested model; graph pruning "
+                            "handles a flat model (rebuild it with the inner model's layers)")
+        raise unsupported(layer)
+    return rule
+
