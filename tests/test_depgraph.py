@@ -19,7 +19,8 @@ import tf_keras
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression import depgraph
 from fcnpose_tf.compression.depgraph import dependency_graph, plan_graph, prune_graph
-from fcnpose_tf.compression.prune import keep_count, prune_model
+from fcnpose_tf.compression.keep_rule import keep_count
+from fcnpose_tf.compression.prune import prune_model
 from fcnpose_tf.training.model import build_fcn_pose, conv_widths
 
 FLAVOURS = {"tf_keras": tf_keras, "keras3": keras3}

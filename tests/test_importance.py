@@ -10,7 +10,8 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.importance import CRITERIA, FirstOrderTaylor, MeanActivation, WeightNorm, make_importance
-from fcnpose_tf.compression.prune import kept_by_score, prune_model, prune_plan
+from fcnpose_tf.compression.keep_rule import kept_by_score
+from fcnpose_tf.compression.prune import prune_model, prune_plan
 from fcnpose_tf.training.train import ground_truth_loss
 from test_prune import bn_chain, frames, zeroed_reference
 

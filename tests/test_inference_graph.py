@@ -10,7 +10,7 @@ from fcnpose_tf.compression.verify import _interpreter, run_tflite
 from fcnpose_tf.compression.inference_graph import (DepthToSpace, UnsupportedGraphError, describe_folds, fold_kernel,
                                                     fold_upsampling, foldable_pairs)
 from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose
-from fcnpose_tf.compression.prune import pruned_widths
+from fcnpose_tf.compression.keep_rule import pruned_widths
 from weights import randomize
 
 L = keras.layers

@@ -14,9 +14,9 @@ import tf_keras as keras
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
 from fcnpose_tf.compression.report import model_facts
-from fcnpose_tf.compression.prune import (chain_param_count, filter_l1_norms, floored_widths, keep_count,
-                                          kept_filters, magnitude_prune, plan_widths, prune_model, prune_plan,
-                                          pruned_widths, weight_sparsity)
+from fcnpose_tf.compression.keep_rule import filter_l1_norms, floored_widths, keep_count, kept_filters, pruned_widths
+from fcnpose_tf.compression.prune import chain_param_count, plan_widths, prune_model, prune_plan
+from fcnpose_tf.compression.magnitude import magnitude_prune, weight_sparsity
 
 # tfmot 0.8.1 still imports distutils' LooseVersion
 pytestmark = pytest.mark.filterwarnings("ignore:distutils Version classes are deprecated:DeprecationWarning")
@@ -531,6 +531,7 @@ def test_magnitude_prune_bad_sparsity(sparsity):
 def test_the_examples_in_the_docstrings_hold():
     import doctest
 
-    from fcnpose_tf.compression import prune
+    from fcnpose_tf.compression import keep_rule, magnitude, prune
 
-    assert doctest.testmod(prune).failed == 0
+    for module in (keep_rule, prune, magnitude):
+        assert doctest.testmod(module).failed == 0, module.__name__

@@ -34,7 +34,7 @@ def main() -> int:
 
     set_tensorflow_threads(args.threads)
     from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose
-    from fcnpose_tf.compression.prune import pruned_widths
+    from fcnpose_tf.compression.keep_rule import pruned_widths
     from fcnpose_tf.training.train import compile_for_training, freeze_first_convolutions
 
     rng = np.random.default_rng(0)

@@ -8,7 +8,7 @@ inputs' channels side by side, each keeping its own group, and its consumers rea
 Flatten before a Dense repeats the channels at every spatial position (the Dense loses rows ``c + C * k``).
 `fcnpose_tf.compression.channel_rules` holds what each layer type does to channels.
 
-Every group of n channels keeps ``n - floor(n * rate)`` of them (the paper's keep rule, `prune.keep_count`), the
+Every group of n channels keeps ``n - floor(n * rate)`` of them (the paper's keep rule, `keep_rule.keep_count`), the
 ones whose importance is highest: the importance of a channel is the aggregate (sum, mean or max) over the layers
 producing it of their filter's score (L1 or L2 norm of the filter's kernel slice, bias excluded). Per-channel
 layers (BatchNormalization, DepthwiseConv2D, PReLU) do not score: they are not producers, their weights are
@@ -41,7 +41,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.channel_rules import Context, Rule, rule_for
 from fcnpose_tf.compression.importance import WeightNorm
-from fcnpose_tf.compression.prune import Rate, keep_count, kept_top
+from fcnpose_tf.compression.keep_rule import Rate, keep_count, kept_top
 from fcnpose_tf.tables import format_table
 
 AGGREGATES: dict[str, Callable[[np.ndarray], float]] = {"sum": np.sum, "mean": np.mean, "max": np.max}

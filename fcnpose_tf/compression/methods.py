@@ -137,7 +137,7 @@ class MagnitudePruning:
         return f"magnitude at rate {self.rate:g}"
 
     def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
-        from fcnpose_tf.compression.prune import magnitude_prune
+        from fcnpose_tf.compression.magnitude import magnitude_prune
 
         self.sparsity = 1.0 - self.plan.params / base.count_params()  # the same reduction as filter surgery
         return magnitude_prune(base, self.sparsity), {"magnitude_sparsity": round(self.sparsity, 6)}
@@ -145,7 +145,7 @@ class MagnitudePruning:
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         import tensorflow_model_optimization as tfmot
 
-        from fcnpose_tf.compression.prune import magnitude_prune
+        from fcnpose_tf.compression.magnitude import magnitude_prune
 
         # the same masks as `prune` (computed from the base's weights), kept while fit retrains
         magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(

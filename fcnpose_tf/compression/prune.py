@@ -1,5 +1,4 @@
-"""Filter pruning with layer surgery (Li et al. 2017, as FCN-Pose applies it), and unstructured
-magnitude pruning with tensorflow-model-optimization for comparison.
+"""Filter pruning with layer surgery on a chain of layers (Li et al. 2017, as FCN-Pose applies it).
 
 Structured pruning (`prune_model`) removes whole filters: every Conv2D except the output layer
 keeps its ``n - floor(n * rate)`` filters that an importance criterion scores highest (default:
@@ -9,39 +8,26 @@ Conv2D's kernel loses the matching input channels. Parameters, MACs, file size a
 shrink. Before retraining, the pruned model computes exactly what the original computes with the
 removed channels deleted from the graph.
 
-Unstructured pruning (`magnitude_prune`) zeroes the smallest weights of every kernel instead. The
-tensors keep their shapes, so the parameter count and the latency stay the same; only a
-compressed file (gzip) gets smaller. It exists so reports can show the two side by side.
-
-Rates are fractions in [0, 1) of the filters to *remove*. The keep rule is the paper's (and
-NNI's), ``n - floor(n * rate)``, which always keeps at least one filter; Torch-Pruning's
-``floor(n * (1 - rate))`` keeps one fewer whenever ``n * rate`` is not a whole number.
+How many filters each layer keeps is the paper's keep rule (`fcnpose_tf.compression.keep_rule`), planned once per
+model and rate (`plan_widths`: a `WidthPlan`). A model with branches (residual, concatenating, depthwise) is
+`fcnpose_tf.compression.depgraph`'s; tensorflow-model-optimization's unstructured pruning is
+`fcnpose_tf.compression.magnitude`'s.
 """
 
 from __future__ import annotations
 
-import math
-import numbers
-from decimal import Decimal
-from fractions import Fraction
 from dataclasses import dataclass
-from typing import Callable, Iterable, Sequence, Union
+from typing import Callable, Sequence
 
 import numpy as np
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.importance import Importance, WeightNorm
+from fcnpose_tf.compression.keep_rule import Rate, floored_widths, kept_top
 from fcnpose_tf.training.model import chain_layers
 
-Rate = Union[float, int, Fraction, Decimal, str]
-
 STRATEGIES = ("independent", "greedy")
-
-# Slack added to n * rate before flooring, for rates computed in floating point (0.1 * 7 and the
-# like). Rates are first read exactly as the shortest decimal that prints as the float (0.29 ->
-# 29/100), so a typed rate never needs it.
-_RATE_SLACK = Fraction(1, 10**9)
 
 # Layers the surgery understands. Channel-wise layers pass the kept-channel set through unchanged.
 _CHANNELWISE = (
@@ -60,182 +46,6 @@ _CHANNEL_MIXING_ACTIVATIONS = ("softmax", "log_softmax")
 
 _SUPPORTED_NAMES = ("Conv2D, MaxPooling2D, AveragePooling2D, UpSampling2D, ZeroPadding2D, Cropping2D, "
                     "Activation, ReLU, LeakyReLU, ELU, Softmax, BatchNormalization and Dropout")
-
-
-# --------------------------------------------------------------------------------------------
-# The keep rule and the ranking
-# --------------------------------------------------------------------------------------------
-
-def _exact_rate(rate: Rate) -> Fraction:
-    """The rate as an exact fraction, validated to lie in [0, 1)."""
-    if isinstance(rate, bool):
-        raise UserError(f"pruning rate must be a number in [0, 1), got {rate!r}")
-    try:
-        if isinstance(rate, str):
-            value = Fraction(rate.strip())
-        elif isinstance(rate, (Fraction, int)):
-            value = Fraction(rate)
-        elif isinstance(rate, Decimal):
-            if not rate.is_finite():
-                raise ValueError
-            value = Fraction(rate)
-        elif isinstance(rate, numbers.Real):
-            if not math.isfinite(float(rate)):
-                raise ValueError
-            # repr of a float is the shortest decimal that reads back as it: 0.29 -> "0.29" -> 29/100.
-            value = Fraction(repr(float(rate)))
-        else:
-            raise ValueError
-    except (ValueError, ZeroDivisionError):
-        raise UserError(f"pruning rate must be a number in [0, 1), got {rate!r}") from None
-    if not 0 <= value < 1:
-        raise UserError(f"pruning rate must be in [0, 1) (the fraction of filters removed), got {rate!r}")
-    return value
-
-
-def keep_count(n: int, rate: Rate) -> int:
-    """Filters a layer of `n` filters keeps at `rate`: ``n - floor(n * rate)``, at least 1.
-
-    The product is computed exactly (the rate is read as the decimal it prints as), so
-    ``keep_count(100, 0.29) == 71`` although ``100 * 0.29`` is 28.999999999999996 in floating point.
-
-    Args:
-        n: the layer's filter count (positive).
-        rate: fraction of filters to remove, in [0, 1); a float, int, Fraction, Decimal or a
-            decimal string such as ``"0.7"``.
-    Returns:
-        The number of filters kept.
-    Raises:
-        UserError: if the rate is outside [0, 1) or not a number, or n is not positive.
-    Example:
-        >>> keep_count(128, 0.7), keep_count(8, 0.7), keep_count(64, 0.5)
-        (39, 3, 32)
-    """
-    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
-        raise UserError(f"filter count must be a positive integer, got {n!r}")
-    removed = math.floor(int(n) * _exact_rate(rate) + _RATE_SLACK)
-    return int(n) - min(int(removed), int(n) - 1)
-
-
-def pruned_widths(widths: Iterable[int], rate: Rate) -> tuple[int, ...]:
-    """The keep rule applied to each width, e.g. FCN-Pose's conv1..conv9 (not the output layer).
-
-    Args:
-        widths: filter counts of the layers that are pruned.
-        rate: fraction of filters to remove, in [0, 1).
-    Returns:
-        The kept filter counts, in the same order.
-    Raises:
-        UserError: for a rate outside [0, 1) or a non-positive width.
-    Example:
-        >>> pruned_widths((128, 64, 32, 16, 8, 8, 16, 32, 64), 0.7)
-        (39, 20, 10, 5, 3, 3, 5, 10, 20)
-    """
-    _exact_rate(rate)
-    return tuple(keep_count(int(w), rate) for w in widths)
-
-
-def filter_l1_norms(kernel: np.ndarray, input_channels: Sequence[int] | None = None) -> np.ndarray:
-    """L1 norm of every filter of a Conv2D kernel (kh, kw, cin, cout): sum of |w| over kh, kw and cin.
-
-    Args:
-        kernel: the Conv2D kernel, shape (kh, kw, cin, cout).
-        input_channels: if given, only these input channels count (the greedy strategy leaves out
-            the channels the previous layer lost).
-    Returns:
-        A float64 array of length cout.
-    """
-    return WeightNorm(1).filter_scores(kernel, input_channels)
-
-
-def kept_filters(kernel: np.ndarray, rate: Rate, input_channels: Sequence[int] | None = None) -> np.ndarray:
-    """Indices of the filters a Conv2D keeps at `rate`: the largest L1 norms, in their original order.
-
-    Ties in the norm go to the lower index, so the choice is deterministic.
-
-    Args:
-        kernel: the Conv2D kernel, shape (kh, kw, cin, cout).
-        rate: fraction of filters to remove, in [0, 1).
-        input_channels: rank only on these input channels (the greedy strategy); all if None.
-    Returns:
-        Sorted int64 indices, ``keep_count(cout, rate)`` of them.
-    Raises:
-        UserError: for a rate outside [0, 1) or a kernel that is not 4-D.
-    Example:
-        >>> k = np.zeros((1, 1, 1, 4)); k[..., :] = [3.0, -5.0, 1.0, 3.0]
-        >>> kept_filters(k, 0.5).tolist()
-        [0, 1]
-    """
-    return kept_by_score(filter_l1_norms(kernel, input_channels), rate)
-
-
-def kept_by_score(scores: np.ndarray, rate: Rate) -> np.ndarray:
-    """Indices of the ``keep_count(len(scores), rate)`` highest scores, in their original order.
-
-    Ties go to the lower index, so the choice is deterministic.
-
-    Example:
-        >>> kept_by_score(np.array([0.2, 0.9, 0.2, 0.5]), 0.5).tolist()
-        [1, 3]
-    """
-    return kept_top(scores, keep_count(len(np.atleast_1d(scores)), rate))
-
-
-def kept_top(scores: np.ndarray, count: int) -> np.ndarray:
-    """Indices of the `count` highest scores, in their original order; ties go to the lower index.
-
-    Example:
-        >>> kept_top(np.array([0.2, 0.9, 0.2, 0.5]), 3).tolist()
-        [0, 1, 3]
-    """
-    scores = np.asarray(scores, dtype=np.float64)
-    if scores.ndim != 1 or not np.all(np.isfinite(scores)):
-        raise UserError(f"filter scores must be a finite 1-D array, got shape {scores.shape}")
-    if not 1 <= count <= len(scores):
-        raise UserError(f"a layer of {len(scores)} filters cannot keep {count}")
-    # Stable sort on the negated scores: largest first, equal scores in index order.
-    order = np.argsort(-scores, kind="stable")
-    return np.sort(order[:count]).astype(np.int64)
-
-
-def floored_widths(widths: Sequence[int], rate: Rate, min_filters: int,
-                   param_count: Callable[[tuple[int, ...]], int]) -> tuple[tuple[int, ...], int]:
-    """Kept filter counts that leave no layer narrower than `min_filters`, at no more parameters than the keep rule's.
-
-    The keep rule at `rate` leaves the narrow layers of an hourglass network (FCN-Pose's conv5 and conv6: 8
-    filters) with 3 filters at 0.7, through which every keypoint's position has to pass. Here every layer keeps
-    at least ``min(n, min_filters)`` filters and the others are pruned at the smallest rate >= `rate` at which the
-    whole network has no more parameters than ``pruned_widths(widths, rate)`` gives it: the budget moves from the
-    wide, high-resolution layers to the bottleneck. If no rate fits the budget with that floor (high rates), the
-    floor is lowered one filter at a time; a floor of 1 is the keep rule itself.
-
-    Args:
-        widths: filter counts of the layers that are pruned, in order.
-        rate: fraction of filters to remove, in [0, 1); sets the parameter budget.
-        min_filters: the narrowest a layer may become (0 or 1: the plain keep rule).
-        param_count: the network's parameter count for a tuple of kept counts (`chain_param_count`).
-    Returns:
-        (kept counts, the floor used).
-    Example:
-        >>> count = lambda kept: sum(kept)  # a toy cost: one parameter per filter
-        >>> floored_widths((128, 64, 8), 0.7, 4, count)
-        ((38, 19, 4), 4)
-    """
-    uniform = pruned_widths(widths, rate)
-    if isinstance(min_filters, bool) or not isinstance(min_filters, numbers.Integral) or min_filters < 0:
-        raise UserError(f"the narrowest layer width must be a whole number >= 0, got {min_filters!r}")
-    if all(k >= min(n, min_filters) for n, k in zip(widths, uniform)):  # always so for a floor of 0 or 1
-        return uniform, int(min_filters)
-    budget = param_count(uniform)
-    start = _exact_rate(rate)
-    # Keep counts only change at rates m/n, so these are all the rates worth trying, in increasing order.
-    rates = sorted({start} | {Fraction(m, n) for n in set(widths) for m in range(1, n) if Fraction(m, n) > start})
-    for floor in range(int(min_filters), 1, -1):
-        for candidate in rates:
-            kept = tuple(max(keep_count(n, candidate), min(n, floor)) for n in widths)
-            if param_count(kept) <= budget:
-                return kept, floor
-    return uniform, 1
 
 
 # --------------------------------------------------------------------------------------------
@@ -523,98 +333,3 @@ def _input_name(model: keras.Model) -> str:
     if isinstance(first, keras.layers.InputLayer):
         return first.name
     return model.inputs[0].name.split(":")[0]
-
-
-# --------------------------------------------------------------------------------------------
-# Unstructured magnitude pruning (tensorflow-model-optimization)
-# --------------------------------------------------------------------------------------------
-
-TrainFn = Callable[[keras.Model, list], None]
-
-
-def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | None = None,
-                    frequency: int = 100, include_output: bool = False) -> keras.Model:
-    """Zero the smallest-magnitude weights of every Conv2D kernel (unstructured pruning).
-
-    Uses tensorflow-model-optimization's ``prune_low_magnitude`` with a ``ConstantSparsity``
-    schedule: the masks are applied at once (so the result is sparse even without retraining),
-    then `train_fn` may retrain the wrapped model while the masks are kept, and the wrappers are
-    stripped. Tensor shapes do not change, so parameters, MACs and latency stay the same; only a
-    compressed file gets smaller. For the ``--method magnitude`` comparison with `prune_model`.
-
-    Args:
-        model: a built tf_keras model; it is copied, not modified.
-        sparsity: fraction of each pruned kernel's weights set to zero, in [0, 1).
-        train_fn: called as ``train_fn(wrapped_model, callbacks)`` to retrain; it must compile the
-            model and pass `callbacks` (tfmot's ``UpdatePruningStep``) to ``fit``. None skips it.
-        frequency: training steps between mask updates while retraining.
-        include_output: also prune the output layer (the last Conv2D); off by default, as in
-            `prune_model`. Biases are never pruned.
-    Returns:
-        A plain tf_keras model (wrappers stripped) with the same layers and names.
-    Raises:
-        UserError: for a sparsity outside [0, 1) or a model without a Conv2D to prune.
-    Example:
-        >>> from fcnpose_tf.training.model import build_fcn_pose
-        >>> sparse = magnitude_prune(build_fcn_pose(input_size=64), 0.7)
-        >>> round(weight_sparsity(sparse, ["conv2"])["conv2"], 3)
-        0.7
-    """
-    import tensorflow_model_optimization as tfmot
-
-    if isinstance(sparsity, bool) or not isinstance(sparsity, numbers.Real) or not 0 <= float(sparsity) < 1:
-        raise UserError(f"sparsity must be a number in [0, 1), got {sparsity!r}")
-    if isinstance(frequency, bool) or not isinstance(frequency, numbers.Integral) or frequency < 1:
-        raise UserError(f"frequency must be a positive number of steps, got {frequency!r}")
-    convs = [layer.name for layer in model.layers if type(layer) is keras.layers.Conv2D]
-    targets = set(convs if include_output else convs[:-1])
-    if not targets:
-        raise UserError(f"model {model.name} has no Conv2D layer to prune")
-    sparsity_api = tfmot.sparsity.keras
-    schedule = sparsity_api.ConstantSparsity(float(sparsity), begin_step=0, frequency=int(frequency))
-
-    # tfmot wraps the layer objects it is given; clone first so the caller's weights stay intact.
-    copy = keras.models.clone_model(model)
-    copy.set_weights(model.get_weights())
-
-    def wrap(layer):
-        if layer.name in targets:
-            return sparsity_api.prune_low_magnitude(layer, pruning_schedule=schedule)
-        return layer
-
-    wrapped = keras.models.clone_model(copy, clone_function=wrap)  # shares the copy's layers and weights
-    wrappers = [layer for layer in wrapped.layers if isinstance(layer, _prune_wrapper_type())]
-    # Step 0 of the schedule: compute the masks from the current weights and apply them now.
-    for layer in wrappers:
-        layer.pruning_step.assign(0)
-        layer.pruning_obj.conditional_mask_update()
-        layer.pruning_obj.weight_mask_op()
-    if train_fn is not None:
-        train_fn(wrapped, [sparsity_api.UpdatePruningStep()])
-        for layer in wrappers:  # the last optimizer step may have moved masked weights
-            layer.pruning_obj.weight_mask_op()
-    return sparsity_api.strip_pruning(wrapped)
-
-
-def _prune_wrapper_type() -> type:
-    from tensorflow_model_optimization.python.core.sparsity.keras.pruning_wrapper import PruneLowMagnitude
-
-    return PruneLowMagnitude
-
-
-def weight_sparsity(model: keras.Model, layer_names: Iterable[str] | None = None) -> dict[str, float]:
-    """Fraction of exactly-zero kernel weights of each Conv2D (or of the named layers).
-
-    Args:
-        model: a tf_keras model.
-        layer_names: the Conv2D layers to measure; all of them if None.
-    Returns:
-        Layer name -> fraction of zeros in its kernel (biases are not counted), in layer order.
-    """
-    wanted = None if layer_names is None else set(layer_names)
-    result = {}
-    for layer in model.layers:
-        if type(layer) is keras.layers.Conv2D and (wanted is None or layer.name in wanted):
-            kernel = layer.get_weights()[0]
-            result[layer.name] = float(np.count_nonzero(kernel == 0) / kernel.size)
-    return result
