@@ -33,6 +33,8 @@ DEFAULT_NUM_MAPS = 9
 UPSAMPLE_FACTORS = (2, 2, 2, 4)
 NUM_POOLS = 5
 SIZE_MULTIPLE = INPUT_SIZE_MULTIPLE
+SKIP_LAYERS = ("skip2", "skip_up", "skip_add")
+"""The layers `build_fcn_pose(skip=True)` adds: conv2's output projected, upsampled, added before conv10."""
 """2**NUM_POOLS: an input side the five poolings divide exactly (checked by `check_input_size`)."""
 
 
@@ -53,8 +55,13 @@ def input_shape_of(input_size: ViewLike) -> tuple[int, int]:
 
 
 def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: ViewLike = DEFAULT_INPUT_SIZE,
-                   num_maps: int = DEFAULT_NUM_MAPS, name: str = "fcn_pose") -> keras.Model:
+                   num_maps: int = DEFAULT_NUM_MAPS, name: str = "fcn_pose", skip: bool = False) -> keras.Model:
     """Build FCN-Pose with the given widths of conv1..conv9 (conv10 has `num_maps` filters).
+
+    With `skip`, the decoder also reads the encoder's block at half resolution: conv2's output goes through a 1x1
+    convolution to conv9's width (`skip2`, linear, zero at the start, so the network computes plain FCN-Pose until
+    it is trained), is upsampled by 2 (`skip_up`) and added to up4's output (`skip_add`), which conv10 reads. conv10
+    then sees 2 x 2 blocks of the input instead of 4 x 4 (SKIP_LAYERS; not the paper's network).
 
     Args:
         widths: filters of conv1..conv9; the paper's are (128, 64, 32, 16, 8, 8, 16, 32, 64).
@@ -84,12 +91,18 @@ def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: ViewLike 
     x = inputs
     for i in range(NUM_POOLS):
         x = conv(x, widths[i], i + 1)
+        if i == 1:
+            half = x  # conv2's output, before pool2: half the input's resolution
         x = keras.layers.MaxPooling2D(2, name=f"pool{i + 1}")(x)
     x = conv(x, widths[5], 6)
     for i, factor in enumerate(UPSAMPLE_FACTORS):
         x = keras.layers.UpSampling2D(factor, name=f"up{i + 1}")(x)
         if i + 7 <= 9:
             x = conv(x, widths[i + 6], i + 7)
+    if skip:
+        fine = keras.layers.Conv2D(widths[8], 1, kernel_initializer="zeros", name=SKIP_LAYERS[0])(half)
+        fine = keras.layers.UpSampling2D(2, name=SKIP_LAYERS[1])(fine)
+        x = keras.layers.Add(name=SKIP_LAYERS[2])([x, fine])
     outputs = conv(x, num_maps, 10, activation="sigmoid")
     model = keras.Model(inputs, outputs, name=name)
     return with_view(model, input_size) if isinstance(input_size, FrameView) else model
