@@ -42,7 +42,7 @@ EXAMPLES = """\
   fcnpose-tf export saved_models/fcnpose_ur5_p70.keras --quantize int8     # -> saved_models/fcnpose_ur5_p70_int8.tflite
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --out-dir models/  # float16 and int8 files
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --quantize float16,int8  # exit 2 if either is refused
-  fcnpose-tf export mnv2_p50.keras --input-range -1,1 --quantize float16,int8  # any CNN: verified by output parity
+  fcnpose-tf export mnv2_p50.keras --input-range=-1,1 --quantize float16,int8  # any CNN: verified by output parity
 """
 
 
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--input-range", type=_input_range, default=(0.0, 1.0), metavar="LOW,HIGH",
                         help="a model that is not a keypoint model: the range of its input values, where its random "
                              "verification and calibration inputs are drawn (and --data frames scaled to); e.g. -1,1 "
-                             "for Keras' MobileNetV2 (default: 0,1)")
+                             "for Keras' MobileNetV2, written --input-range=-1,1 (default: 0,1)")
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write what was exported: per file its format, size, calibration, verification "
                              "gate and graph rewrites")
