@@ -121,7 +121,8 @@ def run(args: argparse.Namespace) -> int:
         rows.append([what, before, after, f"{after / before:.1%}" if before and after is not None else None])
     print(format_table(["", "before", "after", "left"], rows))
     print(f"{plan.graph.keras.__name__} model {model.name}: {sum(not p.group.frozen for p in plan.groups)} of "
-          f"{len(plan.groups)} groups pruned at rate {args.rate:g} in {seconds:.1f} s (surgery only: retrain it)")
+          f"{len(plan.groups)} groups pruned at rate {args.rate:g}; loaded, planned and rebuilt in {seconds:.1f} s "
+          "(surgery only: retrain it)")
     outputs = [args.out, *([args.json] if args.json else [])]
     with atomic_paths(outputs, args.force) as temporaries:  # every file appears together, or none
         save_to(pruned, temporaries[0])
