@@ -725,14 +725,21 @@ class TFLiteFormat:
     min_frames: int
     calibrated: bool = False
     fold_upsampling: bool = False
+    output_rtol: float = 1e-2
+    """A model that is not a keypoint model (a classifier, any CNN): the largest |tflite - keras| over its outputs,
+    relative to the output's scale (1 for probabilities, else the largest |output|; `compression.verify`)."""
+    top1_share: float = 1.0
+    """A classifier's (outputs N x K): the share of the compared samples whose top-1 class must agree."""
 
 
 TFLITE_FORMATS = {f.name: f for f in (
-    TFLiteFormat("float32", "fp32", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1),
+    TFLiteFormat("float32", "fp32", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1,
+                 output_rtol=1e-3),
     TFLiteFormat("float16", "fp16", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1),
-    TFLiteFormat("int8-weights", "int8w", map_atol=0.2, keypoint_px=2.0, keypoint_share=1.0, min_frames=1),
+    TFLiteFormat("int8-weights", "int8w", map_atol=0.2, keypoint_px=2.0, keypoint_share=1.0, min_frames=1,
+                 output_rtol=0.1, top1_share=0.9),
     TFLiteFormat("int8", "int8", map_atol=1.0, keypoint_px=2.0, keypoint_share=0.95, min_frames=16, calibrated=True,
-                 fold_upsampling=True),
+                 fold_upsampling=True, output_rtol=0.1, top1_share=0.9),
     TFLiteFormat("float16-native", "fp16native", map_atol=1e-2, keypoint_px=1.0, keypoint_share=1.0, min_frames=1),
 )}
 """The one table of TFLite formats (why each gate is what it is: docs/compression.md, "Verification"): float32, float16

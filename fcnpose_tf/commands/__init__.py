@@ -4,5 +4,5 @@ Each module defines NAME, EXAMPLES, `add_arguments(parser)` and `run(args)`,
 and imports nothing heavy at module level (TensorFlow only inside `run`).
 """
 
-COMMAND_MODULES = ("summary", "synth", "data", "train", "evaluate", "predict", "compress", "export", "sweep", "run",
-                   "bench")
+COMMAND_MODULES = ("summary", "synth", "data", "train", "evaluate", "predict", "compress", "export", "prune", "sweep",
+                   "run", "bench")

@@ -9,6 +9,13 @@ the frames the model was trained on, as its NAME_train.json names them, else the
 bundled models were trained on): int8 is calibrated on the training split's frames and every file is
 verified on the validation split's first 16 frames, never calibrated on them.
 
+Any other model (a Keras 3 model, a classifier, a pruned MobileNetV2: anything whose output is not 2-D maps of a
+tf_keras model) is verified by output parity instead: every file keeps a float32 input and output, is run on 16
+seeded random inputs in --input-range (or the --data frames, scaled to it) and must match the Keras outputs
+within its format's bound (settings.TFLITE_FORMATS: max difference relative to the output's scale, 1e-2 for
+float16, 0.1 for int8; a classifier's top-1 class on 90 % of the clear samples for int8, all for float16); int8
+is calibrated on --calibration-frames random inputs in --input-range, or on --data's training frames.
+
 A format whose file fails its keypoint gate is a row, not a failure: the others are still written,
 the table (and --json's "refused") shows it as REFUSED with the gate's reason, and the last lines
 name every file written. export trains nothing, so a refused int8 gets no quantization-aware
@@ -35,6 +42,7 @@ EXAMPLES = """\
   fcnpose-tf export saved_models/fcnpose_ur5_p70.keras --quantize int8     # -> saved_models/fcnpose_ur5_p70_int8.tflite
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --out-dir models/  # float16 and int8 files
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --quantize float16,int8  # exit 2 if either is refused
+  fcnpose-tf export mnv2_p50.keras --input-range=-1,1 --quantize float16,int8  # any CNN: verified by output parity
 """
 
 
@@ -50,10 +58,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS):
         setting.add_to(parser)
+    parser.add_argument("--input-range", type=_input_range, default=(0.0, 1.0), metavar="LOW,HIGH",
+                        help="a model that is not a keypoint model: the range of its input values, where its random "
+                             "verification and calibration inputs are drawn (and --data frames scaled to); e.g. -1,1 "
+                             "for Keras' MobileNetV2, written --input-range=-1,1 (default: 0,1)")
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write what was exported: per file its format, size, calibration, verification "
                              "gate and graph rewrites")
     parser.add_argument("--force", action="store_true", help="replace existing .tflite (and --json) files")
+
+
+def _input_range(text: str) -> tuple[float, float]:
+    try:
+        low, high = (float(part) for part in str(text).split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected LOW,HIGH, e.g. -1,1") from None
+    if not (low < high) or not all(abs(v) < float("inf") for v in (low, high)):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected two finite numbers LOW < HIGH, e.g. -1,1")
+    return low, high
 
 
 def run(args: argparse.Namespace) -> int:
@@ -63,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.export import ExportOptions, export_frames, finish_formats, write_tflite
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
-    from fcnpose_tf.training.model import load_model, view_of
+    from fcnpose_tf.training.model import view_of
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
@@ -77,7 +99,12 @@ def run(args: argparse.Namespace) -> int:
     for path in [*paths.values(), *([args.json] if args.json else [])]:  # before anything is converted
         check_writable(path, args.force)
     set_tensorflow_threads(options.threads)
-    model = load_model(args.model)
+    from fcnpose_tf.compression.export import is_keypoint_model
+    from fcnpose_tf.compression.keras_file import load_any
+
+    model = load_any(args.model)  # a tf_keras file as `load_model` reads it
+    if not is_keypoint_model(model):
+        return _run_generic(args, model, options, paths, named)
     if args.data is None:
         args.data = default_data(args.model)
     dataset = load_from_args(args)
@@ -123,3 +150,74 @@ def run(args: argparse.Namespace) -> int:
                    force=args.force)
     written = [Path(r["file"]) for r in records] + ([args.json] if args.json else [])
     return finish_formats(written, [entry["quantize"] for entry in refused], bool(records), named)
+
+
+def _generic_inputs(args: argparse.Namespace, model, options) -> tuple:
+    """(verification inputs or None, calibration inputs or None, what they are) for a model verified by parity."""
+    import numpy as np
+
+    from fcnpose_tf.errors import UserError
+
+    if args.data is None:
+        return None, None, (f"seeded random inputs uniform in [{args.input_range[0]:g}, {args.input_range[1]:g}]")
+    from fcnpose_tf.compression.export import GENERIC_SAMPLES, calibration_frames
+    from fcnpose_tf.data.args import load_from_args
+    from fcnpose_tf.preprocess import preprocess_frame
+
+    shape = tuple(model.inputs[0].shape)
+    if len(shape) != 4 or shape[-1] != 3:
+        raise UserError(f"--data frames are RGB images; model {model.name} takes inputs of shape {shape[1:]}")
+    dataset = load_from_args(args)
+    train, val = dataset.split(None)
+    size = (int(shape[1]), int(shape[2]))
+    chosen = (list(val) + list(train))[:GENERIC_SAMPLES]
+    low, high = args.input_range
+    samples = np.stack([preprocess_frame(dataset.load_image(int(i)), size) for i in chosen])
+    calibration = calibration_frames(dataset, train, min(options.calibration_frames, len(train)), size,
+                                     options.seed) if len(train) else None
+    scale = (lambda x: None if x is None else (low + (high - low) * x).astype(np.float32))
+    return scale(samples), scale(calibration), (f"{len(chosen)} frames of {dataset.via_path} (calibration: up to "
+                                                f"{options.calibration_frames} of its training split), scaled to "
+                                                f"[{low:g}, {high:g}]")
+
+
+def _run_generic(args: argparse.Namespace, model, options, paths: dict, named: bool) -> int:
+    """export of a model that is not a keypoint model: each format verified by output parity."""
+    from fcnpose_tf import fileio, settings
+    from fcnpose_tf.compression.export import export_generic, finish_formats
+    from fcnpose_tf.compression.verify import ExportVerificationError
+    from fcnpose_tf.tables import format_table
+
+    samples, calibration, source = _generic_inputs(args, model, options)
+    print(f"{args.model}: not a keypoint model (output {tuple(model.outputs[0].shape)}): each file verified by "
+          f"output parity on {source}")
+    rows, records, refused = [], [], []
+    for quantize, path in paths.items():
+        try:
+            export = export_generic(model, quantize, sample_inputs=samples, calibration_inputs=calibration,
+                                    calibration_count=options.calibration_frames, input_range=args.input_range,
+                                    seed=options.seed, num_threads=options.threads)
+        except ExportVerificationError as exc:
+            refused.append({"file": str(path), "quantize": quantize, "status": "refused", "reason": exc.reason,
+                            **({"parity": exc.facts} if exc.facts else {})})
+            rows.append([f"{path.name}: REFUSED"] + [None] * 6)
+            if args.force and path.is_file():  # an earlier file of this name is not this model's
+                path.unlink()
+                print(f"removed {path}: an earlier file of the format this run refused")
+            continue
+        fileio.write_bytes(path, export.data, args.force)
+        records.append({"file": str(path), "status": "written", **export.to_dict()})
+        p, fmt = export.parity, settings.TFLITE_FORMATS[quantize]
+        top1 = None if p.top1_compared is None else f"{p.top1_agree}/{p.top1_compared}"
+        rows.append([path.name, export.size_bytes / 1e3, export.calibration_frames or None, p.frames,
+                     p.max_abs_diff, f"{p.relative_diff:.2g} <= {fmt.output_rtol:g}", top1])
+    print(format_table(["file", "size KB", "calibrated on", "inputs", "max abs diff", "relative", "top-1 agree"],
+                       rows, digits=[None, 1, None, None, None, None, None]))
+    for entry in refused:
+        print(f"{entry['quantize']}: REFUSED, no file written: {entry['reason']}")
+    if args.json:
+        fileio.write_json(args.json, {"model": str(args.model), "gate": "output parity", "inputs": source,
+                                      "files": records, "refused": refused}, force=args.force)
+    written = [Path(r["file"]) for r in records] + ([args.json] if args.json else [])
+    return finish_formats(written, [entry["quantize"] for entry in refused], bool(records), named,
+                          gate="output-parity gate")

@@ -228,7 +228,13 @@ class DependencyGraph(Context):
         outputs.update({key[0]: key for key in self.inputs})
         unknown = [name for name in names if name not in outputs]
         if unknown:
-            raise UserError(f"model {self.model.name} has no layer named {', '.join(map(str, unknown))} to keep whole")
+            import difflib
+
+            close = difflib.get_close_matches(str(unknown[0]), list(outputs), n=1)
+            hint = f" (did you mean {close[0]}?)" if close else \
+                f"; its layers: {_names(tuple(op.layer.name for op in self.ops), shown=12)}"
+            raise UserError(f"model {self.model.name} has no layer named {', '.join(map(str, unknown))} to keep "
+                            f"whole{hint}")
         for name in names:
             self._freeze(self.maps[outputs[name]], f"{name} kept whole")
 

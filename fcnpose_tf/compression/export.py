@@ -50,7 +50,8 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf import settings
 from fcnpose_tf.preprocess import ViewLike
 from fcnpose_tf.settings import QUANTIZE_MODES, TFLITE_FORMATS
-from fcnpose_tf.compression.verify import ExportVerificationError, ParityReport, verify_tflite
+from fcnpose_tf.compression.verify import (ExportVerificationError, OutputParity, ParityReport, verify_outputs,
+                                           verify_tflite)
 
 if TYPE_CHECKING:  # TensorFlow is imported only when converting
     import tf_keras as keras
@@ -94,7 +95,7 @@ class TFLiteExport:
     input_shape: tuple[int, ...]
     convert_seconds: float
     verify_seconds: float
-    parity: ParityReport
+    parity: ParityReport | OutputParity
     graph_rewrites: tuple[str, ...] = ()
     calibration_frames: int = 0
 
@@ -142,7 +143,8 @@ def _static_input_shape(model: keras.Model, input_size: int | tuple[int, int] | 
 
 
 def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
-             calibration: np.ndarray | None = None) -> bytes:
+             calibration: np.ndarray | None = None, pixel_interface: bool = True) -> bytes:
+    """The converted flatbuffer; `pixel_interface` False keeps an int8 file's float32 input and output."""
     import tensorflow as tf
 
     name = model.inputs[0].name.split(":")[0] or "image"
@@ -150,7 +152,11 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
                           input_signature=[tf.TensorSpec(input_shape, tf.float32, name=name)])
     # The model as trackable object: the converter then freezes the model's own variables
     # (without it, they can be garbage-collected away and the file holds no weights).
-    converter = tf.lite.TFLiteConverter.from_concrete_functions([forward.get_concrete_function()], model)
+    trackable = model
+    if type(model).__module__.split(".")[0] == "keras":  # Keras 3: its model is no trackable of the converter's;
+        trackable = tf.Module()  # a module holding its variables is (without it: NaN outputs, no weights)
+        trackable.held_variables = [weight.value for weight in model.weights]
+    converter = tf.lite.TFLiteConverter.from_concrete_functions([forward.get_concrete_function()], trackable)
     converter.target_spec.supported_ops = [tf.lite.OpsSet.TFLITE_BUILTINS]
     if quantize in ("float16", FLOAT16_NATIVE):
         converter.optimizations = [tf.lite.Optimize.DEFAULT]
@@ -163,8 +169,9 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
         converter.optimizations = [tf.lite.Optimize.DEFAULT]
         converter.representative_dataset = lambda: ([frame[None]] for frame in calibration)
         converter.target_spec.supported_ops = [tf.lite.OpsSet.TFLITE_BUILTINS_INT8]  # no float fallback
-        converter.inference_input_type = tf.uint8
-        converter.inference_output_type = tf.int8  # the sigmoid's own type: no requantizing op at the end
+        if pixel_interface:
+            converter.inference_input_type = tf.uint8
+            converter.inference_output_type = tf.int8  # the sigmoid's own type: no requantizing op at the end
     from fcnpose_tf.nativelog import native_stderr_captured
 
     try:
@@ -174,7 +181,7 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
         detail = str(exc).strip().splitlines()
         raise UserError(f"TFLite conversion of model {model.name} ({quantize}) failed: "
                         f"{type(exc).__name__}: {detail[0] if detail else 'no detail'}") from exc
-    return _pixel_scaled_input(data) if quantize == FULL_INTEGER else data
+    return _pixel_scaled_input(data) if quantize == FULL_INTEGER and pixel_interface else data
 
 
 def _with_view(data: bytes, model: keras.Model) -> bytes:
@@ -327,6 +334,67 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
                         rewrites, 0 if calibration is None else len(calibration))
 
 
+def is_keypoint_model(model: Any) -> bool:
+    """Whether `model` is held to the keypoint gate: a tf_keras model with one output of 2-D maps (N x H x W x C,
+    C >= 2), as FCN-Pose and its pruned and fine-tuned forms are. Any other model (Keras 3, a classifier, ...) is
+    held to output parity (`export_generic`)."""
+    if type(model).__module__.split(".")[0] != "tf_keras" or len(getattr(model, "outputs", None) or []) != 1:
+        return False
+    shape = tuple(model.outputs[0].shape)
+    return len(shape) == 4 and (shape[-1] or 0) >= 2
+
+
+GENERIC_SAMPLES = 16
+"""Random inputs a model that is not a keypoint model is verified on, when no inputs are given."""
+
+
+def random_inputs(input_shape: tuple[int, ...], count: int, input_range: tuple[float, float],
+                  seed: int) -> np.ndarray:
+    """`count` seeded inputs uniform in `input_range` (the range the model takes, e.g. (-1, 1) for Keras'
+    MobileNetV2, (0, 1) for FCN-Pose's frames), N x the model's input."""
+    low, high = (float(v) for v in input_range)
+    if not (np.isfinite(low) and np.isfinite(high) and low < high):
+        raise UserError(f"input range must be two finite numbers LOW < HIGH, got {input_range!r}")
+    return np.random.default_rng(seed).uniform(low, high, (count, *input_shape[1:])).astype(np.float32)
+
+
+def export_generic(model: Any, quantize: str = DEFAULT_QUANTIZE, *, sample_inputs: np.ndarray | None = None,
+                   calibration_inputs: np.ndarray | None = None, num_samples: int = GENERIC_SAMPLES,
+                   calibration_count: int = settings.CALIBRATION_FRAMES.default,
+                   input_range: tuple[float, float] = (0.0, 1.0), seed: int = 0,
+                   num_threads: int | None = None) -> TFLiteExport:
+    """Convert a model that is not a keypoint model (tf_keras or Keras 3: a classifier, any CNN with one image
+    input and one output) and verify the file by output parity (`verify.verify_outputs`).
+
+    The file has a static 1 x H x W x C float32 input and float32 output in every format (an int8 file quantizes
+    and dequantizes inside). Verified on `sample_inputs`, else `num_samples` seeded random inputs uniform in
+    `input_range`; an int8 file is calibrated on `calibration_inputs`, else `calibration_count` random inputs in
+    `input_range` (another seed). Bounds per format: `settings.TFLITE_FORMATS`' output_rtol and top1_share.
+
+    Raises:
+        UserError: for a bad argument or a conversion that fails.
+        ExportVerificationError: if the file does not load or disagrees with the Keras model.
+    """
+    _check_quantize(quantize)
+    fmt = TFLITE_FORMATS[quantize]
+    input_shape = _static_input_shape(model, None)
+    frames = (_sample_frames(sample_inputs, input_shape, num_samples, seed, what="sample inputs")
+              if sample_inputs is not None else random_inputs(input_shape, num_samples, input_range, seed))
+    calibration = None
+    if fmt.calibrated:
+        calibration = (_sample_frames(calibration_inputs, input_shape, 1, seed, what="calibration inputs")
+                       if calibration_inputs is not None else
+                       random_inputs(input_shape, calibration_count, input_range, seed + 1))
+    start = time.perf_counter()
+    data = _with_view(_convert(model, quantize, input_shape, calibration, pixel_interface=False), model)
+    convert_seconds = time.perf_counter() - start
+    start = time.perf_counter()
+    parity = verify_outputs(model, data, frames, output_rtol=fmt.output_rtol, top1_share=fmt.top1_share,
+                            num_threads=num_threads, label=quantize)
+    return TFLiteExport(data, quantize, input_shape, convert_seconds, time.perf_counter() - start, parity, (),
+                        0 if calibration is None else len(calibration))
+
+
 def _inference_graph(model: keras.Model) -> tuple[keras.Model, tuple[str, ...]]:
     """The model with its upsampling folded (and what was folded), or the model itself when its
     structure is not one `fold_upsampling` can rewrite (e.g. branches): folding only saves time."""
@@ -455,7 +523,8 @@ def _sample_frames(frames: np.ndarray | None, input_shape: tuple[int, ...], num_
     return frames
 
 
-def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool) -> int:
+def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool,
+                   gate: str = "keypoint gate") -> int:
     """The end of a command whose formats the keypoint gate may refuse (`export`, `compress`): name every
     file written, then its exit status. UserError (exit 2) when no .tflite file was written, or when a
     format the user named with --quantize was refused; else 0, with a note naming the refused formats."""
@@ -464,11 +533,11 @@ def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: 
     names = ", ".join(refused)
     kept = f"kept {', '.join(map(str, written))}" if written else "nothing written"
     if not any_tflite:
-        raise UserError(f"no TFLite file written: {names} refused by the keypoint gate (the table above gives the "
+        raise UserError(f"no TFLite file written: {names} refused by the {gate} (the table above gives the "
                         f"reasons); {kept}")
     if named and refused:
-        raise UserError(f"{names} (named with --quantize) refused by the keypoint gate (the table above gives the "
+        raise UserError(f"{names} (named with --quantize) refused by the {gate} (the table above gives the "
                         f"reason); {kept}")
     if refused:
-        print(f"note: {names} refused by the keypoint gate (see above); the other formats were written")
+        print(f"note: {names} refused by the {gate} (see above); the other formats were written")
     return 0

@@ -261,3 +261,96 @@ def _compare_keypoints(keras_maps: np.ndarray, tflite_maps: np.ndarray, max_diff
     both = stable & ~np.isnan(ref).any(-1) & ~np.isnan(got).any(-1)
     max_px = float(np.linalg.norm(ref[both] - got[both], axis=-1).max()) if both.any() else 0.0
     return _KeypointAgreement(compared, int((~stable).sum()), max_px, within, int(lost_or_gained.sum()))
+
+
+# --------------------------------------------------------------------------------------------
+# Models that are not keypoint models: output parity
+# --------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class OutputParity:
+    """How a converted model that is not a keypoint model (a classifier, any CNN) compares with its Keras model.
+
+    Attributes:
+        frames: inputs run through both models.
+        max_abs_diff: largest |tflite - keras| over every output value.
+        output_scale: what the difference is relative to: 1 for probabilities (every row in [0, 1] summing to 1),
+            else the largest |keras output| (1 if that is 0).
+        relative_diff: max_abs_diff / output_scale; the gate: at most `output_rtol`.
+        output_rtol: the format's bound (`settings.TFLITE_FORMATS`).
+        top1_compared: a classifier's (outputs N x K, K >= 2) samples whose Keras top-1 leads its runner-up by more
+            than twice max_abs_diff (the others' top-1 is a tie within the measured error); None: not a classifier.
+        top1_agree: of those, the samples whose TFLite top-1 is the Keras top-1.
+        min_top1_share: the gate: top1_agree / top1_compared must reach it.
+    """
+
+    frames: int
+    max_abs_diff: float
+    output_scale: float
+    relative_diff: float
+    output_rtol: float
+    top1_compared: int | None = None
+    top1_agree: int | None = None
+    min_top1_share: float = 1.0
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready, stable keys."""
+        return asdict(self)
+
+
+def _output_scale(outputs: np.ndarray) -> float:
+    rows = outputs.reshape(len(outputs), -1)
+    if rows.shape[1] >= 2 and rows.min() >= 0 and rows.max() <= 1 and np.allclose(rows.sum(1), 1, atol=1e-3):
+        return 1.0  # probabilities: a difference is a share of the whole
+    peak = float(np.abs(outputs).max())
+    return peak if peak > 0 else 1.0
+
+
+def verify_outputs(model: keras.Model, tflite: bytes, inputs: np.ndarray, *, output_rtol: float,
+                   top1_share: float = 1.0, num_threads: int | None = None, label: str = "TFLite") -> OutputParity:
+    """Check that a converted model computes what the Keras model computes on `inputs`, output value by value.
+
+    For a model whose outputs are not keypoint maps. Checks: the flatbuffer loads; its input is float32
+    [1, ...the model's input...] and its output float32 of the Keras output's shape with batch 1 (an int8 file keeps
+    a float interface); every output is finite; max |tflite - keras| / `output_scale` <= `output_rtol`; and for a
+    classifier (N x K outputs) the top-1 class agrees on at least `top1_share` of the samples whose top-1 is not a
+    tie within the measured difference.
+
+    Raises:
+        ExportVerificationError: naming what disagreed and by how much; nothing is written.
+    """
+    what = f"the {label} TFLite model"
+    try:
+        interpreter = _interpreter(tflite, num_threads)
+    except Exception as exc:
+        detail = str(exc).strip().splitlines()
+        raise ExportVerificationError(f"{what} does not load in the interpreter ({type(exc).__name__}: "
+                                      f"{detail[0] if detail else 'no detail'}); nothing written") from exc
+    expected = np.asarray(model(inputs, training=False), dtype=np.float32)
+    _check_interface(interpreter, inputs, expected.shape, False, what)
+    got = run_tflite(interpreter, inputs)
+    if not np.isfinite(got).all():
+        bad = int(np.count_nonzero(~np.isfinite(got)))
+        raise ExportVerificationError(f"{what} outputs {bad} NaN/infinite values where the Keras model's are "
+                                      "finite (weights lost in conversion?); nothing written")
+    max_diff = float(np.abs(got - expected).max())
+    scale = _output_scale(expected)
+    relative = max_diff / scale
+    facts = {"frames": len(inputs), "max_abs_diff": max_diff, "output_scale": scale, "relative_diff": relative,
+             "output_rtol": float(output_rtol)}
+    if not relative <= output_rtol:
+        raise ExportVerificationError(f"{what} disagrees with the Keras model: max abs output difference "
+                                      f"{max_diff:.3g} is {relative:.3g} of the output scale {scale:.3g} > "
+                                      f"{output_rtol:g}; nothing written", facts)
+    compared = agree = None
+    if expected.ndim == 2 and expected.shape[1] >= 2:
+        top2 = np.sort(expected, axis=1)[:, -2:]
+        clear = top2[:, 1] - top2[:, 0] > 2 * max_diff
+        compared = int(clear.sum())
+        agree = int((clear & (got.argmax(1) == expected.argmax(1))).sum())
+        if agree < top1_share * compared:
+            raise ExportVerificationError(f"{what} disagrees with the Keras model: top-1 class agrees on {agree} of "
+                                          f"{compared} samples, {top1_share:.0%} required; nothing written",
+                                          {**facts, "top1_compared": compared, "top1_agree": agree})
+    return OutputParity(len(inputs), max_diff, scale, relative, float(output_rtol), compared, agree,
+                        float(top1_share))
