@@ -90,10 +90,9 @@ def run(args: argparse.Namespace) -> int:
 
     from fcnpose_tf.compression.depgraph import plan_graph, rebuild
     from fcnpose_tf.compression.keras_file import load_any, save_to
-    from fcnpose_tf.compression.prune import keep_count
+    from fcnpose_tf.compression.keep_rule import keep_count
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import atomic_paths, check_writable, json_text
-    from fcnpose_tf.tables import format_table
 
     keep_count(1, args.rate)  # a rate outside [0, 1): refused before the model is read
     for name, value, minimum in (("--min-filters", args.min_filters, 0), ("--round-to", args.round_to, 1)):
@@ -115,11 +114,7 @@ def run(args: argparse.Namespace) -> int:
     if given_view(model) is not None:  # a tf_keras FCN-Pose's crop goes with it
         with_view(pruned, given_view(model))
     seconds = time.perf_counter() - start
-    print(plan.describe())
-    rows = []
-    for what, (before, after) in (("parameters", plan.params), ("MACs per sample", plan.macs)):
-        rows.append([what, before, after, f"{after / before:.1%}" if before and after is not None else None])
-    print(format_table(["", "before", "after", "left"], rows))
+    print(plan.describe())  # the groups, then parameters and MACs before -> after (share left)
     print(f"{plan.graph.keras.__name__} model {model.name}: {sum(not p.group.frozen for p in plan.groups)} of "
           f"{len(plan.groups)} groups pruned at rate {args.rate:g}; loaded, planned and rebuilt in {seconds:.1f} s "
           "(surgery only: retrain it)")
