@@ -17,8 +17,9 @@ import pytest
 import tf_keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.compression import depgraph
-from fcnpose_tf.compression.depgraph import dependency_graph, plan_graph, prune_graph
+from fcnpose_tf.compression import depgraph, graph_prune
+from fcnpose_tf.compression.depgraph import dependency_graph
+from fcnpose_tf.compression.graph_prune import plan_graph, prune_graph
 from fcnpose_tf.compression.keep_rule import keep_count
 from fcnpose_tf.compression.prune import prune_model
 from fcnpose_tf.training.model import build_fcn_pose, conv_widths
@@ -499,4 +500,5 @@ def test_an_unbuilt_model_is_refused(flavour):
 
 
 def test_docstring_examples():
-    assert doctest.testmod(depgraph).failed == 0
+    for module in (depgraph, graph_prune):
+        assert doctest.testmod(module).failed == 0, module.__name__

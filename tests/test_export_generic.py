@@ -16,7 +16,7 @@ def pruned():
     import keras
     import tf_keras
 
-    from fcnpose_tf.compression.depgraph import prune_graph
+    from fcnpose_tf.compression.graph_prune import prune_graph
 
     models = {}
     for K in (keras, tf_keras):

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Parameters and multiply-accumulates of a keras.applications network before and after graph pruning
-(`fcnpose_tf.compression.depgraph.prune_graph`), with the group table.
+(`fcnpose_tf.compression.graph_prune.prune_graph`), with the group table.
 
     python tools/depgraph_measure.py                       # MobileNetV2, alpha 1.0, 224 x 224, rate 0.5
     python tools/depgraph_measure.py --alpha 0.35 --size 96 --rate 0.7 --keras keras3 --groups
@@ -33,7 +33,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf.compression.depgraph import plan_graph, rebuild
+    from fcnpose_tf.compression.graph_prune import plan_graph, rebuild
 
     keras = importlib.import_module(FLAVOURS[args.keras])
     builder = getattr(keras.applications, args.net, None)

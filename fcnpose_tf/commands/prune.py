@@ -88,7 +88,7 @@ def plan_json(plan, model_path: Path, out: Path, settings: dict) -> dict:
 def run(args: argparse.Namespace) -> int:
     import time
 
-    from fcnpose_tf.compression.depgraph import plan_graph, rebuild
+    from fcnpose_tf.compression.graph_prune import plan_graph, rebuild
     from fcnpose_tf.compression.keras_file import load_any, save_to
     from fcnpose_tf.compression.keep_rule import keep_count
     from fcnpose_tf.errors import UserError
