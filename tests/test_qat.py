@@ -70,7 +70,8 @@ def table_row(stdout, start):
 def test_post_training_int8_is_refused_and_float16_passes(faint):
     """The case itself: the gate refuses this model's post-training int8 file (a keypoint lost), not its float16."""
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.compression.export import export_frames, export_tflite
+    from fcnpose_tf.compression.export import export_tflite
+    from fcnpose_tf.compression.frames import export_frames
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.training.model import load_model
 
@@ -130,7 +131,7 @@ def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli):
     """The default: post-training int8 refused, quantization-aware training's int8 file passes the same gate
     against the same Keras model, is written with the runtime's interface, and the report says how it was made."""
     from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.compression.export import export_frames
+    from fcnpose_tf.compression.frames import export_frames
     from fcnpose_tf.compression.verify import verify_tflite
     from fcnpose_tf.compression.tflite_file import inspect_tflite
     from fcnpose_tf.training.model import load_model
@@ -220,7 +221,8 @@ def test_training_runs_epoch_by_epoch_until_the_gate_passes(faint):
     """train_until_gate: epoch 0 is the calibrated copy; each later epoch trains, pins the sigmoid's input range
     again and converts; it stops at the first file that passes and records every epoch's gate."""
     from fcnpose_tf.data.dataset import fold_data, load_dataset
-    from fcnpose_tf.compression.export import export_frames, export_tflite
+    from fcnpose_tf.compression.export import export_tflite
+    from fcnpose_tf.compression.frames import export_frames
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.training.model import load_model
     from fcnpose_tf.compression.qat import LOGIT_RANGE, train_until_gate

@@ -82,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data.args import default_data, load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.compression.export import ExportOptions, export_frames, finish_formats, write_tflite
+    from fcnpose_tf.compression.export import ExportOptions, finish_formats, write_tflite
+    from fcnpose_tf.compression.frames import export_frames
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.training.model import view_of
@@ -110,7 +111,8 @@ def run(args: argparse.Namespace) -> int:
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W
-    available = min(len(val) + len(train), max(f.min_frames for f in settings.TFLITE_FORMATS.values()))  # what export_frames can gather
+    most = max(f.min_frames for f in settings.TFLITE_FORMATS.values())
+    available = min(len(val) + len(train), most)  # what export_frames can gather
     short = [q for q in paths if settings.TFLITE_FORMATS[q].min_frames > available]
     if short:  # known before anything is converted: refuse before writing any file
         raise UserError(f"{', '.join(short)} export is verified on keypoints of at least "
@@ -160,7 +162,7 @@ def _generic_inputs(args: argparse.Namespace, model, options) -> tuple:
 
     if args.data is None:
         return None, None, (f"seeded random inputs uniform in [{args.input_range[0]:g}, {args.input_range[1]:g}]")
-    from fcnpose_tf.compression.export import GENERIC_SAMPLES, calibration_frames
+    from fcnpose_tf.compression.frames import GENERIC_SAMPLES, calibration_frames
     from fcnpose_tf.data.args import load_from_args
     from fcnpose_tf.preprocess import preprocess_frame
 

@@ -237,14 +237,14 @@ def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
 
 
 def _export_frames(run: _Run, quantize: str, fold: int | None) -> tuple[np.ndarray, np.ndarray | None]:
-    from fcnpose_tf.compression.export import export_frames
+    from fcnpose_tf.compression.frames import export_frames
 
     return export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold), run.eval_dataset,
                          run.eval_indices, run.options.calibration_frames, run.options.seed)
 
 
 def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
-    """Write one TFLite file, verified against Keras on real frames (`export.export_frames`: the
+    """Write one TFLite file, verified against Keras on real frames (`frames.export_frames`: the
     first evaluation frames; int8 calibrated on the retraining split's training frames); the export result.
 
     Raises:

@@ -48,8 +48,8 @@ import numpy as np
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
 from fcnpose_tf import settings
-from fcnpose_tf.preprocess import ViewLike
 from fcnpose_tf.settings import QUANTIZE_MODES, TFLITE_FORMATS
+from fcnpose_tf.compression.frames import GENERIC_SAMPLES, checked_frames, random_inputs
 from fcnpose_tf.compression.verify import (ExportVerificationError, OutputParity, ParityReport, verify_outputs,
                                            verify_tflite)
 
@@ -238,50 +238,6 @@ def _pixel_scaled_input(data: bytes) -> bytes:
     return bytes(builder.Output())
 
 
-def export_frames(quantize: str, input_size: ViewLike, train_dataset: Any, train_indices: Sequence[int],
-                  check_dataset: Any, check_indices: Sequence[int], calibration_count: int,
-                  seed: int = settings.CALIBRATION_SEED.default) -> tuple[np.ndarray, np.ndarray | None]:
-    """Real frames for `export_tflite`: (sample_frames, calibration_frames or None).
-
-    The file is verified on the first `settings.TFLITE_FORMATS`' min_frames frames of `check_indices` (16, topped
-    up with training frames when there are fewer); an int8 file is calibrated on up to
-    `calibration_count` frames drawn (seeded) from `train_indices`, which should hold no frame a
-    result is measured on.
-    """
-    from fcnpose_tf.preprocess import preprocess_frame
-
-    count = max(f.min_frames for f in TFLITE_FORMATS.values())
-    chosen = [(check_dataset, int(i)) for i in list(check_indices)[:count]]
-    chosen += [(train_dataset, int(i)) for i in list(train_indices)[:count - len(chosen)]]
-    samples = np.stack([preprocess_frame(dataset.load_image(i), input_size) for dataset, i in chosen])
-    calibration = None
-    if quantize == FULL_INTEGER:
-        calibration = calibration_frames(train_dataset, train_indices, min(calibration_count, len(train_indices)),
-                                         input_size, seed)
-    return samples, calibration
-
-
-def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_size: ViewLike,
-                       seed: int = settings.CALIBRATION_SEED.default) -> np.ndarray:
-    """`count` frames drawn (seeded, without replacement) from `indices` of `dataset`, preprocessed as
-    the runtime does: the representative data of a full-integer export.
-
-    Draw them from training frames, never from the frames a result is measured on.
-
-    Raises:
-        UserError: if `count` is not a positive number or `indices` holds fewer frames.
-    """
-    from fcnpose_tf.preprocess import preprocess_frame
-
-    indices = np.asarray(list(indices), dtype=np.int64)
-    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-        raise UserError(f"calibration frames must be a positive number, got {count!r}")
-    if count > len(indices):
-        raise UserError(f"{count} calibration frames asked for, but only {len(indices)} training frames are there")
-    chosen = np.sort(np.random.default_rng(seed).choice(indices, size=count, replace=False))
-    return np.stack([preprocess_frame(dataset.load_image(int(i)), input_size) for i in chosen])
-
-
 def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sample_frames: np.ndarray | None = None,
                   num_samples: int = DEFAULT_SAMPLES, seed: int = 0, input_size: int | tuple[int, int] | None = None,
                   map_atol: float | None = None, keypoint_px: float | None = None, threshold: float = 0.5,
@@ -314,8 +270,8 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
             raise UserError("int8 (full-integer) export needs real preprocessed frames: calibration_frames to "
                             "calibrate on and sample_frames to verify keypoints on (random images say nothing "
                             "about the ranges a camera frame gives)")
-        calibration = _sample_frames(calibration_frames, input_shape, 1, seed, what="calibration frames")
-    frames = _sample_frames(sample_frames, input_shape, num_samples, seed)
+        calibration = checked_frames(calibration_frames, input_shape, 1, seed, what="calibration frames")
+    frames = checked_frames(sample_frames, input_shape, num_samples, seed)
     if len(frames) < fmt.min_frames:
         raise UserError(f"{quantize} export is verified on keypoints of at least {fmt.min_frames} "
                         f"real frames, got {len(frames)} sample frame(s)")
@@ -344,20 +300,6 @@ def is_keypoint_model(model: Any) -> bool:
     return len(shape) == 4 and (shape[-1] or 0) >= 2
 
 
-GENERIC_SAMPLES = 16
-"""Random inputs a model that is not a keypoint model is verified on, when no inputs are given."""
-
-
-def random_inputs(input_shape: tuple[int, ...], count: int, input_range: tuple[float, float],
-                  seed: int) -> np.ndarray:
-    """`count` seeded inputs uniform in `input_range` (the range the model takes, e.g. (-1, 1) for Keras'
-    MobileNetV2, (0, 1) for FCN-Pose's frames), N x the model's input."""
-    low, high = (float(v) for v in input_range)
-    if not (np.isfinite(low) and np.isfinite(high) and low < high):
-        raise UserError(f"input range must be two finite numbers LOW < HIGH, got {input_range!r}")
-    return np.random.default_rng(seed).uniform(low, high, (count, *input_shape[1:])).astype(np.float32)
-
-
 def export_generic(model: Any, quantize: str = DEFAULT_QUANTIZE, *, sample_inputs: np.ndarray | None = None,
                    calibration_inputs: np.ndarray | None = None, num_samples: int = GENERIC_SAMPLES,
                    calibration_count: int = settings.CALIBRATION_FRAMES.default,
@@ -378,11 +320,11 @@ def export_generic(model: Any, quantize: str = DEFAULT_QUANTIZE, *, sample_input
     _check_quantize(quantize)
     fmt = TFLITE_FORMATS[quantize]
     input_shape = _static_input_shape(model, None)
-    frames = (_sample_frames(sample_inputs, input_shape, num_samples, seed, what="sample inputs")
+    frames = (checked_frames(sample_inputs, input_shape, num_samples, seed, what="sample inputs")
               if sample_inputs is not None else random_inputs(input_shape, num_samples, input_range, seed))
     calibration = None
     if fmt.calibrated:
-        calibration = (_sample_frames(calibration_inputs, input_shape, 1, seed, what="calibration inputs")
+        calibration = (checked_frames(calibration_inputs, input_shape, 1, seed, what="calibration inputs")
                        if calibration_inputs is not None else
                        random_inputs(input_shape, calibration_count, input_range, seed + 1))
     start = time.perf_counter()
@@ -504,23 +446,6 @@ def write_tflite(model: keras.Model, path: str | os.PathLike, quantize: str = DE
     return export
 
 
-
-
-def _sample_frames(frames: np.ndarray | None, input_shape: tuple[int, ...], num_samples: int,
-                   seed: int, what: str = "sample frames") -> np.ndarray:
-    if frames is None:
-        if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
-            raise UserError(f"num_samples must be a positive integer, got {num_samples!r}")
-        return np.random.default_rng(seed).random((num_samples, *input_shape[1:]), dtype=np.float32)
-    frames = np.asarray(frames, dtype=np.float32)
-    if frames.ndim == 3:
-        frames = frames[None]
-    if frames.ndim != 4 or frames.shape[1:] != tuple(input_shape[1:]) or len(frames) == 0:
-        raise UserError(f"{what} must be N x {' x '.join(map(str, input_shape[1:]))} (the model's input), "
-                        f"got shape {np.shape(frames)}")
-    if not np.isfinite(frames).all():
-        raise UserError(f"{what} contain NaN or infinite values")
-    return frames
 
 
 def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool,
