@@ -113,3 +113,28 @@ def test_lineage_follows_each_records_init_back_to_a_bundled_start(tmp_path):
         (tmp_path / f"{name}.keras").write_bytes(b"")
         (tmp_path / f"{name}_train.json").write_text(json.dumps(written_by_train(init=str(tmp_path / f"{parent}.keras"))))
     assert lineage(tmp_path / "a.keras") == [str(tmp_path / "b.keras"), str(tmp_path / "a.keras")]
+
+
+def test_every_bundled_record_and_report_reads_unchanged():
+    """The files a previous version wrote and the wheel ships (saved_models/) read as they are: each training record
+    as a `TrainingRecord` with its schema and split, the compress report back to the same JSON and its table."""
+    from fcnpose_tf.bundled import models_dir
+    from fcnpose_tf.compression.report import CompressReport, report_table
+
+    folder = models_dir()
+    records = sorted(folder.glob("*_train.json"))
+    assert len(records) >= 4
+    for path in records:
+        record = training_record(path.with_name(path.name.replace("_train.json", ".keras")))
+        assert record is not None and record.data_sha256 and record.raw["epochs_run"] >= 1, path.name
+        if "pruned_from" in record.raw:  # compress's retraining record: the rate and widths' origin
+            assert record.raw["rate"] == 0.7 and record.positive_weight, path.name
+        else:  # train's: the schema and the split
+            assert record.keypoints == tuple(KEYPOINTS) and record.split, path.name
+    reports = sorted(folder.glob("*_report.json"))
+    assert reports
+    for path in reports:
+        written = json.loads(path.read_text())
+        report = CompressReport.from_json(written)
+        assert report.to_json() == written, path.name
+        assert "float16 TFLite" in report_table(report), path.name
