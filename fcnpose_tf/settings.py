@@ -383,11 +383,9 @@ AUGMENT = Setting(
     "paper: the paper's fixed offline rotation/padding copies (--augment-copies); online: fresh keypoint-aware "
     "random transforms for every sample of every epoch (flip, rotation, zoom, shift, colour, blur, noise, JPEG, "
     "occluding patches; docs/data.md)", label="augmentation", choices=("paper", "online"))
-"""The paper's copies measured better than online augmentation within train's 30-minute budget on a new
-fixed-camera cell (docs/results.md, "Training history": from the generalist, PCK@0.05 0.800
-against 0.752 and EPE 9.1 against 10.6 px; from the workcell baseline 0.700 against 0.494), and
-they reproduce the paper's tables in `compress` and `sweep`. Online augmentation is the option for views
-that vary (a third party measured it ahead on random cameras after 40 epochs)."""
+"""The paper's copies: they measured better than online augmentation within train's 30-minute budget on a fixed
+camera, and they reproduce the paper's tables in `compress` and `sweep`; online augmentation is the option for views
+that vary (the figures: docs/results.md, "Training history")."""
 TRAIN_AUGMENT = AUGMENT.variant(
     default="auto", choices=("auto", "paper", "online"),
     help="auto: paper for frames of one fixed camera, online when the views vary (measured on the frames: "
@@ -544,13 +542,11 @@ TRAIN_POSITIVE_WEIGHT = POSITIVE_WEIGHT.variant(
                        "epochs; docs/training.md)")
 """`train` serves a user's frames; `train_positive_weight` resolves the default per run."""
 DEFAULT_FROM_SCRATCH_POSITIVE_WEIGHT = 20.0
-"""With the paper's plain BCE no keypoint map crossed 0.5 after 7 epochs at 224 (docs/training.md, "Loss"); 20
-gets random weights off that plateau several times faster. Also the weight for views that vary, where it keeps
-unsure keypoints above the threshold (random-views proxy: PCK@0.5 0.923 at 20 against 0.869 at 8)."""
+"""Random weights under the paper's plain BCE sit on an empty-map plateau; 20 gets them off it several times faster,
+and on views that vary it keeps unsure keypoints above the threshold (docs/training.md, "Loss")."""
 DEFAULT_FINE_TUNE_POSITIVE_WEIGHT = 8.0
-"""A trained start on one fixed camera has no empty-map plateau, and a smaller weight draws tighter discs: on the
-new-cell proxy two runs at 8 measured PCK@0.05 0.821 and 0.829, EPE 7.94 and 7.63 px, against 0.802 and 8.4 px at
-20 (docs/training.md, "Training on your own frames")."""
+"""A trained start on one fixed camera has no empty-map plateau, and a smaller weight draws tighter discs (measured
+on the new-cell proxy: docs/training.md, "Training on your own frames")."""
 
 
 def train_positive_weight(trained_start: bool, augment: str) -> float:
@@ -647,9 +643,9 @@ COMPRESS_IMPORTANCE = IMPORTANCE.variant(
          "of the training loss on training frames), l1 (kernel L1 norm, the paper's; the default with --strategy "
          "greedy or --method magnitude), l2 (kernel L2 norm), activation (mean |output| on training frames); "
          "docs/compression.md")
-"""`compress` serves a user's model: at 70 % on the bundled baseline Taylor ranking kept PCK@0.05 0.670 and EPE
-12.2 px against L1's 0.580 and 14.5 px, PCK@0.5 0.994 against 0.991, for about one retraining epoch of
-scoring (docs/compression.md, "Importance criteria and distillation"). `--importance l1` is the paper's."""
+"""`compress` serves a user's model: Taylor ranking keeps finer keypoints than the paper's L1 at 70 % for about one
+retraining epoch of scoring (docs/compression.md, "Importance criteria and distillation"); `--importance l1` is the
+paper's."""
 DEFAULT_COMPRESS_IMPORTANCE = "taylor"
 """What `compress --importance` resolves to for filter surgery with the independent strategy."""
 MIN_FILTERS = Setting(
@@ -662,12 +658,8 @@ filters, the paper's widths and parameter counts."""
 DEFAULT_COMPRESS_MIN_FILTERS = 15
 """What `compress --min-filters` resolves to for filter surgery (magnitude pruning keeps every filter). The keep
 rule leaves FCN-Pose's conv5 and conv6 with 3 filters at 0.7, through which every keypoint's position passes; with
-no layer under 15 filters the same parameter budget (14,611 of 14,668) goes to the bottleneck and conv1/conv2 get
-narrower (widths 15, 15, 15, 15, 8, 8, 15, 15, 15: 123.0 M MACs at 224 instead of the paper widths' 234.2 M). At 70 %
-on the default data, int8 files: PCK@0.05 0.698 -> 0.883, EPE 11.7 -> 8.0 px. Against the floor of 12, the default before
-it: on the hardest proxy (held-out random views, three pairs of runs) PCK@0.5 +0.009, PCK@0.05 +0.019, EPE -2.0 px on
-average; on the bundled task PCK@0.05 level, PCK@0.5 -0.005 and EPE +1.2 px; 25 % fewer MACs (docs/compression.md, "The
-narrowest layer")."""
+no layer under 15 filters the same parameter budget goes to the bottleneck and conv1/conv2 get narrower (fewer MACs,
+finer keypoints; the comparisons with the paper's widths and with 12: docs/compression.md, "The narrowest layer")."""
 COMPRESS_MIN_FILTERS = MIN_FILTERS.variant(
     default=None,
     help=f"no pruned layer narrower than N filters (all of a layer that has fewer), the other layers pruned harder "
@@ -689,9 +681,8 @@ PRUNED_START = Setting(
     "model\")", label="pruned start",
     check=lambda v: bool(v.strip()), requirement="auto, surgery, a bundled name or a .keras file", metavar="START",
     paper="surgery")
-"""Where the 70 % network's weights start. Surgery stays the default: on two models fine-tuned on views that vary, the
-bundled pruned generalist gave PCK@0.5 +0.018 and +0.008 over surgery after retraining, but PCK@0.05 -0.067 on one
-of them, and neither reached the 0.02 bar (docs/compression.md, "On your own model")."""
+"""Where the 70 % network's weights start. Surgery stays the default: the bundled pruned generalist was not better on
+both views-that-vary models measured (docs/compression.md, "On your own model")."""
 COMPRESS_INPUT_SIZE = INPUT_SIZE.variant(
     default=None,
     help=f"the input side the compressed model and files run at, a multiple of {INPUT_SIZE_MULTIPLE} (default: the "

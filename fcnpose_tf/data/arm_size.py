@@ -37,10 +37,9 @@ paper's 224 x 224 (1.9 G a frame unpruned) — on a 2-core machine shared with a
 AUTO_MIN_SIDE = 128
 """The shortest input side `auto` considers for a workspace crop."""
 WHOLE_FRAME_MIN_SIDE = 224
-"""The smallest square side `auto` takes over the whole frame (views that vary). On held-out random views (the
-hardest proxy) 224 x 288 over the whole frame (1.91 G) gave PCK@0.05 0.356 / EPE 29.2 px where 288 x 288 (2.44 G)
-gave 0.375-0.400 / 25.6-27.0 px and 224 x 224 0.306 (docs/results.md, 2026-11-28): with no workspace to crop to,
-fewer pixels only cost accuracy, so views that vary keep the square rule measured before."""
+"""The smallest square side `auto` takes over the whole frame (views that vary): with no workspace to crop to, fewer
+pixels only cost accuracy, so views that vary keep the square rule (measured on held-out random views: docs/results.md,
+2026-11-28)."""
 AUTO_MAX_SIDE = 384
 """The longest input side `auto` considers."""
 WORKSPACE_MARGIN = 0.05
