@@ -45,17 +45,20 @@ from __future__ import annotations
 
 import functools
 import math
+from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 
+from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import FrameView, keypoints_to_frame
 
-__all__ = ["maps_to_keypoints", "decode", "check_fallback", "check_centroid", "describe_decoding",
+__all__ = ["maps_to_keypoints", "decode", "check_fallback", "check_centroid", "Decoding",
            "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut", "CENTROIDS"]
 
-CENTROIDS = ("plain", "weighted")
+CENTROIDS = settings.CENTROID.choices
 """How a keypoint's position is read from its cluster: the plain mean of its pixels (Algorithm 1) or weighted
 by (p - threshold)^2."""
 
@@ -355,11 +358,47 @@ def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
         out_conf[i] = size
 
 
-def describe_decoding(threshold: float, fallback: float | None, centroid: str = "weighted") -> str:
-    """One line naming the decoding, for reports."""
-    weighted = f" weighted by (p - {threshold:g})^2" if centroid == "weighted" else ""
-    text = f"Algorithm 1 (largest cluster above {threshold:g}, its centroid{weighted})"
-    return text if fallback is None else f"{text}; a map with none: above {fallback:g} (--fallback)"
+@dataclass(frozen=True)
+class Decoding:
+    """How a model's maps become keypoints, passed whole from the settings to every decoder: Algorithm 1's
+    `threshold`, the `fallback` threshold a map with nothing above it is read at (None: missing, the paper's), and
+    the `centroid` (where in its cluster a keypoint is read: CENTROIDS). Defaults: `settings.THRESHOLD`,
+    `settings.FALLBACK`, `settings.CENTROID`; UserError for a value out of range."""
+
+    threshold: float = settings.THRESHOLD.default
+    fallback: float | None = settings.FALLBACK.default
+    centroid: str = settings.CENTROID.default
+
+    def __post_init__(self) -> None:
+        if not 0.0 < float(self.threshold) < 1.0:
+            raise UserError(f"threshold must be between 0 and 1 (exclusive), got {self.threshold}")
+        object.__setattr__(self, "threshold", float(self.threshold))
+        object.__setattr__(self, "fallback", check_fallback(self.threshold, self.fallback))
+        check_centroid(self.centroid)
+
+    @classmethod
+    def from_args(cls, args: Any) -> Decoding:
+        """The decoding a command's --threshold, --fallback and --centroid ask for (`settings.add_decoding_arguments`;
+        a command without --fallback has none)."""
+        return cls(args.threshold, getattr(args, "fallback", None), args.centroid)
+
+    def describe(self) -> str:
+        """One line naming the decoding, for reports."""
+        weighted = f" weighted by (p - {self.threshold:g})^2" if self.centroid == "weighted" else ""
+        text = f"Algorithm 1 (largest cluster above {self.threshold:g}, its centroid{weighted})"
+        return text if self.fallback is None else f"{text}; a map with none: above {self.fallback:g} (--fallback)"
+
+    def to_json(self) -> dict[str, Any]:
+        """{"threshold", "fallback", "centroid"}: what reports record."""
+        return {"threshold": self.threshold, "fallback": self.fallback, "centroid": self.centroid}
+
+    def keypoints(self, maps: np.ndarray, **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
+        """`maps_to_keypoints` with this decoding (`kwargs`: logits, quantization, min_size)."""
+        return maps_to_keypoints(maps, self.threshold, fallback=self.fallback, centroid=self.centroid, **kwargs)
+
+    def in_frame(self, maps: np.ndarray, frame_shape: tuple[int, ...], **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
+        """`decode` (keypoints in frame pixels) with this decoding (`kwargs`: logits, quantization, min_size, view)."""
+        return decode(maps, frame_shape, self.threshold, fallback=self.fallback, centroid=self.centroid, **kwargs)
 
 
 def check_centroid(centroid: str) -> str:
@@ -382,7 +421,7 @@ def check_fallback(threshold: float, fallback: float | None) -> float | None:
 def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool = False,
                       quantization: tuple[float, int] | None = None,
                       min_size: int = 1, fallback: float | None = None,
-                      centroid: str = "weighted") -> tuple[np.ndarray, np.ndarray]:
+                      centroid: str = settings.CENTROID.default) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints from FCN-Pose output maps by Expansion Clustering (the paper's Algorithm 1, M = 1).
 
     Args:
@@ -468,7 +507,7 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
 def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.5, *,
            logits: bool = False, quantization: tuple[float, int] | None = None,
            min_size: int = 1, fallback: float | None = None,
-           centroid: str = "weighted", view: FrameView | None = None) -> tuple[np.ndarray, np.ndarray]:
+           centroid: str = settings.CENTROID.default, view: FrameView | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 

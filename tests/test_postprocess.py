@@ -665,6 +665,25 @@ def test_decode_takes_the_centroid_and_refuses_an_unknown_one():
     maps[1, 1:3, 0] = [0.6, 0.9]
     kp, _ = decode(maps, (8, 8, 3), centroid="weighted")
     assert kp[0, 0] > decode(maps, (8, 8, 3), centroid="plain")[0][0, 0]
-    with pytest.raises(UserError, match="centroid must be one of plain, weighted, got 'middle'"):
+    with pytest.raises(UserError, match="centroid must be one of weighted, plain, got 'middle'"):
         maps_to_keypoints(maps, centroid="middle")
-    assert pp.describe_decoding(0.5, None, "weighted").endswith("its centroid weighted by (p - 0.5)^2)")
+    assert pp.Decoding().describe().endswith("its centroid weighted by (p - 0.5)^2)")
+
+
+def test_one_decoding_object_checks_its_values_and_reads_as_the_functions_do():
+    with pytest.raises(UserError, match="threshold must be between 0 and 1"):
+        pp.Decoding(threshold=1.0)
+    with pytest.raises(UserError, match="fallback threshold must be above 0 and below the threshold 0.5"):
+        pp.Decoding(fallback=0.6)
+    with pytest.raises(UserError, match="centroid must be one of"):
+        pp.Decoding(centroid="middle")
+    maps = np.zeros((4, 4, 2), np.float32)
+    maps[1, 1:3, 0] = [0.3, 0.4]  # nothing above 0.5: only the fallback finds it
+    decoding = pp.Decoding(fallback=0.2, centroid="plain")
+    assert decoding.to_json() == {"threshold": 0.5, "fallback": 0.2, "centroid": "plain"}
+    assert "above 0.2 (--fallback)" in decoding.describe()
+    kp, conf = decoding.keypoints(maps)
+    np.testing.assert_array_equal(kp, maps_to_keypoints(maps, 0.5, fallback=0.2, centroid="plain")[0])
+    assert conf[0] == 2 and np.isnan(pp.Decoding().keypoints(maps)[0][0]).all()
+    in_frame, _ = decoding.in_frame(maps, (8, 8, 3))
+    np.testing.assert_array_equal(in_frame, decode(maps, (8, 8, 3), fallback=0.2, centroid="plain")[0])

@@ -33,6 +33,7 @@ import pytest
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
+from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.runtime import bench as rbench
 from fcnpose_tf.runtime import interpreter as rinterp
 from fcnpose_tf.runtime import sources as rsources
@@ -320,7 +321,7 @@ def test_bad_threads_and_threshold(structured):
     with pytest.raises(UserError, match="threads"):
         KeypointModel(structured[1], num_threads=0)
     with pytest.raises(UserError, match="threshold"):
-        KeypointModel(structured[1], threshold=1.0)
+        KeypointModel(structured[1], decoding=Decoding(threshold=1.0))
 
 
 def test_generic_schema_for_other_map_counts():
@@ -912,7 +913,7 @@ def test_bundled_int8_file_takes_pixel_bytes_and_thresholds_its_maps_as_integers
         pred = model.predict(frame)
         np.testing.assert_array_equal(model.interpreter.get_tensor(model.io.input.index)[0],
                                       preprocess_frame_bytes(frame, 224))
-        keypoints, confidence = decode(model.read_maps(), frame.shape, model.threshold)
+        keypoints, confidence = decode(model.read_maps(), frame.shape, model.decoding.threshold)
         np.testing.assert_array_equal(pred.keypoints, keypoints)
         np.testing.assert_array_equal(pred.confidence, confidence)
         found += int(pred.found.sum())

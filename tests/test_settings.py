@@ -246,15 +246,17 @@ def test_the_librarys_decoders_default_to_the_commands_decoding():
     from fcnpose_tf.runtime import bench, estimator
     from fcnpose_tf.training import evaluate, train
 
-    decoders = [postprocess.maps_to_keypoints, postprocess.decode, postprocess.describe_decoding,
-                estimator.KeypointModel, evaluate.KerasKeypointModel, evaluate.open_model, bench.benchmark,
-                train.train_fold, train.keep_start_if_better]
-    for decoder in decoders:
+    for decoder in (postprocess.maps_to_keypoints, postprocess.decode):  # the functions the Decoding calls
         parameters = inspect.signature(decoder).parameters
         assert parameters["centroid"].default == settings.CENTROID.default, decoder
-        if "threshold" in parameters and parameters["threshold"].default is not inspect.Parameter.empty:
-            assert parameters["threshold"].default == settings.THRESHOLD.default, decoder
-    assert estimator.KeypointPredictor.centroid == settings.CENTROID.default
+        assert parameters["threshold"].default == settings.THRESHOLD.default, decoder
+    default = postprocess.Decoding()
+    assert (default.threshold, default.fallback, default.centroid) == (
+        settings.THRESHOLD.default, settings.FALLBACK.default, settings.CENTROID.default)
+    for predictor in (estimator.KeypointModel, evaluate.KerasKeypointModel, evaluate.open_model, bench.benchmark,
+                      train.train_fold, train.keep_start_if_better):  # a Decoding, default None: the one above
+        assert inspect.signature(predictor).parameters["decoding"].default is None, predictor
+    assert estimator.KeypointPredictor.decoding == default
     assert CompressOptions(rate=0.5).centroid == settings.CENTROID.default == "weighted"
     assert _parsed("evaluate", "m.keras", "--data", "d").centroid == "weighted"
     assert _parsed("sweep").centroid == "plain"  # the paper's tables (settings.SWEEP_CENTROID)

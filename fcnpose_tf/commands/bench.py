@@ -58,6 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, write_json
+    from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.runtime.bench import benchmark, comparison_table, load_frame, print_progress
     from fcnpose_tf.runtime.sources import parse_size
 
@@ -72,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     reports = []
     for i, model in enumerate(args.model):
         reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
-                                 args.threshold, progress=print_progress, centroid=args.centroid))
+                                 decoding=Decoding.from_args(args), progress=print_progress))
         print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
     if len(reports) > 1:
         print("\nComparison (the models ran one after the other; for a speed claim, repeat in the other order):")

@@ -94,17 +94,17 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"--sequence needs the frame rate (above 0), got {args.sequence}")
     if args.smooth and args.sequence is None:
         raise UserError("--smooth filters a video's tracks: give its frame rate with --sequence FPS")
-    from fcnpose_tf.postprocess import describe_decoding
+    from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.smoothing import params_from_args
 
     model_path = args.model
-    predictor = open_model(model_path, args.threads, args.threshold, args.fallback, args.centroid)
+    predictor = open_model(model_path, args.threads, Decoding.from_args(args))
     dataset = load_from_args(args)
     indices, description = choose_frames(dataset, model_path, args.split, args.fold)
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema, progress=True)
     print(f"Model: {model_path} ({Path(model_path).stat().st_size:,} bytes)")
     print(f"Data:  {dataset.via_path}, {description}")
-    print(f"Decoding: {describe_decoding(predictor.threshold, predictor.fallback, predictor.centroid)}")
+    print(f"Decoding: {predictor.decoding.describe()}")
     print("PCK normalised by max(bbox w, h) of the ground-truth keypoints; EPE in frame pixels")
     print(format_report(result["metrics"]))
     print(format_timing(result["timing"]))
@@ -123,8 +123,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:
         write_json(args.json, {"model": str(model_path), "size_bytes": Path(model_path).stat().st_size,
                                "data": str(dataset.via_path), "frames": description,
-                               "decoding": {"threshold": predictor.threshold, "fallback": predictor.fallback,
-                                            "centroid": predictor.centroid},
+                               "decoding": predictor.decoding.to_json(),
                                "metrics": result["metrics"], "timing": result["timing"], "worst_frames": worst,
                                "per_frame": frame_rows(result["predictions"], result["ground_truth"], dataset, indices),
                                **({"sequence": sequence} if sequence is not None else {})}, force=args.force)

@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     from fcnpose_tf.errors import UserError
+    from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import open_model
     from fcnpose_tf.fileio import stop_signals_as_interrupt
     from fcnpose_tf.correction.prelabel import check_via_output
@@ -98,7 +99,7 @@ def run(args: argparse.Namespace) -> int:
         from fcnpose_tf.training.tfsetup import import_tensorflow_quietly
 
         import_tensorflow_quietly()
-    predictor = open_model(model_path, args.threads, args.threshold, args.fallback, args.centroid)
+    predictor = open_model(model_path, args.threads, Decoding.from_args(args))
     source = open_source(args.source, refuse_cameras="predict reads image folders, images and videos; for a "
                          "camera use `fcnpose-tf run MODEL.tflite --source ... --via OUT.json`")
     if args.select is not None:

@@ -87,6 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, stop_signals_as_interrupt
     from fcnpose_tf.correction.prelabel import ViaPredictions, check_via_output
+    from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.runtime.estimator import KeypointModel
     from fcnpose_tf.runtime.runner import ProgressLine, check_display, run_stream
     from fcnpose_tf.runtime.sinks import VideoSink, open_record_writer, parse_outputs
@@ -113,8 +114,7 @@ def run(args: argparse.Namespace) -> int:
     if args.show:
         check_display()
 
-    model = KeypointModel(args.model, args.threads, args.threshold, backend=args.backend, fallback=args.fallback,
-                          centroid=args.centroid)
+    model = KeypointModel(args.model, args.threads, Decoding.from_args(args), backend=args.backend)
     if model.backend.skipped:
         print(f"note: using {model.backend.label} ({'; '.join(model.backend.skipped)})", file=sys.stderr)
     writers = []

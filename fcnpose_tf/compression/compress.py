@@ -36,6 +36,7 @@ from fcnpose_tf.compression.report import (CompressReport, RefusedFormat, Step, 
                                            model_facts)
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
+from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.fileio import write_json
@@ -95,13 +96,18 @@ class _Run:
         """Metrics (and timing) of a predictor on the run's frames."""
         return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.log, timing=timing)
 
+    @property
+    def decoding(self) -> Decoding:
+        """How every measurement reads keypoints (the options' centroid, the commands' threshold)."""
+        return Decoding(centroid=self.options.centroid)
+
     def log(self, line: str) -> None:
         """One progress line of the run (`reporter.say`)."""
         self.reporter.say(line)
 
     def keras_predictor(self, model: keras.Model, path: Path | None = None) -> KerasKeypointModel:
         """`model` as a predictor with the run's threads (`path`: its file, for the report)."""
-        return KerasKeypointModel(model, path, num_threads=self.options.threads, centroid=self.options.centroid)
+        return KerasKeypointModel(model, path, num_threads=self.options.threads, decoding=self.decoding)
 
 
 def measure_base(run: _Run) -> Step:
@@ -293,7 +299,7 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: Step, qat: dict[s
 
     path = run.paths[tflite_key(export.quantize)]
     tflite_info = inspect_tflite(path)
-    tfl = KeypointModel(path, num_threads=run.options.threads, centroid=run.options.centroid)
+    tfl = KeypointModel(path, num_threads=run.options.threads, decoding=run.decoding)
     return {"quantize": export.quantize, "status": "written",
             "quantization": "quantization-aware training" if qat else "post-training",
             **({"qat": qat} if qat else {}),

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import read_image
 from fcnpose_tf.records import host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
@@ -232,8 +233,8 @@ def bench_threads(model: KeypointModel, frame: np.ndarray, frames: int, warmup: 
 
 def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = None, frames: int = 200,
               warmup: int = 10, frame: np.ndarray | None = None, frame_label: str | None = None,
-              backend: str = "auto", threshold: float = 0.5,
-              progress: Callable[[str], None] | None = None, centroid: str = "weighted") -> BenchReport:
+              backend: str = "auto", decoding: Decoding | None = None,
+              progress: Callable[[str], None] | None = None) -> BenchReport:
     """Benchmark a .tflite at each thread count.
 
     Args:
@@ -243,7 +244,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
         warmup: untimed iterations first (XNNPACK packs weights and warms caches on the first runs).
         frame: the BGR frame to process (default: synthetic_frame()).
         frame_label: how the frame is described in the report.
-        backend, threshold, centroid: as for KeypointModel.
+        backend, decoding: as for KeypointModel.
         progress: called with a short message before each thread count.
     Returns:
         A BenchReport; a thread count whose interpreter fails is reported with its error as status.
@@ -256,12 +257,13 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
     if frame is None:
         frame, frame_label = synthetic_frame(), "synthetic 640x480"
     path = check_tflite_file(model_path)
-    first = KeypointModel(path, counts[0], threshold, backend=backend, centroid=centroid)  # UserError for a bad model, before timing
+    decoding = decoding if decoding is not None else Decoding()
+    first = KeypointModel(path, counts[0], decoding, backend=backend)  # UserError for a bad model, before timing
     stats = first.stats()
     report = BenchReport(str(model_path), stats.size_bytes, stats.params, stats.macs, stats.weight_dtypes,
                          first.io.describe(), first.io.input.shape[1:], first.io.output.shape[1:],
                          first.backend.name, first.backend.version, frames, warmup,
-                         frame_label or f"{frame.shape[1]}x{frame.shape[0]}", threshold, host=host_info())
+                         frame_label or f"{frame.shape[1]}x{frame.shape[0]}", decoding.threshold, host=host_info())
     for n in counts:
         if progress is not None:
             progress(f"{n} thread{'s' if n != 1 else ''}: {warmup} warm-up + {frames} timed frames")
@@ -269,7 +271,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
             if first is not None:  # counts[0]: reuse the interpreter that was checked above
                 model, first = first, None
             else:
-                model = KeypointModel(path, n, threshold, backend=backend, centroid=centroid)
+                model = KeypointModel(path, n, decoding, backend=backend)
             report.results.append(bench_threads(model, frame, frames, warmup))
         except (RuntimeError, ValueError) as exc:  # an interpreter failure at this count; keep the others
             report.results.append(ThreadResult(n, f"failed: {' '.join(str(exc).split())[:60]}"))

@@ -22,8 +22,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema
-from fcnpose_tf.postprocess import check_centroid, check_fallback
-from fcnpose_tf.postprocess import decode as decode_maps
+from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.postprocess import dequantize
 from fcnpose_tf.preprocess import Box, FrameView, preprocess_frame, preprocess_frame_bytes
 from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
@@ -120,7 +119,7 @@ class KeypointPredictor(abc.ABC):
 
     A backend implements `set_input` (preprocess a frame into the model's input), `invoke` (the
     forward pass), `read_maps` (the output maps of the last forward pass) and `backend_label`; it
-    sets `view`, `num_maps`, `threshold` and `num_threads`. Decoding and `predict` are
+    sets `view`, `num_maps`, `decoding` and `num_threads`. Decoding and `predict` are
     shared, so every backend maps keypoints back to frame pixels and times its stages the same way.
     """
 
@@ -128,13 +127,8 @@ class KeypointPredictor(abc.ABC):
     """What the model sees of a frame: its crop (or the whole frame) resized to the H x W input."""
     num_maps: int
     """Output maps: one per keypoint, then the skeleton map."""
-    threshold: float
-    """Probability above which a map pixel belongs to a keypoint (post-processing)."""
-    fallback: float | None = None
-    """None (the paper's decoding), or the probability above which a map with nothing above `threshold`
-    is read instead (`postprocess.maps_to_keypoints`)."""
-    centroid: str = "weighted"
-    """Where in its cluster a keypoint is read: "plain" (the paper's) or "weighted" (`postprocess.CENTROIDS`)."""
+    decoding: Decoding = Decoding()
+    """How maps become keypoints: threshold, fallback and centroid (`postprocess.Decoding`)."""
     num_threads: int | None
     """Threads of the forward pass (None: the library's default)."""
     schema: KeypointSchema
@@ -181,8 +175,7 @@ class KeypointPredictor(abc.ABC):
     def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
         maps = self.read_maps(copy=False)
-        keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback,
-                                            centroid=self.centroid, view=self.view)
+        keypoints, confidence = self.decoding.in_frame(maps, frame_shape, view=self.view)
         del maps
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
@@ -217,11 +210,10 @@ class KeypointModel(KeypointPredictor):
         model_path: the .tflite file (1 x H x W x 3 image in, 1 x H x W x C maps out; its crop, when it has one,
             in its metadata: `runtime.interpreter.read_view`).
         num_threads: interpreter threads; None = all cores.
-        threshold: probability above which a map pixel belongs to a keypoint (post-processing).
+        decoding: how maps become keypoints (`postprocess.Decoding`: threshold, fallback, centroid); default the
+            commands' (settings).
         schema: keypoint names; default UR5 for 9 maps, kp0..kpN otherwise.
         backend: `auto`, `ai_edge_litert`, `tflite_runtime` or `tensorflow`.
-        fallback: None, or the probability above which a map empty at `threshold` is read instead.
-        centroid: "plain" (the paper's) or "weighted": where in its cluster a keypoint is read.
     Raises:
         UserError: missing, corrupt or non-FCN-Pose file; no interpreter installed.
     Example:
@@ -230,19 +222,14 @@ class KeypointModel(KeypointPredictor):
         >>> pred.keypoints, pred.confidence, pred.times.total_ms
     """
 
-    def __init__(self, model_path: str | os.PathLike, num_threads: int | None = None, threshold: float = 0.5,
-                 schema: KeypointSchema | None = None, backend: str = "auto", fallback: float | None = None,
-                 centroid: str = "weighted"):
-        if not 0.0 < float(threshold) < 1.0:
-            raise UserError(f"threshold must be between 0 and 1 (exclusive), got {threshold}")
-        self.fallback = check_fallback(threshold, fallback)
-        self.centroid = check_centroid(centroid)
+    def __init__(self, model_path: str | os.PathLike, num_threads: int | None = None,
+                 decoding: Decoding | None = None, schema: KeypointSchema | None = None, backend: str = "auto"):
+        self.decoding = decoding if decoding is not None else Decoding()
         self.path = Path(model_path)
         self.num_threads: int = default_num_threads() if num_threads is None else num_threads
         self.backend: Backend
         self.interpreter, self.backend = load_interpreter(self.path, self.num_threads, backend)
         self.io: ModelIO = inspect_io(self.interpreter, self.path)
-        self.threshold = float(threshold)
         self.schema = schema or schema_for_maps(self.io.num_maps)
         if self.schema.num_maps != self.io.num_maps:
             raise UserError(f"{self.path}: {self.io.num_maps} output maps, but schema {self.schema.name!r} "
@@ -359,13 +346,11 @@ class KeypointModel(KeypointPredictor):
         """Keypoints and confidences from raw output maps (the interpreter's tensor or a `forward` copy)."""
         spec = self.io.output
         if spec.quantized:
-            keypoints, confidence = decode_maps(raw, frame_shape, self.threshold, fallback=self.fallback,
-                                                quantization=(spec.scale, spec.zero_point), centroid=self.centroid,
-                                                view=self.view)
+            keypoints, confidence = self.decoding.in_frame(raw, frame_shape, view=self.view,
+                                                           quantization=(spec.scale, spec.zero_point))
         else:
             maps = raw if raw.dtype == np.float32 else raw.astype(np.float32)
-            keypoints, confidence = decode_maps(maps, frame_shape, self.threshold, fallback=self.fallback,
-                                                centroid=self.centroid, view=self.view)
+            keypoints, confidence = self.decoding.in_frame(maps, frame_shape, view=self.view)
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:

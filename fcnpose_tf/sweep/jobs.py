@@ -389,6 +389,7 @@ def _reporter(config: SweepConfig) -> Any:
 
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     from fcnpose_tf.compression.report import file_sizes, model_facts
+    from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.training.model import load_model
     from fcnpose_tf.training.train import run_paths, train_fold
@@ -402,7 +403,7 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         model = load_model(path)
         _log(f"{job.label}: evaluating on {len(val_idx)} validation frames")
         result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads,
-                                                       centroid=config.centroid), dataset, val_idx,
+                                                       decoding=Decoding(centroid=config.centroid)), dataset, val_idx,
                                     dataset.schema)
         validation = {"metrics": result["metrics"], "timing": result["timing"]}
     else:
@@ -410,8 +411,8 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         trained = train_fold(dataset, job.fold, path, config.fit_config(), input_size=config.input_size,
                              augment_copies=config.augment_copies, resume=resume, force=config.force or not resume,
                              metadata={"data": config.data, "trained_by": "fcnpose-tf sweep"},
-                             threads=config.threads, centroid=config.centroid, label=f"{job.label} ({path.name})",
-                             reporter=_reporter(config))
+                             threads=config.threads, decoding=Decoding(centroid=config.centroid),
+                             label=f"{job.label} ({path.name})", reporter=_reporter(config))
         training = {"reused": False, "resumed": resume, "epochs_run": trained["epochs_run"],
                     "best_epoch": trained["best_epoch"], "best_val_loss": trained["best_val_loss"],
                     "seconds": trained["train_seconds"], "stopped_early": trained["stopped_early"]}

@@ -97,6 +97,7 @@ def _checked_file(out: Path, relative: str | None, what: str, sha256: str | None
 
 def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> dict[str, dict[str, Any]]:
     """Re-run the job's measurements: {section: {"metrics", "timing"}} for each timed section it has."""
+    from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import KerasKeypointModel
     from fcnpose_tf.training.model import load_model
     from fcnpose_tf.runtime.estimator import KeypointModel
@@ -110,10 +111,10 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
                         "the job ran")
     files = record.get("files") or {}
     measured: dict[str, dict[str, Any]] = {}
-    threads, centroid = config.threads, config.centroid
+    threads, decoding = config.threads, Decoding(centroid=config.centroid)
 
     def keras(path: Path) -> KerasKeypointModel:
-        return KerasKeypointModel(load_model(path), path, num_threads=threads, centroid=centroid)
+        return KerasKeypointModel(load_model(path), path, num_threads=threads, decoding=decoding)
 
     if record["kind"] == "base":
         path = _checked_file(out, files.get("keras"), "the base model", record.get("model_sha256"))
@@ -132,7 +133,7 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
         # records written before one file per format name the (float16) file "tflite"
         name = files.get(tflite_key(quantize)) if quantize else files.get("tflite")
         tflite_path = _checked_file(out, name, f"the {quantize or 'float16'} TFLite export")
-        measured[section] = _measure(KeypointModel(tflite_path, num_threads=threads, centroid=centroid), dataset,
+        measured[section] = _measure(KeypointModel(tflite_path, num_threads=threads, decoding=decoding), dataset,
                                      indices)
     return measured
 

@@ -19,7 +19,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.metrics import keypoint_report
-from fcnpose_tf.postprocess import check_centroid, check_fallback
+from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import preprocess_frame
 from fcnpose_tf.records import file_sha256, training_record
 from fcnpose_tf.runtime.estimator import KeypointPredictor, schema_for_maps
@@ -62,8 +62,8 @@ class KerasKeypointModel(KeypointPredictor):
 
     backend_label = "tf_keras (direct call)"
 
-    def __init__(self, model: Any, path: str | os.PathLike | None = None, threshold: float = 0.5,
-                 num_threads: int | None = None, fallback: float | None = None, centroid: str = "weighted"):
+    def __init__(self, model: Any, path: str | os.PathLike | None = None, num_threads: int | None = None,
+                 decoding: Decoding | None = None):
         if isinstance(model, (str, os.PathLike)):
             from fcnpose_tf.training.model import load_model
 
@@ -78,9 +78,7 @@ class KerasKeypointModel(KeypointPredictor):
                             f"{model.output_shape}); expected H x W x 3 in, H x W x C maps out")
         self.model = model
         self.path = Path(path) if path else None
-        self.threshold = threshold
-        self.fallback = check_fallback(threshold, fallback)
-        self.centroid = check_centroid(centroid)
+        self.decoding = decoding if decoding is not None else Decoding()
         self.num_threads = num_threads
         self.view = view_of(model)
         self.num_maps = int(model.output_shape[-1])
@@ -103,22 +101,21 @@ class KerasKeypointModel(KeypointPredictor):
         return self._maps.copy() if copy else self._maps
 
 
-def open_model(path: str | os.PathLike, threads: int | None = None, threshold: float = 0.5,
-               fallback: float | None = None, centroid: str = "weighted"):
-    """A predictor for a .keras/.h5 (tf_keras) or .tflite (LiteRT) file, by its extension (decoding with
-    `threshold`, `fallback` and `centroid`, as `postprocess.maps_to_keypoints`)."""
+def open_model(path: str | os.PathLike, threads: int | None = None, decoding: Decoding | None = None):
+    """A predictor for a .keras/.h5 (tf_keras) or .tflite (LiteRT) file, by its extension, reading keypoints with
+    `decoding` (`postprocess.Decoding`; default the commands')."""
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: model file not found")
     if path.suffix == ".tflite":
         from fcnpose_tf.runtime.estimator import KeypointModel
 
-        return KeypointModel(path, num_threads=threads, threshold=threshold, fallback=fallback, centroid=centroid)
+        return KeypointModel(path, num_threads=threads, decoding=decoding)
     if path.suffix in (".keras", ".h5"):
         from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
         set_tensorflow_threads(threads)
-        return KerasKeypointModel(path, path, threshold, threads, fallback, centroid)
+        return KerasKeypointModel(path, path, threads, decoding)
     raise UserError(f"{path}: unknown model format; expected .keras, .h5 or .tflite")
 
 

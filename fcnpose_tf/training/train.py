@@ -29,6 +29,7 @@ import tf_keras as keras
 
 from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
 from fcnpose_tf.training.model import save_for_inference, view_of, with_view
@@ -607,7 +608,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
                test_start: dict[str, Any] | None = None, size_was_chosen: bool = False,
-               centroid: str = "weighted") -> dict[str, Any]:
+               decoding: Decoding | None = None) -> dict[str, Any]:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
@@ -630,7 +631,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         resume, force: as for `fit`.
         metadata: more facts for NAME_train.json; they override the dataset's (e.g. "data" as given).
         threads: TensorFlow threads of the validation timing (None: all cores).
-        centroid: where the measurements read a keypoint in its cluster (`postprocess.CENTROIDS`).
+        decoding: how the measurements read keypoints (`postprocess.Decoding`; default the commands').
         label: prefix of the progress lines (default: the model path).
         reporter: where messages and progress go (`fcnpose_tf.progress`; default: the current one): bars on a
             terminal, lines in a log, one line per epoch with --quiet, nothing when silent.
@@ -693,7 +694,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         f"{' (time budget reached)' if config.max_minutes and result.seconds >= 60 * config.max_minutes else ''}; "
         f"{result.seconds / 60:.1f} min")
 
-    predictor = KerasKeypointModel(load_model(model_path), model_path, num_threads=threads, centroid=centroid)
+    predictor = KerasKeypointModel(load_model(model_path), model_path, num_threads=threads, decoding=decoding)
     _, val_idx = dataset.split(fold)
     log(f"{label}: evaluating on {len(val_idx)} validation frames")
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
@@ -701,7 +702,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     record = json.loads(paths["train_json"].read_text())
     if init is not None and size_was_chosen:
         kept = keep_start_if_better(init, dataset, val_idx, report, model_path, view, threads=threads,
-                                    reporter=reporter, label=label, centroid=centroid)
+                                    reporter=reporter, label=label, decoding=decoding)
         if kept is not None:
             record["start_as_saved"], start_predictor, start_report = kept
             if record["start_as_saved"]["chose"] == "start":
@@ -718,7 +719,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
 def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: dict[str, Any],
                          model_path: Path, view: Any, *, threads: int | None = None,
                          reporter: Reporter | None = None, label: str = "",
-                         centroid: str = "weighted") -> tuple[dict[str, Any], Any, dict] | None:
+                         decoding: Decoding | None = None) -> tuple[dict[str, Any], Any, dict] | None:
     """The start as saved is a candidate too when the run trained at another view (`preprocess.FrameView`: crop and
     input size) than the start's own (one `train --input-size auto` chose: a size the user asked for is kept).
 
@@ -743,7 +744,7 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
     reporter = progress.resolve(reporter)
     reporter.say(f"{label}: evaluating the starting model as saved ({start_size}) on the same "
                  f"{len(val_idx)} validation frames")
-    predictor = KerasKeypointModel(start, Path(init), num_threads=threads, centroid=centroid)
+    predictor = KerasKeypointModel(start, Path(init), num_threads=threads, decoding=decoding)
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
     start_score, trained_score = mean_pck(report["metrics"]), mean_pck(trained_report["metrics"])
     chose = "start" if start_score > trained_score else "trained"
