@@ -360,6 +360,14 @@ TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
 wide and fine localisation falls (measured on the held-out fixed camera: docs/training.md, "Someone else's
 arm"); `data.arm_size` measures where the arm is and how large, and chooses. The paper's preset keeps the paper's
 224 x 224 over the whole frame."""
+ARCHITECTURE = Setting(
+    "architecture", str, "fcn-pose",
+    "fcn-pose: the paper's network; fcn-pose-skip: the same with conv2's half-resolution block added before conv10 "
+    "(a zero-initialised 1x1 convolution: it starts as the model it is fine-tuned from), so the maps are read from "
+    "2 x 2 instead of 4 x 4 blocks, +3.5 %% MACs; finer keypoints where the arm is small (docs/training.md, "
+    "\"Architecture\"). compress and the sweep prune fcn-pose; `fcnpose-tf prune` prunes either",
+    label="architecture", choices=("fcn-pose", "fcn-pose-skip"), paper="fcn-pose")
+"""`train`'s network; a model given to --init keeps its own unless this adds the skip (`model.as_architecture`)."""
 TRAIN_CROP = Setting(
     "crop", str, "auto", "what of the frame the network sees: auto: with --input-size auto, a fixed camera's workspace "
     "(the box holding every training keypoint, 5 %% more on each side, at the input's aspect) and the whole frame "

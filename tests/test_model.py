@@ -70,3 +70,35 @@ def test_custom_widths_and_maps():
     assert conv_widths(model)[-1] == 7
     with pytest.raises(UserError, match="9 positive"):
         build_fcn_pose(widths=(8, 8))
+
+
+def test_the_skip_architecture_starts_as_the_model_it_is_given():
+    """fcn-pose-skip adds conv2's half-resolution block before conv10 through a 1x1 convolution at zero: an FCN-Pose
+    given the skip computes exactly what it computed; conv1..conv10 keep their widths; a trained skip is not dropped."""
+    import tf_keras as keras
+
+    from fcnpose_tf.training.model import SKIP_LAYERS, architecture_of, as_architecture
+
+    keras.utils.set_random_seed(5)
+    plain = build_fcn_pose(input_size=(64, 96))
+    skipped = as_architecture(plain, "fcn-pose-skip")
+    for layer in plain.layers:  # every weight copied (a fresh build would draw others)
+        for mine, copied in zip(layer.get_weights(), skipped.get_layer(layer.name).get_weights()):
+            np.testing.assert_array_equal(mine, copied)
+    assert (architecture_of(plain), architecture_of(skipped)) == ("fcn-pose", "fcn-pose-skip")
+    assert as_architecture(skipped, "fcn-pose-skip") is skipped and as_architecture(plain, "fcn-pose") is plain
+    assert conv_widths(skipped) == conv_widths(plain) and skipped.input_shape == plain.input_shape
+    x = np.random.default_rng(1).random((2, 64, 96, 3), dtype=np.float32)
+    np.testing.assert_allclose(np.asarray(skipped(x)), np.asarray(plain(x)), rtol=0, atol=1e-6)
+    rows = {r.name: r for r in describe(skipped)}
+    assert rows["skip2"].output_shape == (32, 48, 64) and rows["skip_add"].output_shape == (64, 96, 64)
+    assert rows["skip2"].macs == conv_macs(32, 48, 1, 1, 64, 64)
+    assert skipped.count_params() - plain.count_params() == 64 * 64 + 64
+    kernel = skipped.get_layer(SKIP_LAYERS[0])
+    kernel.set_weights([np.full_like(w, 0.01) for w in kernel.get_weights()])
+    assert np.abs(np.asarray(skipped(x)) - np.asarray(plain(x))).max() > 1e-4  # the skip reaches conv10
+    assert isinstance(skipped.get_layer(SKIP_LAYERS[2]), keras.layers.Add)
+    with pytest.raises(UserError, match="would drop its trained skip"):
+        as_architecture(skipped, "fcn-pose")
+    with pytest.raises(UserError, match="architecture must be one of"):
+        as_architecture(plain, "unet")

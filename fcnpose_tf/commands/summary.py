@@ -15,6 +15,7 @@ EXAMPLES = """\
   fcnpose-tf summary                                  # the paper's FCN-Pose at 224x224
   fcnpose-tf summary --input-size 64
   fcnpose-tf summary --input-size 224x288             # a 4:3 input: 1.29x the MACs of 224x224
+  fcnpose-tf summary --architecture fcn-pose-skip     # with the half-resolution skip before conv10
   fcnpose-tf summary saved_models/fcnpose_ur5.keras   # a trained or pruned model
 """
 
@@ -29,20 +30,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--input-size", type=input_size_or_auto, default=224, metavar="S|HxW",
                         help="input when building the default model: S (S x S) or HxW, multiples of 32")
+    from fcnpose_tf import settings
+
+    settings.ARCHITECTURE.variant(help="the network built without MODEL: " + settings.ARCHITECTURE.help).add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.preprocess import FrameView
-    from fcnpose_tf.training.model import build_fcn_pose, describe, load_model, view_of
+    from fcnpose_tf.training.model import ARCHITECTURES, build_fcn_pose, describe, load_model, view_of
     from fcnpose_tf.tables import format_table
 
     if args.model is None:
         if args.input_size == "auto":
             raise UserError("--input-size auto is chosen from a dataset (train, data inspect); give S or HxW here")
         view = FrameView.of(args.input_size)
-        model = build_fcn_pose(input_size=view.shape)
-        title = f"Model: FCN-Pose (unpruned, {view.height}x{view.width})"
+        model = build_fcn_pose(input_size=view.shape, skip=ARCHITECTURES[args.architecture])
+        name = "FCN-Pose with the half-resolution skip" if ARCHITECTURES[args.architecture] else "FCN-Pose"
+        title = f"Model: {name} (unpruned, {view.height}x{view.width})"
     else:
         model = load_model(args.model)
         title = f"Model: {args.model}"

@@ -56,6 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
     settings.INIT.add_to(parser)
+    settings.ARCHITECTURE.variant(default=None, help=settings.ARCHITECTURE.help + " (default: the --init model's own; "
+                                  "fcn-pose from random weights)").add_to(parser)
     parser.add_argument("--test-data", type=Path, metavar="T",
                         help="a fixed test set (dataset folder or VIA file, images found as for --data; frames never "
                              "trained on): the starting model and every trained one are measured on it (PCK@0.5/0.2/"
@@ -172,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
                             augment_copies=args.augment_copies, augment=args.augment, init=init, resume=args.resume,
                             force=args.force, metadata=metadata,
                             threads=args.threads, test_data=test,
-                            test_start=test_start, size_was_chosen=size_was_chosen)
+                            test_start=test_start, size_was_chosen=size_was_chosen, architecture=args.architecture)
         print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         print(format_report(record["validation"]["metrics"]))
         print(format_timing(record["validation"]["timing"]))

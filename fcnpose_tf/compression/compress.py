@@ -340,7 +340,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps do not match the dataset.
         ValueError: `metadata` names a section of the report, or options not resolved (`CompressOptions.checked`).
     """
-    from fcnpose_tf.training.model import at_input_size, load_model, view_of
+    from fcnpose_tf.training.model import architecture_of, at_input_size, load_model, view_of
     from fcnpose_tf.compression.prune import check_chain, plan_widths
 
     base_path = Path(base_path)
@@ -357,6 +357,10 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
+    if architecture_of(base) != "fcn-pose":
+        raise UserError(f"{base_path}: an {architecture_of(base)} network; compress prunes FCN-Pose's chain of layers. "
+                        f"Prune it with `fcnpose-tf prune {base_path} --rate R --out P.keras` (graph surgery), retrain "
+                        "it with `fcnpose-tf train --init P.keras`, then `fcnpose-tf export`")
     check_chain(base)  # a model that is not a plain chain of supported layers fails here, first
     saved_view = view_of(base)
     if options.input_size:  # the height; an H x W input keeps its aspect

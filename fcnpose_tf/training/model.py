@@ -108,6 +108,37 @@ def build_fcn_pose(widths: Sequence[int] = DEFAULT_WIDTHS, input_size: ViewLike 
     return with_view(model, input_size) if isinstance(input_size, FrameView) else model
 
 
+ARCHITECTURES = {"fcn-pose": False, "fcn-pose-skip": True}
+"""The networks `build_fcn_pose` builds, by name (`settings.ARCHITECTURE`): whether the skip is there."""
+
+
+def architecture_of(model: keras.Model) -> str:
+    """"fcn-pose-skip" when `model` has `build_fcn_pose(skip=True)`'s layers, else "fcn-pose"."""
+    names = {layer.name for layer in model.layers}
+    return "fcn-pose-skip" if set(SKIP_LAYERS) <= names else "fcn-pose"
+
+
+def as_architecture(model: keras.Model, architecture: str) -> keras.Model:
+    """`model` as the network `architecture` names: itself when it is one already; FCN-Pose given the skip with the
+    skip's 1x1 convolution at zero (the same function, weights copied by layer name, the view kept). UserError for
+    taking a trained skip away (its weights would be lost) or an unknown name."""
+    if architecture not in ARCHITECTURES:
+        raise UserError(f"architecture must be one of {', '.join(ARCHITECTURES)}, got {architecture!r}")
+    own = architecture_of(model)
+    if own == architecture:
+        return model
+    if own == "fcn-pose-skip":
+        raise UserError(f"model {model.name} is an fcn-pose-skip network: --architecture fcn-pose would drop its "
+                        "trained skip (start from an fcn-pose model, or keep --architecture fcn-pose-skip)")
+    widths = conv_widths(model)
+    view = view_of(model)
+    skipped = build_fcn_pose(widths[:-1], view.shape, widths[-1], name=model.name, skip=True)
+    for layer in model.layers:
+        if layer.weights:
+            skipped.get_layer(layer.name).set_weights(layer.get_weights())
+    return with_view(skipped, view)
+
+
 def given_view(model: keras.Model) -> FrameView | None:
     """The view `model` was given (`with_view`, `load_model` of a file that stores one), or None."""
     return getattr(model, _VIEW_ATTRIBUTE, None)
@@ -201,8 +232,10 @@ def describe(model: keras.Model) -> list[LayerRow]:
 
 
 def conv_widths(model: keras.Model) -> tuple[int, ...]:
-    """Filter counts of every Conv2D in order (the last is the number of output maps)."""
-    return tuple(int(layer.filters) for layer in model.layers if isinstance(layer, keras.layers.Conv2D))
+    """Filter counts of conv1..conv10 in order (the last is the number of output maps; the skip's 1x1 convolution,
+    which follows conv9's width, is not one of them)."""
+    return tuple(int(layer.filters) for layer in model.layers
+                 if isinstance(layer, keras.layers.Conv2D) and layer.name not in SKIP_LAYERS)
 
 
 def at_input_size(model: keras.Model, input_size: ViewLike) -> keras.Model:

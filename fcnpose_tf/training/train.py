@@ -608,7 +608,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
                test_start: dict[str, Any] | None = None, size_was_chosen: bool = False,
-               decoding: Decoding | None = None) -> dict[str, Any]:
+               decoding: Decoding | None = None, architecture: str | None = None) -> dict[str, Any]:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
@@ -632,6 +632,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         metadata: more facts for NAME_train.json; they override the dataset's (e.g. "data" as given).
         threads: TensorFlow threads of the validation timing (None: all cores).
         decoding: how the measurements read keypoints (`postprocess.Decoding`; default the commands').
+        architecture: the network (`model.ARCHITECTURES`): None keeps `init`'s own (FCN-Pose from random weights);
+            "fcn-pose-skip" adds the skip to an FCN-Pose start (`model.as_architecture`).
         label: prefix of the progress lines (default: the model path).
         reporter: where messages and progress go (`fcnpose_tf.progress`; default: the current one): bars on a
             terminal, lines in a log, one line per epoch with --quiet, nothing when silent.
@@ -650,7 +652,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     from fcnpose_tf.preprocess import FrameView
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.records import file_sha256
-    from fcnpose_tf.training.model import build_fcn_pose, load_model
+    from fcnpose_tf.training.model import ARCHITECTURES, architecture_of, as_architecture, build_fcn_pose, load_model
 
     model_path = Path(model_path)
     view = FrameView.of(input_size)
@@ -672,8 +674,11 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     num_maps = dataset.schema.num_maps
     if init is not None and not resume:
         model = initial_model(init, dataset.schema, view)
-    else:
-        model = build_fcn_pose(input_size=view, num_maps=num_maps)
+        model = as_architecture(model, architecture) if architecture is not None else model
+    else:  # random weights, or the checkpoint's (`fit` loads them) in the network that wrote it
+        if architecture is None:
+            architecture = architecture_of(load_model(init)) if init is not None else "fcn-pose"
+        model = build_fcn_pose(input_size=view, num_maps=num_maps, skip=ARCHITECTURES[architecture])
     folds = dataset.splits.k
     split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {folds}"
     train_data, val_data = fold_data(dataset, fold, view, augment_copies, config.seed, augment,
@@ -684,7 +689,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
              "split": split_name, "fold": fold, "folds": folds, "split_seed": dataset.splits.seed,
              "input_size": view.size_record, "view": view.to_json(), "augment": augment,
              "augment_copies": augment_copies if augment == "paper" else None, "train_samples": len(train_data),
-             "val_frames": len(val_data), "schema": dataset.schema.to_dict()}
+             "val_frames": len(val_data), "schema": dataset.schema.to_dict(), "architecture": architecture_of(model)}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
                  reporter=reporter, identity=identity, start_is_candidate=init is not None)
