@@ -518,3 +518,32 @@ def test_evaluate_names_the_worst_frames_and_draws_them(trained, cli_here, tmp_p
     assert status == 2 and "already holds files; pass --force" in err
     status, _, err = cli_here("evaluate", out, "--data", other, "--worst", "0", "--pictures", tmp_path / "p2")
     assert status == 2 and "--pictures draws the --worst frames" in err
+
+
+@pytest.mark.slow
+def test_train_adds_the_skip_to_its_start_and_compress_names_the_way_to_prune_it(trained, cli, cli_here, tmp_path):
+    """--architecture fcn-pose-skip fine-tunes a plain start with the skip added (recorded in NAME_train.json); the
+    skip model fine-tunes again with its own architecture by default, and compress refuses it with the path that
+    prunes it (graph surgery, retraining, export)."""
+    from fcnpose_tf.training.model import SKIP_LAYERS, architecture_of, load_model
+
+    data, start, _ = trained
+    skip = tmp_path / "skip.keras"
+    proc = cli("train", "--data", data, "--out", skip, "--epochs", "1", "--input-size", "64", "--augment-copies", "0",
+               "--init", start, "--architecture", "fcn-pose-skip", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    record = json.loads((tmp_path / "skip_train.json").read_text())
+    assert record["architecture"] == "fcn-pose-skip" and record["start_val_loss"] > 0
+    model = load_model(skip)
+    assert architecture_of(model) == "fcn-pose-skip" and all(model.get_layer(name) for name in SKIP_LAYERS)
+    again = tmp_path / "again.keras"
+    proc = cli("train", "--data", data, "--out", again, "--epochs", "1", "--input-size", "64", "--augment-copies",
+               "0", "--init", skip, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads((tmp_path / "again_train.json").read_text())["architecture"] == "fcn-pose-skip"
+    status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "plain.keras", "--epochs", "1",
+                              "--input-size", "64", "--init", skip, "--architecture", "fcn-pose")
+    assert status == 2 and "would drop its trained skip" in err
+    status, _, err = cli_here("compress", "--model", skip, "--data", data, "--rate", "0.5", "--out-dir",
+                              tmp_path / "c")
+    assert status == 2 and "fcnpose-tf prune" in err and not (tmp_path / "c").exists()
