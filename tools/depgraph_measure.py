@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import sys
 import time
 
 from fcnpose_tf.errors import UserError
@@ -55,12 +54,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    try:
-        return run(args)
-    except UserError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    return run(build_parser().parse_args(argv))  # a UserError: `run_tool`'s one line and status 2
 
 
 if __name__ == "__main__":

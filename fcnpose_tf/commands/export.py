@@ -126,12 +126,7 @@ def run(args: argparse.Namespace) -> int:
             export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
                                   calibration_frames=calibration, num_threads=options.threads)
         except ExportVerificationError as exc:  # a row, not the end of the run
-            refused.append({"file": str(path), "quantize": quantize, "status": "refused", "reason": exc.reason,
-                            **({"parity": exc.facts} if exc.facts else {})})
-            rows.append([f"{path.name}: REFUSED"] + [None] * 8)
-            if args.force and path.is_file():  # an earlier file of this name is not this model's
-                path.unlink()
-                print(f"removed {path}: an earlier file of the format this run refused")
+            rows.append(_refused(refused, path, quantize, exc, args.force, columns=8))
             continue
         records.append({"file": str(path), "status": "written", **export.to_dict()})
         p = export.parity
@@ -199,13 +194,8 @@ def _run_generic(args: argparse.Namespace, model, options, paths: dict, named: b
             export = export_generic(model, quantize, sample_inputs=samples, calibration_inputs=calibration,
                                     calibration_count=options.calibration_frames, input_range=args.input_range,
                                     seed=options.seed, num_threads=options.threads)
-        except ExportVerificationError as exc:
-            refused.append({"file": str(path), "quantize": quantize, "status": "refused", "reason": exc.reason,
-                            **({"parity": exc.facts} if exc.facts else {})})
-            rows.append([f"{path.name}: REFUSED"] + [None] * 6)
-            if args.force and path.is_file():  # an earlier file of this name is not this model's
-                path.unlink()
-                print(f"removed {path}: an earlier file of the format this run refused")
+        except ExportVerificationError as exc:  # a row, not the end of the run
+            rows.append(_refused(refused, path, quantize, exc, args.force, columns=6))
             continue
         fileio.write_bytes(path, export.data, args.force)
         records.append({"file": str(path), "status": "written", **export.to_dict()})
@@ -223,3 +213,14 @@ def _run_generic(args: argparse.Namespace, model, options, paths: dict, named: b
     written = [Path(r["file"]) for r in records] + ([args.json] if args.json else [])
     return finish_formats(written, [entry["quantize"] for entry in refused], bool(records), named,
                           gate="output-parity gate")
+
+
+def _refused(refused: list, path: Path, quantize: str, exc, force: bool, columns: int) -> list:
+    """A format the gate refused: its record appended to `refused`, an earlier file of its name removed with
+    --force (it is not this model's); the table row to print."""
+    refused.append({"file": str(path), "quantize": quantize, "status": "refused", "reason": exc.reason,
+                    **({"parity": exc.facts} if exc.facts else {})})
+    if force and path.is_file():
+        path.unlink()
+        print(f"removed {path}: an earlier file of the format this run refused")
+    return [f"{path.name}: REFUSED"] + [None] * columns

@@ -142,6 +142,26 @@ def _check_interface(interpreter, frames: np.ndarray, keras_shape: tuple[int, ..
                                       f"expected {out_type} {expected_out}; nothing written")
 
 
+def _both_outputs(model: keras.Model, tflite: bytes, inputs: np.ndarray, num_threads: int | None, pixel_input: bool,
+                  what: str) -> tuple[np.ndarray, np.ndarray]:
+    """(the Keras model's outputs, the file's) on `inputs`, once the file loads, has the interface the runtime
+    expects (`_check_interface`) and gives finite values; ExportVerificationError otherwise."""
+    try:
+        interpreter = _interpreter(tflite, num_threads)
+    except Exception as exc:
+        detail = str(exc).strip().splitlines()
+        raise ExportVerificationError(f"{what} does not load in the interpreter ({type(exc).__name__}: "
+                                      f"{detail[0] if detail else 'no detail'}); nothing written") from exc
+    expected = np.asarray(model(inputs, training=False), dtype=np.float32)
+    _check_interface(interpreter, inputs, expected.shape, pixel_input, what)
+    got = run_tflite(interpreter, inputs)
+    if not np.isfinite(got).all():
+        bad = int(np.count_nonzero(~np.isfinite(got)))
+        raise ExportVerificationError(f"{what} outputs {bad} NaN/infinite values where the Keras model's are "
+                                      "finite (weights lost in conversion?); nothing written")
+    return expected, got
+
+
 def verify_tflite(model: keras.Model, tflite: bytes, frames: np.ndarray, *, map_atol: float = 1e-2,
                   keypoint_px: float = 1.0, threshold: float = 0.5, check_keypoints: bool = True,
                   num_threads: int | None = None, label: str = "TFLite", keypoint_share: float = 1.0,
@@ -174,19 +194,7 @@ def verify_tflite(model: keras.Model, tflite: bytes, frames: np.ndarray, *, map_
             keypoint of which frame and by how many pixels).
     """
     what = f"the {label} TFLite model"
-    try:
-        interpreter = _interpreter(tflite, num_threads)
-    except Exception as exc:
-        detail = str(exc).strip().splitlines()
-        raise ExportVerificationError(f"{what} does not load in the interpreter ({type(exc).__name__}: "
-                                      f"{detail[0] if detail else 'no detail'}); nothing written") from exc
-    keras_maps = np.asarray(model(frames, training=False), dtype=np.float32)
-    _check_interface(interpreter, frames, keras_maps.shape, pixel_input, what)
-    tflite_maps = run_tflite(interpreter, frames)
-    if not np.isfinite(tflite_maps).all():
-        bad = int(np.count_nonzero(~np.isfinite(tflite_maps)))
-        raise ExportVerificationError(f"{what} outputs {bad} NaN/infinite values where the Keras model outputs "
-                                      "finite maps (weights lost in conversion?); nothing written")
+    keras_maps, tflite_maps = _both_outputs(model, tflite, frames, num_threads, pixel_input, what)
     diff = np.abs(tflite_maps - keras_maps)
     max_diff = float(diff.max())
     if not max_diff <= map_atol:
@@ -320,19 +328,7 @@ def verify_outputs(model: keras.Model, tflite: bytes, inputs: np.ndarray, *, out
         ExportVerificationError: naming what disagreed and by how much; nothing is written.
     """
     what = f"the {label} TFLite model"
-    try:
-        interpreter = _interpreter(tflite, num_threads)
-    except Exception as exc:
-        detail = str(exc).strip().splitlines()
-        raise ExportVerificationError(f"{what} does not load in the interpreter ({type(exc).__name__}: "
-                                      f"{detail[0] if detail else 'no detail'}); nothing written") from exc
-    expected = np.asarray(model(inputs, training=False), dtype=np.float32)
-    _check_interface(interpreter, inputs, expected.shape, False, what)
-    got = run_tflite(interpreter, inputs)
-    if not np.isfinite(got).all():
-        bad = int(np.count_nonzero(~np.isfinite(got)))
-        raise ExportVerificationError(f"{what} outputs {bad} NaN/infinite values where the Keras model's are "
-                                      "finite (weights lost in conversion?); nothing written")
+    expected, got = _both_outputs(model, tflite, inputs, num_threads, False, what)
     max_diff = float(np.abs(got - expected).max())
     scale = _output_scale(expected)
     relative = max_diff / scale
