@@ -181,6 +181,39 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
         scores = _group_scores(graph, group, scorer, AGGREGATES[aggregate])
         kept = kept_top(scores, _group_keep_count(group.width, rate, min_filters, round_to))
         plans.append(GroupPlan(group, kept, scores))
+    return _finished(graph, plans)
+
+
+def plan_kept(model: Any, kept: Mapping[str, np.ndarray]) -> GraphPlan:
+    """The plan that keeps the given filters of the named producers (their kept filter indices; every producer of a
+    coupled group named with the same channels, or only one of them), and every channel of the others: how chain
+    surgery (`prune.prune_model`, whose widths and ranking are its own) is carried out by the one rebuild.
+
+    Raises:
+        UserError: a name that produces no group's channels, producers of one group kept apart, or a frozen group
+            (an output, an input, a channel-mixing layer) asked to lose channels.
+    """
+    graph = dependency_graph(model)
+    named = set(kept)
+    plans = []
+    for group in graph.groups:
+        chosen = {tuple(np.sort(group.channel_of[p][np.asarray(kept[p], dtype=np.int64)]).tolist())
+                  for p in group.producers if p in kept}
+        named -= set(group.producers)
+        if len(chosen) > 1:
+            raise UserError(f"layers {', '.join(p for p in group.producers if p in kept)} share their channels "
+                            "(one group) but were given different filters to keep")
+        positions = np.array(next(iter(chosen)), dtype=np.int64) if chosen else np.arange(group.width, dtype=np.int64)
+        if group.frozen and len(positions) < group.width:
+            raise UserError(f"layers {short_list(group.producers)} cannot lose channels: {group.frozen}")
+        plans.append(GroupPlan(group, positions))
+    if named:
+        raise UserError(f"no layer of model {graph.model.name} makes channels named {', '.join(sorted(named))}")
+    return _finished(graph, plans)
+
+
+def _finished(graph: DependencyGraph, plans: list[GroupPlan]) -> GraphPlan:
+    """The plan of these groups' kept channels: every layer's kept inputs and outputs, parameters and MACs."""
     layers = _layer_channels(graph, plans)
     totals = [sum(entry.params[i] for entry in layers.values()) for i in (0, 1)]
     macs = [[entry.macs[i] for entry in layers.values()] for i in (0, 1)]

@@ -41,8 +41,6 @@ _CHANNELWISE = (
     keras.layers.ELU,
     keras.layers.Dropout,  # also SpatialDropout2D; identity at inference, channel-wise in training
 )
-# Activation functions that mix channels: allowed only where no channel has been removed.
-_CHANNEL_MIXING_ACTIVATIONS = ("softmax", "log_softmax")
 
 _SUPPORTED_NAMES = ("Conv2D, MaxPooling2D, AveragePooling2D, UpSampling2D, ZeroPadding2D, Cropping2D, "
                     "Activation, ReLU, LeakyReLU, ELU, Softmax, BatchNormalization and Dropout")
@@ -89,15 +87,6 @@ def _check_supported(layer: keras.layers.Layer) -> None:
             raise _unsupported(layer, "channels_first data format")
         return
     raise _unsupported(layer)
-
-
-def _mixes_channels(layer: keras.layers.Layer) -> bool:
-    if isinstance(layer, keras.layers.Softmax):
-        return True
-    if isinstance(layer, keras.layers.Activation):
-        name = getattr(layer.activation, "__name__", str(layer.activation))
-        return name in _CHANNEL_MIXING_ACTIVATIONS
-    return False
 
 
 def chain_param_count(model: keras.Model, kept: Sequence[int]) -> int:
@@ -283,53 +272,7 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
         >>> conv_widths(small), small.count_params()
         ((39, 20, 10, 5, 3, 3, 5, 10, 20, 9), 14668)
     """
+    from fcnpose_tf.compression.graph_prune import plan_kept, rebuild
+
     plan = prune_plan(model, rate, strategy=strategy, importance=importance, min_filters=min_filters, widths=widths)
-    layers = _chain(model)
-    source = model.inputs[0]
-    new_layers: list[keras.layers.Layer] = []
-    new_weights: list[list[np.ndarray]] = []
-    channels: np.ndarray | None = None  # kept channels of the tensor flowing; None = all of them
-    for layer in layers:
-        config = layer.get_config()
-        config.pop("batch_input_shape", None)  # the rebuilt model gets its own Input
-        weights = layer.get_weights()
-        if type(layer) is keras.layers.Conv2D:
-            kept = plan[layer.name]
-            kernel = weights[0]
-            if channels is not None:
-                kernel = kernel[:, :, channels, :]
-            weights = [kernel[..., kept]] + [w[kept] for w in weights[1:]]  # bias, if any
-            config["filters"] = int(len(kept))
-            channels = None if len(kept) == layer.filters else kept
-        elif isinstance(layer, keras.layers.BatchNormalization):
-            if channels is not None:
-                weights = [w[channels] for w in weights]  # gamma, beta, moving mean and variance
-        elif _mixes_channels(layer) and channels is not None:
-            raise _unsupported(layer, "it mixes channels after some were pruned")
-        try:
-            new_layer = type(layer).from_config(config)
-        except Exception as exc:  # a custom activation or regularizer that cannot be re-created
-            raise UserError(f"layer {layer.name} ({type(layer).__name__}) cannot be rebuilt from its config: "
-                            f"{type(exc).__name__}: {exc}") from exc
-        new_layers.append(new_layer)
-        new_weights.append(weights)
-
-    shape = tuple(source.shape)
-    inputs = keras.Input(batch_shape=shape, dtype=source.dtype, name=_input_name(model))
-    if isinstance(model, keras.Sequential):
-        pruned: keras.Model = keras.Sequential([inputs] + new_layers, name=model.name)
-    else:
-        x = inputs
-        for new_layer in new_layers:
-            x = new_layer(x)
-        pruned = keras.Model(inputs, x, name=model.name)
-    for new_layer, weights in zip(new_layers, new_weights):
-        new_layer.set_weights(weights)
-    return pruned
-
-
-def _input_name(model: keras.Model) -> str:
-    first = model.layers[0] if model.layers else None
-    if isinstance(first, keras.layers.InputLayer):
-        return first.name
-    return model.inputs[0].name.split(":")[0]
+    return rebuild(plan_kept(model, plan))  # the one surgery (graph_prune), on the filters the chain's plan keeps
