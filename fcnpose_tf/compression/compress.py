@@ -357,8 +357,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
-    if architecture_of(base) != "fcn-pose":
-        raise UserError(f"{base_path}: an {architecture_of(base)} network; compress prunes FCN-Pose's chain of layers. "
+    architecture = architecture_of(base)
+    if architecture != "fcn-pose":
+        raise UserError(f"{base_path}: an {architecture} network; compress prunes FCN-Pose's chain of layers. "
                         f"Prune it with `fcnpose-tf prune {base_path} --rate R --out P.keras` (graph surgery), retrain "
                         "it with `fcnpose-tf train --init P.keras`, then `fcnpose-tf export`")
     check_chain(base)  # a model that is not a plain chain of supported layers fails here, first
