@@ -1,4 +1,4 @@
-"""Export a trained .keras/.h5 FCN-Pose to TFLite files, each verified on keypoints before it is written.
+"""Export a trained .keras/.h5 model to TFLite files, each verified (FCN-Pose on keypoints) before it is written.
 
 One file per --quantize format, next to the model unless --out-dir says otherwise: NAME_fp16.tflite
 (the paper's float16), NAME_int8.tflite (full integer: int8 weights and activations calibrated on
