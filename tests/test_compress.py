@@ -450,8 +450,9 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     expected = bundled_pruned_generalist / "fcnpose_ur5_generalist_p70.keras"
     lines = []
 
-    def start(options, model_path=path, floor=15):
-        return pruned_start(options.resolved(), model_path, plan_widths(base, options.rate, floor), lines.append)
+    def start(options, model_path=path, floor=15, architecture="fcn-pose"):
+        return pruned_start(options.resolved(), model_path, plan_widths(base, options.rate, floor), architecture,
+                            lines.append)
 
     assert CompressOptions(rate=0.7).start == "surgery"  # the default; auto is asked for
     assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)  # no record: not known to come from the generalist
@@ -470,6 +471,9 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     assert start(CompressOptions(rate=0.5, start="auto")) == ("surgery", None)
     assert start(CompressOptions(rate=0.7, min_filters=0, start="auto"), floor=0) == ("surgery", None)
     assert len(lines) == 2 and "generalist-p70's widths are not filter surgery's at rate 0.5" in lines[0]
+    # a model with the skip: the bundled start has none
+    assert start(CompressOptions(rate=0.7, start="auto"), architecture="fcn-pose-skip") == ("surgery", None)
+    assert "generalist-p70 is an fcn-pose network" in lines.pop()
     (tmp_path / "mine_train.json").write_text(json.dumps({"init": "workcell", "augment": "online"}))
     assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)
     # named explicitly: a bundled name or a file, whatever the base model's lineage

@@ -188,3 +188,24 @@ def test_bad_criteria_and_combinations_are_clear_errors(tiny):
         prune_plan(model, 0.5, strategy="greedy", importance=MeanActivation(x))
     with pytest.raises(UserError, match="finite 1-D"):
         kept_by_score(np.array([1.0, np.nan]), 0.5)
+
+
+@pytest.mark.parametrize("name", ["activation", "taylor"])
+def test_data_aware_criteria_score_a_branching_model_where_it_computes(name):
+    """FCN-Pose with its skip added at zero computes plain FCN-Pose: every shared Conv2D scores as in the plain
+    model, the zero skip scores 0, and surgery ranks conv9 and skip2 as one group (their sum)."""
+    from fcnpose_tf.training.model import as_architecture, build_fcn_pose, conv_widths
+    from weights import randomize
+
+    plain = randomize(build_fcn_pose((8, 8, 8, 8, 8, 8, 8, 8, 8), input_size=32, num_maps=3), seed=3)
+    skip = as_architecture(plain, "fcn-pose-skip")
+    rng = np.random.default_rng(2)
+    x = rng.random((3, 32, 32, 3), dtype=np.float32)
+    y = (rng.random((3, 32, 32, 3)) < 0.2).astype(np.float32)
+    criterion = make_importance(name, images=x, maps=y, loss=ground_truth_loss())
+    plain_scores, skip_scores = criterion(plain), criterion(skip)
+    assert set(skip_scores) == set(plain_scores) | {"skip2"}
+    for layer, scores in plain_scores.items():
+        np.testing.assert_allclose(skip_scores[layer], scores, rtol=1e-5, atol=1e-9)
+    assert not skip_scores["skip2"].any()
+    assert conv_widths(prune_model(skip, 0.5, importance=criterion)) == (4, 4, 4, 4, 4, 4, 4, 4, 4, 3)

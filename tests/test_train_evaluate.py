@@ -521,11 +521,11 @@ def test_evaluate_names_the_worst_frames_and_draws_them(trained, cli_here, tmp_p
 
 
 @pytest.mark.slow
-def test_train_adds_the_skip_to_its_start_and_compress_names_the_way_to_prune_it(trained, cli, cli_here, tmp_path):
+def test_train_adds_the_skip_to_its_start_and_compress_prunes_it(trained, cli, cli_here, tmp_path):
     """--architecture fcn-pose-skip fine-tunes a plain start with the skip added (recorded in NAME_train.json); the
-    skip model fine-tunes again with its own architecture by default, and compress refuses it with the path that
-    prunes it (graph surgery, retraining, export)."""
-    from fcnpose_tf.training.model import SKIP_LAYERS, architecture_of, load_model
+    skip model fine-tunes again with its own architecture by default, and compress prunes it by graph surgery (conv9
+    and skip2 one group), retrains it with its skip and exports it verified against Keras."""
+    from fcnpose_tf.training.model import SKIP_LAYERS, architecture_of, conv_widths, load_model
 
     data, start, _ = trained
     skip = tmp_path / "skip.keras"
@@ -544,6 +544,12 @@ def test_train_adds_the_skip_to_its_start_and_compress_names_the_way_to_prune_it
     status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "plain.keras", "--epochs", "1",
                               "--input-size", "64", "--init", skip, "--architecture", "fcn-pose")
     assert status == 2 and "would drop its trained skip" in err
-    status, _, err = cli_here("compress", "--model", skip, "--data", data, "--rate", "0.5", "--out-dir",
-                              tmp_path / "c")
-    assert status == 2 and "fcnpose-tf prune" in err and not (tmp_path / "c").exists()
+    status, _, err = cli_here("compress", "--model", skip, "--data", data, "--rate", "0.5", "--retrain-epochs", "1",
+                              "--quantize", "float16", "--threads", "1", "--out-dir", tmp_path / "c")
+    assert status == 0, err
+    report = json.loads((tmp_path / "c" / "skip_p50_report.json").read_text())
+    pruned = load_model(tmp_path / "c" / "skip_p50.keras")
+    assert architecture_of(pruned) == "fcn-pose-skip" and report["retrained"]["widths"] == list(conv_widths(pruned))
+    assert pruned.get_layer("skip2").filters == pruned.get_layer("conv9").filters == conv_widths(pruned)[8] < 64
+    assert report["retrained"]["params"] == pruned.count_params() < 135_865 // 2
+    assert (tmp_path / "c" / "skip_p50_fp16.tflite").is_file() and report["quantized"]["quantize"] == "float16"

@@ -358,17 +358,14 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
     architecture = architecture_of(base)
-    if architecture != "fcn-pose":
-        raise UserError(f"{base_path}: an {architecture} network; compress prunes FCN-Pose's chain of layers. "
-                        f"Prune it with `fcnpose-tf prune {base_path} --rate R --out P.keras` (graph surgery), retrain "
-                        "it with `fcnpose-tf train --init P.keras`, then `fcnpose-tf export`")
-    check_chain(base)  # a model that is not a plain chain of supported layers fails here, first
+    if architecture == "fcn-pose":
+        check_chain(base)  # a model that is not a plain chain of supported layers fails here, first
     saved_view = view_of(base)
     if options.input_size:  # the height; an H x W input keeps its aspect
         width = max(32, int(round(options.input_size * saved_view.width / saved_view.height / 32)) * 32)
         base = at_input_size(base, (options.input_size, width))
     plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0)
-    start_name, start_path = pruned_start(options, base_path, plan, say)
+    start_name, start_path = pruned_start(options, base_path, plan, architecture, say)
     options = replace(options, start=start_name)
     run = _Run(base_path, base, pruning_method(options, plan, start_path), options, paths, train_dataset,
                eval_dataset, eval_indices, force, reporter, options.recipe(plan.floor))

@@ -17,13 +17,14 @@ from a model input, pass a layer that mixes channels (Softmax or a softmax activ
 LayerNormalization over channels), or belong to a layer the caller keeps whole (``keep=``).
 
 `fcnpose_tf.compression.graph_prune` plans on this graph: `plan_graph` chooses the kept channels and counts
-parameters and multiply-accumulates before and after without touching the model; `prune_graph` rebuilds the model with the narrower layers (``from_config`` plus sliced
-weights), in the Keras it was built with (tf_keras in, tf_keras out; Keras 3 in, Keras 3 out). Before
+parameters and multiply-accumulates before and after without touching the model; `prune_graph` rebuilds the model
+with the narrower layers (``from_config`` plus sliced weights), in the Keras it was built with (tf_keras in, tf_keras out; Keras 3 in, Keras 3 out). Before
 retraining, the pruned model computes exactly what the original computes with the removed channels deleted.
 
 For a plain chain (FCN-Pose) every Conv2D is its own group and the output layer is frozen, so `prune_graph` with
-the L1 importance gives `prune.prune_model`'s result. Unlike `prune.prune_model`'s ``min_filters``, which keeps the
-parameter budget of the rate by pruning other layers harder, ``min_filters`` here only floors each group's width.
+the L1 importance gives `prune.prune_model`'s result. Unlike `prune.plan_widths`' ``min_filters``, which keeps the
+parameter budget of the rate by pruning other groups harder (what `prune.prune_model` and `compress` use on a
+branching model too), ``min_filters`` of `graph_prune.plan_graph` only floors each group's width.
 """
 
 from __future__ import annotations

@@ -13,7 +13,7 @@ import copy
 import math
 import numbers
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, Union
+from typing import Any, Callable, Iterable, Mapping, Sequence, Union
 
 import numpy as np
 
@@ -147,7 +147,8 @@ def _group_keep_count(width: int, rate: Rate, min_filters: int, round_to: int) -
 
 
 def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", aggregate: str = "sum",
-               min_filters: int = 0, round_to: int = 1, keep: Iterable[str] = ()) -> GraphPlan:
+               min_filters: int = 0, round_to: int = 1, keep: Iterable[str] = (),
+               counts: Sequence[int] | None = None) -> GraphPlan:
     """Which channels every group keeps at `rate`, and the parameters and MACs before and after; no surgery.
 
     Args:
@@ -160,10 +161,13 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
         min_filters: no group narrower than ``min(n, min_filters)`` (0: the keep rule alone).
         round_to: kept counts rounded up to a multiple of this (capped at n), e.g. 8 for SIMD-friendly widths.
         keep: names of layers whose channels are all kept.
+        counts: how many channels each prunable group keeps, in the graph's order (`prunable_groups`), instead of
+            the keep rule (rate, min_filters and round_to then unused): a plan made elsewhere, such as
+            `prune.plan_widths`' parameter budget.
     Returns:
         The `GraphPlan`.
     Raises:
-        UserError: for a bad rate, importance, aggregate, min_filters or round_to, or a model
+        UserError: for a bad rate, importance, aggregate, min_filters, round_to or counts, or a model
             `dependency_graph` refuses.
     """
     keep_count(1, rate)  # validates the rate
@@ -173,15 +177,42 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
     round_to = _check_count(round_to, "round_to", 1)
     scorer = _scorer(importance)
     graph = dependency_graph(model, keep)
-    plans = []
+    wanted = _checked_counts(graph, counts) if counts is not None else \
+        [_group_keep_count(group.width, rate, min_filters, round_to) for group in prunable_groups(graph)]
+    plans, wanted = [], iter(wanted)
     for group in graph.groups:
         if group.frozen:
             plans.append(GroupPlan(group, np.arange(group.width, dtype=np.int64)))
             continue
         scores = _group_scores(graph, group, scorer, AGGREGATES[aggregate])
-        kept = kept_top(scores, _group_keep_count(group.width, rate, min_filters, round_to))
-        plans.append(GroupPlan(group, kept, scores))
+        plans.append(GroupPlan(group, kept_top(scores, next(wanted)), scores))
     return _finished(graph, plans)
+
+
+def prunable_groups(graph: DependencyGraph) -> list[ChannelGroup]:
+    """The groups a plan may narrow (not frozen), in the graph's order: what `counts=` lists."""
+    return [group for group in graph.groups if not group.frozen]
+
+
+def _checked_counts(graph: DependencyGraph, counts: Sequence[int]) -> list[int]:
+    groups = prunable_groups(graph)
+    counts = [_check_count(count, "a group's kept count", 1) for count in counts]
+    if len(counts) != len(groups) or any(count > group.width for count, group in zip(counts, groups)):
+        raise UserError(f"counts must give each of the {len(groups)} prunable groups of model {graph.model.name} "
+                        f"(widths {[group.width for group in groups]}) at most its width, got {counts}")
+    return counts
+
+
+def group_cost(graph: DependencyGraph) -> Callable[[Sequence[int]], tuple[int, int | None]]:
+    """(parameters, MACs) of the graph's model after its prunable groups keep the given counts (in
+    `prunable_groups` order), without choosing the channels: the cost does not depend on which are kept."""
+    def cost(counts: Sequence[int]) -> tuple[int, int | None]:
+        wanted = iter(_checked_counts(graph, counts))
+        plans = [GroupPlan(group, np.arange(group.width if group.frozen else next(wanted), dtype=np.int64))
+                 for group in graph.groups]
+        plan = _finished(graph, plans)
+        return plan.params[1], plan.macs[1]
+    return cost
 
 
 def plan_kept(model: Any, kept: Mapping[str, np.ndarray]) -> GraphPlan:

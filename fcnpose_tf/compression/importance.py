@@ -12,7 +12,8 @@ Torch-Pruning's ``importance=`` and keras-surgeon), so every criterion goes thro
 
 The weight criteria look at the kernel only and can rank a layer without the input channels the
 previous layer lost (the greedy strategy). The data-aware criteria run the unpruned model on a
-few hundred frames once (taylor also back-propagates the training loss), then rank every layer.
+few hundred frames once (taylor also back-propagates the training loss), then rank every layer; the model may
+branch and merge (FCN-Pose with its skip), every Conv2D's output read where the model computes it.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ import numpy as np
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.training.model import chain_layers
 
 CRITERIA = ("l1", "l2", "activation", "taylor")
 DATA_AWARE = ("activation", "taylor")
@@ -94,11 +94,18 @@ class _DataAware:
         self.images = images
         self.batch_size = int(batch_size)
 
-    def _layers(self, model: keras.Model) -> list[keras.layers.Layer]:
-        layers = chain_layers(model, f"the {self.name} importance criterion")
-        if not any(type(layer) is keras.layers.Conv2D for layer in layers):
+    def _probe(self, model: keras.Model) -> tuple[keras.Model, list[str]]:
+        """A model of `model`'s own layers giving its output and every Conv2D's output, and those Conv2Ds' names."""
+        if not isinstance(model, keras.Model) or not getattr(model, "inputs", None):
+            raise UserError(f"the {self.name} importance criterion needs a built tf_keras model")
+        if len(model.inputs) != 1 or len(model.outputs) != 1:
+            raise UserError(f"model {model.name} has {len(model.inputs)} inputs and {len(model.outputs)} outputs; "
+                            f"the {self.name} importance criterion scores a single-input, single-output model")
+        convs = _convolutions(model)
+        if not convs:
             raise UserError(f"model {model.name} has no Conv2D layer to score")
-        return layers
+        probe = keras.Model(model.inputs, [model.outputs[0], *(conv.output for conv in convs)])
+        return probe, [conv.name for conv in convs]
 
     def _batches(self):
         for start in range(0, len(self.images), self.batch_size):
@@ -109,14 +116,11 @@ class _DataAware:
         return {"importance": self.name, "importance_frames": int(len(self.images))}
 
 
-def _forward(layers: Sequence[keras.layers.Layer], x: Any) -> tuple[Any, dict[str, Any]]:
-    """Run the chain on `x` (inference mode); the output and every Conv2D's output by layer name."""
-    outputs = {}
-    for layer in layers:
-        x = layer(x, training=False)
-        if type(layer) is keras.layers.Conv2D:
-            outputs[layer.name] = x
-    return x, outputs
+def _forward(probe: tuple[keras.Model, list[str]], x: Any) -> tuple[Any, dict[str, Any]]:
+    """Run the model on `x` (inference mode); its output and every Conv2D's output by layer name (`_probe`)."""
+    model, names = probe
+    output, *convs = model(x, training=False)
+    return output, dict(zip(names, convs))
 
 
 class MeanActivation(_DataAware):
@@ -134,11 +138,11 @@ class MeanActivation(_DataAware):
     def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
         import tensorflow as tf
 
-        layers = self._layers(model)
+        probe = self._probe(model)
         sums: dict[str, np.ndarray] = {}
         for batch in self._batches():
             x = tf.convert_to_tensor(self.images[batch], dtype=tf.float32)
-            _, outputs = _forward(layers, x)
+            _, outputs = _forward(probe, x)
             for name, a in outputs.items():
                 per_frame = tf.reduce_mean(tf.abs(a), axis=[1, 2]).numpy().astype(np.float64)  # N x K
                 sums[name] = sums.get(name, 0.0) + per_frame.sum(axis=0)
@@ -177,16 +181,18 @@ class FirstOrderTaylor(_DataAware):
     def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
         import tensorflow as tf
 
-        layers = self._layers(model)
+        probe = self._probe(model)
+        final = {tensor._keras_history[0].name for tensor in model.outputs}
         sums: dict[str, np.ndarray] = {}
         for batch in self._batches():
             x = tf.convert_to_tensor(self.images[batch], dtype=tf.float32)
             y = tf.convert_to_tensor(self.maps[batch], dtype=tf.float32)
             with tf.GradientTape() as tape:
-                prediction, outputs = _forward(layers, x)
+                prediction, outputs = _forward(probe, x)
                 per_pixel = self.loss.call(y, prediction)  # N x H x W
                 loss = tf.reduce_sum(tf.reduce_mean(per_pixel, axis=list(range(1, len(per_pixel.shape)))))
-            names = list(outputs)[:-1]  # not the output layer: never pruned, and the loss may read its logits
+            names = [name for name in outputs if name not in final]  # not the output layer: never pruned, and
+            # the loss may read its logits
             grads = tape.gradient(loss, [outputs[name] for name in names])
             for name, g in zip(names, grads):
                 a = outputs[name]

@@ -101,15 +101,19 @@ class FilterPruning:
     def _from_start(self, base: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
         """The start model's weights in the network surgery would build from `base` (same widths, the base's input
         size); UserError when its widths are not surgery's."""
-        from fcnpose_tf.training.model import build_fcn_pose, conv_widths, load_model, view_of
+        from fcnpose_tf.training.model import ARCHITECTURES, architecture_of, build_fcn_pose, conv_widths, load_model, \
+            view_of
 
         source = load_model(self.start)
         widths = self.plan.widths
+        if architecture_of(source) != architecture_of(base):
+            raise UserError(f"--start {self.start_name}: an {architecture_of(source)} network, the model to compress "
+                            f"an {architecture_of(base)} one")
         if conv_widths(source) != widths:
             floor = f" with no layer under {self.min_filters} filters" if self.min_filters > 1 else ""
             raise UserError(f"--start {self.start_name}: its widths {conv_widths(source)} are not filter surgery's at "
                             f"--rate {self.rate:g}{floor} on this model, {widths}")
-        pruned = build_fcn_pose(widths[:-1], view_of(base), widths[-1])
+        pruned = build_fcn_pose(widths[:-1], view_of(base), widths[-1], skip=ARCHITECTURES[architecture_of(base)])
         pruned.set_weights(source.get_weights())
         return pruned, {"pruning": {"start": self.start_name, "start_file": str(self.start),
                                     "min_filters": self.min_filters}}
@@ -160,18 +164,19 @@ PRUNED_GENERALIST = "generalist-p70"
 generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
 
 
-def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan,
+def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, architecture: str,
                  log: Log = lambda line: None) -> tuple[str, Path | None]:
     """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
     for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
     (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
-    and the bundled file has the widths filter surgery gives here (`plan`); else surgery, which keeps PCK@0.5
+    and the bundled file has the base's architecture (`model.ARCHITECTURES`) and the widths filter surgery gives here
+    (`plan`); else surgery, which keeps PCK@0.5
     within 0.01 on fixed-camera models (docs/compression.md, "On your own model").
     An explicit start is resolved as a model argument (a file, or a bundled name); its widths are checked when it is
     loaded (`FilterPruning.prune`)."""
     from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
     from fcnpose_tf.records import lineage
-    from fcnpose_tf.training.model import conv_widths, load_model
+    from fcnpose_tf.training.model import architecture_of, conv_widths, load_model
 
     start = options.start
     if options.method != "l1" or start == "surgery":
@@ -190,7 +195,12 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan,
     if not path.is_file():  # an installation without it
         log(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
         return "surgery", None
-    if conv_widths(load_model(path)) != plan.widths:
+    bundled = load_model(path)
+    if architecture_of(bundled) != architecture:
+        log(f"  pruned start: surgery ({PRUNED_GENERALIST} is an {architecture_of(bundled)} network, "
+            f"{base_path} an {architecture} one)")
+        return "surgery", None
+    if conv_widths(bundled) != plan.widths:
         log(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate {options.rate:g} "
             f"with no layer under {plan.floor} filters, {plan.widths})")
         return "surgery", None

@@ -1,4 +1,4 @@
-"""Filter pruning with layer surgery on a chain of layers (Li et al. 2017, as FCN-Pose applies it).
+"""Filter pruning with layer surgery (Li et al. 2017, as FCN-Pose applies it): the plan, and the chain's ranking.
 
 Structured pruning (`prune_model`) removes whole filters: every Conv2D except the output layer
 keeps its ``n - floor(n * rate)`` filters that an importance criterion scores highest (default:
@@ -9,9 +9,9 @@ shrink. Before retraining, the pruned model computes exactly what the original c
 removed channels deleted from the graph.
 
 How many filters each layer keeps is the paper's keep rule (`fcnpose_tf.compression.keep_rule`), planned once per
-model and rate (`plan_widths`: a `WidthPlan`). A model with branches (residual, concatenating, depthwise) is
-`fcnpose_tf.compression.depgraph`'s; tensorflow-model-optimization's unstructured pruning is
-`fcnpose_tf.compression.magnitude`'s.
+model and rate (`plan_widths`: a `WidthPlan`). A model with branches (FCN-Pose's skip, residual, concatenating,
+depthwise) is planned the same way per group of coupled channels (`fcnpose_tf.compression.depgraph`) and cut by the
+same rebuild; tensorflow-model-optimization's unstructured pruning is `fcnpose_tf.compression.magnitude`'s.
 """
 
 from __future__ import annotations
@@ -136,8 +136,9 @@ def _counter(model: keras.Model) -> Callable[[Sequence[int]], tuple[int, int]]:
 
 @dataclass(frozen=True)
 class WidthPlan:
-    """How wide every Conv2D of a chain becomes at a rate, computed once (`plan_widths`) and read by every step that
-    needs it (the surgery, a pruned start's check, magnitude pruning's sparsity, the recipe, the report).
+    """How wide every Conv2D (every group of coupled channels, for a model that branches) becomes at a rate, computed
+    once (`plan_widths`) and read by every step that needs it (the surgery, a pruned start's check, magnitude
+    pruning's sparsity, the recipe, the report).
 
     Attributes:
         rate: the fraction of filters to remove asked for.
@@ -147,6 +148,8 @@ class WidthPlan:
         widths: filters of every Conv2D after pruning, the output layer's (never pruned) last.
         params: parameters of the pruned network.
         macs: multiply-accumulates of its convolutions for one frame at the model's input size.
+        group_counts: for a model that branches, what every prunable group keeps (`graph_prune.prunable_groups`
+            order; None for a chain).
     """
 
     rate: float
@@ -155,6 +158,7 @@ class WidthPlan:
     widths: tuple[int, ...]
     params: int
     macs: int
+    group_counts: tuple[int, ...] | None = None
 
     @property
     def pruned_widths(self) -> tuple[int, ...]:
@@ -166,20 +170,55 @@ def plan_widths(model: keras.Model, rate: Rate, min_filters: int = 0) -> WidthPl
     """How many filters each Conv2D keeps at `rate`, with no layer under `min_filters` (`floored_widths`; 0: every
     layer keeps ``n - floor(n * rate)``), and what the pruned network costs; the model is not changed.
 
+    A model that branches and merges (FCN-Pose with its skip, a residual block) is planned per group of coupled
+    channels (`graph_prune.prunable_groups`): a group is one "layer" of the keep rule and of the floor, and
+    `widths` holds one count per group of layer outputs, in the graph's order (for FCN-Pose-skip: conv1..conv9,
+    skip2 sharing conv9's group, then conv10).
+
     Raises:
-        UserError: a bad rate or floor, or a model that is not a plain chain of supported layers.
+        UserError: a bad rate or floor, or a model neither a plain chain of supported layers nor a graph
+            `depgraph.dependency_graph` understands.
     Example:
         >>> from fcnpose_tf.training.model import build_fcn_pose
         >>> plan = plan_widths(build_fcn_pose(), 0.7, 15)
         >>> plan.widths, plan.floor, plan.params
         ((15, 15, 15, 15, 8, 8, 15, 15, 15, 9), 15, 14611)
     """
+    if not _is_chain(model):
+        return _plan_graph_widths(model, rate, min_filters)
     counter = _counter(model)
     convs = [layer for layer in _chain(model) if type(layer) is keras.layers.Conv2D]
     kept, floor = floored_widths([conv.filters for conv in convs[:-1]], rate, min_filters,
                                  lambda counts: counter(counts)[0])
     params, macs = counter(kept)
     return WidthPlan(float(rate), int(min_filters), floor, (*kept, int(convs[-1].filters)), params, macs)
+
+
+def _is_chain(model: keras.Model) -> bool:
+    """Whether `model` is wired as one unbranched chain (its layers are checked later, by the chain's planner)."""
+    try:
+        chain_layers(model, "filter pruning")
+    except UserError:
+        return False
+    return True
+
+
+def _plan_graph_widths(model: keras.Model, rate: Rate, min_filters: int) -> WidthPlan:
+    from fcnpose_tf.compression.depgraph import dependency_graph
+    from fcnpose_tf.compression.graph_prune import group_cost, prunable_groups
+
+    graph = dependency_graph(model)
+    groups = prunable_groups(graph)
+    if not groups:
+        raise UserError(f"model {model.name} has no channels to prune (every group is kept whole)")
+    cost = group_cost(graph)
+    kept, floor = floored_widths([group.width for group in groups], rate, min_filters, lambda c: cost(c)[0])
+    params, macs = cost(kept)
+    counts = dict(zip((group.index for group in groups), kept))
+    widths = tuple(counts.get(group.index, group.width) for group in graph.groups
+                   if not set(group.producers) & {key[0] for key in graph.inputs})
+    return WidthPlan(float(rate), int(min_filters), floor, widths, params, macs if macs is not None else 0,
+                     tuple(kept))
 
 
 def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
@@ -246,9 +285,11 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
     them loses the same channels. Layer names, activations and all other settings are kept; the
     output layer keeps all its maps. The original model is not modified.
 
-    The model must be one chain (functional or Sequential) of Conv2D, MaxPooling2D,
-    AveragePooling2D, UpSampling2D, ZeroPadding2D, Cropping2D, Activation, ReLU, LeakyReLU, ELU,
-    BatchNormalization and Dropout layers (softmax only where no channel was removed).
+    A chain (functional or Sequential) of Conv2D, MaxPooling2D, AveragePooling2D, UpSampling2D, ZeroPadding2D,
+    Cropping2D, Activation, ReLU, LeakyReLU, ELU, BatchNormalization and Dropout layers (softmax only where no
+    channel was removed) is ranked layer by layer. A model that branches and merges (FCN-Pose with its skip)
+    is ranked per group of coupled channels (`graph_prune.plan_graph`: the group's producers' scores summed),
+    each group keeping the `plan_widths` count, with the independent strategy only.
 
     Args:
         model: a built tf_keras model, e.g. from `fcnpose_tf.training.model.build_fcn_pose`.
@@ -264,15 +305,21 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
     Returns:
         A new, uncompiled tf_keras model (Sequential if the input was) with the same layer names.
     Raises:
-        UserError: for a rate outside [0, 1), an unknown strategy, or a model with a branch or an
-            unsupported layer ("unsupported layer NAME (TYPE)").
+        UserError: for a rate outside [0, 1), an unknown strategy, or a model with an unsupported layer
+            ("unsupported layer NAME (TYPE)") or wiring (a shared layer, a nested model).
     Example:
         >>> from fcnpose_tf.training.model import build_fcn_pose, conv_widths
         >>> small = prune_model(build_fcn_pose(), 0.7)
         >>> conv_widths(small), small.count_params()
         ((39, 20, 10, 5, 3, 3, 5, 10, 20, 9), 14668)
     """
-    from fcnpose_tf.compression.graph_prune import plan_kept, rebuild
+    from fcnpose_tf.compression.graph_prune import plan_graph, plan_kept, rebuild
 
+    if not _is_chain(model):  # a branching model: the plan's counts per group of coupled channels
+        if strategy != "independent":
+            raise UserError(f"the {strategy} strategy ranks a chain of layers; model {model.name} branches "
+                            "(use --strategy independent)")
+        widths = widths or plan_widths(model, rate, min_filters)
+        return rebuild(plan_graph(model, rate, importance=importance or WeightNorm(1), counts=widths.group_counts))
     plan = prune_plan(model, rate, strategy=strategy, importance=importance, min_filters=min_filters, widths=widths)
     return rebuild(plan_kept(model, plan))  # the one surgery (graph_prune), on the filters the chain's plan keeps
