@@ -26,7 +26,12 @@ EXIT_SIGNAL = {sig: status for sig, (_, status) in fileio.STOP_SIGNALS.items()}
 """Ctrl-C (SIGINT) ends a command with 130, a `kill` (SIGTERM) with 143, after the same clean-up."""
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with a one-line error (plus a pointer to --help) and exit status 2."""
+    """argparse with a one-line error (plus a pointer to --help) and exit status 2, and options spelled out: an
+    abbreviation is refused (`export --out x.tflite` would otherwise be `--out-dir`, a folder named x.tflite)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
 
     def error(self, message: str):  # noqa: D401 - argparse API
         self.exit(2, f"error: {message} (see `{self.prog} --help`)\n")

@@ -99,7 +99,8 @@ def test_fold_kernel_sums_the_taps_of_each_phase():
     (lambda i: L.Conv2D(2, 3, padding="valid")(L.UpSampling2D(2)(i)), "'valid' padding"),
     (lambda i: L.Conv2D(2, 2, padding="same")(L.UpSampling2D(2)(i)), r"even kernel size \(2, 2\)"),
     (lambda i: L.Conv2D(4, 3, padding="same", groups=2)(L.UpSampling2D(2)(i)), "grouped"),
-    (lambda i: L.Add()([i, L.Conv2D(4, 3, padding="same")(i)]), "plain chain without branches"),
+    (lambda i: (lambda shared: shared(shared(i)))(L.Conv2D(4, 3, padding="same", name="twice")),
+     "layer twice is called more than once"),
 ])
 def test_unsupported_structures_are_refused(build, message):
     inputs = keras.Input((8, 8, 4))
@@ -166,7 +167,52 @@ def test_unfolded_export_keeps_resize_and_branched_models_export_unfolded(p70_64
     assert ops.count("RESIZE_NEAREST_NEIGHBOR") == 4 and "DEPTH_TO_SPACE" not in ops
     assert plain.graph_rewrites == ()
     inputs = keras.Input((16, 16, 3))
-    skip = L.Add()([inputs, L.Conv2D(3, 3, padding="same")(L.UpSampling2D(2)(L.MaxPooling2D(2)(inputs)))])
-    branched = randomize(keras.Model(inputs, L.Conv2D(3, 1, activation="sigmoid")(skip)), seed=6)
+    up = L.UpSampling2D(2, interpolation="bilinear", name="up")(L.MaxPooling2D(2)(inputs))
+    branched = randomize(keras.Model(inputs, L.Conv2D(3, 1, activation="sigmoid")(
+        L.Add()([inputs, L.Conv2D(3, 3, padding="same")(up)]))), seed=6)
     export = export_tflite(branched, "float32", fold_upsampling=True)  # not foldable: converted as it is
-    assert export.graph_rewrites == () and "RESIZE_NEAREST_NEIGHBOR" in _op_names(export.data)
+    assert export.graph_rewrites == () and "RESIZE_BILINEAR" in _op_names(export.data)
+
+
+# ------------------------------------------------------------------------------------------
+# graphs that branch and merge
+# ------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("widths", [DEFAULT_WIDTHS, (16, 15, 15, 15, 8, 8, 15, 15, 15)])
+def test_fcn_pose_with_its_skip_folds_the_merge_at_half_resolution(widths):
+    """conv10(up4(x) + skip_up(s)) is conv10(up2(up2(x) + s)): the Add is computed at half resolution and conv10
+    folds by 2; the file converts and computes what Keras computes."""
+    model = randomize(build_fcn_pose(widths, input_size=(64, 96), skip=True), seed=7)
+    folded = fold_upsampling(model)
+    assert [layer.block_size for layer in folded.layers if isinstance(layer, DepthToSpace)] == [2, 2, 2, 2]
+    assert [layer.name for layer in folded.layers if isinstance(layer, L.UpSampling2D)] == ["up4_x2"]
+    assert describe_folds(model)[-1] == "skip_add + conv10 -> conv10 at 1/2 size + depth_to_space(2)"
+    x = images((64, 96), seed=3)
+    assert np.asarray(model(x)).std() > 0.02 and max_diff(model, folded, x) <= 1e-5
+    f32 = export_tflite(model, "float32", fold_upsampling=True)
+    assert np.abs(run_tflite(_interpreter(f32.data), x[:1]) - np.asarray(model(x[:1]))).max() <= 1e-5
+
+
+def test_merges_of_unequal_factors_and_shared_reads_are_exact():
+    """Upsamplings by 4 and 2 merge at half resolution, by 12, 8 and 6 at 2 (gcd); one upsampled tensor read by a
+    convolution (folded) and by an activation (upsampled once, for it alone) stays exact."""
+    inputs = keras.Input((24, 24, 3), name="x")
+    a = L.Conv2D(4, 3, padding="same", name="a")(L.MaxPooling2D(12, name="p12")(inputs))  # 2 x 2
+    b = L.Conv2D(4, 3, padding="same", name="b")(L.MaxPooling2D(8, name="p8")(inputs))  # 3 x 3
+    c = L.Conv2D(4, 3, padding="same", name="c")(L.MaxPooling2D(6, name="p6")(inputs))  # 4 x 4
+    ua, ub = L.UpSampling2D(12, name="ua")(a), L.UpSampling2D(8, name="ub")(b)  # 24 x 24, gcd 4
+    uc = L.UpSampling2D(2, name="uc")(c)  # 8 x 8
+    m1 = L.Add(name="m1")([L.UpSampling2D(2, name="ua2")(L.UpSampling2D(2, name="ua1")(a)), uc])  # 4*2 and 2: gcd 2
+    m2 = L.Maximum(name="m2")([ua, ub, L.UpSampling2D(3, name="um1")(m1)])
+    out = L.Add(name="out")([L.Conv2D(4, 3, padding="same", name="conv")(m2), L.Activation("tanh", name="t")(m2)])
+    model = randomize(keras.Model(inputs, out), seed=11)
+    folded = fold_upsampling(model)
+    assert [fold[1:] for fold in foldable_pairs(model)] == [("conv", 2)]  # gcd(12, 8, 6): m2 at 12 x 12
+    x = images(24, 3, seed=5)
+    assert max_diff(model, folded, x) <= 1e-5
+    # factors 2 and 3: nothing in common, both computed at full resolution before the merge; nothing folds
+    inputs = keras.Input((12, 12, 2))
+    two = L.UpSampling2D(2)(L.MaxPooling2D(2)(inputs))
+    three = L.UpSampling2D(3)(L.MaxPooling2D(3)(inputs))
+    coprime = randomize(keras.Model(inputs, L.Conv2D(2, 3, padding="same")(L.Subtract()([two, three]))), seed=2)
+    assert foldable_pairs(coprime) == [] and fold_upsampling(coprime) is coprime
