@@ -1,17 +1,19 @@
 """Keypoints and skeleton drawn on a BGR image: one palette and one style for every picture.
 
 Used by the synthetic-data preview (`data.synth.preview`), `data inspect`'s preview, `evaluate --pictures`
-(`draw_truth_and_prediction`) and the runtime's video overlay (`runtime.sinks`), so it belongs to the Pi-side core:
+(`draw_truth_and_prediction`), `predict --draw` and the runtime's video overlay (`runtime.sinks`), so it belongs to the Pi-side core:
 numpy and OpenCV only.
 """
 
 from __future__ import annotations
 
+import os
 from typing import Sequence
 
 import cv2
 import numpy as np
 
+from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema
 
 KEYPOINT_COLOURS_BGR = ((60, 60, 230), (40, 160, 250), (40, 220, 230), (60, 200, 60), (220, 200, 40),
@@ -153,13 +155,26 @@ def draw_truth_and_prediction(image_bgr: np.ndarray, truth: np.ndarray, predicte
                 cv2.line(out, _fixed(a), _fixed(b), colour, line + 1, cv2.LINE_AA, _SHIFT)
         cv2.circle(out, _fixed(truth[k]), (r + 1) << _SHIFT, (0, 0, 0), line + 2, cv2.LINE_AA, _SHIFT)
         cv2.circle(out, _fixed(truth[k]), r << _SHIFT, colour, line, cv2.LINE_AA, _SHIFT)
-    if caption:
-        font_scale = max(0.45, 0.5 * scale)
-        (_, th), base = cv2.getTextSize(caption, _FONT, font_scale, 1)
-        band = th + base + 8
-        out[:band] = (out[:band] * 0.35).astype(out.dtype)
-        cv2.putText(out, caption, (6, band - base - 4), _FONT, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
-    return out
+    return with_caption(out, caption) if caption else out
+
+
+def with_caption(image_bgr: np.ndarray, caption: str) -> np.ndarray:
+    """`caption` in white on a dark band along the top of the image (drawn in place; the image is returned)."""
+    scale = max(0.6, max(image_bgr.shape[:2]) / 640)
+    font_scale = max(0.45, 0.5 * scale)
+    (_, th), base = cv2.getTextSize(caption, _FONT, font_scale, 1)
+    band = th + base + 8
+    image_bgr[:band] = (image_bgr[:band] * 0.35).astype(image_bgr.dtype)
+    cv2.putText(image_bgr, caption, (6, band - base - 4), _FONT, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return image_bgr
+
+
+def png_bytes(image_bgr: np.ndarray, where: str | os.PathLike) -> bytes:
+    """The image encoded as PNG; UserError naming `where` (the file or folder it was for) if OpenCV cannot."""
+    ok, png = cv2.imencode(".png", image_bgr)
+    if not ok:
+        raise UserError(f"{where}: cannot encode a picture as PNG")
+    return png.tobytes()
 
 
 def contact_sheet(images: Sequence[np.ndarray], columns: int = 3, tile_width: int | None = None) -> np.ndarray:

@@ -463,6 +463,16 @@ def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
     return path
 
 
+def check_output_folder(folder: str | os.PathLike, force: bool = False) -> Path:
+    """Raise UserError, before any work, for an output folder that is a file, or holds files (and not force)."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise UserError(f"{folder}: exists and is not a folder")
+    if folder.is_dir() and any(folder.iterdir()) and not force:
+        raise UserError(f"{folder}: already holds files; pass --force to write the pictures among them")
+    return folder
+
+
 @contextlib.contextmanager
 def removed_if_left_empty(folder: str | os.PathLike) -> Iterator[Path]:
     """Run a block that may create `folder`; if the block fails and leaves it created but empty, remove it."""

@@ -205,3 +205,39 @@ def test_sigterm_keeps_the_frames_done_as_a_project(tmp_path, model_path):
     saved = sorted(p.name for p in images.iterdir())
     named = sorted(Path(frame.filename).name for frame in read_via(via).frames)
     assert 0 < len(saved) < 6000 and saved == named
+
+
+def test_draw_pictures_every_frame_written_with_its_points(capsys, tmp_path, model_path, quadrant_images):
+    """--draw DIR: one PNG per frame written (the frame's size, each found keypoint's dot in its colour where the
+    keypoint is), a contact sheet of them; --select draws its picks only; a folder holding files is refused first."""
+    from fcnpose_tf.draw import keypoint_colour
+
+    pictures = tmp_path / "pictures"
+    via = tmp_path / "pre.json"
+    code, stdout, err = _run(capsys, "predict", model_path, "--source", quadrant_images, "--via", via,
+                             "--draw", pictures, "--threads", 1)
+    assert code == 0, err
+    names = sorted(p.name for p in pictures.iterdir())
+    assert names == ["0001_f0.png", "0002_f1.png", "0003_f2.png", "0004_f3.png", "contact_sheet.png"]
+    assert f"drawn in {pictures} (4 PNG and contact_sheet.png)" in stdout
+    for i, frame in enumerate(read_via(via, min_visible=0).frames):
+        picture = cv2.imread(str(pictures / names[i]))
+        assert picture.shape == (240, 320, 3)
+        found = [k for k in range(8) if np.isfinite(frame.keypoints[k]).all()]
+        assert found
+        for k in found:
+            x, y = np.round(frame.keypoints[k]).astype(int)
+            here = [j for j in found if np.allclose(frame.keypoints[j], frame.keypoints[k])]  # dots drawn on top
+            assert tuple(int(c) for c in picture[y, x]) in {keypoint_colour(j) for j in here}, (i, k)
+    assert cv2.imread(str(pictures / "contact_sheet.png")).shape == (2 * 244, 3 * 324, 3)  # 4 tiles, 3 a row
+
+    picks = tmp_path / "picks"
+    code, stdout, err = _run(capsys, "predict", model_path, "--source", quadrant_images, "--via", tmp_path / "s.json",
+                             "--select", 2, "--draw", picks, "--threads", 1)
+    assert code == 0, err
+    assert len(list(picks.glob("0*.png"))) == 2
+    assert cv2.imread(str(picks / "contact_sheet.png")).shape == (244, 2 * 324, 3)
+
+    code, stdout, err = _run(capsys, "predict", model_path, "--source", quadrant_images, "--via", tmp_path / "t.json",
+                             "--draw", picks)
+    assert code == 2 and "already holds files; pass --force" in err and not (tmp_path / "t.json").exists()

@@ -134,13 +134,11 @@ def run(args: argparse.Namespace) -> int:
 def check_pictures_folder(folder: Path, force: bool, worst: int) -> None:
     """Refuse, before any work, a --pictures folder that holds files (without --force), or is a file, or --worst 0."""
     from fcnpose_tf.errors import UserError
+    from fcnpose_tf.fileio import check_output_folder
 
     if worst == 0:
         raise UserError("--pictures draws the --worst frames: give --worst 1 or more")
-    if folder.exists() and not folder.is_dir():
-        raise UserError(f"{folder}: exists and is not a folder")
-    if folder.is_dir() and any(folder.iterdir()) and not force:
-        raise UserError(f"{folder}: already holds files; pass --force to write the pictures among them")
+    check_output_folder(folder, force)
 
 
 def worst_frame_rows(pred, gt, dataset, indices, count: int) -> list[dict]:
@@ -192,7 +190,7 @@ def format_worst(rows: list[dict]) -> str:
 
 def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indices, force: bool) -> str:
     """One PNG per worst frame in `folder` (RANK_NAME.png): `draw.draw_truth_and_prediction` with a caption."""
-    from fcnpose_tf.draw import contact_sheet, draw_truth_and_prediction
+    from fcnpose_tf.draw import contact_sheet, draw_truth_and_prediction, png_bytes
     from fcnpose_tf.fileio import make_folder, write_bytes
 
     make_folder(folder)
@@ -205,18 +203,7 @@ def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indice
         picture = draw_truth_and_prediction(image, result["ground_truth"][j], result["predictions"][j],
                                             dataset.schema, caption)
         pictures.append(picture)
-        write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", _png(picture, folder), force=force)
+        write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", png_bytes(picture, folder), force=force)
     sheet = contact_sheet(pictures, columns=min(3, len(pictures)), tile_width=320)
-    write_bytes(folder / "contact_sheet.png", _png(sheet, folder), force=force)
+    write_bytes(folder / "contact_sheet.png", png_bytes(sheet, folder), force=force)
     return f"{folder} ({len(rows)} PNG and contact_sheet.png)"
-
-
-def _png(image, folder: Path) -> bytes:
-    import cv2
-
-    from fcnpose_tf.errors import UserError
-
-    ok, png = cv2.imencode(".png", image)
-    if not ok:
-        raise UserError(f"{folder}: cannot encode a picture as PNG")
-    return png.tobytes()

@@ -11,6 +11,9 @@ project, and train on it: `fcnpose-tf train --data out.json`. See docs/data.md, 
 With --select N only the N frames most worth correcting are written (--by uniform, uncertain, jump or
 disagree; never two within --min-gap frames): every processed frame is scored first, then the picked
 ones are read again and written (docs/data.md, "Correcting and merging rounds").
+
+With --draw DIR every frame written is also drawn in DIR with the points it gets (skeleton, dots, names), and
+DIR/contact_sheet.png shows up to 12 of them (all the picks of --select N <= 12): look before you correct.
 """
 
 from __future__ import annotations
@@ -22,8 +25,8 @@ from pathlib import Path
 from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "predict"
-OUTPUTS = ("via",)
-FILE_OUTPUTS = ("via",)
+OUTPUTS = ("via", "draw")
+FILE_OUTPUTS = ("via", "draw")
 """The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 EXAMPLES = """\
   fcnpose-tf predict generalist --source frames/ --via frames/pre.json     # a bundled model by name
@@ -31,6 +34,7 @@ EXAMPLES = """\
   fcnpose-tf predict model.tflite --source frames/ --via pre.json --min-confidence 20 --force
   fcnpose-tf predict models/arm.keras --source clip.mp4 --via round2/pre.json --select 40          # spread evenly
   fcnpose-tf predict models/arm.keras --source clip.mp4 --via round2/pre.json --select 40 --by jump --min-gap 15
+  fcnpose-tf predict models/arm.keras --source frames/ --via pre.json --select 12 --by uncertain --draw picks/
   fcnpose-tf data inspect frames/pre.json                  # what the project holds, as training sees it
 """
 
@@ -62,10 +66,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min-gap", type=int, default=None, metavar="FRAMES",
                         help="--select: no two picks closer than this many source frames (default: one second of "
                              "video at its frame rate; 1 for images)")
+    parser.add_argument("--draw", type=Path, default=None, metavar="DIR",
+                        help="draw every frame written with its points in DIR, and DIR/contact_sheet.png")
     add_decoding_arguments(parser, fallback=True)
     add_smoothing_arguments(parser, video_only=True)
     parser.add_argument("--force", action="store_true",
-                        help="replace an existing VIA file and earlier saved frames of the same names")
+                        help="replace an existing VIA file, earlier saved frames of the same names, and pictures "
+                             "in --draw's folder")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -94,6 +101,10 @@ def run(args: argparse.Namespace) -> int:
         raise UserError("--smooth and --select do not go together: a pick's pre-labels are its own frame's "
                         "predictions (smoothing would also hide the jumps --by jump looks for)")
     check_via_output(args.via, args.force, args.min_confidence)  # before the model loads: fail in a second
+    if args.draw is not None:
+        from fcnpose_tf.fileio import check_output_folder
+
+        check_output_folder(args.draw, args.force)
     model_path = args.model
     if Path(model_path).suffix in (".keras", ".h5"):
         from fcnpose_tf.training.tfsetup import import_tensorflow_quietly
@@ -126,7 +137,8 @@ def _via_collection(args: argparse.Namespace, predictor, source):
 
     collected = None
     try:
-        collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence)
+        collected = ViaPredictions(args.via, predictor.schema, source, args.force, args.min_confidence,
+                                   pictures=args.draw)
         yield collected
     except BaseException:
         if collected is not None:

@@ -7,7 +7,9 @@ found, or whose confidence (the pixel count of its cluster in the output map) is
 `min_confidence`, gets no point region (it is counted); correcting means moving, adding or
 deleting points in VIA. Frames from image files are referenced where they are (the folder
 becomes the project's default path); frames from a video or a camera are saved as PNGs in
-`images/` beside the VIA file, named after the source and the frame number.
+`images/` beside the VIA file, named after the source and the frame number. With a pictures folder
+(`predict --draw DIR`) every frame written is also drawn there with the points it gets, and a contact sheet of up to
+SHEET_TILES of them (evenly spread) closes it.
 """
 
 from __future__ import annotations
@@ -29,6 +31,9 @@ from fcnpose_tf.runtime.sources import Frame, FrameSource
 
 FRAMES_FOLDER = "images"
 """Where frames without an image file of their own are saved, beside the VIA file (read_via looks there)."""
+SHEET_TILES = 12
+"""Frames on the pictures folder's contact_sheet.png (all of them when there are fewer)."""
+SHEET_TILE_WIDTH = 320
 
 
 def check_via_output(via_path: str | os.PathLike, force: bool = False, min_confidence: float = 0.0,
@@ -54,14 +59,21 @@ class ViaPredictions:
         force: replace an existing project and existing frame PNGs of the same names.
         min_confidence: keypoints with a lower confidence get no point (counted).
         every: keep one frame in this many of those offered to `add` (the first, then every Nth).
+        pictures: a folder where every frame written is drawn with its points (NNNN_NAME.png) and, at `close`,
+            contact_sheet.png; None draws nothing.
     Raises:
         UserError: a path that is not .json, an existing output without `force`, an image source
-            whose images are not all in one folder.
+            whose images are not all in one folder, a pictures folder that holds files without `force`.
     """
 
     def __init__(self, via_path: str | os.PathLike, schema: KeypointSchema, source: FrameSource,
-                 force: bool = False, min_confidence: float = 0.0, every: int = 1):
+                 force: bool = False, min_confidence: float = 0.0, every: int = 1,
+                 pictures: str | os.PathLike | None = None):
         self.via_path = check_via_output(via_path, force, min_confidence, every)
+        self.pictures = None if pictures is None else fileio.check_output_folder(pictures, force)
+        self.drawn: list[Path] = []
+        self._tiles: list[np.ndarray] = []  # thumbnails of every `_stride`-th frame drawn, for the contact sheet
+        self._stride = 1
         self.every = every
         self.offered = 0
         self.schema = schema
@@ -117,6 +129,27 @@ class ViaPredictions:
         self.points += int((found & confident).sum())
         height, width = frame.image.shape[:2]
         self.frames.append(ViaFrame(image_path.name, width, height, keypoints, size=image_path.stat().st_size))
+        if self.pictures is not None:
+            self._draw(frame.image, image_path.name, keypoints)
+
+    def _draw(self, image: np.ndarray, name: str, keypoints: np.ndarray) -> None:
+        """The frame with the points it gets in the project, into the pictures folder; a thumbnail kept for the
+        contact sheet (every `_stride`-th frame, the stride doubled whenever twice SHEET_TILES are kept)."""
+        from fcnpose_tf.draw import draw_keypoints, png_bytes, with_caption
+
+        count = int(np.isfinite(keypoints).all(axis=1).sum())
+        picture = with_caption(draw_keypoints(image, keypoints, self.schema),
+                               f"{name}: {count} of {self.schema.num_keypoints} keypoints")
+        path = self.pictures / f"{len(self.frames):04d}_{Path(name).stem}.png"
+        with fileio.parts_of(None):  # kept with the project, removed with it when the run fails
+            fileio.write_bytes(path, png_bytes(picture, path), force=self.force)
+        self.drawn.append(path)
+        if (len(self.frames) - 1) % self._stride == 0:
+            scale = SHEET_TILE_WIDTH / picture.shape[1]
+            self._tiles.append(cv2.resize(picture, (SHEET_TILE_WIDTH, max(1, round(picture.shape[0] * scale))),
+                                          interpolation=cv2.INTER_AREA))
+            if len(self._tiles) >= 2 * SHEET_TILES:
+                self._tiles, self._stride = self._tiles[::2], self._stride * 2
 
     def close(self) -> Path | None:
         """Write the VIA project (atomically); None when no frame was added."""
@@ -126,13 +159,27 @@ class ViaPredictions:
                                     image_dir=self.image_dir if self.reference_files else None)
         if self.saved:
             fileio.record_completed(self.frames_dir)
+        if self.pictures is not None:
+            self._write_sheet()
+            fileio.record_completed(self.pictures)
         return written
 
+    def _write_sheet(self) -> None:
+        from fcnpose_tf.draw import contact_sheet, png_bytes
+
+        tiles = self._tiles
+        if len(tiles) > SHEET_TILES:  # evenly spread over those kept
+            tiles = [tiles[i] for i in np.linspace(0, len(tiles) - 1, SHEET_TILES).round().astype(int)]
+        path = self.pictures / "contact_sheet.png"
+        fileio.write_bytes(path, png_bytes(contact_sheet(tiles, columns=min(3, len(tiles))), path), force=self.force)
+        self.drawn.append(path)
+
     def discard(self) -> None:
-        """Remove the frames saved so far (a run that failed writes no project)."""
-        for path in self.saved:
+        """Remove the frames saved and pictures drawn so far (a run that failed writes no project)."""
+        for path in self.saved + self.drawn:
             path.unlink(missing_ok=True)
         self.saved.clear()
+        self.drawn.clear()
 
     def describe(self) -> str:
         """One line: frames, points, what was left out, and where the frames are."""
@@ -141,8 +188,10 @@ class ViaPredictions:
             left.append(f"{self.below_confidence} below confidence {self.min_confidence:g}")
         where = (f"images in {self.image_dir}" if self.reference_files
                  else f"{len(self.saved)} frames saved in {self.frames_dir}")
+        drawn = (f"; drawn in {self.pictures} ({len(self.drawn) - 1} PNG and contact_sheet.png)"
+                 if self.pictures is not None and self.drawn else "")
         return (f"{len(self.frames)} frames, {self.points} keypoints as points "
-                f"(left out: {', '.join(left)}); {where}")
+                f"(left out: {', '.join(left)}); {where}{drawn}")
 
 
 __all__ = ["ViaPredictions", "check_via_output", "FRAMES_FOLDER"]
