@@ -137,6 +137,27 @@ def params_from_args(args) -> OneEuroParams | None:
     return OneEuroParams(args.smooth_min_cutoff, args.smooth_beta, DEFAULT_D_CUTOFF_HZ, args.smooth_coast).check()
 
 
+STILL_THUMBNAIL_WIDTH = 64
+"""Frames are compared as grey thumbnails this wide (area-averaged: a camera's pixel noise averages out)."""
+STILL_LEVELS = 3.0
+"""A frame is *still* when no thumbnail pixel changed by this many grey levels (of 255) since the previous frame:
+camera noise of a few levels averages to under one in a thumbnail pixel, while an edge that moves by one frame pixel
+changes the thumbnail pixels it crosses by several (docs/runtime.md, "Smoothing")."""
+
+
+def is_still(previous: np.ndarray | None, current: np.ndarray) -> bool:
+    """Whether two grey thumbnails (`thumbnail`) show the same picture: no pixel changed by STILL_LEVELS or more."""
+    if previous is None or previous.shape != current.shape:
+        return False
+    return float(np.abs(current - previous).max()) < STILL_LEVELS
+
+
+def jitter_rms(steps_px) -> float:
+    """The RMS of frame-to-frame keypoint steps (px): over still frames, the keypoints' jitter."""
+    steps = np.asarray(steps_px, np.float64)
+    return float(np.sqrt(np.mean(steps ** 2))) if steps.size else float("nan")
+
+
 def frame_step_px(previous: np.ndarray | None, current: np.ndarray) -> float | None:
     """How far the keypoints moved since the previous frame: the mean distance over the keypoints found in both
     (frame pixels), None when none was. On an arm at rest this is all jitter."""

@@ -336,3 +336,31 @@ def test_run_reports_how_steady_the_keypoints_are_and_what_smoothing_did(capsys,
     line = next(line for line in out.splitlines() if line.startswith("Smoothing: One-Euro filter (cut-off"))
     raw, written = (float(part.split(" px")[0].split()[-1]) for part in line.split("; ")[1].split(", ")[:2])
     assert written < raw  # the quadrant patch jumps every frame: the filter holds the keypoints back
+
+
+def test_jitter_is_measured_on_still_frames_only(capsys, tmp_path, model_path):
+    """run's Jitter line: the RMS keypoint step over frames whose image did not change (camera noise averages out
+    in the thumbnail; a patch that moves does not), raw and, with --smooth, as written."""
+    from fcnpose_tf.runtime.runner import _thumbnail
+    from fcnpose_tf.smoothing import is_still, jitter_rms
+
+    rng = np.random.default_rng(0)
+    base = quadrant_frame(640, 480, "tl")
+    noisy = lambda image: np.clip(image + rng.normal(0, 3, image.shape), 0, 255).astype(np.uint8)  # noqa: E731
+    assert is_still(_thumbnail(noisy(base)), _thumbnail(noisy(base)))
+    shifted = np.roll(base, 1, axis=1)  # every edge one pixel to the right
+    assert not is_still(_thumbnail(base), _thumbnail(shifted)) and not is_still(None, _thumbnail(base))
+    assert jitter_rms([3.0, 4.0]) == pytest.approx(np.sqrt(12.5)) and np.isnan(jitter_rms([]))
+    order = ["tl", "tl", "tl", "tl", "bl", "bl", "tl", "tl"]  # 5 still pairs, 2 that move
+    clip = write_video(tmp_path / "still.avi", [noisy(quadrant_frame(320, 240, red)) for red in order])
+    code, out, err = _run(capsys, "run", model_path, "--source", clip, "--threads", 1)
+    assert code == 0, err
+    line = next(line for line in out.splitlines() if line.startswith("Jitter:"))
+    assert "over 5 still frames" in line and "RMS 0.00 px as the model found them" in line, line
+    code, out, err = _run(capsys, "run", model_path, "--source", clip, "--threads", 1, "--smooth")
+    assert code == 0, err
+    line = next(line for line in out.splitlines() if line.startswith("Jitter:"))
+    assert "over 5 still frames" in line and "px as written" in line, line
+    moving = write_video(tmp_path / "moving.avi", [quadrant_frame(320, 240, RED_CYCLE[i % 4]) for i in range(4)])
+    code, out, err = _run(capsys, "run", model_path, "--source", moving, "--threads", 1)
+    assert "Jitter:  no still frames" in out

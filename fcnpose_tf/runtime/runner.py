@@ -31,7 +31,8 @@ from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction, StageTim
 from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
 from fcnpose_tf.runtime.sources import Frame, FrameSource
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms
-from fcnpose_tf.smoothing import KeypointSmoother, OneEuroParams, frame_step_px
+from fcnpose_tf.smoothing import STILL_LEVELS, STILL_THUMBNAIL_WIDTH, KeypointSmoother, OneEuroParams, \
+    frame_step_px, is_still, jitter_rms
 
 WINDOW_NAME = "fcnpose-tf"
 
@@ -79,6 +80,10 @@ class RunSummary:
     """Per pair of consecutive frames, how far the model's keypoints moved (`smoothing.frame_step_px`)."""
     steps_px: array = field(default_factory=lambda: array("d"))
     """The same for the keypoints written (smoothed with --smooth)."""
+    still_raw_steps_px: array = field(default_factory=lambda: array("d"))
+    still_steps_px: array = field(default_factory=lambda: array("d"))
+    """raw_steps_px and steps_px over still frames only (`smoothing.is_still`: the image did not change), where
+    every step is jitter."""
     outputs: list[str] = field(default_factory=list)
 
     @property
@@ -92,6 +97,16 @@ class RunSummary:
         warm-up, no start-up); NaN below two frames."""
         span = self.last_written_s - self.first_written_s
         return (self.frames - 1) / span if self.frames > 1 and span > 0 else float("nan")
+
+    def _jitter(self) -> str:
+        still = len(self.still_raw_steps_px)
+        if not still:
+            return (f"Jitter:  no still frames (every frame's image changed from the previous one by "
+                    f"{STILL_LEVELS:g} grey levels or more somewhere): nothing to measure it on")
+        written = (f", {jitter_rms(self.still_steps_px):.2f} px as written" if self.smoothing is not None else
+                   " (--smooth filters it)")
+        return (f"Jitter:  over {still} still frames (the image unchanged from the one before), the keypoints moved "
+                f"RMS {jitter_rms(self.still_raw_steps_px):.2f} px as the model found them{written}")
 
     def report(self, model: KeypointPredictor, source: FrameSource) -> str:
         """Multi-line summary: counts, the per-stage latency table, FPS with its definition, outputs."""
@@ -118,6 +133,7 @@ class RunSummary:
                 lines.append(f"Smoothing: {self.smoothing.describe()}; keypoints moved a median {raw:.2f} px from "
                              f"frame to frame as the model found them, {float(np.median(self.steps_px)):.2f} px as "
                              "written (all of it jitter where the arm stands still)")
+            lines.append(self._jitter())
         if model.view.crop is not None:
             lines.append(f"Crop:    the model sees {model.view.describe()}; {self.crop_edge_frames} of {self.frames} "
                          f"frames had a keypoint at its edge (the records' crop_edge): an arm reaching past the "
@@ -303,6 +319,14 @@ def _pipelined_loop(model: KeypointPredictor, source: FrameSource, frames_iter, 
             worker.close()  # waits for an invoke still running (a stopped run drops its frame)
 
 
+def _thumbnail(image: np.ndarray) -> np.ndarray:
+    """The frame as a grey, area-averaged thumbnail STILL_THUMBNAIL_WIDTH wide (float32), for `is_still`."""
+    h, w = image.shape[:2]
+    size = (STILL_THUMBNAIL_WIDTH, max(1, round(h * STILL_THUMBNAIL_WIDTH / w)))
+    grey = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+    return cv2.resize(grey, size, interpolation=cv2.INTER_AREA).astype(np.float32)
+
+
 class _Delivery:
     """What happens to a frame once its keypoints are known, the same for both loops: smoothing, the
     latency log, records, hook and count (with Ctrl-C/SIGTERM held back), overlay, window, progress,
@@ -316,6 +340,7 @@ class _Delivery:
         self.smoother: KeypointSmoother | None = None
         self.last_raw: np.ndarray | None = None  # the previous frame's keypoints, as found and as written
         self.last_written: np.ndarray | None = None
+        self.last_thumbnail: np.ndarray | None = None  # the previous frame's grey thumbnail (still frames)
         self.rolling = RollingFps(fps_window)
         self.start = time.perf_counter()
 
@@ -340,12 +365,17 @@ class _Delivery:
             self.smoother = self.smoother or KeypointSmoother(len(prediction.keypoints), self.smooth)
             prediction = replace(prediction, keypoints=self.smoother(prediction.keypoints,
                                                                      frame_time_s(frame, self.source)))
-        for steps, previous, current in ((summary.raw_steps_px, self.last_raw, raw),
-                                         (summary.steps_px, self.last_written, prediction.keypoints)):
+        thumbnail = _thumbnail(frame.image)
+        still = is_still(self.last_thumbnail, thumbnail)
+        for steps, still_steps, previous, current in (
+                (summary.raw_steps_px, summary.still_raw_steps_px, self.last_raw, raw),
+                (summary.steps_px, summary.still_steps_px, self.last_written, prediction.keypoints)):
             step = frame_step_px(previous, current)
             if step is not None:
                 steps.append(step)
-        self.last_raw, self.last_written = raw, prediction.keypoints
+                if still:
+                    still_steps.append(step)
+        self.last_raw, self.last_written, self.last_thumbnail = raw, prediction.keypoints, thumbnail
         summary.latency.add(prediction.times)
         self.rolling.add(prediction.times.total_ms)
         summary.crop_edge_frames += bool(prediction.at_crop_edge().any())
