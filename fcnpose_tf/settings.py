@@ -365,7 +365,8 @@ ARCHITECTURE = Setting(
     "fcn-pose: the paper's network; fcn-pose-skip: the same with conv2's half-resolution block added before conv10 "
     "(a zero-initialised 1x1 convolution: it starts as the model it is fine-tuned from), so the maps are read from "
     "2 x 2 instead of 4 x 4 blocks, +3.5 %% MACs; finer keypoints where the arm is small (docs/training.md, "
-    "\"Architecture\"). compress and the sweep prune fcn-pose; `fcnpose-tf prune` prunes either",
+    "\"Architecture\"). compress and `fcnpose-tf prune` prune either (conv9 and the skip as one group); the sweep "
+    "prunes the paper's fcn-pose",
     label="architecture", choices=("fcn-pose", "fcn-pose-skip"), paper="fcn-pose")
 """`train`'s network; a model given to --init keeps its own unless this adds the skip (`model.as_architecture`)."""
 TRAIN_CROP = Setting(
