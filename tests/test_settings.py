@@ -72,7 +72,13 @@ def test_commands_that_differ_use_their_own_variant():
     # train resolves its weight per run from its start and augmentation (settings.train_positive_weight, above)
     # compress retrains at 3e-3 halved after 3 stale epochs (0 on the cosine schedule); the sweep keeps the paper's
     assert compress.lr_patience is None and settings.DEFAULT_COMPRESS_LR_PATIENCE == 3
-    assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, 1e-3, 1e-3)
+    assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, None, 1e-3)
+    # train resolves its rate and frozen layers per run (settings.train_recipe): the skip on one fixed camera trains
+    # every layer at 3e-3; other trained starts keep conv1-2 fixed at 1e-3; random weights train all at 1e-3
+    assert settings.train_recipe(True, "paper", "fcn-pose-skip") == (0, 3e-3)
+    assert settings.train_recipe(True, "paper", "fcn-pose") == settings.train_recipe(True, "online", "fcn-pose-skip") \
+        == (2, 1e-3)
+    assert settings.train_recipe(False, "paper", "fcn-pose-skip") == (0, 1e-3)
     assert CompressOptions(rate=0.5).learning_rate == 3e-3 and CompressOptions(rate=0.5).lr_patience is None
     assert (train.lr_patience, settings.DEFAULT_TRAIN_LR_PATIENCE, sweep.lr_patience) == (None, 4, 0)
     assert (train.max_minutes, sweep.max_minutes) == (30.0, None)

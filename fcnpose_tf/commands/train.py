@@ -48,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
     settings.add_preset_argument(parser)
-    for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.LEARNING_RATE,
+    for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.TRAIN_LEARNING_RATE,
                     settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
                     settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP,
                     settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS):
@@ -56,8 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
     settings.INIT.add_to(parser)
-    settings.ARCHITECTURE.variant(default=None, help=settings.ARCHITECTURE.help + " (default: the --init model's own; "
-                                  "fcn-pose from random weights)").add_to(parser)
+    settings.ARCHITECTURE.variant(default=None, help=settings.ARCHITECTURE.help + " (default: "
+                                  f"{settings.FINE_TUNE_ARCHITECTURE} from the bundled generalist, the --init model's "
+                                  "own otherwise, fcn-pose from random weights)").add_to(parser)
     parser.add_argument("--test-data", type=Path, metavar="T",
                         help="a fixed test set (dataset folder or VIA file, images found as for --data; frames never "
                              "trained on): the starting model and every trained one are measured on it (PCK@0.5/0.2/"
@@ -129,6 +130,10 @@ def run(args: argparse.Namespace) -> int:
 
     metadata: dict = {"init": args.init if args.init in BUNDLED_MODELS else (str(init) if init else None),
                       "preset": args.preset}
+    if args.architecture is None and args.init == "generalist":
+        args.architecture = metadata["architecture_auto"] = settings.FINE_TUNE_ARCHITECTURE
+        print(f"Architecture: {args.architecture} (fine-tuning the generalist: conv2's half-resolution block added "
+              "before conv10, at zero; --architecture fcn-pose keeps the paper's network)")
     # auto settings are resolved before the checkpoint check: a checkpoint records what ran
     size_was_chosen = args.input_size == settings.AUTO_INPUT_SIZE
     from fcnpose_tf.data.arm_size import resolve_view
@@ -150,7 +155,11 @@ def run(args: argparse.Namespace) -> int:
         start_view = view_of(load_model(init))
     view, metadata["view_auto"] = resolve_view(frames, args.input_size, args.crop, fixed_camera, start=start_view)
     args.input_size = view
-    resolved = config.resolved(trained_start=init is not None, augment=args.augment)
+    if args.architecture is None:  # the start's own network
+        from fcnpose_tf.training.model import architecture_of, load_model
+
+        args.architecture = architecture_of(load_model(init)) if init is not None else "fcn-pose"
+    resolved = config.resolved(trained_start=init is not None, augment=args.augment, architecture=args.architecture)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
                          identity=run_identity(via_path, resolved, input_size=view.size_record,

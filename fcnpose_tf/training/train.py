@@ -37,7 +37,8 @@ from fcnpose_tf.progress import Reporter
 
 
 @settings.config_class(settings.EPOCHS, ("patience", settings.TRAIN_PATIENCE), settings.BATCH_SIZE,
-                       settings.LEARNING_RATE, settings.SEED, ("positive_weight", settings.TRAIN_POSITIVE_WEIGHT),
+                       ("learning_rate", settings.TRAIN_LEARNING_RATE), settings.SEED,
+                       ("positive_weight", settings.TRAIN_POSITIVE_WEIGHT),
                        ("lr_patience", settings.TRAIN_LR_PATIENCE), settings.LR_SCHEDULE,
                        ("max_minutes", settings.TRAIN_MAX_MINUTES), ("freeze", settings.TRAIN_FREEZE), settings.DISTILL)
 class FitConfig:
@@ -49,8 +50,8 @@ class FitConfig:
     their weights) and distill (weight of a teacher's maps in the loss; the training batches must
     carry them, `fcnpose_tf.training.distill`).
 
-    The defaults are `fcnpose-tf train`'s (`FitConfig.preset("paper")`: the paper's recipe); positive_weight,
-    lr_patience and freeze left None are chosen per run by `resolved`. Defaults, checks and meanings:
+    The defaults are `fcnpose-tf train`'s (`FitConfig.preset("paper")`: the paper's recipe); learning_rate,
+    positive_weight, lr_patience and freeze left None are chosen per run by `resolved`. Defaults, checks and meanings:
     `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
@@ -58,16 +59,19 @@ class FitConfig:
         settings.validate_fields(self)
         settings.check_lr_schedule(self.lr_schedule, self.lr_patience or 0)
 
-    def resolved(self, *, trained_start: bool, augment: str = "paper") -> FitConfig:
+    def resolved(self, *, trained_start: bool, augment: str = "paper", architecture: str | None = None) -> FitConfig:
         """This config with the settings left None chosen for a run that starts from trained weights or not, with
-        this augmentation: freeze (`settings.DEFAULT_FINE_TUNE_FREEZE` from a trained start, else 0), lr_patience
+        this augmentation, of this network: freeze and learning_rate (`settings.train_recipe`), lr_patience
         (`settings.resolved_lr_patience`) and positive_weight (`settings.train_positive_weight`)."""
-        freeze = self.freeze if self.freeze is not None else (settings.DEFAULT_FINE_TUNE_FREEZE if trained_start else 0)
+        freeze, learning_rate = settings.train_recipe(trained_start, augment, architecture)
+        freeze = self.freeze if self.freeze is not None else freeze
+        learning_rate = self.learning_rate if self.learning_rate is not None else learning_rate
         positive_weight = self.positive_weight if self.positive_weight is not None else \
             settings.train_positive_weight(trained_start=trained_start, augment=augment)
         lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
                                                     settings.DEFAULT_TRAIN_LR_PATIENCE)
-        return replace(self, freeze=freeze, positive_weight=positive_weight, lr_patience=lr_patience)
+        return replace(self, freeze=freeze, learning_rate=learning_rate, positive_weight=positive_weight,
+                       lr_patience=lr_patience)
 
 
 MIN_LEARNING_RATE = 1e-5
@@ -665,7 +669,16 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                                                if init is not None and augment == "paper"
                                                else "random weights or online augmentation")
             + "; --positive-weight sets it)")
-    config = config.resolved(trained_start=init is not None, augment=augment)
+    if architecture is None:  # the start's own network (FCN-Pose from random weights)
+        architecture = architecture_of(load_model(init)) if init is not None else "fcn-pose"
+    chosen = config.freeze is None or config.learning_rate is None
+    config = config.resolved(trained_start=init is not None, augment=augment, architecture=architecture)
+    if chosen:
+        fixed = f"conv1-{config.freeze} fixed" if config.freeze > 1 else "conv1 fixed" if config.freeze else \
+            "every layer trained"
+        log(f"Recipe: {fixed}, learning rate {config.learning_rate:g} ({architecture}, "
+            f"{'a trained start' if init is not None else 'random weights'}, {augment} augmentation; --freeze and "
+            "--learning-rate set them)")
     identity = run_identity(dataset.via_path, config, input_size=view.size_record, crop=view.to_json()["crop_xywh"],
                             augment=augment,
                             augment_copies=augment_copies,
@@ -673,11 +686,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     check_checkpoint(model_path, resume=resume, force=force, identity=identity)  # before any frame is prepared
     num_maps = dataset.schema.num_maps
     if init is not None and not resume:
-        model = initial_model(init, dataset.schema, view)
-        model = as_architecture(model, architecture) if architecture is not None else model
+        model = as_architecture(initial_model(init, dataset.schema, view), architecture)
     else:  # random weights, or the checkpoint's (`fit` loads them) in the network that wrote it
-        if architecture is None:
-            architecture = architecture_of(load_model(init)) if init is not None else "fcn-pose"
         model = build_fcn_pose(input_size=view, num_maps=num_maps, skip=ARCHITECTURES[architecture])
     folds = dataset.splits.k
     split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {folds}"
