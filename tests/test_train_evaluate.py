@@ -63,6 +63,9 @@ def test_train_writes_model_curves_and_record(trained):
     assert record["epochs_run"] == 2 and record["train_samples"] == 16 and record["val_frames"] == 2
     assert "pck@0.5_bbox" in record["validation"]["metrics"]
     assert record["init"] == "generalist"  # the default start, by its name: its path is this machine's
+    # the default network from the generalist: FCN-Pose with its skip, said and recorded
+    assert record["architecture"] == record["architecture_auto"] == "fcn-pose-skip"
+    assert "Architecture: fcn-pose-skip (fine-tuning the generalist" in stdout
     typed = training_record(out)  # every field read from what train wrote, with its type (fold: the hold-out split)
     assert [f.name for f in fields(typed) if getattr(typed, f.name) is None] == ["fold"]
     assert typed.keypoints == tuple(UR5.keypoints) and typed.positive_weight == record["config"]["positive_weight"]
@@ -259,26 +262,45 @@ def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
 
 @pytest.mark.slow
 def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_here, tmp_path):
+    from fcnpose_tf.training.model import architecture_of, build_fcn_pose, load_model, save_for_inference
+
     data, trained_out, _ = trained
-    out = _poor_start(trained_out, tmp_path / "poor_start.keras")
+    skip_start = load_model(trained_out)  # train's default network from the generalist
+    assert architecture_of(skip_start) == "fcn-pose-skip"
+    plain = build_fcn_pose(input_size=64)
+    for layer in plain.layers:
+        if layer.weights:
+            layer.set_weights(skip_start.get_layer(layer.name).get_weights())
+    save_for_inference(plain, tmp_path / "plain.keras")
+    out = _poor_start(tmp_path / "plain.keras", tmp_path / "poor_start.keras")
     proc = cli("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1", "--input-size", "64",
                "--augment-copies", "0", "--init", out, "--quiet")
     assert proc.returncode == 0, proc.stderr
     record = json.loads((tmp_path / "ft_train.json").read_text())
     assert record["best_epoch"] == 1 and record["best_val_loss"] < record["start_val_loss"]
     assert record["init"] == str(out) and record["config"]["freeze"] == 2  # a trained start keeps conv1..2
+    assert record["config"]["learning_rate"] == 1e-3 and record["architecture"] == "fcn-pose"  # its own network
+    assert "Recipe: conv1-2 fixed, learning rate 0.001 (fcn-pose, a trained start, paper augmentation" in proc.stdout
     assert record["config"]["positive_weight"] == 8.0  # and draws tighter discs than training from scratch
     assert record["augment"] == "paper" and record["augment_auto"]["chose"] == "paper"  # one fixed "camera"
     assert "Augmentation: auto -> paper (one fixed camera" in proc.stdout
     assert "Keypoint weight: 8 (fine-tuning a trained model on the paper's copies" in proc.stdout
-    from fcnpose_tf.training.model import load_model
-
     start, tuned = load_model(out), load_model(tmp_path / "ft.keras")
     for name, kept in (("conv1", True), ("conv2", True), ("conv3", False), ("conv10", False)):
         same = all(np.array_equal(a, b) for a, b in zip(start.get_layer(name).get_weights(),
                                                           tuned.get_layer(name).get_weights()))
         assert same == kept, name
     assert all(layer.trainable for layer in tuned.layers)  # the written model is a plain FCN-Pose
+    # an fcn-pose-skip start on one fixed camera trains every layer at 3e-3 (settings.train_recipe)
+    skip_out = _poor_start(trained_out, tmp_path / "poor_skip.keras")
+    proc = cli("train", "--data", data, "--out", tmp_path / "fts.keras", "--epochs", "1", "--input-size", "64",
+               "--augment-copies", "0", "--init", skip_out, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    fts = json.loads((tmp_path / "fts_train.json").read_text())
+    assert (fts["config"]["freeze"], fts["config"]["learning_rate"], fts["architecture"]) == (0, 3e-3, "fcn-pose-skip")
+    assert "Recipe: every layer trained, learning rate 0.003 (fcn-pose-skip" in proc.stdout
+    assert not np.array_equal(load_model(skip_out).get_layer("conv1").get_weights()[0],
+                              load_model(tmp_path / "fts.keras").get_layer("conv1").get_weights()[0])
     # the convolutions do not depend on the input size: a 64x64 model starts a 96x96 run
     proc = cli("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1", "--input-size", "96",
                "--augment-copies", "0", "--augment", "paper", "--init", out, "--freeze", "0", "--positive-weight",
@@ -293,7 +315,6 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_he
     status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "bad.keras", "--init", out, "--freeze", "10")
     assert status == 2 and "error: frozen layers must be 0 to 9" in err
     # a model of another keypoint schema is refused before any training, saying how to start from scratch
-    from fcnpose_tf.training.model import build_fcn_pose, save_for_inference
 
     other = tmp_path / "other_arm.keras"
     save_for_inference(build_fcn_pose(input_size=64, num_maps=5), other)
