@@ -340,11 +340,11 @@ def export_generic(model: Any, quantize: str = DEFAULT_QUANTIZE, *, sample_input
 def _inference_graph(model: keras.Model) -> tuple[keras.Model, tuple[str, ...]]:
     """The model with its upsampling folded (and what was folded), or the model itself when its
     structure is not one `fold_upsampling` can rewrite (e.g. branches): folding only saves time."""
-    from fcnpose_tf.compression.inference_graph import UnsupportedGraphError, describe_folds, fold_upsampling
+    from fcnpose_tf.compression.inference_graph import UnsupportedGraphError, fold_and_describe
 
     try:
-        rewrites = tuple(describe_folds(model))
-        return (fold_upsampling(model) if rewrites else model), rewrites
+        graph, rewrites = fold_and_describe(model)
+        return graph, tuple(rewrites)
     except UnsupportedGraphError:
         return model, ()
 

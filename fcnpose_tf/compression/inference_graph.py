@@ -26,8 +26,8 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 
-__all__ = ["DepthToSpace", "UnsupportedGraphError", "describe_folds", "fold_kernel", "fold_upsampling",
-           "foldable_pairs"]
+__all__ = ["DepthToSpace", "UnsupportedGraphError", "describe_folds", "fold_and_describe", "fold_kernel",
+           "fold_upsampling", "foldable_pairs"]
 
 # Conv2D activations that act on each value alone, so they commute with depth_to_space and can stay
 # fused in the folded convolution. Any other (softmax over channels, custom) is applied after it.
@@ -347,6 +347,12 @@ def fold_upsampling(model: keras.Model) -> keras.Model:
 
 def describe_folds(model: keras.Model) -> list[str]:
     """One line per pair `fold_upsampling` folds, e.g. ``up4 + conv10 -> conv10 at 1/4 size + depth_to_space(4)``."""
-    return [f"{up} + {conv} -> {conv} at 1/{factor} size + depth_to_space({factor})"
-            for up, conv, factor in foldable_pairs(model)]
+    return fold_and_describe(model)[1]
+
+
+def fold_and_describe(model: keras.Model) -> tuple[keras.Model, list[str]]:
+    """`fold_upsampling(model)` and `describe_folds(model)`, the graph rewritten once."""
+    folded, folds = _rewrite(model)
+    lines = [f"{up} + {conv} -> {conv} at 1/{factor} size + depth_to_space({factor})" for up, conv, factor in folds]
+    return (folded if folds else model), lines
 
