@@ -149,17 +149,14 @@ def run(args: argparse.Namespace) -> int:
     else:
         fixed_camera = args.crop == "auto" and size_was_chosen and \
             view_variation([f.image_path for f in frames]) <= FIXED_CAMERA_MAX_VARIATION
-    start_view = None
-    if size_was_chosen and init is not None:
-        from fcnpose_tf.training.model import load_model, view_of
+    from fcnpose_tf.training.model import architecture_of, load_model, view_of
 
-        start_view = view_of(load_model(init))
+    start_model = load_model(init) if init is not None else None  # read once: its view and its network
+    start_view = view_of(start_model) if size_was_chosen and start_model is not None else None
     view, metadata["view_auto"] = resolve_view(frames, args.input_size, args.crop, fixed_camera, start=start_view)
     args.input_size = view
     if args.architecture is None:  # the start's own network
-        from fcnpose_tf.training.model import architecture_of, load_model
-
-        args.architecture = architecture_of(load_model(init)) if init is not None else "fcn-pose"
+        args.architecture = architecture_of(start_model) if start_model is not None else "fcn-pose"
     resolved = config.resolved(trained_start=init is not None, augment=args.augment, architecture=args.architecture)
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
