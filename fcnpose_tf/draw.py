@@ -1,8 +1,8 @@
 """Keypoints and skeleton drawn on a BGR image: one palette and one style for every picture.
 
 Used by the synthetic-data preview (`data.synth.preview`), `data inspect`'s preview, `evaluate --pictures`
-(`draw_truth_and_prediction`), `predict --draw` and the runtime's video overlay (`runtime.sinks`), so it belongs to the Pi-side core:
-numpy and OpenCV only.
+(`draw_truth_and_prediction`), `predict --draw` and the runtime's video overlay (`runtime.sinks`), so it belongs to
+the Pi-side core: numpy and OpenCV only.
 """
 
 from __future__ import annotations

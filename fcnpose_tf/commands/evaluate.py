@@ -203,7 +203,8 @@ def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indice
         picture = draw_truth_and_prediction(image, result["ground_truth"][j], result["predictions"][j],
                                             dataset.schema, caption)
         pictures.append(picture)
-        write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", png_bytes(picture, folder), force=force)
+        write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", png_bytes(picture, folder),
+                    force=force)
     sheet = contact_sheet(pictures, columns=min(3, len(pictures)), tile_width=320)
     write_bytes(folder / "contact_sheet.png", png_bytes(sheet, folder), force=force)
     return f"{folder} ({len(rows)} PNG and contact_sheet.png)"

@@ -26,7 +26,7 @@ from fcnpose_tf.settings import add_decoding_arguments
 
 NAME = "predict"
 OUTPUTS = ("via", "draw")
-FILE_OUTPUTS = ("via", "draw")
+FILE_OUTPUTS = ("via",)
 """The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 EXAMPLES = """\
   fcnpose-tf predict generalist --source frames/ --via frames/pre.json     # a bundled model by name

@@ -18,8 +18,9 @@ LayerNormalization over channels), or belong to a layer the caller keeps whole (
 
 `fcnpose_tf.compression.graph_prune` plans on this graph: `plan_graph` chooses the kept channels and counts
 parameters and multiply-accumulates before and after without touching the model; `prune_graph` rebuilds the model
-with the narrower layers (``from_config`` plus sliced weights), in the Keras it was built with (tf_keras in, tf_keras out; Keras 3 in, Keras 3 out). Before
-retraining, the pruned model computes exactly what the original computes with the removed channels deleted.
+with the narrower layers (``from_config`` plus sliced weights), in the Keras it was built with (tf_keras in, tf_keras
+out; Keras 3 in, Keras 3 out). Before retraining, the pruned model computes exactly what the original computes with
+the removed channels deleted.
 
 For a plain chain (FCN-Pose) every Conv2D is its own group and the output layer is frozen, so `prune_graph` with
 the L1 importance gives `prune.prune_model`'s result. Unlike `prune.plan_widths`' ``min_filters``, which keeps the
