@@ -1,3 +1,4 @@
+import inspect
 import os
 import subprocess
 import sys
@@ -39,3 +40,38 @@ def cli_here(capsys):
         return status, out, err
 
     return run
+
+
+FEW_TIMED_FRAMES = 3
+"""Frames an evaluation times under `few_timed_frames` (the package times at least 50 after 5 of warm-up)."""
+
+
+def cut_timed_frames(monkeypatch) -> None:
+    """Make evaluations in this process time at most FEW_TIMED_FRAMES frames after one warm-up frame.
+
+    Every frame of the evaluated split is still scored once; only the extra timing-only passes (50 frames after 5
+    of warm-up: seconds of eager Keras calls per evaluation) are cut. `monkeypatch`: a MonkeyPatch (its undo ends it).
+    """
+    from fcnpose_tf.compression import compress
+    from fcnpose_tf.training import evaluate
+
+    real = evaluate.evaluate_predictor
+    signature = inspect.signature(real)
+    assert {"min_timed_frames", "warmup"} <= set(signature.parameters), signature
+
+    def evaluate_predictor(*args, **kwargs):
+        bound = signature.bind(*args, **kwargs)
+        bound.apply_defaults()
+        bound.arguments["min_timed_frames"] = min(bound.arguments["min_timed_frames"], FEW_TIMED_FRAMES)
+        bound.arguments["warmup"] = min(bound.arguments["warmup"], 1)
+        return real(*bound.args, **bound.kwargs)
+
+    monkeypatch.setattr(evaluate, "evaluate_predictor", evaluate_predictor)  # train, evaluate, sweep import it late
+    monkeypatch.setattr(compress, "evaluate_predictor", evaluate_predictor)  # compress imports it with the module
+
+
+@pytest.fixture
+def few_timed_frames(monkeypatch):
+    """`cut_timed_frames` for one test: for tests of what train, evaluate or compress write and say, not of how many
+    frames they time (test_train_evaluate checks that count on a real evaluation)."""
+    cut_timed_frames(monkeypatch)

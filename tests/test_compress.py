@@ -38,12 +38,13 @@ def setup(tmp_path_factory):
 
 
 @pytest.mark.slow
-def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_writes_model_tflite_and_report(setup, cli_here):
     root, data, base = setup
     out = root / "out"
-    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "1",
-               "--out-dir", out, "--threads", "1", "--lr-patience", "2")
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs",
+                                   "1", "--out-dir", out, "--threads", "1", "--lr-patience", "2")
+    assert status == 0, stdout + err
     names = {"base_p70.keras", "base_p70_fp16.tflite", "base_p70_int8.tflite", "base_p70_report.json"}
     assert names <= {p.name for p in out.iterdir()}
     report = json.loads((out / "base_p70_report.json").read_text())
@@ -62,11 +63,11 @@ def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
     for step in ("base", "pruned_before_retraining", "retrained", "quantized"):
         assert "pck@0.05_bbox" in report[step]["metrics"]
     assert report["quantized"]["timing"]["threads"] == 1
-    assert "14,611" in proc.stdout and "PCK normalised by max(bbox w, h)" in proc.stdout
+    assert "14,611" in stdout and "PCK normalised by max(bbox w, h)" in stdout
     # the table: sizes of each row's own file in KB, PCK always with 3 decimals, FPS labelled end to end
-    header = next(line for line in proc.stdout.splitlines() if line.startswith("model "))
+    header = next(line for line in stdout.splitlines() if line.startswith("model "))
     assert "size KB" in header and "FPS e2e" in header
-    tflite_row = next(line for line in proc.stdout.splitlines() if line.startswith("float16 TFLite (.tflite)"))
+    tflite_row = next(line for line in stdout.splitlines() if line.startswith("float16 TFLite (.tflite)"))
     assert f"{report['quantized']['tflite_size_bytes'] / 1e3:.1f}" in tflite_row
     assert f"{report['quantized']['metrics']['pck@0.05_bbox']:.3f}" in tflite_row
     # the default --quantize float16,int8: a second file with its own row, calibrated on training frames only
@@ -74,10 +75,10 @@ def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
     assert int8["quantize"] == "int8" and report["quantized"]["quantize"] == "float16"
     assert int8["tflite_size_bytes"] == (out / "base_p70_int8.tflite").stat().st_size
     assert 0 < int8["export"]["calibration_frames"] <= 100 and int8["export"]["parity"]["frames"] >= 16
-    int8_row = next(line for line in proc.stdout.splitlines() if line.startswith("int8 TFLite (.tflite)"))
+    int8_row = next(line for line in stdout.splitlines() if line.startswith("int8 TFLite (.tflite)"))
     assert f"{int8['metrics']['pck@0.05_bbox']:.3f}" in int8_row
-    assert f"calibrated on {int8['export']['calibration_frames']} training frames; verified on" in proc.stdout
-    assert "upsampling folded" in proc.stdout and "upsampling not folded" in proc.stdout  # int8, float16
+    assert f"calibrated on {int8['export']['calibration_frames']} training frames; verified on" in stdout
+    assert "upsampling folded" in stdout and "upsampling not folded" in stdout  # int8, float16
     # --lr-patience reaches the retraining's FitConfig; the base model has no record: plain BCE
     assert report["options"]["lr_patience"] == 2
     assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 2
@@ -95,16 +96,17 @@ def test_compress_writes_model_tflite_and_report(setup, cli, cli_here):
 
 
 @pytest.mark.slow
-def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_data_aware_criterion_and_distillation_are_recorded(setup, cli_here):
     """--importance taylor --distill 0.5: filters ranked on training frames, retrained against the base model's
     maps too; the report, its table line and NAME_train.json name the recipe."""
     root, data, base = setup
     out = root / "taylor"
-    proc = cli("compress", "--rate", "0.5", "--model", base, "--data", data, "--retrain-epochs", "1",
-               "--importance", "taylor", "--importance-frames", "6", "--distill", "0.5", "--quantize", "float16",
-               "--positive-weight", "20", "--lr-schedule", "cosine", "--min-filters", "0", "--out-dir", out,
-               "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    status, stdout, err = cli_here("compress", "--rate", "0.5", "--model", base, "--data", data, "--retrain-epochs",
+                                   "1", "--importance", "taylor", "--importance-frames", "6", "--distill", "0.5",
+                                   "--quantize", "float16", "--positive-weight", "20", "--lr-schedule", "cosine",
+                                   "--min-filters", "0", "--out-dir", out, "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
     report = json.loads((out / "base_p50_report.json").read_text())
     assert report["pruning"]["importance"] == "taylor" and report["pruning"]["importance_frames"] == 6
     assert report["options"]["importance"] == "taylor" and report["options"]["distill"] == 0.5
@@ -114,7 +116,7 @@ def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
     recipe = ("filter surgery at 0.5, filters ranked by taylor (independent, 6 training frames), retrained up to 1 "
               "epoch on binary cross-entropy, keypoint pixels weighted 20, teacher weight 0.5, learning rate 0.003 on a "
               "cosine")
-    assert report["recipe"] == recipe and recipe in proc.stdout
+    assert report["recipe"] == recipe and recipe in stdout
     record = json.loads((out / "base_p50_train.json").read_text())
     assert record["importance"] == "taylor" and record["importance_frames"] == 6 and record["recipe"] == recipe
     assert record["config"]["distill"] == 0.5 and record["distillation"]["teacher_maps"] == "cached"
@@ -122,7 +124,8 @@ def test_data_aware_criterion_and_distillation_are_recorded(setup, cli):
 
 
 @pytest.mark.slow
-def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli_here):
     """--freeze 2: conv1 and conv2 come out of retraining exactly as surgery left them (at rate 0 surgery keeps
     every filter, so they equal the base model's), conv3 is trained; the recipe says so."""
     import numpy as np
@@ -130,9 +133,10 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli):
 
     root, data, base = setup
     out = root / "frozen"
-    proc = cli("compress", "--rate", "0", "--model", base, "--data", data, "--retrain-epochs", "1", "--importance",
-               "l1", "--freeze", "2", "--quantize", "float16", "--out-dir", out, "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    status, stdout, err = cli_here("compress", "--rate", "0", "--model", base, "--data", data, "--retrain-epochs", "1",
+                                   "--importance", "l1", "--freeze", "2", "--quantize", "float16", "--out-dir", out,
+                                   "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
     before, after = load_model(base), load_model(next(out.glob("*.keras")))
     for name in ("conv1", "conv2"):
         for w0, w1 in zip(before.get_layer(name).get_weights(), after.get_layer(name).get_weights()):
@@ -155,14 +159,16 @@ def test_recipe_names_the_floor_and_a_lowered_one():
 
 
 @pytest.mark.slow
-def test_a_floor_that_does_not_fit_is_lowered_and_said(setup, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_a_floor_that_does_not_fit_is_lowered_and_said(setup, cli_here):
     """At 0.9 FCN-Pose has 2,480 parameters: five layers of 15 do not fit, so compress keeps no layer under 5."""
     root, data, base = setup
     out = root / "floor"
-    proc = cli("compress", "--rate", "0.9", "--model", base, "--data", data, "--retrain-epochs", "0",
-               "--importance", "l1", "--quantize", "float16", "--out-dir", out, "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "--min-filters 15 does not fit the parameter budget of rate 0.9: no layer under 5 filters" in proc.stdout
+    status, stdout, err = cli_here("compress", "--rate", "0.9", "--model", base, "--data", data, "--retrain-epochs",
+                                   "0", "--importance", "l1", "--quantize", "float16", "--out-dir", out, "--threads",
+                                   "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert "--min-filters 15 does not fit the parameter budget of rate 0.9: no layer under 5 filters" in stdout
     report = json.loads((out / "base_p90_report.json").read_text())
     assert report["retrained"]["widths"] == [6, 5, 5, 5, 5, 5, 5, 5, 5, 9] and report["retrained"]["params"] <= 2480
     assert report["pruning"]["min_filters"] == 5 and report["options"]["min_filters"] == 15
@@ -170,14 +176,15 @@ def test_a_floor_that_does_not_fit_is_lowered_and_said(setup, cli):
 
 
 @pytest.mark.slow
-def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_magnitude_retraining_uses_the_weighted_loss_and_lr_patience(setup, cli_here):
     """--method magnitude retrains with the same loss as the l1 path (compile_for_training), not plain BCE."""
     root, data, base = setup
     out = root / "magnitude"
-    proc = cli("compress", "--rate", "0.5", "--method", "magnitude", "--model", base, "--data", data,
-               "--retrain-epochs", "2", "--positive-weight", "20", "--lr-patience", "1", "--out-dir", out,
-               "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    status, stdout, err = cli_here("compress", "--rate", "0.5", "--method", "magnitude", "--model", base, "--data",
+                                   data, "--retrain-epochs", "2", "--positive-weight", "20", "--lr-patience", "1",
+                                   "--out-dir", out, "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
     report = json.loads((out / "base_m50_report.json").read_text())
     assert list(report) == [{"pruning": "magnitude_sparsity"}.get(key, key) for key in REPORT_KEYS_L1]
     retraining = report["retraining"]
@@ -249,22 +256,23 @@ def test_unsupported_layer_and_unwritable_output(setup, cli_here, tmp_path):
 
 
 @pytest.mark.slow
-def test_export_command_writes_verified_files_next_to_the_model(setup, cli, cli_here, tmp_path):
+def test_export_command_writes_verified_files_next_to_the_model(setup, cli_here, tmp_path):
     """`fcnpose-tf export`: one file per format, the int8 one calibrated on the data's training split."""
     import shutil
 
     root, data, base = setup
     model = tmp_path / "arm.keras"
     shutil.copy(base, model)
-    proc = cli("export", model, "--data", data, "--json", tmp_path / "export.json", "--threads", "1")
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    status, stdout, err = cli_here("export", model, "--data", data, "--json", tmp_path / "export.json", "--threads",
+                                   "1")
+    assert status == 0, stdout + err
     assert (tmp_path / "arm_fp16.tflite").is_file() and (tmp_path / "arm_int8.tflite").is_file()
     record = json.loads((tmp_path / "export.json").read_text())
     fp16, int8 = record["files"]
     assert fp16["quantize"] == "float16" and fp16["calibration_frames"] == 0 and not fp16["graph_rewrites"]
     assert int8["quantize"] == "int8" and int8["calibration_frames"] == 16 and int8["graph_rewrites"]
     assert int8["parity"]["frames"] == 16 and int8["parity"]["min_keypoint_share"] == 0.95
-    assert "arm_int8.tflite" in proc.stdout and "folded" in proc.stdout
+    assert "arm_int8.tflite" in stdout and "folded" in stdout
     status, _, err = cli_here("export", model, "--data", data, "--quantize", "int8")
     assert status == 2 and "already exists; pass --force" in err
 
@@ -499,7 +507,8 @@ def test_a_pruned_start_is_named_in_the_recipe_and_refused_with_magnitude_prunin
 
 
 @pytest.mark.slow
-def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths(setup, cli, cli_here, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths(setup, cli_here, tmp_path):
     """--start FILE: the network before retraining holds the file's weights (no ranking), the report, the recipe and
     the retrained model's record name it; a file of other widths is one error line, before any file is written."""
     from fcnpose_tf.training.model import build_fcn_pose, load_model
@@ -508,10 +517,10 @@ def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths
     start = tmp_path / "pruned.keras"
     randomize(build_fcn_pose(P70_WIDTHS, input_size=64), seed=5).save(start)
     out = tmp_path / "out"
-    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start, "--retrain-epochs", "0",
-               "--quantize", "float16", "--out-dir", out, "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "scoring filters" not in proc.stdout
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
+                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert "scoring filters" not in stdout
     for w0, w1 in zip(load_model(start).get_weights(), load_model(out / "base_p70.keras").get_weights()):
         np.testing.assert_array_equal(w0, w1)
     report = json.loads((out / "base_p70_report.json").read_text())
@@ -532,7 +541,8 @@ def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths
 
 
 @pytest.mark.slow
-def test_compress_keeps_a_pruned_start_that_no_retraining_epoch_beats(setup, cli, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_keeps_a_pruned_start_that_no_retraining_epoch_beats(setup, cli_here, tmp_path):
     """A pruned start holds trained weights: its validation loss is epoch 0's, and when retraining only makes it worse
     (here a learning rate of 50 throws every weight far off) the start is what compress keeps, and says so."""
     from fcnpose_tf.training.model import build_fcn_pose, load_model
@@ -541,10 +551,11 @@ def test_compress_keeps_a_pruned_start_that_no_retraining_epoch_beats(setup, cli
     start = tmp_path / "pruned.keras"
     randomize(build_fcn_pose(P70_WIDTHS, input_size=64), seed=5).save(start)
     out = tmp_path / "out"
-    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start, "--retrain-epochs", "1",
-               "--learning-rate", "50", "--quantize", "float16", "--out-dir", out, "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "the start is kept, unchanged" in proc.stdout
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
+                                   "--retrain-epochs", "1", "--learning-rate", "50", "--quantize", "float16",
+                                   "--out-dir", out, "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert "the start is kept, unchanged" in stdout
     for w0, w1 in zip(load_model(start).get_weights(), load_model(out / "base_p70.keras").get_weights()):
         np.testing.assert_array_equal(w0, w1)
     report = json.loads((out / "base_p70_report.json").read_text())
@@ -582,7 +593,8 @@ def test_a_model_rebuilt_at_another_input_size_keeps_its_layers_and_weights():
 
 
 @pytest.mark.slow
-def test_compress_at_another_input_size_names_and_exports_files_at_it(setup, cli, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_at_another_input_size_names_and_exports_files_at_it(setup, cli_here, tmp_path):
     """--input-size 96 on a 64x64 model: the model is rebuilt at 96, retrained and exported at it; the files carry the
     size in their names, the recipe and the report say it."""
     from fcnpose_tf.runtime.estimator import KeypointModel
@@ -590,10 +602,10 @@ def test_compress_at_another_input_size_names_and_exports_files_at_it(setup, cli
 
     root, data, base = setup
     out = tmp_path / "out"
-    proc = cli("compress", "--rate", "0.7", "--model", base, "--data", data, "--input-size", "96", "--retrain-epochs",
-               "1", "--quantize", "float16", "--out-dir", out, "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "base model " in proc.stdout and "(96x96, rebuilt from its 64x64)" in proc.stdout
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--input-size", "96",
+                                   "--retrain-epochs", "1", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert "base model " in stdout and "(96x96, rebuilt from its 64x64)" in stdout
     assert load_model(out / "base_p70_96.keras").input_shape == (None, 96, 96, 3)
     assert KeypointModel(out / "base_p70_96_fp16.tflite").view.shape == (96, 96)
     report = json.loads((out / "base_p70_96_report.json").read_text())
@@ -602,7 +614,8 @@ def test_compress_at_another_input_size_names_and_exports_files_at_it(setup, cli
 
 
 @pytest.mark.slow
-def test_compress_keeps_the_base_models_crop_in_every_file(setup, cli, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_keeps_the_base_models_crop_in_every_file(setup, cli_here, tmp_path):
     """A base model that reads a crop of the frame (train --input-size auto's workspace) is pruned, retrained and
     exported over the same crop: the .keras and every .tflite carry it, and the Pi runtime reads it back."""
     from fcnpose_tf.preprocess import FrameView
@@ -614,21 +627,21 @@ def test_compress_keeps_the_base_models_crop_in_every_file(setup, cli, tmp_path)
     cropped = tmp_path / "cropped.keras"
     save_for_inference(with_view(load_model(base), view), cropped)
     out = tmp_path / "out"
-    proc = cli("compress", "--rate", "0.7", "--model", cropped, "--data", data, "--retrain-epochs", "1",
-               "--quantize", "float16", "--out-dir", out, "--threads", "1")
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert f"base model {cropped} ({view.describe()})" in proc.stdout
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", cropped, "--data", data, "--retrain-epochs",
+                                   "1", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert f"base model {cropped} ({view.describe()})" in stdout
     assert view_of(load_model(out / "cropped_p70.keras")) == view
     assert KeypointModel(out / "cropped_p70_fp16.tflite").view == view
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("few_timed_frames")
 def test_several_rates_in_one_run_give_a_file_set_and_rows_each_and_name_the_best(setup, cli_here):
     root, data, base = setup
     out = root / "rates"
     status, stdout, err = cli_here("compress", "--rates", "0.7,0.3", "--model", base, "--data", data,
-                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", out,
-                                   "--threads", "1")
+                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", out, "--threads", "1")
     assert status == 0, err
     assert {"base_p30_fp16.tflite", "base_p70_fp16.tflite", "base_p30_report.json",
             "base_p70_report.json"} <= {p.name for p in out.iterdir()}
