@@ -146,23 +146,24 @@ def test_resolve_view_says_what_it_chose_and_what_it_costs(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_train_auto_records_the_view_and_the_model_carries_its_crop(cli, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_train_auto_records_the_view_and_the_model_carries_its_crop(cli_here, tmp_path):
     from fcnpose_tf.training.model import load_model, view_of
 
     data = _project(tmp_path / "frames", [(200 + 8 * i, 150 + 4 * i, 60, 120) for i in range(6)])
     out = tmp_path / "m.keras"
     common = ["--data", data, "--out", out, "--init", "none", "--augment", "paper", "--augment-copies", "0",
               "--batch-size", "4", "--threads", "1", "--quiet", "--epochs", "1"]
-    proc = cli("train", *common)
-    assert proc.returncode == 0, proc.stderr
-    assert "View: " in proc.stdout and "(its workspace: one fixed camera)" in proc.stdout
+    status, out_text, err = cli_here("train", *common)
+    assert status == 0, err
+    assert "View: " in out_text and "(its workspace: one fixed camera)" in out_text
     record = json.loads((tmp_path / "m_train.json").read_text())
     view = FrameView.from_json(record["view"])
     assert view.crop is not None and record["view_auto"]["chose"] == record["view"]
     assert view_of(load_model(out)) == view
     # a next round from that model keeps its view: its crop holds the frames and the arm spans enough there
     second = tmp_path / "r2.keras"
-    proc = cli("train", *common[:2], "--out", second, "--init", str(out), *common[6:])
-    assert proc.returncode == 0, proc.stderr
-    assert "the starting model's own view, kept" in proc.stdout
+    status, out_text, err = cli_here("train", *common[:2], "--out", second, "--init", str(out), *common[6:])
+    assert status == 0, err
+    assert "the starting model's own view, kept" in out_text
     assert view_of(load_model(second)) == view
