@@ -34,20 +34,26 @@ def make_via_folder(folder, n=10, size=(96, 72), seed=0):
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
-    """A 64x64 FCN-Pose trained 2 epochs by the CLI on a small VIA folder (shared by the tests below)."""
-    import os
-    import subprocess
-    import sys
+    """A 64x64 FCN-Pose trained 2 epochs by the CLI on a small VIA folder (shared by the tests below).
+
+    In this process (`fcnpose_tf.cli.main`, as the `cli_here` fixture runs it), its validation timed on a few frames.
+    """
+    import contextlib
+    import io
+
+    from conftest import cut_timed_frames
+    from fcnpose_tf.cli import main
 
     root = tmp_path_factory.mktemp("train")
     data = make_via_folder(root / "frames")
     out = root / "models" / "arm.keras"
-    proc = subprocess.run([sys.executable, "-m", "fcnpose_tf", "train", "--data", str(data), "--out", str(out),
-                           "--epochs", "2", "--input-size", "64", "--augment", "paper", "--augment-copies", "1", "--quiet"],
-                          capture_output=True, text=True, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="3"),
-                          timeout=600)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    return data, out, proc.stdout
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with pytest.MonkeyPatch.context() as patch, contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        cut_timed_frames(patch)
+        status = main(["train", "--data", str(data), "--out", str(out), "--epochs", "2", "--input-size", "64",
+                       "--augment", "paper", "--augment-copies", "1", "--quiet"])
+    assert status == 0, stdout.getvalue() + stderr.getvalue()
+    return data, out, stdout.getvalue()
 
 
 @pytest.mark.slow
@@ -85,20 +91,20 @@ def test_existing_model_needs_force(trained, cli_here):
 
 
 @pytest.mark.slow
-def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, cli, cli_here, tmp_path):
+def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, cli_here, tmp_path):
     data, out, _ = trained
-    proc = cli("evaluate", out, "--data", data, "--json", tmp_path / "r.json", "--threads", "1")
-    assert proc.returncode == 0, proc.stderr
-    assert "validation frames of the hold-out 80/20 split (2 frames)" in proc.stdout
+    status, stdout, err = cli_here("evaluate", out, "--data", data, "--json", tmp_path / "r.json", "--threads", "1")
+    assert status == 0, err
+    assert "validation frames of the hold-out 80/20 split (2 frames)" in stdout
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["timing"]["frames_timed"] >= 50 and report["timing"]["threads"] == 1
     assert set(report["metrics"]) >= {"pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "epe_px", "pck_auc_0-20px"}
     assert report["decoding"] == {"threshold": 0.5, "fallback": None, "centroid": "weighted"}
-    assert "Decoding: Algorithm 1 (largest cluster above 0.5, its centroid weighted by (p - 0.5)^2)" in proc.stdout
-    proc = cli("evaluate", out, "--data", data, "--json", tmp_path / "w.json", "--threads", "1", "--centroid",
-               "plain")
-    assert proc.returncode == 0, proc.stderr
-    assert "Decoding: Algorithm 1 (largest cluster above 0.5, its centroid)" in proc.stdout
+    assert "Decoding: Algorithm 1 (largest cluster above 0.5, its centroid weighted by (p - 0.5)^2)" in stdout
+    status, stdout, err = cli_here("evaluate", out, "--data", data, "--json", tmp_path / "w.json", "--threads", "1",
+                                   "--centroid", "plain")
+    assert status == 0, err
+    assert "Decoding: Algorithm 1 (largest cluster above 0.5, its centroid)" in stdout
     assert json.loads((tmp_path / "w.json").read_text())["decoding"]["centroid"] == "plain"
     other = make_via_folder(tmp_path / "other", n=4, seed=5)
     status, stdout, err = cli_here("evaluate", out, "--data", other)
@@ -261,7 +267,8 @@ def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():
 
 
 @pytest.mark.slow
-def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_here, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli_here, tmp_path):
     from fcnpose_tf.training.model import architecture_of, build_fcn_pose, load_model, save_for_inference
 
     data, trained_out, _ = trained
@@ -273,18 +280,18 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_he
             layer.set_weights(skip_start.get_layer(layer.name).get_weights())
     save_for_inference(plain, tmp_path / "plain.keras")
     out = _poor_start(tmp_path / "plain.keras", tmp_path / "poor_start.keras")
-    proc = cli("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1", "--input-size", "64",
-               "--augment-copies", "0", "--init", out, "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "ft.keras", "--epochs", "1",
+                                   "--input-size", "64", "--augment-copies", "0", "--init", out, "--quiet")
+    assert status == 0, err
     record = json.loads((tmp_path / "ft_train.json").read_text())
     assert record["best_epoch"] == 1 and record["best_val_loss"] < record["start_val_loss"]
     assert record["init"] == str(out) and record["config"]["freeze"] == 2  # a trained start keeps conv1..2
     assert record["config"]["learning_rate"] == 1e-3 and record["architecture"] == "fcn-pose"  # its own network
-    assert "Recipe: conv1-2 fixed, learning rate 0.001 (fcn-pose, a trained start, paper augmentation" in proc.stdout
+    assert "Recipe: conv1-2 fixed, learning rate 0.001 (fcn-pose, a trained start, paper augmentation" in stdout
     assert record["config"]["positive_weight"] == 8.0  # and draws tighter discs than training from scratch
     assert record["augment"] == "paper" and record["augment_auto"]["chose"] == "paper"  # one fixed "camera"
-    assert "Augmentation: auto -> paper (one fixed camera" in proc.stdout
-    assert "Keypoint weight: 8 (fine-tuning a trained model on the paper's copies" in proc.stdout
+    assert "Augmentation: auto -> paper (one fixed camera" in stdout
+    assert "Keypoint weight: 8 (fine-tuning a trained model on the paper's copies" in stdout
     start, tuned = load_model(out), load_model(tmp_path / "ft.keras")
     for name, kept in (("conv1", True), ("conv2", True), ("conv3", False), ("conv10", False)):
         same = all(np.array_equal(a, b) for a, b in zip(start.get_layer(name).get_weights(),
@@ -293,19 +300,19 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli, cli_he
     assert all(layer.trainable for layer in tuned.layers)  # the written model is a plain FCN-Pose
     # an fcn-pose-skip start on one fixed camera trains every layer at 3e-3 (settings.train_recipe)
     skip_out = _poor_start(trained_out, tmp_path / "poor_skip.keras")
-    proc = cli("train", "--data", data, "--out", tmp_path / "fts.keras", "--epochs", "1", "--input-size", "64",
-               "--augment-copies", "0", "--init", skip_out, "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "fts.keras", "--epochs", "1",
+                                   "--input-size", "64", "--augment-copies", "0", "--init", skip_out, "--quiet")
+    assert status == 0, err
     fts = json.loads((tmp_path / "fts_train.json").read_text())
     assert (fts["config"]["freeze"], fts["config"]["learning_rate"], fts["architecture"]) == (0, 3e-3, "fcn-pose-skip")
-    assert "Recipe: every layer trained, learning rate 0.003 (fcn-pose-skip" in proc.stdout
+    assert "Recipe: every layer trained, learning rate 0.003 (fcn-pose-skip" in stdout
     assert not np.array_equal(load_model(skip_out).get_layer("conv1").get_weights()[0],
                               load_model(tmp_path / "fts.keras").get_layer("conv1").get_weights()[0])
     # the convolutions do not depend on the input size: a 64x64 model starts a 96x96 run
-    proc = cli("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1", "--input-size", "96",
-               "--augment-copies", "0", "--augment", "paper", "--init", out, "--freeze", "0", "--positive-weight",
-               "20", "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1",
+                                   "--input-size", "96", "--augment-copies", "0", "--augment", "paper", "--init", out,
+                                   "--freeze", "0", "--positive-weight", "20", "--quiet")
+    assert status == 0, err
     ft0 = json.loads((tmp_path / "ft0_train.json").read_text())
     assert ft0["config"]["positive_weight"] == 20.0
     assert "start_as_saved" not in ft0  # a size the user asked for is kept: the 64x64 start is no candidate
@@ -337,13 +344,15 @@ def _poor_start(model_path, path):
 
 
 @pytest.mark.slow
-def test_a_start_no_epoch_beats_is_the_model_written(trained, cli, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_a_start_no_epoch_beats_is_the_model_written(trained, cli_here, tmp_path):
     data, out, _ = trained
     # a rate of 5 wrecks the last layer in one step: no epoch comes near the start's validation loss
-    proc = cli("train", "--data", data, "--out", tmp_path / "kept.keras", "--epochs", "2", "--input-size", "64",
-               "--augment-copies", "0", "--init", out, "--freeze", "9", "--learning-rate", "5", "--quiet")
-    assert proc.returncode == 0, proc.stderr
-    assert "at epoch 0 of 2 (the starting model: no epoch improved on it)" in proc.stdout
+    status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "kept.keras", "--epochs", "2",
+                                   "--input-size", "64", "--augment-copies", "0", "--init", out, "--freeze", "9",
+                                   "--learning-rate", "5", "--quiet")
+    assert status == 0, err
+    assert "at epoch 0 of 2 (the starting model: no epoch improved on it)" in stdout
     record = json.loads((tmp_path / "kept_train.json").read_text())
     assert record["best_epoch"] == 0 and record["best_val_loss"] == record["start_val_loss"]
     header, *rows = (tmp_path / "kept_loss.csv").read_text().splitlines()
@@ -514,6 +523,7 @@ def test_frozen_layers_keep_their_weights_and_the_saved_model_matches_the_traine
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("few_timed_frames")
 def test_evaluate_names_the_worst_frames_and_draws_them(trained, cli_here, tmp_path):
     data, out, _ = trained
     other = make_via_folder(tmp_path / "other", n=5, seed=6)
@@ -542,7 +552,8 @@ def test_evaluate_names_the_worst_frames_and_draws_them(trained, cli_here, tmp_p
 
 
 @pytest.mark.slow
-def test_train_adds_the_skip_to_its_start_and_compress_prunes_it(trained, cli, cli_here, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_train_adds_the_skip_to_its_start_and_compress_prunes_it(trained, cli_here, tmp_path):
     """--architecture fcn-pose-skip fine-tunes a plain start with the skip added (recorded in NAME_train.json); the
     skip model fine-tunes again with its own architecture by default, and compress prunes it by graph surgery (conv9
     and skip2 one group), retrains it with its skip and exports it verified against Keras."""
@@ -550,17 +561,18 @@ def test_train_adds_the_skip_to_its_start_and_compress_prunes_it(trained, cli, c
 
     data, start, _ = trained
     skip = tmp_path / "skip.keras"
-    proc = cli("train", "--data", data, "--out", skip, "--epochs", "1", "--input-size", "64", "--augment-copies", "0",
-               "--init", start, "--architecture", "fcn-pose-skip", "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", skip, "--epochs", "1", "--input-size", "64",
+                                   "--augment-copies", "0", "--init", start, "--architecture", "fcn-pose-skip",
+                                   "--quiet")
+    assert status == 0, err
     record = json.loads((tmp_path / "skip_train.json").read_text())
     assert record["architecture"] == "fcn-pose-skip" and record["start_val_loss"] > 0
     model = load_model(skip)
     assert architecture_of(model) == "fcn-pose-skip" and all(model.get_layer(name) for name in SKIP_LAYERS)
     again = tmp_path / "again.keras"
-    proc = cli("train", "--data", data, "--out", again, "--epochs", "1", "--input-size", "64", "--augment-copies",
-               "0", "--init", skip, "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", again, "--epochs", "1", "--input-size", "64",
+                                   "--augment-copies", "0", "--init", skip, "--quiet")
+    assert status == 0, err
     assert json.loads((tmp_path / "again_train.json").read_text())["architecture"] == "fcn-pose-skip"
     status, _, err = cli_here("train", "--data", data, "--out", tmp_path / "plain.keras", "--epochs", "1",
                               "--input-size", "64", "--init", skip, "--architecture", "fcn-pose")
