@@ -88,16 +88,17 @@ def test_post_training_int8_is_refused_and_float16_passes(faint):
 
 
 @pytest.mark.slow
-def test_compress_without_qat_ends_with_its_table_and_the_refusal(faint, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_without_qat_ends_with_its_table_and_the_refusal(faint, cli_here):
     """--qat-epochs 0: the float16 row, the int8 row marked REFUSED with the gate's reason, the report, exit 0
     (int8 was a default format, and a file was written)."""
     root, data, path = faint
     out = root / "no_qat"
-    proc = cli(*compress_args(data, path, out, "--qat-epochs", "0"))
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert not [line for line in proc.stderr.splitlines() if line.startswith("error:")]
-    fp16_row = table_row(proc.stdout, "float16 TFLite (.tflite)")
-    assert table_row(proc.stdout, "int8 TFLite: REFUSED (gate)")
+    status, stdout, err = cli_here(*compress_args(data, path, out, "--qat-epochs", "0"))
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert not [line for line in err.splitlines() if line.startswith("error:")]
+    fp16_row = table_row(stdout, "float16 TFLite (.tflite)")
+    assert table_row(stdout, "int8 TFLite: REFUSED (gate)")
     report = json.loads((out / "faint_p00_report.json").read_text())
     assert f"{report['quantized']['metrics']['pck@0.5_bbox']:.3f}" in fp16_row
     assert report["quantized"]["quantize"] == "float16" and report["other_quantized"] == []
@@ -105,29 +106,31 @@ def test_compress_without_qat_ends_with_its_table_and_the_refusal(faint, cli):
     assert refused["quantize"] == "int8" and refused["status"] == "refused" and "qat" not in refused
     assert refused["reason"].startswith("the int8 TFLite model decodes keypoint ")
     assert refused["post_training"]["keypoints_lost_or_gained"] >= 1
-    assert f"int8: REFUSED, no file written: {refused['reason']}" in proc.stdout
+    assert f"int8: REFUSED, no file written: {refused['reason']}" in stdout
     assert not (out / "faint_p00_int8.tflite").exists()
     assert set(report["files"]) == {"keras", "tflite_fp16", "report"}
     for name in ("faint_p00.keras", "faint_p00_fp16.tflite", "faint_p00_report.json"):
-        assert f"wrote {out / name}" in proc.stdout
-    assert "note: int8 refused by the keypoint gate" in proc.stdout
+        assert f"wrote {out / name}" in stdout
+    assert "note: int8 refused by the keypoint gate" in stdout
 
 
 @pytest.mark.slow
-def test_compress_with_int8_named_exits_2_after_writing_what_passed(faint, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_with_int8_named_exits_2_after_writing_what_passed(faint, cli_here):
     root, data, path = faint
     out = root / "named"
-    proc = cli(*compress_args(data, path, out, "--qat-epochs", "0", "--quantize", "float16,int8"))
-    assert proc.returncode == 2 and "Traceback" not in proc.stderr
-    (error,) = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
+    status, stdout, err = cli_here(*compress_args(data, path, out, "--qat-epochs", "0", "--quantize", "float16,int8"))
+    assert status == 2 and "Traceback" not in err
+    (error,) = [line for line in err.splitlines() if line.startswith("error:")]
     assert "int8 (named with --quantize) refused by the keypoint gate" in error
     assert f"kept {out / 'faint_p00.keras'}, {out / 'faint_p00_fp16.tflite'}, {out / 'faint_p00_report.json'}" in error
-    assert table_row(proc.stdout, "int8 TFLite: REFUSED (gate)") and table_row(proc.stdout, "float16 TFLite (.tflite)")
+    assert table_row(stdout, "int8 TFLite: REFUSED (gate)") and table_row(stdout, "float16 TFLite (.tflite)")
     assert (out / "faint_p00_fp16.tflite").is_file() and (out / "faint_p00_report.json").is_file()
 
 
 @pytest.mark.slow
-def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli_here):
     """The default: post-training int8 refused, quantization-aware training's int8 file passes the same gate
     against the same Keras model, is written with the runtime's interface, and the report says how it was made."""
     from fcnpose_tf.data.dataset import load_dataset
@@ -138,8 +141,8 @@ def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli):
 
     root, data, path = faint
     out = root / "qat"
-    proc = cli(*compress_args(data, path, out))
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    status, stdout, err = cli_here(*compress_args(data, path, out))
+    assert status == 0, stdout[-3000:] + err[-3000:]
     report = json.loads((out / "faint_p00_report.json").read_text())
     assert report["refused"] == []
     (int8,) = report["other_quantized"]
@@ -147,9 +150,9 @@ def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli):
     qat = int8["qat"]
     assert qat["passed"] and qat["epochs"][-1]["passed"] and qat["minutes"] >= 0
     assert qat["post_training_refused"]["reason"].startswith("the int8 TFLite model decodes keypoint ")
-    assert "post-training int8 refused: quantization-aware training" in proc.stdout
-    assert f"{qat['epochs_run']} QAT epoch(s)" in proc.stdout and table_row(proc.stdout, "int8 QAT TFLite (.tflite)")
-    assert f"wrote {out / 'faint_p00_int8.tflite'}" in proc.stdout
+    assert "post-training int8 refused: quantization-aware training" in stdout
+    assert f"{qat['epochs_run']} QAT epoch(s)" in stdout and table_row(stdout, "int8 QAT TFLite (.tflite)")
+    assert f"wrote {out / 'faint_p00_int8.tflite'}" in stdout
     # the written file: the runtime's int8 interface, folded upsampling, and it passes the gate here too
     tflite = (out / "faint_p00_int8.tflite").read_bytes()
     info = inspect_tflite(tflite)
@@ -165,33 +168,35 @@ def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli):
 
 
 @pytest.mark.slow
-def test_export_refusal_is_a_row_and_the_exit_status_follows_what_was_named(faint, cli, tmp_path):
+def test_export_refusal_is_a_row_and_the_exit_status_follows_what_was_named(faint, cli_here, tmp_path):
     """export: int8 refused, float16 written and named; exit 0 for the default formats, 2 when int8 was named."""
     import shutil
 
     root, data, path = faint
     model = tmp_path / "arm.keras"
     shutil.copy(path, model)
-    proc = cli("export", model, "--data", data, "--json", tmp_path / "export.json", "--threads", "1")
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert table_row(proc.stdout, "arm_int8.tflite: REFUSED")
-    assert f"wrote {tmp_path / 'arm_fp16.tflite'}" in proc.stdout and f"wrote {tmp_path / 'export.json'}" in proc.stdout
+    status, stdout, err = cli_here("export", model, "--data", data, "--json", tmp_path / "export.json", "--threads",
+                                   "1")
+    assert status == 0, stdout + err
+    assert table_row(stdout, "arm_int8.tflite: REFUSED")
+    assert f"wrote {tmp_path / 'arm_fp16.tflite'}" in stdout and f"wrote {tmp_path / 'export.json'}" in stdout
     assert (tmp_path / "arm_fp16.tflite").is_file() and not (tmp_path / "arm_int8.tflite").exists()
     record = json.loads((tmp_path / "export.json").read_text())
     (fp16,) = record["files"]
     (refused,) = record["refused"]
     assert fp16["quantize"] == "float16" and refused["quantize"] == "int8" and refused["parity"]["frames"] == 16
-    assert f"int8: REFUSED, no file written: {refused['reason']}" in proc.stdout
+    assert f"int8: REFUSED, no file written: {refused['reason']}" in stdout
 
-    named = cli("export", model, "--data", data, "--quantize", "float16,int8", "--out-dir", tmp_path / "named",
-                "--threads", "1")
-    assert named.returncode == 2 and "Traceback" not in named.stderr
-    (error,) = [line for line in named.stderr.splitlines() if line.startswith("error:")]
+    status, _, err = cli_here("export", model, "--data", data, "--quantize", "float16,int8", "--out-dir",
+                              tmp_path / "named", "--threads", "1")
+    assert status == 2 and "Traceback" not in err
+    (error,) = [line for line in err.splitlines() if line.startswith("error:")]
     assert "int8 (named with --quantize) refused" in error and f"kept {tmp_path / 'named' / 'arm_fp16.tflite'}" in error
     assert (tmp_path / "named" / "arm_fp16.tflite").is_file()
 
-    only = cli("export", model, "--data", data, "--quantize", "int8", "--out-dir", tmp_path / "only", "--threads", "1")
-    assert only.returncode == 2 and "no TFLite file written: int8 refused" in only.stderr
+    status, _, err = cli_here("export", model, "--data", data, "--quantize", "int8", "--out-dir", tmp_path / "only",
+                              "--threads", "1")
+    assert status == 2 and "no TFLite file written: int8 refused" in err
     assert not (tmp_path / "only").exists() or not any((tmp_path / "only").iterdir())
 
 
