@@ -125,25 +125,27 @@ def test_online_training_data_follows_seed_and_epoch_and_keeps_keypoints_on_thei
     assert 0.0 <= images.min() and images.max() <= 1.0 and set(np.unique(maps)) <= {0.0, 1.0}
 
 
-def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli, cli_here):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli_here):
     import json
 
     from test_train_evaluate import make_via_folder
 
     data = make_via_folder(tmp_path / "d", n=6)
-    proc = cli("train", "--data", data, "--out", tmp_path / "p.keras", "--epochs", "1", "--input-size", "64",
-               "--init", "none", "--augment-copies", "1", "--quiet")
-    assert proc.returncode == 0, proc.stderr
-    assert "10 samples (5 frames + 1 augmented copies each)" in proc.stdout
+    status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "p.keras", "--epochs", "1",
+                                   "--input-size", "64", "--init", "none", "--augment-copies", "1", "--quiet")
+    assert status == 0, err
+    assert "10 samples (5 frames + 1 augmented copies each)" in stdout
     record = json.loads((tmp_path / "p_train.json").read_text())
     assert record["augment"] == "paper" and record["augment_copies"] == 1
     assert record["config"]["freeze"] == 0  # from scratch every layer trains
     assert record["config"]["positive_weight"] == 20.0  # random weights need the large keypoint weight
     assert (record["config"]["lr_schedule"], record["config"]["lr_patience"]) == ("plateau", 4)
-    proc = cli("train", "--data", data, "--out", tmp_path / "m.keras", "--epochs", "1", "--input-size", "64",
-               "--init", "none", "--augment", "online", "--lr-schedule", "cosine", "--quiet")
-    assert proc.returncode == 0, proc.stderr
-    assert "15 freshly augmented samples an epoch from 5 frames" in proc.stdout
+    status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "m.keras", "--epochs", "1",
+                                   "--input-size", "64", "--init", "none", "--augment", "online", "--lr-schedule",
+                                   "cosine", "--quiet")
+    assert status == 0, err
+    assert "15 freshly augmented samples an epoch from 5 frames" in stdout
     record = json.loads((tmp_path / "m_train.json").read_text())
     assert record["augment"] == "online" and record["augment_copies"] is None
     # the cosine sets every epoch's rate itself: an unset --lr-patience resolves to 0 instead of being refused
@@ -152,8 +154,8 @@ def test_train_cli_paper_copies_by_default_and_online_on_request(tmp_path, cli, 
     assert status == 2 and "invalid choice: 'fancy'" in err
 
 
-def test_default_init_is_the_bundled_generalist_and_bundled_inits_are_refused_for_another_schema(tmp_path, cli,
-                                                                                                   cli_here):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_default_init_is_the_bundled_generalist_and_bundled_inits_are_refused_for_another_schema(tmp_path, cli_here):
     import cv2
 
     from fcnpose_tf.data.via import ViaFrame, write_via_project
@@ -175,8 +177,8 @@ def test_default_init_is_the_bundled_generalist_and_bundled_inits_are_refused_fo
     status, _, err = cli_here("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
                               "--input-size", "32", "--init", "workcell")
     assert status == 2 and "fcnpose_ur5.keras: trained for base, shoulder" in err
-    proc = cli("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
-               "--input-size", "32", "--init", "none", "--quiet")
-    assert proc.returncode == 0, proc.stderr
+    status, stdout, err = cli_here("train", "--data", tmp_path / "d", "--out", tmp_path / "m.keras", "--epochs", "1",
+                                   "--input-size", "32", "--init", "none", "--quiet")
+    assert status == 0, err
     record = json.loads((tmp_path / "m_train.json").read_text())
     assert record["init"] is None and record["schema"]["keypoints"] == list(arm.keypoints)

@@ -80,16 +80,17 @@ def test_lag_finds_a_known_delay(delay):
     assert lag_frames(pred, truth) == pytest.approx(delay, abs=0.15)
 
 
-def test_evaluate_sequence_reports_jitter_and_lag(cli, cli_here, tmp_path):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_evaluate_sequence_reports_jitter_and_lag(cli_here, tmp_path):
     from fcnpose_tf.data.synth import generate_dataset
     from fcnpose_tf.bundled import baseline_model
 
     generate_dataset(tmp_path / "seq", n=6, seed=2, width=160, height=120, workers=1, progress=False, motion_fps=30)
     out = tmp_path / "e.json"
-    result = cli("evaluate", baseline_model(), "--data", tmp_path / "seq", "--sequence", 30, "--smooth",
-                 "--threads", 1, "--json", out)
-    assert result.returncode == 0, result.stderr
-    assert "jitter" in result.stdout and "lag" in result.stdout and "smoothed" in result.stdout
+    status, stdout, err = cli_here("evaluate", baseline_model(), "--data", tmp_path / "seq", "--sequence", 30,
+                                   "--smooth", "--threads", 1, "--json", out)
+    assert status == 0, err
+    assert "jitter" in stdout and "lag" in stdout and "smoothed" in stdout
     import json
 
     seq = json.loads(out.read_text())["sequence"]

@@ -66,12 +66,14 @@ TRAIN = ("--epochs", "1", "--input-size", "64", "--augment", "paper", "--augment
 
 
 @pytest.mark.slow
-def test_train_measures_the_start_and_every_fold_on_the_fixed_test_set(tmp_path, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_train_measures_the_start_and_every_fold_on_the_fixed_test_set(tmp_path, cli_here):
     data = make_via_folder(tmp_path / "frames", n=8, size=(64, 64))
     test = make_via_folder(tmp_path / "test", n=3, size=(64, 64), seed=7)
     out = tmp_path / "models" / "arm.keras"
-    proc = cli("train", "--data", data, "--out", out, "--test-data", test, "--init", "workcell", *TRAIN)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", out, "--test-data", test, "--init", "workcell",
+                                   *TRAIN)
+    assert status == 0, stdout + err
     record = json.loads((tmp_path / "models" / "arm_train.json").read_text())["test"]
     assert record["data"] == str(test / "labels.json") and record["num_frames"] == 3
     assert record["start_model"] == "workcell"
@@ -80,18 +82,18 @@ def test_train_measures_the_start_and_every_fold_on_the_fixed_test_set(tmp_path,
         assert {"pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "epe_px", "missing_fraction"} <= set(figures)
         assert list(figures["per_keypoint"]) == list(UR5.keypoints)
         assert figures["num_frames"] == 3
-    line = next(line for line in proc.stdout.splitlines() if line.startswith("Test set "))
+    line = next(line for line in stdout.splitlines() if line.startswith("Test set "))
     assert "(3 frames): PCK@0.5 " in line and " -> " in line and "(start: workcell)" in line
     assert not (test / "labels.splits.json").exists()  # the test set's folder is only read
 
     out2 = tmp_path / "models" / "scratch.keras"
-    proc = cli("train", "--data", data, "--out", out2, "--test-data", test, "--init", "none", "--folds", "2",
-               "--resplit", *TRAIN)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", out2, "--test-data", test, "--init", "none",
+                                   "--folds", "2", "--resplit", *TRAIN)
+    assert status == 0, stdout + err
     for fold in (0, 1):
         record = json.loads((tmp_path / "models" / f"scratch_fold{fold}_train.json").read_text())["test"]
         assert record["start"] is None and record["start_model"] is None and record["end"]["num_frames"] == 3
-    lines = [line for line in proc.stdout.splitlines() if "Test set " in line]
+    lines = [line for line in stdout.splitlines() if "Test set " in line]
     assert any(line.startswith("fold 1: Test set ") for line in lines)
     assert all("no starting model to compare (--init none" in line for line in lines)
 
@@ -182,16 +184,17 @@ def test_the_start_as_saved_is_a_candidate_when_training_ran_at_another_size(tmp
 
 
 @pytest.mark.slow
-def test_train_at_the_size_auto_chose_also_weighs_the_start_at_its_own_size(tmp_path, cli):
+@pytest.mark.usefixtures("few_timed_frames")
+def test_train_at_the_size_auto_chose_also_weighs_the_start_at_its_own_size(tmp_path, cli_here):
     from fcnpose_tf.training.model import build_fcn_pose, load_model, save_for_inference
 
     data = _synth_frames(tmp_path / "frames", 6, seed=5)
     start = tmp_path / "start64.keras"
     save_for_inference(build_fcn_pose(input_size=64), start)
     out = tmp_path / "arm.keras"
-    proc = cli("train", "--data", data, "--out", out, "--init", start, "--epochs", "1", "--augment", "paper",
-               "--augment-copies", "0", "--batch-size", "4", "--quiet", "--threads", "1")
-    assert proc.returncode == 0, proc.stdout + proc.stderr
+    status, stdout, err = cli_here("train", "--data", data, "--out", out, "--init", start, "--epochs", "1", "--augment",
+                                   "paper", "--augment-copies", "0", "--batch-size", "4", "--quiet", "--threads", "1")
+    assert status == 0, stdout + err
     record = json.loads((tmp_path / "arm_train.json").read_text())
     chosen = record["view_auto"]["chose"]
     entry = record["start_as_saved"]
@@ -199,7 +202,7 @@ def test_train_at_the_size_auto_chose_also_weighs_the_start_at_its_own_size(tmp_
     assert entry["chose"] in ("start", "trained")
     assert record["view"] == (entry["view"] if entry["chose"] == "start" else chosen)
     assert list(load_model(out).input_shape[1:3]) == [record["view"]["input_height"], record["view"]["input_width"]]
-    assert f"on the same {record['val_frames']} validation frames" in proc.stdout
+    assert f"on the same {record['val_frames']} validation frames" in stdout
 
 
 def test_keypoint_names_spelt_another_way_are_pointed_out(tmp_path, cli_here):
