@@ -635,7 +635,7 @@ def smoke_sweep(tmp_path_factory, smoke_frames):
 
 
 @pytest.mark.slow
-def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, smoke_sweep, cli):
+def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, smoke_sweep, cli, cli_here):
     frames = smoke_frames
     first, proc = smoke_sweep
     out = tmp_path / "res"
@@ -648,16 +648,17 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, smoke_sweep,
     record = json.loads(jobs["fold0_p70.json"])
     assert record["pruning"]["importance"] == "l1" and record["distillation"] is None  # the paper's recipe
 
-    again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "1")
-    assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
-    assert "skipping 6 finished job(s)" in again.stdout and "nothing to run" in again.stdout
+    status, stdout, err = cli_here("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "1")  # nothing runs
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert "skipping 6 finished job(s)" in stdout and "nothing to run" in stdout
     assert {p.name: p.stat().st_mtime_ns for p in (out / "models").iterdir()} == stamps
     assert {p.name: p.read_bytes() for p in (out / "jobs").iterdir()} == jobs
 
-    other = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
-    assert other.returncode == 2 and "threads 1 -> 2" in other.stderr
+    status, _, err = cli_here("sweep", "--data", frames, "--out", out, *SMOKE, "--threads", "2")
+    assert status == 2 and "threads 1 -> 2" in err
 
-    # --retime: the same measurements from the saved files; identical metrics, new timings, same models
+    # --retime: the same measurements from the saved files; identical metrics, new timings, same models (a new
+    # process: it sets TensorFlow's threads, which this one fixed when it first ran a model)
     retime = cli("sweep", "--out", out, "--retime")
     assert retime.returncode == 0, retime.stdout[-3000:] + retime.stderr[-3000:]
     assert "metrics identical" in retime.stdout and "FPS before" in retime.stdout
@@ -678,12 +679,12 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, smoke_sweep,
     assert "re-measured with `--retime` for every job" in (out / "summary.md").read_text()
     moved = tmp_path / "moved"
     out.rename(moved)
-    again = cli("sweep", "--out", moved, "--report-only")
-    assert again.returncode == 0 and f"wrote {moved / 'summary.md'}" in again.stdout
+    status, stdout, _ = cli_here("sweep", "--out", moved, "--report-only")
+    assert status == 0 and f"wrote {moved / 'summary.md'}" in stdout
 
 
 @pytest.mark.slow
-def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, smoke_sweep, cli):
+def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, smoke_sweep, cli, cli_here):
     """Fold 1's jobs (its base, then both rates at once on 2 CPUs) run as Ray tasks in a folder whose fold 0 the
     local executor finished: a base before its rates, 1 thread per task, and the same records as a local run."""
     pytest.importorskip("ray")
@@ -700,9 +701,9 @@ def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, smoke_sweep
     results = json.loads((out / "results.json").read_text())
     assert results["runs"][-1]["executor"] == "ray" and results["runs"][-1]["cluster"]["cpus"] == 2
     assert sorted(results["runs"][-1]["jobs_done"]) == ["fold1_base", "fold1_p50", "fold1_p70"]
-    again = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
-                "--threads", "1")
-    assert again.returncode == 0 and "skipping 6 finished job(s)" in again.stdout
+    status, stdout, _ = cli_here("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus",
+                                 "2", "--threads", "1")  # every job finished: no Ray instance is started
+    assert status == 0 and "skipping 6 finished job(s)" in stdout
 
 
 def test_a_rate_job_whose_every_format_is_refused_fails_with_one_line(tmp_path, monkeypatch):
