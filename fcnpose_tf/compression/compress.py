@@ -35,6 +35,7 @@ from fcnpose_tf.compression.options import CompressOptions, output_names, tflite
 from fcnpose_tf.compression.report import (CompressReport, RefusedFormat, Step, _check_metadata, file_sizes,
                                            model_facts)
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.measurements import Measurement
 from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import FrameView
@@ -53,14 +54,11 @@ if TYPE_CHECKING:
 
 
 def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, log: Log,
-             timing: bool = True) -> dict:
+             timing: bool = True) -> Measurement:
     log(f"  evaluating {label} on {len(indices)} frames ...")
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema,
                                 min_timed_frames=50 if timing else 1, warmup=5 if timing else 1)
-    out = {"metrics": result["metrics"]}
-    if timing:
-        out["timing"] = result["timing"]
-    return out
+    return result.measurement(timed=timing)
 
 
 # ------------------------------------------------------------------------------------------
@@ -92,9 +90,12 @@ class _Run:
 
         return view_of(self.base)
 
-    def measure(self, predictor: Any, label: str, timing: bool = True) -> dict:
+    def measure(self, predictor: Any, label: str, timing: bool = True) -> Measurement:
         """Metrics (and timing) of a predictor on the run's frames."""
         return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.log, timing=timing)
+
+    def measure_json(self, predictor: Any, label: str, timing: bool = True) -> dict[str, Any]:
+        return self.measure(predictor, label, timing).to_json()
 
     @property
     def decoding(self) -> Decoding:
@@ -115,7 +116,7 @@ def measure_base(run: _Run) -> Step:
     base_path = run.base_path
     keras_file = base_path if base_path.suffix == ".keras" else None
     return {**model_facts(run.base), **file_sizes(run.base, keras_file),
-            **run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)")}
+            **run.measure_json(run.keras_predictor(run.base, base_path), "the base model (Keras)")}
 
 
 def retrain_fold(run: _Run) -> int | None:
@@ -164,7 +165,7 @@ def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, d
 
     pruned, entries = run.method.prune(run.base, importance)
     pruned = with_view(pruned, run.input_size)  # the crop is part of the model: surgery keeps the base's
-    entries["pruned_before_retraining"] = {**model_facts(pruned), **run.measure(
+    entries["pruned_before_retraining"] = {**model_facts(pruned), **run.measure_json(
         run.keras_predictor(pruned), "the pruned model before retraining", timing=False)}
     return pruned, entries
 
@@ -231,7 +232,7 @@ def measure_retrained(run: _Run, retrained: keras.Model) -> Step:
     and timing."""
     keras_path = run.paths["keras"]
     return {**model_facts(retrained), **file_sizes(retrained, keras_path),
-            **run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)")}
+            **run.measure_json(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)")}
 
 
 def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
@@ -306,7 +307,7 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: Step, qat: dict[s
             "params": retrained_facts["params"], "macs": retrained_facts["macs"], "flops": retrained_facts["flops"],
             "tflite_size_bytes": export.size_bytes, "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)),
             "export": export.to_dict(), "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
-            **run.measure(tfl, f"the {export.quantize} TFLite model")}
+            **run.measure_json(tfl, f"the {export.quantize} TFLite model")}
 
 
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],

@@ -405,7 +405,7 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads,
                                                        decoding=Decoding(centroid=config.centroid)), dataset, val_idx,
                                     dataset.schema)
-        validation = {"metrics": result["metrics"], "timing": result["timing"]}
+        validation = result.measurement().to_json()
     else:
         resume = checkpoint.is_file() and not config.force
         trained = train_fold(dataset, job.fold, path, config.fit_config(), input_size=config.input_size,
