@@ -59,3 +59,29 @@ def test_a_sequence_report_round_trips():
     assert json.dumps(SequenceReport.from_json(report).to_json()) == json.dumps(report)
     plain = {"fps": 30.0, "definitions": "d", "raw": raw}
     assert SequenceReport.from_json(plain).to_json() == plain
+
+
+@pytest.mark.parametrize("path", sorted(models_dir().glob("*_report.json")), ids=lambda p: p.name)
+def test_a_bundled_compress_report_reads_typed_and_writes_back_byte_for_byte(path):
+    from fcnpose_tf.compression.report import CompressReport, ModelStep, TFLiteStep, report_table
+
+    text = path.read_text()
+    report = CompressReport.from_json(json.loads(text))
+    assert isinstance(report.base, ModelStep) and isinstance(report.quantized, TFLiteStep)
+    assert all(isinstance(step, TFLiteStep) for step in report.other_quantized)
+    assert json.dumps(report.to_json()) == json.dumps(json.loads(text))
+    assert report.quantized.parity["keypoints_compared"] > 0 and report.base.timing.threads == report.threads
+    assert f"{report.quantized.metrics.pck[0.05]:.3f}" in report_table(report)
+
+
+@pytest.mark.parametrize("path", sorted(models_dir().glob("*_train.json")), ids=lambda p: p.name)
+def test_a_bundled_training_record_reads_its_validation_typed(path):
+    from fcnpose_tf.records import TrainingRecord
+
+    raw = json.loads(path.read_text())
+    record = TrainingRecord.from_json(raw)
+    if "validation" not in raw:  # a compressed model's record: its report holds the measurements
+        assert record.validation is None
+        return
+    assert record.validation.to_json() == raw["validation"]
+    assert record.validation.metrics.pck[0.5] == raw["validation"]["metrics"]["pck@0.5_bbox"]

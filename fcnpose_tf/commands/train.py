@@ -99,7 +99,6 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.evaluate import format_timing
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
-    from fcnpose_tf.measurements import Measurement
     from fcnpose_tf.metrics import format_report
     from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line,
                                            resolve_augment, run_identity, start_on_test_set,
@@ -183,13 +182,13 @@ def run(args: argparse.Namespace) -> int:
                             force=args.force, metadata=metadata,
                             threads=args.threads, test_data=test,
                             test_start=test_start, size_was_chosen=size_was_chosen, architecture=args.architecture)
-        print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
-        validation = Measurement.from_json(record["validation"])
+        print(f"Validation ({record.split}, {record.raw['val_frames']} frames, PCK normalised by max(bbox w, h)):")
+        validation = record.validation
         print(format_report(validation.metrics))
         print(format_timing(validation.timing))
         reports.append((fold, validation))
         if test is not None:
-            line = format_test_set_line(record["test"])
+            line = format_test_set_line(record.raw["test"])
             test_lines.append(line if len(folds) == 1 else f"fold {fold}: {line}")
             print(line)
     if len(reports) > 1:

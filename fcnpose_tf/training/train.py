@@ -35,6 +35,7 @@ from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writ
                                remove_tree, write_json, write_text)
 from fcnpose_tf.training.model import save_for_inference, view_of, with_view
 from fcnpose_tf.progress import Reporter
+from fcnpose_tf.records import TrainingRecord
 
 
 @settings.config_class(settings.EPOCHS, ("patience", settings.TRAIN_PATIENCE), settings.BATCH_SIZE,
@@ -613,7 +614,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
                test_start: dict[str, Any] | None = None, size_was_chosen: bool = False,
-               decoding: Decoding | None = None, architecture: str | None = None) -> dict[str, Any]:
+               decoding: Decoding | None = None, architecture: str | None = None) -> TrainingRecord:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
@@ -649,7 +650,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         size_was_chosen: `input_size` is `train --input-size auto`'s choice, not the user's: the start as saved,
             at its own size, is then a candidate too (`keep_start_if_better`).
     Returns:
-        The NAME_train.json record: data, split, sizes, config, epochs, best epoch, seconds, validation (and test).
+        The NAME_train.json record as written (`records.TrainingRecord`: its `validation` typed, `raw` the whole file:
+        data, split, sizes, config, epochs, best epoch, seconds, validation and test).
     Raises:
         UserError: an `init` model that does not fit the data or input size, or anything `fit` refuses.
     """
@@ -729,7 +731,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
         record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), test_start)
     write_json(paths["train_json"], record, force=True)
-    return record
+    return TrainingRecord.from_json(record)
 
 
 def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: Evaluation,
