@@ -35,6 +35,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.measurements import DEFAULT_MAX_PX, KeypointMetrics, KeypointScores, auc_key, pck_key
 
 __all__ = [
     "DEFAULT_ALPHAS", "DEFAULT_MAX_PX", "conv_macs", "bbox_sizes", "errors_px", "normalized_errors",
@@ -45,9 +46,6 @@ __all__ = [
 
 DEFAULT_ALPHAS: tuple[float, ...] = (0.5, 0.2, 0.05)
 """The PCK thresholds reported: 0.5 (the paper's figure), 0.2 and 0.05."""
-
-DEFAULT_MAX_PX: float = 20.0
-"""Upper pixel threshold of PCK-AUC (DREAM)."""
 
 
 def conv_macs(out_h: int, out_w: int, k_h: int, k_w: int, c_in: int, c_out: int) -> int:
@@ -308,24 +306,14 @@ def _check_positive(value: float, name: str) -> float:
 
 # ---------------------------------------------------------------------------- report
 
-def pck_key(alpha: float) -> str:
-    """Report key of PCK@alpha with bbox normalisation, e.g. ``pck@0.5_bbox``."""
-    return f"pck@{float(alpha):g}_bbox"
-
-
-def auc_key(max_px: float = DEFAULT_MAX_PX) -> str:
-    """Report key of the pixel PCK-AUC, e.g. ``pck_auc_0-20px``."""
-    return f"pck_auc_0-{float(max_px):g}px"
-
-
-def mean_pck(report: dict[str, Any], alphas: Sequence[float] = DEFAULT_ALPHAS) -> float:
+def mean_pck(report: KeypointMetrics, alphas: Sequence[float] = DEFAULT_ALPHAS) -> float:
     """One score of a `keypoint_report`: the mean of its PCK@alpha over `alphas` (missing keypoints count as wrong).
 
     With the reported thresholds a keypoint off by a whole link (PCK@0.5, PCK@0.2) weighs as much as fine
     localisation (PCK@0.05); a pixel AUC up to 20 px would ignore every error beyond 20 px. Used to choose between
     models measured on the same frames at different input sizes, where validation losses do not compare.
     """
-    values = [report.get(pck_key(a)) for a in alphas]
+    values = [report.pck.get(float(a)) for a in alphas]
     return float(np.mean([0.0 if v is None else v for v in values]))
 
 
@@ -334,8 +322,9 @@ def _json(value: float) -> float | None:
 
 
 def keypoint_report(pred: Any, gt: Any, names: Sequence[str], alphas: Sequence[float] = DEFAULT_ALPHAS,
-                    max_px: float = DEFAULT_MAX_PX) -> dict[str, Any]:
-    """All keypoint metrics in one JSON-ready dict with stable keys naming their normalisation.
+                    max_px: float = DEFAULT_MAX_PX) -> KeypointMetrics:
+    """All keypoint metrics, overall and per keypoint (`KeypointMetrics`; its `to_json()` has stable keys naming
+    their normalisation).
 
     Args:
         pred, gt: N x K x 2 keypoints in frame pixels, NaN where missing.
@@ -344,7 +333,7 @@ def keypoint_report(pred: Any, gt: Any, names: Sequence[str], alphas: Sequence[f
         max_px: upper pixel threshold of the PCK-AUC.
 
     Returns:
-        A dict (undefined values are None, never NaN, so it serialises as strict JSON)::
+        The metrics (undefined values are None, never NaN, so they serialise as strict JSON); `to_json()`::
 
             {"pck@0.5_bbox": ..., "pck@0.2_bbox": ..., "pck@0.05_bbox": ...,   # mean over keypoints
              "pck_auc_0-20px": ..., "epe_px": ..., "epe_median_px": ..., "missing_fraction": ...,
@@ -355,7 +344,7 @@ def keypoint_report(pred: Any, gt: Any, names: Sequence[str], alphas: Sequence[f
 
     Example:
         >>> r = keypoint_report([[[1, 0], [10, 0]]], [[[0, 0], [10, 0]]], ["a", "b"], alphas=(0.5,))
-        >>> r["pck@0.5_bbox"], r["epe_px"], r["per_keypoint"]["a"]["epe_px"]
+        >>> r.pck[0.5], r.epe_px, r.per_keypoint["a"].epe_px
         (1.0, 0.5, 1.0)
     """
     p, g = _pair(pred, gt)
@@ -363,37 +352,33 @@ def keypoint_report(pred: Any, gt: Any, names: Sequence[str], alphas: Sequence[f
     if len(names) != p.shape[1]:
         raise UserError(f"got {len(names)} keypoint names for {p.shape[1]} keypoints")
     alphas = [_check_positive(a, "alpha") for a in alphas]
+    max_px = float(max_px)
     visible, found = _valid(p, g)
     err = errors_px(p, g)
     finite = err[np.isfinite(err)]
     per_kp_pck = {a: pck_per_keypoint(p, g, a) for a in alphas}
     per_kp_epe = epe_per_keypoint(p, g)
     sizes = bbox_sizes(g)
-    report: dict[str, Any] = {pck_key(a): _json(_nan_mean(per_kp_pck[a])) for a in alphas}
-    report[auc_key(max_px)] = _json(pck_auc_px(p, g, max_px))
-    report["epe_px"] = _json(float(finite.mean()) if finite.size else math.nan)
-    report["epe_median_px"] = _json(float(np.median(finite)) if finite.size else math.nan)
-    report["missing_fraction"] = _json(missing_fraction(p, g))
-    report["num_frames"] = int(p.shape[0])
-    report["num_keypoints"] = int(p.shape[1])
-    report["num_gt_visible"] = int(visible.sum())
-    report["num_missing"] = int((visible & ~found).sum())
-    # Frames with visible ground truth but a zero-size box: left out of the bbox PCK.
-    report["num_frames_excluded_bbox"] = int(((sizes == 0) & visible.any(axis=1)).sum())
-    per: dict[str, dict[str, Any]] = {}
+    per: dict[str, KeypointScores] = {}
     for k, name in enumerate(names):
         vis_k = int(visible[:, k].sum())
-        entry = {pck_key(a): _json(per_kp_pck[a][k]) for a in alphas}
-        entry[auc_key(max_px)] = _json(pck_auc_px(p[:, k:k + 1], g[:, k:k + 1], max_px))
-        entry["epe_px"] = _json(per_kp_epe[k])
-        entry["missing_fraction"] = _json((visible[:, k] & ~found[:, k]).sum() / vis_k if vis_k else math.nan)
-        entry["num_gt_visible"] = vis_k
-        per[name] = entry
-    report["per_keypoint"] = per
-    return report
+        per[name] = KeypointScores(
+            pck={a: _json(per_kp_pck[a][k]) for a in alphas}, max_px=max_px,
+            pck_auc=_json(pck_auc_px(p[:, k:k + 1], g[:, k:k + 1], max_px)), epe_px=_json(per_kp_epe[k]),
+            missing_fraction=_json((visible[:, k] & ~found[:, k]).sum() / vis_k if vis_k else math.nan),
+            num_gt_visible=vis_k)
+    return KeypointMetrics(
+        pck={a: _json(_nan_mean(per_kp_pck[a])) for a in alphas}, max_px=max_px,
+        pck_auc=_json(pck_auc_px(p, g, max_px)),
+        epe_px=_json(float(finite.mean()) if finite.size else math.nan),
+        epe_median_px=_json(float(np.median(finite)) if finite.size else math.nan),
+        missing_fraction=_json(missing_fraction(p, g)), num_frames=int(p.shape[0]), num_keypoints=int(p.shape[1]),
+        num_gt_visible=int(visible.sum()), num_missing=int((visible & ~found).sum()),
+        # Frames with visible ground truth but a zero-size box: left out of the bbox PCK.
+        num_frames_excluded_bbox=int(((sizes == 0) & visible.any(axis=1)).sum()), per_keypoint=per)
 
 
-def format_report(report: dict[str, Any], markdown: bool = False) -> str:
+def format_report(report: KeypointMetrics, markdown: bool = False) -> str:
     """A table of :func:`keypoint_report`: one row per keypoint and a final ``all`` row.
 
     Columns are the report's metric keys, so every PCK shows its normalisation in the header. The
@@ -402,10 +387,11 @@ def format_report(report: dict[str, Any], markdown: bool = False) -> str:
     """
     from fcnpose_tf.tables import format_table  # plain Python, no dependencies
 
-    per = report["per_keypoint"]
+    overall = report.to_json()
+    per = overall["per_keypoint"]
     cols = [k for k in next(iter(per.values()), {}) if k != "num_gt_visible"] if per else []
     rows = [[name] + [_round(v.get(c)) for c in cols] for name, v in per.items()]
-    rows.append(["all"] + [_round(report.get(c)) for c in cols])
+    rows.append(["all"] + [_round(overall.get(c)) for c in cols])
     return format_table(["keypoint"] + cols, rows, markdown=markdown)
 
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable
 
+from fcnpose_tf.measurements import Measurement
 from fcnpose_tf.system import available_cores
 
 DISTRIBUTIONS: dict[str, tuple[str, ...]] = {
@@ -72,6 +73,10 @@ class TrainingRecord:
     init: str | None = None
     """The model it started from, as `train --init` named it: a bundled name (generalist) or a path; None for a
     random start (--init none) or not recorded."""
+    validation: Measurement | None = field(default=None, repr=False, hash=False, compare=False)
+    """The kept model measured on its validation frames (`train_fold`'s "validation": metrics and timing); None in a
+    compressed model's record (its NAME_pXX_report.json holds its measurements). Read from `raw`, so left out of
+    comparisons."""
     raw: dict[str, Any] = field(default_factory=dict, repr=False, hash=False)
     """The whole JSON object, for keys without a field (config, epochs_run, validation...). Not to be changed."""
 
@@ -92,7 +97,15 @@ class TrainingRecord:
                    keypoints=tuple(keypoints) if keypoints is not None else None,
                    positive_weight=float(positive_weight) if positive_weight is not None else None,
                    input_size=_typed(record.get("input_size"), int), augment=_typed(record.get("augment"), str),
-                   init=_typed(record.get("init"), str), raw=record)
+                   init=_typed(record.get("init"), str), validation=_measurement(record.get("validation")), raw=record)
+
+
+def _measurement(value: Any) -> Measurement | None:
+    """The `Measurement` of a record's "validation", or None (none, or not one: an older or hand-made record)."""
+    try:
+        return Measurement.from_json(value) if isinstance(value, dict) else None
+    except (KeyError, TypeError, ValueError, AttributeError):
+        return None
 
 
 def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
@@ -169,12 +182,31 @@ def machine_info(threads: int | None = None) -> dict[str, Any]:
     return info
 
 
-def host_info() -> dict[str, Any]:
+@dataclass(frozen=True)
+class HostInfo:
+    """The machine a benchmark ran on (its host line, and "host" of `bench --json`)."""
+
+    machine: str
+    """The CPU architecture (aarch64, x86_64)."""
+    system: str
+    """The OS, tersely."""
+    cpu_count: int
+    """Cores this process may use."""
+    python: str
+    numpy: str | None
+    opencv: str | None
+
+    def to_json(self) -> dict[str, Any]:
+        """{"machine", "system", "cpu_count", "python", "numpy", "opencv"}."""
+        return {"machine": self.machine, "system": self.system, "cpu_count": self.cpu_count, "python": self.python,
+                "numpy": self.numpy, "opencv": self.opencv}
+
+
+def host_info() -> HostInfo:
     """Machine, OS, usable cores, Python, numpy and OpenCV versions (a benchmark's host line)."""
     versions = library_versions(("numpy", "opencv"))
-    return {"machine": platform.machine(), "system": platform.platform(terse=True),
-            "cpu_count": available_cores(), "python": platform.python_version(),
-            "numpy": versions["numpy"], "opencv": versions["opencv"]}
+    return HostInfo(machine=platform.machine(), system=platform.platform(terse=True), cpu_count=available_cores(),
+                    python=platform.python_version(), numpy=versions["numpy"], opencv=versions["opencv"])
 
 
 def lineage(model_path: str | os.PathLike, max_depth: int = 16) -> list[str]:

@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from fcnpose_tf.compression.report import CompressReport, RefusedFormat, report_table
+from fcnpose_tf.compression.report import (CompressReport, ModelStep, RefusedFormat, Retraining, TFLiteStep,
+                                           report_table)
 from test_train_evaluate import make_via_folder
 from weights import randomize
 
@@ -292,19 +293,26 @@ def test_compress_options_refuse_combinations_no_run_can_do():
     CompressOptions(rate=0.5, strategy="greedy", importance="l2", distill=1.0).validate()
 
 
-def _step(params: int, pck: float, **more) -> dict:
+_STAGE = {"mean": 2.0, "std": 0.1, "median": 2.0}
+TIMING = {"threads": 1, "backend": "b", "frames_timed": 50, "preprocess_ms": _STAGE, "inference_ms": _STAGE,
+          "postprocess_ms": _STAGE, "total_ms": _STAGE, "fps": 100.0, "fps_inference_only": 500.0}
+
+
+def _step(params: int, pck: float, **more) -> ModelStep | TFLiteStep:
+    """A Keras step, or a TFLite one given its "quantize"."""
     metrics = {"pck@0.5_bbox": pck, "pck@0.2_bbox": pck, "pck@0.05_bbox": pck, "epe_px": 1.5}
-    return {"params": params, "macs": 2_000_000, "metrics": metrics, **more}
+    kind = TFLiteStep if "quantize" in more else ModelStep
+    return kind.from_json({"params": params, "macs": 2_000_000, "metrics": metrics, **more})
 
 
 def _report(**changes) -> CompressReport:
-    timing = {"inference_ms": {"mean": 2.0}, "fps": 100.0}
+    timing = TIMING
     fields = dict(base_model="base.keras", method="l1", recipe="filter surgery at 0.7",
                   options={"quantize": ("float16", "int8"), "rate": 0.7}, evaluation_frames="4 frames of via.json",
                   pck_normalisation="max(w, h)", threads=1, metadata={"preset": "recommended"},
                   base=_step(100, 0.9, h5_size_bytes=4000, timing=timing), pruning={"importance": "l1"},
                   pruned_before_retraining=_step(30, 0.5),
-                  retrain_data={"fold": None}, retraining={"epochs_run": 1},
+                  retrain_data={"fold": None}, retraining=Retraining(epochs_run=1),
                   retrained=_step(30, 0.8, h5_size_bytes=1200, timing=timing),
                   quantized=_step(30, 0.8, quantize="float16", status="written", tflite_size_bytes=600, timing=timing),
                   refused=[RefusedFormat("int8", "keypoint 3 lost", post_training={"reason": "keypoint 3 lost"})],
@@ -317,7 +325,7 @@ def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_r
     lower rate (the views-that-vary figure above 0.5); no file written, no note."""
     from fcnpose_tf.compression.report import accuracy_note
 
-    timing = {"inference_ms": {"mean": 2.0}, "fps": 100.0}
+    timing = TIMING
     written = _step(30, 0.95, quantize="float16", status="written", tflite_size_bytes=600, timing=timing)
     assert accuracy_note(_report(base=_step(100, 0.96, h5_size_bytes=4000, timing=timing), quantized=written)) is None
     note = accuracy_note(_report(quantized=_step(30, 0.8, quantize="float16", status="written"),
@@ -368,7 +376,7 @@ def test_a_written_report_reads_back_older_ones_too():
     written["retimed"] = {"threads": 1}
     back = CompressReport.from_json(written)
     assert back.metadata == {"preset": "recommended", "retimed": {"threads": 1}}
-    assert back.refused == _report().refused and back.quantized == written["quantized"]
+    assert back.refused == _report().refused and back.quantized.to_json() == written["quantized"]
 
     older = {k: v for k, v in _report().to_json().items() if k not in ("recipe", "other_quantized", "refused")}
     older["options"] = {"quantize": "float16"}

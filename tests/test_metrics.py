@@ -11,6 +11,7 @@ import pytest
 
 import fcnpose_tf.metrics as metrics
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.measurements import KeypointMetrics
 from fcnpose_tf.metrics import (auc_key, bbox_sizes, conv_macs, epe, epe_per_keypoint, errors_px, format_report,
                                 keypoint_report, missing_fraction, normalized_errors, pck, pck_auc_px, pck_curve_px,
                                 pck_key, pck_per_keypoint)
@@ -76,9 +77,9 @@ def test_zero_size_bbox_frames_are_excluded():
     assert np.isnan(normalized_errors(pred, gt)[:2]).all()
     np.testing.assert_array_equal(pck_per_keypoint(pred, gt, 0.5), [1.0, 0.0])
     report = keypoint_report(pred, gt, ["a", "b"])
-    assert report["num_frames_excluded_bbox"] == 2
+    assert report.num_frames_excluded_bbox == 2
     # Only the bbox PCK excludes them: pixel metrics still use every visible keypoint.
-    assert report["epe_px"] == 0.0 and report["num_gt_visible"] == 5 and report["num_missing"] == 1
+    assert report.epe_px == 0.0 and report.num_gt_visible == 5 and report.num_missing == 1
     only_single = gt[:1], pred[:1]
     assert math.isnan(pck(only_single[1], only_single[0], 0.5))
     assert np.isnan(pck_per_keypoint(only_single[1], only_single[0], 0.5)).all()
@@ -118,8 +119,8 @@ def test_perfect_predictions():
     rng = np.random.default_rng(1)
     gt = rng.uniform(0, 500, (10, 8, 2))
     report = keypoint_report(gt, gt, [f"k{i}" for i in range(8)])
-    assert report["pck@0.05_bbox"] == 1.0 and report["pck_auc_0-20px"] == 1.0
-    assert report["epe_px"] == 0.0 and report["missing_fraction"] == 0.0
+    assert report.pck[0.05] == 1.0 and report.pck_auc == 1.0
+    assert report.epe_px == 0.0 and report.missing_fraction == 0.0
 
 
 def test_all_missing_predictions_and_no_ground_truth():
@@ -131,8 +132,8 @@ def test_all_missing_predictions_and_no_ground_truth():
               lambda: missing_fraction(GT, nothing)):
         assert math.isnan(f())
     report = keypoint_report(nothing, nothing, ["a", "b", "c"])
-    assert report["pck@0.5_bbox"] is None and report["epe_px"] is None
-    json.dumps(report, allow_nan=False)
+    assert report.pck[0.5] is None and report.epe_px is None
+    json.dumps(report.to_json(), allow_nan=False)
 
 
 def _loop_pck_per_keypoint(pred, gt, alpha):
@@ -196,7 +197,8 @@ def test_bad_alpha_and_max_px(bad):
 
 def test_report_keys_values_and_json():
     names = ["base", "shoulder", "elbow"]
-    report = keypoint_report(PRED, GT, names)
+    typed = keypoint_report(PRED, GT, names)
+    report = typed.to_json()
     assert list(report) == ["pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "pck_auc_0-20px", "epe_px",
                             "epe_median_px", "missing_fraction", "num_frames", "num_keypoints", "num_gt_visible",
                             "num_missing", "num_frames_excluded_bbox", "per_keypoint"]
@@ -214,12 +216,15 @@ def test_report_keys_values_and_json():
     text = json.dumps(report, allow_nan=False)
     assert json.loads(text) == report
     assert all(type(v) in (float, int, type(None), dict) for v in report.values())
+    assert KeypointMetrics.from_json(json.loads(text)) == typed and typed.per_keypoint["base"].epe_px == 7.5
 
 
 def test_report_key_helpers_and_custom_alphas():
     assert pck_key(0.5) == "pck@0.5_bbox" and pck_key(0.05) == "pck@0.05_bbox" and auc_key() == "pck_auc_0-20px"
     report = keypoint_report(PRED, GT, ["a", "b", "c"], alphas=(0.1,), max_px=10)
-    assert "pck@0.1_bbox" in report and "pck_auc_0-10px" in report and "pck@0.5_bbox" not in report
+    assert list(report.pck) == [0.1] and report.max_px == 10
+    assert "pck@0.1_bbox" in report.to_json() and "pck_auc_0-10px" in report.to_json()
+    assert KeypointMetrics.from_json(report.to_json()) == report
 
 
 def test_report_names_must_match():

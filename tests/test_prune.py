@@ -247,7 +247,7 @@ def test_min_filters_widths_match_an_independent_search(rate, floor):
     widths, used = prune_widths(model, rate, floor)
     plan = plan_widths(model, rate, floor)
     pruned = prune_model(model, rate, min_filters=floor, widths=plan)
-    assert (plan.params, plan.macs) == (model_facts(pruned)["params"], model_facts(pruned)["macs"])
+    assert (plan.params, plan.macs) == (model_facts(pruned).params, model_facts(pruned).macs)
     assert (widths, used) == reference_floored_widths(rate, floor)
     assert all(w >= min(n, used) for n, w in zip(DEFAULT_WIDTHS, widths))
     assert chain_param_count(model, widths) == built_params(widths) <= built_params(pruned_widths(DEFAULT_WIDTHS, rate))
@@ -285,7 +285,7 @@ def test_chain_param_count_counts_batchnorm_and_biases():
             assert chain_param_count(model, kept) == pruned.count_params()
             widths = plan_widths(model, rate, floor)  # what the surgery builds, costed without building it
             assert widths.widths == conv_widths(pruned)
-            assert (widths.params, widths.macs) == (model_facts(pruned)["params"], model_facts(pruned)["macs"])
+            assert (widths.params, widths.macs) == (model_facts(pruned).params, model_facts(pruned).macs)
 
 
 @pytest.mark.slow

@@ -464,14 +464,14 @@ def test_evaluate_timing_uses_the_runtime_summary_with_sample_std():
     dataset = SimpleNamespace(load_image=lambda i: np.zeros((48, 64, 3), np.uint8),
                               samples=[SimpleNamespace(keypoints=truth)] * 3)
     result = evaluate_predictor(Fake(), dataset, [0, 1, 2], UR5, min_timed_frames=60, warmup=2)
-    timing = result["timing"]
-    assert timing["frames_timed"] == 60 and timing["backend"] == "fake backend"
-    assert timing["inference_ms"] == {"mean": round(float(np.mean(invoke)), 4),
-                                      "std": round(float(np.std(invoke, ddof=1)), 4),
-                                      "median": round(float(np.median(invoke)), 4)}
-    assert timing["total_ms"]["std"] == round(float(np.std(invoke + 1.5, ddof=1)), 4)
-    assert timing["fps"] == round(1000 / float(np.mean(invoke + 1.5)), 2)
-    assert result["metrics"]["pck@0.5_bbox"] == 1.0
+    timing = result.timing
+    assert timing.frames_timed == 60 and timing.backend == "fake backend"
+    assert timing.to_json()["inference_ms"] == {"mean": round(float(np.mean(invoke)), 4),
+                                                "std": round(float(np.std(invoke, ddof=1)), 4),
+                                                "median": round(float(np.median(invoke)), 4)}
+    assert timing.total_ms.std == round(float(np.std(invoke + 1.5, ddof=1)), 4)
+    assert timing.fps == round(1000 / float(np.mean(invoke + 1.5)), 2)
+    assert result.metrics.pck[0.5] == 1.0
     assert "fake backend" in format_timing(timing)
 
 

@@ -156,6 +156,9 @@ def test_the_start_as_saved_is_a_candidate_when_training_ran_at_another_size(tmp
     from fcnpose_tf.bundled import resolve_model
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.training.model import build_fcn_pose, load_model, save_for_inference
+    from types import SimpleNamespace
+
+    from fcnpose_tf.measurements import KeypointMetrics
     from fcnpose_tf.training.train import keep_start_if_better
 
     data = load_dataset(_synth_frames(tmp_path / "frames", 6, seed=5))
@@ -165,7 +168,9 @@ def test_the_start_as_saved_is_a_candidate_when_training_ran_at_another_size(tmp
     save_for_inference(build_fcn_pose(input_size=64), trained_path)
 
     def trained_scoring(value):
-        return {"metrics": {"pck@0.5_bbox": value, "pck@0.2_bbox": value, "pck@0.05_bbox": value}}
+        return SimpleNamespace(metrics=KeypointMetrics(pck={0.5: value, 0.2: value, 0.05: value}, max_px=20.0,
+                                                       pck_auc=None, epe_px=None, epe_median_px=None,
+                                                       missing_fraction=None))
 
     from fcnpose_tf.preprocess import FrameView
 

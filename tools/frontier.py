@@ -110,8 +110,9 @@ def measure(args: argparse.Namespace) -> dict[str, Any]:
     models = [KeypointModel(p, num_threads=args.threads) for p in paths]
     rows = []
     for path, model in zip([keras_path, *paths], [keras_model, *models]):
-        metrics = evaluate_predictor(model, dataset, indices, dataset.schema, min_timed_frames=1, warmup=1)["metrics"]
-        print(f"  {path.name}: PCK@0.05 {metrics['pck@0.05_bbox']:.3f}", file=sys.stderr, flush=True)
+        metrics = evaluate_predictor(model, dataset, indices, dataset.schema, min_timed_frames=1, warmup=1).metrics
+        print(f"  {path.name}: PCK@0.05 {metrics.pck[0.05]:.3f}", file=sys.stderr, flush=True)
+        metrics = metrics.to_json()
         rows.append({"file": str(path), "metrics": {k: metrics[k] for k in ("pck@0.5_bbox", "pck@0.05_bbox", "epe_px")}})
     bench = _bench_speedup()
     frames = [dataset.load_image(i) for i in indices[:50]]

@@ -174,22 +174,22 @@ def run(args: argparse.Namespace) -> int:
     print(report_table(report))
     base = report.base
     for final in report.tflite_files:
-        print(f"{final['quantize']}: parameters {base['params']:,} -> {final['params']:,} "
-              f"({100 * (1 - final['params'] / base['params']):.1f}% fewer); "
-              f"MACs {base['macs'] / 1e6:.1f} M -> {final['macs'] / 1e6:.1f} M; "
-              f"size {base['h5_size_bytes'] / 1e3:.0f} KB (.h5) -> {final['tflite_size_bytes'] / 1e3:.1f} KB (.tflite); "
-              f"FPS {base['timing']['fps']:.1f} (Keras) -> {final['timing']['fps']:.1f} (TFLite); "
-              f"PCK@0.5 {base['metrics']['pck@0.5_bbox']:.3f} -> {final['metrics']['pck@0.5_bbox']:.3f} "
-              f"({final['metrics']['pck@0.5_bbox'] - base['metrics']['pck@0.5_bbox']:+.4f})")
-        export, parity = final["export"], final["export"]["parity"]
+        print(f"{final.quantize}: parameters {base.params:,} -> {final.params:,} "
+              f"({100 * (1 - final.params / base.params):.1f}% fewer); "
+              f"MACs {base.macs / 1e6:.1f} M -> {final.macs / 1e6:.1f} M; "
+              f"size {base.h5_size_bytes / 1e3:.0f} KB (.h5) -> {final.tflite_size_bytes / 1e3:.1f} KB (.tflite); "
+              f"FPS {base.timing.fps:.1f} (Keras) -> {final.timing.fps:.1f} (TFLite); "
+              f"PCK@0.5 {base.metrics.pck[0.5]:.3f} -> {final.metrics.pck[0.5]:.3f} "
+              f"({final.metrics.pck[0.5] - base.metrics.pck[0.5]:+.4f})")
+        export, parity = final.export, final.parity
         calibration = f"calibrated on {export['calibration_frames']} training frames; " \
             if export["calibration_frames"] else ""
         print(f"  {calibration}verified on {parity['frames']} frames: {parity['keypoints_within_px']} of "
               f"{parity['keypoints_compared']} keypoints within {parity['keypoint_px']:g} map px of Keras "
               f"({parity['min_keypoint_share']:.0%} required), {parity['keypoints_lost_or_gained']} lost or gained; "
               f"upsampling {'folded' if export['graph_rewrites'] else 'not folded'}")
-        if final.get("qat"):
-            qat = final["qat"]
+        if final.qat:
+            qat = final.qat
             print(f"  quantization-aware training: post-training int8 was refused "
                   f"({qat['post_training_refused']['reason']}); {qat['epochs_run']} QAT epoch(s), "
                   f"{qat['minutes']:.1f} min, gave this file")

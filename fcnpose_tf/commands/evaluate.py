@@ -18,8 +18,12 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from fcnpose_tf.settings import add_decoding_arguments
+
+if TYPE_CHECKING:
+    from fcnpose_tf.measurements import Evaluation
 
 NAME = "evaluate"
 OUTPUTS = ("json", "pictures")
@@ -106,9 +110,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"Data:  {dataset.via_path}, {description}")
     print(f"Decoding: {predictor.decoding.describe()}")
     print("PCK normalised by max(bbox w, h) of the ground-truth keypoints; EPE in frame pixels")
-    print(format_report(result["metrics"]))
-    print(format_timing(result["timing"]))
-    worst = worst_frame_rows(result["predictions"], result["ground_truth"], dataset, indices, args.worst)
+    print(format_report(result.metrics))
+    print(format_timing(result.timing))
+    worst = worst_frame_rows(result.predictions, result.ground_truth, dataset, indices, args.worst)
     if worst:
         print(format_worst(worst))
     if args.pictures is not None and worst:
@@ -117,16 +121,16 @@ def run(args: argparse.Namespace) -> int:
     if args.sequence is not None:
         from fcnpose_tf.training.evaluate import format_sequence, sequence_report
 
-        sequence = sequence_report(result["predictions"], result["ground_truth"], args.sequence,
+        sequence = sequence_report(result.predictions, result.ground_truth, args.sequence,
                                    params_from_args(args), dataset.schema.keypoints)
         print(format_sequence(sequence))
     if args.json is not None:
         write_json(args.json, {"model": str(model_path), "size_bytes": Path(model_path).stat().st_size,
                                "data": str(dataset.via_path), "frames": description,
                                "decoding": predictor.decoding.to_json(),
-                               "metrics": result["metrics"], "timing": result["timing"], "worst_frames": worst,
-                               "per_frame": frame_rows(result["predictions"], result["ground_truth"], dataset, indices),
-                               **({"sequence": sequence} if sequence is not None else {})}, force=args.force)
+                               **result.measurement().to_json(), "worst_frames": worst,
+                               "per_frame": frame_rows(result.predictions, result.ground_truth, dataset, indices),
+                               **({"sequence": sequence.to_json()} if sequence is not None else {})}, force=args.force)
         print(f"Report: {args.json}")
     return 0
 
@@ -188,7 +192,7 @@ def format_worst(rows: list[dict]) -> str:
             + format_table(["rank", "frame", "score", "EPE px", "missed", "worst keypoint"], table))
 
 
-def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indices, force: bool) -> str:
+def write_pictures(folder: Path, rows: list[dict], result: Evaluation, dataset, indices, force: bool) -> str:
     """One PNG per worst frame in `folder` (RANK_NAME.png): `draw.draw_truth_and_prediction` with a caption."""
     from fcnpose_tf.draw import contact_sheet, draw_truth_and_prediction, png_bytes
     from fcnpose_tf.fileio import make_folder, write_bytes
@@ -200,7 +204,7 @@ def write_pictures(folder: Path, rows: list[dict], result: dict, dataset, indice
         image = dataset.load_image(indices[j])
         caption = (f"#{row['rank']} {row['frame']}: score {row['score']:.3f}, EPE "
                    f"{'-' if row['epe_px'] is None else row['epe_px']} px, {row['missing']} missed")
-        picture = draw_truth_and_prediction(image, result["ground_truth"][j], result["predictions"][j],
+        picture = draw_truth_and_prediction(image, result.ground_truth[j], result.predictions[j],
                                             dataset.schema, caption)
         pictures.append(picture)
         write_bytes(folder / f"{row['rank']:02d}_{Path(row['frame']).stem}.png", png_bytes(picture, folder),

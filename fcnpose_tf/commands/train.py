@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"Measuring the starting model ({metadata['init']}) on the {len(test)} frames of the test set "
               f"{test.via_path}")
         test_start = {"model": metadata["init"],
-                      "metrics": start_on_test_set(init, test, args.threads)}
+                      "metrics": start_on_test_set(init, test, args.threads).to_json()}
     reports = []
     test_lines = []
     for fold in folds:
@@ -182,12 +182,13 @@ def run(args: argparse.Namespace) -> int:
                             force=args.force, metadata=metadata,
                             threads=args.threads, test_data=test,
                             test_start=test_start, size_was_chosen=size_was_chosen, architecture=args.architecture)
-        print(f"Validation ({record['split']}, {record['val_frames']} frames, PCK normalised by max(bbox w, h)):")
-        print(format_report(record["validation"]["metrics"]))
-        print(format_timing(record["validation"]["timing"]))
-        reports.append((fold, record["validation"]))
+        print(f"Validation ({record.split}, {record.raw['val_frames']} frames, PCK normalised by max(bbox w, h)):")
+        validation = record.validation
+        print(format_report(validation.metrics))
+        print(format_timing(validation.timing))
+        reports.append((fold, validation))
         if test is not None:
-            line = format_test_set_line(record["test"])
+            line = format_test_set_line(record.raw["test"])
             test_lines.append(line if len(folds) == 1 else f"fold {fold}: {line}")
             print(line)
     if len(reports) > 1:
@@ -244,8 +245,8 @@ def _print_fold_summary(reports: list) -> None:
     keys = ["pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "epe_px"]
     rows = []
     for fold, rep in reports:
-        m, t = rep["metrics"], rep["timing"]
-        rows.append([f"fold {fold}"] + [m[k] for k in keys] + [t["inference_ms"]["mean"], t["fps"]])
+        m, t = rep.metrics, rep.timing
+        rows.append([f"fold {fold}", m.pck[0.5], m.pck[0.2], m.pck[0.05], m.epe_px, t.inference_ms.mean, t.fps])
     values = np.array([[r[i] if r[i] is not None else np.nan for i in range(1, len(r))] for r in rows], float)
     rows.append(["mean"] + [round(float(v), 4) for v in np.nanmean(values, axis=0)])
     rows.append(["std"] + [round(float(v), 4) for v in np.nanstd(values, axis=0)])

@@ -32,9 +32,10 @@ import numpy as np
 from fcnpose_tf import progress
 from fcnpose_tf.compression.methods import Log, PruningMethod, pruned_start, pruning_method
 from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
-from fcnpose_tf.compression.report import (CompressReport, RefusedFormat, Step, _check_metadata, file_sizes,
-                                           model_facts)
+from fcnpose_tf.compression.report import (CompressReport, ModelStep, PruningSections, RefusedFormat, RetrainSections,
+                                           Retraining, TFLiteStep, _check_metadata, file_sizes, model_facts)
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.measurements import Measurement
 from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import FrameView
@@ -53,14 +54,11 @@ if TYPE_CHECKING:
 
 
 def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, log: Log,
-             timing: bool = True) -> dict:
+             timing: bool = True) -> Measurement:
     log(f"  evaluating {label} on {len(indices)} frames ...")
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema,
                                 min_timed_frames=50 if timing else 1, warmup=5 if timing else 1)
-    out = {"metrics": result["metrics"]}
-    if timing:
-        out["timing"] = result["timing"]
-    return out
+    return result.measurement(timed=timing)
 
 
 # ------------------------------------------------------------------------------------------
@@ -92,7 +90,7 @@ class _Run:
 
         return view_of(self.base)
 
-    def measure(self, predictor: Any, label: str, timing: bool = True) -> dict:
+    def measure(self, predictor: Any, label: str, timing: bool = True) -> Measurement:
         """Metrics (and timing) of a predictor on the run's frames."""
         return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.log, timing=timing)
 
@@ -110,12 +108,13 @@ class _Run:
         return KerasKeypointModel(model, path, num_threads=self.options.threads, decoding=self.decoding)
 
 
-def measure_base(run: _Run) -> Step:
+def measure_base(run: _Run) -> ModelStep:
     """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing."""
     base_path = run.base_path
     keras_file = base_path if base_path.suffix == ".keras" else None
-    return {**model_facts(run.base), **file_sizes(run.base, keras_file),
-            **run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)")}
+    return ModelStep.of(model_facts(run.base),
+                        run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)"),
+                        file_sizes(run.base, keras_file))
 
 
 def retrain_fold(run: _Run) -> int | None:
@@ -155,23 +154,21 @@ def importance_step(run: _Run, fold: int | None) -> Importance:
                            batch_size=run.options.batch_size)
 
 
-def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
+def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, PruningSections, ModelStep]:
     """Prune with the run's method (filters ranked by `importance`; None when the method takes a pruned start's
     weights); measure the result before any retraining.
-    The pruned model, and its report sections (`CompressReport` fields by name: the method's and
-    pruned_before_retraining)."""
+    The pruned model, the method's report sections, and the report's pruned_before_retraining."""
     from fcnpose_tf.training.model import with_view
 
-    pruned, entries = run.method.prune(run.base, importance)
+    pruned, sections = run.method.prune(run.base, importance)
     pruned = with_view(pruned, run.input_size)  # the crop is part of the model: surgery keeps the base's
-    entries["pruned_before_retraining"] = {**model_facts(pruned), **run.measure(
-        run.keras_predictor(pruned), "the pruned model before retraining", timing=False)}
-    return pruned, entries
+    return pruned, sections, ModelStep.of(model_facts(pruned), run.measure(
+        run.keras_predictor(pruned), "the pruned model before retraining", timing=False))
 
 
-def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSections]:
     """Retrain the pruned model through `train.fit` (or only save it with 0 epochs); the saved model, and the
-    report sections (`CompressReport` fields by name: retrain_data, distillation, retraining; none with 0 epochs)."""
+    report sections (retrain_data, distillation, retraining; none with 0 epochs)."""
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.fileio import atomic_path
     from fcnpose_tf.training.model import load_model, save_for_inference
@@ -181,7 +178,7 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
     if options.retrain_epochs == 0:
         with atomic_path(keras_path, run.force) as tmp:
             save_for_inference(pruned, tmp)
-        return pruned, {}
+        return pruned, RetrainSections()
     data_sha256 = file_sha256(run.train_dataset.via_path)
     fold = retrain_fold(run)
     train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
@@ -209,29 +206,30 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, dict[str,
                      start_is_candidate=run.method.trained_start)
         entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
         if run.method.trained_start:
-            entries["retraining"]["start_kept"] = result.best_epoch == 0
+            entries["retraining"] = replace(entries["retraining"], start_kept=result.best_epoch == 0)
             if result.best_epoch == 0:
                 run.log("  no epoch beat the pruned start's validation loss: the start is kept, unchanged")
         return result
 
     run.method.retrain(run.base, pruned, fit_fn)
-    return load_model(keras_path), entries
+    return load_model(keras_path), RetrainSections(**entries)
 
 
-def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> dict[str, Any]:
+def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> Retraining:
     """The report's "retraining" part: epochs, best epoch and loss (validation: against the ground truth), time,
     loss function, positive and teacher weights, learning rates."""
-    return {"epochs_run": result.epochs_run, "best_epoch": result.best_epoch, "best_val_loss": result.best_val_loss,
-            "seconds": round(result.seconds, 1), "loss": loss, "positive_weight": positive_weight, "distill": distill,
-            "learning_rates": [float(f"{h['lr']:.6g}") for h in result.history if "lr" in h]}
+    return Retraining(epochs_run=result.epochs_run, best_epoch=result.best_epoch, best_val_loss=result.best_val_loss,
+                      seconds=round(result.seconds, 1), loss=loss, positive_weight=positive_weight, distill=distill,
+                      learning_rates=[float(f"{h['lr']:.6g}") for h in result.history if "lr" in h])
 
 
-def measure_retrained(run: _Run, retrained: keras.Model) -> Step:
+def measure_retrained(run: _Run, retrained: keras.Model) -> ModelStep:
     """The retrained Keras model as saved (the report's "retrained"): widths, parameters, MACs, file sizes, metrics
     and timing."""
     keras_path = run.paths["keras"]
-    return {**model_facts(retrained), **file_sizes(retrained, keras_path),
-            **run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)")}
+    return ModelStep.of(model_facts(retrained),
+                        run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)"),
+                        file_sizes(retrained, keras_path))
 
 
 def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
@@ -291,7 +289,8 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     return result
 
 
-def measure_quantized(run: _Run, export: Any, retrained_facts: Step, qat: dict[str, Any] | None = None) -> Step:
+def measure_quantized(run: _Run, export: Any, retrained_facts: ModelStep,
+                      qat: dict[str, Any] | None = None) -> TFLiteStep:
     """One TFLite file: its format, how it was quantized, size (plain and gzip), export facts, operators, metrics and
     timing (`qat`: the quantization-aware training that made it, with the post-training refusal it replaced)."""
     from fcnpose_tf.compression.tflite_file import inspect_tflite
@@ -300,13 +299,13 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: Step, qat: dict[s
     path = run.paths[tflite_key(export.quantize)]
     tflite_info = inspect_tflite(path)
     tfl = KeypointModel(path, num_threads=run.options.threads, decoding=run.decoding)
-    return {"quantize": export.quantize, "status": "written",
-            "quantization": "quantization-aware training" if qat else "post-training",
-            **({"qat": qat} if qat else {}),
-            "params": retrained_facts["params"], "macs": retrained_facts["macs"], "flops": retrained_facts["flops"],
-            "tflite_size_bytes": export.size_bytes, "tflite_gzip_size_bytes": len(gzip.compress(export.data, 9)),
-            "export": export.to_dict(), "tflite_ops": tflite_info.get("op_counts", tflite_info.get("ops")),
-            **run.measure(tfl, f"the {export.quantize} TFLite model")}
+    measurement = run.measure(tfl, f"the {export.quantize} TFLite model")
+    return TFLiteStep(quantize=export.quantize, status="written",
+                      quantization="quantization-aware training" if qat else "post-training", qat=qat or None,
+                      params=retrained_facts.params, macs=retrained_facts.macs, flops=retrained_facts.flops,
+                      tflite_size_bytes=export.size_bytes, tflite_gzip_size_bytes=len(gzip.compress(export.data, 9)),
+                      export=export.to_dict(), tflite_ops=tflite_info.get("op_counts", tflite_info.get("ops")),
+                      metrics=measurement.metrics, timing=measurement.timing)
 
 
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
@@ -378,13 +377,14 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     base_step = measure_base(run)
     say(f"[2/{steps}] pruning: {run.method.describe()}")
     importance = importance_step(run, retrain_fold(run)) if run.method.ranks_filters else None
-    pruned, pruned_sections = prune_step(run, importance)
+    pruned, pruned_sections, pruned_step = prune_step(run, importance)
     say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")
     retrained, retrained_sections = retrain_step(run, pruned)
     say(f"[4/{steps}] measuring the retrained Keras model")
     retrained_step = measure_retrained(run, retrained)
-    fold = retrained_sections["retrain_data"]["fold"] if "retrain_data" in retrained_sections else options.fold
-    files: list[Step] = []
+    retrain_data = retrained_sections.retrain_data
+    fold = retrain_data["fold"] if retrain_data is not None else options.fold
+    files: list[TFLiteStep] = []
     refused: list[RefusedFormat] = []
     for i, quantize in enumerate(options.quantize):
         say(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
@@ -394,13 +394,13 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             continue
         say(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
         files.append(measure_quantized(run, export, retrained_step, qat))
-    written = {tflite_key(f["quantize"]) for f in files}
+    written = {tflite_key(f.quantize) for f in files}
     report = CompressReport(
         base_model=str(base_path), method=options.method, recipe=run.recipe, options=asdict(options),
         evaluation_frames=eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
         pck_normalisation="max(w, h) of the ground-truth keypoints' bounding box", threads=options.threads,
-        metadata=dict(metadata or {}), base=base_step, **pruned_sections, **retrained_sections,
-        retrained=retrained_step,
+        metadata=dict(metadata or {}), base=base_step, **vars(pruned_sections), pruned_before_retraining=pruned_step,
+        **vars(retrained_sections), retrained=retrained_step,
         # the first file written (the paper's float16 by default), None when every format was refused
         quantized=files[0] if files else None, other_quantized=files[1:], refused=refused,
         files={k: str(v) for k, v in paths.items() if not k.startswith("tflite_") or k in written},

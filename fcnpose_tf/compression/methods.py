@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Protocol
 
+from fcnpose_tf.compression.report import PruningSections
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.records import training_record
 
@@ -46,9 +47,9 @@ class PruningMethod(Protocol):
         """Whether `prune` returns trained weights of the pruned network (a pruned start), whose validation loss the
         retraining must beat: if no epoch does, the start is kept unchanged (`train.fit`'s start_is_candidate)."""
 
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
-        """The pruned model before retraining, and the report sections the method adds (`CompressReport` fields
-        by name: pruning, magnitude_sparsity)."""
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
+        """The pruned model before retraining, and the report sections the method adds (pruning,
+        magnitude_sparsity)."""
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
@@ -85,7 +86,7 @@ class FilterPruning:
             return f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
         return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
 
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
         from fcnpose_tf.compression.prune import prune_model
 
         if self.start is not None:
@@ -94,11 +95,11 @@ class FilterPruning:
         pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
                              min_filters=self.min_filters, widths=self.plan)
         self.criterion_facts = importance.describe()
-        return pruned, {"pruning": {**self.criterion_facts, "strategy": self.strategy,
-                                    "min_filters": self.min_filters,
-                                    "ranking_seconds": round(time.perf_counter() - start, 1)}}
+        return pruned, PruningSections(pruning={**self.criterion_facts, "strategy": self.strategy,
+                                                "min_filters": self.min_filters,
+                                                "ranking_seconds": round(time.perf_counter() - start, 1)})
 
-    def _from_start(self, base: keras.Model) -> tuple[keras.Model, dict[str, Any]]:
+    def _from_start(self, base: keras.Model) -> tuple[keras.Model, PruningSections]:
         """The start model's weights in the network surgery would build from `base` (same widths, the base's input
         size); UserError when its widths are not surgery's."""
         from fcnpose_tf.training.model import ARCHITECTURES, architecture_of, build_fcn_pose, conv_widths, load_model, \
@@ -115,8 +116,8 @@ class FilterPruning:
                             f"--rate {self.rate:g}{floor} on this model, {widths}")
         pruned = build_fcn_pose(widths[:-1], view_of(base), widths[-1], skip=ARCHITECTURES[architecture_of(base)])
         pruned.set_weights(source.get_weights())
-        return pruned, {"pruning": {"start": self.start_name, "start_file": str(self.start),
-                                    "min_filters": self.min_filters}}
+        return pruned, PruningSections(pruning={"start": self.start_name, "start_file": str(self.start),
+                                                "min_filters": self.min_filters})
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         fit_fn(pruned)
@@ -140,11 +141,11 @@ class MagnitudePruning:
     def describe(self) -> str:
         return f"magnitude at rate {self.rate:g}"
 
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, dict[str, Any]]:
+    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
         from fcnpose_tf.compression.magnitude import magnitude_prune
 
         self.sparsity = 1.0 - self.plan.params / base.count_params()  # the same reduction as filter surgery
-        return magnitude_prune(base, self.sparsity), {"magnitude_sparsity": round(self.sparsity, 6)}
+        return magnitude_prune(base, self.sparsity), PruningSections(magnitude_sparsity=round(self.sparsity, 6))
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         import tensorflow_model_optimization as tfmot

@@ -7,22 +7,16 @@ from __future__ import annotations
 import gzip
 import tempfile
 import warnings
-from dataclasses import dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+from fcnpose_tf.measurements import KeypointMetrics, Measurement, Timing
+
 if TYPE_CHECKING:
     import tf_keras as keras
-
-Step = dict[str, Any]
-"""One measured step of the report, as written: the model's facts (widths, params, macs, flops, nonzero_weights; a
-TFLite file's params, macs, flops), its file sizes (h5_size_bytes, h5_gzip_size_bytes, keras_size_bytes; a TFLite
-file's tflite_size_bytes, tflite_gzip_size_bytes), "metrics" and "timing" (none for the pruned model before
-retraining). A TFLite file's also holds "quantize", "status" ("written"), "quantization", "export"
-(`TFLiteExport.to_dict`), "tflite_ops" and, when quantization-aware training made it, "qat"."""
-
 
 @dataclass(frozen=True)
 class RefusedFormat:
@@ -55,10 +49,200 @@ def _if_any() -> Any:
     return field(default=None, metadata={"if_any": True})
 
 
+@dataclass(frozen=True)
+class ModelFacts:
+    """What a Keras model costs (`model_facts`): the conv widths, parameters and MACs (FLOPs = 2 x MACs)."""
+
+    widths: list[int]
+    params: int
+    macs: int
+    flops: int
+    nonzero_weights: int
+    """Weights that are not zero (magnitude pruning zeroes weights without removing them)."""
+
+
+def _fields_json(section: Any) -> dict[str, Any]:
+    """A section as the report holds it: its fields in order (a measurement by its `to_json`), a field only some
+    sections have left out when None, then the keys a file held without a field (`extra`)."""
+    out: dict[str, Any] = {}
+    for f in fields(section):
+        value = getattr(section, f.name)
+        if f.name == "extra":
+            out.update(value)
+        elif value is None and f.metadata.get("if_any"):
+            continue
+        else:
+            out[f.name] = value.to_json() if isinstance(value, (KeypointMetrics, Timing)) else value
+    return out
+
+
+def _known(cls: type, entry: dict[str, Any]) -> dict[str, Any]:
+    """The keys of a parsed section that are fields of `cls`; TypeError if it is no JSON object."""
+    if not isinstance(entry, dict):
+        raise TypeError(f"a report's {cls.__name__} is a JSON object, not {type(entry).__name__}")
+    names = {f.name for f in fields(cls)} - {"extra"}
+    return {k: v for k, v in entry.items() if k in names}
+
+
+def _unknown(cls: type, entry: dict[str, Any]) -> dict[str, Any]:
+    """The keys of a parsed section without a field of `cls` (kept, and written back)."""
+    names = {f.name for f in fields(cls)}
+    return {k: v for k, v in entry.items() if k not in names}
+
+
+def _step_from_json(cls: type, entry: dict[str, Any]) -> Any:
+    """The step of a parsed report entry: "metrics" and "timing" typed, a key without a field kept in `extra`."""
+    values = _known(cls, entry)
+    values["metrics"] = KeypointMetrics.from_json(entry["metrics"])
+    values["timing"] = Timing.from_json(entry["timing"]) if entry.get("timing") else None
+    return cls(**values, extra=_unknown(cls, entry))
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelStep:
+    """A Keras model of the report, measured (base, pruned_before_retraining, retrained): its facts, its file sizes
+    (none for the pruned model before retraining), its metrics and timing (none before retraining). A key a file
+    held without a field is kept in `extra` and written back."""
+
+    widths: list[int] | None = _if_any()
+    params: int
+    macs: int
+    flops: int | None = _if_any()
+    nonzero_weights: int | None = _if_any()
+    h5_size_bytes: int | None = _if_any()
+    """The .h5 without optimizer state (the paper's size)."""
+    h5_gzip_size_bytes: int | None = _if_any()
+    keras_size_bytes: int | None = _if_any()
+    metrics: KeypointMetrics
+    timing: Timing | None = _if_any()
+    extra: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def of(cls, facts: ModelFacts, measurement: Measurement, sizes: dict[str, int] | None = None) -> ModelStep:
+        """A model's step from its facts, its measurement and its `file_sizes`."""
+        return cls(**asdict(facts), **(sizes or {}), metrics=measurement.metrics, timing=measurement.timing)
+
+    @property
+    def measurement(self) -> Measurement:
+        """Metrics and timing."""
+        return Measurement(self.metrics, self.timing)
+
+    def to_json(self) -> dict[str, Any]:
+        """The step as the report holds it."""
+        return _fields_json(self)
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> ModelStep:
+        """The step of a parsed report entry (base, pruned_before_retraining, retrained)."""
+        return _step_from_json(cls, entry)
+
+
+@dataclass(frozen=True, kw_only=True)
+class TFLiteStep:
+    """A TFLite file of the report, measured ("quantized", "other_quantized"): its format and how it was made, its
+    cost and size, the export's facts, operators, metrics and timing. Reports written before one file per format
+    hold no quantize, status nor quantization (None, not written back). A key a file held without a field is kept in
+    `extra` and written back."""
+
+    quantize: str | None = _if_any()
+    """The format (float16, int8, ...)."""
+    status: str | None = _if_any()
+    """"written"."""
+    quantization: str | None = _if_any()
+    """"post-training" or "quantization-aware training"."""
+    qat: dict[str, Any] | None = _if_any()
+    """Quantization-aware training's facts when it made the file (with the post-training refusal it replaced)."""
+    params: int
+    macs: int
+    flops: int | None = _if_any()
+    tflite_size_bytes: int | None = _if_any()
+    tflite_gzip_size_bytes: int | None = _if_any()
+    export: dict[str, Any] | None = _if_any()
+    """The export's facts as written (`TFLiteExport.to_dict`: sizes, seconds, parity, graph rewrites, calibration)."""
+    tflite_ops: Any = _if_any()
+    """Operator counts by name."""
+    metrics: KeypointMetrics
+    timing: Timing | None = _if_any()
+    extra: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @property
+    def parity(self) -> dict[str, Any] | None:
+        """The export's comparison with Keras (`verify.ParityReport` as written), None if not recorded."""
+        return (self.export or {}).get("parity")
+
+    def to_json(self) -> dict[str, Any]:
+        """The step as the report holds it."""
+        return _fields_json(self)
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> TFLiteStep:
+        """The step of a parsed "quantized" or "other_quantized" entry."""
+        return _step_from_json(cls, entry)
+
+
+Step = ModelStep | TFLiteStep
+"""One measured step of the report."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class Retraining:
+    """How the retraining of the pruned model went (the report's "retraining", `compress.retraining_report`). A key a
+    file held without a field is kept in `extra` and written back."""
+
+    epochs_run: int | None = None
+    """Epochs trained (early stopping or the time budget may end it before the epochs asked)."""
+    best_epoch: int | None = None
+    """The epoch whose model was kept (0: the start)."""
+    best_val_loss: float | None = None
+    """The best validation loss (against the ground truth)."""
+    seconds: float | None = None
+    """Wall time of the retraining, rounded to 0.1 s."""
+    loss: str | None = None
+    """The compiled loss's name: binary_crossentropy (plain BCE), keypoint_bce (weighted) or distillation."""
+    positive_weight: float | None = None
+    distill: float | None = None
+    """The teacher's weight in the loss (0: no distillation)."""
+    learning_rates: list[float] = field(default_factory=list)
+    """The learning rate of every epoch."""
+    start_kept: bool | None = _if_any()
+    """A pruned start's run: True when no epoch beat the start, which is then kept unchanged."""
+    extra: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    def to_json(self) -> dict[str, Any]:
+        """The section as the report holds it."""
+        return _fields_json(self)
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> Retraining:
+        """The section of a parsed report."""
+        return cls(**_known(cls, entry), extra=_unknown(cls, entry))
+
+
+@dataclass(frozen=True)
+class PruningSections:
+    """What a pruning method adds to the report (`PruningMethod.prune`): filter surgery its "pruning" (criterion and
+    its facts, strategy, min_filters, ranking_seconds; or a pruned start's name and file), magnitude pruning its
+    "magnitude_sparsity"."""
+
+    pruning: dict[str, Any] | None = None
+    magnitude_sparsity: float | None = None
+
+
+@dataclass(frozen=True)
+class RetrainSections:
+    """What the retraining adds to the report (`compress.retrain_step`); all None when not retrained."""
+
+    retrain_data: dict[str, Any] | None = None
+    """What it trained on: data, fold, train_samples, val_frames."""
+    distillation: dict[str, Any] | None = None
+    """The base model as a teacher: weight and its facts (None: --distill 0)."""
+    retraining: Retraining | None = None
+
+
 @dataclass(frozen=True, kw_only=True)
 class CompressReport:
     """What `compress_model` measured and wrote: one field per top-level key of NAME_pXX_report.json, in the
-    file's order (`to_json`). The measured steps stay JSON objects (`Step`); a refused format is a `RefusedFormat`.
+    file's order (`to_json`). A measured step is a `ModelStep` or a `TFLiteStep`; a refused format is a `RefusedFormat`.
     A section only some runs have (pruning, magnitude_sparsity, retrain_data, distillation, retraining) is None
     when the run has none and is then not written; "quantized" is written either way (null: every format refused)."""
 
@@ -79,25 +263,25 @@ class CompressReport:
     metadata: dict[str, Any] = field(default_factory=dict)
     """The caller's further facts (`compress_model(metadata=...)`, e.g. the command's "preset"), written as top-level
     keys here; read back from a file, every key without a field (e.g. the sweep's "retimed")."""
-    base: Step
+    base: ModelStep
     """The unpruned model (Keras)."""
     pruning: dict[str, Any] | None = _if_any()
     """Filter surgery's criterion and its facts, strategy, min_filters (the floor used), ranking_seconds."""
     magnitude_sparsity: float | None = _if_any()
     """Magnitude pruning's fraction of zeroed weights (the parameter reduction of filter surgery at the rate)."""
-    pruned_before_retraining: Step
+    pruned_before_retraining: ModelStep
     """The pruned model before any retraining (Keras, no timing)."""
     retrain_data: dict[str, Any] | None = _if_any()
     """What the retraining trained on: data, fold, train_samples, val_frames (None: not retrained)."""
     distillation: dict[str, Any] | None = _if_any()
     """The base model as a teacher while retraining: weight and its facts (None: --distill 0)."""
-    retraining: dict[str, Any] | None = _if_any()
+    retraining: Retraining | None = _if_any()
     """How the retraining went (`retraining_report`); None: not retrained."""
-    retrained: Step
+    retrained: ModelStep
     """The retrained model as saved (Keras, NAME_pXX.keras)."""
-    quantized: Step | None
+    quantized: TFLiteStep | None
     """The first TFLite file written (the paper's float16 by default); None when every format was refused."""
-    other_quantized: list[Step] = field(default_factory=list)
+    other_quantized: list[TFLiteStep] = field(default_factory=list)
     """The other TFLite files written, in --quantize order."""
     refused: list[RefusedFormat] = field(default_factory=list)
     """The formats whose file failed its gate (nothing written for them)."""
@@ -110,7 +294,7 @@ class CompressReport:
         _check_metadata(self.metadata)
 
     @property
-    def tflite_files(self) -> list[Step]:
+    def tflite_files(self) -> list[TFLiteStep]:
         """The TFLite files written: "quantized" first, then "other_quantized"."""
         return [step for step in [self.quantized, *self.other_quantized] if step is not None]
 
@@ -122,8 +306,10 @@ class CompressReport:
             value = getattr(self, f.name)
             if f.name == "metadata":
                 report.update(value)
-            elif f.name == "refused":
+            elif f.name in ("refused", "other_quantized"):
                 report[f.name] = [entry.to_json() for entry in value]
+            elif isinstance(value, (ModelStep, TFLiteStep, Retraining)):
+                report[f.name] = value.to_json()
             elif value is not None or not f.metadata.get("if_any"):
                 report[f.name] = value
         return report
@@ -147,7 +333,13 @@ class CompressReport:
             raise ValueError(f"not a compress report: no {', '.join(missing)}")
         values = {k: v for k, v in report.items() if k in names}
         values.setdefault("recipe", "")
-        values["other_quantized"] = list(values.get("other_quantized") or [])
+        if values.get("retraining") is not None:
+            values["retraining"] = Retraining.from_json(values["retraining"])
+        for name in ("base", "pruned_before_retraining", "retrained"):
+            values[name] = ModelStep.from_json(values[name])
+        if values.get("quantized") is not None:
+            values["quantized"] = TFLiteStep.from_json(values["quantized"])
+        values["other_quantized"] = [TFLiteStep.from_json(step) for step in values.get("other_quantized") or []]
         values["refused"] = [RefusedFormat.from_json(entry) for entry in values.get("refused") or []]
         return cls(**values, metadata={k: v for k, v in report.items() if k not in names})
 
@@ -175,14 +367,15 @@ def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, 
     return sizes
 
 
-def model_facts(model: keras.Model) -> dict[str, Any]:
+def model_facts(model: keras.Model) -> ModelFacts:
     """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
     from fcnpose_tf.training.model import conv_widths, describe
 
     rows = describe(model)
     macs = sum(r.macs for r in rows)
-    return {"widths": list(conv_widths(model)), "params": int(model.count_params()), "macs": int(macs),
-            "flops": int(2 * macs), "nonzero_weights": int(sum(np.count_nonzero(w) for w in model.get_weights()))}
+    return ModelFacts(widths=list(conv_widths(model)), params=int(model.count_params()), macs=int(macs),
+                      flops=int(2 * macs),
+                      nonzero_weights=int(sum(np.count_nonzero(w) for w in model.get_weights())))
 
 
 PCK_DROP_BUDGET = 0.02
@@ -199,28 +392,26 @@ def accuracy_note(report: CompressReport) -> str | None:
     on the measured frames (None otherwise, and when no file was written): how much, and what to try."""
     if not report.tflite_files:
         return None
-    base = report.base["metrics"]["pck@0.5_bbox"]
-    best = max(report.tflite_files, key=lambda step: step["metrics"]["pck@0.5_bbox"])
-    drop = base - best["metrics"]["pck@0.5_bbox"]
+    base = report.base.metrics.pck[0.5]
+    best = max(report.tflite_files, key=lambda step: step.metrics.pck[0.5])
+    drop = base - best.metrics.pck[0.5]
     if drop <= PCK_DROP_BUDGET:
         return None
     rate = report.options["rate"]
     advice = (f"a lower --rate keeps more of it: on views that vary --rate {VARIED_VIEWS_RATE:g} held within "
               f"{PCK_DROP_BUDGET:g} where 0.7 did not (docs/compression.md, \"Views that vary: a lower rate\")"
               if rate > VARIED_VIEWS_RATE else "a lower --rate keeps more of it")
-    return (f"note: PCK@0.5 {best['metrics']['pck@0.5_bbox']:.3f} ({best['quantize']}) is {drop:.3f} below the "
+    return (f"note: PCK@0.5 {best.metrics.pck[0.5]:.3f} ({best.quantize}) is {drop:.3f} below the "
             f"unpruned model's {base:.3f} on these frames, more than the {PCK_DROP_BUDGET:g} the paper's files lose; "
             f"{advice}")
 
 
-def _row(label: str, step: Step, size_key: str) -> list:
-    """A table row: the step's parameters, MACs, file size, accuracy and timing."""
-    m = step["metrics"]
-    t = step.get("timing")
-    size = step.get(size_key) if size_key else None
-    return [label, step["params"], step["macs"] / 1e6, size / 1e3 if size else None,
-            m["pck@0.5_bbox"], m["pck@0.2_bbox"], m["pck@0.05_bbox"], m["epe_px"],
-            t["inference_ms"]["mean"] if t else None, t["fps"] if t else None]
+def _row(label: str, step: Step, size: int | None) -> list:
+    """A table row: the step's parameters, MACs, file size (`size` bytes), accuracy and timing."""
+    m, t = step.metrics, step.timing
+    return [label, step.params, step.macs / 1e6, size / 1e3 if size else None,
+            m.pck.get(0.5), m.pck.get(0.2), m.pck.get(0.05), m.epe_px,
+            t.inference_ms.mean if t else None, t.fps if t else None]
 
 
 def _file_rows(report: CompressReport, prefix: str = "") -> list[list]:
@@ -228,8 +419,8 @@ def _file_rows(report: CompressReport, prefix: str = "") -> list[list]:
     # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
     quantize = report.options["quantize"]
     order = list(quantize) if isinstance(quantize, (list, tuple)) else []
-    entries: list[tuple[Any, Step | RefusedFormat]] = [(step.get("quantize") or quantize, step)
-                                                       for step in report.tflite_files]
+    entries: list[tuple[Any, TFLiteStep | RefusedFormat]] = [(step.quantize or quantize, step)
+                                                             for step in report.tflite_files]
     entries += [(entry.quantize, entry) for entry in report.refused]
     entries.sort(key=lambda entry: order.index(entry[0]) if entry[0] in order else len(order))
     rows = []
@@ -237,8 +428,8 @@ def _file_rows(report: CompressReport, prefix: str = "") -> list[list]:
         if isinstance(entry, RefusedFormat):
             rows.append([f"{prefix}{name} TFLite: REFUSED (gate)"] + [None] * 9)
         else:
-            qat = " QAT" if entry.get("quantization") == "quantization-aware training" else ""
-            rows.append(_row(f"{prefix}{name}{qat} TFLite (.tflite)", entry, "tflite_size_bytes"))
+            qat = " QAT" if entry.quantization == "quantization-aware training" else ""
+            rows.append(_row(f"{prefix}{name}{qat} TFLite (.tflite)", entry, entry.tflite_size_bytes))
     return rows
 
 
@@ -257,9 +448,10 @@ def report_table(report: CompressReport | dict[str, Any], markdown: bool = False
 
     if not isinstance(report, CompressReport):
         report = CompressReport.from_json(report)
-    rows = [_row("unpruned (Keras, .h5)", report.base, "h5_size_bytes"),
-            _row("pruned, before retraining", report.pruned_before_retraining, ""),
-            _row("pruned + retrained (Keras, .h5)", report.retrained, "h5_size_bytes"), *_file_rows(report)]
+    rows = [_row("unpruned (Keras, .h5)", report.base, report.base.h5_size_bytes),
+            _row("pruned, before retraining", report.pruned_before_retraining, None),
+            _row("pruned + retrained (Keras, .h5)", report.retrained, report.retrained.h5_size_bytes),
+            *_file_rows(report)]
     return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
 
 
@@ -268,10 +460,10 @@ def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> st
     measurement), then per rate its retrained Keras model and its files, each row named by its rate."""
     from fcnpose_tf.tables import format_table
 
-    rows = [_row("unpruned (Keras, .h5)", reports[0].base, "h5_size_bytes")]
+    rows = [_row("unpruned (Keras, .h5)", reports[0].base, reports[0].base.h5_size_bytes)]
     for report in reports:
         prefix = f"rate {report.options['rate']:g}: "
-        rows += [_row(f"{prefix}retrained (Keras, .h5)", report.retrained, "h5_size_bytes"),
+        rows += [_row(f"{prefix}retrained (Keras, .h5)", report.retrained, report.retrained.h5_size_bytes),
                  *_file_rows(report, prefix)]
     return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
 
@@ -279,12 +471,12 @@ def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> st
 def best_rate_note(reports: Sequence[CompressReport]) -> str:
     """One line naming the highest rate whose most accurate file stayed within PCK_DROP_BUDGET of the unpruned
     model's PCK@0.5 (`compress --rates`), with how much each higher rate lost; or that none did."""
-    base = reports[0].base["metrics"]["pck@0.5_bbox"]
+    base = reports[0].base.metrics.pck[0.5]
 
     def drop(report: CompressReport) -> float | None:
         if not report.tflite_files:
             return None
-        return base - max(step["metrics"]["pck@0.5_bbox"] for step in report.tflite_files)
+        return base - max(step.metrics.pck[0.5] for step in report.tflite_files)
 
     measured = sorted(((report.options["rate"], drop(report)) for report in reports), key=lambda pair: pair[0])
     kept = [(rate, d) for rate, d in measured if d is not None and d <= PCK_DROP_BUDGET]

@@ -23,7 +23,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import read_image
-from fcnpose_tf.records import host_info
+from fcnpose_tf.records import HostInfo, host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
 from fcnpose_tf.runtime.interpreter import check_tflite_file, default_num_threads
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms, fps_from_ms
@@ -124,7 +124,7 @@ class BenchReport:
     frame: str
     threshold: float
     results: list[ThreadResult] = field(default_factory=list)
-    host: dict[str, Any] = field(default_factory=dict)
+    host: HostInfo | None = None
 
     def header(self) -> str:
         """Lines describing the model, the run and the host."""
@@ -136,8 +136,8 @@ class BenchReport:
             f"Cost:    {params} parameters; {macs} MACs per frame (FLOPs = 2 x MACs); "
             f"{self.size_bytes / 1e6:.3f} MB ({self.size_bytes:,} bytes)",
             f"Run:     {self.backend} {self.backend_version}; {self.frames} timed frames after {self.warmup} "
-            f"warm-up; frame: {self.frame}; host {self.host.get('machine', '?')}, "
-            f"{self.host.get('cpu_count', '?')} cores",
+            f"warm-up; frame: {self.frame}; host {self.host.machine if self.host else '?'}, "
+            f"{self.host.cpu_count if self.host else '?'} cores",
         ])
 
     def table(self, markdown: bool = False) -> str:
@@ -159,7 +159,7 @@ class BenchReport:
 
     def report(self, markdown: bool = False) -> str:
         """Header, table and the definitions needed to read them."""
-        cores = self.host.get("cpu_count")
+        cores = self.host.cpu_count if self.host else None
         notes = [f"E2E = preprocess + invoke + postprocess of one frame; {FPS_DEFINITION}."]
         over = oversubscription_note([r.threads for r in self.results], cores) if cores else None
         if over:
@@ -175,7 +175,7 @@ class BenchReport:
                 "output_shape": list(self.output_shape), "backend": self.backend,
                 "backend_version": self.backend_version, "frames": self.frames, "warmup": self.warmup,
                 "frame": self.frame, "threshold": self.threshold, "fps_definition": FPS_DEFINITION,
-                "host": dict(self.host), "results": [r.to_dict() for r in self.results]}
+                "host": self.host.to_json() if self.host else {}, "results": [r.to_dict() for r in self.results]}
 
 
 def comparison_table(reports: list[BenchReport], markdown: bool = False) -> str:

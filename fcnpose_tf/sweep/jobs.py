@@ -388,7 +388,7 @@ def _reporter(config: SweepConfig) -> Any:
 
 
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
-    from fcnpose_tf.compression.report import file_sizes, model_facts
+    from fcnpose_tf.compression.report import ModelStep, file_sizes, model_facts
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.training.model import load_model
@@ -405,7 +405,7 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads,
                                                        decoding=Decoding(centroid=config.centroid)), dataset, val_idx,
                                     dataset.schema)
-        validation = {"metrics": result["metrics"], "timing": result["timing"]}
+        validation = result.measurement()
     else:
         resume = checkpoint.is_file() and not config.force
         trained = train_fold(dataset, job.fold, path, config.fit_config(), input_size=config.input_size,
@@ -413,12 +413,13 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
                              metadata={"data": config.data, "trained_by": "fcnpose-tf sweep"},
                              threads=config.threads, decoding=Decoding(centroid=config.centroid),
                              label=f"{job.label} ({path.name})", reporter=_reporter(config))
-        training = {"reused": False, "resumed": resume, "epochs_run": trained["epochs_run"],
-                    "best_epoch": trained["best_epoch"], "best_val_loss": trained["best_val_loss"],
-                    "seconds": trained["train_seconds"], "stopped_early": trained["stopped_early"]}
-        validation = trained["validation"]
+        facts = trained.raw
+        training = {"reused": False, "resumed": resume, "epochs_run": facts["epochs_run"],
+                    "best_epoch": facts["best_epoch"], "best_val_loss": facts["best_val_loss"],
+                    "seconds": facts["train_seconds"], "stopped_early": facts["stopped_early"]}
+        validation = trained.validation
         model = load_model(path)
-    keras_step = {**model_facts(model), **file_sizes(model, path), **validation}
+    keras_step = ModelStep.of(model_facts(model), validation, file_sizes(model, path)).to_json()
     record = training_record(path)
     raw = record.raw if record is not None else {}
     return {"eval_frames": len(val_idx), "training": training, "keras": keras_step,
@@ -470,14 +471,14 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         reasons = "; ".join(f"{entry.quantize}: {entry.reason}" for entry in report.refused)
         raise UserError(f"{job.label}: no TFLite file passed its keypoint gate ({reasons})")
     return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
-            "keras": _strip(report.retrained),
-            "tflite": _strip(report.quantized),
-            **{tflite_section(step["quantize"]): _strip(step) for step in report.other_quantized},
-            "pruned_before_retraining": report.pruned_before_retraining,
-            "base_remeasured": {"timing": report.base.get("timing")},
-            "retraining": report.retraining,
+            "keras": _strip(report.retrained.to_json()),
+            "tflite": _strip(report.quantized.to_json()),
+            **{tflite_section(step.quantize): _strip(step.to_json()) for step in report.other_quantized},
+            "pruned_before_retraining": report.pruned_before_retraining.to_json(),
+            "base_remeasured": {"timing": report.base.timing.to_json() if report.base.timing else None},
+            "retraining": report.retraining.to_json() if report.retraining is not None else None,
             "pruning": report.pruning, "distillation": report.distillation,
-            "verification": report.quantized.get("export", {}).get("parity"),
+            "verification": report.quantized.parity,
             "files": {k: _relative(v, config.out) for k, v in report.files.items()}}
 
 

@@ -81,7 +81,7 @@ def _measure(predictor: Any, dataset: Any, indices: list[int]) -> dict[str, Any]
 
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema, min_timed_frames=MIN_TIMED_FRAMES,
                                 warmup=WARMUP_FRAMES)
-    return {"metrics": _normalized(result["metrics"]), "timing": _normalized(result["timing"])}
+    return _normalized(result.measurement().to_json())
 
 
 def _checked_file(out: Path, relative: str | None, what: str, sha256: str | None = None) -> Path:

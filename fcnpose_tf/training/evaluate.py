@@ -18,6 +18,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
+from fcnpose_tf.measurements import Evaluation, SequenceReport, StageTiming, Timing, TrackScores
 from fcnpose_tf.metrics import keypoint_report
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import preprocess_frame
@@ -121,8 +122,8 @@ def open_model(path: str | os.PathLike, threads: int | None = None, decoding: De
 
 def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequence[int], schema: KeypointSchema,
                        min_timed_frames: int = MIN_TIMED_FRAMES, warmup: int = WARMUP_FRAMES,
-                       progress: bool = False) -> dict[str, Any]:
-    """Run a predictor over dataset frames; keypoint metrics plus timing, as a JSON-ready dict.
+                       progress: bool = False) -> Evaluation:
+    """Run a predictor over dataset frames; keypoint metrics plus timing, with the keypoints compared.
 
     Every frame in `indices` is scored once; timing covers those frames and, if there are fewer
     than `min_timed_frames`, cycles through them again (timing only) to reach that count.
@@ -154,67 +155,57 @@ def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequ
             pred[j] = result.keypoints
     summary = log.summary()
 
-    def stage(name: str) -> dict[str, float]:
-        return {k: round(summary[name][k], 4) for k in ("mean", "std", "median")}
+    def stage(name: str) -> StageTiming:
+        return StageTiming(**{k: round(summary[name][k], 4) for k in ("mean", "std", "median")})
 
-    timing = {
-        "threads": predictor.num_threads,
-        "backend": predictor.backend_label,
-        "frames_timed": len(log),
-        "preprocess_ms": stage("preprocess"),
-        "inference_ms": stage("invoke"),
-        "postprocess_ms": stage("postprocess"),
-        "total_ms": stage("end_to_end"),
-        "fps": round(fps_from_ms(summary["end_to_end"]["mean"]), 2),
-        "fps_inference_only": round(fps_from_ms(summary["invoke"]["mean"]), 2),
-    }
-    return {"metrics": keypoint_report(pred, gt, schema.keypoints), "timing": timing,
-            "predictions": pred, "ground_truth": gt}
+    timing = Timing(threads=predictor.num_threads, backend=predictor.backend_label, frames_timed=len(log),
+                    preprocess_ms=stage("preprocess"), inference_ms=stage("invoke"),
+                    postprocess_ms=stage("postprocess"), total_ms=stage("end_to_end"),
+                    fps=round(fps_from_ms(summary["end_to_end"]["mean"]), 2),
+                    fps_inference_only=round(fps_from_ms(summary["invoke"]["mean"]), 2))
+    return Evaluation(keypoint_report(pred, gt, schema.keypoints), timing, predictions=pred, ground_truth=gt)
 
 
-def format_timing(timing: dict[str, Any]) -> str:
+def format_timing(timing: Timing) -> str:
     """One paragraph stating inference time, FPS and the thread count."""
-    return (f"inference {timing['inference_ms']['mean']:.2f} ± {timing['inference_ms']['std']:.2f} ms/frame, "
-            f"end to end {timing['total_ms']['mean']:.2f} ± {timing['total_ms']['std']:.2f} ms "
-            f"(preprocess {timing['preprocess_ms']['mean']:.2f}, postprocess {timing['postprocess_ms']['mean']:.2f}); "
-            f"FPS {timing['fps']:.1f} end to end, {timing['fps_inference_only']:.1f} inference only; "
-            f"{timing['threads'] if timing['threads'] is not None else 'default'} thread(s), "
-            f"{timing['backend']}, {timing['frames_timed']} frames after warm-up")
+    return (f"inference {timing.inference_ms.mean:.2f} ± {timing.inference_ms.std:.2f} ms/frame, "
+            f"end to end {timing.total_ms.mean:.2f} ± {timing.total_ms.std:.2f} ms "
+            f"(preprocess {timing.preprocess_ms.mean:.2f}, postprocess {timing.postprocess_ms.mean:.2f}); "
+            f"FPS {timing.fps:.1f} end to end, {timing.fps_inference_only:.1f} inference only; "
+            f"{timing.threads if timing.threads is not None else 'default'} thread(s), "
+            f"{timing.backend}, {timing.frames_timed} frames after warm-up")
 
 
 def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = None,
-                    names: Sequence[str] = ()) -> dict[str, Any]:
+                    names: Sequence[str] = ()) -> SequenceReport:
     """Jitter and lag of a video's tracks (frames in order at `fps`), and with `smooth` (One-Euro
-    parameters) the same for the smoothed tracks beside their PCK and EPE, as a JSON-ready dict."""
+    parameters) the same for the smoothed tracks beside their PCK and EPE."""
     from fcnpose_tf.metrics import SEQUENCE_DEFINITIONS, jitter_px, lag_frames
     from fcnpose_tf.smoothing import smooth_track
 
-    def describe(p: np.ndarray) -> dict[str, Any]:
+    def describe(p: np.ndarray) -> TrackScores:
         report = keypoint_report(p, gt, names)
         finite = lambda v: round(v, 3) if np.isfinite(v) else None  # noqa: E731 - strict JSON
-        return {"jitter_px": finite(jitter_px(p, gt)), "lag_frames": finite(lag_frames(p, gt)),
-                "epe_px": report["epe_px"], "pck@0.05_bbox": report["pck@0.05_bbox"],
-                "missing_fraction": report["missing_fraction"]}
+        return TrackScores(jitter_px=finite(jitter_px(p, gt)), lag_frames=finite(lag_frames(p, gt)),
+                           epe_px=report.epe_px, pck_fine=report.pck[0.05], missing_fraction=report.missing_fraction)
 
-    out: dict[str, Any] = {"fps": fps, "definitions": SEQUENCE_DEFINITIONS, "raw": describe(pred)}
-    if smooth is not None:
-        out["smoothing"] = {"filter": "one-euro", "min_cutoff_hz": smooth.min_cutoff_hz, "beta": smooth.beta,
-                            "d_cutoff_hz": smooth.d_cutoff_hz, "max_coast_frames": smooth.max_coast}
-        out["smoothed"] = describe(smooth_track(pred, fps, smooth))
-    return out
+    if smooth is None:
+        return SequenceReport(fps, SEQUENCE_DEFINITIONS, describe(pred))
+    smoothing = {"filter": "one-euro", "min_cutoff_hz": smooth.min_cutoff_hz, "beta": smooth.beta,
+                 "d_cutoff_hz": smooth.d_cutoff_hz, "max_coast_frames": smooth.max_coast}
+    return SequenceReport(fps, SEQUENCE_DEFINITIONS, describe(pred), smoothing, describe(smooth_track(pred, fps, smooth)))
 
 
-def format_sequence(report: dict[str, Any]) -> str:
+def format_sequence(report: SequenceReport) -> str:
     """Lines stating jitter, lag, EPE and PCK@0.05 of the raw (and smoothed) tracks, with the definitions."""
-    lines = [f"Sequence at {report['fps']:g} FPS ({report['definitions']})"]
-    for key in ("raw", "smoothed"):
-        if key in report:
-            r = report[key]
-            lines.append(f"  {key:8s} jitter {_num(r['jitter_px'])} px, lag {_num(r['lag_frames'])} frames, "
-                         f"EPE {_num(r['epe_px'])} px, PCK@0.05 {_num(r['pck@0.05_bbox'], 3)}, "
-                         f"missing {_num(r['missing_fraction'], 3)}")
-    if "smoothing" in report:
-        s = report["smoothing"]
+    lines = [f"Sequence at {report.fps:g} FPS ({report.definitions})"]
+    for key, r in (("raw", report.raw), ("smoothed", report.smoothed)):
+        if r is not None:
+            lines.append(f"  {key:8s} jitter {_num(r.jitter_px)} px, lag {_num(r.lag_frames)} frames, "
+                         f"EPE {_num(r.epe_px)} px, PCK@0.05 {_num(r.pck_fine, 3)}, "
+                         f"missing {_num(r.missing_fraction, 3)}")
+    if report.smoothing is not None:
+        s = report.smoothing
         lines.append(f"  smoothing: One-Euro, min cut-off {s['min_cutoff_hz']:g} Hz, beta {s['beta']:g}, "
                      f"coasting {s['max_coast_frames']} frames")
     return "\n".join(lines)

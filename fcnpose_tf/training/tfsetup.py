@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import os
 import sys
-from typing import Any
 
 from fcnpose_tf.errors import UserError
 
@@ -78,7 +77,7 @@ def set_tensorflow_threads(threads: int | None) -> None:
         pass
 
 
-def tensorflow_threads() -> dict[str, Any]:
+def tensorflow_threads() -> dict[str, int]:
     """TensorFlow's thread settings as it reports them ({"intra_op", "inter_op"}; 0 = its default)."""
     import tensorflow as tf
 

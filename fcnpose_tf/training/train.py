@@ -29,11 +29,13 @@ import tf_keras as keras
 
 from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.measurements import Evaluation, KeypointMetrics
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
 from fcnpose_tf.training.model import save_for_inference, view_of, with_view
 from fcnpose_tf.progress import Reporter
+from fcnpose_tf.records import TrainingRecord
 
 
 @settings.config_class(settings.EPOCHS, ("patience", settings.TRAIN_PATIENCE), settings.BATCH_SIZE,
@@ -612,7 +614,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
                test_start: dict[str, Any] | None = None, size_was_chosen: bool = False,
-               decoding: Decoding | None = None, architecture: str | None = None) -> dict[str, Any]:
+               decoding: Decoding | None = None, architecture: str | None = None) -> TrainingRecord:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
     The one way a model is trained from a dataset (`train` per fold, the sweep per base job):
@@ -648,7 +650,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         size_was_chosen: `input_size` is `train --input-size auto`'s choice, not the user's: the start as saved,
             at its own size, is then a candidate too (`keep_start_if_better`).
     Returns:
-        The NAME_train.json record: data, split, sizes, config, epochs, best epoch, seconds, validation (and test).
+        The NAME_train.json record as written (`records.TrainingRecord`: its `validation` typed, `raw` the whole file:
+        data, split, sizes, config, epochs, best epoch, seconds, validation and test).
     Raises:
         UserError: an `init` model that does not fit the data or input size, or anything `fit` refuses.
     """
@@ -723,18 +726,18 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
             if record["start_as_saved"]["chose"] == "start":
                 predictor, report = start_predictor, start_report
                 record["input_size"], record["view"] = start_predictor.view.size_record, start_predictor.view.to_json()
-    record["validation"] = {"metrics": report["metrics"], "timing": report["timing"]}
+    record["validation"] = report.measurement().to_json()
     if test_data is not None:
         log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
         record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), test_start)
     write_json(paths["train_json"], record, force=True)
-    return record
+    return TrainingRecord.from_json(record)
 
 
-def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: dict[str, Any],
+def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: Evaluation,
                          model_path: Path, view: Any, *, threads: int | None = None,
                          reporter: Reporter | None = None, label: str = "",
-                         decoding: Decoding | None = None) -> tuple[dict[str, Any], Any, dict] | None:
+                         decoding: Decoding | None = None) -> tuple[dict[str, Any], Any, Evaluation] | None:
     """The start as saved is a candidate too when the run trained at another view (`preprocess.FrameView`: crop and
     input size) than the start's own (one `train --input-size auto` chose: a size the user asked for is kept).
 
@@ -761,7 +764,7 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
                  f"{len(val_idx)} validation frames")
     predictor = KerasKeypointModel(start, Path(init), num_threads=threads, decoding=decoding)
     report = evaluate_predictor(predictor, dataset, val_idx, dataset.schema)
-    start_score, trained_score = mean_pck(report["metrics"]), mean_pck(trained_report["metrics"])
+    start_score, trained_score = mean_pck(report.metrics), mean_pck(trained_report.metrics)
     chose = "start" if start_score > trained_score else "trained"
     figures = (f"mean of PCK@0.5/0.2/0.05 on validation: the start at {start_size} {start_score:.3f}, "
                f"the model trained at {input_size} {trained_score:.3f}")
@@ -783,16 +786,16 @@ TEST_DEFINITIONS = ("PCK@a: distance / max(w, h) of the ground truth's bounding 
                     "definitions)")
 
 
-def measure_on_test_set(predictor: Any, test_data: Any) -> dict[str, Any]:
+def measure_on_test_set(predictor: Any, test_data: Any) -> KeypointMetrics:
     """Keypoint metrics (`metrics.keypoint_report`, per keypoint too) of a predictor on every frame of a test set."""
     from fcnpose_tf.training.evaluate import evaluate_predictor
 
     report = evaluate_predictor(predictor, test_data, range(len(test_data)), test_data.schema, min_timed_frames=0,
                                 warmup=1)
-    return report["metrics"]
+    return report.metrics
 
 
-def start_on_test_set(init: str | Path, test_data: Any, threads: int | None = None) -> dict[str, Any]:
+def start_on_test_set(init: str | Path, test_data: Any, threads: int | None = None) -> KeypointMetrics:
     """The starting model as saved (its own input size: what the user would run without training) measured on a
     test set."""
     from fcnpose_tf.training.evaluate import KerasKeypointModel
@@ -801,14 +804,14 @@ def start_on_test_set(init: str | Path, test_data: Any, threads: int | None = No
                                                   num_threads=threads), test_data)
 
 
-def record_of_test_set(test_data: Any, end: dict[str, Any], start: dict[str, Any] | None) -> dict[str, Any]:
-    """NAME_train.json's "test": which fixed frames, the starting model's metrics on them (None for random
-    weights: `start_model` says so) and the trained model's."""
+def record_of_test_set(test_data: Any, end: KeypointMetrics, start: dict[str, Any] | None) -> dict[str, Any]:
+    """NAME_train.json's "test", as written: which fixed frames, the starting model's metrics on them (`start`:
+    {"model", "metrics"} as written; None for random weights: `start_model` says so) and the trained model's."""
     from fcnpose_tf.records import file_sha256
 
     return {"data": str(test_data.via_path), "data_sha256": file_sha256(test_data.via_path),
             "num_frames": len(test_data), "definitions": TEST_DEFINITIONS,
-            "start_model": (start or {}).get("model"), "start": (start or {}).get("metrics"), "end": end}
+            "start_model": (start or {}).get("model"), "start": (start or {}).get("metrics"), "end": end.to_json()}
 
 
 TEST_FIGURES = (("pck@0.5_bbox", "PCK@0.5", 3, 1), ("pck@0.2_bbox", "PCK@0.2", 3, 1),
