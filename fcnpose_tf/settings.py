@@ -503,7 +503,10 @@ TRAIN_LEARNING_RATE = LEARNING_RATE.variant(
                        "copies, i.e. one fixed camera; 1e-3 otherwise, the paper's)")
 """`train`'s rate; `train_recipe` resolves the default per run."""
 SKIP_FINE_TUNE_LEARNING_RATE = 3e-3
-"""With the skip, fine-tuning on one fixed camera trains every layer at compress's retraining rate (`train_recipe`)."""
+"""With the skip, fine-tuning on one fixed camera trains conv2 onwards at compress's retraining rate (`train_recipe`)."""
+SKIP_FINE_TUNE_FREEZE = 1
+"""With the skip, fine-tuning on one fixed camera keeps conv1 fixed and trains conv2, which the skip reads
+(`train_recipe`)."""
 LR_PATIENCE = Setting(
     "lr_patience", int, 0,
     "halve the learning rate after N epochs without a better validation loss (again after N more; floor 1e-5); "
@@ -587,7 +590,7 @@ FREEZE = Setting(
     requirement="0 to 9 (conv10 always trains)", metavar="N")
 TRAIN_FREEZE = FREEZE.variant(
     default=None, help="keep the first N convolutions (conv1..convN) fixed while fine-tuning: fewer gradients, "
-                       "faster epochs (default: 2 when starting from a trained model, except 0 for an fcn-pose-skip "
+                       "faster epochs (default: 2 when starting from a trained model, except 1 for an fcn-pose-skip "
                        "network on one fixed camera; 0 with --init none)")
 """`train` fine-tunes a pretrained start: its first layers (colour and edge filters) already fit any frame,
 and their gradients are most of a training step's cost at 224 (conv1 and conv2 frozen: 2.4x faster steps).
@@ -603,12 +606,12 @@ DEFAULT_FINE_TUNE_FREEZE = 2
 
 def train_recipe(trained_start: bool, augment: str, architecture: str | None) -> tuple[int, float]:
     """`train`'s default (freeze, learning rate) for a run. Fine-tuning an fcn-pose-skip network on the paper's copies
-    (one fixed camera) trains every layer at SKIP_FINE_TUNE_LEARNING_RATE: the skip reads conv2, which then adapts to
-    the user's camera; on the held-out fixed camera it took PCK@0.05 from 0.775 to 0.846 and the EPE from 6.79 to
-    5.29 px (docs/training.md, "Architecture"). Other trained starts keep conv1-2 fixed (DEFAULT_FINE_TUNE_FREEZE)
-    at the paper's 1e-3; random weights train every layer at 1e-3."""
+    (one fixed camera) keeps conv1 fixed (SKIP_FINE_TUNE_FREEZE) and trains the rest at SKIP_FINE_TUNE_LEARNING_RATE:
+    the skip reads conv2, which then adapts to the user's camera, and conv1's gradients (and conv2's input gradient,
+    the step's largest) are not paid for (docs/training.md, "Architecture"). Other trained starts keep conv1-2 fixed
+    (DEFAULT_FINE_TUNE_FREEZE) at the paper's 1e-3; random weights train every layer at 1e-3."""
     if trained_start and augment == "paper" and architecture == "fcn-pose-skip":
-        return 0, SKIP_FINE_TUNE_LEARNING_RATE
+        return SKIP_FINE_TUNE_FREEZE, SKIP_FINE_TUNE_LEARNING_RATE
     return (DEFAULT_FINE_TUNE_FREEZE if trained_start else 0), float(LEARNING_RATE.default)
 THREADS = Setting("threads", int, None, "CPU threads for TensorFlow and LiteRT (default: all cores)",
                   label="threads", check=lambda v: v >= 1, requirement="at least 1", parse=thread_count)

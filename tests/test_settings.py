@@ -73,9 +73,9 @@ def test_commands_that_differ_use_their_own_variant():
     # compress retrains at 3e-3 halved after 3 stale epochs (0 on the cosine schedule); the sweep keeps the paper's
     assert compress.lr_patience is None and settings.DEFAULT_COMPRESS_LR_PATIENCE == 3
     assert (compress.learning_rate, train.learning_rate, sweep.learning_rate) == (3e-3, None, 1e-3)
-    # train resolves its rate and frozen layers per run (settings.train_recipe): the skip on one fixed camera trains
-    # every layer at 3e-3; other trained starts keep conv1-2 fixed at 1e-3; random weights train all at 1e-3
-    assert settings.train_recipe(True, "paper", "fcn-pose-skip") == (0, 3e-3)
+    # train resolves its rate and frozen layers per run (settings.train_recipe): the skip on one fixed camera keeps
+    # conv1 fixed and trains the rest at 3e-3; other trained starts keep conv1-2 fixed at 1e-3; random weights train all at 1e-3
+    assert settings.train_recipe(True, "paper", "fcn-pose-skip") == (1, 3e-3)
     assert settings.train_recipe(True, "paper", "fcn-pose") == settings.train_recipe(True, "online", "fcn-pose-skip") \
         == (2, 1e-3)
     assert settings.train_recipe(False, "paper", "fcn-pose-skip") == (0, 1e-3)

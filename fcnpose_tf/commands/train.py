@@ -3,8 +3,8 @@
 By default it fine-tunes the bundled UR5 generalist (pretrained on domain-randomised scenes), given a skip from
 conv2's half-resolution block to conv10 (fcn-pose-skip: finer small keypoints), on your frames (augmentation chosen
 from the frames: the paper's 2 fixed copies per frame for one fixed camera, fresh random transforms every epoch when
-the views vary), keypoint pixels weighted 8 on one fixed camera (20 when the views vary or from scratch), every layer
-trained at 3e-3 on one fixed camera (conv1-2 fixed at 1e-3 when the views vary), the view chosen from where the arm
+the views vary), keypoint pixels weighted 8 on one fixed camera (20 when the views vary or from scratch), conv2
+onwards trained at 3e-3 on one fixed camera (conv1-2 fixed at 1e-3 when the views vary), the view chosen from where the arm
 is and how large (a fixed camera's workspace crop, part of the model and its exports, at its own aspect and at most
 224x288 input pixels; the whole frame at 224 to 384 where views vary), the learning rate halved after
 4 epochs without progress and a 30-minute budget (docs/training.md, "Training on your own frames"); the paper's recipe
