@@ -298,16 +298,19 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli_here, t
                                                           tuned.get_layer(name).get_weights()))
         assert same == kept, name
     assert all(layer.trainable for layer in tuned.layers)  # the written model is a plain FCN-Pose
-    # an fcn-pose-skip start on one fixed camera trains every layer at 3e-3 (settings.train_recipe)
+    # an fcn-pose-skip start on one fixed camera keeps conv1 and trains the rest at 3e-3 (settings.train_recipe)
     skip_out = _poor_start(trained_out, tmp_path / "poor_skip.keras")
     status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "fts.keras", "--epochs", "1",
                                    "--input-size", "64", "--augment-copies", "0", "--init", skip_out, "--quiet")
     assert status == 0, err
     fts = json.loads((tmp_path / "fts_train.json").read_text())
-    assert (fts["config"]["freeze"], fts["config"]["learning_rate"], fts["architecture"]) == (0, 3e-3, "fcn-pose-skip")
-    assert "Recipe: every layer trained, learning rate 0.003 (fcn-pose-skip" in stdout
-    assert not np.array_equal(load_model(skip_out).get_layer("conv1").get_weights()[0],
-                              load_model(tmp_path / "fts.keras").get_layer("conv1").get_weights()[0])
+    assert (fts["config"]["freeze"], fts["config"]["learning_rate"], fts["architecture"]) == (1, 3e-3, "fcn-pose-skip")
+    assert "Recipe: conv1 fixed, learning rate 0.003 (fcn-pose-skip" in stdout
+    start_model, tuned_skip = load_model(skip_out), load_model(tmp_path / "fts.keras")
+    assert np.array_equal(start_model.get_layer("conv1").get_weights()[0],
+                          tuned_skip.get_layer("conv1").get_weights()[0])
+    assert not np.array_equal(start_model.get_layer("conv2").get_weights()[0],
+                              tuned_skip.get_layer("conv2").get_weights()[0])
     # the convolutions do not depend on the input size: a 64x64 model starts a 96x96 run
     status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "ft0.keras", "--epochs", "1",
                                    "--input-size", "96", "--augment-copies", "0", "--augment", "paper", "--init", out,
