@@ -658,6 +658,9 @@ def test_several_rates_in_one_run_give_a_file_set_and_rows_each_and_name_the_bes
     assert stdout.count("unpruned (Keras, .h5)") == 1
     note = next(line for line in stdout.splitlines() if "PCK@0.5 budget" in line or "no rate kept" in line)
     reports = {r: json.loads((out / f"base_p{r}_report.json").read_text()) for r in (30, 70)}
+    # the scoring is shared: the base model measured and its filters scored by the first rate only
+    assert stdout.count("scoring filters by taylor") == 1 and stdout.count("filters scored already") == 1
+    assert stdout.count("measured already") == 1 and reports[30]["base"] == reports[70]["base"]
     base_pck = reports[30]["base"]["metrics"]["pck@0.5_bbox"]
     within = [r for r in (30, 70)
               if base_pck - reports[r]["quantized"]["metrics"]["pck@0.5_bbox"] <= 0.02]

@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data import synthcache
     from fcnpose_tf.bundled import KERAS_SUFFIXES, baseline_model, resolve_model
-    from fcnpose_tf.compression.compress import compress_model
+    from fcnpose_tf.compression.compress import SharedScoring, compress_model
     from fcnpose_tf.compression.options import CompressOptions, check_outputs
     from fcnpose_tf.compression.report import accuracy_note, report_table
     from fcnpose_tf.data.args import default_data, load_from_args
@@ -162,8 +162,10 @@ def run(args: argparse.Namespace) -> int:
             _, val = train_dataset.split(args.fold)
             eval_indices = [int(i) for i in val]
             description = f"{len(val)} validation frames of {train_dataset.via_path}"
+        shared = SharedScoring()  # --rates: the base model measured and its filters scored once
         reports = [compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, each,
-                                  force=args.force, eval_description=description, metadata={"preset": args.preset})
+                                  force=args.force, eval_description=description, metadata={"preset": args.preset},
+                                  shared=shared)
                    for each in every]
     if len(reports) > 1:
         return _several_rates(reports, model_path, args.out_dir, every, named, description)

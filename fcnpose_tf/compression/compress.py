@@ -108,6 +108,37 @@ class _Run:
         return KerasKeypointModel(model, path, num_threads=self.options.threads, decoding=self.decoding)
 
 
+@dataclass
+class SharedScoring:
+    """What the rates of one base model share (`compress --rates`): the base model's measurement and its filters'
+    importance scores, each computed by the first rate that needs it and read by the others.
+
+    Valid for one base model file, one set of frames and one importance setting (the rates' options differ only in
+    the rate); `compress_model` fills it.
+    """
+
+    base_step: ModelStep | None = None
+    importance: Importance | None = None
+
+
+class _ScoredOnce:
+    """An importance criterion that scores the base model once: the scores of its first call answer every later
+    one (the base model is loaded again for each rate, with the same weights)."""
+
+    def __init__(self, criterion: Importance) -> None:
+        self.criterion = criterion
+        self.name = criterion.name
+        self._scores: dict[str, np.ndarray] | None = None
+
+    def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
+        if self._scores is None:
+            self._scores = self.criterion(model)
+        return self._scores
+
+    def describe(self) -> dict[str, Any]:
+        return self.criterion.describe()
+
+
 def measure_base(run: _Run) -> ModelStep:
     """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing."""
     base_path = run.base_path
@@ -152,6 +183,21 @@ def importance_step(run: _Run, fold: int | None) -> Importance:
     images, maps = importance_frames(run, fold)
     return make_importance(name, images=images, maps=maps, loss=ground_truth_loss(run.options.positive_weight or 1.0),
                            batch_size=run.options.batch_size)
+
+
+def _shared_importance(run: _Run, shared: SharedScoring) -> Importance:
+    """The run's criterion; a data-aware one scores the base model once for every rate that shares `shared` (the
+    weight norms read the kernels, as cheap as a lookup, and the greedy strategy ranks pruned kernels with them)."""
+    from fcnpose_tf.compression.importance import DATA_AWARE
+
+    name = run.options.importance
+    if name not in DATA_AWARE:
+        return importance_step(run, None)
+    if shared.importance is None or shared.importance.name != name:
+        shared.importance = _ScoredOnce(importance_step(run, retrain_fold(run)))
+    else:
+        run.log(f"  filters scored already (the first rate's {name} scores of the base model)")
+    return shared.importance
 
 
 def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, PruningSections, ModelStep]:
@@ -311,7 +357,7 @@ def measure_quantized(run: _Run, export: Any, retrained_facts: ModelStep,
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
                    out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
                    eval_description: str = "", reporter: Reporter | None = None,
-                   metadata: dict[str, Any] | None = None) -> CompressReport:
+                   metadata: dict[str, Any] | None = None, shared: SharedScoring | None = None) -> CompressReport:
     """Prune, retrain, export and measure one model at one rate; write the files; return the report.
 
     Args:
@@ -328,6 +374,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         reporter: where the step lines and progress go (`fcnpose_tf.progress`; default: the current one): data
             preparation's progress, then the retraining one line per epoch; nothing when silent.
         metadata: more facts for the report (e.g. the command's "preset"), top-level keys of its file.
+        shared: the base model's measurement and filter scores shared by several rates of the same base model
+            and frames (`compress --rates`): the first call fills it, the next ones read it instead of measuring
+            and scoring again.
     Returns:
         The `CompressReport` (its `to_json()` written as NAME_pXX_report.json). Its `quantized` is the
         first TFLite file written (the paper's float16 by default; None if every format was refused),
@@ -374,9 +423,16 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if plan.floor < options.min_filters:
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
             f"no layer under {plan.floor} filters")
-    base_step = measure_base(run)
+    shared = shared if shared is not None else SharedScoring()
+    if shared.base_step is None:
+        shared.base_step = measure_base(run)
+    else:
+        say("  measured already (the first rate's figures)")
+    base_step = shared.base_step
     say(f"[2/{steps}] pruning: {run.method.describe()}")
-    importance = importance_step(run, retrain_fold(run)) if run.method.ranks_filters else None
+    importance = None
+    if run.method.ranks_filters:
+        importance = _shared_importance(run, shared)
     pruned, pruned_sections, pruned_step = prune_step(run, importance)
     say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")
     retrained, retrained_sections = retrain_step(run, pruned)
