@@ -9,6 +9,11 @@ The protocol of docs/data.md ("Which strategy?"), one round of the correction lo
                                    a person in VIA) ──► data merge round 1 + corrected
                                ──► train --init v1 on the merged frames ──► the fixed test set
 
+Two checks of the loop's measuring sticks run with it: after each round 2, how many of round 1's validation
+frames validate round 2 too (all of them, and none of round 1's training frames, since `data merge` keeps the
+inputs' roles), and once a seed, round 1's frames copied under another path and offered as round 2's
+`--test-data` (refused: the overlap is checked by content).
+
 Every step is a `fcnpose-tf` command (printed before it runs; `--dry-run` prints them all) except drawing the
 round-1 frames and the correction, which stand in for the person. A step whose output exists is skipped and an
 interrupted training is resumed from its checkpoint, so the experiment continues where it stopped (across
@@ -88,6 +93,39 @@ def correct(pre: Path, truth: Path, out: Path) -> int:
     return len(project["_via_img_metadata"])
 
 
+def kept_roles(round1: Path, merged: Path) -> dict:
+    """How round 1's stored hold-out split fared in the merged project's (after round 2's training stored it): its
+    validation frames still validation frames, none of its training frames validating round 2."""
+    from fcnpose_tf.data.dataset import load_dataset
+
+    first, second = load_dataset(round1, write_splits=False), load_dataset(merged, write_splits=False)
+    train1, val1 = ({first.names[i] for i in part} for part in first.split())
+    val2 = {second.names[i] for i in second.split()[1]}
+    return {"round1_validation": len(val1), "kept_as_validation": len(val1 & val2),
+            "round1_training_in_validation": len(train1 & val2), "round2_validation": len(val2)}
+
+
+def copy_refused(round1: Path, merged: Path, folder: Path, fcnpose: list[str]) -> str:
+    """Round 1's frames copied under another path and offered as round 2's `--test-data`: the error line `train`
+    answers with (exit status 2 expected, nothing trained)."""
+    import shutil
+
+    via, images = images_folder(round1)
+    copy = folder / "copy_of_round1"
+    if copy.exists():
+        shutil.rmtree(copy)
+    shutil.copytree(images, copy / "images")
+    project = json.loads(via.read_text())
+    project["_via_settings"]["core"]["default_filepath"] = ""
+    write_text(copy / "labels.json", json.dumps(project))
+    command = fcnpose + ["train", "--data", str(merged), "--test-data", str(copy), "--out", str(folder / "refused.keras")]
+    print("$ " + shlex.join(command), flush=True)
+    done = subprocess.run(command, capture_output=True, text=True)
+    if done.returncode != 2 or (folder / "refused.keras").exists():
+        raise UserError(f"a copy of round 1's frames as --test-data was not refused (exit {done.returncode})")
+    return done.stderr.strip().splitlines()[-1]
+
+
 def run(command: list[str], log: Path, dry_run: bool) -> None:
     print("$ " + shlex.join(command), flush=True)
     if dry_run:
@@ -157,10 +195,19 @@ def experiment(args: argparse.Namespace) -> dict:
                                "--out", str(model), "--seed", str(seed), *train_args, *resumed(model)],
                     step / "train.log", args.dry_run)
             results[seed][strategy] = test_figures(model)
+            if not args.dry_run:
+                results[seed][f"{strategy} roles"] = roles = kept_roles(round1, merged)
+                print(f"seed {seed}, {strategy}: {roles['kept_as_validation']} of round 1's {roles['round1_validation']} "
+                      f"validation frames validate round 2 too ({roles['round2_validation']} in all); "
+                      f"{roles['round1_training_in_validation']} of its training frames do", flush=True)
+        if not args.dry_run and args.strategies:
+            merged = folder / args.strategies[0] / "merged" / "labels.json"
+            results[seed]["copy as --test-data"] = line = copy_refused(round1, merged, folder, fcnpose)
+            print(f"seed {seed}: round 1's frames copied elsewhere as --test-data: {line}", flush=True)
     return results
 
 
-def table(results: dict, strategies: list[str]) -> str:
+def table(results: dict, strategies: list[str], start_frames: int) -> str:
     """Markdown: one row per strategy and seed (and the round-1 start), then the mean over the seeds done."""
     header = "| strategy | seed | " + " | ".join(title for _, title, _ in FIGURES) + " |"
     lines = [header, "|---|---|" + "---:|" * len(FIGURES)]
@@ -170,7 +217,7 @@ def table(results: dict, strategies: list[str]) -> str:
 
     for name in ["start", *strategies]:
         done = [(seed, row[name]) for seed, row in results.items() if row.get(name)]
-        label = "round 1 (60 frames, before selection)" if name == "start" else name
+        label = f"round 1 ({start_frames} frames, before selection)" if name == "start" else name
         for seed, figures in done:
             lines.append(f"| {label} | {seed} | {cells(figures)} |")
         if len(done) > 1:
@@ -209,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.dry_run:
         return 0
-    text = table(results, args.strategies)
+    text = table(results, args.strategies, args.start_frames)
     print(text)
     write_text(args.work / "results.md", text, force=True)
     write_json(args.work / "results.json", {str(seed): row for seed, row in results.items()}, force=True)
