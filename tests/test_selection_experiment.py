@@ -76,7 +76,7 @@ def test_table_has_a_row_per_seed_and_the_mean(sel):
 
     results = {0: {"start": figures(0.9, 0.5, 12.0), "uniform": figures(0.95, 0.6, 10.0), "jump": None},
                1: {"start": figures(0.92, 0.52, 11.0), "uniform": figures(0.97, 0.64, 9.0)}}
-    text = sel.table(results, ["uniform", "jump"])
+    text = sel.table(results, ["uniform", "jump"], 60)
     assert "| uniform | 0 | 0.950 | 0.600 | 10.00 |" in text
     assert "| **uniform** | mean of 2 | 0.960 | 0.620 | 9.50 |" in text
     assert "| **round 1 (60 frames, before selection)** | mean of 2 | 0.910 | 0.510 | 11.50 |" in text
