@@ -655,7 +655,7 @@ def test_several_rates_in_one_run_give_a_file_set_and_rows_each_and_name_the_bes
             "base_p70_report.json"} <= {p.name for p in out.iterdir()}
     assert "Compression at rates 0.3, 0.7" in stdout
     assert "rate 0.3: float16 TFLite (.tflite)" in stdout and "rate 0.7: float16 TFLite (.tflite)" in stdout
-    assert stdout.count("unpruned (Keras, .h5)") == 1
+    assert stdout.count("unpruned (Keras; size as .h5)") == 1
     note = next(line for line in stdout.splitlines() if "PCK@0.5 budget" in line or "no rate kept" in line)
     reports = {r: json.loads((out / f"base_p{r}_report.json").read_text()) for r in (30, 70)}
     # the scoring is shared: the base model measured and its filters scored by the first rate only

@@ -441,16 +441,17 @@ def report_table(report: CompressReport | dict[str, Any], markdown: bool = False
     """The compression report as a table: the unpruned model beside each step of the compressed one.
 
     `report`: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
-    Sizes are of the file each row's model ships as (.h5 for Keras, .tflite), in KB (1000 bytes);
+    Sizes in KB (1000 bytes): a TFLite row's file; a Keras row's model saved as .h5 (the paper's measure, whatever
+    file holds it: the label says so);
     "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
     """
     from fcnpose_tf.tables import format_table
 
     if not isinstance(report, CompressReport):
         report = CompressReport.from_json(report)
-    rows = [_row("unpruned (Keras, .h5)", report.base, report.base.h5_size_bytes),
+    rows = [_row("unpruned (Keras; size as .h5)", report.base, report.base.h5_size_bytes),
             _row("pruned, before retraining", report.pruned_before_retraining, None),
-            _row("pruned + retrained (Keras, .h5)", report.retrained, report.retrained.h5_size_bytes),
+            _row("pruned + retrained (Keras; size as .h5)", report.retrained, report.retrained.h5_size_bytes),
             *_file_rows(report)]
     return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
 
@@ -460,10 +461,10 @@ def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> st
     measurement), then per rate its retrained Keras model and its files, each row named by its rate."""
     from fcnpose_tf.tables import format_table
 
-    rows = [_row("unpruned (Keras, .h5)", reports[0].base, reports[0].base.h5_size_bytes)]
+    rows = [_row("unpruned (Keras; size as .h5)", reports[0].base, reports[0].base.h5_size_bytes)]
     for report in reports:
         prefix = f"rate {report.options['rate']:g}: "
-        rows += [_row(f"{prefix}retrained (Keras, .h5)", report.retrained, report.retrained.h5_size_bytes),
+        rows += [_row(f"{prefix}retrained (Keras; size as .h5)", report.retrained, report.retrained.h5_size_bytes),
                  *_file_rows(report, prefix)]
     return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
 
