@@ -479,13 +479,25 @@ TRAIN_MAX_MINUTES = MAX_MINUTES.variant(
 """`train` sets its budget by time, not by the paper's 500 epochs: 30 minutes on 2 CPU cores fine-tunes a
 bundled model on a few hundred frames (docs/training.md, "Training on your own frames"). Compression and
 the sweep keep epoch budgets (their tables compare rates at equal epochs)."""
+MIN_RETRAIN_MINUTES = 2.0
+"""The least a total budget leaves the retraining (`retraining_minutes`): a run whose first steps took most of the
+budget still retrains a few epochs, and says that it goes over."""
 COMPRESS_MAX_MINUTES = MAX_MINUTES.variant(
     default=10.0, paper=None,
-    help="retraining time budget: no new retraining epoch starts after this many minutes (none: the epochs and "
-         "early stopping decide, the same epochs on any machine)")
+    help="retraining time budget: no new retraining epoch starts after this many minutes (less when --total-minutes "
+         "leaves less; none: the epochs and early stopping decide, the same epochs on any machine)")
 """A user's model fine-tuned at 384 retrained 25 epochs for 42 minutes on 2 shared cores; 10 minutes of retraining
 and the steps around it end `compress` in about 15 (docs/compression.md, "Time budget"). The bundled baseline's
 retraining ends before it on an idle 2-core machine; the paper's preset has none (its 100 epochs decide)."""
+COMPRESS_TOTAL_MINUTES = MAX_MINUTES.variant(
+    name="total_minutes", default=15.0, paper=None, label="total time budget",
+    help="the whole run's time budget: the retraining gets what is left of it once the steps before it are done, "
+         "keeping as much again for the steps after (exporting, verifying, measuring), at least "
+         f"{MIN_RETRAIN_MINUTES:g} and at most --max-minutes (none: --max-minutes alone)")
+"""`compress --rate 0.7` ends in about 15 minutes on 2 cores whatever the input: the steps around the retraining took
+2.5 minutes on a 224 x 256 model and 8.2 on a 288 x 288 one beside another run, which made the second 19 minutes
+with a fixed 10-minute retraining (docs/compression.md, "Time budget"). The paper's preset and the sweep have none
+(their epochs decide)."""
 SWEEP_MAX_MINUTES = MAX_MINUTES.variant(
     help="time budget of each base model's training: no new epoch starts after this many minutes (default: none; "
          "the epochs and early stopping decide)")

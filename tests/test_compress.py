@@ -136,7 +136,7 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli_here
     out = root / "frozen"
     status, stdout, err = cli_here("compress", "--rate", "0", "--model", base, "--data", data, "--retrain-epochs", "1",
                                    "--importance", "l1", "--freeze", "2", "--quantize", "float16", "--out-dir", out,
-                                   "--threads", "1")
+                                   "--threads", "1", "--total-minutes", "0.01")
     assert status == 0, stdout[-3000:] + err[-3000:]
     before, after = load_model(base), load_model(next(out.glob("*.keras")))
     for name in ("conv1", "conv2"):
@@ -146,6 +146,10 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli_here
     assert all(layer.trainable for layer in after.layers)  # the file fine-tunes like any other
     report = json.loads(next(out.glob("*_report.json")).read_text())
     assert report["options"]["freeze"] == 2 and report["recipe"].endswith(", conv1-2 fixed")
+    # a total budget the first steps used up leaves the retraining its least, said and recorded
+    assert "retraining budget 2.0 min (the least it gets: this run takes longer than its total)" in stdout
+    assert report["options"]["max_minutes"] == 2.0 and report["options"]["total_minutes"] == 0.01
+    assert json.loads(next(out.glob("*_train.json")).read_text())["config"]["max_minutes"] == 2.0
 
 
 def test_recipe_names_the_floor_and_a_lowered_one():

@@ -227,7 +227,8 @@ def test_the_sweep_passes_every_setting_on_to_its_runs():
     assert SweepConfig("o", "d", input_size=160).compress_options(Job(0, 0.7)).input_size is None  # the base's own
     held = {f.name for f in dataclasses.fields(SweepConfig)}
     for f in dataclasses.fields(CompressOptions):  # none dropped: the sweep's own, fixed, or the job's
-        assert f.name in held | set(SWEEP_FIXED) | {"rate", "fold", "patience"}, f.name
+        assert f.name in held | set(SWEEP_FIXED) | {"rate", "fold", "patience", "total_minutes"}, f.name
+    assert (options.max_minutes, options.total_minutes) == (None, None)  # rates compared at equal epochs
     assert {f.name for f in dataclasses.fields(FitConfig)} <= held
 
 
@@ -284,3 +285,27 @@ def test_compress_time_budget_reaches_the_retraining_and_a_bad_one_is_refused(cl
             "error: time budget must be a positive number of minutes, or none"), err
     status, _, err = cli_here("compress", "--rate", "0.7", "--max-minutes", "soon")
     assert status == 2 and "expected minutes or none, got 'soon'" in err
+
+
+def test_compress_total_budget_leaves_the_retraining_what_the_other_steps_do_not_need(cli_here):
+    from dataclasses import replace
+
+    from fcnpose_tf.cli import build_parser
+    from fcnpose_tf.compression.options import CompressOptions
+
+    options = CompressOptions(rate=0.7)
+    assert (options.total_minutes, options.max_minutes) == (15.0, 10.0)
+    assert options.retraining_minutes(1.0) == 10.0  # 13 left: --max-minutes caps it
+    assert options.retraining_minutes(4.0) == 7.0  # 15 - 4 spent - 4 kept for the steps after
+    assert options.retraining_minutes(7.0) == 2.0  # 1 left: the least a retraining gets
+    assert replace(options, total_minutes=None).retraining_minutes(7.0) == 10.0
+    assert replace(options, max_minutes=None).retraining_minutes(2.5) == 10.0
+    assert replace(options, max_minutes=None, total_minutes=None).retraining_minutes(4.0) is None
+    assert CompressOptions.preset("paper", rate=0.7).total_minutes is None
+    parser = build_parser()
+    assert parser.parse_args(["compress", "--rate", "0.7", "--total-minutes", "none"]).total_minutes is None
+    assert parser.parse_args(["compress", "--rate", "0.7", "--total-minutes", "20"]).total_minutes == 20.0
+    for bad in ("0", "-3", "inf"):
+        status, _, err = cli_here("compress", "--rate", "0.7", "--total-minutes", bad)
+        assert status == 2 and err.strip().splitlines()[-1].startswith(
+            "error: total time budget must be a positive number of minutes, or none"), err

@@ -82,6 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.RETRAIN_EPOCHS.add_to(parser)
     settings.RETRAIN_PATIENCE.add_to(parser, "--patience")
     settings.COMPRESS_MAX_MINUTES.add_to(parser)
+    settings.COMPRESS_TOTAL_MINUTES.add_to(parser)
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.QAT_EPOCHS, settings.QAT_LEARNING_RATE,
                     settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.PRUNED_START,

@@ -29,7 +29,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from fcnpose_tf import progress
+from fcnpose_tf import progress, settings
 from fcnpose_tf.compression.methods import Log, PruningMethod, pruned_start, pruning_method
 from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
 from fcnpose_tf.compression.report import (CompressReport, ModelStep, PruningSections, RefusedFormat, RetrainSections,
@@ -434,6 +434,15 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if run.method.ranks_filters:
         importance = _shared_importance(run, shared)
     pruned, pruned_sections, pruned_step = prune_step(run, importance)
+    spent = (time.perf_counter() - start) / 60
+    budget = options.retraining_minutes(spent)
+    if budget != options.max_minutes:
+        over = " (the least it gets: this run takes longer than its total)" \
+            if budget == settings.MIN_RETRAIN_MINUTES else ""
+        say(f"  retraining budget {budget:.1f} min{over}: what --total-minutes {options.total_minutes:g} leaves after "
+            f"{spent:.1f} min before retraining, as much again kept for the steps after (--max-minutes "
+            f"{'none' if options.max_minutes is None else f'{options.max_minutes:g}'})")
+        options = run.options = replace(options, max_minutes=budget)
     say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")
     retrained, retrained_sections = retrain_step(run, pruned)
     say(f"[4/{steps}] measuring the retrained Keras model")

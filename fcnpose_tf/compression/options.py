@@ -25,7 +25,7 @@ METHODS = settings.METHOD.choices
 @settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
                        settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
                        ("patience", settings.RETRAIN_PATIENCE), ("max_minutes", settings.COMPRESS_MAX_MINUTES),
-                       settings.BATCH_SIZE,
+                       settings.COMPRESS_TOTAL_MINUTES, settings.BATCH_SIZE,
                        ("learning_rate", settings.COMPRESS_LEARNING_RATE), ("augment", settings.INHERITED_AUGMENT),
                        settings.AUGMENT_COPIES,
                        settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
@@ -140,6 +140,22 @@ class CompressOptions:
         frames = " with online augmentation" if self.augment == "online" else ""  # the paper's copies: unsaid
         return (f"{pruned}, retrained up to {epochs}{frames} on "
                 f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}{size}")
+
+    def retraining_minutes(self, spent_minutes: float) -> float | None:
+        """The retraining's time budget once `spent_minutes` went to the steps before it.
+
+        Args:
+            spent_minutes: what the run took before its retraining (measuring the base model, scoring filters,
+                surgery).
+        Returns:
+            `max_minutes`, shortened so that the run ends within `total_minutes`: what is left of it after twice
+            `spent_minutes` (as much again is kept for the steps after the retraining), but at least
+            `settings.MIN_RETRAIN_MINUTES`; None (no budget) when both are None.
+        """
+        if self.total_minutes is None:
+            return self.max_minutes
+        left = max(self.total_minutes - 2 * spent_minutes, settings.MIN_RETRAIN_MINUTES)
+        return left if self.max_minutes is None else min(self.max_minutes, left)
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""

@@ -195,7 +195,8 @@ class SweepConfig:
         return CompressOptions(**settings.carried(
             self, CompressOptions, renamed={"patience": "retrain_patience"}, **fixed, rate=float(job.rate),
             fold=job.fold, retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
-            distill=0.0 if job.rate == 0 else self.distill, max_minutes=None))  # rates compared at equal epochs
+            distill=0.0 if job.rate == 0 else self.distill, max_minutes=None,
+            total_minutes=None))  # rates compared at equal epochs
 
     def to_dict(self) -> dict[str, Any]:
         data = asdict(self)
