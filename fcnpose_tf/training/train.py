@@ -380,7 +380,7 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         if done == self.first_epoch + 1 and self.max_seconds is not None:
             affordable = int(self.max_seconds // epoch_s)
             if affordable < min(BUDGET_MIN_EPOCHS, self.epochs):
-                self.say(f"note: at {epoch_s:.0f} s an epoch the {self.max_seconds / 60:g}-minute budget trains about "
+                self.say(f"note: at {epoch_s:.0f} s an epoch the {self.max_seconds / 60:.3g}-minute budget trains about "
                          f"{affordable} epochs, fewer than the {BUDGET_MIN_EPOCHS} that fine-tuning and retraining "
                          f"needed on the proxies; give it --max-minutes {math.ceil(BUDGET_MIN_EPOCHS * epoch_s / 60)}, "
                          "or fewer input pixels (--input-size), or a machine with fewer other jobs")
