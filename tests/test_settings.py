@@ -269,7 +269,7 @@ def test_the_librarys_decoders_default_to_the_commands_decoding():
     assert _parsed("sweep").centroid == "plain"  # the paper's tables (settings.SWEEP_CENTROID)
 
 
-def test_compress_time_budget_reaches_the_retraining_and_a_bad_one_is_refused(cli_here):
+def test_compress_time_budgets_reach_the_retraining_and_a_bad_one_is_refused(cli_here):
     from fcnpose_tf.cli import build_parser
     from fcnpose_tf.compression.options import CompressOptions
 
@@ -277,20 +277,21 @@ def test_compress_time_budget_reaches_the_retraining_and_a_bad_one_is_refused(cl
     assert CompressOptions(rate=0.7, max_minutes=2.5).fit_config().max_minutes == 2.5
     assert CompressOptions.preset("paper", rate=0.7).fit_config().max_minutes is None
     parser = build_parser()
-    assert parser.parse_args(["compress", "--rate", "0.7", "--max-minutes", "none"]).max_minutes is None
-    assert parser.parse_args(["compress", "--rate", "0.7", "--max-minutes", "7.5"]).max_minutes == 7.5
-    for bad in ("0", "-3", "inf"):
-        status, _, err = cli_here("compress", "--rate", "0.7", "--max-minutes", bad)
-        assert status == 2 and err.strip().splitlines()[-1].startswith(
-            "error: time budget must be a positive number of minutes, or none"), err
-    status, _, err = cli_here("compress", "--rate", "0.7", "--max-minutes", "soon")
-    assert status == 2 and "expected minutes or none, got 'soon'" in err
+    for flag, name, label in (("--max-minutes", "max_minutes", "time budget"),
+                              ("--total-minutes", "total_minutes", "total time budget")):
+        assert getattr(parser.parse_args(["compress", "--rate", "0.7", flag, "none"]), name) is None
+        assert getattr(parser.parse_args(["compress", "--rate", "0.7", flag, "7.5"]), name) == 7.5
+        for bad in ("0", "-3", "inf"):
+            status, _, err = cli_here("compress", "--rate", "0.7", flag, bad)
+            assert status == 2 and err.strip().splitlines()[-1].startswith(
+                f"error: {label} must be a positive number of minutes, or none"), err
+        status, _, err = cli_here("compress", "--rate", "0.7", flag, "soon")
+        assert status == 2 and "expected minutes or none, got 'soon'" in err
 
 
-def test_compress_total_budget_leaves_the_retraining_what_the_other_steps_do_not_need(cli_here):
+def test_compress_total_budget_leaves_the_retraining_what_the_other_steps_do_not_need():
     from dataclasses import replace
 
-    from fcnpose_tf.cli import build_parser
     from fcnpose_tf.compression.options import CompressOptions
 
     options = CompressOptions(rate=0.7)
@@ -302,10 +303,3 @@ def test_compress_total_budget_leaves_the_retraining_what_the_other_steps_do_not
     assert replace(options, max_minutes=None).retraining_minutes(2.5) == 10.0
     assert replace(options, max_minutes=None, total_minutes=None).retraining_minutes(4.0) is None
     assert CompressOptions.preset("paper", rate=0.7).total_minutes is None
-    parser = build_parser()
-    assert parser.parse_args(["compress", "--rate", "0.7", "--total-minutes", "none"]).total_minutes is None
-    assert parser.parse_args(["compress", "--rate", "0.7", "--total-minutes", "20"]).total_minutes == 20.0
-    for bad in ("0", "-3", "inf"):
-        status, _, err = cli_here("compress", "--rate", "0.7", "--total-minutes", bad)
-        assert status == 2 and err.strip().splitlines()[-1].startswith(
-            "error: total time budget must be a positive number of minutes, or none"), err
