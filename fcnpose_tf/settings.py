@@ -23,10 +23,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from fcnpose_tf.bundled import KERAS_SUFFIXES, names_help
 from fcnpose_tf.errors import UserError
+
+Config = TypeVar("Config")
+"""A configuration dataclass whose fields are settings (`config_class`): FitConfig, CompressOptions, ..."""
 
 _SAME = object()
 """`Setting(paper=...)` not given: the paper's value is the default."""
@@ -204,7 +207,7 @@ def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], ty
     Each field takes its name (unless given as a (name, setting) pair), type and default from its
     setting, so a configuration class states only which settings it holds; `validate` (added
     unless the class defines one) checks each with its setting's message, and `preset(name, **values)`
-    makes an instance with the named preset's values (`preset_values`) for every field not given.
+    makes an instance with the named preset's values for every field not given (`from_preset`).
     """
     def decorate(cls: type) -> type:
         annotations: dict[str, str] = {}
@@ -216,17 +219,27 @@ def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], ty
         cls.__annotations__ = {**annotations, **cls.__dict__.get("__annotations__", {})}
         if "validate" not in cls.__dict__:
             cls.validate = validate_fields
-        cls.preset = classmethod(_from_preset)
+        cls.preset = classmethod(from_preset)
         return dataclasses.dataclass(cls)
     return decorate
 
 
-def _from_preset(cls: type, name: str, **values: Any) -> Any:
-    """An instance of the config class `cls` with preset `name`'s value of every field not in `values`."""
-    return cls(**{**preset_values(cls, name), **values})
+def from_preset(config_type: type[Config], preset: str, **values: Any) -> Config:
+    """A configuration with the named preset's values.
+
+    Args:
+        config_type: a dataclass whose fields are declared with `Setting.field`.
+        preset: a name of PRESETS.
+        **values: fields given (a required one, such as the rate, must be).
+    Returns:
+        The configuration: each field of `values` as given, every other setting at its value under `preset`.
+    Raises:
+        UserError: an unknown preset.
+    """
+    return config_type(**{**_preset_values(config_type, preset), **values})
 
 
-def preset_values(config_type: type, preset: str) -> dict[str, Any]:
+def _preset_values(config_type: type, preset: str) -> dict[str, Any]:
     """The value under `preset` of every field of dataclass `config_type` declared with `Setting.field`
     (a required one, such as the rate, is left out)."""
     values = {}
@@ -237,10 +250,21 @@ def preset_values(config_type: type, preset: str) -> dict[str, Any]:
     return values
 
 
-def carried(source: Any, config_type: type, *, renamed: dict[str, str] | None = None, **given: Any) -> dict[str, Any]:
-    """Every field of dataclass `config_type`, read from `source` by name (`renamed`: field -> attribute of
-    `source`), `given` taking precedence. TypeError when `source` lacks one: a value a config holds is never
-    dropped on the way to another (the sweep's settings to a run's FitConfig and CompressOptions)."""
+def carried(source: Any, config_type: type[Config], *, renamed: dict[str, str] | None = None,
+            **given: Any) -> Config:
+    """A configuration read from another one (the sweep's settings to a run's FitConfig and CompressOptions).
+
+    Args:
+        source: what the values are read from, by attribute.
+        config_type: the dataclass to make.
+        renamed: field of `config_type` -> attribute of `source`, where the names differ.
+        **given: fields given, taking precedence over `source`.
+    Returns:
+        The configuration, every field read from `source` unless given.
+    Raises:
+        TypeError: `source` lacks a field's attribute (a value a config holds is never dropped on the way to
+            another).
+    """
     renamed = renamed or {}
     values = {}
     for f in dataclasses.fields(config_type):
@@ -251,7 +275,7 @@ def carried(source: Any, config_type: type, *, renamed: dict[str, str] | None = 
         if not hasattr(source, attribute):
             raise TypeError(f"{type(source).__name__} has no {attribute!r} for {config_type.__name__}.{f.name}")
         values[f.name] = getattr(source, attribute)
-    return values
+    return config_type(**values)
 
 
 def validate_fields(config: Any) -> None:
@@ -262,10 +286,23 @@ def validate_fields(config: Any) -> None:
             setting.validate(getattr(config, f.name))
 
 
-def values_from_args(args: argparse.Namespace, config_type: type, **renamed: str) -> dict[str, Any]:
-    """The fields of dataclass `config_type` that `args` holds, by name (`renamed`: field=attribute)."""
+def from_args(args: argparse.Namespace, config_type: type[Config], *, renamed: dict[str, str] | None = None,
+              **given: Any) -> Config:
+    """A configuration from a command's parsed options.
+
+    Args:
+        args: the parsed options.
+        config_type: the dataclass to make.
+        renamed: field of `config_type` -> option's attribute in `args`, where the names differ.
+        **given: fields given, taking precedence over `args`.
+    Returns:
+        The configuration: each field from the option of its name where `args` holds one, else `given`'s value or
+        the field's default.
+    """
+    renamed = renamed or {}
     names = {f.name: renamed.get(f.name, f.name) for f in dataclasses.fields(config_type)}
-    return {field: getattr(args, attr) for field, attr in names.items() if hasattr(args, attr)}
+    values = {field: getattr(args, attr) for field, attr in names.items() if hasattr(args, attr)}
+    return config_type(**{**values, **given})
 
 
 def thread_count(text: str) -> int:

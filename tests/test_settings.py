@@ -136,10 +136,9 @@ def _cli_configs(preset):
     flag = [] if preset is None else ["--preset", preset]
     train, compress = _parsed(*TRAIN, *flag), _parsed("compress", "--rate", "0.7", *flag)
     sweep = _parsed("sweep", "--out", "o", "--data", "d", "--threads", "1", *flag)
-    return {"train": FitConfig(**settings.values_from_args(train, FitConfig)),
-            "compress": CompressOptions(**settings.values_from_args(compress, CompressOptions,
-                                                                    patience="retrain_patience")),
-            "export": ExportOptions(**settings.values_from_args(_parsed("export", "m.keras"), ExportOptions)),
+    return {"train": settings.from_args(train, FitConfig),
+            "compress": settings.from_args(compress, CompressOptions, renamed={"patience": "retrain_patience"}),
+            "export": settings.from_args(_parsed("export", "m.keras"), ExportOptions),
             "sweep": config_from_args(sweep)}
 
 

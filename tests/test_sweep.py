@@ -260,7 +260,7 @@ def test_partial_results_show_fold_counts_and_missing_jobs(tmp_path, frames):
     other = fake_record(SweepConfig(**{**config.to_dict(), "rates": (0.5,), "epochs": 99}), Job(0, 0.5))
     write_json(out / "jobs" / "fold0_p90.json", {**other, "job": "fold0_p90", "rate": 0.9})  # another config
     result = write_report(out)
-    pruning = {r["rate"]: r for r in result["tables"]["pruning"].records()}
+    pruning = {r["rate"]: r for r in result.tables["pruning"].records()}
     assert pruning[0.7]["folds"] == 1 and pruning[0.5]["folds"] == 2 and 0.9 not in pruning
     assert pruning[0.7]["pck@0.5_bbox"]["n"] == 1
     assert "0.980 ±" not in (out / "tables" / "pruning.md").read_text().split("| 70%")[1].split("\n")[0]
@@ -400,7 +400,7 @@ def test_lr_patience_is_a_result_setting_and_folders_older_than_it_still_match(t
         record = json.loads(path.read_text())
         del record["config_key"]["lr_patience"]
         write_json(path, record, force=True)
-    assert len(write_report(old)["results"].records) == 6
+    assert len(write_report(old).results.records) == 6
     again = run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
     assert again.done == [] and len(again.skipped) == 6
     with pytest.raises(UserError, match=r"lr_patience 0 -> 2"):

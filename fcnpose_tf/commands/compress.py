@@ -133,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
     model_path = args.model
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
-    options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
+    options = settings.from_args(args, CompressOptions, renamed={"patience": "retrain_patience"})
     every = [replace(options, rate=rate).checked(model_path) for rate in rates]  # None settings: the run's choice
     options = every[0]
     if options.method == "l1" and options.start not in ("auto", "surgery"):
@@ -184,9 +184,9 @@ def run(args: argparse.Namespace) -> int:
         export, parity = final.export, final.parity
         calibration = f"calibrated on {export['calibration_frames']} training frames; " \
             if export["calibration_frames"] else ""
-        print(f"  {calibration}verified on {parity['frames']} frames: {parity['keypoints_within_px']} of "
-              f"{parity['keypoints_compared']} keypoints within {parity['keypoint_px']:g} map px of Keras "
-              f"({parity['min_keypoint_share']:.0%} required), {parity['keypoints_lost_or_gained']} lost or gained; "
+        print(f"  {calibration}verified on {parity.frames} frames: {parity.keypoints_within_px} of "
+              f"{parity.keypoints_compared} keypoints within {parity.keypoint_px:g} map px of Keras "
+              f"({parity.min_keypoint_share:.0%} required), {parity.keypoints_lost_or_gained} lost or gained; "
               f"upsampling {'folded' if export['graph_rewrites'] else 'not folded'}")
         if final.qat:
             qat = final.qat

@@ -163,7 +163,7 @@ def _inspect(args: argparse.Namespace) -> int:
     print(f"\nWhat `train` on its defaults chooses for these frames: augmentation {choose_augment(variation)} "
           f"({'one fixed camera' if fixed_camera else 'views that vary'}: the frames differ from their median by "
           f"{variation:.2f} std; a fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION}), and")
-    view, _ = resolve_view(ds.samples, args.input_size, args.crop, fixed_camera)
+    view = resolve_view(ds.samples, args.input_size, args.crop, fixed_camera).chose
     short = min(view.shape)
     print(f"Target maps at {view.height}x{view.width}: discs of radius {default_radius(short):.3g} px, skeleton lines "
           f"{default_thickness(short):.3g} px thick (the paper's 6 px and 30 px at 224, scaled)")

@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
-    options = ExportOptions(**settings.values_from_args(args, ExportOptions))
+    options = settings.from_args(args, ExportOptions)
     options.validate()
     if not args.model.is_file():
         raise UserError(f"{args.model}: model file not found")

@@ -119,11 +119,10 @@ def config_from_args(args: argparse.Namespace):
 
     retrain_epochs, retrain_epochs_by_rate = parse_per_rate_epochs(args.retrain_epochs)
     parallel = args.workers > 1 or args.executor == "ray"
-    return SweepConfig(**{**settings.values_from_args(args, SweepConfig), "out": str(args.out),
-                          "data": str(args.data), "images": str(args.images) if args.images else None,
-                          "rates": parse_rates(args.rates), "retrain_epochs": retrain_epochs,
-                          "retrain_epochs_by_rate": retrain_epochs_by_rate, "threads": resolve_threads(args),
-                          "verbose": 2 if (args.quiet or parallel) else 1})
+    return settings.from_args(args, SweepConfig, out=str(args.out), data=str(args.data),
+                              images=str(args.images) if args.images else None, rates=parse_rates(args.rates),
+                              retrain_epochs=retrain_epochs, retrain_epochs_by_rate=retrain_epochs_by_rate,
+                              threads=resolve_threads(args), verbose=2 if (args.quiet or parallel) else 1)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -173,9 +172,10 @@ def _retime(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_tables(report: dict, out: Path) -> None:
-    tables = report["tables"]
-    results = report["results"]
+def _print_tables(report, out: Path) -> None:
+    """The tables of a rebuilt report (`sweep.report.SweepReport`), then where they were written."""
+    tables = report.tables
+    results = report.results
     cfg = results.config
     print(f"\nPCK normalised by max(bbox w, h); mean ± std over folds; timing on {cfg['threads']} thread(s)")
     for name in ("folds", "pruning", "requirements", "quantization"):

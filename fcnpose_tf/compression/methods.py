@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol, TypedDict
 
 from fcnpose_tf.compression.report import PruningSections
 from fcnpose_tf.errors import UserError
@@ -18,7 +18,7 @@ from fcnpose_tf.records import training_record
 if TYPE_CHECKING:
     import tf_keras as keras
 
-    from fcnpose_tf.compression.importance import Importance
+    from fcnpose_tf.compression.importance import CriterionFacts, Importance
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.prune import WidthPlan
     from fcnpose_tf.training.train import FitResult
@@ -28,6 +28,27 @@ Log = Callable[[str], None]
 
 FitFn = Callable[..., "FitResult"]
 """`fit_fn(model, callbacks=(), inference_model=None)`: the retraining `fit`, writing NAME_pXX.keras."""
+
+
+class MethodRecord(TypedDict, total=False):
+    """What a retrained model's NAME_train.json says about the method that pruned it (`PruningMethod.training_record`),
+    in this order: filter surgery its rate, strategy (or pruned start), min_filters and criterion; magnitude pruning
+    its rate, method and sparsity."""
+
+    rate: float
+    method: str
+    """"magnitude" (filter surgery names none)."""
+    sparsity: float
+    """Magnitude pruning's fraction of zeroed weights."""
+    start: str
+    """A pruned start's name (filter surgery from a pruned model's weights)."""
+    strategy: str
+    """Filter surgery's ranking strategy (independent, greedy)."""
+    min_filters: int
+    importance: str
+    """The filter criterion (`importance.Importance.describe`; none for a pruned start)."""
+    importance_frames: int
+    """Frames a data-aware criterion scored the filters on."""
 
 
 class PruningMethod(Protocol):
@@ -54,7 +75,7 @@ class PruningMethod(Protocol):
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
 
-    def training_record(self) -> dict[str, Any]:
+    def training_record(self) -> MethodRecord:
         """What the retraining's NAME_train.json says about the method."""
 
 
@@ -70,7 +91,7 @@ class FilterPruning:
         self.plan, self.strategy, self.importance = plan, strategy, importance
         self.rate, self.min_filters = plan.rate, plan.floor
         self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
-        self.criterion_facts: dict[str, Any] = {"importance": importance} if start is None else {}
+        self.criterion_facts: CriterionFacts | None = {"importance": importance} if start is None else None
 
     @property
     def ranks_filters(self) -> bool:
@@ -122,9 +143,9 @@ class FilterPruning:
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         fit_fn(pruned)
 
-    def training_record(self) -> dict[str, Any]:
+    def training_record(self) -> MethodRecord:
         start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
-        return {"rate": self.rate, **start, "min_filters": self.min_filters, **self.criterion_facts}
+        return {"rate": self.rate, **start, "min_filters": self.min_filters, **(self.criterion_facts or {})}
 
 
 class MagnitudePruning:
@@ -156,7 +177,7 @@ class MagnitudePruning:
         magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(
             wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
 
-    def training_record(self) -> dict[str, Any]:
+    def training_record(self) -> MethodRecord:
         return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
 
 

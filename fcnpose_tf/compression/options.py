@@ -145,7 +145,7 @@ class CompressOptions:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
         from fcnpose_tf.training.train import FitConfig
 
-        return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1)))
+        return settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1))
 
 
 

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+from fcnpose_tf.compression.verify import ParityReport
 from fcnpose_tf.measurements import KeypointMetrics, Measurement, Timing
 
 if TYPE_CHECKING:
@@ -166,9 +167,10 @@ class TFLiteStep:
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @property
-    def parity(self) -> dict[str, Any] | None:
-        """The export's comparison with Keras (`verify.ParityReport` as written), None if not recorded."""
-        return (self.export or {}).get("parity")
+    def parity(self) -> ParityReport | None:
+        """The export's comparison with Keras, None if not recorded."""
+        parity = (self.export or {}).get("parity")
+        return ParityReport.from_dict(parity) if parity is not None else None
 
     def to_json(self) -> dict[str, Any]:
         """The step as the report holds it."""

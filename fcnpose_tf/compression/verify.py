@@ -11,7 +11,7 @@ Each format's tolerances are a row of `settings.TFLITE_FORMATS` (why each is wha
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -86,6 +86,16 @@ class ParityReport:
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready, stable keys (pixel distances in map pixels)."""
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, entry: dict[str, Any]) -> ParityReport:
+        """The report of a parsed `to_dict` (a key written before its field existed reads as the field's default).
+
+        Raises:
+            TypeError: a key every parity report holds is missing.
+        """
+        names = {f.name for f in fields(cls)}
+        return cls(**{key: value for key, value in entry.items() if key in names})
 
 
 def _interpreter(data: bytes, num_threads: int | None = None):

@@ -17,6 +17,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -34,6 +35,18 @@ def schema_for_maps(num_maps: int) -> KeypointSchema:
     if num_maps == UR5.num_maps:
         return UR5
     return KeypointSchema.chain("generic", [f"kp{i}" for i in range(num_maps - 1)])
+
+
+class KeypointRecord(TypedDict):
+    """One keypoint as record files hold it (`Prediction.records`), in frame pixels."""
+
+    name: str
+    x: float | None
+    """None: not found."""
+    y: float | None
+    confidence: float | int | None
+    """Post-processing's confidence (`Prediction.confidence`: the winning cluster's pixel count, 0 when not found), an
+    int when whole; None when not finite."""
 
 
 @dataclass(frozen=True)
@@ -96,9 +109,9 @@ class Prediction:
             high = (self.keypoints > np.array([x + w - 0.5, y + h - 0.5]) - margin) & inner_high
         return self.found & (low | high).any(axis=1)
 
-    def records(self, schema: KeypointSchema, decimals: int = 2) -> list[dict]:
+    def records(self, schema: KeypointSchema, decimals: int = 2) -> list[KeypointRecord]:
         """One {name, x, y, confidence} per keypoint; x and y are None for a keypoint not found."""
-        out = []
+        out: list[KeypointRecord] = []
         for i, name in enumerate(schema.keypoints):
             x, y = (float(v) for v in self.keypoints[i])
             c = float(self.confidence[i])

@@ -21,7 +21,7 @@ import math
 import os
 from collections import deque
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NotRequired, Sequence, TypedDict
 
 import cv2
 import numpy as np
@@ -31,24 +31,52 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import (check_writable, full_disk_error, native_name, os_error_reason, record_completed,
                                set_default_permissions, signals_deferred, temporary_path)
 from fcnpose_tf.keypoints import KeypointSchema
-from fcnpose_tf.runtime.estimator import Prediction
+from fcnpose_tf.runtime.estimator import KeypointRecord, Prediction
 from fcnpose_tf.runtime.sources import Frame, quiet_opencv
 
 RECORD_SUFFIXES = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv"}
 VIDEO_CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
 
 
-def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> dict[str, Any]:
+class Latency(TypedDict):
+    """Milliseconds of one frame's stages (`FrameRecord`)."""
+
+    preprocess: float
+    invoke: float
+    postprocess: float
+
+
+class FrameRecord(TypedDict):
+    """One frame's line of a JSON Lines record file (`frame_record`), keys in this order; coordinates in frame
+    pixels."""
+
+    frame: int
+    """The source's frame index."""
+    timestamp: float
+    """When the frame was read (seconds, `Frame.timestamp`)."""
+    source: str
+    width: int
+    height: int
+    media_time_s: NotRequired[float]
+    """The frame's time in its video."""
+    latency_ms: Latency
+    keypoints: list[KeypointRecord]
+    crop_xywh: NotRequired[list[int]]
+    """The crop the model saw, when its view has one."""
+    crop_edge: NotRequired[list[str]]
+    """The keypoints at the crop's edge (the arm may carry on past it)."""
+
+
+def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> FrameRecord:
     """The JSON record of one frame (keys in a stable order; coordinates in frame pixels)."""
     h, w = frame.image.shape[:2]
     t = prediction.times
-    record: dict[str, Any] = {"frame": frame.index, "timestamp": round(frame.timestamp, 6), "source": frame.name,
-                              "width": w, "height": h}
-    if frame.media_time_s is not None:
-        record["media_time_s"] = round(frame.media_time_s, 6)
-    record["latency_ms"] = {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
-                            "postprocess": round(t.postprocess_ms, 3)}
-    record["keypoints"] = prediction.records(schema)
+    media = {"media_time_s": round(frame.media_time_s, 6)} if frame.media_time_s is not None else {}
+    record: FrameRecord = {"frame": frame.index, "timestamp": round(frame.timestamp, 6), "source": frame.name,
+                           "width": w, "height": h, **media,
+                           "latency_ms": {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
+                                          "postprocess": round(t.postprocess_ms, 3)},
+                           "keypoints": prediction.records(schema)}
     if prediction.crop is not None:  # what the model saw, and the keypoints the arm may carry past it
         edge = prediction.at_crop_edge()
         record["crop_xywh"] = list(prediction.crop)
@@ -101,7 +129,7 @@ class RecordWriter:
             self._size += len(data)
             self.count += counted
 
-    def _line(self, record: dict[str, Any]) -> str:
+    def _line(self, record: FrameRecord) -> str:
         raise NotImplementedError
 
     def close(self) -> None:
@@ -130,7 +158,7 @@ class RecordWriter:
 class JsonlWriter(RecordWriter):
     """One JSON object per line (JSON Lines); a missing keypoint has x and y null."""
 
-    def _line(self, record: dict[str, Any]) -> str:
+    def _line(self, record: FrameRecord) -> str:
         return json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n"
 
 
@@ -155,7 +183,7 @@ class CsvWriter(RecordWriter):
         csv.writer(text, lineterminator="\n").writerow(cells)
         return text.getvalue()
 
-    def _line(self, record: dict[str, Any]) -> str:
+    def _line(self, record: FrameRecord) -> str:
         row: list[Any] = [record["frame"], record["timestamp"], record["source"], record["width"],
                           record["height"], record.get("media_time_s", ""), record["latency_ms"]["preprocess"],
                           record["latency_ms"]["invoke"], record["latency_ms"]["postprocess"]]

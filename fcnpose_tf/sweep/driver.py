@@ -22,7 +22,7 @@ from fcnpose_tf.fileio import write_json
 from fcnpose_tf.records import file_sha256
 from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.executors import Executor, JobFunction
-from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, SweepConfig, job_path, load_data,
+from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, JobRecord, SweepConfig, job_path, load_data,
                                    normalize_key, plan_jobs, read_record, record_matches, retrain_epochs_at,
                                    run_job, splits_sha256)
 from fcnpose_tf.sweep.rates import rate_label
@@ -36,7 +36,8 @@ class SweepOutcome:
     done: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     not_run: list[str] = field(default_factory=list)
-    report: dict[str, Any] = field(default_factory=dict)
+    report: _report.SweepReport | None = None
+    """The tables rebuilt at the end (None until then)."""
     seconds: float = 0.0
 
 
@@ -120,7 +121,7 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
         raise UserError(f"{out}: exists and is not a folder")
     config, num_frames = prepare_config(config)
     sweep_path = out / _report.SWEEP_FILE
-    runs: list[dict[str, Any]] = []
+    runs: list[_report.RunEntry] = []
     rates = tuple(config.rates)
     if sweep_path.is_file():
         previous = _report.read_sweep(out)
@@ -205,7 +206,7 @@ def _duration(seconds: Any) -> str:
     return f"{seconds:.1f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
 
 
-def _brief(record: dict[str, Any]) -> str:
+def _brief(record: JobRecord) -> str:
     def part(name: str, section: str) -> str:
         step = record.get(section) or {}
         pck = (step.get("metrics") or {}).get("pck@0.5_bbox")

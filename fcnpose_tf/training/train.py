@@ -22,7 +22,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TypedDict
 
 import numpy as np
 import tf_keras as keras
@@ -134,27 +134,55 @@ def check_outputs(model_path: Path, force: bool = False) -> None:
         check_writable(path, force)
 
 
-RESUME_SETTINGS = ("input_size", "crop", "augment", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
-                   "learning_rate", "positive_weight", "lr_patience", "lr_schedule", "freeze")
+class RunIdentity(TypedDict):
+    """What a checkpoint records about its run (`run_identity`; its state.json's "identity"): the data file, its
+    SHA-256 and the RESUME_SETTINGS, None where a caller gave none."""
+
+    data: str
+    data_sha256: str
+    input_size: int | list[int] | None
+    """S, or [H, W] (`FrameView.size_record`)."""
+    crop: list[int] | None
+    """The view's crop [x, y, w, h] in frame pixels; None: the whole frame."""
+    augment: str | None
+    augment_copies: int | None
+    fold: int | None
+    folds: int | None
+    split_seed: int | None
+    seed: int | None
+    batch_size: int | None
+    learning_rate: float | None
+    positive_weight: float | None
+    lr_patience: int | None
+    lr_schedule: str | None
+    freeze: int | None
+
+
+RESUME_SETTINGS = tuple(name for name in RunIdentity.__annotations__ if name not in ("data", "data_sha256"))
 """The settings that change what a run learns: a checkpoint is resumed only with the same ones (and data).
 Epochs and patience may change: continuing a run for longer is what --resume is for."""
 
 
-def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> dict[str, Any]:
+def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> RunIdentity:
     """What a checkpoint records about its run: the data file, its SHA-256 and the RESUME_SETTINGS.
 
-    `facts` gives the settings that are not in `config` (input_size, augment, augment_copies, fold, folds,
-    split_seed).
+    Args:
+        data_path: the annotation file trained on.
+        config: the run's settings (resolved).
+        **facts: the settings that are not in `config` (input_size, crop, augment, augment_copies, fold, folds,
+            split_seed).
+    Returns:
+        The identity a resumed checkpoint must match (`check_checkpoint`).
     """
     from fcnpose_tf.records import file_sha256
 
     values = {**asdict(config), **facts}
-    return {"data": str(data_path), "data_sha256": file_sha256(data_path),
-            **{name: values.get(name) for name in RESUME_SETTINGS}}
+    return RunIdentity(data=str(data_path), data_sha256=file_sha256(data_path),
+                       **{name: values.get(name) for name in RESUME_SETTINGS})
 
 
 def check_checkpoint(model_path: str | Path, *, resume: bool, force: bool,
-                     identity: dict[str, Any] | None = None, resumable: bool = True) -> None:
+                     identity: RunIdentity | None = None, resumable: bool = True) -> None:
     """Refuse (UserError) a resume without a checkpoint, a checkpoint neither resumed nor forced away, and a
     resume whose data or RESUME_SETTINGS differ from those the checkpoint was started with. For a caller that
     cannot resume (`resumable=False`: compress), a checkpoint a killed run left behind is of no use to anyone:
@@ -409,7 +437,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         metadata: dict[str, Any] | None = None, reporter: Reporter | None = None,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
-        identity: dict[str, Any] | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
+        identity: RunIdentity | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -565,10 +593,33 @@ def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> Writ
                       "then continue with --resume")
 
 
-def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> tuple[str, dict[str, Any]]:
-    """What `augment="auto"` (train's default) means for these frames (`data.via` frames: image paths): the paper's
-    copies for one fixed camera, online augmentation when the views vary (`data.views`); the choice and what it
-    was based on, for NAME_train.json ("augment_auto"), said through `reporter`."""
+@dataclass(frozen=True)
+class AugmentChoice:
+    """What `augment="auto"` chose and why (`resolve_augment`; NAME_train.json's "augment_auto")."""
+
+    view_variation: float
+    """How much the frames differ from their median, in std (`data.views.view_variation`), rounded to 4 decimals."""
+    fixed_camera_max: float
+    """The variation up to which the frames are one fixed camera (`data.views.FIXED_CAMERA_MAX_VARIATION`)."""
+    chose: str
+    """"paper" (one fixed camera) or "online" (views that vary)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """{"view_variation", "fixed_camera_max", "chose"}."""
+        return {"view_variation": self.view_variation, "fixed_camera_max": self.fixed_camera_max,
+                "chose": self.chose}
+
+
+def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> AugmentChoice:
+    """What `augment="auto"` (train's default) means for these frames: the paper's copies for one fixed camera, online
+    augmentation when the views vary (`data.views`), said through `reporter`.
+
+    Args:
+        frames: `data.via` frames (their image paths are read).
+        reporter: where the choice is said (default: the current one).
+    Returns:
+        The choice (`chose`) and what it was based on, for NAME_train.json.
+    """
     from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
 
     variation = view_variation([f.image_path for f in frames])
@@ -577,8 +628,7 @@ def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> 
     progress.resolve(reporter).say(
         f"Augmentation: auto -> {augment} ({camera}: the frames differ from their median by {variation:.2f} std; a "
         f"fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION})")
-    return augment, {"view_variation": round(variation, 4), "fixed_camera_max": FIXED_CAMERA_MAX_VARIATION,
-                     "chose": augment}
+    return AugmentChoice(round(variation, 4), FIXED_CAMERA_MAX_VARIATION, augment)
 
 
 def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> keras.Model:
@@ -613,7 +663,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
-               test_start: dict[str, Any] | None = None, size_was_chosen: bool = False,
+               test_start: tuple[str, KeypointMetrics] | None = None, size_was_chosen: bool = False,
                decoding: Decoding | None = None, architecture: str | None = None) -> TrainingRecord:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
@@ -645,8 +695,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
             terminal, lines in a log, one line per epoch with --quiet, nothing when silent.
         test_data: a fixed test set (a loaded dataset of the same schema, never trained on): the trained model
             is measured on all its frames and the result added as "test" (`record_of_test_set`).
-        test_start: the starting model's measurement on `test_data` (`record_of_test_set`'s "start"), None for random
-            weights.
+        test_start: the starting model's name as recorded and its metrics on `test_data` (`start_on_test_set`), None
+            for random weights.
         size_was_chosen: `input_size` is `train --input-size auto`'s choice, not the user's: the start as saved,
             at its own size, is then a candidate too (`keep_start_if_better`).
     Returns:
@@ -729,15 +779,34 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     record["validation"] = report.measurement().to_json()
     if test_data is not None:
         log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
-        record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), test_start)
+        start_model, start = test_start if test_start is not None else (None, None)
+        record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), start_model,
+                                            start).to_json()
     write_json(paths["train_json"], record, force=True)
     return TrainingRecord.from_json(record)
+
+
+class StartAsSaved(TypedDict):
+    """The start as saved weighed against the trained model (`keep_start_if_better`; NAME_train.json's
+    "start_as_saved")."""
+
+    input_size: int | list[int]
+    """The start's input size (`FrameView.size_record`)."""
+    view: dict[str, Any]
+    """The start's view (`FrameView.to_json`)."""
+    start_mean_pck: float
+    """`metrics.mean_pck` of the start on the validation frames, at its own view."""
+    trained_mean_pck: float
+    """The same of the trained model, at the run's view."""
+    trained_view: dict[str, Any]
+    chose: str
+    """"start" or "trained"."""
 
 
 def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: Evaluation,
                          model_path: Path, view: Any, *, threads: int | None = None,
                          reporter: Reporter | None = None, label: str = "",
-                         decoding: Decoding | None = None) -> tuple[dict[str, Any], Any, Evaluation] | None:
+                         decoding: Decoding | None = None) -> tuple[StartAsSaved, Any, Evaluation] | None:
     """The start as saved is a candidate too when the run trained at another view (`preprocess.FrameView`: crop and
     input size) than the start's own (one `train --input-size auto` chose: a size the user asked for is kept).
 
@@ -776,8 +845,9 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
                      f"{' --crop none' if start_view.crop is None else ''} trains at that view")
     else:
         reporter.say(f"{label}: kept the trained model ({figures})")
-    entry = {"input_size": start_view.size_record, "view": start_view.to_json(), "start_mean_pck": round(start_score, 4),
-             "trained_mean_pck": round(trained_score, 4), "trained_view": view.to_json(), "chose": chose}
+    entry = StartAsSaved(input_size=start_view.size_record, view=start_view.to_json(),
+                         start_mean_pck=round(start_score, 4), trained_mean_pck=round(trained_score, 4),
+                         trained_view=view.to_json(), chose=chose)
     return entry, predictor, report
 
 
@@ -804,44 +874,88 @@ def start_on_test_set(init: str | Path, test_data: Any, threads: int | None = No
                                                   num_threads=threads), test_data)
 
 
-def record_of_test_set(test_data: Any, end: KeypointMetrics, start: dict[str, Any] | None) -> dict[str, Any]:
-    """NAME_train.json's "test", as written: which fixed frames, the starting model's metrics on them (`start`:
-    {"model", "metrics"} as written; None for random weights: `start_model` says so) and the trained model's."""
+@dataclass(frozen=True)
+class FixedTestSetRecord:
+    """A model measured on a fixed test set against its start (NAME_train.json's "test", `record_of_test_set`)."""
+
+    data: str
+    """The test set's annotation file."""
+    data_sha256: str
+    num_frames: int
+    definitions: str
+    """How the figures are defined (TEST_DEFINITIONS)."""
+    start_model: str | None
+    """The starting model, as `train --init` named it; None for random weights."""
+    start: KeypointMetrics | None
+    """The starting model's metrics on the test set; None for random weights."""
+    end: KeypointMetrics
+    """The trained model's."""
+
+    def to_json(self) -> dict[str, Any]:
+        """{"data", "data_sha256", "num_frames", "definitions", "start_model", "start", "end"}."""
+        return {"data": self.data, "data_sha256": self.data_sha256, "num_frames": self.num_frames,
+                "definitions": self.definitions, "start_model": self.start_model,
+                "start": self.start.to_json() if self.start is not None else None, "end": self.end.to_json()}
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> FixedTestSetRecord:
+        """The record of a parsed "test" object."""
+        start = entry.get("start")
+        return cls(data=entry["data"], data_sha256=entry["data_sha256"], num_frames=entry["num_frames"],
+                   definitions=entry["definitions"], start_model=entry.get("start_model"),
+                   start=KeypointMetrics.from_json(start) if start is not None else None,
+                   end=KeypointMetrics.from_json(entry["end"]))
+
+
+def record_of_test_set(test_data: Any, end: KeypointMetrics, start_model: str | None = None,
+                       start: KeypointMetrics | None = None) -> FixedTestSetRecord:
+    """A model measured on a fixed test set, beside its start.
+
+    Args:
+        test_data: the test set (a loaded dataset).
+        end: the trained model's metrics on it (`measure_on_test_set`).
+        start_model: the starting model as `train --init` named it (None: random weights).
+        start: the starting model's metrics on it (`start_on_test_set`; None: random weights).
+    Returns:
+        NAME_train.json's "test".
+    """
     from fcnpose_tf.records import file_sha256
 
-    return {"data": str(test_data.via_path), "data_sha256": file_sha256(test_data.via_path),
-            "num_frames": len(test_data), "definitions": TEST_DEFINITIONS,
-            "start_model": (start or {}).get("model"), "start": (start or {}).get("metrics"), "end": end.to_json()}
+    return FixedTestSetRecord(data=str(test_data.via_path), data_sha256=file_sha256(test_data.via_path),
+                              num_frames=len(test_data), definitions=TEST_DEFINITIONS, start_model=start_model,
+                              start=start, end=end)
 
 
-TEST_FIGURES = (("pck@0.5_bbox", "PCK@0.5", 3, 1), ("pck@0.2_bbox", "PCK@0.2", 3, 1),
-                ("pck@0.05_bbox", "PCK@0.05", 3, 1), ("epe_px", "EPE", 2, -1), ("missing_fraction", "missing", 3, -1))
-"""(key, label, decimals, +1 when higher is better) of the test line."""
+TEST_FIGURES: tuple[tuple[Callable[[KeypointMetrics], float | None], str, int, int], ...] = (
+    (lambda m: m.pck.get(0.5), "PCK@0.5", 3, 1), (lambda m: m.pck.get(0.2), "PCK@0.2", 3, 1),
+    (lambda m: m.pck.get(0.05), "PCK@0.05", 3, 1), (lambda m: m.epe_px, "EPE", 2, -1),
+    (lambda m: m.missing_fraction, "missing", 3, -1))
+"""(figure, label, decimals, +1 when higher is better) of the test line."""
 
 
-def format_test_set_line(test: dict[str, Any]) -> str:
+def format_test_set_line(test: FixedTestSetRecord) -> str:
     """One line: the test set, then start -> end of each figure, and whether the end is worse than the start."""
-    start, end = test.get("start"), test["end"]
+    start, end = test.start, test.end
 
     def num(value: Any, decimals: int) -> str:
         return "n/a" if value is None else f"{value:.{decimals}f}"
 
     parts = []
     worse = []
-    for key, name, decimals, sign in TEST_FIGURES:
-        unit = " px" if key == "epe_px" else ""
+    for figure, name, decimals, sign in TEST_FIGURES:
+        unit = " px" if name == "EPE" else ""
         if start is None:
-            parts.append(f"{name} {num(end.get(key), decimals)}{unit}")
+            parts.append(f"{name} {num(figure(end), decimals)}{unit}")
             continue
-        parts.append(f"{name} {num(start.get(key), decimals)} -> {num(end.get(key), decimals)}{unit}")
-        a, b = start.get(key), end.get(key)
+        parts.append(f"{name} {num(figure(start), decimals)} -> {num(figure(end), decimals)}{unit}")
+        a, b = figure(start), figure(end)
         if a is not None and b is not None and sign * (round(b, decimals) - round(a, decimals)) < 0:
             worse.append(name)  # as printed: a change below the last digit shown is not a change
-    head = f"Test set {test['data']} ({test['num_frames']} frames): "
+    head = f"Test set {test.data} ({test.num_frames} frames): "
     if start is None:
         return head + ", ".join(parts) + "; no starting model to compare (--init none: random weights)"
     verdict = f"; WORSE than the start in {', '.join(worse)}" if worse else "; no figure worse than the start"
-    return head + ", ".join(parts) + f" (start: {test.get('start_model')}){verdict}"
+    return head + ", ".join(parts) + f" (start: {test.start_model}){verdict}"
 
 
 def loss_name(positive_weight: float, distill: float = 0.0) -> str:
