@@ -39,14 +39,14 @@ VIDEO_CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG", 
 
 
 class Latency(TypedDict):
-    """Milliseconds of one frame's stages (`FrameRecord`)."""
+    """Milliseconds of one frame's stages (`RecordedFrame`)."""
 
     preprocess: float
     invoke: float
     postprocess: float
 
 
-class FrameRecord(TypedDict):
+class RecordedFrame(TypedDict):
     """One frame's line of a JSON Lines record file (`frame_record`), keys in this order; coordinates in frame
     pixels."""
 
@@ -67,16 +67,16 @@ class FrameRecord(TypedDict):
     """The keypoints at the crop's edge (the arm may carry on past it)."""
 
 
-def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> FrameRecord:
+def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> RecordedFrame:
     """The JSON record of one frame (keys in a stable order; coordinates in frame pixels)."""
     h, w = frame.image.shape[:2]
     t = prediction.times
     media = {"media_time_s": round(frame.media_time_s, 6)} if frame.media_time_s is not None else {}
-    record: FrameRecord = {"frame": frame.index, "timestamp": round(frame.timestamp, 6), "source": frame.name,
-                           "width": w, "height": h, **media,
-                           "latency_ms": {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
-                                          "postprocess": round(t.postprocess_ms, 3)},
-                           "keypoints": prediction.records(schema)}
+    record: RecordedFrame = {"frame": frame.index, "timestamp": round(frame.timestamp, 6), "source": frame.name,
+                             "width": w, "height": h, **media,
+                             "latency_ms": {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
+                                            "postprocess": round(t.postprocess_ms, 3)},
+                             "keypoints": prediction.records(schema)}
     if prediction.crop is not None:  # what the model saw, and the keypoints the arm may carry past it
         edge = prediction.at_crop_edge()
         record["crop_xywh"] = list(prediction.crop)
@@ -129,7 +129,7 @@ class RecordWriter:
             self._size += len(data)
             self.count += counted
 
-    def _line(self, record: FrameRecord) -> str:
+    def _line(self, record: RecordedFrame) -> str:
         raise NotImplementedError
 
     def close(self) -> None:
@@ -158,7 +158,7 @@ class RecordWriter:
 class JsonlWriter(RecordWriter):
     """One JSON object per line (JSON Lines); a missing keypoint has x and y null."""
 
-    def _line(self, record: FrameRecord) -> str:
+    def _line(self, record: RecordedFrame) -> str:
         return json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n"
 
 
@@ -183,7 +183,7 @@ class CsvWriter(RecordWriter):
         csv.writer(text, lineterminator="\n").writerow(cells)
         return text.getvalue()
 
-    def _line(self, record: FrameRecord) -> str:
+    def _line(self, record: RecordedFrame) -> str:
         row: list[Any] = [record["frame"], record["timestamp"], record["source"], record["width"],
                           record["height"], record.get("media_time_s", ""), record["latency_ms"]["preprocess"],
                           record["latency_ms"]["invoke"], record["latency_ms"]["postprocess"]]
