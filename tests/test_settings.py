@@ -163,7 +163,7 @@ def test_the_api_and_the_cli_mean_the_same_with_no_options(preset):
     cli, api = _cli_configs(preset), _api_configs(preset)
     for kind in ("train", "compress", "export"):
         assert cli[kind] == api[kind], kind
-    ignored = {"out", "data", "verbose"}  # paths as given; the executor's output mode
+    ignored = {"out", "data", "reporter"}  # paths as given; where the jobs report
     for f in dataclasses.fields(api["sweep"]):
         if f.name not in ignored:
             assert getattr(cli["sweep"], f.name) == getattr(api["sweep"], f.name), f.name

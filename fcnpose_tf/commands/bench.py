@@ -56,10 +56,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
+
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.postprocess import Decoding
-    from fcnpose_tf.runtime.bench import benchmark, comparison_table, load_frame, print_progress
+    from fcnpose_tf.progress import Reporter
+    from fcnpose_tf.runtime.bench import benchmark, comparison_table, load_frame
     from fcnpose_tf.runtime.sources import parse_size
 
     threads = args.threads or None
@@ -71,9 +74,10 @@ def run(args: argparse.Namespace) -> int:
                         "7680x4320); for a real camera's frame pass --image")
     frame, label = load_frame(args.image, frame_size)
     reports = []
+    progress = Reporter(stream=sys.stderr)  # the tables go to stdout
     for i, model in enumerate(args.model):
         reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
-                                 decoding=Decoding.from_args(args), progress=print_progress))
+                                 decoding=Decoding.from_args(args), reporter=progress))
         print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
     if len(reports) > 1:
         print("\nComparison (the models ran one after the other; for a speed claim, repeat in the other order):")

@@ -121,6 +121,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.fileio import removed_if_left_empty
+    from fcnpose_tf.progress import SILENT
     from fcnpose_tf.system import available_cores
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
@@ -137,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
     every = [replace(options, rate=rate).checked(model_path) for rate in rates]  # None settings: the run's choice
     options = every[0]
     if options.method == "l1" and options.start not in ("auto", "surgery"):
-        resolve_model(options.start, KERAS_SUFFIXES, say=lambda line: None)  # a wrong --start: before the data
+        resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)  # a wrong --start: before the data
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails

@@ -114,6 +114,7 @@ def make_executor(args: argparse.Namespace, threads: int):
 def config_from_args(args: argparse.Namespace):
     """The SweepConfig of the parsed options (every setting by name; the rates and per-rate budgets read)."""
     from fcnpose_tf import settings
+    from fcnpose_tf.progress import Reporter
     from fcnpose_tf.sweep import SweepConfig, parse_rates
     from fcnpose_tf.sweep.rates import parse_per_rate_epochs
 
@@ -122,7 +123,7 @@ def config_from_args(args: argparse.Namespace):
     return settings.from_args(args, SweepConfig, out=str(args.out), data=str(args.data),
                               images=str(args.images) if args.images else None, rates=parse_rates(args.rates),
                               retrain_epochs=retrain_epochs, retrain_epochs_by_rate=retrain_epochs_by_rate,
-                              threads=resolve_threads(args), verbose=2 if (args.quiet or parallel) else 1)
+                              threads=resolve_threads(args), reporter=Reporter(quiet=args.quiet or parallel))
 
 
 def run(args: argparse.Namespace) -> int:

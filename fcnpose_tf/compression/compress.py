@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from fcnpose_tf import progress
-from fcnpose_tf.compression.methods import Log, PruningMethod, pruned_start, pruning_method
+from fcnpose_tf.compression.methods import PruningMethod, pruned_start, pruning_method
 from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
 from fcnpose_tf.compression.report import (CompressReport, ModelStep, PruningSections, RefusedFormat, RetrainSections,
                                            Retraining, TFLiteStep, _check_metadata, file_sizes, model_facts)
@@ -53,9 +53,9 @@ if TYPE_CHECKING:
 # read its settings) without needing TensorFlow until a compression runs.
 
 
-def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, log: Log,
+def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, reporter: Reporter,
              timing: bool = True) -> Measurement:
-    log(f"  evaluating {label} on {len(indices)} frames ...")
+    reporter.say(f"  evaluating {label} on {len(indices)} frames ...")
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema,
                                 min_timed_frames=50 if timing else 1, warmup=5 if timing else 1)
     return result.measurement(timed=timing)
@@ -92,7 +92,7 @@ class _Run:
 
     def measure(self, predictor: Any, label: str, timing: bool = True) -> Measurement:
         """Metrics (and timing) of a predictor on the run's frames."""
-        return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.log, timing=timing)
+        return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.reporter, timing=timing)
 
     @property
     def decoding(self) -> Decoding:
@@ -364,7 +364,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         width = max(32, int(round(options.input_size * saved_view.width / saved_view.height / 32)) * 32)
         base = at_input_size(base, (options.input_size, width))
     plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0)
-    start_name, start_path = pruned_start(options, base_path, plan, architecture, say)
+    start_name, start_path = pruned_start(options, base_path, plan, architecture, reporter)
     options = replace(options, start=start_name)
     run = _Run(base_path, base, pruning_method(options, plan, start_path), options, paths, train_dataset,
                eval_dataset, eval_indices, force, reporter, options.recipe(plan.floor))

@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Callable, Protocol, TypedDict
 
 from fcnpose_tf.compression.report import PruningSections
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.progress import SILENT, Reporter
 from fcnpose_tf.records import training_record
 
 if TYPE_CHECKING:
@@ -22,9 +23,6 @@ if TYPE_CHECKING:
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.prune import WidthPlan
     from fcnpose_tf.training.train import FitResult
-
-Log = Callable[[str], None]
-"""Where a step says what it does: `Reporter.say` or print."""
 
 FitFn = Callable[..., "FitResult"]
 """`fit_fn(model, callbacks=(), inference_model=None)`: the retraining `fit`, writing NAME_pXX.keras."""
@@ -187,7 +185,7 @@ generalist, at the widths it has (filter surgery's at 0.7 with compress's defaul
 
 
 def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, architecture: str,
-                 log: Log = lambda line: None) -> tuple[str, Path | None]:
+                 reporter: Reporter = SILENT) -> tuple[str, Path | None]:
     """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
     for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
     (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
@@ -204,7 +202,7 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, arc
     if options.method != "l1" or start == "surgery":
         return "surgery", None
     if start != "auto":
-        return start, resolve_model(start, KERAS_SUFFIXES, say=log)
+        return start, resolve_model(start, KERAS_SUFFIXES, reporter=reporter)
     generalist = generalist_model().resolve()
     ancestry = [str(base_path), *lineage(base_path)]
     if not any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
@@ -215,16 +213,16 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, arc
         return "surgery", None
     path = models_dir() / BUNDLED_MODELS[PRUNED_GENERALIST][0]
     if not path.is_file():  # an installation without it
-        log(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
+        reporter.say(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
         return "surgery", None
     bundled = load_model(path)
     if architecture_of(bundled) != architecture:
-        log(f"  pruned start: surgery ({PRUNED_GENERALIST} is an {architecture_of(bundled)} network, "
-            f"{base_path} an {architecture} one)")
+        reporter.say(f"  pruned start: surgery ({PRUNED_GENERALIST} is an {architecture_of(bundled)} network, "
+                     f"{base_path} an {architecture} one)")
         return "surgery", None
     if conv_widths(bundled) != plan.widths:
-        log(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate {options.rate:g} "
-            f"with no layer under {plan.floor} filters, {plan.widths})")
+        reporter.say(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate "
+                     f"{options.rate:g} with no layer under {plan.floor} filters, {plan.widths})")
         return "surgery", None
     return PRUNED_GENERALIST, path
 

@@ -11,11 +11,10 @@ mean and std over the timed iterations; FPS follows timing.FPS_DEFINITION.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -23,6 +22,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import read_image
+from fcnpose_tf.progress import SILENT, Reporter
 from fcnpose_tf.records import HostInfo, host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
 from fcnpose_tf.runtime.interpreter import check_tflite_file, default_num_threads
@@ -233,8 +233,7 @@ def bench_threads(model: KeypointModel, frame: np.ndarray, frames: int, warmup: 
 
 def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = None, frames: int = 200,
               warmup: int = 10, frame: np.ndarray | None = None, frame_label: str | None = None,
-              backend: str = "auto", decoding: Decoding | None = None,
-              progress: Callable[[str], None] | None = None) -> BenchReport:
+              backend: str = "auto", decoding: Decoding | None = None, reporter: Reporter = SILENT) -> BenchReport:
     """Benchmark a .tflite at each thread count.
 
     Args:
@@ -245,7 +244,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
         frame: the BGR frame to process (default: synthetic_frame()).
         frame_label: how the frame is described in the report.
         backend, decoding: as for KeypointModel.
-        progress: called with a short message before each thread count.
+        reporter: where a short line goes before each thread count (default: nowhere).
     Returns:
         A BenchReport; a thread count whose interpreter fails is reported with its error as status.
     Raises:
@@ -265,8 +264,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
                          first.backend.name, first.backend.version, frames, warmup,
                          frame_label or f"{frame.shape[1]}x{frame.shape[0]}", decoding.threshold, host=host_info())
     for n in counts:
-        if progress is not None:
-            progress(f"{n} thread{'s' if n != 1 else ''}: {warmup} warm-up + {frames} timed frames")
+        reporter.say(f"{n} thread{'s' if n != 1 else ''}: {warmup} warm-up + {frames} timed frames")
         try:
             if first is not None:  # counts[0]: reuse the interpreter that was checked above
                 model, first = first, None
@@ -277,8 +275,3 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
             report.results.append(ThreadResult(n, f"failed: {' '.join(str(exc).split())[:60]}"))
         model = None  # free this interpreter before creating the next
     return report
-
-
-def print_progress(message: str) -> None:
-    """Default progress printer for the command (stderr)."""
-    print(message, file=sys.stderr, flush=True)

@@ -15,10 +15,12 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
+from fcnpose_tf import progress
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
+from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import file_sha256
 from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.executors import Executor, JobFunction
@@ -99,14 +101,15 @@ def finished_jobs(config: SweepConfig, jobs: list[Job]) -> set[str]:
 
 
 def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = run_job,
-              log: Callable[[str], None] = print) -> SweepOutcome:
+              reporter: Reporter | None = None) -> SweepOutcome:
     """Run every unfinished job of `config` on `executor`, then rebuild tables, plot and results.json.
 
     Args:
         config: the sweep; `prepare_config` is applied here (data fingerprints, absolute paths).
         executor: LocalExecutor or RayExecutor.
         job_fn: the job function (tests pass a fake one).
-        log: where progress lines go.
+        reporter: where the sweep's own lines go (default: the current reporter, `progress.current`); the jobs' go
+            to `config.reporter`.
     Returns:
         SweepOutcome; failed jobs do not raise (the others still run), see `failed`.
     Raises:
@@ -116,6 +119,7 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
             ones written.
     """
     config.validate()
+    log = progress.resolve(reporter).say
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a folder")
@@ -133,8 +137,7 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
             runs = previous.get("runs", [])
             rates = tuple(sorted(set(rates) | {float(r) for r in previous["config"]["rates"]}))
     config_doc = {**config.to_dict(), "rates": list(rates), "num_frames": num_frames}
-    for transient in ("force", "verbose"):
-        config_doc.pop(transient)
+    config_doc.pop("force")
 
     jobs = plan_jobs(config.folds, tuple(config.rates))
     done_before = finished_jobs(config, jobs)

@@ -22,13 +22,14 @@ import json
 import os
 import socket
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Required, TypedDict
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import MachineInfo, file_sha256, library_versions, machine_info, training_record
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
 
@@ -133,7 +134,7 @@ the sweep's own."""
 
 @dataclass(frozen=True)
 class SweepConfig:
-    """Everything a job needs, as plain values (picklable, JSON-ready).
+    """Everything a job needs, as plain values (picklable, JSON-ready but for the reporter).
 
     `data` and `out` must be paths every worker sees (absolute; on a Ray cluster a shared
     file system). `data_sha256` and `splits_sha256` identify the annotation file and its folds;
@@ -181,8 +182,9 @@ class SweepConfig:
     """Where in its cluster a keypoint is read when a job is measured (plain: the paper's Algorithm 1)."""
     threads: int = 1
     """Resolved by the command (`commands.sweep.resolve_threads`): never None here."""
-    verbose: int = 1
-    """1: Keras progress bars; 2: one line per epoch (logs, parallel workers); 0: silent training."""
+    reporter: Reporter = field(default_factory=Reporter, compare=False, repr=False)
+    """Where a job's lines and its training's progress go (a worker process gets it pickled with the config): bars on a
+    terminal; `Reporter(quiet=True)` one line per epoch (logs, parallel workers); `progress.SILENT` nothing."""
     force: bool = False
     """Redo every job, retraining base models from scratch."""
     data_sha256: str = ""
@@ -225,7 +227,8 @@ class SweepConfig:
             distill=0.0 if job.rate == 0 else self.distill, max_minutes=None)  # rates compared at equal epochs
 
     def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
+        """The settings as JSON-ready values (all but the reporter)."""
+        data = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "reporter"}
         data["rates"] = list(self.rates)
         data["retrain_epochs_by_rate"] = [list(pair) for pair in self.retrain_epochs_by_rate]
         return data
@@ -476,18 +479,6 @@ def _strip(step: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in step.items() if k not in ("export", "tflite_ops")}
 
 
-def _log(line: str) -> None:
-    print(line, flush=True)  # a worker's lines reach the driver's log as they happen
-
-
-def _reporter(config: SweepConfig) -> Any:
-    """A job's reporter: `config.verbose` as Keras counts it (`progress.from_verbose`; a worker process gets it
-    pickled with the config)."""
-    from fcnpose_tf.progress import from_verbose
-
-    return from_verbose(config.verbose)
-
-
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     from fcnpose_tf.compression.report import ModelStep, file_sizes, model_facts
     from fcnpose_tf.postprocess import Decoding
@@ -500,9 +491,9 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     checkpoint = run_paths(path)["ckpt_state"]
     if path.is_file() and not checkpoint.is_file() and not config.force:
         training = _check_reused_base(config, job, dataset, path)
-        _log(f"{job.label}: reusing {path}")
+        config.reporter.say(f"{job.label}: reusing {path}")
         model = load_model(path)
-        _log(f"{job.label}: evaluating on {len(val_idx)} validation frames")
+        config.reporter.say(f"{job.label}: evaluating on {len(val_idx)} validation frames")
         result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads,
                                                        decoding=Decoding(centroid=config.centroid)), dataset, val_idx,
                                     dataset.schema)
@@ -513,7 +504,7 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
                              augment_copies=config.augment_copies, resume=resume, force=config.force or not resume,
                              metadata={"data": config.data, "trained_by": "fcnpose-tf sweep"},
                              threads=config.threads, decoding=Decoding(centroid=config.centroid),
-                             label=f"{job.label} ({path.name})", reporter=_reporter(config))
+                             label=f"{job.label} ({path.name})", reporter=config.reporter)
         facts = trained.raw
         training: BaseTraining = {"reused": False, "resumed": resume, "epochs_run": facts["epochs_run"],
                                   "best_epoch": facts["best_epoch"], "best_val_loss": facts["best_val_loss"],
@@ -541,8 +532,8 @@ def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) 
         raise UserError(f"{path}: {maps} output maps, but the data needs {dataset.schema.num_maps}")
     record = training_record(path)
     if record is None:
-        _log(f"warning: {path} has no training record (NAME_train.json); cannot check that it was trained on "
-             f"fold {job.fold}'s training frames only")
+        config.reporter.say(f"warning: {path} has no training record (NAME_train.json); cannot check that it was "
+                            f"trained on fold {job.fold}'s training frames only")
         return {"reused": True, "record": False}
     if record.data_sha256 not in (None, config.data_sha256) or record.fold != job.fold \
             or record.split_seed not in (None, config.split_seed) or record.folds not in (None, config.folds):
@@ -564,9 +555,9 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         raise UserError(f"{base}: fold {job.fold}'s base model is missing (its base job must finish first)")
     _, val_idx = dataset.split(job.fold)
     base_sha256 = file_sha256(base)
-    _log(f"{job.label}: compressing {base.name}")
+    config.reporter.say(f"{job.label}: compressing {base.name}")
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
-                            config.compress_options(job).checked(base), force=True, reporter=_reporter(config),
+                            config.compress_options(job).checked(base), force=True, reporter=config.reporter,
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
     if report.quantized is None:  # every format refused by its keypoint gate: the job fails, one line
         reasons = "; ".join(f"{entry.quantize}: {entry.reason}" for entry in report.refused)

@@ -30,9 +30,11 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
+from fcnpose_tf import progress
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import json_default, write_json
 from fcnpose_tf.measurements import MeasurementJson
+from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import file_sha256, library_versions, machine_info
 from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.jobs import (JOBS_DIR, JobRecord, SweepConfig, base_model_path, load_data, tflite_section,
@@ -155,7 +157,7 @@ def _expected_metrics(config: SweepConfig, record: JobRecord, section: str) -> d
 
 
 def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | None = None,
-                 log: Callable[[str], None] = print,
+                 reporter: Reporter | None = None,
                  measure: Callable[[SweepConfig, JobRecord, Any], dict[str, MeasurementJson]] = measure_job,
                  ) -> RetimeOutcome:
     """Re-measure every finished job of the sweep in OUT on this machine, then rebuild the report.
@@ -164,7 +166,7 @@ def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | Non
         out: the results folder.
         threads: must equal the sweep's thread count when given (timings are tied to it).
         data: where the sweep's data is on this machine (checked by SHA-256); default: as recorded.
-        log: where progress lines go.
+        reporter: where progress lines go (default: the current reporter, `progress.current`).
         measure: the measurement function (tests pass a fake one).
     Returns:
         RetimeOutcome with the old and new FPS of every timed section.
@@ -174,6 +176,7 @@ def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | Non
             (then nothing is written).
     """
     out = Path(out)
+    log = progress.resolve(reporter).say
     config = config_from_sweep(out, data)
     if threads is not None and threads != config.threads:
         raise UserError(f"{out}: the sweep was timed with {config.threads} thread(s), so --retime measures with "
