@@ -117,12 +117,14 @@ class Setting:
         """Add this setting as `flag` (default: its own --flag) with its type, choices and help.
 
         Left out, the option takes its value from the command's --preset (recommended without one) once the
-        arguments are parsed (`fill_from_preset`): argparse sees no default, and the help states both.
+        arguments are parsed (`fill_from_preset`): argparse sees no default, and the help states both. A bool
+        setting is a flag, off unless given (its default is not shown).
         """
-        kwargs: dict[str, Any] = {"metavar": self.metavar}
-        if self.parse is not None:
+        flag_only = self.type is bool
+        kwargs: dict[str, Any] = {"action": "store_true"} if flag_only else {"metavar": self.metavar}
+        if not flag_only and self.parse is not None:
             kwargs["type"] = self.parse
-        elif self.type is not str:
+        elif not flag_only and self.type is not str:
             kwargs["type"] = self.type
         if self.choices is not None:
             kwargs["choices"] = self.choices
@@ -131,7 +133,7 @@ class Setting:
         else:
             kwargs["default"] = argparse.SUPPRESS
         help_text = self.help
-        shown = [] if self.default in (None, REQUIRED) else [f"default: {_shown(self.default)}"]
+        shown = [] if self.default in (None, REQUIRED) or flag_only else [f"default: {_shown(self.default)}"]
         if any(action.dest == "preset" for action in parser._actions) and self.paper != self.default:
             shown.append(f"--preset paper: {_shown(self.paper)}")
         if shown and "%(default)" not in help_text:
@@ -656,6 +658,34 @@ SWEEP_THREADS = THREADS.variant(
     help="CPU threads per job for TensorFlow and LiteRT (default: all cores when sequential, cores / workers "
          "with --workers, 1 per Ray task); timing figures depend on it")
 """Jobs running side by side share the cores, so the sweep's default depends on the executor."""
+INFERENCE_THREADS = THREADS.variant(help="inference threads (default: all cores)")
+"""`evaluate` and `predict` only run a model (Keras or LiteRT) on frames."""
+RUN_THREADS = THREADS.variant(help="interpreter threads (default: all cores)")
+"""`run` holds a LiteRT interpreter, nothing else."""
+BENCH_THREADS = THREADS.variant(
+    type=tuple, parse=thread_counts, metavar="N,N,...",
+    help="thread counts to compare (default: 1, 2, 4 ... up to all cores)",
+    check=lambda v: len(v) > 0 and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in v),
+    requirement="one or more thread counts, each at least 1")
+"""`bench` times a model at several thread counts (None: `runtime.bench.default_thread_counts`)."""
+
+# ------------------------------------------------------------------------------------------
+# Options of the commands that read frames and write files
+# ------------------------------------------------------------------------------------------
+
+MAX_FRAMES = Setting("max_frames", int, None, "stop after N frames", label="--max-frames", check=lambda v: v >= 1,
+                     requirement="at least 1", metavar="N")
+"""`run` and `predict` read a source until it ends (a camera: until stopped) unless given a number of frames."""
+SELECT_BY = Setting(
+    "by", str, "uniform", "--select's choice: uniform (evenly spread, the baseline), uncertain (low map confidence or "
+    "missing keypoints), jump (keypoints off their track between consecutive processed frames), disagree (keypoints "
+    "that move when the frame is flipped or zoomed out)", label="--by",
+    choices=("uniform", "uncertain", "jump", "disagree"))
+"""`predict --select`'s score (`correction.selection.STRATEGIES`, which a test holds equal). Uniform is the default:
+DeepLabCut found uncertainty sampling no better than uniform (docs/data.md)."""
+FORCE = Setting("force", bool, False, "replace existing output files", label="--force")
+"""No command replaces a file that exists without it (docs/design.md, conventions); a command names what it replaces
+in its own words (`FORCE.variant(help=...)` where it adds the option)."""
 
 # ------------------------------------------------------------------------------------------
 # Decoding (maps to keypoints), shared by evaluate, run, predict and bench

@@ -283,3 +283,49 @@ def test_compress_time_budget_reaches_the_retraining_and_a_bad_one_is_refused(cl
             "error: time budget must be a positive number of minutes, or none"), err
     status, _, err = cli_here("compress", "--rate", "0.7", "--max-minutes", "soon")
     assert status == 2 and "expected minutes or none, got 'soon'" in err
+
+
+COMMON_OPTIONS = {"threads": settings.THREADS, "max_frames": settings.MAX_FRAMES, "by": settings.SELECT_BY,
+                  "force": settings.FORCE}
+"""Options several commands share, each declared once in settings (a command's variant names its own help)."""
+
+
+def _declared(setting):
+    """The setting `setting` is a variant of (itself when it is no variant)."""
+    while "_base" in setting.__dict__:
+        setting = setting.__dict__["_base"]
+    return setting
+
+
+def test_every_commands_threads_max_frames_by_and_force_are_the_settings_ones():
+    import argparse
+
+    from fcnpose_tf.cli import build_parser
+    from fcnpose_tf.correction.selection import DEFAULT_STRATEGY, STRATEGIES
+
+    found = {}
+
+    def walk(parser, name):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for command, sub in action.choices.items():
+                    walk(sub, f"{name} {command}".strip())
+            elif action.dest in COMMON_OPTIONS:
+                setting = getattr(action, "setting", None)
+                assert setting is not None and _declared(setting) is COMMON_OPTIONS[action.dest], (name, action.dest)
+                found.setdefault(action.dest, set()).add(name)
+
+    walk(build_parser(), "")
+    assert found["threads"] >= {"train", "compress", "export", "sweep", "evaluate", "run", "predict", "bench"}
+    assert found["max_frames"] == {"run", "predict"} and found["by"] == {"predict"}
+    assert found["force"] >= {"train", "compress", "export", "prune", "sweep", "evaluate", "run", "predict", "bench",
+                              "synth", "data inspect", "data merge"}
+    assert (settings.SELECT_BY.choices, settings.SELECT_BY.default) == (STRATEGIES, DEFAULT_STRATEGY)
+    # left out, each is its setting's default, as the library's
+    args = _parsed("predict", "--source", "frames", "--via", "out.json")
+    assert (args.threads, args.max_frames, args.by, args.force) == (None, None, "uniform", False)
+    assert _parsed("predict", "--source", "f", "--via", "o.json", "--force", "--by", "jump", "--max-frames", "3",
+                   "--threads", "2").force is True
+    assert _parsed("bench", "m.tflite", "--threads", "1,2").threads == (1, 2)
+    with pytest.raises(UserError, match="--max-frames must be at least 1, got 0"):
+        settings.MAX_FRAMES.validate(0)

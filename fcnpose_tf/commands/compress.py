@@ -93,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     settings.LR_SCHEDULE, settings.FREEZE, settings.AUGMENT_COPIES,
                     settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS, settings.CENTROID):
         setting.add_to(parser)
-    parser.add_argument("--force", action="store_true", help="replace existing output files")
+    settings.FORCE.add_to(parser)
 
 
 def _rate_list(text: str) -> tuple[float, ...]:

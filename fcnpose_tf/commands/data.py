@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="show full tracebacks for errors")
     add_data_arguments(inspect)
     inspect.add_argument("--out", type=Path, help="write a preview PNG here")
-    inspect.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    settings.FORCE.variant(help="overwrite --out if it exists").add_to(inspect)
     inspect.add_argument("--samples", type=int, default=6, help="frames in the preview")
     inspect.add_argument("--input-size", type=settings.input_size_or_auto, default=settings.AUTO_INPUT_SIZE,
                          metavar="auto|S|HxW",
@@ -81,7 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="VIA region attribute holding each point's keypoint name")
     merge.add_argument("--skip-bad", action="store_true",
                        help="leave out frames with bad regions or missing images instead of stopping (listed)")
-    merge.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    settings.FORCE.variant(help="overwrite --out if it exists").add_to(merge)
 
 
 def run(args: argparse.Namespace) -> int:

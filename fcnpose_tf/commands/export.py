@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write what was exported: per file its format, size, calibration, verification "
                              "gate and graph rewrites")
-    parser.add_argument("--force", action="store_true", help="replace existing .tflite (and --json) files")
+    settings.FORCE.variant(help="replace existing .tflite (and --json) files").add_to(parser)
 
 
 def _input_range(text: str) -> tuple[float, float]:

@@ -73,8 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="ray executor: CPUs of the local Ray instance (default: all cores)")
     settings.SWEEP_THREADS.add_to(run)
     settings.SWEEP_CENTROID.add_to(parser)
-    parser.add_argument("--force", action="store_true",
-                        help="redo every job (retraining the base models), also when OUT holds other settings")
+    settings.FORCE.variant(help="redo every job (retraining the base models), also when OUT holds other settings"
+                           ).add_to(parser)
     parser.add_argument("--report-only", action="store_true",
                         help="only rebuild the tables, plot and results.json from OUT's saved jobs")
     parser.add_argument("--retime", action="store_true",

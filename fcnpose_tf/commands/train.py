@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "0.05, EPE, missing, per keypoint), in NAME_train.json and one line comparing them")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
-    parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
+    settings.FORCE.variant(help="replace existing model files / start over").add_to(parser)
     parser.add_argument("--quiet", action="store_true",
                         help="one line per epoch and no progress bars, also on a terminal (for logs; without a "
                              "terminal there are no bars either)")
