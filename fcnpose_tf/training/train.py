@@ -606,8 +606,7 @@ class AugmentChoice:
 
     def to_json(self) -> dict[str, Any]:
         """{"view_variation", "fixed_camera_max", "chose"}."""
-        return {"view_variation": self.view_variation, "fixed_camera_max": self.fixed_camera_max,
-                "chose": self.chose}
+        return asdict(self)
 
 
 def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> AugmentChoice:
