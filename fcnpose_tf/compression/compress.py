@@ -109,7 +109,13 @@ class _Run:
 
 
 def measure_base(run: _Run) -> ModelStep:
-    """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing."""
+    """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing.
+
+    Args:
+        run: the compression run.
+    Returns:
+        The report's "base" step.
+    """
     base_path = run.base_path
     keras_file = base_path if base_path.suffix == ".keras" else None
     return ModelStep.of(model_facts(run.base),
@@ -118,7 +124,13 @@ def measure_base(run: _Run) -> ModelStep:
 
 
 def retrain_fold(run: _Run) -> int | None:
-    """The fold the run retrains on: --fold, else the base model's own (its record, same data), else the hold-out split."""
+    """The fold the run retrains on: --fold, else the base model's own (its record, same data), else the hold-out split.
+
+    Args:
+        run: the compression run.
+    Returns:
+        The fold, or None for the hold-out 80/20 split.
+    """
     if run.options.fold is not None:
         return run.options.fold
     record = training_record(run.base_path)
@@ -128,8 +140,17 @@ def retrain_fold(run: _Run) -> int | None:
 
 
 def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """(images, target maps) of `options.importance_frames` training frames (seeded choice from the
-    retraining split's training frames, never the measured ones), unaugmented, as float32."""
+    """The frames a data-aware criterion scores filters on: a seeded choice of `options.importance_frames` of the
+    retraining split's training frames (never the measured ones), unaugmented.
+
+    Args:
+        run: the compression run.
+        fold: the retraining fold (`retrain_fold`; None: the hold-out split).
+    Returns:
+        (images, target maps), float32.
+    Raises:
+        UserError: the split has no training frames.
+    """
     from fcnpose_tf.data.dataset import TrainingData
 
     candidates = _training_frames(run, fold)
@@ -141,7 +162,14 @@ def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarr
 
 
 def importance_step(run: _Run, fold: int | None) -> Importance:
-    """The run's filter importance criterion, with its frames when it is data-aware."""
+    """The run's filter importance criterion, with its frames when it is data-aware.
+
+    Args:
+        run: the compression run (its options name the criterion).
+        fold: the retraining fold the frames come from (`retrain_fold`).
+    Returns:
+        The criterion (`importance.make_importance`).
+    """
     from fcnpose_tf.compression.importance import DATA_AWARE, make_importance
     from fcnpose_tf.training.train import ground_truth_loss
 
@@ -155,9 +183,14 @@ def importance_step(run: _Run, fold: int | None) -> Importance:
 
 
 def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, PruningSections, ModelStep]:
-    """Prune with the run's method (filters ranked by `importance`; None when the method takes a pruned start's
-    weights); measure the result before any retraining.
-    The pruned model, the method's report sections, and the report's pruned_before_retraining."""
+    """Prune with the run's method and measure the result before any retraining.
+
+    Args:
+        run: the compression run.
+        importance: the criterion filters are ranked by; None when the method takes a pruned start's weights.
+    Returns:
+        The pruned model, the method's report sections, and the report's pruned_before_retraining.
+    """
     from fcnpose_tf.training.model import with_view
 
     pruned, sections = run.method.prune(run.base, importance)
@@ -167,8 +200,14 @@ def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, P
 
 
 def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSections]:
-    """Retrain the pruned model through `train.fit` (or only save it with 0 epochs); the saved model, and the
-    report sections (retrain_data, distillation, retraining; none with 0 epochs)."""
+    """Retrain the pruned model through `train.fit`, or only save it with 0 retraining epochs.
+
+    Args:
+        run: the compression run.
+        pruned: the pruned model (`prune_step`).
+    Returns:
+        The model as saved, and the report sections (retrain_data, distillation, retraining; none with 0 epochs).
+    """
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.fileio import atomic_path
     from fcnpose_tf.training.model import load_model, save_for_inference
@@ -217,7 +256,16 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSe
 
 def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> Retraining:
     """The report's "retraining" part: epochs, best epoch and loss (validation: against the ground truth), time,
-    loss function, positive and teacher weights, learning rates."""
+    loss function, positive and teacher weights, learning rates.
+
+    Args:
+        result: what `train.fit` returned.
+        loss: the compiled loss's name.
+        positive_weight: the keypoint maps' weight in the loss.
+        distill: the teacher's weight (0: no distillation).
+    Returns:
+        The section.
+    """
     return Retraining(epochs_run=result.epochs_run, best_epoch=result.best_epoch, best_val_loss=result.best_val_loss,
                       seconds=round(result.seconds, 1), loss=loss, positive_weight=positive_weight, distill=distill,
                       learning_rates=[float(f"{h['lr']:.6g}") for h in result.history if "lr" in h])
@@ -225,7 +273,14 @@ def retraining_report(result: FitResult, loss: str, positive_weight: float, dist
 
 def measure_retrained(run: _Run, retrained: keras.Model) -> ModelStep:
     """The retrained Keras model as saved (the report's "retrained"): widths, parameters, MACs, file sizes, metrics
-    and timing."""
+    and timing.
+
+    Args:
+        run: the compression run.
+        retrained: the retrained model (`retrain_step`).
+    Returns:
+        The report's "retrained" step.
+    """
     keras_path = run.paths["keras"]
     return ModelStep.of(model_facts(retrained),
                         run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)"),
@@ -249,8 +304,15 @@ def _export_frames(run: _Run, quantize: str, fold: int | None) -> tuple[np.ndarr
 
 def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
     """Write one TFLite file, verified against Keras on real frames (`frames.export_frames`: the
-    first evaluation frames; int8 calibrated on the retraining split's training frames); the export result.
+    first evaluation frames; int8 calibrated on the retraining split's training frames).
 
+    Args:
+        run: the compression run.
+        retrained: the model to convert.
+        quantize: the format (`settings.TFLITE_FORMATS`).
+        fold: the retraining fold, whose training frames calibrate int8.
+    Returns:
+        The export (`export.TFLiteExport`).
     Raises:
         ExportVerificationError: the file failed its gate (nothing written).
     """
@@ -264,7 +326,15 @@ def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | No
 def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     """Quantization-aware training from the retrained model on the retraining's training frames, until its int8
     file passes the same gate against the retrained model (`fcnpose_tf.compression.qat`); the file is written when one
-    passes. Returns the `qat.QATResult` (its export None when every epoch's file was refused)."""
+    passes.
+
+    Args:
+        run: the compression run.
+        retrained: the float model the int8 file is held to.
+        fold: the retraining fold.
+    Returns:
+        The `qat.QATResult` (its export None when every epoch's file was refused).
+    """
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.compression.export import export_tflite
     from fcnpose_tf.fileio import write_bytes
@@ -291,8 +361,18 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
 
 def measure_quantized(run: _Run, export: Any, retrained_facts: ModelStep,
                       qat: dict[str, Any] | None = None) -> TFLiteStep:
-    """One TFLite file: its format, how it was quantized, size (plain and gzip), export facts, operators, metrics and
-    timing (`qat`: the quantization-aware training that made it, with the post-training refusal it replaced)."""
+    """One TFLite file measured: its format, how it was quantized, size (plain and gzip), export facts, operators,
+    metrics and timing.
+
+    Args:
+        run: the compression run.
+        export: the written file's export (`export.TFLiteExport`).
+        retrained_facts: the retrained model's step (the file's parameters and MACs are its).
+        qat: the quantization-aware training that made the file, with the post-training refusal it replaced (None:
+            post-training).
+    Returns:
+        The file's step of the report.
+    """
     from fcnpose_tf.compression.tflite_file import inspect_tflite
     from fcnpose_tf.runtime.estimator import KeypointModel
 

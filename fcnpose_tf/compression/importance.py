@@ -212,8 +212,16 @@ class FirstOrderTaylor(_DataAware):
 
 def make_importance(name: str, *, images: np.ndarray | None = None, maps: np.ndarray | None = None,
                     loss: keras.losses.Loss | None = None, batch_size: int = 8) -> Importance:
-    """The criterion `name` names (one of CRITERIA); the data-aware ones need `images` (taylor: `maps`, `loss`).
+    """The criterion `name` names (one of CRITERIA).
 
+    Args:
+        name: l1, l2, activation or taylor.
+        images: the frames the data-aware criteria (activation, taylor) run the model on.
+        maps: the frames' target maps (taylor).
+        loss: the training loss whose gradient taylor takes.
+        batch_size: frames per forward pass.
+    Returns:
+        The criterion.
     Raises:
         UserError: an unknown name, or a data-aware criterion without its frames.
     """

@@ -186,14 +186,24 @@ generalist, at the widths it has (filter surgery's at 0.7 with compress's defaul
 
 def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, architecture: str,
                  reporter: Reporter = SILENT) -> tuple[str, Path | None]:
-    """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
-    for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
-    (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
-    and the bundled file has the base's architecture (`model.ARCHITECTURES`) and the widths filter surgery gives here
-    (`plan`); else surgery, which keeps PCK@0.5
-    within 0.01 on fixed-camera models (docs/compression.md, "On your own model").
-    An explicit start is resolved as a model argument (a file, or a bundled name); its widths are checked when it is
-    loaded (`FilterPruning.prune`)."""
+    """The run's pruned start, `options.start` with auto decided. auto is PRUNED_GENERALIST when `base_path` is the
+    generalist or was trained from it (`records.lineage`) on views that vary (its record's augmentation is online:
+    `train`'s choice for such frames) and the bundled file has the base's architecture (`model.ARCHITECTURES`) and
+    the widths filter surgery gives here (`plan`); else surgery, which keeps PCK@0.5 within 0.01 on fixed-camera
+    models (docs/compression.md, "On your own model"). An explicit start is resolved as a model argument (a file, or
+    a bundled name); its widths are checked when it is loaded (`FilterPruning.prune`).
+
+    Args:
+        options: the run's options (method and start).
+        base_path: the model being compressed.
+        plan: the run's widths.
+        architecture: the base model's network (`model.ARCHITECTURES`).
+        reporter: where a fallback to surgery is said, and a bundled start's file named.
+    Returns:
+        (the start's name, the pruned model file it names; None for surgery).
+    Raises:
+        UserError: an explicit start that is neither a file nor a bundled Keras model.
+    """
     from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
     from fcnpose_tf.records import lineage
     from fcnpose_tf.training.model import architecture_of, conv_widths, load_model
@@ -228,9 +238,16 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, arc
 
 
 def pruning_method(options: CompressOptions, plan: WidthPlan, start: Path | None = None) -> PruningMethod:
-    """The pruning method `options.method` names, at the widths of `plan` (`prune.plan_widths` at the options' rate,
-    with their floor for filter surgery and none for magnitude pruning); filter surgery takes its weights from the
-    pruned model `start` when one is given (`pruned_start`)."""
+    """The pruning method `options.method` names.
+
+    Args:
+        options: the run's options.
+        plan: the widths (`prune.plan_widths` at the options' rate, with their floor for filter surgery and none for
+            magnitude pruning).
+        start: the pruned model filter surgery takes its weights from (`pruned_start`; None: surgery on the base).
+    Returns:
+        `FilterPruning` or `MagnitudePruning`.
+    """
     if options.method == "magnitude":
         return MagnitudePruning(plan)
     return FilterPruning(plan, options.strategy, options.importance, start, options.start)

@@ -354,7 +354,14 @@ def _check_metadata(metadata: dict[str, Any] | None) -> None:
 
 
 def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
-    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
+    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5.
+
+    Args:
+        model: a tf_keras model.
+        keras_path: its .keras file when written (its size is read; None: the model is saved to a temporary one).
+    Returns:
+        {"h5_size_bytes", "h5_gzip_size_bytes", "keras_size_bytes"}.
+    """
     from fcnpose_tf.training.model import h5_bytes, inference_copy, save_for_inference
 
     with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
@@ -370,7 +377,13 @@ def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, 
 
 
 def model_facts(model: keras.Model) -> ModelFacts:
-    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
+    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model.
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        Its facts, the weights that are not zero among them.
+    """
     from fcnpose_tf.training.model import conv_widths, describe
 
     rows = describe(model)
@@ -391,7 +404,13 @@ VARIED_VIEWS_RATE = 0.5
 
 def accuracy_note(report: CompressReport) -> str | None:
     """One line when the most accurate file written lost more than PCK_DROP_BUDGET of the unpruned model's PCK@0.5
-    on the measured frames (None otherwise, and when no file was written): how much, and what to try."""
+    on the measured frames: how much, and what to try.
+
+    Args:
+        report: a compression run's report.
+    Returns:
+        The line; None within the budget, and when no file was written.
+    """
     if not report.tflite_files:
         return None
     base = report.base.metrics.pck[0.5]
@@ -442,9 +461,14 @@ _DIGITS = [None, None, 1, 1, 3, 3, 3, 2, 2, 1]
 def report_table(report: CompressReport | dict[str, Any], markdown: bool = False) -> str:
     """The compression report as a table: the unpruned model beside each step of the compressed one.
 
-    `report`: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
     Sizes are of the file each row's model ships as (.h5 for Keras, .tflite), in KB (1000 bytes);
     "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
+
+    Args:
+        report: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
+        markdown: a Markdown table instead of aligned text.
+    Returns:
+        The table.
     """
     from fcnpose_tf.tables import format_table
 
@@ -459,7 +483,14 @@ def report_table(report: CompressReport | dict[str, Any], markdown: bool = False
 
 def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> str:
     """Several rates of one model in one table (`compress --rates`): the unpruned model once (the first report's
-    measurement), then per rate its retrained Keras model and its files, each row named by its rate."""
+    measurement), then per rate its retrained Keras model and its files, each row named by its rate.
+
+    Args:
+        reports: one report per rate, of the same model.
+        markdown: a Markdown table instead of aligned text.
+    Returns:
+        The table.
+    """
     from fcnpose_tf.tables import format_table
 
     rows = [_row("unpruned (Keras, .h5)", reports[0].base, reports[0].base.h5_size_bytes)]
@@ -472,7 +503,13 @@ def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> st
 
 def best_rate_note(reports: Sequence[CompressReport]) -> str:
     """One line naming the highest rate whose most accurate file stayed within PCK_DROP_BUDGET of the unpruned
-    model's PCK@0.5 (`compress --rates`), with how much each higher rate lost; or that none did."""
+    model's PCK@0.5 (`compress --rates`), with how much each higher rate lost; or that none did.
+
+    Args:
+        reports: one report per rate, of the same model.
+    Returns:
+        The line.
+    """
     base = reports[0].base.metrics.pck[0.5]
 
     def drop(report: CompressReport) -> float | None:

@@ -111,8 +111,14 @@ def _interpreter(data: bytes, num_threads: int | None = None):
 
 
 def run_tflite(interpreter, frames: np.ndarray) -> np.ndarray:
-    """Run a batch-1 interpreter on each frame (N x H x W x C float, as the Keras model takes them);
-    returns the stacked N x ... outputs as float32 (quantized inputs and outputs converted)."""
+    """Run a batch-1 interpreter on each frame, converting quantized inputs and outputs.
+
+    Args:
+        interpreter: an allocated TFLite interpreter.
+        frames: N x H x W x C float, as the Keras model takes them.
+    Returns:
+        The stacked N x ... outputs, float32.
+    """
     from fcnpose_tf.postprocess import dequantize
     from fcnpose_tf.runtime.interpreter import TensorSpec
 
@@ -334,6 +340,16 @@ def verify_outputs(model: keras.Model, tflite: bytes, inputs: np.ndarray, *, out
     classifier (N x K outputs) the top-1 class agrees on at least `top1_share` of the samples whose top-1 is not a
     tie within the measured difference.
 
+    Args:
+        model: the Keras model (tf_keras or Keras 3).
+        tflite: the converted flatbuffer.
+        inputs: N x the model's input.
+        output_rtol: the largest difference allowed, relative to the output's scale.
+        top1_share: a classifier's share of compared samples whose top-1 must agree.
+        num_threads: interpreter threads (None: the interpreter's default).
+        label: what the file is, in messages.
+    Returns:
+        What was compared and found (`OutputParity`).
     Raises:
         ExportVerificationError: naming what disagreed and by how much; nothing is written.
     """

@@ -68,7 +68,15 @@ class RecordedFrame(TypedDict):
 
 
 def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> RecordedFrame:
-    """The JSON record of one frame (keys in a stable order; coordinates in frame pixels)."""
+    """The JSON record of one frame (keys in a stable order; coordinates in frame pixels).
+
+    Args:
+        frame: the frame read.
+        prediction: its keypoints and stage times.
+        schema: the keypoints' names.
+    Returns:
+        The record.
+    """
     h, w = frame.image.shape[:2]
     t = prediction.times
     media = {"media_time_s": round(frame.media_time_s, 6)} if frame.media_time_s is not None else {}
@@ -193,7 +201,15 @@ class CsvWriter(RecordWriter):
 
 
 def record_format(path: str | os.PathLike) -> str:
-    """`jsonl` or `csv` from a file name; UserError for other endings."""
+    """The record format a file name asks for.
+
+    Args:
+        path: the output file.
+    Returns:
+        "jsonl" or "csv".
+    Raises:
+        UserError: another ending.
+    """
     suffix = Path(path).suffix.lower()
     if suffix not in RECORD_SUFFIXES:
         raise UserError(f"{path}: unknown keypoint file type {suffix or '(none)'!r}; use .jsonl or .csv")
@@ -201,7 +217,17 @@ def record_format(path: str | os.PathLike) -> str:
 
 
 def open_record_writer(path: str | os.PathLike, schema: KeypointSchema, force: bool = False) -> RecordWriter:
-    """A JsonlWriter for .jsonl/.ndjson, a CsvWriter for .csv."""
+    """A JsonlWriter for .jsonl/.ndjson, a CsvWriter for .csv.
+
+    Args:
+        path: the output file.
+        schema: the keypoints' names.
+        force: an existing file may be replaced.
+    Returns:
+        The writer (a context manager).
+    Raises:
+        UserError: another ending, or a file that exists (without `force`) or cannot be written.
+    """
     return (JsonlWriter if record_format(path) == "jsonl" else CsvWriter)(path, schema, force)
 
 
@@ -212,6 +238,16 @@ def draw_overlay(image: np.ndarray, prediction: Prediction, schema: KeypointSche
     """Draw the skeleton, the keypoints (with names) and an FPS figure top-left on a BGR frame.
 
     Missing keypoints and the edges touching them are not drawn (`fcnpose_tf.draw`'s style and palette).
+
+    Args:
+        image: the BGR frame.
+        prediction: its keypoints.
+        schema: the keypoints' names and skeleton.
+        fps: the figure to draw (None: none).
+        labels: write the keypoints' names.
+        copy: draw on a copy (False: on `image`).
+    Returns:
+        The frame drawn on.
     """
     out = draw_keypoints(image, prediction.keypoints, schema, labels=labels, copy=copy)
     h, w = out.shape[:2]
@@ -342,7 +378,15 @@ def _unused_name(path: Path) -> Path:
 
 
 def parse_outputs(paths: Sequence[str | os.PathLike]) -> list[Path]:
-    """Check record-output names (known ending, no duplicates) before anything runs."""
+    """Check record-output names (known ending, no duplicates) before anything runs.
+
+    Args:
+        paths: the --out values.
+    Returns:
+        The paths.
+    Raises:
+        UserError: an unknown ending or a file given twice.
+    """
     seen: set[Path] = set()
     out = []
     for p in paths:

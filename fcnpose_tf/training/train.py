@@ -80,15 +80,31 @@ MIN_LEARNING_RATE = 1e-5
 
 
 def cosine_rate(progress: float, learning_rate: float) -> float:
-    """The learning rate once `progress` (0 at the start, 1 at the end) of the run's budget is spent, on a half
-    cosine from `learning_rate` towards MIN_LEARNING_RATE: lr_min + (lr - lr_min)(1 + cos(pi p)) / 2."""
+    """The learning rate once `progress` of the run's budget is spent, on a half cosine from `learning_rate` towards
+    MIN_LEARNING_RATE: lr_min + (lr - lr_min)(1 + cos(pi p)) / 2.
+
+    Args:
+        progress: the share of the budget spent, 0 at the start, 1 at the end (clipped to [0, 1]).
+        learning_rate: the rate at the start.
+    Returns:
+        The learning rate.
+    """
     low = min(MIN_LEARNING_RATE, learning_rate)
     return low + (learning_rate - low) * 0.5 * (1.0 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
 
 
 def budget_progress(epoch: int, epochs: int, seconds: float, max_seconds: float | None) -> float:
-    """The share of a run's budget spent when epoch `epoch` (0-based) of `epochs` begins after `seconds` of
-    training: the larger of the epoch and the time shares, so a cosine ends with whichever budget ends first."""
+    """The share of a run's budget spent when an epoch begins: the larger of the epoch and the time shares, so a cosine
+    ends with whichever budget ends first.
+
+    Args:
+        epoch: the epoch beginning (0-based).
+        epochs: epochs at most.
+        seconds: training time so far.
+        max_seconds: the time budget (None: none).
+    Returns:
+        The share, from 0.
+    """
     spent = epoch / max(epochs, 1)
     return max(spent, seconds / max_seconds) if max_seconds else spent
 
@@ -107,7 +123,13 @@ class FitResult:
 
 
 def run_paths(model_path: Path) -> dict[str, Path]:
-    """Files belonging to the run that writes `model_path`."""
+    """Files belonging to the run that writes `model_path`.
+
+    Args:
+        model_path: the model file the run writes.
+    Returns:
+        Key -> path: model, loss_csv, loss_png, train_json and the checkpoint's (ckpt_dir, ckpt_model, ...).
+    """
     stem = model_path.with_suffix("")
     ckpt = Path(f"{stem}.ckpt")
     return {
@@ -123,13 +145,26 @@ def run_paths(model_path: Path) -> dict[str, Path]:
 
 
 def output_files(model_path: Path) -> list[Path]:
-    """The files a finished run leaves: the model, its loss curves (.csv, .png) and NAME_train.json."""
+    """The files a finished run leaves: the model, its loss curves (.csv, .png) and NAME_train.json.
+
+    Args:
+        model_path: the model file the run writes.
+    Returns:
+        The paths.
+    """
     paths = run_paths(Path(model_path))
     return [paths[key] for key in ("model", "loss_csv", "loss_png", "train_json")]
 
 
 def check_outputs(model_path: Path, force: bool = False) -> None:
-    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
+    """Refuse before any work a run whose files cannot be written.
+
+    Args:
+        model_path: the model file the run writes.
+        force: existing files may be replaced.
+    Raises:
+        UserError: a file the run will write exists (without `force`) or cannot be written.
+    """
     for path in output_files(model_path):
         check_writable(path, force)
 
@@ -183,12 +218,20 @@ def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> RunI
 
 def check_checkpoint(model_path: str | Path, *, resume: bool, force: bool,
                      identity: RunIdentity | None = None, resumable: bool = True) -> None:
-    """Refuse (UserError) a resume without a checkpoint, a checkpoint neither resumed nor forced away, and a
-    resume whose data or RESUME_SETTINGS differ from those the checkpoint was started with. For a caller that
-    cannot resume (`resumable=False`: compress), a checkpoint a killed run left behind is of no use to anyone:
-    it is removed.
+    """Refuse a run its checkpoint does not allow. For a caller that cannot resume (`resumable=False`: compress), a
+    checkpoint a killed run left behind is of no use to anyone: it is removed.
 
     Cheap (reads state.json only): commands call it before they prepare any data.
+
+    Args:
+        model_path: the model file the run writes (its checkpoint is beside it).
+        resume: the run continues its checkpoint.
+        force: the run starts over, its checkpoint discarded.
+        identity: what the run is (`run_identity`), compared with the checkpoint's when resuming.
+        resumable: whether the caller can resume at all.
+    Raises:
+        UserError: a resume without a checkpoint, a checkpoint neither resumed nor forced away, an unreadable
+            checkpoint state, or a resume whose data or RESUME_SETTINGS differ from those it was started with.
     """
     paths = run_paths(Path(model_path))
     if not resumable:
@@ -259,6 +302,12 @@ def freeze_first_convolutions(model: keras.Model, count: int) -> None:
 
     A checkpoint saved while training keeps these flags, so a resumed run trains the same layers; the
     model files a run writes have every layer trainable again (`model.save_for_inference`).
+
+    Args:
+        model: an FCN-Pose model.
+        count: convolutions to keep fixed (0: every layer trains).
+    Raises:
+        UserError: `count` leaves no convolution to train.
     """
     convolutions = [layer for layer in model.layers if isinstance(layer, keras.layers.Conv2D)]
     if count >= len(convolutions):
@@ -298,7 +347,13 @@ class DistillationLoss(keras.losses.Loss):
 
 
 def ground_truth_loss(positive_weight: float = 1.0) -> keras.losses.Loss:
-    """Binary cross-entropy over all maps (the paper's), or with keypoint pixels weighted."""
+    """Binary cross-entropy over all maps (the paper's), or with keypoint pixels weighted.
+
+    Args:
+        positive_weight: the keypoint maps' active pixels' weight (1: plain BCE).
+    Returns:
+        The loss.
+    """
     if positive_weight == 1.0:
         return keras.losses.BinaryCrossentropy()
     return KeypointBinaryCrossentropy(positive_weight)
@@ -308,6 +363,12 @@ def training_loss(positive_weight: float = 1.0, distill: float = 0.0) -> keras.l
     """The one training loss: `ground_truth_loss`, or with distill W > 0 a `DistillationLoss` around it.
 
     With distill 0 it is exactly the ground-truth loss (the same object type and values).
+
+    Args:
+        positive_weight: the keypoint maps' active pixels' weight (1: plain BCE).
+        distill: the teacher's weight W in the loss (0: none).
+    Returns:
+        The loss.
     """
     if distill == 0:
         return ground_truth_loss(positive_weight)
@@ -317,7 +378,16 @@ def training_loss(positive_weight: float = 1.0, distill: float = 0.0) -> keras.l
 def compile_for_training(model: keras.Model, learning_rate: float, positive_weight: float = 1.0,
                          distill: float = 0.0) -> keras.Model:
     """Adam and `training_loss`: binary cross-entropy over all maps (the paper's), optionally weighting keypoint
-    pixels and mixing in a teacher's maps."""
+    pixels and mixing in a teacher's maps.
+
+    Args:
+        model: the model to train.
+        learning_rate: Adam's learning rate.
+        positive_weight: the keypoint maps' active pixels' weight.
+        distill: the teacher's weight (0: none).
+    Returns:
+        `model`, compiled.
+    """
     model.compile(optimizer=keras.optimizers.Adam(learning_rate), loss=training_loss(positive_weight, distill),
                   jit_compile=False)
     return model
@@ -325,9 +395,9 @@ def compile_for_training(model: keras.Model, learning_rate: float, positive_weig
 
 BUDGET_MIN_EPOCHS = 15
 """Fewer epochs than this in the time budget earn a warning after the first one: fine-tuning from the generalist
-reached its best validation loss at epoch 16 on the held-out fixed camera (26 epochs at 384) and was still improving
-after 42 on held-out random views (docs/training.md); on a 2-core machine shared with another job an epoch at 384 x
-384 took 150-240 s, 6-8 epochs in 30 minutes."""
+needed about this many or more to reach its best validation loss on the held-out proxies, and a busy 2-core machine
+trains fewer than that in 30 minutes at 384 x 384 (docs/training.md; the runs: docs/results.md, "The crop's edge,
+and the time budget's epoch warning")."""
 
 
 class _CheckpointAndStop(keras.callbacks.Callback):
@@ -631,12 +701,19 @@ def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> 
 
 
 def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> keras.Model:
-    """FCN-Pose at `input_size` (S, (H, W) or a `FrameView` whose crop it takes; None: the view it was saved with)
-    holding the weights of the model file `init` (trained at any input size).
+    """FCN-Pose holding the weights of the model file `init` (trained at any input size).
 
-    The convolutions do not depend on the input size, so a model pretrained at 160 starts a run at
-    224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
-    record names other keypoints.
+    The convolutions do not depend on the input size, so a model pretrained at 160 starts a run at 224.
+
+    Args:
+        init: the model file training starts from.
+        schema: the keypoints the data has.
+        input_size: S, (H, W) or a `preprocess.FrameView` whose crop it takes (None: the view it was saved with).
+    Returns:
+        The model at that input size.
+    Raises:
+        UserError: `init` is no keypoint-map model, predicts other maps than `schema` needs, or its training record
+            names other keypoints.
     """
     from fcnpose_tf.keypoints import spelling_hint
     from fcnpose_tf.records import training_record
@@ -815,9 +892,20 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
     same validation frames, in frame pixels, and compared by `metrics.mean_pck` (validation losses at two sizes
     do not compare); the start replaces the model file only when it scores higher.
 
+    Args:
+        init: the starting model's file.
+        dataset: the run's dataset.
+        val_idx: the frames both models are measured on.
+        trained_report: the trained model's measurement on them.
+        model_path: the trained model's file (replaced by the start when the start scores higher).
+        view: the view the run trained at.
+        threads: threads of the start's forward pass.
+        reporter: where the comparison is said (default: the current one).
+        label: prefix of the lines.
+        decoding: how keypoints are read (`postprocess.Decoding`; default the commands').
     Returns:
-        None when the start's input size is the run's; else (the record's "start_as_saved": its input size, both
-        scores and "chose": "start" or "trained"; the start's predictor; its validation report).
+        None when the start's view is the run's; else (the record's "start_as_saved": its view, both scores and
+        "chose": "start" or "trained"; the start's predictor; its validation measurement).
     """
     from fcnpose_tf.metrics import mean_pck
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
@@ -856,7 +944,14 @@ TEST_DEFINITIONS = ("PCK@a: distance / max(w, h) of the ground truth's bounding 
 
 
 def measure_on_test_set(predictor: Any, test_data: Any) -> KeypointMetrics:
-    """Keypoint metrics (`metrics.keypoint_report`, per keypoint too) of a predictor on every frame of a test set."""
+    """Keypoint metrics (`metrics.keypoint_report`, per keypoint too) of a predictor on every frame of a test set.
+
+    Args:
+        predictor: a model ready to run (`evaluate.KerasKeypointModel`, `runtime.estimator.KeypointModel`).
+        test_data: the test set (a loaded dataset).
+    Returns:
+        The metrics.
+    """
     from fcnpose_tf.training.evaluate import evaluate_predictor
 
     report = evaluate_predictor(predictor, test_data, range(len(test_data)), test_data.schema, min_timed_frames=0,
@@ -866,7 +961,17 @@ def measure_on_test_set(predictor: Any, test_data: Any) -> KeypointMetrics:
 
 def start_on_test_set(init: str | Path, test_data: Any, threads: int | None = None) -> KeypointMetrics:
     """The starting model as saved (its own input size: what the user would run without training) measured on a
-    test set."""
+    test set.
+
+    Args:
+        init: the starting model's file.
+        test_data: the test set (a loaded dataset).
+        threads: threads of its forward pass (None: all cores).
+    Returns:
+        The metrics.
+    Raises:
+        UserError: as `initial_model`.
+    """
     from fcnpose_tf.training.evaluate import KerasKeypointModel
 
     return measure_on_test_set(KerasKeypointModel(initial_model(init, test_data.schema), Path(init),
@@ -933,7 +1038,13 @@ TEST_FIGURES: tuple[tuple[Callable[[KeypointMetrics], float | None], str, int, i
 
 
 def format_test_set_line(test: FixedTestSetRecord) -> str:
-    """One line: the test set, then start -> end of each figure, and whether the end is worse than the start."""
+    """One line: the test set, then start -> end of each figure, and whether the end is worse than the start.
+
+    Args:
+        test: NAME_train.json's "test".
+    Returns:
+        The line.
+    """
     start, end = test.start, test.end
 
     def num(value: Any, decimals: int) -> str:
@@ -959,7 +1070,14 @@ def format_test_set_line(test: FixedTestSetRecord) -> str:
 
 def loss_name(positive_weight: float, distill: float = 0.0) -> str:
     """What the training loss is, for labels: the paper's BCE, or BCE with keypoint pixels weighted (and a
-    teacher's maps mixed in)."""
+    teacher's maps mixed in).
+
+    Args:
+        positive_weight: the keypoint maps' active pixels' weight.
+        distill: the teacher's weight (0: none).
+    Returns:
+        The words.
+    """
     name = "binary cross-entropy" if positive_weight == 1 else \
         f"binary cross-entropy, keypoint pixels weighted {positive_weight:g}"
     return name if not distill else f"{name}, teacher weight {distill:g}"
@@ -967,8 +1085,16 @@ def loss_name(positive_weight: float, distill: float = 0.0) -> str:
 
 def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path, best_epoch: int,
                       positive_weight: float = 1.0, distill: float = 0.0, start_val_loss: float | None = None) -> None:
-    """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss, the kept `best_epoch`
-    marked; with `start_val_loss`, the starting model's validation loss as epoch 0)."""
+    """Write the per-epoch losses as CSV and as a PNG plot.
+
+    Args:
+        history: one {"epoch", "loss", "val_loss"} per epoch.
+        csv_path: the CSV file.
+        png_path: the plot (not written without epochs).
+        best_epoch: the kept epoch, marked.
+        positive_weight, distill: the loss, named in the plot (`loss_name`).
+        start_val_loss: the starting model's validation loss, plotted as epoch 0 (None: a random start).
+    """
     lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
     if not history:
