@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
                       skip_bad=args.skip_bad).frames
     if args.augment == "auto":
         choice = resolve_augment(frames)
-        args.augment, metadata["augment_auto"] = choice.chose, choice.to_json()
+        args.augment, metadata["augment_auto"] = choice["chose"], choice
         fixed_camera = args.augment == "paper"
     else:
         fixed_camera = args.crop == "auto" and size_was_chosen and \

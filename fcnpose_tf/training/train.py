@@ -663,9 +663,8 @@ def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> Writ
                       "then continue with --resume")
 
 
-@dataclass(frozen=True)
-class AugmentChoice:
-    """What `augment="auto"` chose and why (`resolve_augment`; NAME_train.json's "augment_auto")."""
+class AugmentChoice(TypedDict):
+    """What `augment="auto"` chose and why (`resolve_augment`; NAME_train.json's "augment_auto", as written)."""
 
     view_variation: float
     """How much the frames differ from their median, in std (`data.views.view_variation`), rounded to 4 decimals."""
@@ -673,10 +672,6 @@ class AugmentChoice:
     """The variation up to which the frames are one fixed camera (`data.views.FIXED_CAMERA_MAX_VARIATION`)."""
     chose: str
     """"paper" (one fixed camera) or "online" (views that vary)."""
-
-    def to_json(self) -> dict[str, Any]:
-        """{"view_variation", "fixed_camera_max", "chose"}."""
-        return asdict(self)
 
 
 def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> AugmentChoice:
@@ -697,7 +692,7 @@ def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> 
     progress.resolve(reporter).say(
         f"Augmentation: auto -> {augment} ({camera}: the frames differ from their median by {variation:.2f} std; a "
         f"fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION})")
-    return AugmentChoice(round(variation, 4), FIXED_CAMERA_MAX_VARIATION, augment)
+    return AugmentChoice(view_variation=round(variation, 4), fixed_camera_max=FIXED_CAMERA_MAX_VARIATION, chose=augment)
 
 
 def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> keras.Model:
