@@ -13,7 +13,9 @@ import sys
 from pathlib import Path
 from typing import Callable
 
+from fcnpose_tf import progress
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.progress import Reporter
 
 BASELINE_NAME = "fcnpose_ur5"
 """Stem of the bundled baseline: fcnpose_ur5.keras, its card, and compressed exports."""
@@ -75,14 +77,10 @@ def names_help(suffixes: tuple[str, ...] = ANY_MODEL) -> str:
     return "; ".join(f"{name}: {BUNDLED_MODELS[name][1]}" for name in bundled_names(suffixes))
 
 
-def _say(line: str) -> None:
-    print(line, flush=True)
-
-
 def resolve_model(value: str | os.PathLike, suffixes: tuple[str, ...] = ANY_MODEL,
-                  say: Callable[[str], None] = _say) -> Path:
+                  reporter: Reporter | None = None) -> Path:
     """The model file `value` names: an existing file as given, else a bundled model by name (BUNDLED_MODELS), whose
-    file `say` names.
+    file `reporter` names (default: the current reporter, `progress.current`).
 
     Raises:
         UserError: neither a file nor a bundled name, or a bundled model of another kind than `suffixes` allows.
@@ -99,7 +97,7 @@ def resolve_model(value: str | os.PathLike, suffixes: tuple[str, ...] = ANY_MODE
         path = models_dir() / file
         if not path.is_file():
             raise UserError(f"{text}: the bundled model {path} is missing")
-        say(f"{text}: the bundled model {path}")
+        progress.resolve(reporter).say(f"{text}: the bundled model {path}")
         return path
     raise UserError(f"{text}: model file not found (or one of the bundled models: {', '.join(names)})")
 

@@ -10,13 +10,13 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, NotRequired, TypedDict
 
 if TYPE_CHECKING:
     import numpy as np
 
 __all__ = ["DEFAULT_MAX_PX", "pck_key", "auc_key", "KeypointScores", "KeypointMetrics", "StageTiming", "Timing",
-           "Measurement", "Evaluation", "TrackScores", "SequenceReport"]
+           "MeasurementJson", "Measurement", "Evaluation", "TrackScores", "SequenceReport"]
 
 DEFAULT_MAX_PX: float = 20.0
 """Upper pixel threshold of PCK-AUC (DREAM)."""
@@ -203,6 +203,15 @@ class Timing:
                    fps=timing["fps"], fps_inference_only=timing["fps_inference_only"])
 
 
+class MeasurementJson(TypedDict):
+    """A `Measurement` as files hold it (`Measurement.to_json`)."""
+
+    metrics: dict[str, Any]
+    """`KeypointMetrics.to_json`."""
+    timing: NotRequired[dict[str, Any]]
+    """`Timing.to_json`, when timed."""
+
+
 @dataclass(frozen=True)
 class Measurement:
     """A model measured on frames: its keypoint metrics, and its timing when it was timed."""
@@ -210,12 +219,12 @@ class Measurement:
     metrics: KeypointMetrics
     timing: Timing | None = None
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json(self) -> MeasurementJson:
         """{"metrics"[, "timing"]}: "timing" only when timed."""
         return {"metrics": self.metrics.to_json(), **({"timing": self.timing.to_json()} if self.timing else {})}
 
     @classmethod
-    def from_json(cls, entry: dict[str, Any]) -> Measurement:
+    def from_json(cls, entry: MeasurementJson | dict[str, Any]) -> Measurement:
         """The measurement of a parsed object holding "metrics" and (when timed) "timing"."""
         timing = entry.get("timing")
         return cls(KeypointMetrics.from_json(entry["metrics"]), Timing.from_json(timing) if timing else None)

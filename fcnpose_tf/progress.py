@@ -188,7 +188,3 @@ def report_items(items: Sequence, progress: Reporter | bool | None, desc: str) -
         return items
     return resolve(None if progress is True else progress).progress(items, desc)
 
-
-def from_verbose(verbose: int) -> Reporter:
-    """The reporter a Keras-style verbosity means: 0 silent, 1 bars on a terminal, 2 lines (quiet)."""
-    return Reporter(silent=verbose == 0, quiet=verbose == 2)

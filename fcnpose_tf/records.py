@@ -12,7 +12,7 @@ import socket
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, TypedDict
 
 from fcnpose_tf.measurements import Measurement
 from fcnpose_tf.system import available_cores
@@ -166,10 +166,28 @@ def cpu_model() -> str:
     return platform.processor() or platform.machine() or "unknown"
 
 
-def machine_info(threads: int | None = None) -> dict[str, Any]:
+class MachineInfo(TypedDict, total=False):
+    """A machine as a sweep's job records, retimings and results.json hold it (`machine_info`); a record written by
+    another version may lack a key."""
+
+    hostname: str
+    cpu_model: str
+    cpu_cores: int | None
+    """os.cpu_count()."""
+    cpu_cores_available: int
+    """Cores this process may use (`system.available_cores`)."""
+    memory_bytes: int
+    """Left out where /proc/meminfo cannot be read."""
+    platform: str
+    python: str
+    threads: int
+    """The jobs' thread count, when given."""
+
+
+def machine_info(threads: int | None = None) -> MachineInfo:
     """Host, CPU model, cores, memory, OS and Python (a sweep job's record); `threads` as used by the jobs."""
-    info: dict[str, Any] = {"hostname": socket.gethostname(), "cpu_model": cpu_model(),
-                            "cpu_cores": os.cpu_count(), "cpu_cores_available": available_cores()}
+    info = MachineInfo(hostname=socket.gethostname(), cpu_model=cpu_model(), cpu_cores=os.cpu_count(),
+                       cpu_cores_available=available_cores())
     try:
         with open("/proc/meminfo", encoding="utf-8") as fh:
             kb = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal:"))

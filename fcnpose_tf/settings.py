@@ -23,10 +23,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from fcnpose_tf.bundled import KERAS_SUFFIXES, names_help
 from fcnpose_tf.errors import UserError
+
+Config = TypeVar("Config")
+"""A configuration dataclass whose fields are settings (`config_class`): FitConfig, CompressOptions, ..."""
 
 _SAME = object()
 """`Setting(paper=...)` not given: the paper's value is the default."""
@@ -114,12 +117,14 @@ class Setting:
         """Add this setting as `flag` (default: its own --flag) with its type, choices and help.
 
         Left out, the option takes its value from the command's --preset (recommended without one) once the
-        arguments are parsed (`fill_from_preset`): argparse sees no default, and the help states both.
+        arguments are parsed (`fill_from_preset`): argparse sees no default, and the help states both. A bool
+        setting is a flag, off unless given (its default is not shown).
         """
-        kwargs: dict[str, Any] = {"metavar": self.metavar}
-        if self.parse is not None:
+        flag_only = self.type is bool
+        kwargs: dict[str, Any] = {"action": "store_true"} if flag_only else {"metavar": self.metavar}
+        if not flag_only and self.parse is not None:
             kwargs["type"] = self.parse
-        elif self.type is not str:
+        elif not flag_only and self.type is not str:
             kwargs["type"] = self.type
         if self.choices is not None:
             kwargs["choices"] = self.choices
@@ -128,7 +133,7 @@ class Setting:
         else:
             kwargs["default"] = argparse.SUPPRESS
         help_text = self.help
-        shown = [] if self.default in (None, REQUIRED) else [f"default: {_shown(self.default)}"]
+        shown = [] if self.default in (None, REQUIRED) or flag_only else [f"default: {_shown(self.default)}"]
         if any(action.dest == "preset" for action in parser._actions) and self.paper != self.default:
             shown.append(f"--preset paper: {_shown(self.paper)}")
         if shown and "%(default)" not in help_text:
@@ -204,7 +209,7 @@ def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], ty
     Each field takes its name (unless given as a (name, setting) pair), type and default from its
     setting, so a configuration class states only which settings it holds; `validate` (added
     unless the class defines one) checks each with its setting's message, and `preset(name, **values)`
-    makes an instance with the named preset's values (`preset_values`) for every field not given.
+    makes an instance with the named preset's values for every field not given (`from_preset`).
     """
     def decorate(cls: type) -> type:
         annotations: dict[str, str] = {}
@@ -216,17 +221,27 @@ def config_class(*entries: Setting | tuple[str, Setting]) -> Callable[[type], ty
         cls.__annotations__ = {**annotations, **cls.__dict__.get("__annotations__", {})}
         if "validate" not in cls.__dict__:
             cls.validate = validate_fields
-        cls.preset = classmethod(_from_preset)
+        cls.preset = classmethod(from_preset)
         return dataclasses.dataclass(cls)
     return decorate
 
 
-def _from_preset(cls: type, name: str, **values: Any) -> Any:
-    """An instance of the config class `cls` with preset `name`'s value of every field not in `values`."""
-    return cls(**{**preset_values(cls, name), **values})
+def from_preset(config_type: type[Config], preset: str, **values: Any) -> Config:
+    """A configuration with the named preset's values.
+
+    Args:
+        config_type: a dataclass whose fields are declared with `Setting.field`.
+        preset: a name of PRESETS.
+        **values: fields given (a required one, such as the rate, must be).
+    Returns:
+        The configuration: each field of `values` as given, every other setting at its value under `preset`.
+    Raises:
+        UserError: an unknown preset.
+    """
+    return config_type(**{**_preset_values(config_type, preset), **values})
 
 
-def preset_values(config_type: type, preset: str) -> dict[str, Any]:
+def _preset_values(config_type: type, preset: str) -> dict[str, Any]:
     """The value under `preset` of every field of dataclass `config_type` declared with `Setting.field`
     (a required one, such as the rate, is left out)."""
     values = {}
@@ -237,10 +252,21 @@ def preset_values(config_type: type, preset: str) -> dict[str, Any]:
     return values
 
 
-def carried(source: Any, config_type: type, *, renamed: dict[str, str] | None = None, **given: Any) -> dict[str, Any]:
-    """Every field of dataclass `config_type`, read from `source` by name (`renamed`: field -> attribute of
-    `source`), `given` taking precedence. TypeError when `source` lacks one: a value a config holds is never
-    dropped on the way to another (the sweep's settings to a run's FitConfig and CompressOptions)."""
+def carried(source: Any, config_type: type[Config], *, renamed: dict[str, str] | None = None,
+            **given: Any) -> Config:
+    """A configuration read from another one (the sweep's settings to a run's FitConfig and CompressOptions).
+
+    Args:
+        source: what the values are read from, by attribute.
+        config_type: the dataclass to make.
+        renamed: field of `config_type` -> attribute of `source`, where the names differ.
+        **given: fields given, taking precedence over `source`.
+    Returns:
+        The configuration, every field read from `source` unless given.
+    Raises:
+        TypeError: `source` lacks a field's attribute (a value a config holds is never dropped on the way to
+            another).
+    """
     renamed = renamed or {}
     values = {}
     for f in dataclasses.fields(config_type):
@@ -251,7 +277,7 @@ def carried(source: Any, config_type: type, *, renamed: dict[str, str] | None = 
         if not hasattr(source, attribute):
             raise TypeError(f"{type(source).__name__} has no {attribute!r} for {config_type.__name__}.{f.name}")
         values[f.name] = getattr(source, attribute)
-    return values
+    return config_type(**values)
 
 
 def validate_fields(config: Any) -> None:
@@ -262,10 +288,23 @@ def validate_fields(config: Any) -> None:
             setting.validate(getattr(config, f.name))
 
 
-def values_from_args(args: argparse.Namespace, config_type: type, **renamed: str) -> dict[str, Any]:
-    """The fields of dataclass `config_type` that `args` holds, by name (`renamed`: field=attribute)."""
+def from_args(args: argparse.Namespace, config_type: type[Config], *, renamed: dict[str, str] | None = None,
+              **given: Any) -> Config:
+    """A configuration from a command's parsed options.
+
+    Args:
+        args: the parsed options.
+        config_type: the dataclass to make.
+        renamed: field of `config_type` -> option's attribute in `args`, where the names differ.
+        **given: fields given, taking precedence over `args`.
+    Returns:
+        The configuration: each field from the option of its name where `args` holds one, else `given`'s value or
+        the field's default.
+    """
+    renamed = renamed or {}
     names = {f.name: renamed.get(f.name, f.name) for f in dataclasses.fields(config_type)}
-    return {field: getattr(args, attr) for field, attr in names.items() if hasattr(args, attr)}
+    values = {field: getattr(args, attr) for field, attr in names.items() if hasattr(args, attr)}
+    return config_type(**{**values, **given})
 
 
 def thread_count(text: str) -> int:
@@ -631,6 +670,34 @@ SWEEP_THREADS = THREADS.variant(
     help="CPU threads per job for TensorFlow and LiteRT (default: all cores when sequential, cores / workers "
          "with --workers, 1 per Ray task); timing figures depend on it")
 """Jobs running side by side share the cores, so the sweep's default depends on the executor."""
+INFERENCE_THREADS = THREADS.variant(help="inference threads (default: all cores)")
+"""`evaluate` and `predict` only run a model (Keras or LiteRT) on frames."""
+RUN_THREADS = THREADS.variant(help="interpreter threads (default: all cores)")
+"""`run` holds a LiteRT interpreter, nothing else."""
+BENCH_THREADS = THREADS.variant(
+    type=tuple, parse=thread_counts, metavar="N,N,...",
+    help="thread counts to compare (default: 1, 2, 4 ... up to all cores)",
+    check=lambda v: len(v) > 0 and all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in v),
+    requirement="one or more thread counts, each at least 1")
+"""`bench` times a model at several thread counts (None: `runtime.bench.default_thread_counts`)."""
+
+# ------------------------------------------------------------------------------------------
+# Options of the commands that read frames and write files
+# ------------------------------------------------------------------------------------------
+
+MAX_FRAMES = Setting("max_frames", int, None, "stop after N frames", label="--max-frames", check=lambda v: v >= 1,
+                     requirement="at least 1", metavar="N")
+"""`run` and `predict` read a source until it ends (a camera: until stopped) unless given a number of frames."""
+SELECT_BY = Setting(
+    "by", str, "uniform", "--select's choice: uniform (evenly spread, the baseline), uncertain (low map confidence or "
+    "missing keypoints), jump (keypoints off their track between consecutive processed frames), disagree (keypoints "
+    "that move when the frame is flipped or zoomed out)", label="--by",
+    choices=("uniform", "uncertain", "jump", "disagree"))
+"""`predict --select`'s score (`correction.selection.STRATEGIES`, which a test holds equal). Uniform is the default:
+DeepLabCut found uncertainty sampling no better than uniform (docs/data.md)."""
+FORCE = Setting("force", bool, False, "replace existing output files", label="--force")
+"""No command replaces a file that exists without it (docs/design.md, conventions); a command names what it replaces
+in its own words (`FORCE.variant(help=...)` where it adds the option)."""
 
 # ------------------------------------------------------------------------------------------
 # Decoding (maps to keypoints), shared by evaluate, run, predict and bench

@@ -130,16 +130,18 @@ def test_resolve_view_says_what_it_chose_and_what_it_costs(tmp_path, capsys):
     from fcnpose_tf.data.via import read_via
 
     frames = read_via(_project(tmp_path / "cell", [(200 + 8 * i, 150 + 4 * i, 80, 160) for i in range(11)])).frames
-    view, record = resolve_view(frames, "auto", "auto", fixed_camera=True)
+    choice = resolve_view(frames, "auto", "auto", fixed_camera=True)
+    view, record = choice.chose, choice.to_json()
     out = capsys.readouterr().out
     assert view.crop is not None and record["chose"] == view.to_json() and record["fixed_camera"] is True
+    assert list(record) == ["arm_input_px", "min_arm_input_px", "crop", "fixed_camera", "chose", "macs"]  # as written
     assert f"View: {view.describe()} (its workspace: one fixed camera)" in out
     assert f"{fcn_pose_macs(view.shape) / 1e9:.2f} G multiply-adds a frame unpruned" in out
-    none, _ = resolve_view(frames, "auto", "none", fixed_camera=True)
+    none = resolve_view(frames, "auto", "none", fixed_camera=True).chose
     assert none.crop is None
-    given, _ = resolve_view(frames, (224, 288), "auto", fixed_camera=True)  # a given size: the whole frame, as before
+    given = resolve_view(frames, (224, 288), "auto", fixed_camera=True).chose  # a given size: the whole frame
     assert given == FrameView(224, 288)
-    given, _ = resolve_view(frames, (224, 288), "workspace", fixed_camera=True)
+    given = resolve_view(frames, (224, 288), "workspace", fixed_camera=True).chose
     assert given.shape == (224, 288) and given.crop is not None
     x, y, w, h = given.crop
     assert abs(w / h - 288 / 224) < 0.02

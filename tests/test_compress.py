@@ -460,6 +460,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     from fcnpose_tf.compression.methods import pruned_start
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.prune import plan_widths
+    from fcnpose_tf.progress import Reporter
     from fcnpose_tf.training.model import build_fcn_pose
 
     base = build_fcn_pose(input_size=64)
@@ -470,9 +471,13 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     expected = bundled_pruned_generalist / "fcnpose_ur5_generalist_p70.keras"
     lines = []
 
+    class Lines(Reporter):  # keeps what the choice says
+        def say(self, line):
+            lines.append(line)
+
     def start(options, model_path=path, floor=15, architecture="fcn-pose"):
         return pruned_start(options.resolved(), model_path, plan_widths(base, options.rate, floor), architecture,
-                            lines.append)
+                            Lines())
 
     assert CompressOptions(rate=0.7).start == "surgery"  # the default; auto is asked for
     assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)  # no record: not known to come from the generalist

@@ -111,4 +111,4 @@ def test_the_reporter_modes():
     reported = [line for line in log.getvalue().splitlines() if line.startswith("loop:")]
     assert len(reported) == 10 and reported[-1] == "loop: 100/100 frames (100 %)"
     silent = progress.Reporter(silent=True, stream=log)
-    assert silent.keras_verbose == 0 and progress.from_verbose(0).silent and progress.from_verbose(2).quiet
+    assert silent.keras_verbose == 0 and progress.Reporter(quiet=True).keras_verbose == 2

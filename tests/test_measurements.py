@@ -70,7 +70,8 @@ def test_a_bundled_compress_report_reads_typed_and_writes_back_byte_for_byte(pat
     assert isinstance(report.base, ModelStep) and isinstance(report.quantized, TFLiteStep)
     assert all(isinstance(step, TFLiteStep) for step in report.other_quantized)
     assert json.dumps(report.to_json()) == json.dumps(json.loads(text))
-    assert report.quantized.parity["keypoints_compared"] > 0 and report.base.timing.threads == report.threads
+    assert report.quantized.parity.keypoints_compared > 0 and report.base.timing.threads == report.threads
+    assert report.quantized.parity.to_dict() == json.loads(text)["quantized"]["export"]["parity"]
     assert f"{report.quantized.metrics.pck[0.05]:.3f}" in report_table(report)
 
 

@@ -136,10 +136,9 @@ def _cli_configs(preset):
     flag = [] if preset is None else ["--preset", preset]
     train, compress = _parsed(*TRAIN, *flag), _parsed("compress", "--rate", "0.7", *flag)
     sweep = _parsed("sweep", "--out", "o", "--data", "d", "--threads", "1", *flag)
-    return {"train": FitConfig(**settings.values_from_args(train, FitConfig)),
-            "compress": CompressOptions(**settings.values_from_args(compress, CompressOptions,
-                                                                    patience="retrain_patience")),
-            "export": ExportOptions(**settings.values_from_args(_parsed("export", "m.keras"), ExportOptions)),
+    return {"train": settings.from_args(train, FitConfig),
+            "compress": settings.from_args(compress, CompressOptions, renamed={"patience": "retrain_patience"}),
+            "export": settings.from_args(_parsed("export", "m.keras"), ExportOptions),
             "sweep": config_from_args(sweep)}
 
 
@@ -164,7 +163,7 @@ def test_the_api_and_the_cli_mean_the_same_with_no_options(preset):
     cli, api = _cli_configs(preset), _api_configs(preset)
     for kind in ("train", "compress", "export"):
         assert cli[kind] == api[kind], kind
-    ignored = {"out", "data", "verbose"}  # paths as given; the executor's output mode
+    ignored = {"out", "data", "reporter"}  # paths as given; where the jobs report
     for f in dataclasses.fields(api["sweep"]):
         if f.name not in ignored:
             assert getattr(cli["sweep"], f.name) == getattr(api["sweep"], f.name), f.name
@@ -303,3 +302,49 @@ def test_compress_total_budget_leaves_the_retraining_what_the_other_steps_do_not
     assert replace(options, max_minutes=None).retraining_minutes(2.5) == 10.0
     assert replace(options, max_minutes=None, total_minutes=None).retraining_minutes(4.0) is None
     assert CompressOptions.preset("paper", rate=0.7).total_minutes is None
+
+
+COMMON_OPTIONS = {"threads": settings.THREADS, "max_frames": settings.MAX_FRAMES, "by": settings.SELECT_BY,
+                  "force": settings.FORCE}
+"""Options several commands share, each declared once in settings (a command's variant names its own help)."""
+
+
+def _declared(setting):
+    """The setting `setting` is a variant of (itself when it is no variant)."""
+    while "_base" in setting.__dict__:
+        setting = setting.__dict__["_base"]
+    return setting
+
+
+def test_every_commands_threads_max_frames_by_and_force_are_the_settings_ones():
+    import argparse
+
+    from fcnpose_tf.cli import build_parser
+    from fcnpose_tf.correction.selection import DEFAULT_STRATEGY, STRATEGIES
+
+    found = {}
+
+    def walk(parser, name):
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for command, sub in action.choices.items():
+                    walk(sub, f"{name} {command}".strip())
+            elif action.dest in COMMON_OPTIONS:
+                setting = getattr(action, "setting", None)
+                assert setting is not None and _declared(setting) is COMMON_OPTIONS[action.dest], (name, action.dest)
+                found.setdefault(action.dest, set()).add(name)
+
+    walk(build_parser(), "")
+    assert found["threads"] >= {"train", "compress", "export", "sweep", "evaluate", "run", "predict", "bench"}
+    assert found["max_frames"] == {"run", "predict"} and found["by"] == {"predict"}
+    assert found["force"] >= {"train", "compress", "export", "prune", "sweep", "evaluate", "run", "predict", "bench",
+                              "synth", "data inspect", "data merge"}
+    assert (settings.SELECT_BY.choices, settings.SELECT_BY.default) == (STRATEGIES, DEFAULT_STRATEGY)
+    # left out, each is its setting's default, as the library's
+    args = _parsed("predict", "--source", "frames", "--via", "out.json")
+    assert (args.threads, args.max_frames, args.by, args.force) == (None, None, "uniform", False)
+    assert _parsed("predict", "--source", "f", "--via", "o.json", "--force", "--by", "jump", "--max-frames", "3",
+                   "--threads", "2").force is True
+    assert _parsed("bench", "m.tflite", "--threads", "1,2").threads == (1, 2)
+    with pytest.raises(UserError, match="--max-frames must be at least 1, got 0"):
+        settings.MAX_FRAMES.validate(0)

@@ -21,6 +21,7 @@ import pytest
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
+from fcnpose_tf.progress import SILENT, Reporter
 from fcnpose_tf.sweep import Job, LocalExecutor, RayExecutor, SweepConfig, parse_rates, run_sweep, write_report
 from fcnpose_tf.records import file_sha256
 from fcnpose_tf.sweep.jobs import base_model_path, job_path, plan_jobs
@@ -198,8 +199,9 @@ def test_report_from_saved_jobs_has_every_table_plot_and_results(tmp_path, frame
     import cv2
 
     config = _config(tmp_path / "res", frames, rates="full,0.1,0.3,0.5,0.7,0.9", folds=2)
-    lines = []
-    outcome = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lines.append)
+    said = Reporter(stream=io.StringIO())
+    outcome = run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=said)
+    lines = said.stream.getvalue().splitlines()
     assert len(outcome.done) == 14 and not outcome.failed and not outcome.skipped
     out = tmp_path / "res"
     for name in ("folds", "pruning", "requirements", "quantization"):
@@ -254,13 +256,13 @@ def test_report_from_saved_jobs_has_every_table_plot_and_results(tmp_path, frame
 
 def test_partial_results_show_fold_counts_and_missing_jobs(tmp_path, frames):
     config = _config(tmp_path / "res", frames)
-    run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     out = tmp_path / "res"
     (out / "jobs" / "fold1_p70.json").unlink()
     other = fake_record(SweepConfig(**{**config.to_dict(), "rates": (0.5,), "epochs": 99}), Job(0, 0.5))
     write_json(out / "jobs" / "fold0_p90.json", {**other, "job": "fold0_p90", "rate": 0.9})  # another config
     result = write_report(out)
-    pruning = {r["rate"]: r for r in result["tables"]["pruning"].records()}
+    pruning = {r["rate"]: r for r in result.tables["pruning"].records()}
     assert pruning[0.7]["folds"] == 1 and pruning[0.5]["folds"] == 2 and 0.9 not in pruning
     assert pruning[0.7]["pck@0.5_bbox"]["n"] == 1
     assert "0.980 ±" not in (out / "tables" / "pruning.md").read_text().split("| 70%")[1].split("\n")[0]
@@ -302,22 +304,23 @@ def test_report_modules_import_no_tensorflow_or_ray():
 
 def test_rerun_skips_finished_jobs_and_redoes_rates_of_a_changed_base(tmp_path, frames):
     config = _config(tmp_path / "res", frames)
-    first = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    first = run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert len(first.done) == 6
-    lines = []
-    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lines.append)
+    said = Reporter(stream=io.StringIO())
+    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=said)
+    lines = said.stream.getvalue().splitlines()
     assert again.done == [] and len(again.skipped) == 6
     assert any("skipping 6 finished job(s)" in s for s in lines) and any("nothing to run" in s for s in lines)
 
     # A job lost (e.g. interrupted) is redone; a base model replaced invalidates its fold's rate jobs
     (tmp_path / "res" / "jobs" / "fold0_p70.json").unlink()
     base_model_path(config.out, 1).write_bytes(b"retrained elsewhere")
-    third = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    third = run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert sorted(third.done) == ["fold0_p70", "fold1_base", "fold1_p50", "fold1_p70"]
 
     # More rates later: only the new jobs run, and sweep.json keeps every rate
     fourth = run_sweep(_config(tmp_path / "res", frames, rates="0.9"), LocalExecutor(), job_fn=fake_job,
-                       log=lambda s: None)
+                       reporter=SILENT)
     assert sorted(fourth.done) == ["fold0_p90", "fold1_p90"]
     assert json.loads((tmp_path / "res" / "sweep.json").read_text())["config"]["rates"] == [0.5, 0.7, 0.9]
     assert len(json.loads((tmp_path / "res" / "sweep.json").read_text())["runs"]) == 4
@@ -325,22 +328,22 @@ def test_rerun_skips_finished_jobs_and_redoes_rates_of_a_changed_base(tmp_path, 
 
 def test_failed_base_skips_its_rates_and_the_rest_still_runs(tmp_path, frames, monkeypatch):
     monkeypatch.setenv("FAKE_FAIL", "fold0_base,fold1_p50")
-    outcome = run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    outcome = run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert set(outcome.failed) == {"fold0_base", "fold1_p50"} and "made to fail" in outcome.failed["fold0_base"]
     assert sorted(outcome.not_run) == ["fold0_p50", "fold0_p70"]
     assert sorted(outcome.done) == ["fold1_base", "fold1_p70"]
     monkeypatch.delenv("FAKE_FAIL")
-    retry = run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    retry = run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert sorted(retry.done) == ["fold0_base", "fold0_p50", "fold0_p70", "fold1_p50"]
 
 
 def test_other_settings_in_the_same_folder_are_refused_unless_forced(tmp_path, frames):
-    run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(_config(tmp_path / "res", frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     changed = _config(tmp_path / "res", frames, epochs=5)
     with pytest.raises(UserError, match=r"other settings \(epochs 1 -> 5\).*--force"):
-        run_sweep(changed, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+        run_sweep(changed, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     forced = SweepConfig(**{**changed.to_dict(), "rates": changed.rates, "force": True})
-    outcome = run_sweep(forced, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    outcome = run_sweep(forced, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert len(outcome.done) == 6 and json.loads((tmp_path / "res" / "sweep.json").read_text())["config"]["epochs"] == 5
 
 
@@ -348,20 +351,20 @@ def test_per_rate_retraining_budget_is_each_jobs_own_setting(tmp_path, frames):
     out = tmp_path / "res"
     config = _config(out, frames, retrain_epochs=1, retrain_epochs_by_rate=((0.7, 3),))
     assert (config.retrain_epochs_at(0.5), config.retrain_epochs_at(0.7)) == (1, 3)
-    run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     keys = {p.stem: json.loads(p.read_text())["config_key"] for p in (out / "jobs").glob("*.json")}
     assert keys["fold0_p50"]["retrain_epochs"] == 1 and keys["fold1_p70"]["retrain_epochs"] == 3
     assert "retrain_epochs" not in keys["fold0_base"]  # a base model does not depend on retraining
     assert "retraining up to 1 epoch (3 at 70%)" in (out / "summary.md").read_text()
     assert json.loads((out / "sweep.json").read_text())["config"]["retrain_epochs_by_rate"] == [[0.7, 3]]
-    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert again.done == [] and len(again.skipped) == 6
 
     # The same folder refuses another budget for a rate it ran; adding a rate with its own budget is fine
     with pytest.raises(UserError, match=r"other settings \(retrain_epochs at 70% 3 -> 1\)"):
-        run_sweep(_config(out, frames, retrain_epochs=1), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+        run_sweep(_config(out, frames, retrain_epochs=1), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     more = run_sweep(_config(out, frames, rates="0.7,0.9", retrain_epochs=1, retrain_epochs_by_rate=((0.7, 3), (0.9, 5))),
-                     LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+                     LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert sorted(more.done) == ["fold0_p90", "fold1_p90"]
 
     # Longer retraining for some rates in a new folder that reuses the base models and the other rates' jobs
@@ -373,7 +376,7 @@ def test_per_rate_retraining_budget_is_each_jobs_own_setting(tmp_path, frames):
     for model in (out / "models").glob("base_fold*.keras"):
         shutil.copy(model, longer / "models")
     redo = run_sweep(_config(longer, frames, retrain_epochs=1, retrain_epochs_by_rate=((0.7, 8),)), LocalExecutor(),
-                     job_fn=fake_job, log=lambda s: None)
+                     job_fn=fake_job, reporter=SILENT)
     assert sorted(redo.done) == ["fold0_p70", "fold1_p70"] and len(redo.skipped) == 4
     assert json.loads((longer / "jobs" / "fold0_p70.json").read_text())["config_key"]["retrain_epochs"] == 8
 
@@ -383,16 +386,16 @@ def test_per_rate_retraining_budget_is_each_jobs_own_setting(tmp_path, frames):
 
 def test_lr_patience_is_a_result_setting_and_folders_older_than_it_still_match(tmp_path, frames):
     out = tmp_path / "res"
-    run_sweep(_config(out, frames, lr_patience=4), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(_config(out, frames, lr_patience=4), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     records = [json.loads(p.read_text()) for p in (out / "jobs").glob("*.json")]
     assert {r["config_key"]["lr_patience"] for r in records} == {4}
     assert "halved after 4 epochs without a better validation loss" in (out / "summary.md").read_text()
     with pytest.raises(UserError, match=r"other settings \(lr_patience 4 -> 0\)"):
-        run_sweep(_config(out, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+        run_sweep(_config(out, frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
 
     # A folder written before lr_patience existed: no such key anywhere; it means 0 (constant rate)
     old = tmp_path / "old"
-    run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     sweep = json.loads((old / "sweep.json").read_text())
     del sweep["config"]["lr_patience"]
     write_json(old / "sweep.json", sweep, force=True)
@@ -400,11 +403,11 @@ def test_lr_patience_is_a_result_setting_and_folders_older_than_it_still_match(t
         record = json.loads(path.read_text())
         del record["config_key"]["lr_patience"]
         write_json(path, record, force=True)
-    assert len(write_report(old)["results"].records) == 6
-    again = run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    assert len(write_report(old).results.records) == 6
+    again = run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert again.done == [] and len(again.skipped) == 6
     with pytest.raises(UserError, match=r"lr_patience 0 -> 2"):
-        run_sweep(_config(old, frames, lr_patience=2), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+        run_sweep(_config(old, frames, lr_patience=2), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
 
 
 def test_importance_distillation_and_floor_reach_rate_jobs_and_older_folders_still_match(tmp_path, frames):
@@ -415,7 +418,7 @@ def test_importance_distillation_and_floor_reach_rate_jobs_and_older_folders_sti
     assert (options.importance, options.importance_frames, options.distill) == ("taylor", 32, 0.5)
     assert options.min_filters == 12 and "no layer under 12 filters" in options.recipe()
     assert config.compress_options(Job(0, 0.0)).distill == 0.0  # the unpruned export is not retrained
-    run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     keys = {p.stem: json.loads(p.read_text())["config_key"] for p in (out / "jobs").glob("*.json")}
     assert (keys["fold0_p70"]["importance"], keys["fold0_p70"]["distill"], keys["fold0_p70"]["min_filters"]) == \
         ("taylor", 0.5, 12)
@@ -426,14 +429,14 @@ def test_importance_distillation_and_floor_reach_rate_jobs_and_older_folders_sti
     assert "filter pruning with no layer under 12 filters" in summary
     with pytest.raises(UserError, match=r"other settings \(distill 0.5 -> 0.0\)"):
         run_sweep(_config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32, min_filters=12),
-                  LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+                  LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     with pytest.raises(UserError, match=r"other settings \(min_filters 12 -> 8\)"):
         run_sweep(_config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32, distill=0.5,
-                          min_filters=8), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+                          min_filters=8), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
 
     # A folder written before criteria and distillation existed: the paper's L1 norm and no teacher
     old = tmp_path / "old"
-    run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     sweep = json.loads((old / "sweep.json").read_text())
     for name in ("importance", "importance_frames", "distill", "min_filters"):
         del sweep["config"][name]
@@ -443,7 +446,7 @@ def test_importance_distillation_and_floor_reach_rate_jobs_and_older_folders_sti
         for name in ("importance", "importance_frames", "distill", "min_filters"):
             record["config_key"].pop(name, None)
         write_json(path, record, force=True)
-    again = run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    again = run_sweep(_config(old, frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert again.done == [] and len(again.skipped) == 6
     assert "keeping n - floor(n·rate) filters per layer ranked by L1 norm (output layer untouched)" in \
         (old / "summary.md").read_text()
@@ -471,7 +474,7 @@ def test_retime_replaces_timings_keeps_metrics_and_rebuilds_the_report(tmp_path,
 
     out = tmp_path / "res"
     config = _config(out, frames)
-    run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     before = {p.name: json.loads(p.read_text()) for p in (out / "jobs").glob("*.json")}
     fps_before = {r["rate"]: r["fps"]["mean"] for r in json.loads((out / "results.json").read_text())[
         "tables"]["quantization"]["rows"]}
@@ -480,23 +483,24 @@ def test_retime_replaces_timings_keeps_metrics_and_rebuilds_the_report(tmp_path,
     raw = {p.name: p.read_bytes() for p in (out / "jobs").glob("*.json")}
     with pytest.raises(UserError, match=r"fold1_p70 keras: pck@0.5_bbox: .*nothing was written|nothing was written"
                        ) as info:
-        retime_sweep(out, measure=_fake_measure(2.0, spoil="fold1_p70"), log=lambda s: None)
+        retime_sweep(out, measure=_fake_measure(2.0, spoil="fold1_p70"), reporter=SILENT)
     assert "fold1_p70 keras: pck@0.5_bbox" in str(info.value) and "fold1_p70 tflite" in str(info.value)
     assert {p.name: p.read_bytes() for p in (out / "jobs").glob("*.json")} == raw
     with pytest.raises(UserError, match="timed with 1 thread"):
-        retime_sweep(out, threads=2, measure=_fake_measure(2.0), log=lambda s: None)
+        retime_sweep(out, threads=2, measure=_fake_measure(2.0), reporter=SILENT)
 
     # A copied folder (trained on a cluster, timed elsewhere) is retimed where it is; the original is untouched
     import shutil
 
     copy = tmp_path / "copy"
     shutil.copytree(out, copy)
-    assert len(retime_sweep(copy, measure=_fake_measure(3.0), log=lambda s: None).jobs) == 6
+    assert len(retime_sweep(copy, measure=_fake_measure(3.0), reporter=SILENT).jobs) == 6
     assert {p.name: p.read_bytes() for p in (out / "jobs").glob("*.json")} == raw
     assert json.loads((copy / "jobs" / "fold0_base.json").read_text())["retimed"]["count"] == 1
 
-    lines = []
-    outcome = retime_sweep(out, measure=_fake_measure(2.0), log=lines.append)
+    said = Reporter(stream=io.StringIO())
+    outcome = retime_sweep(out, measure=_fake_measure(2.0), reporter=said)
+    lines = said.stream.getvalue().splitlines()
     assert len(outcome.jobs) == 6 and any("metrics identical" in s for s in lines)
     for path in (out / "jobs").glob("*.json"):
         record, old = json.loads(path.read_text()), before[path.name]
@@ -516,11 +520,11 @@ def test_retime_replaces_timings_keeps_metrics_and_rebuilds_the_report(tmp_path,
     assert "re-measured with `--retime` for every job" in summary
 
     # A second retime keeps the jobs' own timings as the original; the sweep still skips every job
-    retime_sweep(out, measure=_fake_measure(1.5), log=lambda s: None)
+    retime_sweep(out, measure=_fake_measure(1.5), reporter=SILENT)
     record = json.loads((out / "jobs" / "fold0_p50.json").read_text())
     assert record["retimed"]["count"] == 2
     assert record["retimed"]["original_timing"]["keras"] == before["fold0_p50.json"]["keras"]["timing"]
-    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    again = run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     assert again.done == [] and len(again.skipped) == 6
 
 
@@ -530,7 +534,7 @@ def test_retime_needs_finished_jobs(tmp_path, frames):
     with pytest.raises(UserError, match="holds no sweep"):
         retime_sweep(tmp_path / "none", measure=_fake_measure(2.0))
     out = tmp_path / "res"
-    run_sweep(_config(out, frames), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+    run_sweep(_config(out, frames), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     for path in (out / "jobs").glob("*.json"):
         path.unlink()
     with pytest.raises(UserError, match="no finished job to retime"):
@@ -542,7 +546,7 @@ def test_too_few_frames_for_the_folds(tmp_path):
 
     frames = make_via_folder(tmp_path / "frames", n=10)
     with pytest.raises(UserError, match="too few frames for 11 folds"):
-        run_sweep(_config(tmp_path / "res", frames, folds=11), LocalExecutor(), job_fn=fake_job, log=lambda s: None)
+        run_sweep(_config(tmp_path / "res", frames, folds=11), LocalExecutor(), job_fn=fake_job, reporter=SILENT)
 
 
 def test_process_pool_limits_threads_and_keeps_bases_before_rates(tmp_path, monkeypatch):
@@ -550,7 +554,7 @@ def test_process_pool_limits_threads_and_keeps_bases_before_rates(tmp_path, monk
 
     monkeypatch.setenv("FAKE_SLEEP", "0.3")
     config = _config(tmp_path / "res", make_via_folder(tmp_path / "frames", n=10), folds=3, threads=1)
-    outcome = run_sweep(config, LocalExecutor(workers=2, threads=1), job_fn=fake_job, log=lambda s: None)
+    outcome = run_sweep(config, LocalExecutor(workers=2, threads=1), job_fn=fake_job, reporter=SILENT)
     assert len(outcome.done) == 9 and not outcome.failed  # a rate job before its base would have failed
     records = [json.loads(p.read_text()) for p in (tmp_path / "res" / "jobs").glob("*.json")]
     assert {r["worker"]["TF_NUM_INTRAOP_THREADS"] for r in records} == {"1"}
@@ -723,7 +727,7 @@ def test_a_rate_job_whose_every_format_is_refused_fails_with_one_line(tmp_path, 
                                                                             RefusedFormat("int8", "2.5 px > 2 px")])
     monkeypatch.setattr(fcnpose_tf.compression.compress, "compress_model", lambda *a, **k: report)
     options = types.SimpleNamespace(checked=lambda base: None)
-    config = types.SimpleNamespace(out=tmp_path, folds=2, verbose=0, compress_options=lambda job: options)
+    config = types.SimpleNamespace(out=tmp_path, folds=2, reporter=SILENT, compress_options=lambda job: options)
     dataset = types.SimpleNamespace(split=lambda fold: ([0, 1], [2, 3]))
     with pytest.raises(UserError, match=r"no TFLite file passed its keypoint gate \(float16: keypoint 3 lost; int8"):
         jobs._run_rate(config, jobs.Job(0, 0.7), dataset)

@@ -40,12 +40,16 @@ def test_stopped_before_the_first_epoch_leaves_no_checkpoint_and_does_not_sugges
 
 
 def test_the_test_line_compares_start_and_end_and_says_when_the_end_is_worse():
-    from fcnpose_tf.training.train import format_test_set_line
+    from fcnpose_tf.training.train import FixedTestSetRecord, format_test_set_line as line_of
+
+    def format_test_set_line(test):
+        return line_of(FixedTestSetRecord.from_json(test))
 
     start = {"pck@0.5_bbox": 0.9, "pck@0.2_bbox": 0.8, "pck@0.05_bbox": 0.3, "epe_px": 4.0, "missing_fraction": 0.0}
     better = {**start, "pck@0.05_bbox": 0.4, "epe_px": 3.5}
     worse = {**start, "pck@0.5_bbox": 0.85, "epe_px": 5.25}
-    test = {"data": "t.json", "num_frames": 12, "start_model": "generalist"}
+    test = {"data": "t.json", "data_sha256": "0" * 64, "num_frames": 12, "definitions": "d",
+            "start_model": "generalist"}
     line = format_test_set_line({**test, "start": start, "end": better})
     assert "\n" not in line and line.startswith("Test set t.json (12 frames): PCK@0.5 0.900 -> 0.900")
     assert "PCK@0.05 0.300 -> 0.400" in line and "EPE 4.00 -> 3.50 px" in line
@@ -59,6 +63,19 @@ def test_the_test_line_compares_start_and_end_and_says_when_the_end_is_worse():
         "no figure worse than the start")  # 4.00 -> 4.00 as printed
     none = format_test_set_line({**test, "start_model": None, "start": None, "end": better})
     assert "EPE 3.50 px" in none and none.endswith("no starting model to compare (--init none: random weights)")
+
+
+def test_a_bundled_test_set_record_reads_typed_and_writes_back_key_for_key():
+    from fcnpose_tf.bundled import models_dir
+    from fcnpose_tf.training.train import FixedTestSetRecord
+
+    entries = [record["test"] for path in sorted(models_dir().glob("**/*_train.json"))
+               if "test" in (record := json.loads(path.read_text()))]
+    assert entries
+    for entry in entries:
+        typed = FixedTestSetRecord.from_json(entry)
+        assert json.dumps(typed.to_json()) == json.dumps(entry)
+        assert typed.end.pck[0.5] == entry["end"]["pck@0.5_bbox"] and typed.start_model == entry["start_model"]
 
 
 TRAIN = ("--epochs", "1", "--input-size", "64", "--augment", "paper", "--augment-copies", "0", "--batch-size", "4",

@@ -32,15 +32,14 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from fcnpose_tf.settings import thread_counts
+    from fcnpose_tf import settings
 
     from fcnpose_tf.bundled import TFLITE_SUFFIXES, model_argument, names_help
 
     parser.add_argument("model", type=model_argument(TFLITE_SUFFIXES), nargs="+", metavar="MODEL",
                         help=f"one or more FCN-Pose .tflite models, files or bundled ones by name "
                              f"({names_help(TFLITE_SUFFIXES)})")
-    parser.add_argument("--threads", type=thread_counts, default=None, metavar="N,N,...",
-                        help="thread counts to compare (default: 1, 2, 4 ... up to all cores)")
+    settings.BENCH_THREADS.add_to(parser)
     parser.add_argument("--frames", type=int, default=200, help="timed frames per thread count (>= 50 advised)")
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames first, per thread count")
     parser.add_argument("--image", type=Path, help="benchmark on this image instead of a synthetic frame")
@@ -52,14 +51,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf.commands.run import add_backend_argument
 
     add_backend_argument(parser)
-    parser.add_argument("--force", action="store_true", help="replace an existing --json file")
+    settings.FORCE.variant(help="replace an existing --json file").add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:
+    import sys
+
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.postprocess import Decoding
-    from fcnpose_tf.runtime.bench import benchmark, comparison_table, load_frame, print_progress
+    from fcnpose_tf.progress import Reporter
+    from fcnpose_tf.runtime.bench import benchmark, comparison_table, load_frame
     from fcnpose_tf.runtime.sources import parse_size
 
     threads = args.threads or None
@@ -71,9 +73,10 @@ def run(args: argparse.Namespace) -> int:
                         "7680x4320); for a real camera's frame pass --image")
     frame, label = load_frame(args.image, frame_size)
     reports = []
+    progress = Reporter(stream=sys.stderr)  # the tables go to stdout
     for i, model in enumerate(args.model):
         reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
-                                 decoding=Decoding.from_args(args), progress=print_progress))
+                                 decoding=Decoding.from_args(args), reporter=progress))
         print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
     if len(reports) > 1:
         print("\nComparison (the models ran one after the other; for a speed claim, repeat in the other order):")

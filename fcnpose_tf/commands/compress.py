@@ -94,7 +94,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     settings.LR_SCHEDULE, settings.FREEZE, settings.AUGMENT_COPIES,
                     settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS, settings.CENTROID):
         setting.add_to(parser)
-    parser.add_argument("--force", action="store_true", help="replace existing output files")
+    settings.FORCE.add_to(parser)
 
 
 def _rate_list(text: str) -> tuple[float, ...]:
@@ -122,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.fileio import removed_if_left_empty
+    from fcnpose_tf.progress import SILENT
     from fcnpose_tf.system import available_cores
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
@@ -134,11 +135,11 @@ def run(args: argparse.Namespace) -> int:
     model_path = args.model
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
-    options = CompressOptions(**settings.values_from_args(args, CompressOptions, patience="retrain_patience"))
+    options = settings.from_args(args, CompressOptions, renamed={"patience": "retrain_patience"})
     every = [replace(options, rate=rate).checked(model_path) for rate in rates]  # None settings: the run's choice
     options = every[0]
     if options.method == "l1" and options.start not in ("auto", "surgery"):
-        resolve_model(options.start, KERAS_SUFFIXES, say=lambda line: None)  # a wrong --start: before the data
+        resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)  # a wrong --start: before the data
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails
@@ -187,9 +188,9 @@ def run(args: argparse.Namespace) -> int:
         export, parity = final.export, final.parity
         calibration = f"calibrated on {export['calibration_frames']} training frames; " \
             if export["calibration_frames"] else ""
-        print(f"  {calibration}verified on {parity['frames']} frames: {parity['keypoints_within_px']} of "
-              f"{parity['keypoints_compared']} keypoints within {parity['keypoint_px']:g} map px of Keras "
-              f"({parity['min_keypoint_share']:.0%} required), {parity['keypoints_lost_or_gained']} lost or gained; "
+        print(f"  {calibration}verified on {parity.frames} frames: {parity.keypoints_within_px} of "
+              f"{parity.keypoints_compared} keypoints within {parity.keypoint_px:g} map px of Keras "
+              f"({parity.min_keypoint_share:.0%} required), {parity.keypoints_lost_or_gained} lost or gained; "
               f"upsampling {'folded' if export['graph_rewrites'] else 'not folded'}")
         if final.qat:
             qat = final.qat

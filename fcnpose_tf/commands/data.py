@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                          help="show full tracebacks for errors")
     add_data_arguments(inspect)
     inspect.add_argument("--out", type=Path, help="write a preview PNG here")
-    inspect.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    settings.FORCE.variant(help="overwrite --out if it exists").add_to(inspect)
     inspect.add_argument("--samples", type=int, default=6, help="frames in the preview")
     inspect.add_argument("--input-size", type=settings.input_size_or_auto, default=settings.AUTO_INPUT_SIZE,
                          metavar="auto|S|HxW",
@@ -81,7 +81,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="VIA region attribute holding each point's keypoint name")
     merge.add_argument("--skip-bad", action="store_true",
                        help="leave out frames with bad regions or missing images instead of stopping (listed)")
-    merge.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    settings.FORCE.variant(help="overwrite --out if it exists").add_to(merge)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -163,7 +163,7 @@ def _inspect(args: argparse.Namespace) -> int:
     print(f"\nWhat `train` on its defaults chooses for these frames: augmentation {choose_augment(variation)} "
           f"({'one fixed camera' if fixed_camera else 'views that vary'}: the frames differ from their median by "
           f"{variation:.2f} std; a fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION}), and")
-    view, _ = resolve_view(ds.samples, args.input_size, args.crop, fixed_camera)
+    view = resolve_view(ds.samples, args.input_size, args.crop, fixed_camera).chose
     short = min(view.shape)
     print(f"Target maps at {view.height}x{view.width}: discs of radius {default_radius(short):.3g} px, skeleton lines "
           f"{default_thickness(short):.3g} px thick (the paper's 6 px and 30 px at 224, scaled)")

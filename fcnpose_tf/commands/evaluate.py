@@ -47,8 +47,8 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fcnpose_tf import settings
     from fcnpose_tf.data.args import add_data_arguments
-    from fcnpose_tf.settings import thread_count
     from fcnpose_tf.smoothing import add_smoothing_arguments
 
     from fcnpose_tf.bundled import model_argument, names_help
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", choices=("auto", "val", "all"), default="auto",
                         help="auto: validation frames on the model's own training data, else all frames")
     parser.add_argument("--fold", type=int, metavar="k", help="use the validation frames of fold k")
-    parser.add_argument("--threads", type=thread_count, help="inference threads (default: all cores)")
+    settings.INFERENCE_THREADS.add_to(parser)
     add_decoding_arguments(parser, fallback=True)
     parser.add_argument("--sequence", type=float, metavar="FPS",
                         help="the frames, in the VIA file's order, are a video at this frame rate (synth --motion): "
@@ -70,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pictures", type=Path, metavar="DIR",
                         help="draw the --worst frames here (PNG): prediction over ground truth, each error a line")
     parser.add_argument("--json", type=Path, metavar="OUT.json", help="also write the report as JSON")
-    parser.add_argument("--force", action="store_true", help="replace an existing --json file or pictures")
+    settings.FORCE.variant(help="replace an existing --json file or pictures").add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -65,7 +65,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write what was exported: per file its format, size, calibration, verification "
                              "gate and graph rewrites")
-    parser.add_argument("--force", action="store_true", help="replace existing .tflite (and --json) files")
+    settings.FORCE.variant(help="replace existing .tflite (and --json) files").add_to(parser)
 
 
 def _input_range(text: str) -> tuple[float, float]:
@@ -91,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
-    options = ExportOptions(**settings.values_from_args(args, ExportOptions))
+    options = settings.from_args(args, ExportOptions)
     options.validate()
     if not args.model.is_file():
         raise UserError(f"{args.model}: model file not found")

@@ -40,7 +40,7 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from fcnpose_tf.settings import thread_count
+    from fcnpose_tf import settings
     from fcnpose_tf.smoothing import add_smoothing_arguments
 
     from fcnpose_tf.bundled import model_argument, names_help
@@ -54,15 +54,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="use every Nth frame of the video or image folder")
     parser.add_argument("--min-confidence", type=float, default=0.0, metavar="C",
                         help="leave out keypoints whose map cluster has fewer than C pixels")
-    parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
-    parser.add_argument("--threads", type=thread_count, default=None,
-                        help="inference threads (default: all cores)")
+    settings.MAX_FRAMES.add_to(parser)
+    settings.INFERENCE_THREADS.add_to(parser)
     parser.add_argument("--select", type=int, default=None, metavar="N",
                         help="write only the N frames most worth correcting (scored over every processed frame)")
-    parser.add_argument("--by", choices=("uniform", "uncertain", "jump", "disagree"), default="uniform",
-                        help="--select's choice: uniform (evenly spread, the baseline), uncertain (low map confidence "
-                             "or missing keypoints), jump (keypoints off their track between consecutive processed "
-                             "frames), disagree (keypoints that move when the frame is flipped or zoomed out)")
+    settings.SELECT_BY.add_to(parser)
     parser.add_argument("--min-gap", type=int, default=None, metavar="FRAMES",
                         help="--select: no two picks closer than this many source frames (default: one second of "
                              "video at its frame rate; 1 for images)")
@@ -70,14 +66,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="draw every frame written with its points in DIR, and DIR/contact_sheet.png")
     add_decoding_arguments(parser, fallback=True)
     add_smoothing_arguments(parser, video_only=True)
-    parser.add_argument("--force", action="store_true",
-                        help="replace an existing VIA file, earlier saved frames of the same names, and pictures "
-                             "in --draw's folder")
+    settings.FORCE.variant(help="replace an existing VIA file, earlier saved frames of the same names, and pictures "
+                                "in --draw's folder").add_to(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     import sys
 
+    from fcnpose_tf import settings
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import open_model
@@ -89,8 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.every < 1:
         raise UserError(f"--every must be at least 1, got {args.every}")
-    if args.max_frames is not None and args.max_frames < 1:
-        raise UserError(f"--max-frames must be at least 1, got {args.max_frames}")
+    settings.MAX_FRAMES.validate(args.max_frames)
     if args.select is not None and args.select < 1:
         raise UserError(f"--select must be at least 1, got {args.select}")
     if args.min_gap is not None and args.min_gap < 1:

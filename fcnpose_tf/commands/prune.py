@@ -65,7 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="OUT.json",
                         help="also write the plan: groups (producers, channels, kept), per layer its widths, "
                              "parameters and MACs before and after")
-    parser.add_argument("--force", action="store_true", help="replace existing --out (and --json) files")
+    from fcnpose_tf import settings
+
+    settings.FORCE.variant(help="replace existing --out (and --json) files").add_to(parser)
 
 
 def plan_json(plan, model_path: Path, out: Path, settings: dict) -> dict:

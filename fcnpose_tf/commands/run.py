@@ -38,7 +38,7 @@ EXAMPLES = """\
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from fcnpose_tf.settings import thread_count
+    from fcnpose_tf import settings
     from fcnpose_tf.smoothing import add_smoothing_arguments
 
     from fcnpose_tf.bundled import TFLITE_SUFFIXES, model_argument, names_help
@@ -48,14 +48,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--source", required=True,
                         help="camera index (0), /dev/videoN, stream URL, picamera2[:N] (Pi camera module), "
                              "video file, image folder or image")
-    parser.add_argument("--threads", type=thread_count, default=None,
-                        help="interpreter threads (default: all cores)")
+    settings.RUN_THREADS.add_to(parser)
     parser.add_argument("--out", action="append", default=[], metavar="FILE",
                         help="keypoints per frame, .jsonl or .csv (may be given twice)")
     parser.add_argument("--save-video", type=Path, metavar="FILE",
                         help="video with keypoints, skeleton and FPS drawn (.mp4, .avi, .mkv, .mov)")
     parser.add_argument("--show", action="store_true", help="show the overlay in a window (q/Esc to stop)")
-    parser.add_argument("--max-frames", type=int, default=None, metavar="N", help="stop after N frames")
+    settings.MAX_FRAMES.add_to(parser)
     add_decoding_arguments(parser, fallback=True)
     parser.add_argument("--camera-size", metavar="WxH",
                         help="ask the camera for this resolution, e.g. 640x480 (picamera2's default: 640x480)")
@@ -70,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "docs/runtime.md, pipelined run)")
     add_smoothing_arguments(parser)
     add_backend_argument(parser)
-    parser.add_argument("--force", action="store_true", help="replace existing output files")
+    settings.FORCE.add_to(parser)
 
 
 def add_backend_argument(parser: argparse.ArgumentParser) -> None:
@@ -84,6 +83,7 @@ def add_backend_argument(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
+    from fcnpose_tf import settings
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, stop_signals_as_interrupt
     from fcnpose_tf.correction.prelabel import ViaPredictions, check_via_output
@@ -95,8 +95,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.smoothing import params_from_args
     from fcnpose_tf.system import oversubscription_note
 
-    if args.max_frames is not None and args.max_frames < 1:
-        raise UserError(f"--max-frames must be at least 1, got {args.max_frames}")
+    settings.MAX_FRAMES.validate(args.max_frames)
     oversubscribed = oversubscription_note([args.threads]) if args.threads else None
     if oversubscribed:
         print(f"warning: {oversubscribed}", file=sys.stderr)

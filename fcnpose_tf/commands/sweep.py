@@ -73,8 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="ray executor: CPUs of the local Ray instance (default: all cores)")
     settings.SWEEP_THREADS.add_to(run)
     settings.SWEEP_CENTROID.add_to(parser)
-    parser.add_argument("--force", action="store_true",
-                        help="redo every job (retraining the base models), also when OUT holds other settings")
+    settings.FORCE.variant(help="redo every job (retraining the base models), also when OUT holds other settings"
+                           ).add_to(parser)
     parser.add_argument("--report-only", action="store_true",
                         help="only rebuild the tables, plot and results.json from OUT's saved jobs")
     parser.add_argument("--retime", action="store_true",
@@ -114,16 +114,16 @@ def make_executor(args: argparse.Namespace, threads: int):
 def config_from_args(args: argparse.Namespace):
     """The SweepConfig of the parsed options (every setting by name; the rates and per-rate budgets read)."""
     from fcnpose_tf import settings
+    from fcnpose_tf.progress import Reporter
     from fcnpose_tf.sweep import SweepConfig, parse_rates
     from fcnpose_tf.sweep.rates import parse_per_rate_epochs
 
     retrain_epochs, retrain_epochs_by_rate = parse_per_rate_epochs(args.retrain_epochs)
     parallel = args.workers > 1 or args.executor == "ray"
-    return SweepConfig(**{**settings.values_from_args(args, SweepConfig), "out": str(args.out),
-                          "data": str(args.data), "images": str(args.images) if args.images else None,
-                          "rates": parse_rates(args.rates), "retrain_epochs": retrain_epochs,
-                          "retrain_epochs_by_rate": retrain_epochs_by_rate, "threads": resolve_threads(args),
-                          "verbose": 2 if (args.quiet or parallel) else 1})
+    return settings.from_args(args, SweepConfig, out=str(args.out), data=str(args.data),
+                              images=str(args.images) if args.images else None, rates=parse_rates(args.rates),
+                              retrain_epochs=retrain_epochs, retrain_epochs_by_rate=retrain_epochs_by_rate,
+                              threads=resolve_threads(args), reporter=Reporter(quiet=args.quiet or parallel))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -173,9 +173,10 @@ def _retime(args: argparse.Namespace) -> int:
     return 0
 
 
-def _print_tables(report: dict, out: Path) -> None:
-    tables = report["tables"]
-    results = report["results"]
+def _print_tables(report, out: Path) -> None:
+    """The tables of a rebuilt report (`sweep.report.SweepReport`), then where they were written."""
+    tables = report.tables
+    results = report.results
     cfg = results.config
     print(f"\nPCK normalised by max(bbox w, h); mean ± std over folds; timing on {cfg['threads']} thread(s)")
     for name in ("folds", "pruning", "requirements", "quantization"):

@@ -41,8 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--height", type=int, default=480, help="frame height in pixels")
     parser.add_argument("--workers", type=int, default=None,
                         help="rendering processes (default: one per CPU core)")
-    parser.add_argument("--force", action="store_true",
-                        help="write into a non-empty folder, replacing an earlier synthetic set")
+    from fcnpose_tf import settings
+
+    settings.FORCE.variant(help="write into a non-empty folder, replacing an earlier synthetic set").add_to(parser)
     parser.add_argument("--preview", type=Path, metavar="PNG",
                         help="also write a grid of the first 6 frames with keypoints and skeleton drawn")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -66,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "0.05, EPE, missing, per keypoint), in NAME_train.json and one line comparing them")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
-    parser.add_argument("--force", action="store_true", help="replace existing model files / start over")
+    settings.FORCE.variant(help="replace existing model files / start over").add_to(parser)
     parser.add_argument("--quiet", action="store_true",
                         help="one line per epoch and no progress bars, also on a terminal (for logs; without a "
                              "terminal there are no bars either)")
@@ -100,12 +100,12 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.training.evaluate import format_timing
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.metrics import format_report
-    from fcnpose_tf.training.train import (FitConfig, check_checkpoint, check_outputs, format_test_set_line,
-                                           resolve_augment, run_identity, start_on_test_set,
+    from fcnpose_tf.training.train import (FitConfig, FixedTestSetRecord, check_checkpoint, check_outputs,
+                                           format_test_set_line, resolve_augment, run_identity, start_on_test_set,
                                            train_fold)
 
     init = initial_weights(args.init)
-    config = FitConfig(**settings.values_from_args(args, FitConfig))  # settings left None: chosen per run (resolved)
+    config = settings.from_args(args, FitConfig)  # settings left None: chosen per run (resolved)
     config.validate()
     for setting in (settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
                     settings.TRAIN_FOLDS, settings.FOLD, settings.THREADS):
@@ -144,7 +144,8 @@ def run(args: argparse.Namespace) -> int:
     frames = read_via(via_path, images_dir, attribute=args.keypoint_attr, min_visible=args.min_visible,
                       skip_bad=args.skip_bad).frames
     if args.augment == "auto":
-        args.augment, metadata["augment_auto"] = resolve_augment(frames)
+        choice = resolve_augment(frames)
+        args.augment, metadata["augment_auto"] = choice["chose"], choice
         fixed_camera = args.augment == "paper"
     else:
         fixed_camera = args.crop == "auto" and size_was_chosen and \
@@ -153,7 +154,8 @@ def run(args: argparse.Namespace) -> int:
 
     start_model = load_model(init) if init is not None else None  # read once: its view and its network
     start_view = view_of(start_model) if size_was_chosen and start_model is not None else None
-    view, metadata["view_auto"] = resolve_view(frames, args.input_size, args.crop, fixed_camera, start=start_view)
+    view_choice = resolve_view(frames, args.input_size, args.crop, fixed_camera, start=start_view)
+    view, metadata["view_auto"] = view_choice.chose, view_choice.to_json()
     args.input_size = view
     if args.architecture is None:  # the start's own network
         args.architecture = architecture_of(start_model) if start_model is not None else "fcn-pose"
@@ -172,8 +174,7 @@ def run(args: argparse.Namespace) -> int:
     if test is not None and init is not None:
         print(f"Measuring the starting model ({metadata['init']}) on the {len(test)} frames of the test set "
               f"{test.via_path}")
-        test_start = {"model": metadata["init"],
-                      "metrics": start_on_test_set(init, test, args.threads).to_json()}
+        test_start = (metadata["init"], start_on_test_set(init, test, args.threads))
     reports = []
     test_lines = []
     for fold in folds:
@@ -188,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
         print(format_timing(validation.timing))
         reports.append((fold, validation))
         if test is not None:
-            line = format_test_set_line(record.raw["test"])
+            line = format_test_set_line(FixedTestSetRecord.from_json(record.raw["test"]))
             test_lines.append(line if len(folds) == 1 else f"fold {fold}: {line}")
             print(line)
     if len(reports) > 1:

@@ -41,7 +41,14 @@ SUPPORTED = ("Conv2D, Conv2DTranspose, SeparableConv2D, DepthwiseConv2D, Dense, 
 
 
 def unsupported(layer: Any, why: str = "") -> UserError:
-    """The one-line refusal naming `layer` and its type (and why, if given)."""
+    """The one-line refusal naming `layer` and its type (and why, if given).
+
+    Args:
+        layer: the layer graph pruning cannot handle.
+        why: what about it is unsupported ("" says no more).
+    Returns:
+        The error, for the caller to raise.
+    """
     return UserError(f"unsupported layer {layer.name} ({type(layer).__name__}){': ' + why if why else ''}; "
                      f"graph pruning handles {SUPPORTED} layers")
 
@@ -350,6 +357,11 @@ _TABLES: dict[str, dict[type, Rule]] = {}
 def rule_for(layer: Any, keras: ModuleType) -> Rule:
     """The rule of `layer`'s exact class in the Keras module `keras` (tf_keras or keras).
 
+    Args:
+        layer: a layer of the model being pruned.
+        keras: the Keras module the model was built with (`depgraph.keras_of`).
+    Returns:
+        How the layer's channels couple its inputs and outputs.
     Raises:
         UserError: for a nested model or a layer type without a rule ("unsupported layer NAME (TYPE)").
     """

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from fcnpose_tf import progress, settings
-from fcnpose_tf.compression.methods import Log, PruningMethod, pruned_start, pruning_method
+from fcnpose_tf.compression.methods import PruningMethod, pruned_start, pruning_method
 from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
 from fcnpose_tf.compression.report import (CompressReport, ModelStep, PruningSections, RefusedFormat, RetrainSections,
                                            Retraining, TFLiteStep, _check_metadata, file_sizes, model_facts)
@@ -53,9 +53,9 @@ if TYPE_CHECKING:
 # read its settings) without needing TensorFlow until a compression runs.
 
 
-def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, log: Log,
+def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, reporter: Reporter,
              timing: bool = True) -> Measurement:
-    log(f"  evaluating {label} on {len(indices)} frames ...")
+    reporter.say(f"  evaluating {label} on {len(indices)} frames ...")
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema,
                                 min_timed_frames=50 if timing else 1, warmup=5 if timing else 1)
     return result.measurement(timed=timing)
@@ -92,7 +92,7 @@ class _Run:
 
     def measure(self, predictor: Any, label: str, timing: bool = True) -> Measurement:
         """Metrics (and timing) of a predictor on the run's frames."""
-        return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.log, timing=timing)
+        return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.reporter, timing=timing)
 
     @property
     def decoding(self) -> Decoding:
@@ -140,7 +140,13 @@ class _ScoredOnce:
 
 
 def measure_base(run: _Run) -> ModelStep:
-    """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing."""
+    """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing.
+
+    Args:
+        run: the compression run.
+    Returns:
+        The report's "base" step.
+    """
     base_path = run.base_path
     keras_file = base_path if base_path.suffix == ".keras" else None
     return ModelStep.of(model_facts(run.base),
@@ -149,7 +155,13 @@ def measure_base(run: _Run) -> ModelStep:
 
 
 def retrain_fold(run: _Run) -> int | None:
-    """The fold the run retrains on: --fold, else the base model's own (its record, same data), else the hold-out split."""
+    """The fold the run retrains on: --fold, else the base model's own (its record, same data), else the hold-out split.
+
+    Args:
+        run: the compression run.
+    Returns:
+        The fold, or None for the hold-out 80/20 split.
+    """
     if run.options.fold is not None:
         return run.options.fold
     record = training_record(run.base_path)
@@ -159,8 +171,17 @@ def retrain_fold(run: _Run) -> int | None:
 
 
 def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """(images, target maps) of `options.importance_frames` training frames (seeded choice from the
-    retraining split's training frames, never the measured ones), unaugmented, as float32."""
+    """The frames a data-aware criterion scores filters on: a seeded choice of `options.importance_frames` of the
+    retraining split's training frames (never the measured ones), unaugmented.
+
+    Args:
+        run: the compression run.
+        fold: the retraining fold (`retrain_fold`; None: the hold-out split).
+    Returns:
+        (images, target maps), float32.
+    Raises:
+        UserError: the split has no training frames.
+    """
     from fcnpose_tf.data.dataset import TrainingData
 
     candidates = _training_frames(run, fold)
@@ -172,7 +193,14 @@ def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarr
 
 
 def importance_step(run: _Run, fold: int | None) -> Importance:
-    """The run's filter importance criterion, with its frames when it is data-aware."""
+    """The run's filter importance criterion, with its frames when it is data-aware.
+
+    Args:
+        run: the compression run (its options name the criterion).
+        fold: the retraining fold the frames come from (`retrain_fold`).
+    Returns:
+        The criterion (`importance.make_importance`).
+    """
     from fcnpose_tf.compression.importance import DATA_AWARE, make_importance
     from fcnpose_tf.training.train import ground_truth_loss
 
@@ -201,9 +229,14 @@ def _shared_importance(run: _Run, shared: SharedScoring) -> Importance:
 
 
 def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, PruningSections, ModelStep]:
-    """Prune with the run's method (filters ranked by `importance`; None when the method takes a pruned start's
-    weights); measure the result before any retraining.
-    The pruned model, the method's report sections, and the report's pruned_before_retraining."""
+    """Prune with the run's method and measure the result before any retraining.
+
+    Args:
+        run: the compression run.
+        importance: the criterion filters are ranked by; None when the method takes a pruned start's weights.
+    Returns:
+        The pruned model, the method's report sections, and the report's pruned_before_retraining.
+    """
     from fcnpose_tf.training.model import with_view
 
     pruned, sections = run.method.prune(run.base, importance)
@@ -213,8 +246,14 @@ def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, P
 
 
 def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSections]:
-    """Retrain the pruned model through `train.fit` (or only save it with 0 epochs); the saved model, and the
-    report sections (retrain_data, distillation, retraining; none with 0 epochs)."""
+    """Retrain the pruned model through `train.fit`, or only save it with 0 retraining epochs.
+
+    Args:
+        run: the compression run.
+        pruned: the pruned model (`prune_step`).
+    Returns:
+        The model as saved, and the report sections (retrain_data, distillation, retraining; none with 0 epochs).
+    """
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.fileio import atomic_path
     from fcnpose_tf.training.model import load_model, save_for_inference
@@ -263,7 +302,16 @@ def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSe
 
 def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> Retraining:
     """The report's "retraining" part: epochs, best epoch and loss (validation: against the ground truth), time,
-    loss function, positive and teacher weights, learning rates."""
+    loss function, positive and teacher weights, learning rates.
+
+    Args:
+        result: what `train.fit` returned.
+        loss: the compiled loss's name.
+        positive_weight: the keypoint maps' weight in the loss.
+        distill: the teacher's weight (0: no distillation).
+    Returns:
+        The section.
+    """
     return Retraining(epochs_run=result.epochs_run, best_epoch=result.best_epoch, best_val_loss=result.best_val_loss,
                       seconds=round(result.seconds, 1), loss=loss, positive_weight=positive_weight, distill=distill,
                       learning_rates=[float(f"{h['lr']:.6g}") for h in result.history if "lr" in h])
@@ -271,7 +319,14 @@ def retraining_report(result: FitResult, loss: str, positive_weight: float, dist
 
 def measure_retrained(run: _Run, retrained: keras.Model) -> ModelStep:
     """The retrained Keras model as saved (the report's "retrained"): widths, parameters, MACs, file sizes, metrics
-    and timing."""
+    and timing.
+
+    Args:
+        run: the compression run.
+        retrained: the retrained model (`retrain_step`).
+    Returns:
+        The report's "retrained" step.
+    """
     keras_path = run.paths["keras"]
     return ModelStep.of(model_facts(retrained),
                         run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)"),
@@ -295,8 +350,15 @@ def _export_frames(run: _Run, quantize: str, fold: int | None) -> tuple[np.ndarr
 
 def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
     """Write one TFLite file, verified against Keras on real frames (`frames.export_frames`: the
-    first evaluation frames; int8 calibrated on the retraining split's training frames); the export result.
+    first evaluation frames; int8 calibrated on the retraining split's training frames).
 
+    Args:
+        run: the compression run.
+        retrained: the model to convert.
+        quantize: the format (`settings.TFLITE_FORMATS`).
+        fold: the retraining fold, whose training frames calibrate int8.
+    Returns:
+        The export (`export.TFLiteExport`).
     Raises:
         ExportVerificationError: the file failed its gate (nothing written).
     """
@@ -310,7 +372,15 @@ def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | No
 def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
     """Quantization-aware training from the retrained model on the retraining's training frames, until its int8
     file passes the same gate against the retrained model (`fcnpose_tf.compression.qat`); the file is written when one
-    passes. Returns the `qat.QATResult` (its export None when every epoch's file was refused)."""
+    passes.
+
+    Args:
+        run: the compression run.
+        retrained: the float model the int8 file is held to.
+        fold: the retraining fold.
+    Returns:
+        The `qat.QATResult` (its export None when every epoch's file was refused).
+    """
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.compression.export import export_tflite
     from fcnpose_tf.fileio import write_bytes
@@ -337,8 +407,18 @@ def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
 
 def measure_quantized(run: _Run, export: Any, retrained_facts: ModelStep,
                       qat: dict[str, Any] | None = None) -> TFLiteStep:
-    """One TFLite file: its format, how it was quantized, size (plain and gzip), export facts, operators, metrics and
-    timing (`qat`: the quantization-aware training that made it, with the post-training refusal it replaced)."""
+    """One TFLite file measured: its format, how it was quantized, size (plain and gzip), export facts, operators,
+    metrics and timing.
+
+    Args:
+        run: the compression run.
+        export: the written file's export (`export.TFLiteExport`).
+        retrained_facts: the retrained model's step (the file's parameters and MACs are its).
+        qat: the quantization-aware training that made the file, with the post-training refusal it replaced (None:
+            post-training).
+    Returns:
+        The file's step of the report.
+    """
     from fcnpose_tf.compression.tflite_file import inspect_tflite
     from fcnpose_tf.runtime.estimator import KeypointModel
 
@@ -413,7 +493,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         width = max(32, int(round(options.input_size * saved_view.width / saved_view.height / 32)) * 32)
         base = at_input_size(base, (options.input_size, width))
     plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0)
-    start_name, start_path = pruned_start(options, base_path, plan, architecture, say)
+    start_name, start_path = pruned_start(options, base_path, plan, architecture, reporter)
     options = replace(options, start=start_name)
     run = _Run(base_path, base, pruning_method(options, plan, start_path), options, paths, train_dataset,
                eval_dataset, eval_indices, force, reporter, options.recipe(plan.floor))

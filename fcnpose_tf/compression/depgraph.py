@@ -50,6 +50,10 @@ from fcnpose_tf.tables import format_table
 def keras_of(model: Any) -> ModuleType:
     """The Keras module `model` was built with: ``tf_keras`` (Keras 2) or ``keras`` (Keras 3).
 
+    Args:
+        model: a built Keras model.
+    Returns:
+        The module.
     Raises:
         UserError: for an object that is not a model of either, or a model without inputs (not built).
     """
@@ -77,6 +81,13 @@ class TracedOp:
 
 
 def tensor_key(tensor: Any) -> tuple:
+    """Where a symbolic tensor comes from, the same for every reference to it.
+
+    Args:
+        tensor: a Keras tensor of a functional model.
+    Returns:
+        (producing layer's name, node index, tensor index).
+    """
     layer, node_index, tensor_index = tensor._keras_history
     return (layer.name, int(node_index), int(tensor_index))
 
@@ -289,6 +300,13 @@ def dependency_graph(model: Any, keep: Iterable[str] = ()) -> DependencyGraph:
 
 
 def short_list(names: tuple[str, ...], shown: int = 3) -> str:
-    """The first `shown` names, then "+k more"."""
+    """The first `shown` names, then "+k more".
+
+    Args:
+        names: layer names.
+        shown: how many to name.
+    Returns:
+        The names, comma-separated.
+    """
     more = len(names) - shown
     return ", ".join(names[:shown]) + (f" +{more} more" if more > 0 else "")

@@ -248,10 +248,14 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
     """Convert a tf_keras model to TFLite and verify the result by running it.
 
     Same as `to_tflite`, but returns the bytes together with the conversion time, the parity
-    report and the graph rewrites (for `compress` reports). `reference` is the model the file is
-    verified against (default: `model` itself): a quantization-aware copy of a model
-    (`fcnpose_tf.compression.qat`) is converted, and its file is held to the model it was trained from.
+    report and the graph rewrites (for `compress` reports).
 
+    Args:
+        model, quantize, sample_frames, num_samples, seed, input_size, map_atol, keypoint_px, threshold,
+            check_keypoints, num_threads, fold_upsampling, calibration_frames: as for `to_tflite`.
+        reference: the model the file is verified against (default: `model` itself): a quantization-aware copy of
+            a model (`fcnpose_tf.compression.qat`) is converted, and its file is held to the model it was trained
+            from.
     Returns:
         A `TFLiteExport`.
     Raises:
@@ -293,7 +297,13 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
 def is_keypoint_model(model: Any) -> bool:
     """Whether `model` is held to the keypoint gate: a tf_keras model with one output of 2-D maps (N x H x W x C,
     C >= 2), as FCN-Pose and its pruned and fine-tuned forms are. Any other model (Keras 3, a classifier, ...) is
-    held to output parity (`export_generic`)."""
+    held to output parity (`export_generic`).
+
+    Args:
+        model: a tf_keras or Keras 3 model.
+    Returns:
+        True for a keypoint-map model.
+    """
     if type(model).__module__.split(".")[0] != "tf_keras" or len(getattr(model, "outputs", None) or []) != 1:
         return False
     shape = tuple(model.outputs[0].shape)
@@ -309,10 +319,22 @@ def export_generic(model: Any, quantize: str = DEFAULT_QUANTIZE, *, sample_input
     input and one output) and verify the file by output parity (`verify.verify_outputs`).
 
     The file has a static 1 x H x W x C float32 input and float32 output in every format (an int8 file quantizes
-    and dequantizes inside). Verified on `sample_inputs`, else `num_samples` seeded random inputs uniform in
-    `input_range`; an int8 file is calibrated on `calibration_inputs`, else `calibration_count` random inputs in
-    `input_range` (another seed). Bounds per format: `settings.TFLITE_FORMATS`' output_rtol and top1_share.
+    and dequantizes inside). Bounds per format: `settings.TFLITE_FORMATS`' output_rtol and top1_share.
 
+    Args:
+        model: the model to convert.
+        quantize: the format (`settings.TFLITE_FORMATS`).
+        sample_inputs: inputs to verify on (N x the model's input); None: `num_samples` seeded random inputs
+            uniform in `input_range`.
+        calibration_inputs: int8's calibration inputs; None: `calibration_count` random inputs in `input_range`
+            (another seed).
+        num_samples: random inputs to verify on without `sample_inputs`.
+        calibration_count: random calibration inputs without `calibration_inputs`.
+        input_range: (low, high) of the values the model takes.
+        seed: seed of the random inputs.
+        num_threads: interpreter threads of the check (None: the interpreter's default).
+    Returns:
+        A `TFLiteExport` (its parity a `verify.OutputParity`).
     Raises:
         UserError: for a bad argument or a conversion that fails.
         ExportVerificationError: if the file does not load or disagrees with the Keras model.
@@ -451,8 +473,19 @@ def write_tflite(model: keras.Model, path: str | os.PathLike, quantize: str = DE
 def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool,
                    gate: str = "keypoint gate") -> int:
     """The end of a command whose formats the keypoint gate may refuse (`export`, `compress`): name every
-    file written, then its exit status. UserError (exit 2) when no .tflite file was written, or when a
-    format the user named with --quantize was refused; else 0, with a note naming the refused formats."""
+    file written, then its exit status.
+
+    Args:
+        written: the files written.
+        refused: the formats refused.
+        any_tflite: whether any .tflite file was written.
+        named: whether the user named the formats with --quantize (a refusal is then an error).
+        gate: what refused them, in words.
+    Returns:
+        0, with a note naming the refused formats.
+    Raises:
+        UserError: (exit 2) no .tflite file was written, or a format the user named was refused.
+    """
     for path in written:
         print(f"wrote {path}")
     names = ", ".join(refused)

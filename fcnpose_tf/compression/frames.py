@@ -16,12 +16,24 @@ from fcnpose_tf.settings import TFLITE_FORMATS
 def export_frames(quantize: str, input_size: ViewLike, train_dataset: Any, train_indices: Sequence[int],
                   check_dataset: Any, check_indices: Sequence[int], calibration_count: int,
                   seed: int = settings.CALIBRATION_SEED.default) -> tuple[np.ndarray, np.ndarray | None]:
-    """Real frames for `export_tflite`: (sample_frames, calibration_frames or None).
+    """Real frames for `export_tflite`.
 
     The file is verified on the first `settings.TFLITE_FORMATS`' min_frames frames of `check_indices` (16, topped
     up with training frames when there are fewer); an int8 file is calibrated on up to
     `calibration_count` frames drawn (seeded) from `train_indices`, which should hold no frame a
     result is measured on.
+
+    Args:
+        quantize: the format (`settings.TFLITE_FORMATS`).
+        input_size: the model's view (S, (H, W) or a `preprocess.FrameView`).
+        train_dataset, train_indices: the training frames int8 is calibrated on.
+        check_dataset, check_indices: the frames the file is verified on.
+        calibration_count: calibration frames at most.
+        seed: seed of the calibration frames' choice.
+    Returns:
+        (sample_frames, calibration_frames or None for a format without calibration).
+    Raises:
+        UserError: as `calibration_frames`.
     """
     from fcnpose_tf.preprocess import preprocess_frame
 
@@ -43,6 +55,14 @@ def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_s
 
     Draw them from training frames, never from the frames a result is measured on.
 
+    Args:
+        dataset: a loaded dataset.
+        indices: the frames to draw from.
+        count: how many.
+        input_size: the model's view (S, (H, W) or a `preprocess.FrameView`).
+        seed: seed of the choice.
+    Returns:
+        count x H x W x 3 float32 frames.
     Raises:
         UserError: if `count` is not a positive number or `indices` holds fewer frames.
     """
@@ -63,8 +83,19 @@ GENERIC_SAMPLES = 16
 
 def random_inputs(input_shape: tuple[int, ...], count: int, input_range: tuple[float, float],
                   seed: int) -> np.ndarray:
-    """`count` seeded inputs uniform in `input_range` (the range the model takes, e.g. (-1, 1) for Keras'
-    MobileNetV2, (0, 1) for FCN-Pose's frames), N x the model's input."""
+    """`count` seeded inputs uniform in `input_range`.
+
+    Args:
+        input_shape: the model's input shape (batch first).
+        count: how many.
+        input_range: (low, high): the range the model takes, e.g. (-1, 1) for Keras' MobileNetV2, (0, 1) for
+            FCN-Pose's frames.
+        seed: seed of the values.
+    Returns:
+        count x the model's input, float32.
+    Raises:
+        UserError: a range that is not two finite numbers low < high.
+    """
     low, high = (float(v) for v in input_range)
     if not (np.isfinite(low) and np.isfinite(high) and low < high):
         raise UserError(f"input range must be two finite numbers LOW < HIGH, got {input_range!r}")
@@ -73,8 +104,19 @@ def random_inputs(input_shape: tuple[int, ...], count: int, input_range: tuple[f
 
 def checked_frames(frames: np.ndarray | None, input_shape: tuple[int, ...], num_samples: int,
                    seed: int, what: str = "sample frames") -> np.ndarray:
-    """`frames` as N x the model's input in float32 (UserError if another shape, empty or not finite); None:
-    `num_samples` seeded random frames in [0, 1)."""
+    """Frames to verify a file on, checked against the model's input.
+
+    Args:
+        frames: N x the model's input (None: `num_samples` seeded random frames in [0, 1)).
+        input_shape: the model's input shape (batch first).
+        num_samples: random frames without `frames`.
+        seed: seed of the random frames.
+        what: what the frames are, for the error.
+    Returns:
+        The frames, float32.
+    Raises:
+        UserError: frames of another shape, empty or not finite; `num_samples` not a positive integer.
+    """
     if frames is None:
         if isinstance(num_samples, bool) or not isinstance(num_samples, int) or num_samples < 1:
             raise UserError(f"num_samples must be a positive integer, got {num_samples!r}")

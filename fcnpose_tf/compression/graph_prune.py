@@ -190,7 +190,13 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
 
 
 def prunable_groups(graph: DependencyGraph) -> list[ChannelGroup]:
-    """The groups a plan may narrow (not frozen), in the graph's order: what `counts=` lists."""
+    """The groups a plan may narrow (not frozen), in the graph's order: what `counts=` lists.
+
+    Args:
+        graph: the model's dependency graph (`depgraph.dependency_graph`).
+    Returns:
+        The groups.
+    """
     return [group for group in graph.groups if not group.frozen]
 
 
@@ -204,8 +210,15 @@ def _checked_counts(graph: DependencyGraph, counts: Sequence[int]) -> list[int]:
 
 
 def group_cost(graph: DependencyGraph) -> Callable[[Sequence[int]], tuple[int, int | None]]:
-    """(parameters, MACs) of the graph's model after its prunable groups keep the given counts (in
-    `prunable_groups` order), without choosing the channels: the cost does not depend on which are kept."""
+    """The cost of the graph's model at given counts, without choosing the channels: it does not depend on which are
+    kept.
+
+    Args:
+        graph: the model's dependency graph.
+    Returns:
+        A function of the counts each prunable group keeps (in `prunable_groups` order) giving (parameters, MACs per
+        sample; None for an unknown spatial size).
+    """
     def cost(counts: Sequence[int]) -> tuple[int, int | None]:
         wanted = iter(_checked_counts(graph, counts))
         plans = [GroupPlan(group, np.arange(group.width if group.frozen else next(wanted), dtype=np.int64))
@@ -216,10 +229,15 @@ def group_cost(graph: DependencyGraph) -> Callable[[Sequence[int]], tuple[int, i
 
 
 def plan_kept(model: Any, kept: Mapping[str, np.ndarray]) -> GraphPlan:
-    """The plan that keeps the given filters of the named producers (their kept filter indices; every producer of a
-    coupled group named with the same channels, or only one of them), and every channel of the others: how chain
+    """The plan that keeps the given filters of the named producers, and every channel of the others: how chain
     surgery (`prune.prune_model`, whose widths and ranking are its own) is carried out by the one rebuild.
 
+    Args:
+        model: the model to prune.
+        kept: producer layer name -> the indices of its filters to keep (every producer of a coupled group named
+            with the same channels, or only one of them).
+    Returns:
+        The plan (`rebuild` makes its model).
     Raises:
         UserError: a name that produces no group's channels, producers of one group kept apart, or a frozen group
             (an output, an input, a channel-mixing layer) asked to lose channels.
@@ -314,6 +332,10 @@ def prune_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", ag
 def rebuild(plan: GraphPlan) -> Any:
     """The plan's model rebuilt with the kept channels only (what `prune_graph` returns).
 
+    Args:
+        plan: the channels each group keeps (`plan_graph`, `plan_kept`).
+    Returns:
+        The pruned model, of the Keras that built the original.
     Raises:
         UserError: for a layer that cannot be re-created from its config.
     """

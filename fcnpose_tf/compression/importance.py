@@ -18,7 +18,7 @@ branch and merge (FCN-Pose with its skip), every Conv2D's output read where the 
 
 from __future__ import annotations
 
-from typing import Any, Protocol, Sequence
+from typing import Any, NotRequired, Protocol, Sequence, TypedDict
 
 import numpy as np
 import tf_keras as keras
@@ -30,6 +30,15 @@ DATA_AWARE = ("activation", "taylor")
 """Criteria that need frames (and, for taylor, their target maps)."""
 
 
+class CriterionFacts(TypedDict):
+    """What reports record about a criterion (`Importance.describe`)."""
+
+    importance: str
+    """The criterion's name (CRITERIA)."""
+    importance_frames: NotRequired[int]
+    """The frames a data-aware criterion scored the filters on."""
+
+
 class Importance(Protocol):
     """A filter importance criterion."""
 
@@ -39,7 +48,7 @@ class Importance(Protocol):
         """Layer name -> float64 score of each output filter, for every Conv2D of `model` in order (the output
         layer, which surgery never prunes, may be left out)."""
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> CriterionFacts:
         """What reports record about the criterion ({"importance": name, ...})."""
 
 
@@ -75,7 +84,7 @@ class WeightNorm:
     def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
         return {conv.name: self.filter_scores(conv.get_weights()[0]) for conv in _convolutions(model)}
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> CriterionFacts:
         """What the report records about the criterion."""
         return {"importance": self.name}
 
@@ -111,7 +120,7 @@ class _DataAware:
         for start in range(0, len(self.images), self.batch_size):
             yield slice(start, start + self.batch_size)
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> CriterionFacts:
         """What the report records about the criterion."""
         return {"importance": self.name, "importance_frames": int(len(self.images))}
 
@@ -203,8 +212,16 @@ class FirstOrderTaylor(_DataAware):
 
 def make_importance(name: str, *, images: np.ndarray | None = None, maps: np.ndarray | None = None,
                     loss: keras.losses.Loss | None = None, batch_size: int = 8) -> Importance:
-    """The criterion `name` names (one of CRITERIA); the data-aware ones need `images` (taylor: `maps`, `loss`).
+    """The criterion `name` names (one of CRITERIA).
 
+    Args:
+        name: l1, l2, activation or taylor.
+        images: the frames the data-aware criteria (activation, taylor) run the model on.
+        maps: the frames' target maps (taylor).
+        loss: the training loss whose gradient taylor takes.
+        batch_size: frames per forward pass.
+    Returns:
+        The criterion.
     Raises:
         UserError: an unknown name, or a data-aware criterion without its frames.
     """

@@ -267,9 +267,13 @@ def _rewrite(model: keras.Model) -> tuple[keras.Model, list[tuple[str, str, int]
 
 
 def foldable_pairs(model: keras.Model) -> list[tuple[str, str, int]]:
-    """(what is upsampled, convolution layer, factor) of every fold `fold_upsampling` makes: the UpSampling2D
-    layer, or the merge of upsampled tensors, the convolution reads.
+    """The folds `fold_upsampling` makes: the UpSampling2D layer, or the merge of upsampled tensors, that a
+    convolution reads.
 
+    Args:
+        model: a tf_keras model.
+    Returns:
+        (what is upsampled, convolution layer, factor) of every fold.
     Raises:
         UnsupportedGraphError: as `fold_upsampling`.
     """
@@ -346,12 +350,24 @@ def fold_upsampling(model: keras.Model) -> keras.Model:
 
 
 def describe_folds(model: keras.Model) -> list[str]:
-    """One line per pair `fold_upsampling` folds, e.g. ``up4 + conv10 -> conv10 at 1/4 size + depth_to_space(4)``."""
+    """One line per pair `fold_upsampling` folds, e.g. ``up4 + conv10 -> conv10 at 1/4 size + depth_to_space(4)``.
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        The lines (none for a model without a fold).
+    """
     return fold_and_describe(model)[1]
 
 
 def fold_and_describe(model: keras.Model) -> tuple[keras.Model, list[str]]:
-    """`fold_upsampling(model)` and `describe_folds(model)`, the graph rewritten once."""
+    """`fold_upsampling(model)` and `describe_folds(model)`, the graph rewritten once.
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        (the folded model, or `model` itself without a fold; one line per fold).
+    """
     folded, folds = _rewrite(model)
     lines = [f"{up} + {conv} -> {conv} at 1/{factor} size + depth_to_space({factor})" for up, conv, factor in folds]
     return (folded if folds else model), lines

@@ -138,6 +138,13 @@ def kept_by_score(scores: np.ndarray, rate: Rate) -> np.ndarray:
 
     Ties go to the lower index, so the choice is deterministic.
 
+    Args:
+        scores: one score per filter.
+        rate: the pruning rate.
+    Returns:
+        The kept indices (int64).
+    Raises:
+        UserError: scores that are not a finite 1-D array.
     Example:
         >>> kept_by_score(np.array([0.2, 0.9, 0.2, 0.5]), 0.5).tolist()
         [1, 3]
@@ -148,6 +155,13 @@ def kept_by_score(scores: np.ndarray, rate: Rate) -> np.ndarray:
 def kept_top(scores: np.ndarray, count: int) -> np.ndarray:
     """Indices of the `count` highest scores, in their original order; ties go to the lower index.
 
+    Args:
+        scores: one score per filter.
+        count: how many to keep.
+    Returns:
+        The kept indices (int64).
+    Raises:
+        UserError: scores that are not a finite 1-D array, or more to keep than there are.
     Example:
         >>> kept_top(np.array([0.2, 0.9, 0.2, 0.5]), 3).tolist()
         [0, 1, 3]

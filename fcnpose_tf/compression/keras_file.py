@@ -21,8 +21,12 @@ TF_KERAS = "tf_keras"
 
 
 def saved_by(path: str | os.PathLike) -> str:
-    """The package that saved a .keras or .h5 model file: "keras" (Keras 3) or "tf_keras" (Keras 2).
+    """The package that saved a .keras or .h5 model file.
 
+    Args:
+        path: the model file.
+    Returns:
+        "keras" (Keras 3) or "tf_keras" (Keras 2).
     Raises:
         UserError: for a missing file, another suffix, or a file that is not a Keras model file.
     """
@@ -57,6 +61,10 @@ def load_any(path: str | os.PathLike) -> Any:
     A tf_keras file is loaded as every command loads FCN-Pose (`fcnpose_tf.training.model.load_model`: its stored
     view kept, a variable input size refused); a Keras 3 file with ``keras.saving.load_model(compile=False)``.
 
+    Args:
+        path: the model file.
+    Returns:
+        The model, a tf_keras or a Keras 3 one.
     Raises:
         UserError: one line, for a file that is missing or cannot be read as a model.
     """
@@ -79,7 +87,12 @@ def load_any(path: str | os.PathLike) -> Any:
 def save_to(model: Any, path: str | os.PathLike) -> None:
     """Save `model` (uncompiled, no optimizer state) to a .keras or .h5 file with the Keras it was built with, at
     once (`save_atomically` is the safe one; this writes a temporary of `fileio.atomic_paths`). A tf_keras model
-    keeps its view (`fcnpose_tf.training.model.save_for_inference`)."""
+    keeps its view (`fcnpose_tf.training.model.save_for_inference`).
+
+    Args:
+        model: a tf_keras or Keras 3 model.
+        path: the file (its suffix chooses the format).
+    """
     from fcnpose_tf.compression.depgraph import keras_of
 
     if keras_of(model).__name__ == TF_KERAS:
@@ -91,7 +104,17 @@ def save_to(model: Any, path: str | os.PathLike) -> None:
 
 
 def save_atomically(model: Any, path: str | os.PathLike, force: bool = False) -> Path:
-    """`save_to` a file that appears only once complete (`fileio.atomic_path`)."""
+    """`save_to` a file that appears only once complete (`fileio.atomic_path`).
+
+    Args:
+        model: a tf_keras or Keras 3 model.
+        path: the file, .keras or .h5.
+        force: replace an existing file.
+    Returns:
+        `path`.
+    Raises:
+        UserError: another suffix, or an existing file without `force`.
+    """
     from fcnpose_tf import fileio
 
     path = Path(path)

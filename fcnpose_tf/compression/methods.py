@@ -9,25 +9,44 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol, TypedDict
 
 from fcnpose_tf.compression.report import PruningSections
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.progress import SILENT, Reporter
 from fcnpose_tf.records import training_record
 
 if TYPE_CHECKING:
     import tf_keras as keras
 
-    from fcnpose_tf.compression.importance import Importance
+    from fcnpose_tf.compression.importance import CriterionFacts, Importance
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.prune import WidthPlan
     from fcnpose_tf.training.train import FitResult
 
-Log = Callable[[str], None]
-"""Where a step says what it does: `Reporter.say` or print."""
-
 FitFn = Callable[..., "FitResult"]
 """`fit_fn(model, callbacks=(), inference_model=None)`: the retraining `fit`, writing NAME_pXX.keras."""
+
+
+class MethodRecord(TypedDict, total=False):
+    """What a retrained model's NAME_train.json says about the method that pruned it (`PruningMethod.training_record`),
+    in this order: filter surgery its rate, strategy (or pruned start), min_filters and criterion; magnitude pruning
+    its rate, method and sparsity."""
+
+    rate: float
+    method: str
+    """"magnitude" (filter surgery names none)."""
+    sparsity: float
+    """Magnitude pruning's fraction of zeroed weights."""
+    start: str
+    """A pruned start's name (filter surgery from a pruned model's weights)."""
+    strategy: str
+    """Filter surgery's ranking strategy (independent, greedy)."""
+    min_filters: int
+    importance: str
+    """The filter criterion (`importance.Importance.describe`; none for a pruned start)."""
+    importance_frames: int
+    """Frames a data-aware criterion scored the filters on."""
 
 
 class PruningMethod(Protocol):
@@ -54,7 +73,7 @@ class PruningMethod(Protocol):
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
 
-    def training_record(self) -> dict[str, Any]:
+    def training_record(self) -> MethodRecord:
         """What the retraining's NAME_train.json says about the method."""
 
 
@@ -70,7 +89,7 @@ class FilterPruning:
         self.plan, self.strategy, self.importance = plan, strategy, importance
         self.rate, self.min_filters = plan.rate, plan.floor
         self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
-        self.criterion_facts: dict[str, Any] = {"importance": importance} if start is None else {}
+        self.criterion_facts: CriterionFacts | None = {"importance": importance} if start is None else None
 
     @property
     def ranks_filters(self) -> bool:
@@ -122,9 +141,9 @@ class FilterPruning:
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         fit_fn(pruned)
 
-    def training_record(self) -> dict[str, Any]:
+    def training_record(self) -> MethodRecord:
         start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
-        return {"rate": self.rate, **start, "min_filters": self.min_filters, **self.criterion_facts}
+        return {"rate": self.rate, **start, "min_filters": self.min_filters, **(self.criterion_facts or {})}
 
 
 class MagnitudePruning:
@@ -156,7 +175,7 @@ class MagnitudePruning:
         magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(
             wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
 
-    def training_record(self) -> dict[str, Any]:
+    def training_record(self) -> MethodRecord:
         return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
 
 
@@ -166,15 +185,25 @@ generalist, at the widths it has (filter surgery's at 0.7 with compress's defaul
 
 
 def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, architecture: str,
-                 log: Log = lambda line: None) -> tuple[str, Path | None]:
-    """The run's pruned start, `options.start` with auto decided: (its name, the pruned model file it names; None
-    for surgery). auto is PRUNED_GENERALIST when `base_path` is the generalist or was trained from it
-    (`records.lineage`) on views that vary (its record's augmentation is online: `train`'s choice for such frames)
-    and the bundled file has the base's architecture (`model.ARCHITECTURES`) and the widths filter surgery gives here
-    (`plan`); else surgery, which keeps PCK@0.5
-    within 0.01 on fixed-camera models (docs/compression.md, "On your own model").
-    An explicit start is resolved as a model argument (a file, or a bundled name); its widths are checked when it is
-    loaded (`FilterPruning.prune`)."""
+                 reporter: Reporter = SILENT) -> tuple[str, Path | None]:
+    """The run's pruned start, `options.start` with auto decided. auto is PRUNED_GENERALIST when `base_path` is the
+    generalist or was trained from it (`records.lineage`) on views that vary (its record's augmentation is online:
+    `train`'s choice for such frames) and the bundled file has the base's architecture (`model.ARCHITECTURES`) and
+    the widths filter surgery gives here (`plan`); else surgery, which keeps PCK@0.5 within 0.01 on fixed-camera
+    models (docs/compression.md, "On your own model"). An explicit start is resolved as a model argument (a file, or
+    a bundled name); its widths are checked when it is loaded (`FilterPruning.prune`).
+
+    Args:
+        options: the run's options (method and start).
+        base_path: the model being compressed.
+        plan: the run's widths.
+        architecture: the base model's network (`model.ARCHITECTURES`).
+        reporter: where a fallback to surgery is said, and a bundled start's file named.
+    Returns:
+        (the start's name, the pruned model file it names; None for surgery).
+    Raises:
+        UserError: an explicit start that is neither a file nor a bundled Keras model.
+    """
     from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
     from fcnpose_tf.records import lineage
     from fcnpose_tf.training.model import architecture_of, conv_widths, load_model
@@ -183,7 +212,7 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, arc
     if options.method != "l1" or start == "surgery":
         return "surgery", None
     if start != "auto":
-        return start, resolve_model(start, KERAS_SUFFIXES, say=log)
+        return start, resolve_model(start, KERAS_SUFFIXES, reporter=reporter)
     generalist = generalist_model().resolve()
     ancestry = [str(base_path), *lineage(base_path)]
     if not any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
@@ -194,24 +223,31 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, arc
         return "surgery", None
     path = models_dir() / BUNDLED_MODELS[PRUNED_GENERALIST][0]
     if not path.is_file():  # an installation without it
-        log(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
+        reporter.say(f"  pruned start: surgery (the bundled {PRUNED_GENERALIST}, {path}, is missing)")
         return "surgery", None
     bundled = load_model(path)
     if architecture_of(bundled) != architecture:
-        log(f"  pruned start: surgery ({PRUNED_GENERALIST} is an {architecture_of(bundled)} network, "
-            f"{base_path} an {architecture} one)")
+        reporter.say(f"  pruned start: surgery ({PRUNED_GENERALIST} is an {architecture_of(bundled)} network, "
+                     f"{base_path} an {architecture} one)")
         return "surgery", None
     if conv_widths(bundled) != plan.widths:
-        log(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate {options.rate:g} "
-            f"with no layer under {plan.floor} filters, {plan.widths})")
+        reporter.say(f"  pruned start: surgery ({PRUNED_GENERALIST}'s widths are not filter surgery's at rate "
+                     f"{options.rate:g} with no layer under {plan.floor} filters, {plan.widths})")
         return "surgery", None
     return PRUNED_GENERALIST, path
 
 
 def pruning_method(options: CompressOptions, plan: WidthPlan, start: Path | None = None) -> PruningMethod:
-    """The pruning method `options.method` names, at the widths of `plan` (`prune.plan_widths` at the options' rate,
-    with their floor for filter surgery and none for magnitude pruning); filter surgery takes its weights from the
-    pruned model `start` when one is given (`pruned_start`)."""
+    """The pruning method `options.method` names.
+
+    Args:
+        options: the run's options.
+        plan: the widths (`prune.plan_widths` at the options' rate, with their floor for filter surgery and none for
+            magnitude pruning).
+        start: the pruned model filter surgery takes its weights from (`pruned_start`; None: surgery on the base).
+    Returns:
+        `FilterPruning` or `MagnitudePruning`.
+    """
     if options.method == "magnitude":
         return MagnitudePruning(plan)
     return FilterPruning(plan, options.strategy, options.importance, start, options.start)

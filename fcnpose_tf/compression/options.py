@@ -161,7 +161,7 @@ class CompressOptions:
         """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
         from fcnpose_tf.training.train import FitConfig
 
-        return FitConfig(**settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1)))
+        return settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1))
 
 
 
@@ -170,13 +170,26 @@ RATE_TAGS = {"l1": "p", "magnitude": "m"}
 
 
 def tflite_key(quantize: str) -> str:
-    """The key of a TFLite file in a run's names and paths (and the report's "files"): tflite_fp16, tflite_int8."""
+    """The key of a TFLite file in a run's names and paths (and the report's "files"): tflite_fp16, tflite_int8.
+
+    Args:
+        quantize: the format (`settings.TFLITE_FORMATS`).
+    Returns:
+        The key.
+    """
     return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
 
 
 def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
     """File names of a run: NAME_p70.keras, NAME_p70_fp16.tflite (one per --quantize format, key
-    `tflite_key`), NAME_p70_report.json (m70 for magnitude); NAME_p70_192... with --input-size 192."""
+    `tflite_key`), NAME_p70_report.json (m70 for magnitude); NAME_p70_192... with --input-size 192.
+
+    Args:
+        base_name: the compressed model's file stem.
+        options: the run's options.
+    Returns:
+        Key -> file name: "stem", "keras", one `tflite_key` per format, "report".
+    """
     tag = f"{RATE_TAGS[options.method]}{round(options.rate * 100):02d}"
     stem = f"{base_name}_{tag}" + (f"_{options.input_size}" if options.input_size else "")
     return {"stem": stem, "keras": f"{stem}.keras",
@@ -185,7 +198,15 @@ def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
 
 
 def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
-    """Every file a run writes into `out_dir`: the models, the report and (when retraining) the training side files."""
+    """Every file a run writes into `out_dir`: the models, the report and (when retraining) the training side files.
+
+    Args:
+        base_path: the model being compressed.
+        out_dir: the folder the files go to.
+        options: the run's options.
+    Returns:
+        The paths.
+    """
     from fcnpose_tf.training.train import output_files
 
     names = output_names(Path(base_path).stem, options)
@@ -197,7 +218,16 @@ def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, optio
 
 def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions,
                   force: bool = False) -> None:
-    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
+    """Refuse before any work a run whose files cannot be written.
+
+    Args:
+        base_path: the model being compressed.
+        out_dir: the folder the files go to.
+        options: the run's options.
+        force: existing files may be replaced.
+    Raises:
+        UserError: a file the run will write exists (without `force`) or cannot be written.
+    """
     for path in output_paths(base_path, out_dir, options):
         check_writable(path, force)
 

@@ -64,7 +64,13 @@ def _chain(model: keras.Model) -> list[keras.layers.Layer]:
 
 
 def check_chain(model: keras.Model) -> None:
-    """UserError unless `model` is one chain of the layers filter surgery understands with a Conv2D to prune."""
+    """Refuse a model filter surgery cannot prune.
+
+    Args:
+        model: a tf_keras model.
+    Raises:
+        UserError: `model` is not one chain of the layers filter surgery understands with a Conv2D to prune.
+    """
     _chain(model)
 
 
@@ -94,6 +100,12 @@ def chain_param_count(model: keras.Model, kept: Sequence[int]) -> int:
 
     Counts what the surgery leaves: each Conv2D's kernel (and bias) on the channels that reach it, and a
     BatchNormalization's per-channel weights on the channels that pass it; other layers have none here.
+
+    Args:
+        model: a plain chain (`check_chain`).
+        kept: filters kept per Conv2D but the last, in order.
+    Returns:
+        The parameter count.
     """
     return _counter(model)(kept)[0]
 
@@ -175,6 +187,12 @@ def plan_widths(model: keras.Model, rate: Rate, min_filters: int = 0) -> WidthPl
     `widths` holds one count per group of layer outputs, in the graph's order (for FCN-Pose-skip: conv1..conv9,
     skip2 sharing conv9's group, then conv10).
 
+    Args:
+        model: a tf_keras model.
+        rate: the pruning rate, in [0, 1).
+        min_filters: the floor (0: the paper's rule).
+    Returns:
+        The plan: rate, floor asked and used, widths, parameters and MACs.
     Raises:
         UserError: a bad rate or floor, or a model neither a plain chain of supported layers nor a graph
             `depgraph.dependency_graph` understands.

@@ -111,6 +111,10 @@ def quantize_aware(graph: keras.Model) -> keras.Model:
     """A quantization-aware copy of `graph` (tfmot's default 8-bit scheme), its weights copied; `DepthToSpace`
     layers (a folded graph's, `fcnpose_tf.compression.inference_graph`) quantize nothing.
 
+    Args:
+        graph: the float tf_keras model (folded or not).
+    Returns:
+        The quantization-aware model.
     Raises:
         UserError: when a layer is outside tfmot's default 8-bit registry (naming it and its type).
     """
@@ -147,7 +151,14 @@ def calibrate_ranges(qat: keras.Model, graph: keras.Model, frames: Any) -> dict[
     training step: a few epochs (a few hundred steps) leave ranges a quarter of the way to the data's,
     clipping ReLU outputs above 6 (a fine-tuned FCN-Pose's conv9 reaches 30). Starting from the
     calibration frames' min/max, as post-training int8 does, QAT starts where PTQ is, except for the
-    output sigmoid's input, clamped to +-`LOGIT_RANGE` (see there). Returns {layer: (min, max)} as set.
+    output sigmoid's input, clamped to +-`LOGIT_RANGE` (see there).
+
+    Args:
+        qat: the quantization-aware copy (`quantize_aware`), changed in place.
+        graph: the float graph it was made from.
+        frames: the calibration frames (N x H x W x 3, as the model takes them).
+    Returns:
+        {layer: (min, max)} as set.
     """
     import numpy as np
     import tf_keras as keras

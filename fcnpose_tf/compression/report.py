@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
+from fcnpose_tf.compression.verify import ParityReport
 from fcnpose_tf.measurements import KeypointMetrics, Measurement, Timing
 
 if TYPE_CHECKING:
@@ -166,9 +167,10 @@ class TFLiteStep:
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
 
     @property
-    def parity(self) -> dict[str, Any] | None:
-        """The export's comparison with Keras (`verify.ParityReport` as written), None if not recorded."""
-        return (self.export or {}).get("parity")
+    def parity(self) -> ParityReport | None:
+        """The export's comparison with Keras, None if not recorded."""
+        parity = (self.export or {}).get("parity")
+        return ParityReport.from_dict(parity) if parity is not None else None
 
     def to_json(self) -> dict[str, Any]:
         """The step as the report holds it."""
@@ -352,7 +354,14 @@ def _check_metadata(metadata: dict[str, Any] | None) -> None:
 
 
 def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
-    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5."""
+    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5.
+
+    Args:
+        model: a tf_keras model.
+        keras_path: its .keras file when written (its size is read; None: the model is saved to a temporary one).
+    Returns:
+        {"h5_size_bytes", "h5_gzip_size_bytes", "keras_size_bytes"}.
+    """
     from fcnpose_tf.training.model import h5_bytes, inference_copy, save_for_inference
 
     with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
@@ -368,7 +377,13 @@ def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, 
 
 
 def model_facts(model: keras.Model) -> ModelFacts:
-    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model."""
+    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model.
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        Its facts, the weights that are not zero among them.
+    """
     from fcnpose_tf.training.model import conv_widths, describe
 
     rows = describe(model)
@@ -389,7 +404,13 @@ VARIED_VIEWS_RATE = 0.5
 
 def accuracy_note(report: CompressReport) -> str | None:
     """One line when the most accurate file written lost more than PCK_DROP_BUDGET of the unpruned model's PCK@0.5
-    on the measured frames (None otherwise, and when no file was written): how much, and what to try."""
+    on the measured frames: how much, and what to try.
+
+    Args:
+        report: a compression run's report.
+    Returns:
+        The line; None within the budget, and when no file was written.
+    """
     if not report.tflite_files:
         return None
     base = report.base.metrics.pck[0.5]
@@ -440,10 +461,15 @@ _DIGITS = [None, None, 1, 1, 3, 3, 3, 2, 2, 1]
 def report_table(report: CompressReport | dict[str, Any], markdown: bool = False) -> str:
     """The compression report as a table: the unpruned model beside each step of the compressed one.
 
-    `report`: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
     Sizes in KB (1000 bytes): a TFLite row's file; a Keras row's model saved as .h5 (the paper's measure, whatever
     file holds it: the label says so);
     "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
+
+    Args:
+        report: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
+        markdown: a Markdown table instead of aligned text.
+    Returns:
+        The table.
     """
     from fcnpose_tf.tables import format_table
 
@@ -458,7 +484,14 @@ def report_table(report: CompressReport | dict[str, Any], markdown: bool = False
 
 def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> str:
     """Several rates of one model in one table (`compress --rates`): the unpruned model once (the first report's
-    measurement), then per rate its retrained Keras model and its files, each row named by its rate."""
+    measurement), then per rate its retrained Keras model and its files, each row named by its rate.
+
+    Args:
+        reports: one report per rate, of the same model.
+        markdown: a Markdown table instead of aligned text.
+    Returns:
+        The table.
+    """
     from fcnpose_tf.tables import format_table
 
     rows = [_row("unpruned (Keras; size as .h5)", reports[0].base, reports[0].base.h5_size_bytes)]
@@ -471,7 +504,13 @@ def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> st
 
 def best_rate_note(reports: Sequence[CompressReport]) -> str:
     """One line naming the highest rate whose most accurate file stayed within PCK_DROP_BUDGET of the unpruned
-    model's PCK@0.5 (`compress --rates`), with how much each higher rate lost; or that none did."""
+    model's PCK@0.5 (`compress --rates`), with how much each higher rate lost; or that none did.
+
+    Args:
+        reports: one report per rate, of the same model.
+    Returns:
+        The line.
+    """
     base = reports[0].base.metrics.pck[0.5]
 
     def drop(report: CompressReport) -> float | None:

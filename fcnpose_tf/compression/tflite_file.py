@@ -9,16 +9,69 @@ from __future__ import annotations
 import os
 from collections import Counter
 from pathlib import Path
-from typing import Any
+from typing import TypedDict
 
 from fcnpose_tf.errors import UserError
+
+
+class TensorInfo(TypedDict):
+    """An input or output tensor of a .tflite file (`TFLiteInfo`)."""
+
+    name: str
+    shape: list[int]
+    """e.g. [1, 224, 224, 3] (the shape signature where the file has one)."""
+    dtype: str
+    """The TFLite type's name, e.g. "FLOAT32", "UINT8"."""
+
+
+class ConvolutionInfo(TypedDict):
+    """How a CONV_2D, DEPTHWISE_CONV_2D, FULLY_CONNECTED or TRANSPOSE_CONV stores its filter (`TFLiteInfo`)."""
+
+    op: str
+    filter_shape: list[int]
+    filter_dtype: str
+    """What the op consumes."""
+    stored_dtype: str
+    """What the file stores."""
+    dequantized: bool
+    """The filter comes from a DEQUANTIZE of a stored constant."""
+    stored_bytes: int
+
+
+class TFLiteInfo(TypedDict):
+    """What a .tflite file holds (`inspect_tflite`)."""
+
+    size_bytes: int
+    subgraphs: int
+    inputs: list[TensorInfo]
+    outputs: list[TensorInfo]
+    ops: list[str]
+    """Operator names in execution order, e.g. "CONV_2D"."""
+    op_counts: dict[str, int]
+    """Operators by name, sorted."""
+    builtin_only: bool
+    custom_ops: list[str]
+    """Custom op codes."""
+    flex_ops: list[str]
+    """The custom ops named Flex...: they need the TensorFlow delegate."""
+    tensor_dtypes: dict[str, int]
+    """Tensors per type."""
+    constant_dtypes: dict[str, int]
+    """Tensors holding data (the stored weights) per type."""
+    constant_bytes: int
+    """Bytes of stored weights."""
+    convolutions: list[ConvolutionInfo]
+    metadata: dict[str, str]
+    """The file's metadata entries by name: short text as text (the float16-native file's
+    ``reduced_precision_support``), others as their size ("1234 bytes")."""
+
 
 def _enum_names(enum_class: type) -> dict[int, str]:
     return {value: name for name, value in vars(enum_class).items()
             if not name.startswith("_") and isinstance(value, int)}
 
 
-def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:
+def inspect_tflite(model: bytes | str | os.PathLike) -> TFLiteInfo:
     """Describe a .tflite flatbuffer: interface, operators, and how tensors and weights are stored.
 
     Reads the flatbuffer with the TFLite schema shipped in ai_edge_litert; neither TensorFlow nor
@@ -27,18 +80,8 @@ def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:
     Args:
         model: the flatbuffer bytes or a path to a .tflite file.
     Returns:
-        A dict with stable keys:
-        ``size_bytes``; ``inputs`` and ``outputs`` (lists of {name, shape, dtype}, e.g.
-        ``[1, 224, 224, 3]`` and ``"FLOAT32"``); ``ops`` (operator names in execution order, e.g.
-        ``"CONV_2D"``) and ``op_counts``; ``custom_ops`` and ``flex_ops`` (custom op codes; Flex
-        ops are custom ops named ``Flex...`` that need the TensorFlow delegate); ``builtin_only``;
-        ``tensor_dtypes`` (count of tensors per type) and ``constant_dtypes`` (the same for tensors
-        holding data: the stored weights); ``constant_bytes`` (bytes of stored weights);
-        ``convolutions``: for every CONV_2D / DEPTHWISE_CONV_2D / FULLY_CONNECTED / TRANSPOSE_CONV, its
-        filter shape, ``filter_dtype`` (what the op consumes), ``stored_dtype`` (what the file
-        stores) and ``dequantized`` (the filter comes from a DEQUANTIZE of a stored constant);
-        ``metadata``: the file's metadata entries by name (short text values as text, e.g. the
-        float16-native file's ``reduced_precision_support``; others as their size).
+        The interface, the operators, how tensors and weights are stored, and the metadata (`TFLiteInfo`: stable
+        keys).
     Raises:
         UserError: if the file is missing or is not a TFLite flatbuffer.
     Example:
@@ -91,7 +134,7 @@ def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:
     graph = tree.subgraphs[0]
     tensors = graph.tensors or []
 
-    def describe(index: int) -> dict[str, Any]:
+    def describe(index: int) -> TensorInfo:
         tensor = tensors[index]
         shape = tensor.shapeSignature if tensor.shapeSignature is not None and len(tensor.shapeSignature) \
             else tensor.shape
@@ -108,7 +151,7 @@ def inspect_tflite(model: bytes | str | os.PathLike) -> dict[str, Any]:
     for op in graph.operators or []:
         for out in op.outputs if op.outputs is not None else []:
             producer[int(out)] = op
-    convolutions = []
+    convolutions: list[ConvolutionInfo] = []
     for op in graph.operators or []:
         name = op_name(op.opcodeIndex)
         if name not in ("CONV_2D", "DEPTHWISE_CONV_2D", "FULLY_CONNECTED", "TRANSPOSE_CONV"):

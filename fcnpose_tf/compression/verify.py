@@ -11,7 +11,7 @@ Each format's tolerances are a row of `settings.TFLITE_FORMATS` (why each is wha
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -87,6 +87,16 @@ class ParityReport:
         """JSON-ready, stable keys (pixel distances in map pixels)."""
         return asdict(self)
 
+    @classmethod
+    def from_dict(cls, entry: dict[str, Any]) -> ParityReport:
+        """The report of a parsed `to_dict` (a key written before its field existed reads as the field's default).
+
+        Raises:
+            TypeError: a key every parity report holds is missing.
+        """
+        names = {f.name for f in fields(cls)}
+        return cls(**{key: value for key, value in entry.items() if key in names})
+
 
 def _interpreter(data: bytes, num_threads: int | None = None):
     """An allocated interpreter for flatbuffer bytes, from the runtime's backend order (LiteRT first)."""
@@ -101,8 +111,14 @@ def _interpreter(data: bytes, num_threads: int | None = None):
 
 
 def run_tflite(interpreter, frames: np.ndarray) -> np.ndarray:
-    """Run a batch-1 interpreter on each frame (N x H x W x C float, as the Keras model takes them);
-    returns the stacked N x ... outputs as float32 (quantized inputs and outputs converted)."""
+    """Run a batch-1 interpreter on each frame, converting quantized inputs and outputs.
+
+    Args:
+        interpreter: an allocated TFLite interpreter.
+        frames: N x H x W x C float, as the Keras model takes them.
+    Returns:
+        The stacked N x ... outputs, float32.
+    """
     from fcnpose_tf.postprocess import dequantize
     from fcnpose_tf.runtime.interpreter import TensorSpec
 
@@ -324,6 +340,16 @@ def verify_outputs(model: keras.Model, tflite: bytes, inputs: np.ndarray, *, out
     classifier (N x K outputs) the top-1 class agrees on at least `top1_share` of the samples whose top-1 is not a
     tie within the measured difference.
 
+    Args:
+        model: the Keras model (tf_keras or Keras 3).
+        tflite: the converted flatbuffer.
+        inputs: N x the model's input.
+        output_rtol: the largest difference allowed, relative to the output's scale.
+        top1_share: a classifier's share of compared samples whose top-1 must agree.
+        num_threads: interpreter threads (None: the interpreter's default).
+        label: what the file is, in messages.
+    Returns:
+        What was compared and found (`OutputParity`).
     Raises:
         ExportVerificationError: naming what disagreed and by how much; nothing is written.
     """

@@ -18,6 +18,7 @@ fixed cell whose arm spans 0.53, 0.879 at 224 (118 px) and 0.929 at 320.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
@@ -173,15 +174,49 @@ def _holds(view: FrameView, frames: Sequence[tuple[np.ndarray, int, int]]) -> bo
     return True
 
 
-def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera: bool,
-                 reporter: Reporter | None = None, start: FrameView | None = None) -> tuple[FrameView, dict[str, Any]]:
-    """The view a run trains at (`preprocess.FrameView`) for `train --input-size` and `--crop`, and what it was based
-    on, for NAME_train.json ("view_auto"), said through `reporter`.
+@dataclass(frozen=True)
+class ViewChoice:
+    """The view a run trains at and what it was based on (`resolve_view`; NAME_train.json's "view_auto")."""
 
-    `input_size` "auto" chooses crop and input together (`choose_view`, the workspace crop where `crop` is "auto"
-    and the camera is fixed; `start`, the starting model's view, is kept where it still fits); S or (H, W) is the
-    user's input, over the whole frame unless `crop` is "workspace". `frames` are `data.via` frames (keypoints, frame
-    sizes)."""
+    arm_input_px: float
+    """The arm's keypoint box in input pixels in the median frame (`arm_input_px`), rounded to 0.1."""
+    min_arm_input_px: int
+    """What the choice aims for (MIN_ARM_INPUT_PX)."""
+    crop: str
+    """`train --crop` as given: auto, workspace or none."""
+    fixed_camera: bool
+    chose: FrameView
+    macs: int
+    """Multiply-adds of a frame at the view, unpruned (`metrics.fcn_pose_macs`)."""
+    start_view: FrameView | None = None
+    """The starting model's view, when there was one to keep."""
+
+    def to_json(self) -> dict[str, Any]:
+        """{"arm_input_px", "min_arm_input_px", "crop", "fixed_camera", "chose", "macs"[, "start_view"]}."""
+        out = {"arm_input_px": self.arm_input_px, "min_arm_input_px": self.min_arm_input_px, "crop": self.crop,
+               "fixed_camera": self.fixed_camera, "chose": self.chose.to_json(), "macs": self.macs}
+        if self.start_view is not None:
+            out["start_view"] = self.start_view.to_json()
+        return out
+
+
+def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera: bool,
+                 reporter: Reporter | None = None, start: FrameView | None = None) -> ViewChoice:
+    """The view a run trains at (`preprocess.FrameView`) for `train --input-size` and `--crop`, and what it was based
+    on, said through `reporter`.
+
+    Args:
+        frames: `data.via` frames (keypoints, frame sizes).
+        input_size: "auto" chooses crop and input together (`choose_view`, the workspace crop where `crop` is "auto"
+            and the camera is fixed); S or (H, W) is the user's input, over the whole frame unless `crop` is
+            "workspace".
+        crop: `train --crop`: auto, workspace or none.
+        fixed_camera: whether the frames are one fixed camera (`data.views`).
+        reporter: where the choice is said (default: the current one).
+        start: the starting model's view, kept by "auto" where it still fits.
+    Returns:
+        The view (`chose`) and what it was based on, for NAME_train.json.
+    """
     boxes = [(f.keypoints, f.width, f.height) for f in frames]
     chosen = input_size == settings.AUTO_INPUT_SIZE
     use_crop = crop == "workspace" or (crop == "auto" and chosen and fixed_camera)
@@ -206,8 +241,5 @@ def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera
         f"View: {view.describe()} ({where}{kept}); the arm's keypoint box spans {arm_px:.0f} input pixels in the "
         f"median frame ({MIN_ARM_INPUT_PX} wanted); {macs / 1e9:.2f} G multiply-adds a frame unpruned, "
         f"{fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) / 1e6:.0f} M at 70 %")
-    record = {"arm_input_px": round(arm_px, 1), "min_arm_input_px": MIN_ARM_INPUT_PX, "crop": crop,
-              "fixed_camera": bool(fixed_camera), "chose": view.to_json(), "macs": macs}
-    if start is not None:
-        record["start_view"] = start.to_json()
-    return view, record
+    return ViewChoice(arm_input_px=round(arm_px, 1), min_arm_input_px=MIN_ARM_INPUT_PX, crop=crop,
+                      fixed_camera=bool(fixed_camera), chose=view, macs=macs, start_view=start)

@@ -11,11 +11,10 @@ mean and std over the timed iterations; FPS follows timing.FPS_DEFINITION.
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import cv2
 import numpy as np
@@ -23,6 +22,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import read_image
+from fcnpose_tf.progress import SILENT, Reporter
 from fcnpose_tf.records import HostInfo, host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
 from fcnpose_tf.runtime.interpreter import check_tflite_file, default_num_threads
@@ -35,7 +35,14 @@ MIN_FRAMES_FOR_STATS = 50
 
 
 def synthetic_frame(width: int = 640, height: int = 480, seed: int = 0) -> np.ndarray:
-    """A deterministic BGR test frame (gradient, noise and a drawn arm-like chain) of the given size."""
+    """A deterministic BGR test frame (gradient, noise and a drawn arm-like chain) of the given size.
+
+    Args:
+        width, height: the frame's size in pixels.
+        seed: seed of the noise.
+    Returns:
+        height x width x 3 uint8.
+    """
     rng = np.random.default_rng(seed)
     y, x = np.mgrid[0:height, 0:width].astype(np.float32)
     base = 60 + 80 * (x / max(width - 1, 1)) + 40 * (y / max(height - 1, 1))
@@ -52,7 +59,13 @@ def synthetic_frame(width: int = 640, height: int = 480, seed: int = 0) -> np.nd
 
 
 def default_thread_counts(cores: int | None = None) -> tuple[int, ...]:
-    """1, 2, 4, ... up to the number of cores, and the core count itself (1,2,4 on a Raspberry Pi)."""
+    """1, 2, 4, ... up to the number of cores, and the core count itself (1, 2, 4 on a Raspberry Pi).
+
+    Args:
+        cores: the core count (default: the cores this process may use).
+    Returns:
+        The thread counts, increasing.
+    """
     cores = cores or default_num_threads()
     counts = [n for n in (1, 2, 4, 8, 16, 32, 64) if n <= cores]
     if cores not in counts:
@@ -181,7 +194,14 @@ class BenchReport:
 def comparison_table(reports: list[BenchReport], markdown: bool = False) -> str:
     """Several models' benchmarks side by side (`bench A.tflite B.tflite`): per thread count and model its MACs,
     end-to-end p50 and FPS, invoke-only FPS, and its end-to-end FPS as a multiple of the first model's at that
-    thread count. The models ran one after the other, not interleaved: for a speed claim, repeat in both orders."""
+    thread count. The models ran one after the other, not interleaved: for a speed claim, repeat in both orders.
+
+    Args:
+        reports: one benchmark per model, the first the reference.
+        markdown: a Markdown table instead of aligned text.
+    Returns:
+        The table.
+    """
     first = {r.threads: r for r in reports[0].results if r.ok}
     rows = []
     for threads in sorted({r.threads for report in reports for r in report.results}):
@@ -202,7 +222,16 @@ def comparison_table(reports: list[BenchReport], markdown: bool = False) -> str:
 
 
 def load_frame(path: str | os.PathLike | None, size: tuple[int, int] = (640, 480)) -> tuple[np.ndarray, str]:
-    """The benchmark frame: an image file, or the synthetic frame of `size`; with its description."""
+    """The benchmark frame: an image file, or the synthetic frame of `size`.
+
+    Args:
+        path: an image file (None: the synthetic frame).
+        size: (width, height) of the synthetic frame.
+    Returns:
+        (BGR frame, its description).
+    Raises:
+        UserError: a missing or unreadable image.
+    """
     if path is None:
         return synthetic_frame(*size), f"synthetic {size[0]}x{size[1]}"
     path = Path(path)
@@ -215,7 +244,16 @@ def load_frame(path: str | os.PathLike | None, size: tuple[int, int] = (640, 480
 
 
 def bench_threads(model: KeypointModel, frame: np.ndarray, frames: int, warmup: int) -> ThreadResult:
-    """Time one loaded model: `warmup` untimed frames, then `frames` interleaved full-frame + invoke-only runs."""
+    """Time one loaded model: `warmup` untimed frames, then `frames` interleaved full-frame + invoke-only runs.
+
+    Args:
+        model: the model, its interpreter at the thread count to time.
+        frame: the BGR frame every run processes.
+        frames: timed runs.
+        warmup: untimed runs first.
+    Returns:
+        The latencies and FPS at the model's thread count.
+    """
     for _ in range(warmup):
         model.predict(frame)
     log = LatencyLog()
@@ -233,8 +271,7 @@ def bench_threads(model: KeypointModel, frame: np.ndarray, frames: int, warmup: 
 
 def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = None, frames: int = 200,
               warmup: int = 10, frame: np.ndarray | None = None, frame_label: str | None = None,
-              backend: str = "auto", decoding: Decoding | None = None,
-              progress: Callable[[str], None] | None = None) -> BenchReport:
+              backend: str = "auto", decoding: Decoding | None = None, reporter: Reporter = SILENT) -> BenchReport:
     """Benchmark a .tflite at each thread count.
 
     Args:
@@ -245,7 +282,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
         frame: the BGR frame to process (default: synthetic_frame()).
         frame_label: how the frame is described in the report.
         backend, decoding: as for KeypointModel.
-        progress: called with a short message before each thread count.
+        reporter: where a short line goes before each thread count (default: nowhere).
     Returns:
         A BenchReport; a thread count whose interpreter fails is reported with its error as status.
     Raises:
@@ -265,8 +302,7 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
                          first.backend.name, first.backend.version, frames, warmup,
                          frame_label or f"{frame.shape[1]}x{frame.shape[0]}", decoding.threshold, host=host_info())
     for n in counts:
-        if progress is not None:
-            progress(f"{n} thread{'s' if n != 1 else ''}: {warmup} warm-up + {frames} timed frames")
+        reporter.say(f"{n} thread{'s' if n != 1 else ''}: {warmup} warm-up + {frames} timed frames")
         try:
             if first is not None:  # counts[0]: reuse the interpreter that was checked above
                 model, first = first, None
@@ -277,8 +313,3 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
             report.results.append(ThreadResult(n, f"failed: {' '.join(str(exc).split())[:60]}"))
         model = None  # free this interpreter before creating the next
     return report
-
-
-def print_progress(message: str) -> None:
-    """Default progress printer for the command (stderr)."""
-    print(message, file=sys.stderr, flush=True)

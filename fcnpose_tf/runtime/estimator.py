@@ -17,6 +17,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypedDict
 
 import numpy as np
 
@@ -30,10 +31,28 @@ from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, defaul
 
 
 def schema_for_maps(num_maps: int) -> KeypointSchema:
-    """UR5 for a 9-map model, else a chain of generic names kp0..kpN (one map per keypoint + skeleton)."""
+    """UR5 for a 9-map model, else a chain of generic names kp0..kpN (one map per keypoint + skeleton).
+
+    Args:
+        num_maps: the model's output maps.
+    Returns:
+        The schema.
+    """
     if num_maps == UR5.num_maps:
         return UR5
     return KeypointSchema.chain("generic", [f"kp{i}" for i in range(num_maps - 1)])
+
+
+class KeypointRecord(TypedDict):
+    """One keypoint as record files hold it (`Prediction.records`), in frame pixels."""
+
+    name: str
+    x: float | None
+    """None: not found."""
+    y: float | None
+    confidence: float | int | None
+    """Post-processing's confidence (`Prediction.confidence`: the winning cluster's pixel count, 0 when not found), an
+    int when whole; None when not finite."""
 
 
 @dataclass(frozen=True)
@@ -52,10 +71,9 @@ class StageTimes:
 
 CROP_EDGE_SHARE = 0.10
 """A found keypoint this share of the crop's width (height) from its left or right (top or bottom) border is "at the
-crop's edge" (`Prediction.at_crop_edge`). Measured with `tools/arm_crop_experiment.py leave` (the held-out fixed
-camera's test frames shifted 150 px sideways, 13 of 60 with a keypoint past the crop): 0.10 flagged 6 of those 13 and 4
-of the other 47 shifted frames, none of the 60 unshifted ones; 0.02 and 0.05 flagged none. A keypoint past the crop is
-lost (12 of 26) or placed elsewhere in the crop (14), rarely at its border."""
+crop's edge" (`Prediction.at_crop_edge`). 0.10 flags about half the frames whose arm leaves the workspace and few
+others; 0.02 and 0.05 flag none, since a keypoint past the crop is lost or placed elsewhere in it, rarely at its border
+(docs/results.md, "The crop's edge, and the time budget's epoch warning")."""
 
 
 @dataclass(frozen=True)
@@ -96,9 +114,9 @@ class Prediction:
             high = (self.keypoints > np.array([x + w - 0.5, y + h - 0.5]) - margin) & inner_high
         return self.found & (low | high).any(axis=1)
 
-    def records(self, schema: KeypointSchema, decimals: int = 2) -> list[dict]:
+    def records(self, schema: KeypointSchema, decimals: int = 2) -> list[KeypointRecord]:
         """One {name, x, y, confidence} per keypoint; x and y are None for a keypoint not found."""
-        out = []
+        out: list[KeypointRecord] = []
         for i, name in enumerate(schema.keypoints):
             x, y = (float(v) for v in self.keypoints[i])
             c = float(self.confidence[i])

@@ -69,6 +69,10 @@ def _import_backend(name: str) -> Any:
 def find_backend(preferred: str = "auto") -> Backend:
     """The first importable backend (or exactly `preferred`), recording why earlier ones were skipped.
 
+    Args:
+        preferred: "auto" (LiteRT, then tflite_runtime, then tf.lite) or one of them by name.
+    Returns:
+        The backend: its name, version and interpreter class.
     Raises:
         UserError: if no backend can be imported, naming what to install.
     """
@@ -88,12 +92,24 @@ def find_backend(preferred: str = "auto") -> Backend:
 
 
 def default_num_threads() -> int:
-    """CPU cores this process may run on (the interpreter's default thread count here)."""
+    """CPU cores this process may run on (the interpreter's default thread count here).
+
+    Returns:
+        The core count.
+    """
     return available_cores()
 
 
 def check_tflite_file(path: str | os.PathLike) -> Path:
-    """Raise UserError unless `path` is an existing, non-empty file with the TFLite identifier `TFL3`."""
+    """Check that `path` is a TFLite model file before an interpreter reads it.
+
+    Args:
+        path: the file.
+    Returns:
+        `path` as a Path.
+    Raises:
+        UserError: unless `path` is an existing, non-empty file with the TFLite identifier `TFL3`.
+    """
     path = Path(path)
     if not path.exists():
         raise UserError(f"{path}: model file not found")
@@ -196,7 +212,17 @@ class ModelIO:
 
 
 def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
-    """Read and check the model's input and output; UserError naming what an FCN-Pose model needs."""
+    """Read and check the model's input and output.
+
+    Args:
+        interpreter: an allocated interpreter.
+        path: the model's file, to name in errors.
+    Returns:
+        The input and output tensors' specs.
+    Raises:
+        UserError: naming what an FCN-Pose model needs (one fixed 1 x H x W x 3 input, one output of maps of the
+            input's size, supported types).
+    """
     inputs, outputs = interpreter.get_input_details(), interpreter.get_output_details()
     if len(inputs) != 1 or len(outputs) != 1:
         raise UserError(f"{path}: expected one input image and one output of maps, "
@@ -232,8 +258,16 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
 
 
 def read_view(path: str | os.PathLike, io: ModelIO) -> FrameView:
-    """What a .tflite model sees of a frame: the view in its metadata (`tflite_metadata.VIEW_METADATA`), else the
-    whole frame at its input size; UserError when the stored view does not fit the file's input."""
+    """What a .tflite model sees of a frame.
+
+    Args:
+        path: the .tflite file.
+        io: its input and output (`inspect_io`).
+    Returns:
+        The view in its metadata (`tflite_metadata.VIEW_METADATA`), else the whole frame at its input size.
+    Raises:
+        UserError: unreadable metadata, or a stored view that does not fit the file's input.
+    """
     try:
         stored = read_metadata(path).get(VIEW_METADATA)
     except (OSError, ValueError) as exc:
@@ -282,6 +316,12 @@ def model_stats(interpreter: Any, path: str | os.PathLike) -> ModelStats:
     Uses the interpreter's op table (`_get_ops_details`, available in LiteRT,
     tflite_runtime and tf.lite); where an old interpreter lacks it, params and
     macs are None rather than a guess.
+
+    Args:
+        interpreter: an allocated interpreter.
+        path: its .tflite file.
+    Returns:
+        Parameters, MACs, size, weight types, convolution and op counts.
     """
     size = Path(path).stat().st_size
     try:

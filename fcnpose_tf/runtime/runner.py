@@ -186,7 +186,14 @@ class ProgressLine:
 
 def frame_time_s(frame: Frame, source: FrameSource) -> float:
     """A frame's time for filtering: its position in a video, its capture time on a camera, else its index
-    at the source's frame rate (30 FPS when it has none: an image folder)."""
+    at the source's frame rate (30 FPS when it has none: an image folder).
+
+    Args:
+        frame: a frame the source delivered.
+        source: the source.
+    Returns:
+        Seconds.
+    """
     if frame.media_time_s is not None:
         return float(frame.media_time_s)
     if source.live:

@@ -21,7 +21,7 @@ import math
 import os
 from collections import deque
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, NotRequired, Sequence, TypedDict
 
 import cv2
 import numpy as np
@@ -31,24 +31,60 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import (check_writable, full_disk_error, native_name, os_error_reason, record_completed,
                                set_default_permissions, signals_deferred, temporary_path)
 from fcnpose_tf.keypoints import KeypointSchema
-from fcnpose_tf.runtime.estimator import Prediction
+from fcnpose_tf.runtime.estimator import KeypointRecord, Prediction
 from fcnpose_tf.runtime.sources import Frame, quiet_opencv
 
 RECORD_SUFFIXES = {".jsonl": "jsonl", ".ndjson": "jsonl", ".csv": "csv"}
 VIDEO_CODECS = {".mp4": "mp4v", ".m4v": "mp4v", ".mov": "mp4v", ".avi": "MJPG", ".mkv": "MJPG"}
 
 
-def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> dict[str, Any]:
-    """The JSON record of one frame (keys in a stable order; coordinates in frame pixels)."""
+class Latency(TypedDict):
+    """Milliseconds of one frame's stages (`RecordedFrame`)."""
+
+    preprocess: float
+    invoke: float
+    postprocess: float
+
+
+class RecordedFrame(TypedDict):
+    """One frame's line of a JSON Lines record file (`frame_record`), keys in this order; coordinates in frame
+    pixels."""
+
+    frame: int
+    """The source's frame index."""
+    timestamp: float
+    """When the frame was read (seconds, `Frame.timestamp`)."""
+    source: str
+    width: int
+    height: int
+    media_time_s: NotRequired[float]
+    """The frame's time in its video."""
+    latency_ms: Latency
+    keypoints: list[KeypointRecord]
+    crop_xywh: NotRequired[list[int]]
+    """The crop the model saw, when its view has one."""
+    crop_edge: NotRequired[list[str]]
+    """The keypoints at the crop's edge (the arm may carry on past it)."""
+
+
+def frame_record(frame: Frame, prediction: Prediction, schema: KeypointSchema) -> RecordedFrame:
+    """The JSON record of one frame (keys in a stable order; coordinates in frame pixels).
+
+    Args:
+        frame: the frame read.
+        prediction: its keypoints and stage times.
+        schema: the keypoints' names.
+    Returns:
+        The record.
+    """
     h, w = frame.image.shape[:2]
     t = prediction.times
-    record: dict[str, Any] = {"frame": frame.index, "timestamp": round(frame.timestamp, 6), "source": frame.name,
-                              "width": w, "height": h}
-    if frame.media_time_s is not None:
-        record["media_time_s"] = round(frame.media_time_s, 6)
-    record["latency_ms"] = {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
-                            "postprocess": round(t.postprocess_ms, 3)}
-    record["keypoints"] = prediction.records(schema)
+    media = {"media_time_s": round(frame.media_time_s, 6)} if frame.media_time_s is not None else {}
+    record: RecordedFrame = {"frame": frame.index, "timestamp": round(frame.timestamp, 6), "source": frame.name,
+                             "width": w, "height": h, **media,
+                             "latency_ms": {"preprocess": round(t.preprocess_ms, 3), "invoke": round(t.invoke_ms, 3),
+                                            "postprocess": round(t.postprocess_ms, 3)},
+                             "keypoints": prediction.records(schema)}
     if prediction.crop is not None:  # what the model saw, and the keypoints the arm may carry past it
         edge = prediction.at_crop_edge()
         record["crop_xywh"] = list(prediction.crop)
@@ -101,7 +137,7 @@ class RecordWriter:
             self._size += len(data)
             self.count += counted
 
-    def _line(self, record: dict[str, Any]) -> str:
+    def _line(self, record: RecordedFrame) -> str:
         raise NotImplementedError
 
     def close(self) -> None:
@@ -130,7 +166,7 @@ class RecordWriter:
 class JsonlWriter(RecordWriter):
     """One JSON object per line (JSON Lines); a missing keypoint has x and y null."""
 
-    def _line(self, record: dict[str, Any]) -> str:
+    def _line(self, record: RecordedFrame) -> str:
         return json.dumps(record, allow_nan=False, separators=(",", ":")) + "\n"
 
 
@@ -155,7 +191,7 @@ class CsvWriter(RecordWriter):
         csv.writer(text, lineterminator="\n").writerow(cells)
         return text.getvalue()
 
-    def _line(self, record: dict[str, Any]) -> str:
+    def _line(self, record: RecordedFrame) -> str:
         row: list[Any] = [record["frame"], record["timestamp"], record["source"], record["width"],
                           record["height"], record.get("media_time_s", ""), record["latency_ms"]["preprocess"],
                           record["latency_ms"]["invoke"], record["latency_ms"]["postprocess"]]
@@ -165,7 +201,15 @@ class CsvWriter(RecordWriter):
 
 
 def record_format(path: str | os.PathLike) -> str:
-    """`jsonl` or `csv` from a file name; UserError for other endings."""
+    """The record format a file name asks for.
+
+    Args:
+        path: the output file.
+    Returns:
+        "jsonl" or "csv".
+    Raises:
+        UserError: another ending.
+    """
     suffix = Path(path).suffix.lower()
     if suffix not in RECORD_SUFFIXES:
         raise UserError(f"{path}: unknown keypoint file type {suffix or '(none)'!r}; use .jsonl or .csv")
@@ -173,7 +217,17 @@ def record_format(path: str | os.PathLike) -> str:
 
 
 def open_record_writer(path: str | os.PathLike, schema: KeypointSchema, force: bool = False) -> RecordWriter:
-    """A JsonlWriter for .jsonl/.ndjson, a CsvWriter for .csv."""
+    """A JsonlWriter for .jsonl/.ndjson, a CsvWriter for .csv.
+
+    Args:
+        path: the output file.
+        schema: the keypoints' names.
+        force: an existing file may be replaced.
+    Returns:
+        The writer (a context manager).
+    Raises:
+        UserError: another ending, or a file that exists (without `force`) or cannot be written.
+    """
     return (JsonlWriter if record_format(path) == "jsonl" else CsvWriter)(path, schema, force)
 
 
@@ -184,6 +238,16 @@ def draw_overlay(image: np.ndarray, prediction: Prediction, schema: KeypointSche
     """Draw the skeleton, the keypoints (with names) and an FPS figure top-left on a BGR frame.
 
     Missing keypoints and the edges touching them are not drawn (`fcnpose_tf.draw`'s style and palette).
+
+    Args:
+        image: the BGR frame.
+        prediction: its keypoints.
+        schema: the keypoints' names and skeleton.
+        fps: the figure to draw (None: none).
+        labels: write the keypoints' names.
+        copy: draw on a copy (False: on `image`).
+    Returns:
+        The frame drawn on.
     """
     out = draw_keypoints(image, prediction.keypoints, schema, labels=labels, copy=copy)
     h, w = out.shape[:2]
@@ -314,7 +378,15 @@ def _unused_name(path: Path) -> Path:
 
 
 def parse_outputs(paths: Sequence[str | os.PathLike]) -> list[Path]:
-    """Check record-output names (known ending, no duplicates) before anything runs."""
+    """Check record-output names (known ending, no duplicates) before anything runs.
+
+    Args:
+        paths: the --out values.
+    Returns:
+        The paths.
+    Raises:
+        UserError: an unknown ending or a file given twice.
+    """
     seen: set[Path] = set()
     out = []
     for p in paths:

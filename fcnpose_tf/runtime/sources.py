@@ -367,13 +367,18 @@ def _one_line(exc: BaseException, limit: int = 160) -> str:
 
 
 def import_picamera2():
-    """The `Picamera2` class, imported on first use; UserError with the fix when it cannot be imported.
+    """The `Picamera2` class, imported on first use.
 
     Tells apart: no picamera2 at all, picamera2 without libcamera's Python bindings (a pip
     install in a venv that does not see the system packages), and the numpy trap: apt's
     picamera2 pulls in compiled modules (simplejpeg) built for Debian's numpy 1.x, which fail
     to import under numpy 2 (and the other way round). What numpy prints while failing is kept
     off the terminal; the one error line says what to do.
+
+    Returns:
+        The class.
+    Raises:
+        UserError: picamera2 cannot be imported, with the fix.
     """
     printed = io.StringIO()
     try:
@@ -485,8 +490,14 @@ def quiet_opencv(native: bool = True, sink: IO[bytes] | None = None) -> Iterator
     """Silence OpenCV's own warnings (e.g. `can't open camera by index`) and, with `native`, what FFmpeg prints.
 
     We report failures ourselves, in one line; FFmpeg's text is in the yielded NativeOutput for an
-    error to quote or a summary to count. `native=False` (OpenCV's log level only) is the cheapest;
-    a reused `sink` (see `native_stderr_captured`) makes the capture cheap enough for every frame.
+    error to quote or a summary to count.
+
+    Args:
+        native: also capture what native libraries print on stderr (False: OpenCV's log level only, the
+            cheapest).
+        sink: a reused capture file (see `native_stderr_captured`), cheap enough for every frame.
+    Yields:
+        What the native libraries printed, once the block ends.
     """
     logging = getattr(getattr(cv2, "utils", None), "logging", None)
     with contextlib.ExitStack() as stack:
@@ -499,7 +510,13 @@ def quiet_opencv(native: bool = True, sink: IO[bytes] | None = None) -> Iterator
 
 
 def list_images(folder: Path) -> list[Path]:
-    """Image files directly in `folder`, sorted by name (natural order: frame2 before frame10)."""
+    """Image files directly in `folder`, sorted by name (natural order: frame2 before frame10).
+
+    Args:
+        folder: the folder.
+    Returns:
+        The image paths.
+    """
     def natural(p: Path):
         return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
 
@@ -507,7 +524,15 @@ def list_images(folder: Path) -> list[Path]:
 
 
 def parse_size(text: str) -> tuple[int, int]:
-    """`640x480` -> (640, 480); UserError otherwise."""
+    """`640x480` -> (640, 480).
+
+    Args:
+        text: WIDTHxHEIGHT.
+    Returns:
+        (width, height).
+    Raises:
+        UserError: another text.
+    """
     match = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text or "")
     if not match or int(match.group(1)) < 1 or int(match.group(2)) < 1:
         raise UserError(f"size {text!r}: expected WIDTHxHEIGHT, e.g. 640x480")
@@ -521,9 +546,16 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
     `0`, `1`, ... -> camera index; `/dev/videoN` -> that camera; `rtsp://...`/`http://...` -> a stream
     (read like a camera); `picamera2` / `picamera2:N` -> the Raspberry Pi camera module through
     Picamera2; an existing folder -> its images; an existing image file -> that image; any other
-    existing file -> a video. With `refuse_cameras` (the reason, for the error) only files are
-    accepted: a camera spec is refused before anything is opened.
+    existing file -> a video.
 
+    Args:
+        spec: the --source value.
+        camera_size: (width, height) to ask a camera for (None: its default).
+        warn: where a source's warnings go (default: stderr).
+        refuse_cameras: with it (the reason, for the error) only files are accepted: a camera spec is refused before
+            anything is opened.
+    Returns:
+        The source.
     Raises:
         UserError: nothing at that path, a camera that cannot be opened (or is not accepted), an
             unreadable video or image, a folder without images, picamera2 missing or unimportable.

@@ -66,7 +66,12 @@ class _Reader:
 def read_metadata(model: bytes | str | os.PathLike) -> dict[str, bytes]:
     """The file's metadata entries by name (e.g. `VIEW_METADATA`, the converter's `min_runtime_version`).
 
-    Raises ValueError for bytes that are not a FlatBuffer of that shape (a truncated or foreign file).
+    Args:
+        model: the flatbuffer bytes or a .tflite file.
+    Returns:
+        Name -> the entry's bytes.
+    Raises:
+        ValueError: bytes that are not a FlatBuffer of that shape (a truncated or foreign file).
     """
     data = model if isinstance(model, (bytes, bytearray, memoryview)) else open(os.fspath(model), "rb").read()
     data = bytes(data)

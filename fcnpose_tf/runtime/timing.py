@@ -23,11 +23,16 @@ FPS_DEFINITION = "FPS = 1000 / mean(preprocess + invoke + postprocess ms); invok
 
 
 def describe_ms(values: Sequence[float] | np.ndarray) -> dict[str, float]:
-    """mean, std, median, p95, min, max of millisecond samples (NaN for none).
+    """mean, std, median, p95, min, max of millisecond samples.
 
     The one summary of per-frame times (`run`, `bench`, `evaluate`, `compress`, the sweep).
     std is the sample standard deviation (ddof=1; 0 for a single sample), as docs/runtime.md
     defines it.
+
+    Args:
+        values: per-frame times in milliseconds.
+    Returns:
+        {"mean", "std", "median", "p95", "min", "max"}; NaN each for no samples.
     """
     arr = np.asarray(values, np.float64)
     if arr.size == 0:
@@ -38,7 +43,13 @@ def describe_ms(values: Sequence[float] | np.ndarray) -> dict[str, float]:
 
 
 def fps_from_ms(ms: float) -> float:
-    """Frames per second for a per-frame time in milliseconds (NaN if not positive)."""
+    """Frames per second for a per-frame time in milliseconds.
+
+    Args:
+        ms: the time per frame.
+    Returns:
+        1000 / ms; NaN if not positive.
+    """
     return 1e3 / ms if ms and ms > 0 else float("nan")
 
 

@@ -10,7 +10,7 @@ Quantization" (Markdown and CSV), a PCK-vs-FPS plot, and results.json.
     config = SweepConfig(out="results", data="data/ur5", rates=parse_rates("0.5,0.7"), folds=2,
                          epochs=2, retrain_epochs=1, input_size=64, threads=2)
     outcome = run_sweep(config, LocalExecutor())
-    print(outcome.report["tables"]["pruning"].markdown())
+    print(outcome.report.tables["pruning"].markdown())
 
 Modules: `rates` (rate specs), `jobs` (config, job identity, the job function), `executors`
 (local sequential / process pool / Ray), `report` (tables, plot, results.json from the saved

@@ -15,14 +15,16 @@ import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
+from fcnpose_tf import progress
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
+from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import file_sha256
 from fcnpose_tf.sweep import report as _report
 from fcnpose_tf.sweep.executors import Executor, JobFunction
-from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, SweepConfig, job_path, load_data,
+from fcnpose_tf.sweep.jobs import (KEY_FIELDS, Job, JobEvent, JobRecord, SweepConfig, job_path, load_data,
                                    normalize_key, plan_jobs, read_record, record_matches, retrain_epochs_at,
                                    run_job, splits_sha256)
 from fcnpose_tf.sweep.rates import rate_label
@@ -36,7 +38,8 @@ class SweepOutcome:
     done: list[str] = field(default_factory=list)
     failed: dict[str, str] = field(default_factory=dict)
     not_run: list[str] = field(default_factory=list)
-    report: dict[str, Any] = field(default_factory=dict)
+    report: _report.SweepReport | None = None
+    """The tables rebuilt at the end (None until then)."""
     seconds: float = 0.0
 
 
@@ -98,14 +101,15 @@ def finished_jobs(config: SweepConfig, jobs: list[Job]) -> set[str]:
 
 
 def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = run_job,
-              log: Callable[[str], None] = print) -> SweepOutcome:
+              reporter: Reporter | None = None) -> SweepOutcome:
     """Run every unfinished job of `config` on `executor`, then rebuild tables, plot and results.json.
 
     Args:
         config: the sweep; `prepare_config` is applied here (data fingerprints, absolute paths).
         executor: LocalExecutor or RayExecutor.
         job_fn: the job function (tests pass a fake one).
-        log: where progress lines go.
+        reporter: where the sweep's own lines go (default: the current reporter, `progress.current`); the jobs' go
+            to `config.reporter`.
     Returns:
         SweepOutcome; failed jobs do not raise (the others still run), see `failed`.
     Raises:
@@ -115,12 +119,13 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
             ones written.
     """
     config.validate()
+    log = progress.resolve(reporter).say
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise UserError(f"{out}: exists and is not a folder")
     config, num_frames = prepare_config(config)
     sweep_path = out / _report.SWEEP_FILE
-    runs: list[dict[str, Any]] = []
+    runs: list[_report.RunEntry] = []
     rates = tuple(config.rates)
     if sweep_path.is_file():
         previous = _report.read_sweep(out)
@@ -132,8 +137,7 @@ def run_sweep(config: SweepConfig, executor: Executor, *, job_fn: JobFunction = 
             runs = previous.get("runs", [])
             rates = tuple(sorted(set(rates) | {float(r) for r in previous["config"]["rates"]}))
     config_doc = {**config.to_dict(), "rates": list(rates), "num_frames": num_frames}
-    for transient in ("force", "verbose"):
-        config_doc.pop(transient)
+    config_doc.pop("force")
 
     jobs = plan_jobs(config.folds, tuple(config.rates))
     done_before = finished_jobs(config, jobs)
@@ -205,7 +209,7 @@ def _duration(seconds: Any) -> str:
     return f"{seconds:.1f} s" if seconds < 120 else f"{seconds / 60:.1f} min"
 
 
-def _brief(record: dict[str, Any]) -> str:
+def _brief(record: JobRecord) -> str:
     def part(name: str, section: str) -> str:
         step = record.get(section) or {}
         pck = (step.get("metrics") or {}).get("pck@0.5_bbox")

@@ -23,13 +23,13 @@ import signal
 import threading
 import traceback
 from abc import ABC, abstractmethod
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence, TypedDict
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import note_stop_signal
-from fcnpose_tf.sweep.jobs import Job, JobEvent
+from fcnpose_tf.sweep.jobs import Job, JobEvent, JobRecord
 
-JobFunction = Callable[[Any, Job], dict]
+JobFunction = Callable[[Any, Job], JobRecord]
 """run_job(config, job) -> record: module-level, picklable arguments."""
 EventHandler = Callable[[JobEvent], None]
 
@@ -76,13 +76,29 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}"
 
 
+class ExecutorInfo(TypedDict, total=False):
+    """An executor's settings as a run entry of sweep.json records them (`Executor.describe`)."""
+
+    executor: str
+    """"local" or "ray"."""
+    workers: int
+    """The local executor's processes."""
+    address: str | None
+    """The Ray cluster joined (None: a local Ray instance)."""
+    num_cpus: int | None
+    """CPUs of a local Ray instance (None: all cores)."""
+    threads_per_job: int
+    cluster: dict[str, float | int]
+    """The Ray cluster once joined: its "cpus" and "nodes"."""
+
+
 class Executor(ABC):
     """Runs jobs, respecting base-before-rates per fold, and reports each as a JobEvent."""
 
     name = "executor"
 
     @abstractmethod
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> ExecutorInfo:
         """JSON-ready settings (recorded in results.json)."""
 
     @abstractmethod
@@ -109,7 +125,7 @@ class LocalExecutor(Executor):
         self.workers = int(workers)
         self.threads = int(threads)
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> ExecutorInfo:
         return {"executor": self.name, "workers": self.workers, "threads_per_job": self.threads}
 
     def run(self, fn: JobFunction, config: Any, jobs: Sequence[Job], finished: set[str],
@@ -225,9 +241,9 @@ class RayExecutor(Executor):
         self.address = address
         self.num_cpus = num_cpus
         self.threads = int(threads)
-        self.cluster: dict[str, Any] = {}
+        self.cluster: dict[str, float | int] = {}
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> ExecutorInfo:
         return {"executor": self.name, "address": self.address, "num_cpus": self.num_cpus,
                 "threads_per_job": self.threads, **({"cluster": self.cluster} if self.cluster else {})}
 
@@ -320,6 +336,6 @@ def _failed(ray: Any, ref: Any) -> bool:
     return False
 
 
-def _ray_job(fn: JobFunction, config: Any, job: Job, *dependencies: Any) -> dict:
+def _ray_job(fn: JobFunction, config: Any, job: Job, *dependencies: Any) -> JobRecord:
     """A Ray task: run the job (thread caps come from the task's env; `dependencies` only order it)."""
     return fn(config, job)

@@ -22,14 +22,15 @@ import json
 import os
 import socket
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field, fields
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Required, TypedDict
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.records import file_sha256, library_versions, machine_info, training_record
+from fcnpose_tf.progress import Reporter
+from fcnpose_tf.records import MachineInfo, file_sha256, library_versions, machine_info, training_record
 from fcnpose_tf.sweep.rates import DEFAULT_RATES_SPEC, parse_rates, rate_label, rate_percent, rate_tag
 
 if TYPE_CHECKING:
@@ -40,10 +41,37 @@ RECORD_VERSION = 1
 JOBS_DIR = "jobs"
 MODELS_DIR = "models"
 
-KEY_FIELDS = ("data_sha256", "splits_sha256", "folds", "input_size", "epochs", "patience", "retrain_epochs",
-              "retrain_patience", "batch_size", "learning_rate", "lr_patience", "positive_weight", "augment_copies",
-              "seed", "threads", "importance", "importance_frames", "distill", "min_filters", "lr_schedule", "freeze",
-              "max_minutes", "centroid")
+class ConfigKey(TypedDict, total=False):
+    """The settings that change a job's results (KEY_FIELDS), as a job record's "config_key" holds them. A key a
+    record predates is missing (`normalize_key` fills it in); a job that does not retrain has no retraining fields
+    (`job_key`)."""
+
+    data_sha256: str
+    splits_sha256: str
+    folds: int
+    input_size: int
+    epochs: int
+    patience: int
+    retrain_epochs: int
+    retrain_patience: int
+    batch_size: int
+    learning_rate: float
+    lr_patience: int
+    positive_weight: float
+    augment_copies: int
+    seed: int
+    threads: int
+    importance: str
+    importance_frames: int
+    distill: float
+    min_filters: int
+    lr_schedule: str
+    freeze: int
+    max_minutes: float | None
+    centroid: str
+
+
+KEY_FIELDS = tuple(ConfigKey.__annotations__)
 """Settings that change a job's results: a results folder holds jobs of one value of each."""
 
 KEY_DEFAULTS = {"lr_patience": 0, "importance": "l1", "importance_frames": settings.IMPORTANCE_FRAMES.default,
@@ -57,7 +85,7 @@ RETRAINING_FIELDS = ("retrain_epochs", "retrain_patience", "importance", "import
 keeps its record when they change."""
 
 
-def normalize_key(key: dict[str, Any] | None) -> dict[str, Any] | None:
+def normalize_key(key: ConfigKey | None) -> ConfigKey | None:
     """A stored config key with the fields it predates filled in (so older folders still match)."""
     if not isinstance(key, dict):
         return key
@@ -72,13 +100,13 @@ def retrain_epochs_at(rate: float | None, default: int, by_rate: Any = ()) -> in
     return int(default)
 
 
-def job_key(key: dict[str, Any], rate: float | None, by_rate: Any = ()) -> dict[str, Any]:
+def job_key(key: ConfigKey, rate: float | None, by_rate: Any = ()) -> ConfigKey:
     """What a job of `rate` (None: base job) must have been run with, from the sweep's `key`.
 
     The retraining budget is the rate's own (`by_rate` overrides the default); jobs that do not
     retrain (base, rate 0) leave the retraining fields out, so changing them keeps those jobs.
     """
-    key = dict(normalize_key(key))
+    key = ConfigKey(**normalize_key(key))
     if rate is None or rate_percent(rate) == 0:
         for name in RETRAINING_FIELDS:
             key.pop(name, None)
@@ -87,7 +115,7 @@ def job_key(key: dict[str, Any], rate: float | None, by_rate: Any = ()) -> dict[
     return key
 
 
-def record_matches(record: dict[str, Any] | None, key: dict[str, Any], by_rate: Any = ()) -> bool:
+def record_matches(record: JobRecord | None, key: ConfigKey, by_rate: Any = ()) -> bool:
     """Whether a job record was made with the settings `key` (+ per-rate budgets) asks of its job."""
     if not isinstance(record, dict) or not isinstance(record.get("config_key"), dict):
         return False
@@ -106,7 +134,7 @@ the sweep's own."""
 
 @dataclass(frozen=True)
 class SweepConfig:
-    """Everything a job needs, as plain values (picklable, JSON-ready).
+    """Everything a job needs, as plain values (picklable, JSON-ready but for the reporter).
 
     `data` and `out` must be paths every worker sees (absolute; on a Ray cluster a shared
     file system). `data_sha256` and `splits_sha256` identify the annotation file and its folds;
@@ -154,18 +182,19 @@ class SweepConfig:
     """Where in its cluster a keypoint is read when a job is measured (plain: the paper's Algorithm 1)."""
     threads: int = 1
     """Resolved by the command (`commands.sweep.resolve_threads`): never None here."""
-    verbose: int = 1
-    """1: Keras progress bars; 2: one line per epoch (logs, parallel workers); 0: silent training."""
+    reporter: Reporter = field(default_factory=Reporter, compare=False, repr=False)
+    """Where a job's lines and its training's progress go (a worker process gets it pickled with the config): bars on a
+    terminal; `Reporter(quiet=True)` one line per epoch (logs, parallel workers); `progress.SILENT` nothing."""
     force: bool = False
     """Redo every job, retraining base models from scratch."""
     data_sha256: str = ""
     splits_sha256: str = ""
 
-    def key(self) -> dict[str, Any]:
+    def key(self) -> ConfigKey:
         """The result-affecting settings (KEY_FIELDS) that every job record carries."""
-        return {name: getattr(self, name) for name in KEY_FIELDS}
+        return ConfigKey(**{name: getattr(self, name) for name in KEY_FIELDS})
 
-    def job_key(self, job: "Job") -> dict[str, Any]:
+    def job_key(self, job: "Job") -> ConfigKey:
         """The settings `job`'s record carries (its own retraining budget; none for jobs that do not retrain)."""
         return job_key(self.key(), job.rate, self.retrain_epochs_by_rate)
 
@@ -175,31 +204,32 @@ class SweepConfig:
     @classmethod
     def preset(cls, name: str, **values: Any) -> SweepConfig:
         """A config with preset `name`'s value (`fcnpose_tf.settings.PRESETS`) of every setting not in `values`."""
-        return cls(**{**settings.preset_values(cls, name), **values})
+        return settings.from_preset(cls, name, **values)
 
     def fit_config(self) -> FitConfig:
         """How the base models are trained: every FitConfig setting the sweep's (random weights: no layer frozen,
         no teacher)."""
         from fcnpose_tf.training.train import FitConfig
 
-        return FitConfig(**settings.carried(self, FitConfig, freeze=0, distill=0.0))
+        return settings.carried(self, FitConfig, freeze=0, distill=0.0)
 
     def compress_options(self, job: Job) -> CompressOptions:
         """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained): every
         CompressOptions setting the sweep's, those of SWEEP_FIXED at CompressOptions' defaults."""
         from fcnpose_tf.compression.options import CompressOptions
 
-        fixed = {name: value for name, value in settings.preset_values(CompressOptions, settings.DEFAULT_PRESET).items()
-                 if name in SWEEP_FIXED}
+        defaults = CompressOptions.preset(settings.DEFAULT_PRESET, rate=float(job.rate))
+        fixed = {name: getattr(defaults, name) for name in SWEEP_FIXED}
         fixed["start"] = settings.PRUNED_START.paper  # surgery: the paper's protocol
-        return CompressOptions(**settings.carried(
+        return settings.carried(
             self, CompressOptions, renamed={"patience": "retrain_patience"}, **fixed, rate=float(job.rate),
             fold=job.fold, retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),
             distill=0.0 if job.rate == 0 else self.distill, max_minutes=None,
-            total_minutes=None))  # rates compared at equal epochs
+            total_minutes=None)  # rates compared at equal epochs
 
     def to_dict(self) -> dict[str, Any]:
-        data = asdict(self)
+        """The settings as JSON-ready values (all but the reporter)."""
+        data = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "reporter"}
         data["rates"] = list(self.rates)
         data["retrain_epochs_by_rate"] = [list(pair) for pair in self.retrain_epochs_by_rate]
         return data
@@ -254,6 +284,80 @@ def plan_jobs(folds: int, rates: tuple[float, ...]) -> list[Job]:
     return [job for k in range(folds) for job in [Job(k)] + [Job(k, float(r)) for r in rates]]
 
 
+class BaseTraining(TypedDict, total=False):
+    """How a base job got its model (a base record's "training"): trained here (`reused` False; resumed from a
+    checkpoint or not) or reused from OUT/models (`record`: whether it had a NAME_train.json to read these from)."""
+
+    reused: Required[bool]
+    resumed: bool
+    record: bool
+    epochs_run: int | None
+    best_epoch: int | None
+    best_val_loss: float | None
+    seconds: float | None
+    stopped_early: bool | None
+
+
+class JobRecord(TypedDict, total=False):
+    """OUT/jobs/NAME.json: what a finished job measured and wrote (`run_job`). It stays the JSON object it was read
+    as: `--retime` edits its timings in place (`retime.retime_sweep`), so a record written by an older version keeps
+    every key. A measured model is a `compression.report` step as written (`ModelStep.to_json`, `TFLiteStep.to_json`
+    without "export" and "tflite_ops", kept in the compression's NAME_report.json)."""
+
+    record_version: Required[int]
+    """RECORD_VERSION."""
+    job: Required[str]
+    """`Job.name`: fold0_base, fold0_p70."""
+    kind: Required[str]
+    """"base" or "rate"."""
+    fold: Required[int]
+    rate: Required[float | None]
+    """None for a base job."""
+    config_key: Required[ConfigKey]
+    """The settings the job ran with (`SweepConfig.job_key`)."""
+    eval_frames: int
+    """Validation frames of the fold every model was measured on."""
+    training: BaseTraining
+    """A base job's training (or reuse) of its model."""
+    keras: dict[str, Any]
+    """The Keras model measured: a base job's model, a rate job's retrained one (`ModelStep.to_json`)."""
+    tflite: dict[str, Any]
+    """A rate job's first TFLite file, the paper's float16 (`TFLiteStep.to_json`)."""
+    tflite_int8: dict[str, Any]
+    """A rate job's int8 file; another format's file is in its own `tflite_section`."""
+    pruned_before_retraining: dict[str, Any]
+    """The pruned model before retraining (`ModelStep.to_json`, no timing)."""
+    base_remeasured: dict[str, Any]
+    """{"timing"}: the fold's base model timed again by the compression."""
+    retraining: dict[str, Any] | None
+    """`compression.report.Retraining.to_json` (None: not retrained, rate 0)."""
+    pruning: dict[str, Any] | None
+    """The compression report's "pruning" (criterion, strategy, min_filters, ranking_seconds)."""
+    distillation: dict[str, Any] | None
+    """The compression report's "distillation" (None: --distill 0)."""
+    verification: dict[str, Any] | None
+    """The first TFLite file's comparison with Keras (`verify.ParityReport.to_dict`)."""
+    files: dict[str, str]
+    """The files the job wrote, relative to OUT, by `options.output_names` key (keras, tflite_fp16, report...)."""
+    model_sha256: str
+    """A base job's model file's SHA-256 (a rate job is redone when its base changes)."""
+    base_model_sha256: str
+    """The SHA-256 of the base model a rate job compressed."""
+    base_training_record: dict[str, Any]
+    """A base job's NAME_train.json, the keys tables need (data, split, train_samples, val_frames, config, epochs)."""
+    seconds: float
+    """Wall time of the job."""
+    finished_utc: str
+    machine: MachineInfo
+    tensorflow_threads: dict[str, Any]
+    """TensorFlow's intra- and inter-op thread counts as it reported them, and $TF_NUM_INTRAOP_THREADS."""
+    versions: dict[str, str | None]
+    """`records.library_versions`."""
+    retimed: dict[str, Any]
+    """Written by `--retime`: when, on which machine, with which threads and versions, how often, and the job's own
+    timings ("original_timing")."""
+
+
 def base_model_path(out: str | os.PathLike, fold: int) -> Path:
     """OUT/models/base_fold{K}.keras (the name `fcnpose-tf train --folds K --out OUT/models/base.keras` writes)."""
     return Path(out) / MODELS_DIR / f"base_fold{fold}.keras"
@@ -264,7 +368,7 @@ def job_path(out: str | os.PathLike, job: Job) -> Path:
     return Path(out) / JOBS_DIR / f"{job.name}.json"
 
 
-def read_record(path: Path) -> dict[str, Any] | None:
+def read_record(path: Path) -> JobRecord | None:
     """A job record, or None when it is unreadable (a stray file; the job is then redone)."""
     try:
         record = json.loads(path.read_text("utf-8"))
@@ -314,7 +418,7 @@ def load_data(config: SweepConfig, *, write_splits: bool = False) -> Any:
 # Running a job (imports TensorFlow)
 # ------------------------------------------------------------------------------------------
 
-def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
+def run_job(config: SweepConfig, job: Job) -> JobRecord:
     """Run one job, write its model files and (last) its record; return the record.
 
     Raises:
@@ -341,12 +445,12 @@ def run_job(config: SweepConfig, job: Job) -> dict[str, Any]:
 
         keras.backend.clear_session()
         gc.collect()
-    record = {"record_version": RECORD_VERSION, "job": job.name, "kind": "base" if job.is_base else "rate",
-              "fold": job.fold, "rate": job.rate, "config_key": config.job_key(job), **body,
-              "seconds": round(time.perf_counter() - start, 1),
-              "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "machine": machine_info(config.threads), "tensorflow_threads": tf_threads,
-              "versions": library_versions()}
+    record: JobRecord = {"record_version": RECORD_VERSION, "job": job.name, "kind": "base" if job.is_base else "rate",
+                         "fold": job.fold, "rate": job.rate, "config_key": config.job_key(job), **body,
+                         "seconds": round(time.perf_counter() - start, 1),
+                         "finished_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                         "machine": machine_info(config.threads), "tensorflow_threads": tf_threads,
+                         "versions": library_versions()}
     from fcnpose_tf.fileio import write_json
 
     write_json(job_path(config.out, job), record, force=True)
@@ -366,7 +470,7 @@ def tflite_section(quantize: str) -> str:
     return f"tflite_{settings.QUANTIZE_FILE_TAGS[quantize]}"
 
 
-def tflite_sections(record: dict[str, Any]) -> list[str]:
+def tflite_sections(record: JobRecord) -> list[str]:
     """The record's TFLite sections, the first file's ("tflite") first."""
     return [s for s in record if s == "tflite" or (s.startswith("tflite_") and isinstance(record[s], dict))]
 
@@ -374,18 +478,6 @@ def tflite_sections(record: dict[str, Any]) -> list[str]:
 def _strip(step: dict[str, Any]) -> dict[str, Any]:
     """A compress report step without what the tables never need (kept in the NAME_report.json)."""
     return {k: v for k, v in step.items() if k not in ("export", "tflite_ops")}
-
-
-def _log(line: str) -> None:
-    print(line, flush=True)  # a worker's lines reach the driver's log as they happen
-
-
-def _reporter(config: SweepConfig) -> Any:
-    """A job's reporter: `config.verbose` as Keras counts it (`progress.from_verbose`; a worker process gets it
-    pickled with the config)."""
-    from fcnpose_tf.progress import from_verbose
-
-    return from_verbose(config.verbose)
 
 
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
@@ -400,9 +492,9 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
     checkpoint = run_paths(path)["ckpt_state"]
     if path.is_file() and not checkpoint.is_file() and not config.force:
         training = _check_reused_base(config, job, dataset, path)
-        _log(f"{job.label}: reusing {path}")
+        config.reporter.say(f"{job.label}: reusing {path}")
         model = load_model(path)
-        _log(f"{job.label}: evaluating on {len(val_idx)} validation frames")
+        config.reporter.say(f"{job.label}: evaluating on {len(val_idx)} validation frames")
         result = evaluate_predictor(KerasKeypointModel(model, path, num_threads=config.threads,
                                                        decoding=Decoding(centroid=config.centroid)), dataset, val_idx,
                                     dataset.schema)
@@ -413,11 +505,11 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
                              augment_copies=config.augment_copies, resume=resume, force=config.force or not resume,
                              metadata={"data": config.data, "trained_by": "fcnpose-tf sweep"},
                              threads=config.threads, decoding=Decoding(centroid=config.centroid),
-                             label=f"{job.label} ({path.name})", reporter=_reporter(config))
+                             label=f"{job.label} ({path.name})", reporter=config.reporter)
         facts = trained.raw
-        training = {"reused": False, "resumed": resume, "epochs_run": facts["epochs_run"],
-                    "best_epoch": facts["best_epoch"], "best_val_loss": facts["best_val_loss"],
-                    "seconds": facts["train_seconds"], "stopped_early": facts["stopped_early"]}
+        training: BaseTraining = {"reused": False, "resumed": resume, "epochs_run": facts["epochs_run"],
+                                  "best_epoch": facts["best_epoch"], "best_val_loss": facts["best_val_loss"],
+                                  "seconds": facts["train_seconds"], "stopped_early": facts["stopped_early"]}
         validation = trained.validation
         model = load_model(path)
     keras_step = ModelStep.of(model_facts(model), validation, file_sizes(model, path)).to_json()
@@ -429,7 +521,7 @@ def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
                                                              "config", "epochs_run", "best_epoch")}}
 
 
-def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) -> dict[str, Any]:
+def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) -> BaseTraining:
     from fcnpose_tf.training.model import load_model
 
     model = load_model(path)
@@ -441,8 +533,8 @@ def _check_reused_base(config: SweepConfig, job: Job, dataset: Any, path: Path) 
         raise UserError(f"{path}: {maps} output maps, but the data needs {dataset.schema.num_maps}")
     record = training_record(path)
     if record is None:
-        _log(f"warning: {path} has no training record (NAME_train.json); cannot check that it was trained on "
-             f"fold {job.fold}'s training frames only")
+        config.reporter.say(f"warning: {path} has no training record (NAME_train.json); cannot check that it was "
+                            f"trained on fold {job.fold}'s training frames only")
         return {"reused": True, "record": False}
     if record.data_sha256 not in (None, config.data_sha256) or record.fold != job.fold \
             or record.split_seed not in (None, config.split_seed) or record.folds not in (None, config.folds):
@@ -464,13 +556,14 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
         raise UserError(f"{base}: fold {job.fold}'s base model is missing (its base job must finish first)")
     _, val_idx = dataset.split(job.fold)
     base_sha256 = file_sha256(base)
-    _log(f"{job.label}: compressing {base.name}")
+    config.reporter.say(f"{job.label}: compressing {base.name}")
     report = compress_model(base, dataset, dataset, [int(i) for i in val_idx], Path(config.out) / MODELS_DIR,
-                            config.compress_options(job).checked(base), force=True, reporter=_reporter(config),
+                            config.compress_options(job).checked(base), force=True, reporter=config.reporter,
                             eval_description=f"{len(val_idx)} validation frames of fold {job.fold} of {config.folds}")
     if report.quantized is None:  # every format refused by its keypoint gate: the job fails, one line
         reasons = "; ".join(f"{entry.quantize}: {entry.reason}" for entry in report.refused)
         raise UserError(f"{job.label}: no TFLite file passed its keypoint gate ({reasons})")
+    parity = report.quantized.parity
     return {"eval_frames": len(val_idx), "base_model_sha256": base_sha256,
             "keras": _strip(report.retrained.to_json()),
             "tflite": _strip(report.quantized.to_json()),
@@ -479,7 +572,7 @@ def _run_rate(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
             "base_remeasured": {"timing": report.base.timing.to_json() if report.base.timing else None},
             "retraining": report.retraining.to_json() if report.retraining is not None else None,
             "pruning": report.pruning, "distillation": report.distillation,
-            "verification": report.quantized.parity,
+            "verification": parity.to_dict() if parity is not None else None,
             "files": {k: _relative(v, config.out) for k, v in report.files.items()}}
 
 
@@ -489,6 +582,6 @@ class JobEvent:
 
     kind: str
     job: Job
-    record: dict[str, Any] | None = None
+    record: JobRecord | None = None
     error: str | None = None
     details: dict[str, Any] = field(default_factory=dict)

@@ -23,12 +23,13 @@ import math
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable, Sequence, TypedDict
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import atomic_path, os_error_reason, parse_json, write_json, write_text
-from fcnpose_tf.records import library_versions, machine_info
-from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, plan_jobs, read_record, tflite_sections
+from fcnpose_tf.records import MachineInfo, library_versions, machine_info
+from fcnpose_tf.sweep.executors import ExecutorInfo
+from fcnpose_tf.sweep.jobs import JOBS_DIR, RECORD_VERSION, Job, JobRecord, plan_jobs, read_record, tflite_sections
 from fcnpose_tf.sweep.rates import describe_per_rate, rate_label
 
 SWEEP_FILE = "sweep.json"
@@ -41,6 +42,18 @@ PCK_KEYS = ("pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox")
 # Tables
 # ------------------------------------------------------------------------------------------
 
+class StatJson(TypedDict):
+    """A `Stat` as results.json holds it (rounded to 6 decimals)."""
+
+    mean: float | None
+    std: float | None
+    n: int
+
+
+TableRow = dict[str, "StatJson | float | int | str | None"]
+"""A table row as results.json holds it: column key -> a mean ± std over folds, a number, a label or None."""
+
+
 @dataclass(frozen=True)
 class Stat:
     """Mean and population standard deviation over folds, and how many folds gave a value."""
@@ -49,7 +62,7 @@ class Stat:
     std: float | None
     n: int
 
-    def to_dict(self) -> dict[str, Any]:
+    def to_dict(self) -> StatJson:
         return {"mean": _round(self.mean), "std": _round(self.std), "n": self.n}
 
 
@@ -148,7 +161,7 @@ class Table:
             writer.writerow(out)
         return buffer.getvalue()
 
-    def records(self) -> list[dict[str, Any]]:
+    def records(self) -> list[TableRow]:
         """Rows as JSON-ready dicts keyed by column key (a Stat as {mean, std, n})."""
         return [{c.key: (v.to_dict() if isinstance(v, Stat) else _round(v)) for v, c in zip(row, self.columns)}
                 for row in self.rows]
@@ -191,12 +204,13 @@ class SweepResults:
     """The finished jobs of one configuration: base records by fold, rate records by rate and fold."""
 
     config: dict[str, Any]
-    bases: dict[int, dict[str, Any]] = field(default_factory=dict)
-    rates: dict[float, dict[int, dict[str, Any]]] = field(default_factory=dict)
+    """sweep.json's "config" (`SweepFile`)."""
+    bases: dict[int, JobRecord] = field(default_factory=dict)
+    rates: dict[float, dict[int, JobRecord]] = field(default_factory=dict)
     ignored: list[str] = field(default_factory=list)
 
     @property
-    def records(self) -> list[dict[str, Any]]:
+    def records(self) -> list[JobRecord]:
         return [self.bases[k] for k in sorted(self.bases)] + [
             self.rates[r][k] for r in sorted(self.rates) for k in sorted(self.rates[r])]
 
@@ -207,7 +221,36 @@ class SweepResults:
                 if job.name not in have]
 
 
-def read_sweep(out: str | Path) -> dict[str, Any]:
+class RunEntry(ExecutorInfo, total=False):
+    """One run of a sweep, as sweep.json's "runs" holds it: a sweep run (`new_run_entry`, completed by the driver)
+    or a retime (kind "retime")."""
+
+    kind: str
+    """"retime"; a sweep run has no kind."""
+    started_utc: str
+    seconds: float
+    jobs_planned: list[str]
+    jobs_done: list[str]
+    jobs_failed: dict[str, str]
+    """Job name -> error."""
+    interrupted: bool
+    threads: int
+    """A retime's thread count."""
+    machine: MachineInfo
+    """The machine a retime measured on."""
+    jobs_retimed: list[str]
+
+
+class SweepFile(TypedDict):
+    """OUT/sweep.json (`read_sweep`): the configuration and every run. The driver and `--retime` add runs to the
+    JSON object as read, so a file written by another version keeps every key."""
+
+    config: dict[str, Any]
+    """`SweepConfig.to_dict` without "force", with the rates of every run and the data's "num_frames"."""
+    runs: list[RunEntry]
+
+
+def read_sweep(out: str | Path) -> SweepFile:
     """OUT/sweep.json: the sweep's configuration and its runs; UserError if there is none."""
     path = Path(out) / SWEEP_FILE
     try:
@@ -248,26 +291,26 @@ def collect(out: str | Path, config: dict[str, Any]) -> SweepResults:
     return results
 
 
-def _metric(record: dict[str, Any] | None, section: str, key: str) -> Any:
+def _metric(record: JobRecord | None, section: str, key: str) -> Any:
     if record is None or section not in record or record[section] is None:
         return None
     return record[section].get("metrics", {}).get(key)
 
 
-def _timing(record: dict[str, Any] | None, section: str, key: str) -> Any:
+def _timing(record: JobRecord | None, section: str, key: str) -> Any:
     if record is None or not (record.get(section) or {}).get("timing"):
         return None
     value = record[section]["timing"].get(key)
     return value.get("mean") if isinstance(value, dict) else value
 
 
-def _value(record: dict[str, Any] | None, section: str, key: str) -> Any:
+def _value(record: JobRecord | None, section: str, key: str) -> Any:
     if record is None or not record.get(section):
         return None
     return record[section].get(key)
 
 
-def _over(records: Iterable[dict[str, Any]], getter, section: str, key: str) -> Stat:
+def _over(records: Iterable[JobRecord], getter, section: str, key: str) -> Stat:
     return stat(getter(r, section, key) for r in records)
 
 
@@ -333,7 +376,7 @@ def pruning_table(results: SweepResults) -> Table:
     return table
 
 
-def _keras_row(rate: float, recs: list[dict[str, Any]], before: Stat | None, full_fps: float | None) -> list[Any]:
+def _keras_row(rate: float, recs: list[JobRecord], before: Stat | None, full_fps: float | None) -> list[Any]:
     fps = _over(recs, _timing, "keras", "fps")
     return [rate, len(recs), _over(recs, _value, "keras", "params").mean,
             *[_over(recs, _metric, "keras", k) for k in (*PCK_KEYS, "epe_px")], before,
@@ -532,13 +575,13 @@ DEFINITIONS = """\
 """
 
 
-def _subtitle(results: SweepResults, machine: dict[str, Any]) -> str:
+def _subtitle(results: SweepResults, machine: MachineInfo) -> str:
     cfg = results.config
     return (f"{len(results.bases)} of {cfg['folds']} folds, input {cfg['input_size']}x{cfg['input_size']}, "
             f"{cfg['threads']} thread(s), {machine.get('cpu_model', 'unknown CPU')}")
 
 
-def _hosts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+def _hosts(records: list[JobRecord]) -> list[dict[str, Any]]:
     seen: dict[tuple, dict[str, Any]] = {}
     for rec in records:
         m = rec.get("machine") or {}
@@ -549,10 +592,31 @@ def _hosts(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return list(seen.values())
 
 
-def timing_source(records: list[dict[str, Any]]) -> dict[str, Any]:
+class RetimeHost(TypedDict):
+    """A machine `--retime` measured on, and how many jobs (`TimingSource`)."""
+
+    hostname: str | None
+    cpu_model: str | None
+    cpu_cores: int | None
+    threads: int | None
+    jobs: int
+
+
+class TimingSource(TypedDict):
+    """Where a sweep's timings come from (results.json's "timing_source", `timing_source`)."""
+
+    jobs: int
+    retimed_jobs: int
+    """Jobs whose timings `--retime` replaced."""
+    retimed_utc: list[str]
+    """When, one entry per retime."""
+    retimed_on: list[RetimeHost]
+
+
+def timing_source(records: list[JobRecord]) -> TimingSource:
     """Where the timings come from: the jobs themselves, or `--retime` (when, on which hosts, how many jobs)."""
     retimed = [r["retimed"] for r in records if isinstance(r.get("retimed"), dict)]
-    hosts: dict[tuple, dict[str, Any]] = {}
+    hosts: dict[tuple, RetimeHost] = {}
     for entry in retimed:
         m = entry.get("machine") or {}
         host = hosts.setdefault((m.get("hostname"), m.get("cpu_model")), {
@@ -563,7 +627,7 @@ def timing_source(records: list[dict[str, Any]]) -> dict[str, Any]:
             "retimed_on": list(hosts.values())}
 
 
-def _timing_line(source: dict[str, Any]) -> str:
+def _timing_line(source: TimingSource) -> str:
     if not source["retimed_jobs"]:
         return ("- **Timing**: measured by each job right after it ran, on the machine and with the load it ran "
                 "with; `fcnpose-tf sweep --out OUT --retime` re-measures every job on one idle machine")
@@ -597,8 +661,8 @@ def _epochs(n: int) -> str:
     return f"{n} epoch" + ("" if n == 1 else "s")
 
 
-def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: dict[str, Any],
-                     versions: dict[str, Any], runs: list[dict[str, Any]]) -> str:
+def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: MachineInfo,
+                     versions: dict[str, Any], runs: list[RunEntry]) -> str:
     """OUT/summary.md: a header with the configuration, the plot, every table, the definitions."""
     cfg = results.config
     missing = results.missing()
@@ -642,12 +706,26 @@ def summary_markdown(results: SweepResults, tables: dict[str, Table], machine: d
     return "\n".join(lines)
 
 
-def write_report(out: str | Path, *, machine: dict[str, Any] | None = None,
-                 versions: dict[str, Any] | None = None) -> dict[str, Any]:
+@dataclass(frozen=True)
+class SweepReport:
+    """What `write_report` rebuilt: the job records it read, the tables and the files it wrote."""
+
+    results: SweepResults
+    tables: dict[str, Table]
+    """By TABLE_NAMES."""
+    files: list[Path]
+
+
+def write_report(out: str | Path, *, machine: MachineInfo | None = None,
+                 versions: dict[str, Any] | None = None) -> SweepReport:
     """Rebuild every table, the plot, summary.md and results.json of OUT from its job records.
 
+    Args:
+        out: the results folder.
+        machine: the machine the report names (default: this one, `records.machine_info`).
+        versions: the library versions it names (default: this process's, `records.library_versions`).
     Returns:
-        {"results": SweepResults, "tables": {name: Table}, "files": [written paths]}.
+        The records read, the tables and the files written.
     Raises:
         UserError: OUT holds no sweep.json.
     """
@@ -684,10 +762,10 @@ def write_report(out: str | Path, *, machine: dict[str, Any] | None = None,
         "jobs": results.records,
     }
     files.append(write_json(out / "results.json", document, force=True))
-    return {"results": results, "tables": tables, "files": files}
+    return SweepReport(results, tables, files)
 
 
-def new_run_entry(executor: dict[str, Any], jobs_run: Sequence[Job]) -> dict[str, Any]:
+def new_run_entry(executor: ExecutorInfo, jobs_run: Sequence[Job]) -> RunEntry:
     """A fresh entry for sweep.json's "runs" (completed by the driver)."""
     return {"started_utc": datetime.now(timezone.utc).isoformat(timespec="seconds"), **executor,
             "jobs_planned": [j.name for j in jobs_run]}

@@ -30,11 +30,15 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Callable
 
+from fcnpose_tf import progress
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import json_default, write_json
+from fcnpose_tf.measurements import MeasurementJson
+from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import file_sha256, library_versions, machine_info
 from fcnpose_tf.sweep import report as _report
-from fcnpose_tf.sweep.jobs import JOBS_DIR, SweepConfig, base_model_path, load_data, tflite_section, tflite_sections
+from fcnpose_tf.sweep.jobs import (JOBS_DIR, JobRecord, SweepConfig, base_model_path, load_data, tflite_section,
+                                   tflite_sections)
 
 RETIME_KIND = "retime"
 
@@ -45,8 +49,10 @@ class RetimeOutcome:
 
     jobs: list[str] = field(default_factory=list)
     changes: list[dict[str, Any]] = field(default_factory=list)
+    """{"job", "section", "fps_before", "fps_after"} per timed section."""
     seconds: float = 0.0
-    report: dict[str, Any] = field(default_factory=dict)
+    report: _report.SweepReport | None = None
+    """The tables rebuilt at the end (None until then)."""
 
 
 def config_from_sweep(out: str | Path, data: str | None = None) -> SweepConfig:
@@ -75,7 +81,7 @@ def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     return [] if old == new else [f"{prefix}: {old!r} -> {new!r}"]
 
 
-def _measure(predictor: Any, dataset: Any, indices: list[int]) -> dict[str, Any]:
+def _measure(predictor: Any, dataset: Any, indices: list[int]) -> MeasurementJson:
     """The jobs' measurement: every frame scored once, timing over >= 50 frames after 5 warm-up frames."""
     from fcnpose_tf.training.evaluate import MIN_TIMED_FRAMES, WARMUP_FRAMES, evaluate_predictor
 
@@ -95,8 +101,9 @@ def _checked_file(out: Path, relative: str | None, what: str, sha256: str | None
     return path
 
 
-def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> dict[str, dict[str, Any]]:
-    """Re-run the job's measurements: {section: {"metrics", "timing"}} for each timed section it has."""
+def measure_job(config: SweepConfig, record: JobRecord, dataset: Any) -> dict[str, MeasurementJson]:
+    """Re-run the job's measurements: {section: {"metrics", "timing"}} for each timed section it has, as JSON reads
+    them back (the comparison with the record is on what it holds)."""
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import KerasKeypointModel
     from fcnpose_tf.training.model import load_model
@@ -110,7 +117,7 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
         raise UserError(f"{record['job']}: {len(indices)} validation frames now, {record.get('eval_frames')} when "
                         "the job ran")
     files = record.get("files") or {}
-    measured: dict[str, dict[str, Any]] = {}
+    measured: dict[str, MeasurementJson] = {}
     threads, decoding = config.threads, Decoding(centroid=config.centroid)
 
     def keras(path: Path) -> KerasKeypointModel:
@@ -138,7 +145,7 @@ def measure_job(config: SweepConfig, record: dict[str, Any], dataset: Any) -> di
     return measured
 
 
-def _expected_metrics(config: SweepConfig, record: dict[str, Any], section: str) -> dict[str, Any] | None:
+def _expected_metrics(config: SweepConfig, record: JobRecord, section: str) -> dict[str, Any] | None:
     """The metrics the job recorded for `section` (base_remeasured: from the compression's report file)."""
     if section != "base_remeasured":
         return (record.get(section) or {}).get("metrics")
@@ -150,8 +157,8 @@ def _expected_metrics(config: SweepConfig, record: dict[str, Any], section: str)
 
 
 def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | None = None,
-                 log: Callable[[str], None] = print,
-                 measure: Callable[[SweepConfig, dict[str, Any], Any], dict[str, dict[str, Any]]] = measure_job,
+                 reporter: Reporter | None = None,
+                 measure: Callable[[SweepConfig, JobRecord, Any], dict[str, MeasurementJson]] = measure_job,
                  ) -> RetimeOutcome:
     """Re-measure every finished job of the sweep in OUT on this machine, then rebuild the report.
 
@@ -159,7 +166,7 @@ def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | Non
         out: the results folder.
         threads: must equal the sweep's thread count when given (timings are tied to it).
         data: where the sweep's data is on this machine (checked by SHA-256); default: as recorded.
-        log: where progress lines go.
+        reporter: where progress lines go (default: the current reporter, `progress.current`).
         measure: the measurement function (tests pass a fake one).
     Returns:
         RetimeOutcome with the old and new FPS of every timed section.
@@ -169,6 +176,7 @@ def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | Non
             (then nothing is written).
     """
     out = Path(out)
+    log = progress.resolve(reporter).say
     config = config_from_sweep(out, data)
     if threads is not None and threads != config.threads:
         raise UserError(f"{out}: the sweep was timed with {config.threads} thread(s), so --retime measures with "
@@ -184,7 +192,7 @@ def retime_sweep(out: str | Path, *, threads: int | None = None, data: str | Non
     start = time.perf_counter()
     log(f"Retiming {len(records)} finished job(s) of {out} sequentially on this machine, {config.threads} "
         f"thread(s); metrics must come out identical")
-    new: dict[str, dict[str, dict[str, Any]]] = {}
+    new: dict[str, dict[str, MeasurementJson]] = {}
     mismatches: list[str] = []
     for count, record in enumerate(records, 1):
         job_start = time.perf_counter()
@@ -252,7 +260,7 @@ def _fps(step: dict[str, Any] | None) -> float | None:
     return timing.get("fps")
 
 
-def _update_compress_report(out: Path, record: dict[str, Any], measured: dict[str, dict[str, Any]]) -> None:
+def _update_compress_report(out: Path, record: JobRecord, measured: dict[str, MeasurementJson]) -> None:
     """Put the new timings into the job's models/NAME_report.json too (base, retrained, quantized). The file is
     edited as JSON, not read as a `CompressReport`: one written by an older version keeps every key as it was."""
     report_file = (record.get("files") or {}).get("report")

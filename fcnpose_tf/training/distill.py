@@ -38,7 +38,14 @@ def _predictor(teacher: keras.Model):
 
 
 def teacher_maps(teacher: keras.Model, sequence: Any) -> np.ndarray:
-    """The teacher's maps of every row of a training Sequence iterated in row order (float16, N x S x S x C)."""
+    """The teacher's maps of every row of a training Sequence iterated in row order.
+
+    Args:
+        teacher: the model whose maps are learnt from.
+        sequence: a training Sequence (batches of (frames, targets), rows in order).
+    Returns:
+        N x H x W x C maps, float16 (the cache's dtype).
+    """
     predict = _predictor(teacher)
     parts = [np.asarray(predict(np.asarray(sequence[b][0], np.float32))).astype(CACHE_DTYPE)
              for b in range(len(sequence))]

@@ -34,9 +34,15 @@ def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold:
                   ) -> tuple[list[int], str]:
     """Frame indices to evaluate and a description of them.
 
-    split "val": the validation part of the hold-out split (or of `fold`); "all": every frame;
-    "auto": the validation part if the model was trained on this very annotation file (its
-    NAME_train.json records the file's SHA-256), otherwise every frame (an unseen dataset).
+    Args:
+        dataset: a loaded dataset with its splits.
+        model_path: the model to evaluate (its NAME_train.json tells whether it was trained on this data).
+        split: "val": the validation part of the hold-out split (or of `fold`); "all": every frame; "auto": the
+            validation part if the model was trained on this very annotation file (its NAME_train.json records the
+            file's SHA-256), otherwise every frame (an unseen dataset).
+        fold: the fold whose validation frames "val" takes (None: the hold-out split).
+    Returns:
+        (indices, e.g. "validation frames of the hold-out 80/20 split (20 frames)").
     """
     if split == "auto":
         record = training_record(model_path)
@@ -103,8 +109,17 @@ class KerasKeypointModel(KeypointPredictor):
 
 
 def open_model(path: str | os.PathLike, threads: int | None = None, decoding: Decoding | None = None):
-    """A predictor for a .keras/.h5 (tf_keras) or .tflite (LiteRT) file, by its extension, reading keypoints with
-    `decoding` (`postprocess.Decoding`; default the commands')."""
+    """A predictor for a model file, by its extension.
+
+    Args:
+        path: a .keras/.h5 (tf_keras) or .tflite (LiteRT) file.
+        threads: threads of its forward pass (None: all cores).
+        decoding: how keypoints are read from its maps (`postprocess.Decoding`; default the commands').
+    Returns:
+        A `KerasKeypointModel` or a `runtime.estimator.KeypointModel`.
+    Raises:
+        UserError: another extension, or no such file.
+    """
     path = Path(path)
     if not path.is_file():
         raise UserError(f"{path}: model file not found")
@@ -129,6 +144,19 @@ def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequ
     than `min_timed_frames`, cycles through them again (timing only) to reach that count.
     Each stage's time is summarised by `runtime.timing.describe_ms` (mean, sample std, median;
     rounded to 4 decimals); FPS by `runtime.timing.fps_from_ms`.
+
+    Args:
+        predictor: the model ready to run (`KerasKeypointModel`, `runtime.estimator.KeypointModel`).
+        dataset: a loaded dataset.
+        indices: the frames to score.
+        schema: the keypoints the maps stand for.
+        min_timed_frames: frames timed at least.
+        warmup: untimed frames first.
+        progress: show a progress bar or lines (the current reporter).
+    Returns:
+        Metrics, timing, and the predicted and ground-truth keypoints.
+    Raises:
+        UserError: no frames, or a model whose maps do not fit the schema.
     """
     indices = [int(i) for i in indices]
     if not indices:
@@ -167,7 +195,13 @@ def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequ
 
 
 def format_timing(timing: Timing) -> str:
-    """One paragraph stating inference time, FPS and the thread count."""
+    """One paragraph stating inference time, FPS and the thread count.
+
+    Args:
+        timing: a measurement's timing.
+    Returns:
+        The paragraph.
+    """
     return (f"inference {timing.inference_ms.mean:.2f} ± {timing.inference_ms.std:.2f} ms/frame, "
             f"end to end {timing.total_ms.mean:.2f} ± {timing.total_ms.std:.2f} ms "
             f"(preprocess {timing.preprocess_ms.mean:.2f}, postprocess {timing.postprocess_ms.mean:.2f}); "
@@ -178,8 +212,17 @@ def format_timing(timing: Timing) -> str:
 
 def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = None,
                     names: Sequence[str] = ()) -> SequenceReport:
-    """Jitter and lag of a video's tracks (frames in order at `fps`), and with `smooth` (One-Euro
-    parameters) the same for the smoothed tracks beside their PCK and EPE."""
+    """Jitter and lag of a video's tracks, and with `smooth` the same for the smoothed tracks beside their PCK and EPE.
+
+    Args:
+        pred: N x K x 2 predicted keypoints of the frames in order (NaN: missing).
+        gt: N x K x 2 ground-truth keypoints.
+        fps: the video's frame rate.
+        smooth: One-Euro parameters (`smoothing`), or None for the raw tracks only.
+        names: keypoint names, in map order (`metrics.keypoint_report`).
+    Returns:
+        The report (`evaluate --sequence`).
+    """
     from fcnpose_tf.metrics import SEQUENCE_DEFINITIONS, jitter_px, lag_frames
     from fcnpose_tf.smoothing import smooth_track
 
@@ -197,7 +240,13 @@ def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = 
 
 
 def format_sequence(report: SequenceReport) -> str:
-    """Lines stating jitter, lag, EPE and PCK@0.05 of the raw (and smoothed) tracks, with the definitions."""
+    """Lines stating jitter, lag, EPE and PCK@0.05 of the raw (and smoothed) tracks, with the definitions.
+
+    Args:
+        report: `sequence_report`'s.
+    Returns:
+        The lines, joined.
+    """
     lines = [f"Sequence at {report.fps:g} FPS ({report.definitions})"]
     for key, r in (("raw", report.raw), ("smoothed", report.smoothed)):
         if r is not None:

@@ -44,7 +44,15 @@ _VIEW_ATTRIBUTE = "_fcnpose_tf_view"
 
 
 def input_shape_of(input_size: ViewLike) -> tuple[int, int]:
-    """(height, width) of an input size given as S, (H, W) or a view; UserError unless both are multiples of 32."""
+    """(height, width) of an input size.
+
+    Args:
+        input_size: S, (H, W) or a `preprocess.FrameView`.
+    Returns:
+        (height, width).
+    Raises:
+        UserError: a side that is not a multiple of 32.
+    """
     if isinstance(input_size, FrameView):
         height, width = input_size.shape
     elif isinstance(input_size, (tuple, list)) and len(input_size) == 2:
@@ -113,15 +121,29 @@ ARCHITECTURES = {"fcn-pose": False, "fcn-pose-skip": True}
 
 
 def architecture_of(model: keras.Model) -> str:
-    """"fcn-pose-skip" when `model` has `build_fcn_pose(skip=True)`'s layers, else "fcn-pose"."""
+    """Which network `model` is.
+
+    Args:
+        model: an FCN-Pose model.
+    Returns:
+        "fcn-pose-skip" when it has `build_fcn_pose(skip=True)`'s layers, else "fcn-pose".
+    """
     names = {layer.name for layer in model.layers}
     return "fcn-pose-skip" if set(SKIP_LAYERS) <= names else "fcn-pose"
 
 
 def as_architecture(model: keras.Model, architecture: str) -> keras.Model:
     """`model` as the network `architecture` names: itself when it is one already; FCN-Pose given the skip with the
-    skip's 1x1 convolution at zero (the same function, weights copied by layer name, the view kept). UserError for
-    taking a trained skip away (its weights would be lost) or an unknown name."""
+    skip's 1x1 convolution at zero (the same function, weights copied by layer name, the view kept).
+
+    Args:
+        model: an FCN-Pose model.
+        architecture: a name of ARCHITECTURES.
+    Returns:
+        The model of that network.
+    Raises:
+        UserError: an unknown name, or taking a trained skip away (its weights would be lost).
+    """
     if architecture not in ARCHITECTURES:
         raise UserError(f"architecture must be one of {', '.join(ARCHITECTURES)}, got {architecture!r}")
     own = architecture_of(model)
@@ -140,12 +162,24 @@ def as_architecture(model: keras.Model, architecture: str) -> keras.Model:
 
 
 def given_view(model: keras.Model) -> FrameView | None:
-    """The view `model` was given (`with_view`, `load_model` of a file that stores one), or None."""
+    """The view `model` was given (`with_view`, `load_model` of a file that stores one).
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        The view, or None.
+    """
     return getattr(model, _VIEW_ATTRIBUTE, None)
 
 
 def view_of(model: keras.Model) -> FrameView:
-    """What `model` sees of a frame: the view it was given (`given_view`), else the whole frame at its input size."""
+    """What `model` sees of a frame.
+
+    Args:
+        model: a tf_keras model with a fixed input size.
+    Returns:
+        The view it was given (`given_view`), else the whole frame at its input size.
+    """
     view = given_view(model)
     if view is not None:
         return view
@@ -154,7 +188,16 @@ def view_of(model: keras.Model) -> FrameView:
 
 
 def with_view(model: keras.Model, view: ViewLike) -> keras.Model:
-    """`model` with its view set (returned for chaining); UserError when the view's size is not the model's input."""
+    """`model` with its view set.
+
+    Args:
+        model: a tf_keras model.
+        view: S, (H, W) or a `preprocess.FrameView` of the model's input size.
+    Returns:
+        `model` (for chaining).
+    Raises:
+        UserError: the view's size is not the model's input.
+    """
     view = FrameView.of(view)
     shape = tuple(model.input_shape[1:3])
     if shape != view.shape:
@@ -164,7 +207,15 @@ def with_view(model: keras.Model, view: ViewLike) -> keras.Model:
 
 
 def read_stored_view(path) -> FrameView | None:
-    """The view stored in a .keras or .h5 model file, or None (none stored: the whole frame)."""
+    """The view stored in a .keras or .h5 model file.
+
+    Args:
+        path: the model file.
+    Returns:
+        The view, or None (none stored: the whole frame).
+    Raises:
+        UserError: a stored view that cannot be read.
+    """
     import zipfile
     from pathlib import Path
 
@@ -216,7 +267,13 @@ class LayerRow:
 
 
 def describe(model: keras.Model) -> list[LayerRow]:
-    """Layer table of a model: name, type, output shape (without batch), parameters and conv MACs."""
+    """Layer table of a model: name, type, output shape (without batch), parameters and conv MACs.
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        One row per layer.
+    """
     rows = []
     for layer in model.layers:
         shape = layer.output_shape
@@ -233,17 +290,29 @@ def describe(model: keras.Model) -> list[LayerRow]:
 
 def conv_widths(model: keras.Model) -> tuple[int, ...]:
     """Filter counts of conv1..conv10 in order (the last is the number of output maps; the skip's 1x1 convolution,
-    which follows conv9's width, is not one of them)."""
+    which follows conv9's width, is not one of them).
+
+    Args:
+        model: an FCN-Pose model.
+    Returns:
+        The widths.
+    """
     return tuple(int(layer.filters) for layer in model.layers
                  if isinstance(layer, keras.layers.Conv2D) and layer.name not in SKIP_LAYERS)
 
 
 def at_input_size(model: keras.Model, input_size: ViewLike) -> keras.Model:
     """`model` (FCN-Pose, or any fully convolutional chain) at another input size with the same layers and
-    weights; `model` itself when already so. UserError for a side that is not a multiple of 32.
+    weights. The convolutions do not depend on the input size: a model trained at 224 runs, and retrains, at 192,
+    320 or 224 x 288.
 
-    `input_size` is S, (H, W) (the model's own crop kept) or a `FrameView` (its crop taken). The convolutions do
-    not depend on the input size: a model trained at 224 runs, and retrains, at 192, 320 or 224 x 288.
+    Args:
+        model: a tf_keras model.
+        input_size: S, (H, W) (the model's own crop kept) or a `preprocess.FrameView` (its crop taken).
+    Returns:
+        The model at that size; `model` itself when already so.
+    Raises:
+        UserError: a side that is not a multiple of 32.
     """
     height, width = input_shape_of(input_size)
     view = input_size if isinstance(input_size, FrameView) else view_of(model).with_input(height, width)
@@ -259,9 +328,16 @@ def chain_layers(model: keras.Model, purpose: str, error: type[UserError] = User
                  check_layer=None) -> list[keras.layers.Layer]:
     """The model's layers after its input, checked to form one unbranched single-input chain.
 
-    `purpose` completes the error messages ("filter pruning handles ..."); `error` is the
-    UserError subclass raised for a model that is not such a chain; `check_layer(layer)`, if
-    given, vets every layer before the wiring is checked (so an unsupported layer is named first).
+    Args:
+        model: a tf_keras model.
+        purpose: completes the error messages ("filter pruning handles ...").
+        error: the UserError subclass raised for a model that is not such a chain.
+        check_layer: if given, vets every layer before the wiring is checked (so an unsupported layer is named
+            first).
+    Returns:
+        The layers, in order.
+    Raises:
+        UserError: (`error`) a model that is not one built single-input, single-output chain.
     """
     if not isinstance(model, keras.Model):
         raise error(f"expected a tf_keras Model, got {type(model).__name__} "
@@ -297,6 +373,11 @@ def h5_bytes(model: keras.Model) -> bytes:
 
     HDF5 writing straight to a file kills the process (h5py segfaults closing it) when the disk fills
     mid-write; written by Python instead, a full disk is a plain OSError (`fileio.atomic_path` names it).
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        The file's bytes.
     """
     import io
 
@@ -309,7 +390,13 @@ def h5_bytes(model: keras.Model) -> bytes:
 
 
 def inference_copy(model: keras.Model) -> keras.Model:
-    """An uncompiled clone with `model`'s weights: saved, it carries no optimizer state."""
+    """An uncompiled clone with `model`'s weights and view: saved, it carries no optimizer state.
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        The clone.
+    """
     clone = keras.models.clone_model(model)
     for source, layer in zip(model.layers, clone.layers):  # per layer: a model's weight order puts frozen ones last
         layer.set_weights(source.get_weights())
@@ -319,7 +406,12 @@ def inference_copy(model: keras.Model) -> keras.Model:
 
 def save_for_inference(model: keras.Model, path) -> None:
     """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count, and the
-    model's view (`view_of`) when it is not the whole frame at its input size."""
+    model's view (`view_of`) when it is not the whole frame at its input size.
+
+    Args:
+        model: a tf_keras model.
+        path: the file (its suffix chooses the format).
+    """
     from pathlib import Path
 
     clone = inference_copy(model)
@@ -333,8 +425,16 @@ def save_for_inference(model: keras.Model, path) -> None:
 
 
 def load_model(path) -> keras.Model:
-    """Load a .keras or .h5 model file for inference, with a clear error for missing or broken files
-    and for a model whose input size is not fixed (`check_fixed_input`)."""
+    """Load a .keras or .h5 model file for inference, with its stored view.
+
+    Args:
+        path: the model file.
+    Returns:
+        The model, uncompiled.
+    Raises:
+        UserError: a missing or unreadable file, another format, a stored view that does not fit the input, or an
+            input size that is not fixed (`check_fixed_input`).
+    """
     from pathlib import Path
 
     path = Path(path)
@@ -359,9 +459,15 @@ def load_model(path) -> keras.Model:
 
 
 def check_fixed_input(model: keras.Model, path=None) -> None:
-    """UserError, saying how to fix it, for a model whose input height or width is not fixed (None).
+    """Refuse a model whose input height or width is not fixed (None), saying how to fix it.
 
     Every command runs FCN-Pose at one H x W size (preprocessing, target maps, the static TFLite input).
+
+    Args:
+        model: a tf_keras model.
+        path: its file, to name in the error (default: the model's name).
+    Raises:
+        UserError: the input size is not fixed.
     """
     shape = model.input_shape
     if isinstance(shape, tuple) and len(shape) == 4 and (shape[1] is None or shape[2] is None):

@@ -23,9 +23,13 @@ features. On an AVX2 AMD EPYC they made a training step 1.31x faster at `--freez
 
 
 def set_tensorflow_environment(environ: dict[str, str] | None = None) -> None:
-    """TENSORFLOW_ENVIRONMENT into `environ` (default: this process's) where a variable is not set already.
+    """TENSORFLOW_ENVIRONMENT into `environ` where a variable is not set already.
 
-    Takes effect only before TensorFlow is imported; worker processes inherit it."""
+    Takes effect only before TensorFlow is imported; worker processes inherit it.
+
+    Args:
+        environ: the environment to complete (default: this process's).
+    """
     environ = os.environ if environ is None else environ
     for name, value in TENSORFLOW_ENVIRONMENT.items():
         environ.setdefault(name, value)
@@ -61,10 +65,13 @@ def import_tensorflow_quietly() -> None:
 
 
 def set_tensorflow_threads(threads: int | None) -> None:
-    """Limit TensorFlow's CPU threads (call before TensorFlow runs anything; None = library default).
+    """Limit TensorFlow's CPU threads (call before TensorFlow runs anything).
 
     Intra-op parallelism gets `threads`, inter-op 1, so a timing states one thread count. Once
     TensorFlow has initialised its runtime the settings are fixed; then this keeps what is set.
+
+    Args:
+        threads: intra-op threads (None: TensorFlow's default).
     """
     if threads is None:
         return
@@ -78,7 +85,11 @@ def set_tensorflow_threads(threads: int | None) -> None:
 
 
 def tensorflow_threads() -> dict[str, int]:
-    """TensorFlow's thread settings as it reports them ({"intra_op", "inter_op"}; 0 = its default)."""
+    """TensorFlow's thread settings as it reports them.
+
+    Returns:
+        {"intra_op", "inter_op"}; 0 is its default.
+    """
     import tensorflow as tf
 
     return {"intra_op": tf.config.threading.get_intra_op_parallelism_threads(),

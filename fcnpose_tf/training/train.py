@@ -22,7 +22,7 @@ import shutil
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Sequence, TypedDict
 
 import numpy as np
 import tf_keras as keras
@@ -80,15 +80,31 @@ MIN_LEARNING_RATE = 1e-5
 
 
 def cosine_rate(progress: float, learning_rate: float) -> float:
-    """The learning rate once `progress` (0 at the start, 1 at the end) of the run's budget is spent, on a half
-    cosine from `learning_rate` towards MIN_LEARNING_RATE: lr_min + (lr - lr_min)(1 + cos(pi p)) / 2."""
+    """The learning rate once `progress` of the run's budget is spent, on a half cosine from `learning_rate` towards
+    MIN_LEARNING_RATE: lr_min + (lr - lr_min)(1 + cos(pi p)) / 2.
+
+    Args:
+        progress: the share of the budget spent, 0 at the start, 1 at the end (clipped to [0, 1]).
+        learning_rate: the rate at the start.
+    Returns:
+        The learning rate.
+    """
     low = min(MIN_LEARNING_RATE, learning_rate)
     return low + (learning_rate - low) * 0.5 * (1.0 + math.cos(math.pi * min(max(progress, 0.0), 1.0)))
 
 
 def budget_progress(epoch: int, epochs: int, seconds: float, max_seconds: float | None) -> float:
-    """The share of a run's budget spent when epoch `epoch` (0-based) of `epochs` begins after `seconds` of
-    training: the larger of the epoch and the time shares, so a cosine ends with whichever budget ends first."""
+    """The share of a run's budget spent when an epoch begins: the larger of the epoch and the time shares, so a cosine
+    ends with whichever budget ends first.
+
+    Args:
+        epoch: the epoch beginning (0-based).
+        epochs: epochs at most.
+        seconds: training time so far.
+        max_seconds: the time budget (None: none).
+    Returns:
+        The share, from 0.
+    """
     spent = epoch / max(epochs, 1)
     return max(spent, seconds / max_seconds) if max_seconds else spent
 
@@ -107,7 +123,13 @@ class FitResult:
 
 
 def run_paths(model_path: Path) -> dict[str, Path]:
-    """Files belonging to the run that writes `model_path`."""
+    """Files belonging to the run that writes `model_path`.
+
+    Args:
+        model_path: the model file the run writes.
+    Returns:
+        Key -> path: model, loss_csv, loss_png, train_json and the checkpoint's (ckpt_dir, ckpt_model, ...).
+    """
     stem = model_path.with_suffix("")
     ckpt = Path(f"{stem}.ckpt")
     return {
@@ -123,44 +145,93 @@ def run_paths(model_path: Path) -> dict[str, Path]:
 
 
 def output_files(model_path: Path) -> list[Path]:
-    """The files a finished run leaves: the model, its loss curves (.csv, .png) and NAME_train.json."""
+    """The files a finished run leaves: the model, its loss curves (.csv, .png) and NAME_train.json.
+
+    Args:
+        model_path: the model file the run writes.
+    Returns:
+        The paths.
+    """
     paths = run_paths(Path(model_path))
     return [paths[key] for key in ("model", "loss_csv", "loss_png", "train_json")]
 
 
 def check_outputs(model_path: Path, force: bool = False) -> None:
-    """Refuse (UserError) before any work if a file the run will write exists (without force) or cannot be written."""
+    """Refuse before any work a run whose files cannot be written.
+
+    Args:
+        model_path: the model file the run writes.
+        force: existing files may be replaced.
+    Raises:
+        UserError: a file the run will write exists (without `force`) or cannot be written.
+    """
     for path in output_files(model_path):
         check_writable(path, force)
 
 
-RESUME_SETTINGS = ("input_size", "crop", "augment", "augment_copies", "fold", "folds", "split_seed", "seed", "batch_size",
-                   "learning_rate", "positive_weight", "lr_patience", "lr_schedule", "freeze")
+class RunIdentity(TypedDict):
+    """What a checkpoint records about its run (`run_identity`; its state.json's "identity"): the data file, its
+    SHA-256 and the RESUME_SETTINGS, None where a caller gave none."""
+
+    data: str
+    data_sha256: str
+    input_size: int | list[int] | None
+    """S, or [H, W] (`FrameView.size_record`)."""
+    crop: list[int] | None
+    """The view's crop [x, y, w, h] in frame pixels; None: the whole frame."""
+    augment: str | None
+    augment_copies: int | None
+    fold: int | None
+    folds: int | None
+    split_seed: int | None
+    seed: int | None
+    batch_size: int | None
+    learning_rate: float | None
+    positive_weight: float | None
+    lr_patience: int | None
+    lr_schedule: str | None
+    freeze: int | None
+
+
+RESUME_SETTINGS = tuple(name for name in RunIdentity.__annotations__ if name not in ("data", "data_sha256"))
 """The settings that change what a run learns: a checkpoint is resumed only with the same ones (and data).
 Epochs and patience may change: continuing a run for longer is what --resume is for."""
 
 
-def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> dict[str, Any]:
+def run_identity(data_path: str | Path, config: FitConfig, **facts: Any) -> RunIdentity:
     """What a checkpoint records about its run: the data file, its SHA-256 and the RESUME_SETTINGS.
 
-    `facts` gives the settings that are not in `config` (input_size, augment, augment_copies, fold, folds,
-    split_seed).
+    Args:
+        data_path: the annotation file trained on.
+        config: the run's settings (resolved).
+        **facts: the settings that are not in `config` (input_size, crop, augment, augment_copies, fold, folds,
+            split_seed).
+    Returns:
+        The identity a resumed checkpoint must match (`check_checkpoint`).
     """
     from fcnpose_tf.records import file_sha256
 
     values = {**asdict(config), **facts}
-    return {"data": str(data_path), "data_sha256": file_sha256(data_path),
-            **{name: values.get(name) for name in RESUME_SETTINGS}}
+    return RunIdentity(data=str(data_path), data_sha256=file_sha256(data_path),
+                       **{name: values.get(name) for name in RESUME_SETTINGS})
 
 
 def check_checkpoint(model_path: str | Path, *, resume: bool, force: bool,
-                     identity: dict[str, Any] | None = None, resumable: bool = True) -> None:
-    """Refuse (UserError) a resume without a checkpoint, a checkpoint neither resumed nor forced away, and a
-    resume whose data or RESUME_SETTINGS differ from those the checkpoint was started with. For a caller that
-    cannot resume (`resumable=False`: compress), a checkpoint a killed run left behind is of no use to anyone:
-    it is removed.
+                     identity: RunIdentity | None = None, resumable: bool = True) -> None:
+    """Refuse a run its checkpoint does not allow. For a caller that cannot resume (`resumable=False`: compress), a
+    checkpoint a killed run left behind is of no use to anyone: it is removed.
 
     Cheap (reads state.json only): commands call it before they prepare any data.
+
+    Args:
+        model_path: the model file the run writes (its checkpoint is beside it).
+        resume: the run continues its checkpoint.
+        force: the run starts over, its checkpoint discarded.
+        identity: what the run is (`run_identity`), compared with the checkpoint's when resuming.
+        resumable: whether the caller can resume at all.
+    Raises:
+        UserError: a resume without a checkpoint, a checkpoint neither resumed nor forced away, an unreadable
+            checkpoint state, or a resume whose data or RESUME_SETTINGS differ from those it was started with.
     """
     paths = run_paths(Path(model_path))
     if not resumable:
@@ -231,6 +302,12 @@ def freeze_first_convolutions(model: keras.Model, count: int) -> None:
 
     A checkpoint saved while training keeps these flags, so a resumed run trains the same layers; the
     model files a run writes have every layer trainable again (`model.save_for_inference`).
+
+    Args:
+        model: an FCN-Pose model.
+        count: convolutions to keep fixed (0: every layer trains).
+    Raises:
+        UserError: `count` leaves no convolution to train.
     """
     convolutions = [layer for layer in model.layers if isinstance(layer, keras.layers.Conv2D)]
     if count >= len(convolutions):
@@ -270,7 +347,13 @@ class DistillationLoss(keras.losses.Loss):
 
 
 def ground_truth_loss(positive_weight: float = 1.0) -> keras.losses.Loss:
-    """Binary cross-entropy over all maps (the paper's), or with keypoint pixels weighted."""
+    """Binary cross-entropy over all maps (the paper's), or with keypoint pixels weighted.
+
+    Args:
+        positive_weight: the keypoint maps' active pixels' weight (1: plain BCE).
+    Returns:
+        The loss.
+    """
     if positive_weight == 1.0:
         return keras.losses.BinaryCrossentropy()
     return KeypointBinaryCrossentropy(positive_weight)
@@ -280,6 +363,12 @@ def training_loss(positive_weight: float = 1.0, distill: float = 0.0) -> keras.l
     """The one training loss: `ground_truth_loss`, or with distill W > 0 a `DistillationLoss` around it.
 
     With distill 0 it is exactly the ground-truth loss (the same object type and values).
+
+    Args:
+        positive_weight: the keypoint maps' active pixels' weight (1: plain BCE).
+        distill: the teacher's weight W in the loss (0: none).
+    Returns:
+        The loss.
     """
     if distill == 0:
         return ground_truth_loss(positive_weight)
@@ -289,7 +378,16 @@ def training_loss(positive_weight: float = 1.0, distill: float = 0.0) -> keras.l
 def compile_for_training(model: keras.Model, learning_rate: float, positive_weight: float = 1.0,
                          distill: float = 0.0) -> keras.Model:
     """Adam and `training_loss`: binary cross-entropy over all maps (the paper's), optionally weighting keypoint
-    pixels and mixing in a teacher's maps."""
+    pixels and mixing in a teacher's maps.
+
+    Args:
+        model: the model to train.
+        learning_rate: Adam's learning rate.
+        positive_weight: the keypoint maps' active pixels' weight.
+        distill: the teacher's weight (0: none).
+    Returns:
+        `model`, compiled.
+    """
     model.compile(optimizer=keras.optimizers.Adam(learning_rate), loss=training_loss(positive_weight, distill),
                   jit_compile=False)
     return model
@@ -297,9 +395,9 @@ def compile_for_training(model: keras.Model, learning_rate: float, positive_weig
 
 BUDGET_MIN_EPOCHS = 15
 """Fewer epochs than this in the time budget earn a warning after the first one: fine-tuning from the generalist
-reached its best validation loss at epoch 16 on the held-out fixed camera (26 epochs at 384) and was still improving
-after 42 on held-out random views (docs/training.md); on a 2-core machine shared with another job an epoch at 384 x
-384 took 150-240 s, 6-8 epochs in 30 minutes."""
+needed about this many or more to reach its best validation loss on the held-out proxies, and a busy 2-core machine
+trains fewer than that in 30 minutes at 384 x 384 (docs/training.md; the runs: docs/results.md, "The crop's edge,
+and the time budget's epoch warning")."""
 
 
 class _CheckpointAndStop(keras.callbacks.Callback):
@@ -409,7 +507,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         metadata: dict[str, Any] | None = None, reporter: Reporter | None = None,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
-        identity: dict[str, Any] | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
+        identity: RunIdentity | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -565,10 +663,27 @@ def _resumable(exc: WriteError, paths: dict[str, Path], resumable: bool) -> Writ
                       "then continue with --resume")
 
 
-def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> tuple[str, dict[str, Any]]:
-    """What `augment="auto"` (train's default) means for these frames (`data.via` frames: image paths): the paper's
-    copies for one fixed camera, online augmentation when the views vary (`data.views`); the choice and what it
-    was based on, for NAME_train.json ("augment_auto"), said through `reporter`."""
+class AugmentChoice(TypedDict):
+    """What `augment="auto"` chose and why (`resolve_augment`; NAME_train.json's "augment_auto", as written)."""
+
+    view_variation: float
+    """How much the frames differ from their median, in std (`data.views.view_variation`), rounded to 4 decimals."""
+    fixed_camera_max: float
+    """The variation up to which the frames are one fixed camera (`data.views.FIXED_CAMERA_MAX_VARIATION`)."""
+    chose: str
+    """"paper" (one fixed camera) or "online" (views that vary)."""
+
+
+def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> AugmentChoice:
+    """What `augment="auto"` (train's default) means for these frames: the paper's copies for one fixed camera, online
+    augmentation when the views vary (`data.views`), said through `reporter`.
+
+    Args:
+        frames: `data.via` frames (their image paths are read).
+        reporter: where the choice is said (default: the current one).
+    Returns:
+        The choice (`chose`) and what it was based on, for NAME_train.json.
+    """
     from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
 
     variation = view_variation([f.image_path for f in frames])
@@ -577,17 +692,23 @@ def resolve_augment(frames: Sequence[Any], reporter: Reporter | None = None) -> 
     progress.resolve(reporter).say(
         f"Augmentation: auto -> {augment} ({camera}: the frames differ from their median by {variation:.2f} std; a "
         f"fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION})")
-    return augment, {"view_variation": round(variation, 4), "fixed_camera_max": FIXED_CAMERA_MAX_VARIATION,
-                     "chose": augment}
+    return AugmentChoice(view_variation=round(variation, 4), fixed_camera_max=FIXED_CAMERA_MAX_VARIATION, chose=augment)
 
 
 def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> keras.Model:
-    """FCN-Pose at `input_size` (S, (H, W) or a `FrameView` whose crop it takes; None: the view it was saved with)
-    holding the weights of the model file `init` (trained at any input size).
+    """FCN-Pose holding the weights of the model file `init` (trained at any input size).
 
-    The convolutions do not depend on the input size, so a model pretrained at 160 starts a run at
-    224. Refused (UserError) when `init` predicts other maps than `schema` needs, or its training
-    record names other keypoints.
+    The convolutions do not depend on the input size, so a model pretrained at 160 starts a run at 224.
+
+    Args:
+        init: the model file training starts from.
+        schema: the keypoints the data has.
+        input_size: S, (H, W) or a `preprocess.FrameView` whose crop it takes (None: the view it was saved with).
+    Returns:
+        The model at that input size.
+    Raises:
+        UserError: `init` is no keypoint-map model, predicts other maps than `schema` needs, or its training record
+            names other keypoints.
     """
     from fcnpose_tf.keypoints import spelling_hint
     from fcnpose_tf.records import training_record
@@ -613,7 +734,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                augment_copies: int, augment: str = "paper", init: str | Path | None = None, resume: bool = False, force: bool = False,
                metadata: dict[str, Any] | None = None, threads: int | None = None, label: str | None = None,
                reporter: Reporter | None = None, test_data: Any = None,
-               test_start: dict[str, Any] | None = None, size_was_chosen: bool = False,
+               test_start: tuple[str, KeypointMetrics] | None = None, size_was_chosen: bool = False,
                decoding: Decoding | None = None, architecture: str | None = None) -> TrainingRecord:
     """Train one fold's model, measure it on the fold's validation frames and write its record.
 
@@ -645,8 +766,8 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
             terminal, lines in a log, one line per epoch with --quiet, nothing when silent.
         test_data: a fixed test set (a loaded dataset of the same schema, never trained on): the trained model
             is measured on all its frames and the result added as "test" (`record_of_test_set`).
-        test_start: the starting model's measurement on `test_data` (`record_of_test_set`'s "start"), None for random
-            weights.
+        test_start: the starting model's name as recorded and its metrics on `test_data` (`start_on_test_set`), None
+            for random weights.
         size_was_chosen: `input_size` is `train --input-size auto`'s choice, not the user's: the start as saved,
             at its own size, is then a candidate too (`keep_start_if_better`).
     Returns:
@@ -729,15 +850,34 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
     record["validation"] = report.measurement().to_json()
     if test_data is not None:
         log(f"{label}: evaluating on the {len(test_data)} frames of the test set {test_data.via_path}")
-        record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), test_start)
+        start_model, start = test_start if test_start is not None else (None, None)
+        record["test"] = record_of_test_set(test_data, measure_on_test_set(predictor, test_data), start_model,
+                                            start).to_json()
     write_json(paths["train_json"], record, force=True)
     return TrainingRecord.from_json(record)
+
+
+class StartAsSaved(TypedDict):
+    """The start as saved weighed against the trained model (`keep_start_if_better`; NAME_train.json's
+    "start_as_saved")."""
+
+    input_size: int | list[int]
+    """The start's input size (`FrameView.size_record`)."""
+    view: dict[str, Any]
+    """The start's view (`FrameView.to_json`)."""
+    start_mean_pck: float
+    """`metrics.mean_pck` of the start on the validation frames, at its own view."""
+    trained_mean_pck: float
+    """The same of the trained model, at the run's view."""
+    trained_view: dict[str, Any]
+    chose: str
+    """"start" or "trained"."""
 
 
 def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int], trained_report: Evaluation,
                          model_path: Path, view: Any, *, threads: int | None = None,
                          reporter: Reporter | None = None, label: str = "",
-                         decoding: Decoding | None = None) -> tuple[dict[str, Any], Any, Evaluation] | None:
+                         decoding: Decoding | None = None) -> tuple[StartAsSaved, Any, Evaluation] | None:
     """The start as saved is a candidate too when the run trained at another view (`preprocess.FrameView`: crop and
     input size) than the start's own (one `train --input-size auto` chose: a size the user asked for is kept).
 
@@ -747,9 +887,20 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
     same validation frames, in frame pixels, and compared by `metrics.mean_pck` (validation losses at two sizes
     do not compare); the start replaces the model file only when it scores higher.
 
+    Args:
+        init: the starting model's file.
+        dataset: the run's dataset.
+        val_idx: the frames both models are measured on.
+        trained_report: the trained model's measurement on them.
+        model_path: the trained model's file (replaced by the start when the start scores higher).
+        view: the view the run trained at.
+        threads: threads of the start's forward pass.
+        reporter: where the comparison is said (default: the current one).
+        label: prefix of the lines.
+        decoding: how keypoints are read (`postprocess.Decoding`; default the commands').
     Returns:
-        None when the start's input size is the run's; else (the record's "start_as_saved": its input size, both
-        scores and "chose": "start" or "trained"; the start's predictor; its validation report).
+        None when the start's view is the run's; else (the record's "start_as_saved": its view, both scores and
+        "chose": "start" or "trained"; the start's predictor; its validation measurement).
     """
     from fcnpose_tf.metrics import mean_pck
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
@@ -776,8 +927,9 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
                      f"{' --crop none' if start_view.crop is None else ''} trains at that view")
     else:
         reporter.say(f"{label}: kept the trained model ({figures})")
-    entry = {"input_size": start_view.size_record, "view": start_view.to_json(), "start_mean_pck": round(start_score, 4),
-             "trained_mean_pck": round(trained_score, 4), "trained_view": view.to_json(), "chose": chose}
+    entry = StartAsSaved(input_size=start_view.size_record, view=start_view.to_json(),
+                         start_mean_pck=round(start_score, 4), trained_mean_pck=round(trained_score, 4),
+                         trained_view=view.to_json(), chose=chose)
     return entry, predictor, report
 
 
@@ -787,7 +939,14 @@ TEST_DEFINITIONS = ("PCK@a: distance / max(w, h) of the ground truth's bounding 
 
 
 def measure_on_test_set(predictor: Any, test_data: Any) -> KeypointMetrics:
-    """Keypoint metrics (`metrics.keypoint_report`, per keypoint too) of a predictor on every frame of a test set."""
+    """Keypoint metrics (`metrics.keypoint_report`, per keypoint too) of a predictor on every frame of a test set.
+
+    Args:
+        predictor: a model ready to run (`evaluate.KerasKeypointModel`, `runtime.estimator.KeypointModel`).
+        test_data: the test set (a loaded dataset).
+    Returns:
+        The metrics.
+    """
     from fcnpose_tf.training.evaluate import evaluate_predictor
 
     report = evaluate_predictor(predictor, test_data, range(len(test_data)), test_data.schema, min_timed_frames=0,
@@ -797,56 +956,123 @@ def measure_on_test_set(predictor: Any, test_data: Any) -> KeypointMetrics:
 
 def start_on_test_set(init: str | Path, test_data: Any, threads: int | None = None) -> KeypointMetrics:
     """The starting model as saved (its own input size: what the user would run without training) measured on a
-    test set."""
+    test set.
+
+    Args:
+        init: the starting model's file.
+        test_data: the test set (a loaded dataset).
+        threads: threads of its forward pass (None: all cores).
+    Returns:
+        The metrics.
+    Raises:
+        UserError: as `initial_model`.
+    """
     from fcnpose_tf.training.evaluate import KerasKeypointModel
 
     return measure_on_test_set(KerasKeypointModel(initial_model(init, test_data.schema), Path(init),
                                                   num_threads=threads), test_data)
 
 
-def record_of_test_set(test_data: Any, end: KeypointMetrics, start: dict[str, Any] | None) -> dict[str, Any]:
-    """NAME_train.json's "test", as written: which fixed frames, the starting model's metrics on them (`start`:
-    {"model", "metrics"} as written; None for random weights: `start_model` says so) and the trained model's."""
+@dataclass(frozen=True)
+class FixedTestSetRecord:
+    """A model measured on a fixed test set against its start (NAME_train.json's "test", `record_of_test_set`)."""
+
+    data: str
+    """The test set's annotation file."""
+    data_sha256: str
+    num_frames: int
+    definitions: str
+    """How the figures are defined (TEST_DEFINITIONS)."""
+    start_model: str | None
+    """The starting model, as `train --init` named it; None for random weights."""
+    start: KeypointMetrics | None
+    """The starting model's metrics on the test set; None for random weights."""
+    end: KeypointMetrics
+    """The trained model's."""
+
+    def to_json(self) -> dict[str, Any]:
+        """{"data", "data_sha256", "num_frames", "definitions", "start_model", "start", "end"}."""
+        return {"data": self.data, "data_sha256": self.data_sha256, "num_frames": self.num_frames,
+                "definitions": self.definitions, "start_model": self.start_model,
+                "start": self.start.to_json() if self.start is not None else None, "end": self.end.to_json()}
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> FixedTestSetRecord:
+        """The record of a parsed "test" object."""
+        start = entry.get("start")
+        return cls(data=entry["data"], data_sha256=entry["data_sha256"], num_frames=entry["num_frames"],
+                   definitions=entry["definitions"], start_model=entry.get("start_model"),
+                   start=KeypointMetrics.from_json(start) if start is not None else None,
+                   end=KeypointMetrics.from_json(entry["end"]))
+
+
+def record_of_test_set(test_data: Any, end: KeypointMetrics, start_model: str | None = None,
+                       start: KeypointMetrics | None = None) -> FixedTestSetRecord:
+    """A model measured on a fixed test set, beside its start.
+
+    Args:
+        test_data: the test set (a loaded dataset).
+        end: the trained model's metrics on it (`measure_on_test_set`).
+        start_model: the starting model as `train --init` named it (None: random weights).
+        start: the starting model's metrics on it (`start_on_test_set`; None: random weights).
+    Returns:
+        NAME_train.json's "test".
+    """
     from fcnpose_tf.records import file_sha256
 
-    return {"data": str(test_data.via_path), "data_sha256": file_sha256(test_data.via_path),
-            "num_frames": len(test_data), "definitions": TEST_DEFINITIONS,
-            "start_model": (start or {}).get("model"), "start": (start or {}).get("metrics"), "end": end.to_json()}
+    return FixedTestSetRecord(data=str(test_data.via_path), data_sha256=file_sha256(test_data.via_path),
+                              num_frames=len(test_data), definitions=TEST_DEFINITIONS, start_model=start_model,
+                              start=start, end=end)
 
 
-TEST_FIGURES = (("pck@0.5_bbox", "PCK@0.5", 3, 1), ("pck@0.2_bbox", "PCK@0.2", 3, 1),
-                ("pck@0.05_bbox", "PCK@0.05", 3, 1), ("epe_px", "EPE", 2, -1), ("missing_fraction", "missing", 3, -1))
-"""(key, label, decimals, +1 when higher is better) of the test line."""
+TEST_FIGURES: tuple[tuple[Callable[[KeypointMetrics], float | None], str, int, int], ...] = (
+    (lambda m: m.pck.get(0.5), "PCK@0.5", 3, 1), (lambda m: m.pck.get(0.2), "PCK@0.2", 3, 1),
+    (lambda m: m.pck.get(0.05), "PCK@0.05", 3, 1), (lambda m: m.epe_px, "EPE", 2, -1),
+    (lambda m: m.missing_fraction, "missing", 3, -1))
+"""(figure, label, decimals, +1 when higher is better) of the test line."""
 
 
-def format_test_set_line(test: dict[str, Any]) -> str:
-    """One line: the test set, then start -> end of each figure, and whether the end is worse than the start."""
-    start, end = test.get("start"), test["end"]
+def format_test_set_line(test: FixedTestSetRecord) -> str:
+    """One line: the test set, then start -> end of each figure, and whether the end is worse than the start.
+
+    Args:
+        test: NAME_train.json's "test".
+    Returns:
+        The line.
+    """
+    start, end = test.start, test.end
 
     def num(value: Any, decimals: int) -> str:
         return "n/a" if value is None else f"{value:.{decimals}f}"
 
     parts = []
     worse = []
-    for key, name, decimals, sign in TEST_FIGURES:
-        unit = " px" if key == "epe_px" else ""
+    for figure, name, decimals, sign in TEST_FIGURES:
+        unit = " px" if name == "EPE" else ""
         if start is None:
-            parts.append(f"{name} {num(end.get(key), decimals)}{unit}")
+            parts.append(f"{name} {num(figure(end), decimals)}{unit}")
             continue
-        parts.append(f"{name} {num(start.get(key), decimals)} -> {num(end.get(key), decimals)}{unit}")
-        a, b = start.get(key), end.get(key)
+        parts.append(f"{name} {num(figure(start), decimals)} -> {num(figure(end), decimals)}{unit}")
+        a, b = figure(start), figure(end)
         if a is not None and b is not None and sign * (round(b, decimals) - round(a, decimals)) < 0:
             worse.append(name)  # as printed: a change below the last digit shown is not a change
-    head = f"Test set {test['data']} ({test['num_frames']} frames): "
+    head = f"Test set {test.data} ({test.num_frames} frames): "
     if start is None:
         return head + ", ".join(parts) + "; no starting model to compare (--init none: random weights)"
     verdict = f"; WORSE than the start in {', '.join(worse)}" if worse else "; no figure worse than the start"
-    return head + ", ".join(parts) + f" (start: {test.get('start_model')}){verdict}"
+    return head + ", ".join(parts) + f" (start: {test.start_model}){verdict}"
 
 
 def loss_name(positive_weight: float, distill: float = 0.0) -> str:
     """What the training loss is, for labels: the paper's BCE, or BCE with keypoint pixels weighted (and a
-    teacher's maps mixed in)."""
+    teacher's maps mixed in).
+
+    Args:
+        positive_weight: the keypoint maps' active pixels' weight.
+        distill: the teacher's weight (0: none).
+    Returns:
+        The words.
+    """
     name = "binary cross-entropy" if positive_weight == 1 else \
         f"binary cross-entropy, keypoint pixels weighted {positive_weight:g}"
     return name if not distill else f"{name}, teacher weight {distill:g}"
@@ -854,8 +1080,16 @@ def loss_name(positive_weight: float, distill: float = 0.0) -> str:
 
 def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path, best_epoch: int,
                       positive_weight: float = 1.0, distill: float = 0.0, start_val_loss: float | None = None) -> None:
-    """Write the per-epoch losses as CSV and as a PNG plot (training and validation loss, the kept `best_epoch`
-    marked; with `start_val_loss`, the starting model's validation loss as epoch 0)."""
+    """Write the per-epoch losses as CSV and as a PNG plot.
+
+    Args:
+        history: one {"epoch", "loss", "val_loss"} per epoch.
+        csv_path: the CSV file.
+        png_path: the plot (not written without epochs).
+        best_epoch: the kept epoch, marked.
+        positive_weight, distill: the loss, named in the plot (`loss_name`).
+        start_val_loss: the starting model's validation loss, plotted as epoch 0 (None: a random start).
+    """
     lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
     if not history:
