@@ -52,7 +52,7 @@ def cut_timed_frames(monkeypatch) -> None:
     Every frame of the evaluated split is still scored once; only the extra timing-only passes (50 frames after 5
     of warm-up: seconds of eager Keras calls per evaluation) are cut. `monkeypatch`: a MonkeyPatch (its undo ends it).
     """
-    from fcnpose_tf.compression import compress
+    from fcnpose_tf.compression import steps
     from fcnpose_tf.training import evaluate
 
     real = evaluate.evaluate_predictor
@@ -67,7 +67,7 @@ def cut_timed_frames(monkeypatch) -> None:
         return real(*bound.args, **bound.kwargs)
 
     monkeypatch.setattr(evaluate, "evaluate_predictor", evaluate_predictor)  # train, evaluate, sweep import it late
-    monkeypatch.setattr(compress, "evaluate_predictor", evaluate_predictor)  # compress imports it with the module
+    monkeypatch.setattr(steps, "evaluate_predictor", evaluate_predictor)  # compress's steps import it with the module
 
 
 @pytest.fixture

@@ -114,7 +114,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data import synthcache
     from fcnpose_tf.bundled import KERAS_SUFFIXES, baseline_model, resolve_model
-    from fcnpose_tf.compression.compress import SharedScoring, compress_model
+    from fcnpose_tf.compression.compress import compress_model
+    from fcnpose_tf.compression.steps import SharedScoring
     from fcnpose_tf.compression.options import CompressOptions, check_outputs
     from fcnpose_tf.compression.report import accuracy_note, report_table
     from fcnpose_tf.data.args import default_data, load_from_args

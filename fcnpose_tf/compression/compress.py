@@ -8,7 +8,7 @@
     parameters, MACs, file sizes, inference time and FPS (Keras and TFLite, thread count stated).
 
 `compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
-the steps below in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
+the steps of `fcnpose_tf.compression.steps` in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
 export_step, measure_quantized), each returning its part of the report. Beside it:
 `fcnpose_tf.compression.options` (what a run is asked: `CompressOptions`, the files it writes),
 `fcnpose_tf.compression.methods` (how: a `PruningMethod`, `FilterPruning` with an importance criterion from
@@ -20,418 +20,24 @@ post-training int8 refused falls back to quantization-aware training (`qat_step`
 
 from __future__ import annotations
 
-import gzip
 import os
 import time
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
-
-import numpy as np
+from typing import Any, Sequence
 
 from fcnpose_tf import progress, settings
-from fcnpose_tf.compression.methods import PruningMethod, pruned_start, pruning_method
+from fcnpose_tf.compression.methods import pruned_start, pruning_method
 from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
-from fcnpose_tf.compression.report import (CompressReport, ModelStep, PruningSections, RefusedFormat, RetrainSections,
-                                           Retraining, TFLiteStep, _check_metadata, file_sizes, model_facts)
+from fcnpose_tf.compression.report import CompressReport, RefusedFormat, TFLiteStep, _check_metadata
+from fcnpose_tf.compression.steps import (Run, SharedScoring, export_or_refusal, measure_base, measure_quantized,
+                                          measure_retrained, prune_step, remove_stale, retrain_step, shared_importance)
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.measurements import Measurement
-from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
-from fcnpose_tf.postprocess import Decoding
-from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.fileio import write_json
-from fcnpose_tf.records import file_sha256, training_record
-
-if TYPE_CHECKING:
-    import tf_keras as keras
-
-    from fcnpose_tf.compression.importance import Importance
-    from fcnpose_tf.training.train import FitResult
 
 # TensorFlow is imported inside the functions: `sweep.jobs` and the CLI import this module (or
 # read its settings) without needing TensorFlow until a compression runs.
-
-
-def _measure(predictor: Any, dataset: Any, indices: Sequence[int], label: str, reporter: Reporter,
-             timing: bool = True) -> Measurement:
-    reporter.say(f"  evaluating {label} on {len(indices)} frames ...")
-    result = evaluate_predictor(predictor, dataset, indices, dataset.schema,
-                                min_timed_frames=50 if timing else 1, warmup=5 if timing else 1)
-    return result.measurement(timed=timing)
-
-
-# ------------------------------------------------------------------------------------------
-# The steps of a compression run, each returning its part of the report
-# ------------------------------------------------------------------------------------------
-
-@dataclass
-class _Run:
-    """What every step of one compression run reads."""
-
-    base_path: Path
-    base: keras.Model
-    method: PruningMethod
-    options: CompressOptions
-    paths: dict[str, Path]
-    train_dataset: Any
-    eval_dataset: Any
-    eval_indices: Sequence[int]
-    force: bool
-    reporter: Reporter
-    recipe: str
-    fit_data: Any = None
-    """The retraining's training data (`data.dataset.fold_data`), kept for quantization-aware training."""
-
-    @property
-    def input_size(self) -> FrameView:
-        """What the base model sees of a frame (its crop and input size): every step prepares frames this way."""
-        from fcnpose_tf.training.model import view_of
-
-        return view_of(self.base)
-
-    def measure(self, predictor: Any, label: str, timing: bool = True) -> Measurement:
-        """Metrics (and timing) of a predictor on the run's frames."""
-        return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.reporter, timing=timing)
-
-    @property
-    def decoding(self) -> Decoding:
-        """How every measurement reads keypoints (the options' centroid, the commands' threshold)."""
-        return Decoding(centroid=self.options.centroid)
-
-    def log(self, line: str) -> None:
-        """One progress line of the run (`reporter.say`)."""
-        self.reporter.say(line)
-
-    def keras_predictor(self, model: keras.Model, path: Path | None = None) -> KerasKeypointModel:
-        """`model` as a predictor with the run's threads (`path`: its file, for the report)."""
-        return KerasKeypointModel(model, path, num_threads=self.options.threads, decoding=self.decoding)
-
-
-@dataclass
-class SharedScoring:
-    """What the rates of one base model share (`compress --rates`): the base model's measurement and its filters'
-    importance scores, each computed by the first rate that needs it and read by the others.
-
-    Valid for one base model file, one set of frames and one importance setting (the rates' options differ only in
-    the rate); `compress_model` fills it.
-    """
-
-    base_step: ModelStep | None = None
-    importance: Importance | None = None
-
-
-class _ScoredOnce:
-    """An importance criterion that scores the base model once: the scores of its first call answer every later
-    one (the base model is loaded again for each rate, with the same weights)."""
-
-    def __init__(self, criterion: Importance) -> None:
-        self.criterion = criterion
-        self.name = criterion.name
-        self._scores: dict[str, np.ndarray] | None = None
-
-    def __call__(self, model: keras.Model) -> dict[str, np.ndarray]:
-        if self._scores is None:
-            self._scores = self.criterion(model)
-        return self._scores
-
-    def describe(self) -> dict[str, Any]:
-        return self.criterion.describe()
-
-
-def measure_base(run: _Run) -> ModelStep:
-    """The unpruned model (the report's "base"): widths, parameters, MACs, file sizes, metrics and timing.
-
-    Args:
-        run: the compression run.
-    Returns:
-        The report's "base" step.
-    """
-    base_path = run.base_path
-    keras_file = base_path if base_path.suffix == ".keras" else None
-    return ModelStep.of(model_facts(run.base),
-                        run.measure(run.keras_predictor(run.base, base_path), "the base model (Keras)"),
-                        file_sizes(run.base, keras_file))
-
-
-def retrain_fold(run: _Run) -> int | None:
-    """The fold the run retrains on: --fold, else the base model's own (its record, same data), else the hold-out split.
-
-    Args:
-        run: the compression run.
-    Returns:
-        The fold, or None for the hold-out 80/20 split.
-    """
-    if run.options.fold is not None:
-        return run.options.fold
-    record = training_record(run.base_path)
-    if record is None:
-        return None
-    return record.fold if record.data_sha256 == file_sha256(run.train_dataset.via_path) else None
-
-
-def importance_frames(run: _Run, fold: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """The frames a data-aware criterion scores filters on: a seeded choice of `options.importance_frames` of the
-    retraining split's training frames (never the measured ones), unaugmented.
-
-    Args:
-        run: the compression run.
-        fold: the retraining fold (`retrain_fold`; None: the hold-out split).
-    Returns:
-        (images, target maps), float32.
-    Raises:
-        UserError: the split has no training frames.
-    """
-    from fcnpose_tf.data.dataset import TrainingData
-
-    candidates = _training_frames(run, fold)
-    if not len(candidates):
-        raise UserError(f"no training frames to score filters with in {run.train_dataset.via_path}")
-    count = min(run.options.importance_frames, len(candidates))
-    chosen = np.sort(np.random.default_rng(run.options.seed).choice(candidates, count, replace=False))
-    return TrainingData(run.train_dataset, chosen, run.input_size, 0, run.options.seed).arrays()
-
-
-def importance_step(run: _Run, fold: int | None) -> Importance:
-    """The run's filter importance criterion, with its frames when it is data-aware.
-
-    Args:
-        run: the compression run (its options name the criterion).
-        fold: the retraining fold the frames come from (`retrain_fold`).
-    Returns:
-        The criterion (`importance.make_importance`).
-    """
-    from fcnpose_tf.compression.importance import DATA_AWARE, make_importance
-    from fcnpose_tf.training.train import ground_truth_loss
-
-    name = run.options.importance
-    if name not in DATA_AWARE:
-        return make_importance(name)
-    run.log(f"  scoring filters by {name} on up to {run.options.importance_frames} training frames ...")
-    images, maps = importance_frames(run, fold)
-    return make_importance(name, images=images, maps=maps, loss=ground_truth_loss(run.options.positive_weight or 1.0),
-                           batch_size=run.options.batch_size)
-
-
-def _shared_importance(run: _Run, shared: SharedScoring) -> Importance:
-    """The run's criterion; a data-aware one scores the base model once for every rate that shares `shared` (the
-    weight norms read the kernels, as cheap as a lookup, and the greedy strategy ranks pruned kernels with them)."""
-    from fcnpose_tf.compression.importance import DATA_AWARE
-
-    name = run.options.importance
-    if name not in DATA_AWARE:
-        return importance_step(run, None)
-    if shared.importance is None or shared.importance.name != name:
-        shared.importance = _ScoredOnce(importance_step(run, retrain_fold(run)))
-    else:
-        run.log(f"  filters scored already (the first rate's {name} scores of the base model)")
-    return shared.importance
-
-
-def prune_step(run: _Run, importance: Importance | None) -> tuple[keras.Model, PruningSections, ModelStep]:
-    """Prune with the run's method and measure the result before any retraining.
-
-    Args:
-        run: the compression run.
-        importance: the criterion filters are ranked by; None when the method takes a pruned start's weights.
-    Returns:
-        The pruned model, the method's report sections, and the report's pruned_before_retraining.
-    """
-    from fcnpose_tf.training.model import with_view
-
-    pruned, sections = run.method.prune(run.base, importance)
-    pruned = with_view(pruned, run.input_size)  # the crop is part of the model: surgery keeps the base's
-    return pruned, sections, ModelStep.of(model_facts(pruned), run.measure(
-        run.keras_predictor(pruned), "the pruned model before retraining", timing=False))
-
-
-def retrain_step(run: _Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSections]:
-    """Retrain the pruned model through `train.fit`, or only save it with 0 retraining epochs.
-
-    Args:
-        run: the compression run.
-        pruned: the pruned model (`prune_step`).
-    Returns:
-        The model as saved, and the report sections (retrain_data, distillation, retraining; none with 0 epochs).
-    """
-    from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.fileio import atomic_path
-    from fcnpose_tf.training.model import load_model, save_for_inference
-    from fcnpose_tf.training.train import fit
-
-    options, keras_path = run.options, run.paths["keras"]
-    if options.retrain_epochs == 0:
-        with atomic_path(keras_path, run.force) as tmp:
-            save_for_inference(pruned, tmp)
-        return pruned, RetrainSections()
-    data_sha256 = file_sha256(run.train_dataset.via_path)
-    fold = retrain_fold(run)
-    train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
-                                     options.augment, progress=run.reporter)
-    run.fit_data = train_data
-    entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
-                                                "train_samples": len(train_data), "val_frames": len(val_data)}}
-    metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
-                "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size.size_record,
-                "view": run.input_size.to_json(),
-                "recipe": run.recipe}
-    sequence = train_data.sequence(options.batch_size, seed=options.seed)
-    if options.distill > 0:
-        from fcnpose_tf.training.distill import with_teacher_maps
-
-        run.log(f"  distillation: the base model's maps weigh {options.distill:g} in the retraining loss")
-        sequence, facts = with_teacher_maps(train_data, sequence, run.base, options.batch_size)
-        entries["distillation"] = {"weight": options.distill, **facts}
-        metadata["distillation"] = entries["distillation"]
-
-    def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
-        result = fit(model, sequence, val_data.arrays(),
-                     keras_path, options.fit_config(), force=run.force, reporter=run.reporter.lines(),
-                     metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False,
-                     start_is_candidate=run.method.trained_start)
-        entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
-        if run.method.trained_start:
-            entries["retraining"] = replace(entries["retraining"], start_kept=result.best_epoch == 0)
-            if result.best_epoch == 0:
-                run.log("  no epoch beat the pruned start's validation loss: the start is kept, unchanged")
-        return result
-
-    run.method.retrain(run.base, pruned, fit_fn)
-    return load_model(keras_path), RetrainSections(**entries)
-
-
-def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> Retraining:
-    """The report's "retraining" part: epochs, best epoch and loss (validation: against the ground truth), time,
-    loss function, positive and teacher weights, learning rates.
-
-    Args:
-        result: what `train.fit` returned.
-        loss: the compiled loss's name.
-        positive_weight: the keypoint maps' weight in the loss.
-        distill: the teacher's weight (0: no distillation).
-    Returns:
-        The section.
-    """
-    return Retraining(epochs_run=result.epochs_run, best_epoch=result.best_epoch, best_val_loss=result.best_val_loss,
-                      seconds=round(result.seconds, 1), loss=loss, positive_weight=positive_weight, distill=distill,
-                      learning_rates=[float(f"{h['lr']:.6g}") for h in result.history if "lr" in h])
-
-
-def measure_retrained(run: _Run, retrained: keras.Model) -> ModelStep:
-    """The retrained Keras model as saved (the report's "retrained"): widths, parameters, MACs, file sizes, metrics
-    and timing.
-
-    Args:
-        run: the compression run.
-        retrained: the retrained model (`retrain_step`).
-    Returns:
-        The report's "retrained" step.
-    """
-    keras_path = run.paths["keras"]
-    return ModelStep.of(model_facts(retrained),
-                        run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)"),
-                        file_sizes(retrained, keras_path))
-
-
-def _training_frames(run: _Run, fold: int | None) -> np.ndarray:
-    """Indices of the retraining split's training frames that are not evaluation frames."""
-    train_indices, _ = run.train_dataset.split(fold)
-    if run.train_dataset is run.eval_dataset:
-        train_indices = np.setdiff1d(train_indices, np.asarray(run.eval_indices, dtype=np.int64))
-    return np.asarray(train_indices, dtype=np.int64)
-
-
-def _export_frames(run: _Run, quantize: str, fold: int | None) -> tuple[np.ndarray, np.ndarray | None]:
-    from fcnpose_tf.compression.frames import export_frames
-
-    return export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold), run.eval_dataset,
-                         run.eval_indices, run.options.calibration_frames, run.options.seed)
-
-
-def export_step(run: _Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
-    """Write one TFLite file, verified against Keras on real frames (`frames.export_frames`: the
-    first evaluation frames; int8 calibrated on the retraining split's training frames).
-
-    Args:
-        run: the compression run.
-        retrained: the model to convert.
-        quantize: the format (`settings.TFLITE_FORMATS`).
-        fold: the retraining fold, whose training frames calibrate int8.
-    Returns:
-        The export (`export.TFLiteExport`).
-    Raises:
-        ExportVerificationError: the file failed its gate (nothing written).
-    """
-    from fcnpose_tf.compression.export import write_tflite
-
-    samples, calibration = _export_frames(run, quantize, fold)
-    return write_tflite(retrained, run.paths[tflite_key(quantize)], quantize, force=run.force,
-                        sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
-
-
-def qat_step(run: _Run, retrained: keras.Model, fold: int | None) -> Any:
-    """Quantization-aware training from the retrained model on the retraining's training frames, until its int8
-    file passes the same gate against the retrained model (`fcnpose_tf.compression.qat`); the file is written when one
-    passes.
-
-    Args:
-        run: the compression run.
-        retrained: the float model the int8 file is held to.
-        fold: the retraining fold.
-    Returns:
-        The `qat.QATResult` (its export None when every epoch's file was refused).
-    """
-    from fcnpose_tf.data.dataset import fold_data
-    from fcnpose_tf.compression.export import export_tflite
-    from fcnpose_tf.fileio import write_bytes
-    from fcnpose_tf.compression.qat import train_until_gate
-
-    options = run.options
-    if run.fit_data is None:  # not retrained in this run (--retrain-epochs 0): the same split's frames
-        run.fit_data, _ = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
-                                    options.augment, progress=run.reporter)
-    samples, calibration = _export_frames(run, "int8", fold)
-
-    def convert(qat_model: keras.Model) -> Any:
-        return export_tflite(qat_model, "int8", sample_frames=samples, calibration_frames=calibration,
-                             num_threads=options.threads, fold_upsampling=False, reference=retrained)
-
-    sequence = run.fit_data.sequence(options.batch_size, seed=options.seed)
-    result = train_until_gate(retrained, sequence, calibration, convert, epochs=options.qat_epochs,
-                              learning_rate=options.qat_learning_rate, seed=options.seed,
-                              reporter=run.reporter)
-    if result.export is not None:
-        write_bytes(run.paths[tflite_key("int8")], result.export.data, run.force)
-    return result
-
-
-def measure_quantized(run: _Run, export: Any, retrained_facts: ModelStep,
-                      qat: dict[str, Any] | None = None) -> TFLiteStep:
-    """One TFLite file measured: its format, how it was quantized, size (plain and gzip), export facts, operators,
-    metrics and timing.
-
-    Args:
-        run: the compression run.
-        export: the written file's export (`export.TFLiteExport`).
-        retrained_facts: the retrained model's step (the file's parameters and MACs are its).
-        qat: the quantization-aware training that made the file, with the post-training refusal it replaced (None:
-            post-training).
-    Returns:
-        The file's step of the report.
-    """
-    from fcnpose_tf.compression.tflite_file import inspect_tflite
-    from fcnpose_tf.runtime.estimator import KeypointModel
-
-    path = run.paths[tflite_key(export.quantize)]
-    tflite_info = inspect_tflite(path)
-    tfl = KeypointModel(path, num_threads=run.options.threads, decoding=run.decoding)
-    measurement = run.measure(tfl, f"the {export.quantize} TFLite model")
-    return TFLiteStep(quantize=export.quantize, status="written",
-                      quantization="quantization-aware training" if qat else "post-training", qat=qat or None,
-                      params=retrained_facts.params, macs=retrained_facts.macs, flops=retrained_facts.flops,
-                      tflite_size_bytes=export.size_bytes, tflite_gzip_size_bytes=len(gzip.compress(export.data, 9)),
-                      export=export.to_dict(), tflite_ops=tflite_info.get("op_counts", tflite_info.get("ops")),
-                      metrics=measurement.metrics, timing=measurement.timing)
 
 
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
@@ -495,7 +101,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0)
     start_name, start_path = pruned_start(options, base_path, plan, architecture, reporter)
     options = replace(options, start=start_name)
-    run = _Run(base_path, base, pruning_method(options, plan, start_path), options, paths, train_dataset,
+    run = Run(base_path, base, pruning_method(options, plan, start_path), options, paths, train_dataset,
                eval_dataset, eval_indices, force, reporter, options.recipe(plan.floor))
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
@@ -512,7 +118,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     say(f"[2/{steps}] pruning: {run.method.describe()}")
     importance = None
     if run.method.ranks_filters:
-        importance = _shared_importance(run, shared)
+        importance = shared_importance(run, shared)
     pruned, pruned_sections, pruned_step = prune_step(run, importance)
     spent = (time.perf_counter() - start) / 60
     budget = options.retraining_minutes(spent)
@@ -533,9 +139,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     refused: list[RefusedFormat] = []
     for i, quantize in enumerate(options.quantize):
         say(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
-        export, qat = _export_or_refusal(run, retrained, quantize, fold, refused)
+        export, qat = export_or_refusal(run, retrained, quantize, fold, refused)
         if export is None:
-            _remove_stale(run, quantize)
+            remove_stale(run, quantize)
             continue
         say(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
         files.append(measure_quantized(run, export, retrained_step, qat))
@@ -552,49 +158,3 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         seconds=round(time.perf_counter() - start, 1))
     write_json(paths["report"], report.to_json(), force=force)
     return report
-
-
-def _export_or_refusal(run: _Run, retrained: keras.Model, quantize: str, fold: int | None,
-                       refused: list[RefusedFormat]) -> tuple[Any, dict[str, Any] | None]:
-    """(the written export, the QAT facts if QAT made it), or (None, None) with the refusal appended to `refused`.
-
-    A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
-    falls back to quantization-aware training (`options.qat_epochs` > 0)."""
-    from fcnpose_tf.compression.export import FULL_INTEGER
-    from fcnpose_tf.compression.verify import ExportVerificationError
-
-    try:
-        return export_step(run, retrained, quantize, fold), None
-    except ExportVerificationError as exc:
-        ptq = {"reason": exc.reason, **exc.facts}
-    run.log(f"  {quantize} refused by its gate: {ptq['reason']}")
-    reason, qat = ptq["reason"], None
-    if quantize == FULL_INTEGER and run.options.qat_epochs > 0:
-        run.log(f"  post-training int8 refused: quantization-aware training (tfmot), up to {run.options.qat_epochs} "
-                f"epoch(s) from the retrained model on the same training frames, the gate after each")
-        result = qat_step(run, retrained, fold)
-        qat = {**result.to_dict(), "learning_rate": run.options.qat_learning_rate, "post_training_refused": ptq}
-        if result.export is not None:
-            run.log(f"  quantization-aware int8 passes the gate after {result.epochs_run} epoch(s), "
-                    f"{result.seconds / 60:.1f} min")
-            return result.export, qat
-        reason = f"after {result.epochs_run} epoch(s) of quantization-aware training: {result.reason}"
-        run.log(f"  quantization-aware int8 refused too ({result.seconds / 60:.1f} min): {result.reason}")
-    refused.append(RefusedFormat(quantize, reason, post_training=ptq, qat=qat))
-    return None, None
-
-
-def _remove_stale(run: _Run, quantize: str) -> None:
-    """With --force, an earlier run's file of a format this run refused goes: it is not this model's."""
-    path = run.paths[tflite_key(quantize)]
-    if run.force and path.is_file():
-        path.unlink()
-        run.log(f"  removed {path}: an earlier file of the format this run refused")
-
-
-def _loss_name(model: Any) -> str:
-    """The compiled loss's name: binary_crossentropy (plain BCE) or keypoint_bce (weighted)."""
-    loss = getattr(model, "loss", None)
-    return str(getattr(loss, "name", loss))
-
-

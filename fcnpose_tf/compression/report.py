@@ -232,7 +232,7 @@ class PruningSections:
 
 @dataclass(frozen=True)
 class RetrainSections:
-    """What the retraining adds to the report (`compress.retrain_step`); all None when not retrained."""
+    """What the retraining adds to the report (`steps.retrain_step`); all None when not retrained."""
 
     retrain_data: dict[str, Any] | None = None
     """What it trained on: data, fold, train_samples, val_frames."""
