@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from fcnpose_tf.compression.report import (CompressReport, ModelStep, RefusedFormat, Retraining, TFLiteStep,
-                                           report_table)
+from fcnpose_tf.compression.report import CompressReport, ModelStep, RefusedFormat, Retraining, TFLiteStep
+from fcnpose_tf.compression.summary import report_table
 from test_train_evaluate import make_via_folder
 from weights import randomize
 
@@ -327,7 +327,7 @@ def _report(**changes) -> CompressReport:
 def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_rate():
     """`accuracy_note`: the best file written against the unpruned model; within 0.02 no note; beyond, the loss and a
     lower rate (the views-that-vary figure above 0.5); no file written, no note."""
-    from fcnpose_tf.compression.report import accuracy_note
+    from fcnpose_tf.compression.summary import accuracy_note
 
     timing = TIMING
     written = _step(30, 0.95, quantize="float16", status="written", tflite_size_bytes=600, timing=timing)

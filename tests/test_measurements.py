@@ -63,7 +63,8 @@ def test_a_sequence_report_round_trips():
 
 @pytest.mark.parametrize("path", sorted(models_dir().glob("*_report.json")), ids=lambda p: p.name)
 def test_a_bundled_compress_report_reads_typed_and_writes_back_byte_for_byte(path):
-    from fcnpose_tf.compression.report import CompressReport, ModelStep, TFLiteStep, report_table
+    from fcnpose_tf.compression.report import CompressReport, ModelStep, TFLiteStep
+    from fcnpose_tf.compression.summary import report_table
 
     text = path.read_text()
     report = CompressReport.from_json(json.loads(text))

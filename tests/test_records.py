@@ -119,7 +119,8 @@ def test_every_bundled_record_and_report_reads_unchanged():
     """The files a previous version wrote and the wheel ships (saved_models/) read as they are: each training record
     as a `TrainingRecord` with its schema and split, the compress report back to the same JSON and its table."""
     from fcnpose_tf.bundled import models_dir
-    from fcnpose_tf.compression.report import CompressReport, report_table
+    from fcnpose_tf.compression.report import CompressReport
+    from fcnpose_tf.compression.summary import report_table
 
     folder = models_dir()
     records = sorted(folder.glob("*_train.json"))

@@ -16,7 +16,7 @@ import json
 import sys
 from pathlib import Path
 
-from fcnpose_tf.compression.report import report_table
+from fcnpose_tf.compression.summary import report_table
 
 
 def _load(path: Path) -> dict:

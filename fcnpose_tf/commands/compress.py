@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.compress import compress_model
     from fcnpose_tf.compression.steps import SharedScoring
     from fcnpose_tf.compression.options import CompressOptions, check_outputs
-    from fcnpose_tf.compression.report import accuracy_note, report_table
+    from fcnpose_tf.compression.summary import accuracy_note, report_table
     from fcnpose_tf.data.args import default_data, load_from_args
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
@@ -211,7 +211,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _several_rates(reports: list, model_path: Path, out_dir: Path, every: list, named: bool, description: str) -> int:
     """`--rates`: one table of every rate's rows, the best rate within the PCK budget named, every file named."""
-    from fcnpose_tf.compression.report import best_rate_note, rates_table
+    from fcnpose_tf.compression.summary import best_rate_note, rates_table
 
     rates = ", ".join(f"{report.options['rate']:g}" for report in reports)
     print(f"\nCompression at rates {rates} ({reports[0].recipe}); "

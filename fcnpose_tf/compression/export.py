@@ -1,8 +1,8 @@
 """TFLite export with post-training quantization, verified by running the converted file.
 
-A tf_keras model is converted with a static 1 x H x W x C input (through a concrete function
-with a fixed input signature, with the model passed as the trackable object so the converter
-sees its variables), built-in ops only, in one of five formats:
+A tf_keras model is converted with a static 1 x H x W x C input (through a concrete function with a fixed input
+signature, the model passed as the trackable object so the converter sees its variables), built-in ops only, in one
+of five formats:
 
     float32        no optimisation (the reference, largest file)
     float16        weights stored as float16, dequantized to float32 when the model is loaded
@@ -25,12 +25,11 @@ Before conversion, `fcnpose_tf.compression.inference_graph.fold_upsampling` may 
 (each nearest UpSampling2D + Conv2D pair computed at low resolution, then DEPTH_TO_SPACE), which
 makes the file run faster; see `export_tflite`'s ``fold_upsampling``.
 
-The converted model is never trusted: it is loaded in the LiteRT interpreter, run on sample
-frames, and its maps are compared with the Keras model's (max abs difference) and decoded into
-keypoints with the same post-processing the runtime uses. A model that disagrees raises
-`ExportVerificationError` and `write_tflite` writes nothing. (Converting through
-``from_concrete_functions`` without the trackable object can silently drop the weights and give a
-~19 KB file whose output is NaN; this check is what catches that kind of failure.)
+The converted model is never trusted: it is loaded in the LiteRT interpreter, run on sample frames, and its maps
+are compared with the Keras model's (max abs difference) and decoded into keypoints with the same post-processing
+the runtime uses. A model that disagrees raises `ExportVerificationError` and `write_tflite` writes nothing.
+(Converting through ``from_concrete_functions`` without the trackable object can silently drop the weights and give
+a ~19 KB file whose output is NaN; this check is what catches that kind of failure.)
 
 The gate is `fcnpose_tf.compression.verify`; what a written file holds, `fcnpose_tf.compression.tflite_file`.
 """

@@ -1,5 +1,5 @@
-"""What a compression run measured and wrote: `CompressReport` (NAME_pXX_report.json), its table, and the note
-`compress` prints when the compressed files lost more accuracy than the paper's.
+"""What a compression run measured and wrote: `CompressReport` (NAME_pXX_report.json) and its steps; what it says to
+a reader (its table, the accuracy note): `fcnpose_tf.compression.summary`.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import tempfile
 import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -391,140 +391,3 @@ def model_facts(model: keras.Model) -> ModelFacts:
     return ModelFacts(widths=list(conv_widths(model)), params=int(model.count_params()), macs=int(macs),
                       flops=int(2 * macs),
                       nonzero_weights=int(sum(np.count_nonzero(w) for w in model.get_weights())))
-
-
-PCK_DROP_BUDGET = 0.02
-"""PCK@0.5 a compressed file may lose against the unpruned model on the measured frames: the paper's files stay
-within it at the rates it ships, and so do the bundled 70 % files and three fixed-camera users' (docs/compression.md,
-"On your own model"). Beyond it `accuracy_note` says so."""
-VARIED_VIEWS_RATE = 0.5
-"""The rate that kept PCK@0.5 within PCK_DROP_BUDGET on both views-that-vary models measured, where 0.7 did not
-(docs/compression.md, "Views that vary: a lower rate")."""
-
-
-def accuracy_note(report: CompressReport) -> str | None:
-    """One line when the most accurate file written lost more than PCK_DROP_BUDGET of the unpruned model's PCK@0.5
-    on the measured frames: how much, and what to try.
-
-    Args:
-        report: a compression run's report.
-    Returns:
-        The line; None within the budget, and when no file was written.
-    """
-    if not report.tflite_files:
-        return None
-    base = report.base.metrics.pck[0.5]
-    best = max(report.tflite_files, key=lambda step: step.metrics.pck[0.5])
-    drop = base - best.metrics.pck[0.5]
-    if drop <= PCK_DROP_BUDGET:
-        return None
-    rate = report.options["rate"]
-    advice = (f"a lower --rate keeps more of it: on views that vary --rate {VARIED_VIEWS_RATE:g} held within "
-              f"{PCK_DROP_BUDGET:g} where 0.7 did not (docs/compression.md, \"Views that vary: a lower rate\")"
-              if rate > VARIED_VIEWS_RATE else "a lower --rate keeps more of it")
-    return (f"note: PCK@0.5 {best.metrics.pck[0.5]:.3f} ({best.quantize}) is {drop:.3f} below the "
-            f"unpruned model's {base:.3f} on these frames, more than the {PCK_DROP_BUDGET:g} the paper's files lose; "
-            f"{advice}")
-
-
-def _row(label: str, step: Step, size: int | None) -> list:
-    """A table row: the step's parameters, MACs, file size (`size` bytes), accuracy and timing."""
-    m, t = step.metrics, step.timing
-    return [label, step.params, step.macs / 1e6, size / 1e3 if size else None,
-            m.pck.get(0.5), m.pck.get(0.2), m.pck.get(0.05), m.epe_px,
-            t.inference_ms.mean if t else None, t.fps if t else None]
-
-
-def _file_rows(report: CompressReport, prefix: str = "") -> list[list]:
-    """One row per --quantize format, in the order asked: its file's, or REFUSED."""
-    # (reports written before one file per format hold options.quantize as one name and no step["quantize"])
-    quantize = report.options["quantize"]
-    order = list(quantize) if isinstance(quantize, (list, tuple)) else []
-    entries: list[tuple[Any, TFLiteStep | RefusedFormat]] = [(step.quantize or quantize, step)
-                                                             for step in report.tflite_files]
-    entries += [(entry.quantize, entry) for entry in report.refused]
-    entries.sort(key=lambda entry: order.index(entry[0]) if entry[0] in order else len(order))
-    rows = []
-    for name, entry in entries:
-        if isinstance(entry, RefusedFormat):
-            rows.append([f"{prefix}{name} TFLite: REFUSED (gate)"] + [None] * 9)
-        else:
-            qat = " QAT" if entry.quantization == "quantization-aware training" else ""
-            rows.append(_row(f"{prefix}{name}{qat} TFLite (.tflite)", entry, entry.tflite_size_bytes))
-    return rows
-
-
-_COLUMNS = ["model", "params", "MMACs", "size KB", "PCK@0.5", "PCK@0.2", "PCK@0.05", "EPE px", "infer ms", "FPS e2e"]
-_DIGITS = [None, None, 1, 1, 3, 3, 3, 2, 2, 1]
-
-
-def report_table(report: CompressReport | dict[str, Any], markdown: bool = False) -> str:
-    """The compression report as a table: the unpruned model beside each step of the compressed one.
-
-    Sizes in KB (1000 bytes): a TFLite row's file; a Keras row's model saved as .h5 (the paper's measure, whatever
-    file holds it: the label says so);
-    "infer ms" is the forward pass alone, FPS the whole frame (preprocess, inference, keypoints).
-
-    Args:
-        report: `compress_model`'s, or a NAME_pXX_report.json as parsed (read by `CompressReport.from_json`).
-        markdown: a Markdown table instead of aligned text.
-    Returns:
-        The table.
-    """
-    from fcnpose_tf.tables import format_table
-
-    if not isinstance(report, CompressReport):
-        report = CompressReport.from_json(report)
-    rows = [_row("unpruned (Keras; size as .h5)", report.base, report.base.h5_size_bytes),
-            _row("pruned, before retraining", report.pruned_before_retraining, None),
-            _row("pruned + retrained (Keras; size as .h5)", report.retrained, report.retrained.h5_size_bytes),
-            *_file_rows(report)]
-    return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
-
-
-def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> str:
-    """Several rates of one model in one table (`compress --rates`): the unpruned model once (the first report's
-    measurement), then per rate its retrained Keras model and its files, each row named by its rate.
-
-    Args:
-        reports: one report per rate, of the same model.
-        markdown: a Markdown table instead of aligned text.
-    Returns:
-        The table.
-    """
-    from fcnpose_tf.tables import format_table
-
-    rows = [_row("unpruned (Keras; size as .h5)", reports[0].base, reports[0].base.h5_size_bytes)]
-    for report in reports:
-        prefix = f"rate {report.options['rate']:g}: "
-        rows += [_row(f"{prefix}retrained (Keras; size as .h5)", report.retrained, report.retrained.h5_size_bytes),
-                 *_file_rows(report, prefix)]
-    return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
-
-
-def best_rate_note(reports: Sequence[CompressReport]) -> str:
-    """One line naming the highest rate whose most accurate file stayed within PCK_DROP_BUDGET of the unpruned
-    model's PCK@0.5 (`compress --rates`), with how much each higher rate lost; or that none did.
-
-    Args:
-        reports: one report per rate, of the same model.
-    Returns:
-        The line.
-    """
-    base = reports[0].base.metrics.pck[0.5]
-
-    def drop(report: CompressReport) -> float | None:
-        if not report.tflite_files:
-            return None
-        return base - max(step.metrics.pck[0.5] for step in report.tflite_files)
-
-    measured = sorted(((report.options["rate"], drop(report)) for report in reports), key=lambda pair: pair[0])
-    kept = [(rate, d) for rate, d in measured if d is not None and d <= PCK_DROP_BUDGET]
-    beyond = ", ".join(f"{rate:g} loses {d:.3f}" if d is not None else f"{rate:g} wrote no file"
-                       for rate, d in measured if d is None or d > PCK_DROP_BUDGET)
-    if not kept:
-        return (f"note: no rate kept PCK@0.5 within {PCK_DROP_BUDGET:g} of the unpruned model's {base:.3f} on these "
-                f"frames ({beyond}); try lower rates")
-    rate, d = kept[-1]
-    return (f"Best rate within the {PCK_DROP_BUDGET:g} PCK@0.5 budget: {rate:g} (its best file {d:+.3f} below the "
-            f"unpruned model's {base:.3f})" + (f"; {beyond}" if beyond else ""))
