@@ -122,7 +122,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     pruned, pruned_sections, pruned_step = prune_step(run, importance)
     spent = (time.perf_counter() - start) / 60
     budget = options.retraining_minutes(spent)
-    if budget != options.max_minutes:
+    if budget != options.max_minutes and options.retrain_epochs:
         over = " (the least it gets: this run takes longer than its total)" \
             if budget == settings.MIN_RETRAIN_MINUTES else ""
         say(f"  retraining budget {budget:.1f} min{over}: what --total-minutes {options.total_minutes:g} leaves after "
