@@ -12,10 +12,9 @@ def test_importing_cli_does_not_import_tensorflow():
     assert proc.returncode == 0, proc.stdout + proc.stderr
 
 
-def test_summary_prints_paper_figures(cli):
-    proc = cli("summary")
-    assert proc.returncode == 0, proc.stderr
-    out = proc.stdout
+def test_summary_prints_paper_figures(cli_here):
+    status, out, err = cli_here("summary")
+    assert status == 0, err
     assert "131,705" in out
     assert "(224, 224, 128)" in out and "(7, 7, 8)" in out and "(224, 224, 9)" in out
     assert "1,481,675,328" in out  # MACs of the unpruned network at 224
