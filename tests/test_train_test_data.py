@@ -167,6 +167,7 @@ def _synth_frames(folder, n, seed):
 
 
 @pytest.mark.slow
+@pytest.mark.usefixtures("few_timed_frames")
 def test_the_start_as_saved_is_a_candidate_when_training_ran_at_another_size(tmp_path):
     """A start pretrained at 224 that scores higher on the validation frames than the model trained at another
     size is the model written, at its own size; one that scores lower leaves the trained model alone."""
