@@ -75,3 +75,49 @@ def few_timed_frames(monkeypatch):
     """`cut_timed_frames` for one test: for tests of what train, evaluate or compress write and say, not of how many
     frames they time (test_train_evaluate checks that count on a real evaluation)."""
     cut_timed_frames(monkeypatch)
+
+
+def _conversion_key(model, quantize, input_shape, calibration=None, pixel_interface=True) -> str | None:
+    """What `export._convert`'s flatbuffer depends on, hashed: the model's architecture (its JSON, names included),
+    every weight, the format, the input shape, the calibration frames and the interface; None if unreadable."""
+    import hashlib
+
+    import numpy as np
+
+    digest = hashlib.sha256()
+    try:
+        digest.update(type(model).__module__.encode() + model.to_json().encode())
+        arrays = [*model.get_weights(), *([] if calibration is None else [np.asarray(calibration)])]
+    except Exception:  # noqa: BLE001 - a model that cannot say what it is gets converted every time
+        return None
+    digest.update(repr((quantize, tuple(input_shape), calibration is None, bool(pixel_interface))).encode())
+    for array in arrays:
+        digest.update(repr((array.dtype.str, array.shape)).encode() + np.ascontiguousarray(array).tobytes())
+    return digest.hexdigest()
+
+
+@pytest.fixture(scope="module")
+def convert_once():
+    """Within a module: a TFLite conversion (`compression.export._convert`) of a model identical to one converted
+    before (architecture, names, weights, format, input shape, calibration frames) returns the flatbuffer that
+    conversion gave instead of converting again (seconds each; the converter is deterministic). What follows it
+    (the view metadata, the verification against Keras, the keypoint gate, the files) runs every time.
+
+    For modules whose tests export the same model again through other commands (test_qat: one faint model through
+    compress and export, the same float16 and int8 files each time)."""
+    from fcnpose_tf.compression import export
+
+    real = export._convert
+    converted = {}
+
+    def convert(model, quantize, input_shape, calibration=None, pixel_interface=True):
+        key = _conversion_key(model, quantize, input_shape, calibration, pixel_interface)
+        if key is None:
+            return real(model, quantize, input_shape, calibration, pixel_interface)
+        if key not in converted:
+            converted[key] = real(model, quantize, input_shape, calibration, pixel_interface)
+        return converted[key]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(export, "_convert", convert)
+        yield converted

@@ -12,6 +12,8 @@ from weights import randomize
 
 SIZE = 64
 
+pytestmark = pytest.mark.usefixtures("convert_once")  # one faint model, its float16 and int8 files converted once
+
 
 def faint_model(frames, seed=0, contrast=0.8, share=0.03, skeleton_offset=60.0):
     """A 64x64 FCN-Pose whose keypoint maps are faint and whose output logits span a wide range, as a model fine-tuned
