@@ -42,6 +42,16 @@ def cli_here(capsys):
     return run
 
 
+@pytest.fixture(scope="session")
+def structured_tflite() -> bytes:
+    """The float16 .tflite bytes of test_runtime's hand-set FCN-Pose (TensorFlow's plain converter), converted once
+    per session: the model file of the run, bench, predict and camera CLI tests and of the exit-path and full-disk
+    tests (each module writes its own copy)."""
+    from test_runtime import _convert_plain, _structured_model
+
+    return _convert_plain(_structured_model())
+
+
 FEW_TIMED_FRAMES = 3
 """Frames an evaluation times under `few_timed_frames` (the package times at least 50 after 5 of warm-up)."""
 

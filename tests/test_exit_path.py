@@ -19,12 +19,10 @@ LINE = {signal.SIGINT: "interrupted (Ctrl-C)", signal.SIGTERM: "terminated (SIGT
 
 
 @pytest.fixture(scope="module")
-def tflite_model(tmp_path_factory):
-    """The hand-set FCN-Pose of test_runtime as a .tflite file (converted once per module)."""
-    from test_runtime import _convert_plain, _structured_model
-
+def tflite_model(tmp_path_factory, structured_tflite):
+    """The hand-set FCN-Pose of test_runtime as a .tflite file (converted once per session)."""
     path = tmp_path_factory.mktemp("exit_models") / "structured.tflite"
-    path.write_bytes(_convert_plain(_structured_model()))
+    path.write_bytes(structured_tflite)
     return path
 
 

@@ -318,12 +318,10 @@ def test_data_inspect_preview_on_an_injected_full_disk(tmp_path, capsys, monkeyp
 # -- run --save-video: temporaries stranded by SIGKILL, and a full disk -------------------------------------
 
 @pytest.fixture(scope="module")
-def tflite_model(tmp_path_factory):
-    """The hand-set FCN-Pose of test_runtime as a .tflite file (converted once per module)."""
-    from test_runtime import _convert_plain, _structured_model
-
+def tflite_model(tmp_path_factory, structured_tflite):
+    """The hand-set FCN-Pose of test_runtime as a .tflite file (converted once per session)."""
     path = tmp_path_factory.mktemp("rel_models") / "structured.tflite"
-    path.write_bytes(_convert_plain(_structured_model()))
+    path.write_bytes(structured_tflite)
     return path
 
 

@@ -18,14 +18,13 @@ import numpy as np
 import pytest
 
 from fcnpose_tf.cli import build_parser, main
-from test_runtime import (RED_CYCLE, _convert_plain, _structured_model, expected_keypoints, quadrant_frame,
-                          write_video)
+from test_runtime import RED_CYCLE, _convert_plain, expected_keypoints, quadrant_frame, write_video
 
 
 @pytest.fixture(scope="module")
-def model_path(tmp_path_factory) -> Path:
+def model_path(tmp_path_factory, structured_tflite) -> Path:
     path = tmp_path_factory.mktemp("cli_models") / "structured.tflite"
-    path.write_bytes(_convert_plain(_structured_model()))
+    path.write_bytes(structured_tflite)
     return path
 
 
