@@ -629,7 +629,7 @@ def _sweep_cli(*args, cwd, env=None):
     evaluations timing a few frames (`cli_few_timed.py`): no test here asserts a timing beyond its presence."""
     full_env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", **(env or {}))
     return subprocess.run([sys.executable, str(FEW_TIMED_CLI), *map(str, args)], cwd=cwd, env=full_env,
-                          capture_output=True, text=True, timeout=900)
+                          capture_output=True, text=True, timeout=3600)  # 40 min seen beside two trainings
 
 
 @pytest.fixture(scope="module")
