@@ -34,6 +34,7 @@ EXAMPLES = """\
   fcnpose-tf run model.tflite --source picamera2 --out k.jsonl         # Pi camera module (Picamera2)
   fcnpose-tf run model.tflite --source picamera2:1 --camera-size 1280x720 --out k.jsonl
   fcnpose-tf run model.tflite --source 0 --via hard/frames.json --via-every 30  # 1 frame/s to correct in VIA
+  fcnpose-tf run model.tflite --source clip.mp4 --track --out k.jsonl  # a crop following the arm, frame to frame
 """
 
 
@@ -67,6 +68,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="run the interpreter on its own thread, overlapping it with reading and "
                              "preprocessing the next frame and writing the previous one (same keypoints; "
                              "docs/runtime.md, pipelined run)")
+    parser.add_argument("--track", action="store_true",
+                        help="read each frame over a crop about the previous frame's keypoints (their box and a "
+                             "quarter of it on each side, at the input's aspect; the model's own view for the first "
+                             "frame and after one that lost the arm): on video where views vary, the arm gets the "
+                             "input's pixels instead of its share of the whole frame (docs/runtime.md, \"A crop that "
+                             "follows the arm\"); sequential, no pipelining")
     add_smoothing_arguments(parser)
     add_backend_argument(parser)
     settings.FORCE.add_to(parser)
@@ -116,6 +123,10 @@ def run(args: argparse.Namespace) -> int:
     model = KeypointModel(args.model, args.threads, Decoding.from_args(args), backend=args.backend)
     if model.backend.skipped:
         print(f"note: using {model.backend.label} ({'; '.join(model.backend.skipped)})", file=sys.stderr)
+    if args.track:
+        from fcnpose_tf.runtime.tracking import TrackingCrop
+
+        model = TrackingCrop(model)
     writers = []
     video = None
     source = open_source(args.source, camera_size)

@@ -184,6 +184,10 @@ class KeypointPredictor(abc.ABC):
         return (f"{Path(name).name if name else 'model'} ({self.view.height}x{self.view.width}x3 -> "
                 f"{self.num_maps} maps{self._crop_words()}), {self.backend_label}, {threads}")
 
+    def run_note(self) -> str | None:
+        """A line for a run's summary on how its frames were read (`runtime.tracking`); None: nothing to add."""
+        return None
+
     def _crop_words(self) -> str:
         if self.view.crop is None:
             return ""

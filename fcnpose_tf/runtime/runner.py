@@ -139,6 +139,9 @@ class RunSummary:
                          f"frames had a keypoint at its edge (the records' crop_edge): an arm reaching past the "
                          f"crop is placed at its border or not found: retrain on frames of those poses "
                          f"(docs/training.md, \"Input size\")")
+        note = model.run_note()
+        if note:
+            lines.append(note)
         if len(self.capture_to_keypoints_ms):
             d = describe_ms(self.capture_to_keypoints_ms)
             lines.append(f"Latency: capture to keypoints written {d['median']:.1f} ms p50, {d['p95']:.1f} ms p95, "
