@@ -18,6 +18,13 @@ and how many such frames `run`'s crop_edge flags):
 
     leave --model M_int8.tflite --data D_test --shift -150
 
+and, on video (a motion sequence's frames in order), what each way of choosing the second pass's crop gives against
+the first pass alone on the whole frame: the first pass's box every frame (two passes a frame), the previous frame's
+second-pass keypoints (one pass a frame; the first pass only when fewer than --min-found keypoints were found), and
+the labels' box (the oracle), with the multiply-adds a frame each costs:
+
+    track --first FIRST.keras --second M.keras --data D_motion [--data D_motion2 ...]
+
 A crop is a square of side max(box width, box height) x (1 + 2 x margin) about the keypoint box's centre, moved
 inside the frame; `--jitter J` moves its centre by up to J of its side and scales it by 1 +- J, copy by copy (a
 first pass's error). Crops keep the frame's pixels (no resizing), so EPE stays in frame pixels; a keypoint the crop
@@ -61,9 +68,21 @@ def main(argv: list[str] | None = None) -> int:
     leave.add_argument("--data", type=Path, required=True, help="a dataset folder (VIA project + images)")
     leave.add_argument("--shift", type=int, default=-150, help="pixels to move every frame's content sideways")
     leave.add_argument("--share", type=float, default=None, help="the crop-edge band (default: run's)")
+    track = sub.add_parser("track", help="on motion sequences: whole frame vs two passes vs a tracking crop")
+    track.add_argument("--first", type=Path, required=True, help="a whole-frame .keras model (the first pass)")
+    track.add_argument("--second", type=Path, action="append", required=True,
+                       help="a .keras model that reads a crop (repeatable); at its own input size, or "
+                            "PATH@S to run it at S x S")
+    track.add_argument("--data", type=Path, action="append", required=True,
+                       help="a motion sequence's dataset folder (repeatable; each sequence tracked on its own)")
+    track.add_argument("--margin", type=float, default=0.25, help="added on each side, share of the box's side")
+    track.add_argument("--min-found", type=int, default=4, help="fewer keypoints found: the next frame's box "
+                                                                 "comes from the first pass again")
     args = parser.parse_args(argv)
     if args.action == "leave":
         return leave_crop(args)
+    if args.action == "track":
+        return track_crop(args)
 
     import cv2
 
@@ -156,6 +175,93 @@ def leave_crop(args: argparse.Namespace) -> int:
     print(f"{args.model} ({model.view.describe()}), frames of {via_path} shifted by {args.shift} px:")
     for name, value in counts.items():
         print(f"  {name}: {value}")
+    return 0
+
+
+def _keras_predictor(spec: Path):
+    """A Keras predictor from PATH or PATH@S (the model rebuilt at S x S), and its multiply-adds a frame."""
+    from fcnpose_tf.compression.report import model_facts
+    from fcnpose_tf.training.evaluate import KerasKeypointModel
+    from fcnpose_tf.training.model import at_input_size, load_model
+
+    path, _, size = str(spec).partition("@")
+    model = load_model(path)
+    if size:
+        model = at_input_size(model, int(size))
+    return KerasKeypointModel(model, path), model_facts(model).macs
+
+
+def track_crop(args: argparse.Namespace) -> int:
+    """Per sequence and pooled: PCK@0.5/0.2/0.05 and EPE of the first pass alone and of the second pass over each
+    way of choosing its crop, with the multiply-adds a frame (the first pass's counted when it ran)."""
+    from fcnpose_tf import metrics
+    from fcnpose_tf.data.dataset import resolve_data
+    from fcnpose_tf.data.via import read_via
+    from fcnpose_tf.preprocess import read_image
+
+    first, first_macs = _keras_predictor(args.first)
+    seconds = [(str(spec), *_keras_predictor(spec)) for spec in args.second]
+
+    def second_pass(predictor, image, points):
+        h, w = image.shape[:2]
+        if len(points) < 2:
+            return None
+        x, y, cw, ch = square_crop(points.min(axis=0), points.max(axis=0), args.margin, (w, h))
+        return predictor.predict(np.ascontiguousarray(image[y:y + ch, x:x + cw])).keypoints + (x, y)
+
+    rows: dict[str, list] = {}
+    macs: dict[str, float] = {}
+    truth_all = []
+    for data in args.data:
+        via_path, images = resolve_data(data, None)
+        frames = read_via(via_path, images).frames
+        truth_all.extend(frame.keypoints for frame in frames)
+        whole = []
+        for frame in frames:
+            whole.append(first.predict(read_image(frame.image_path)).keypoints)
+        rows.setdefault("first pass alone (whole frame)", []).extend(whole)
+        macs["first pass alone (whole frame)"] = first_macs
+        for name, predictor, second_macs in seconds:
+            tracked, two, oracle, first_calls, previous = [], [], [], 0, None
+            for frame, found_whole in zip(frames, whole):
+                image = read_image(frame.image_path)
+                valid = lambda k: k[np.isfinite(k).all(axis=1)]  # noqa: E731
+                two.append(second_pass(predictor, image, valid(found_whole)))
+                oracle.append(second_pass(predictor, image, valid(frame.keypoints)))
+                if previous is None or np.isfinite(previous).all(axis=1).sum() < args.min_found:
+                    first_calls += 1
+                    previous = found_whole
+                result = second_pass(predictor, image, valid(previous))
+                result = found_whole if result is None else result
+                tracked.append(result)
+                previous = result
+            fill = lambda ks: [k if k is not None else np.full_like(frames[0].keypoints, np.nan) for k in ks]  # noqa: E731
+            for label, values, cost in (
+                    (f"two passes: {name} over the first pass's box", fill(two), first_macs + second_macs),
+                    (f"tracking: {name} over the previous frame's box", tracked, None),
+                    (f"oracle: {name} over the labels' box", fill(oracle), second_macs)):
+                rows.setdefault(label, []).extend(values)
+                if cost is not None:
+                    macs[label] = cost
+            calls = macs.setdefault(f"tracking: {name} over the previous frame's box@calls", 0) + first_calls
+            macs[f"tracking: {name} over the previous frame's box@calls"] = calls
+            macs[f"tracking: {name} over the previous frame's box@macs"] = second_macs
+    truth = np.stack(truth_all)
+    n = len(truth)
+    print(f"{n} frames of {len(args.data)} sequences; first pass {args.first} ({first_macs / 1e9:.2f} G a frame)")
+    print("| crop | PCK@0.5 | PCK@0.2 | PCK@0.05 | EPE px | missing | G MACs a frame |")
+    print("|---|---|---|---|---|---|---|")
+    for label, values in rows.items():
+        pred = np.stack(values)
+        if label.startswith("tracking"):
+            calls = macs[label + "@calls"]
+            cost = macs[label + "@macs"] + first_macs * calls / n
+            label = f"{label} ({calls} first passes)"
+        else:
+            cost = macs[label]
+        print(f"| {label} | {metrics.pck(pred, truth, 0.5):.3f} | {metrics.pck(pred, truth, 0.2):.3f} | "
+              f"{metrics.pck(pred, truth, 0.05):.3f} | {metrics.epe(pred, truth):.2f} | "
+              f"{metrics.missing_fraction(pred, truth):.3f} | {cost / 1e9:.2f} |")
     return 0
 
 
