@@ -805,6 +805,11 @@ COMPRESS_INPUT_SIZE = INPUT_SIZE.variant(
          "0.73x of 224's) and localises coarser (docs/compression.md, \"A smaller input\"); for a model whose input "
          "is H x W, the height, the width following at the same aspect (a multiple of 32), the crop kept")
 """None keeps the model's own size (the paper's protocol); the sweep always does (each fold's base at its size)."""
+EXPORT_INPUT_SIZE = COMPRESS_INPUT_SIZE.variant(
+    help=f"the input side the files run at, a multiple of {INPUT_SIZE_MULTIPLE} (default: the model's own): the model "
+         "rebuilt at this size with its weights, nothing retrained, the files named NAME_SIZE_fp16.tflite; for `run "
+         "--track`, whose crop about the arm gives a smaller input the pixels the whole frame gave a larger one "
+         "(docs/runtime.md, \"A crop that follows the arm\"); for an H x W input, the height, the width following")
 DISTILL = Setting(
     "distill", float, 0.0,
     "weight W of the unpruned model's maps while retraining: loss = (1 - W) x loss against the ground-truth maps "

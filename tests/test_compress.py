@@ -282,6 +282,24 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli_here,
     assert status == 2 and "already exists; pass --force" in err
 
 
+def test_export_at_another_input_size_names_its_files_and_runs_at_it(setup, cli_here, tmp_path):
+    """`export --input-size S`: the model rebuilt at S with its weights (for `run --track`), NAME_S_fp16.tflite."""
+    import shutil
+
+    from fcnpose_tf.runtime.estimator import KeypointModel
+
+    root, data, base = setup
+    model = tmp_path / "arm.keras"
+    shutil.copy(base, model)
+    status, stdout, err = cli_here("export", model, "--data", data, "--input-size", "96", "--quantize", "float16",
+                                   "--threads", "1")
+    assert status == 0, stdout + err
+    assert KeypointModel(tmp_path / "arm_96_fp16.tflite", num_threads=1).view.shape == (96, 96)
+    assert not (tmp_path / "arm_fp16.tflite").exists()
+    status, _, err = cli_here("export", model, "--data", data, "--input-size", "90")
+    assert status == 2 and "multiple of 32" in err
+
+
 def test_compress_options_refuse_combinations_no_run_can_do():
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.errors import UserError

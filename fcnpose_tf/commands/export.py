@@ -7,7 +7,8 @@ NAME_fp32.tflite, NAME_int8w.tflite, NAME_fp16native.tflite (float16 with reduce
 computed in float16 on a Raspberry Pi 5, docs/raspberry-pi.md). Frames come from --data (default:
 the frames the model was trained on, as its NAME_train.json names them, else the synthetic frames the
 bundled models were trained on): int8 is calibrated on the training split's frames and every file is
-verified on the validation split's first 16 frames, never calibrated on them.
+verified on the validation split's first 16 frames, never calibrated on them. --input-size S rebuilds the model at S
+with its weights (nothing retrained) and names the files NAME_S_fp16.tflite: a file for `run --track`.
 
 Any other model (a Keras 3 model, a classifier, a pruned MobileNetV2: anything whose output is not 2-D maps of a
 tf_keras model) is verified by output parity instead: every file keeps a float32 input and output, is run on 16
@@ -43,6 +44,7 @@ EXAMPLES = """\
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --out-dir models/  # float16 and int8 files
   fcnpose-tf export models/arm_p70.keras --data my_frames/ --quantize float16,int8  # exit 2 if either is refused
   fcnpose-tf export mnv2_p50.keras --input-range=-1,1 --quantize float16,int8  # any CNN: verified by output parity
+  fcnpose-tf export models/arm_p70.keras --input-size 192 --data my_frames/  # arm_p70_192_int8.tflite, for run --track
 """
 
 
@@ -56,7 +58,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"a trained .keras/.h5 FCN-Pose, or a bundled one by name ({names_help(KERAS_SUFFIXES)})")
     add_data_arguments(parser, positional=False, required=False)
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
-    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS):
+    for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS,
+                    settings.EXPORT_INPUT_SIZE):
         setting.add_to(parser)
     parser.add_argument("--input-range", type=_input_range, default=(0.0, 1.0), metavar="LOW,HIGH",
                         help="a model that is not a keypoint model: the range of its input values, where its random "
@@ -96,7 +99,10 @@ def run(args: argparse.Namespace) -> int:
     if not args.model.is_file():
         raise UserError(f"{args.model}: model file not found")
     out_dir = args.out_dir or args.model.parent
-    paths = {q: out_dir / f"{args.model.stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize}
+    if args.input_size is not None:
+        settings.EXPORT_INPUT_SIZE.validate(args.input_size)
+    stem = args.model.stem + (f"_{args.input_size}" if args.input_size else "")
+    paths = {q: out_dir / f"{stem}_{settings.QUANTIZE_FILE_TAGS[q]}.tflite" for q in options.quantize}
     for path in [*paths.values(), *([args.json] if args.json else [])]:  # before anything is converted
         check_writable(path, args.force)
     set_tensorflow_threads(options.threads)
@@ -105,7 +111,13 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_any(args.model)  # a tf_keras file as `load_model` reads it
     if not is_keypoint_model(model):
+        if args.input_size:
+            raise UserError(f"{args.model}: --input-size rebuilds an FCN-Pose keypoint model; this one is not")
         return _run_generic(args, model, options, paths, named)
+    if args.input_size:
+        from fcnpose_tf.training.model import at_input_height
+
+        model = at_input_height(model, args.input_size)
     if args.data is None:
         args.data = default_data(args.model)
     dataset = load_from_args(args)

@@ -324,6 +324,23 @@ def at_input_size(model: keras.Model, input_size: ViewLike) -> keras.Model:
     return with_view(resized, view)
 
 
+def at_input_height(model: keras.Model, height: int) -> keras.Model:
+    """`model` at input height `height`, its width following at the same aspect (a multiple of 32), its crop kept:
+    `compress --input-size` and `export --input-size` for a model whose input is H x W.
+
+    Args:
+        model: a tf_keras FCN-Pose.
+        height: the new input height, a multiple of 32.
+    Returns:
+        The model at that size (`at_input_size`).
+    Raises:
+        UserError: a height that is not a multiple of 32.
+    """
+    view = view_of(model)
+    width = max(32, int(round(height * view.width / view.height / 32)) * 32)
+    return at_input_size(model, (height, width))
+
+
 def chain_layers(model: keras.Model, purpose: str, error: type[UserError] = UserError,
                  check_layer=None) -> list[keras.layers.Layer]:
     """The model's layers after its input, checked to form one unbranched single-input chain.
