@@ -36,8 +36,10 @@ def test_the_box_holds_the_keypoints_with_their_margin_at_the_inputs_aspect_insi
     assert 0 <= x and x + w <= 640 and 0 <= y and y + h <= 480
     assert x <= 300 - 0.25 * 41 and x + w >= 340 + 0.25 * 41 and y <= 200 - 0.25 * 61 and y + h >= 260 + 0.25 * 61
     big = np.array([[20.0, 100.0], [600.0, 120.0], [300.0, 110.0], [310.0, 115.0]])
-    assert follow_box(big, (480, 640, 3), (224, 224), margin=0.0) is None  # a square wider than the frame is high
+    assert follow_box(big, (480, 640, 3), (224, 224), margin=0.0) is None  # a square that holds it is not in the frame
     assert follow_box(big, (480, 640, 3), (224, 288), margin=0.0) == (18, 0, 584, 452)  # 4:3 fits, moved inside
+    x, y, w, h = follow_box(big, (480, 640, 3), (224, 288), margin=0.25)  # its margin does not fit: the largest crop
+    assert (w, h) == (620, 480) and x <= 20 and x + w >= 601  # of the input's aspect that fits, the box still in it
     near_edge = np.array([[630.0, 470.0], [600.0, 440.0], [620.0, 450.0], [610.0, 460.0]])
     x, y, w, h = follow_box(near_edge, (480, 640, 3), (64, 64))
     assert x + w == 640 and y + h == 480  # moved inside the frame, the keypoints still held

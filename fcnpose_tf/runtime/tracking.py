@@ -48,8 +48,9 @@ def follow_box(keypoints: np.ndarray, frame_shape: tuple[int, ...], input_hw: tu
         margin: added on each side, as a share of the keypoint box's side.
         min_found: fewer keypoints found give None.
     Returns:
-        (x, y, width, height) inside the frame, the box's centre kept where the frame allows; None with fewer than
-        `min_found` keypoints or when the box at the input's aspect does not fit in the frame.
+        (x, y, width, height) inside the frame, the box's centre kept where the frame allows; a box with its margin
+        larger than the frame gives the largest crop of the input's aspect that fits (part of the margin lost).
+        None with fewer than `min_found` keypoints, or when even the keypoints' own box would not fit in that crop.
     """
     points = np.asarray(keypoints, np.float64)
     points = points[np.isfinite(points).all(axis=1)]
@@ -62,10 +63,13 @@ def follow_box(keypoints: np.ndarray, frame_shape: tuple[int, ...], input_hw: tu
     need_w, need_h = (high - low + 1) * (1 + 2 * margin)
     width = max(need_w, need_h * aspect, in_w)
     height = width / aspect
-    width = CROP_SIDE_STEP * math.ceil(width / CROP_SIDE_STEP)
-    height = CROP_SIDE_STEP * math.ceil(height / CROP_SIDE_STEP)
-    if width > frame_w or height > frame_h:
-        return None
+    fit = min(1.0, frame_w / width, frame_h / height)  # larger than the frame: the largest crop that fits
+    if fit < 1 and (width * fit < high[0] - low[0] + 1 or height * fit < high[1] - low[1] + 1):
+        return None  # even the keypoints' own box would be cut: the model's own view reads the frame
+    width = CROP_SIDE_STEP * math.ceil(width * fit / CROP_SIDE_STEP)
+    height = CROP_SIDE_STEP * math.ceil(height * fit / CROP_SIDE_STEP)
+    width, height = min(width, frame_w // CROP_SIDE_STEP * CROP_SIDE_STEP), \
+        min(height, frame_h // CROP_SIDE_STEP * CROP_SIDE_STEP)
     centre = (low + high) / 2  # pixel centres: a crop of columns x..x+w-1 is centred on x + (w - 1) / 2
     x = int(np.clip(round(centre[0] - (width - 1) / 2), 0, frame_w - width))
     y = int(np.clip(round(centre[1] - (height - 1) / 2), 0, frame_h - height))
