@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from fcnpose_tf import progress, settings
-from fcnpose_tf.compression.methods import pruned_start, pruning_method
+from fcnpose_tf.compression.methods import pruning_method
 from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
 from fcnpose_tf.compression.report import CompressReport, RefusedFormat, TFLiteStep, _check_metadata
 from fcnpose_tf.compression.steps import (Run, SharedScoring, export_or_refusal, measure_base, measure_quantized,
@@ -92,17 +92,20 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
     architecture = architecture_of(base)
-    if architecture == "fcn-pose":
-        check_chain(base)  # a model that is not a plain chain of supported layers fails here, first
     saved_view = view_of(base)
     if options.input_size:  # the height; an H x W input keeps its aspect
+        if architecture == "fcn-pose":
+            check_chain(base)  # rebuilt at another size only when the surgery understands it: refused first
         width = max(32, int(round(options.input_size * saved_view.width / saved_view.height / 32)) * 32)
         base = at_input_size(base, (options.input_size, width))
-    plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0)
-    start_name, start_path = pruned_start(options, base_path, plan, architecture, reporter)
-    options = replace(options, start=start_name)
-    run = Run(base_path, base, pruning_method(options, plan, start_path), options, paths, train_dataset,
-               eval_dataset, eval_indices, force, reporter, options.recipe(plan.floor))
+    # the widths at the rate, computed once and read by every step; FCN-Pose that is not a plain chain of supported
+    # layers is refused here, before any work
+    plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0,
+                       branches=architecture != "fcn-pose")
+    method = pruning_method(options, plan, base_path, architecture, reporter)
+    options = replace(options, start=method.start_name)
+    run = Run(base_path, base, method, options, paths, train_dataset, eval_dataset, eval_indices, force, reporter,
+              options.recipe(plan.floor))
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
     say(f"[1/{steps}] base model {base_path} ({run.input_size.describe(whole='')}{resized})")

@@ -53,6 +53,8 @@ class PruningMethod(Protocol):
     """How a method prunes the base model and retrains the result through the same `fit`."""
 
     name: str
+    start_name: str
+    """Where the pruned network's weights come from: "surgery" (the base model's, cut), or a pruned start's name."""
 
     def describe(self) -> str:
         """The progress line's words for what is pruned."""
@@ -151,6 +153,7 @@ class MagnitudePruning:
     paper's keep rule, no floor)."""
 
     name = "magnitude"
+    start_name = "surgery"
     ranks_filters = trained_start = False
 
     def __init__(self, plan: WidthPlan) -> None:
@@ -237,19 +240,23 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, arc
     return PRUNED_GENERALIST, path
 
 
-def pruning_method(options: CompressOptions, plan: WidthPlan, start: Path | None = None) -> PruningMethod:
-    """The pruning method `options.method` names.
+def pruning_method(options: CompressOptions, plan: WidthPlan, base_path: Path, architecture: str,
+                   reporter: Reporter = SILENT) -> PruningMethod:
+    """The pruning method `options.method` names, with its pruned start decided (`pruned_start`).
 
     Args:
         options: the run's options.
         plan: the widths (`prune.plan_widths` at the options' rate, with their floor for filter surgery and none for
             magnitude pruning).
-        start: the pruned model filter surgery takes its weights from (`pruned_start`; None: surgery on the base).
+        base_path: the model being compressed.
+        architecture: the base model's network (`model.ARCHITECTURES`).
+        reporter: where a fallback to surgery is said, and a bundled start's file named.
     Returns:
-        `FilterPruning` or `MagnitudePruning`.
+        `FilterPruning` or `MagnitudePruning`; its `start_name` is the start the run's options record.
+    Raises:
+        UserError: an explicit start that is neither a file nor a bundled Keras model.
     """
+    start_name, start = pruned_start(options, base_path, plan, architecture, reporter)
     if options.method == "magnitude":
         return MagnitudePruning(plan)
-    return FilterPruning(plan, options.strategy, options.importance, start, options.start)
-
-
+    return FilterPruning(plan, options.strategy, options.importance, start, start_name)

@@ -110,14 +110,16 @@ def chain_param_count(model: keras.Model, kept: Sequence[int]) -> int:
     return _counter(model)(kept)[0]
 
 
-def _counter(model: keras.Model) -> Callable[[Sequence[int]], tuple[int, int]]:
-    """(parameters, MACs) of `model` after its Conv2D layers but the last keep the given counts; its chain read once.
+def _counter(model: keras.Model, layers: Sequence[keras.layers.Layer] | None = None
+             ) -> Callable[[Sequence[int]], tuple[int, int]]:
+    """(parameters, MACs) of `model` after its Conv2D layers but the last keep the given counts; its chain read once
+    (`layers`: the chain `_chain` read already).
 
     MACs are the convolutions' (`metrics.conv_macs`, as `model_facts` counts them): a layer's output size does not
     change with its width."""
     from fcnpose_tf.metrics import conv_macs
 
-    layers = _chain(model)
+    layers = _chain(model) if layers is None else layers
     pruned = sum(type(layer) is keras.layers.Conv2D for layer in layers) - 1
     steps = []  # (kernel area, bias?, filters, output pixels) of a Conv2D; (None, .., .., weights per channel) of BN
     for layer in layers:
@@ -178,7 +180,7 @@ class WidthPlan:
         return self.widths[:-1]
 
 
-def plan_widths(model: keras.Model, rate: Rate, min_filters: int = 0) -> WidthPlan:
+def plan_widths(model: keras.Model, rate: Rate, min_filters: int = 0, *, branches: bool = True) -> WidthPlan:
     """How many filters each Conv2D keeps at `rate`, with no layer under `min_filters` (`floored_widths`; 0: every
     layer keeps ``n - floor(n * rate)``), and what the pruned network costs; the model is not changed.
 
@@ -191,21 +193,24 @@ def plan_widths(model: keras.Model, rate: Rate, min_filters: int = 0) -> WidthPl
         model: a tf_keras model.
         rate: the pruning rate, in [0, 1).
         min_filters: the floor (0: the paper's rule).
+        branches: plan a model that branches per group of coupled channels; False refuses any model that is not
+            one chain of the layers filter surgery understands (`check_chain`), as FCN-Pose without its skip is.
     Returns:
         The plan: rate, floor asked and used, widths, parameters and MACs.
     Raises:
-        UserError: a bad rate or floor, or a model neither a plain chain of supported layers nor a graph
-            `depgraph.dependency_graph` understands.
+        UserError: a bad rate or floor, or a model neither a plain chain of supported layers nor (with `branches`)
+            a graph `depgraph.dependency_graph` understands.
     Example:
         >>> from fcnpose_tf.training.model import build_fcn_pose
         >>> plan = plan_widths(build_fcn_pose(), 0.7, 15)
         >>> plan.widths, plan.floor, plan.params
         ((15, 15, 15, 15, 8, 8, 15, 15, 15, 9), 15, 14611)
     """
-    if not _is_chain(model):
+    if branches and not _is_chain(model):
         return _plan_graph_widths(model, rate, min_filters)
-    counter = _counter(model)
-    convs = [layer for layer in _chain(model) if type(layer) is keras.layers.Conv2D]
+    layers = _chain(model)  # the chain checked once, here
+    counter = _counter(model, layers)
+    convs = [layer for layer in layers if type(layer) is keras.layers.Conv2D]
     kept, floor = floored_widths([conv.filters for conv in convs[:-1]], rate, min_filters,
                                  lambda counts: counter(counts)[0])
     params, macs = counter(kept)
@@ -333,7 +338,8 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
     """
     from fcnpose_tf.compression.graph_prune import plan_graph, plan_kept, rebuild
 
-    if not _is_chain(model):  # a branching model: the plan's counts per group of coupled channels
+    branching = widths.group_counts is not None if widths is not None else not _is_chain(model)  # the plan knows
+    if branching:  # a branching model: the plan's counts per group of coupled channels
         if strategy != "independent":
             raise UserError(f"the {strategy} strategy ranks a chain of layers; model {model.name} branches "
                             "(use --strategy independent)")
