@@ -6,6 +6,7 @@ qat_step when post-training int8 is refused: `export_or_refusal`) and measure_qu
 
 from __future__ import annotations
 
+import functools
 import gzip
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -64,6 +65,16 @@ class Run:
     recipe: str
     fit_data: Any = None
     """The retraining's training data (`data.dataset.fold_data`), kept for quantization-aware training."""
+
+    @functools.cached_property
+    def data_sha256(self) -> str:
+        """The training data file's SHA-256, hashed once per run (the fold's choice and the retraining record)."""
+        return file_sha256(self.train_dataset.via_path)
+
+    @functools.cached_property
+    def fold(self) -> int | None:
+        """The fold the run retrains on and scores filters on (`retrain_fold`), decided once."""
+        return retrain_fold(self)
 
     @property
     def input_size(self) -> FrameView:
@@ -149,7 +160,7 @@ def retrain_fold(run: Run) -> int | None:
     record = training_record(run.base_path)
     if record is None:
         return None
-    return record.fold if record.data_sha256 == file_sha256(run.train_dataset.via_path) else None
+    return record.fold if record.data_sha256 == run.data_sha256 else None
 
 
 def importance_frames(run: Run, fold: int | None) -> tuple[np.ndarray, np.ndarray]:
@@ -204,7 +215,7 @@ def shared_importance(run: Run, shared: SharedScoring) -> Importance:
     if name not in DATA_AWARE:
         return importance_step(run, None)
     if shared.importance is None or shared.importance.name != name:
-        shared.importance = _ScoredOnce(importance_step(run, retrain_fold(run)))
+        shared.importance = _ScoredOnce(importance_step(run, run.fold))
     else:
         run.log(f"  filters scored already (the first rate's {name} scores of the base model)")
     return shared.importance
@@ -246,8 +257,7 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
         with atomic_path(keras_path, run.force) as tmp:
             save_for_inference(pruned, tmp)
         return pruned, RetrainSections()
-    data_sha256 = file_sha256(run.train_dataset.via_path)
-    fold = retrain_fold(run)
+    data_sha256, fold = run.data_sha256, run.fold
     train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
                                      options.augment, progress=run.reporter)
     run.fit_data = train_data
