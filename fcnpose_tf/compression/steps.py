@@ -29,7 +29,9 @@ from fcnpose_tf.records import file_sha256, training_record
 if TYPE_CHECKING:
     import tf_keras as keras
 
-    from fcnpose_tf.compression.importance import Importance
+    from fcnpose_tf.compression.export import TFLiteExport
+    from fcnpose_tf.compression.importance import CriterionFacts, Importance
+    from fcnpose_tf.compression.qat import QATResult
     from fcnpose_tf.training.train import FitResult
 
 # TensorFlow is imported inside the functions: the CLI imports this module (through compress) without needing
@@ -128,7 +130,8 @@ class _ScoredOnce:
             self._scores = self.criterion(model)
         return self._scores
 
-    def describe(self) -> dict[str, Any]:
+    def describe(self) -> CriterionFacts:
+        """What the report records about the criterion (the wrapped one's facts)."""
         return self.criterion.describe()
 
 
@@ -340,7 +343,7 @@ def _export_frames(run: Run, quantize: str, fold: int | None) -> tuple[np.ndarra
                          run.eval_indices, run.options.calibration_frames, run.options.seed)
 
 
-def export_step(run: Run, retrained: keras.Model, quantize: str, fold: int | None) -> Any:
+def export_step(run: Run, retrained: keras.Model, quantize: str, fold: int | None) -> TFLiteExport:
     """Write one TFLite file, verified against Keras on real frames (`frames.export_frames`: the
     first evaluation frames; int8 calibrated on the retraining split's training frames).
 
@@ -361,7 +364,7 @@ def export_step(run: Run, retrained: keras.Model, quantize: str, fold: int | Non
                         sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
 
 
-def qat_step(run: Run, retrained: keras.Model, fold: int | None) -> Any:
+def qat_step(run: Run, retrained: keras.Model, fold: int | None) -> QATResult:
     """Quantization-aware training from the retrained model on the retraining's training frames, until its int8
     file passes the same gate against the retrained model (`fcnpose_tf.compression.qat`); the file is written when one
     passes.
@@ -397,7 +400,7 @@ def qat_step(run: Run, retrained: keras.Model, fold: int | None) -> Any:
     return result
 
 
-def measure_quantized(run: Run, export: Any, retrained_facts: ModelStep,
+def measure_quantized(run: Run, export: TFLiteExport, retrained_facts: ModelStep,
                       qat: dict[str, Any] | None = None) -> TFLiteStep:
     """One TFLite file measured: its format, how it was quantized, size (plain and gzip), export facts, operators,
     metrics and timing.
@@ -427,7 +430,7 @@ def measure_quantized(run: Run, export: Any, retrained_facts: ModelStep,
 
 
 def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, fold: int | None,
-                       refused: list[RefusedFormat]) -> tuple[Any, dict[str, Any] | None]:
+                       refused: list[RefusedFormat]) -> tuple[TFLiteExport | None, dict[str, Any] | None]:
     """(the written export, the QAT facts if QAT made it), or (None, None) with the refusal appended to `refused`.
 
     A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
