@@ -378,8 +378,16 @@ class Decoding:
 
     @classmethod
     def from_args(cls, args: Any) -> Decoding:
-        """The decoding a command's --threshold, --fallback and --centroid ask for (`settings.add_decoding_arguments`;
-        a command without --fallback has none)."""
+        """The decoding a command's options ask for.
+
+        Args:
+            args: the parsed options: --threshold and --centroid (`settings.add_decoding_arguments`), and --fallback
+                when the command has it (else none).
+        Returns:
+            The decoding.
+        Raises:
+            UserError: a value out of range.
+        """
         return cls(args.threshold, getattr(args, "fallback", None), args.centroid)
 
     def describe(self) -> str:
@@ -393,11 +401,26 @@ class Decoding:
         return {"threshold": self.threshold, "fallback": self.fallback, "centroid": self.centroid}
 
     def keypoints(self, maps: np.ndarray, **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
-        """`maps_to_keypoints` with this decoding (`kwargs`: logits, quantization, min_size)."""
+        """Keypoints in map pixels: `maps_to_keypoints` with this decoding.
+
+        Args:
+            maps: H x W x C (or N x H x W x C) output maps, keypoints first and the skeleton map last.
+            **kwargs: `maps_to_keypoints`' logits, quantization, min_size.
+        Returns:
+            (keypoints, confidence) as `maps_to_keypoints` returns them: (x, y) in map pixels, NaN where missing.
+        """
         return maps_to_keypoints(maps, self.threshold, fallback=self.fallback, centroid=self.centroid, **kwargs)
 
     def in_frame(self, maps: np.ndarray, frame_shape: tuple[int, ...], **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
-        """`decode` (keypoints in frame pixels) with this decoding (`kwargs`: logits, quantization, min_size, view)."""
+        """Keypoints in frame pixels: `decode` with this decoding.
+
+        Args:
+            maps: H x W x C (or N x H x W x C) output maps.
+            frame_shape: the shape of the frame the model's input was made from.
+            **kwargs: `decode`'s logits, quantization, min_size, view.
+        Returns:
+            (keypoints, confidence) as `decode` returns them: (x, y) in frame pixels, NaN where missing.
+        """
         return decode(maps, frame_shape, self.threshold, fallback=self.fallback, centroid=self.centroid, **kwargs)
 
 

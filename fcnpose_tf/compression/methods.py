@@ -57,7 +57,11 @@ class PruningMethod(Protocol):
     """Where the pruned network's weights come from: "surgery" (the base model's, cut), or a pruned start's name."""
 
     def describe(self) -> str:
-        """The progress line's words for what is pruned."""
+        """The progress line's words for what is pruned.
+
+        Returns:
+            e.g. "filter surgery at rate 0.7 (no layer under 15 filters), filters ranked by taylor (independent)".
+        """
 
     @property
     def ranks_filters(self) -> bool:
@@ -69,20 +73,48 @@ class PruningMethod(Protocol):
         retraining must beat: if no epoch does, the start is kept unchanged (`train.fit`'s start_is_candidate)."""
 
     def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
-        """The pruned model before retraining, and the report sections the method adds (pruning,
-        magnitude_sparsity)."""
+        """Prune the base model (not changed) by the run's plan.
+
+        Args:
+            base: the model to prune, at the run's input size.
+            importance: the criterion filters are ranked by (`ranks_filters`), else None.
+        Returns:
+            The pruned model before retraining, and the report sections the method adds (pruning,
+            magnitude_sparsity).
+        Raises:
+            UserError: a pruned start that is not this plan's network.
+        """
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
-        """Retrain `pruned` with `fit_fn`, which saves the retrained model for inference."""
+        """Retrain the pruned model with `fit_fn`, which saves the retrained model for inference.
+
+        Args:
+            base: the unpruned model (magnitude pruning's masks are computed from its weights).
+            pruned: what `prune` returned.
+            fit_fn: the run's retraining (`FitFn`).
+        """
 
     def training_record(self) -> MethodRecord:
-        """What the retraining's NAME_train.json says about the method."""
+        """What the retraining's NAME_train.json says about the method.
+
+        Returns:
+            The `MethodRecord`.
+        """
 
 
 class FilterPruning:
     """The paper's method: remove the least important filters (exact layer surgery); the paper ranks them by
     L1 norm, `fcnpose_tf.compression.importance` holds the other criteria. The method is named "l1" in reports and
-    options for that reason; the criterion is recorded beside it. The widths are the run's `WidthPlan`."""
+    options for that reason; the criterion is recorded beside it. The widths are the run's `WidthPlan`.
+
+    Args:
+        plan: the run's widths (`prune.plan_widths`, with the options' floor).
+        strategy: how filters are ranked (`prune.STRATEGIES`).
+        importance: the criterion's name, recorded until `prune` reads the criterion's own facts.
+        start: a pruned model whose weights the network takes instead of surgery on the base (`pruned_start`);
+            None: surgery.
+        start_name: the start's name for lines and records (default: its path).
+    """
 
     name = "l1"
 
@@ -95,19 +127,34 @@ class FilterPruning:
 
     @property
     def ranks_filters(self) -> bool:
+        """True for surgery on the base; a pruned start ranks nothing."""
         return self.start is None
 
     @property
     def trained_start(self) -> bool:
+        """True with a pruned start."""
         return self.start is not None
 
     def describe(self) -> str:
+        """The progress line's words: the rate, the floor, and the criterion or the pruned start."""
         floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
         if self.start is not None:
             return f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
         return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
 
     def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
+        """Surgery on `base` at the plan's widths, the filters `importance` ranks highest kept; or the pruned start's
+        weights in the network surgery would build.
+
+        Args:
+            base: the model to prune (not changed).
+            importance: the criterion (None with a pruned start).
+        Returns:
+            The pruned model, and the report's "pruning" section (criterion facts, strategy, min_filters,
+            ranking_seconds; or the start's name and file, and min_filters).
+        Raises:
+            UserError: a pruned start of another network or other widths than the plan's.
+        """
         from fcnpose_tf.compression.prune import prune_model
 
         if self.start is not None:
@@ -141,16 +188,22 @@ class FilterPruning:
                                                 "min_filters": self.min_filters})
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        """Retrain the pruned network itself (`fit_fn(pruned)`); `base` is not used."""
         fit_fn(pruned)
 
     def training_record(self) -> MethodRecord:
+        """The rate, the strategy (or the pruned start), min_filters (the plan's floor) and the criterion's facts."""
         start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
         return {"rate": self.rate, **start, "min_filters": self.min_filters, **(self.criterion_facts or {})}
 
 
 class MagnitudePruning:
     """tfmot's unstructured pruning, zeroing as many weights as L1 surgery at the plan's rate removes (the plan: the
-    paper's keep rule, no floor)."""
+    paper's keep rule, no floor).
+
+    Args:
+        plan: the run's widths at the rate, with no floor; its parameters set the sparsity.
+    """
 
     name = "magnitude"
     start_name = "surgery"
@@ -161,15 +214,26 @@ class MagnitudePruning:
         self.sparsity = 0.0
 
     def describe(self) -> str:
+        """The progress line's words: "magnitude at rate R"."""
         return f"magnitude at rate {self.rate:g}"
 
     def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
+        """Zero the smallest weights of `base`'s kernels (a copy), as many as filter surgery's plan removes.
+
+        Args:
+            base: the model to prune (not changed).
+            importance: not used (magnitude pruning ranks weights, not filters).
+        Returns:
+            The masked model, and the report's "magnitude_sparsity" (1 - plan parameters / base parameters).
+        """
         from fcnpose_tf.compression.magnitude import magnitude_prune
 
         self.sparsity = 1.0 - self.plan.params / base.count_params()  # the same reduction as filter surgery
         return magnitude_prune(base, self.sparsity), PruningSections(magnitude_sparsity=round(self.sparsity, 6))
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
+        """Retrain `base` under the masks `prune` computed (tfmot keeps them while `fit_fn` trains; the file saved is
+        stripped of the wrappers); `pruned` is not used: the masks are made again from `base`'s weights."""
         import tensorflow_model_optimization as tfmot
 
         from fcnpose_tf.compression.magnitude import magnitude_prune
@@ -179,6 +243,7 @@ class MagnitudePruning:
             wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
 
     def training_record(self) -> MethodRecord:
+        """The rate, the method ("magnitude") and the sparsity."""
         return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
 
 

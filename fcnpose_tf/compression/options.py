@@ -53,7 +53,13 @@ class CompressOptions:
     (`checked` resolves and validates them once, for `compress_model`). Defaults, checks and meanings: `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
-        """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do; UserError if bad."""
+        """Check every setting (`fcnpose_tf.settings`) and the combinations no run can do.
+
+        Raises:
+            UserError: a setting out of its range or choices, a cosine schedule with a plateau patience, or
+                a combination no run can do (magnitude pruning with a filter criterion, --freeze, --min-filters or a
+                pruned start; the greedy strategy with a data-aware criterion).
+        """
         from fcnpose_tf.compression.importance import DATA_AWARE
 
         settings.validate_fields(self)
@@ -79,7 +85,13 @@ class CompressOptions:
         for filter surgery with the independent strategy, else the paper's l1: greedy ranking reads kernels only),
         min_filters (`settings.DEFAULT_COMPRESS_MIN_FILTERS` for filter surgery; magnitude pruning keeps every
         filter), lr_patience (`settings.resolved_lr_patience`), positive_weight and augment (those `base_path` was
-        trained with, from its NAME_train.json; else 1, the paper's plain BCE, and the paper's copies)."""
+        trained with, from its NAME_train.json; else 1, the paper's plain BCE, and the paper's copies).
+
+        Args:
+            base_path: the model to compress, whose NAME_train.json is read (None: none is read).
+        Returns:
+            A copy with those settings chosen (`is_resolved`); nothing is validated.
+        """
         importance, min_filters, positive_weight, augment = (self.importance, self.min_filters, self.positive_weight,
                                                              self.augment)
         if importance is None:
@@ -105,7 +117,15 @@ class CompressOptions:
 
     def checked(self, base_path: str | os.PathLike | None = None) -> CompressOptions:
         """These options resolved for `base_path` (`resolved`) and validated (`validate`): what `compress_model`
-        takes, checked once by its caller."""
+        takes, checked once by its caller.
+
+        Args:
+            base_path: the model to compress (its NAME_train.json is read by `resolved`).
+        Returns:
+            The resolved copy.
+        Raises:
+            UserError: as `validate`.
+        """
         options = self.resolved(base_path)
         options.validate()
         return options
@@ -113,7 +133,12 @@ class CompressOptions:
     def recipe(self, min_filters_used: int | None = None) -> str:
         """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
 
-        `min_filters_used` is the floor the surgery could keep (`prune.WidthPlan.floor`) when lower than asked."""
+        Args:
+            min_filters_used: the floor the surgery could keep (`prune.WidthPlan.floor`), said when lower than
+                `min_filters`; None: `min_filters`.
+        Returns:
+            The sentence (the report's "recipe"); options not resolved are resolved without a base model first.
+        """
         from fcnpose_tf.training.train import loss_name
 
         if not self.is_resolved:
@@ -158,7 +183,11 @@ class CompressOptions:
         return left if self.max_minutes is None else min(self.max_minutes, left)
 
     def fit_config(self) -> FitConfig:
-        """The retraining's optimisation settings (at least one epoch; 0 retraining epochs skip `fit`)."""
+        """The retraining's optimisation settings, carried from these options.
+
+        Returns:
+            The `train.FitConfig` (at least one epoch; 0 retraining epochs skip `fit`).
+        """
         from fcnpose_tf.training.train import FitConfig
 
         return settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1))

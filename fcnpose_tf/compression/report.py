@@ -34,13 +34,25 @@ class RefusedFormat:
     """Quantization-aware training's facts, when it was tried (int8 with --qat-epochs above 0)."""
 
     def to_json(self) -> dict[str, Any]:
-        """The entry as the report's "refused" list holds it ("qat" only when tried)."""
+        """The entry as the report's "refused" list holds it.
+
+        Returns:
+            {"quantize", "status": "refused", "reason", "post_training"[, "qat" when tried]}.
+        """
         return {"quantize": self.quantize, "status": "refused", "reason": self.reason,
                 "post_training": self.post_training, **({"qat": self.qat} if self.qat is not None else {})}
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> RefusedFormat:
-        """The entry of a parsed report's "refused" list."""
+        """The entry of a parsed report's "refused" list.
+
+        Args:
+            entry: the parsed JSON object.
+        Returns:
+            The refused format.
+        Raises:
+            KeyError: no "quantize" or "reason".
+        """
         return cls(quantize=entry["quantize"], reason=entry["reason"],
                    post_training=entry.get("post_training") or {}, qat=entry.get("qat"))
 
@@ -120,7 +132,15 @@ class ModelStep:
 
     @classmethod
     def of(cls, facts: ModelFacts, measurement: Measurement, sizes: dict[str, int] | None = None) -> ModelStep:
-        """A model's step from its facts, its measurement and its `file_sizes`."""
+        """A model's step, measured.
+
+        Args:
+            facts: what the model costs (`model_facts`).
+            measurement: its metrics and timing (timing None: not timed).
+            sizes: its `file_sizes` (None: no file, as before retraining).
+        Returns:
+            The step.
+        """
         return cls(**asdict(facts), **(sizes or {}), metrics=measurement.metrics, timing=measurement.timing)
 
     @property
@@ -134,7 +154,16 @@ class ModelStep:
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> ModelStep:
-        """The step of a parsed report entry (base, pruned_before_retraining, retrained)."""
+        """The step of a parsed report entry (base, pruned_before_retraining, retrained).
+
+        Args:
+            entry: the parsed JSON object; a key without a field goes to `extra`.
+        Returns:
+            The step, its metrics and timing typed.
+        Raises:
+            TypeError: not a JSON object.
+            KeyError: no "metrics".
+        """
         return _step_from_json(cls, entry)
 
 
@@ -178,7 +207,16 @@ class TFLiteStep:
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> TFLiteStep:
-        """The step of a parsed "quantized" or "other_quantized" entry."""
+        """The step of a parsed "quantized" or "other_quantized" entry.
+
+        Args:
+            entry: the parsed JSON object; a key without a field goes to `extra`.
+        Returns:
+            The step, its metrics and timing typed.
+        Raises:
+            TypeError: not a JSON object.
+            KeyError: no "metrics".
+        """
         return _step_from_json(cls, entry)
 
 
@@ -216,7 +254,15 @@ class Retraining:
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> Retraining:
-        """The section of a parsed report."""
+        """The "retraining" section of a parsed report.
+
+        Args:
+            entry: the parsed JSON object; a key without a field goes to `extra`.
+        Returns:
+            The section.
+        Raises:
+            TypeError: not a JSON object.
+        """
         return cls(**_known(cls, entry), extra=_unknown(cls, entry))
 
 
@@ -322,6 +368,10 @@ class CompressReport:
         reports held before "recipe", "other_quantized" and "refused" existed read as "", [] and [] (one file,
         and a refused format ended those runs); a key without a field goes to `metadata`.
 
+        Args:
+            report: the parsed JSON object.
+        Returns:
+            The report; `to_json()` gives back every key it was read from.
         Raises:
             TypeError: not a JSON object.
             ValueError: a key every report holds is missing.

@@ -86,7 +86,15 @@ class Run:
         return view_of(self.base)
 
     def measure(self, predictor: Any, label: str, timing: bool = True) -> Measurement:
-        """Metrics (and timing) of a predictor on the run's frames."""
+        """Metrics (and timing) of a predictor on the run's evaluation frames.
+
+        Args:
+            predictor: a `KeypointPredictor`.
+            label: the progress line's name for it.
+            timing: time it (at least 50 frames after 5 warm-up ones); False: the timing is left out.
+        Returns:
+            The measurement (timing None when not timed).
+        """
         return _measure(predictor, self.eval_dataset, self.eval_indices, label, self.reporter, timing=timing)
 
     @property
@@ -99,7 +107,14 @@ class Run:
         self.reporter.say(line)
 
     def keras_predictor(self, model: keras.Model, path: Path | None = None) -> KerasKeypointModel:
-        """`model` as a predictor with the run's threads (`path`: its file, for the report)."""
+        """A Keras model as a predictor with the run's threads and decoding.
+
+        Args:
+            model: the model.
+            path: its file, for the report (None: not saved).
+        Returns:
+            The `KerasKeypointModel`.
+        """
         return KerasKeypointModel(model, path, num_threads=self.options.threads, decoding=self.decoding)
 
 

@@ -84,13 +84,21 @@ class ParityReport:
     min_keypoint_share: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, stable keys (pixel distances in map pixels)."""
+        """JSON-ready, stable keys (pixel distances in map pixels).
+
+        Returns:
+            The fields in order (the report's "parity").
+        """
         return asdict(self)
 
     @classmethod
     def from_dict(cls, entry: dict[str, Any]) -> ParityReport:
         """The report of a parsed `to_dict` (a key written before its field existed reads as the field's default).
 
+        Args:
+            entry: the parsed JSON object; a key without a field is dropped.
+        Returns:
+            The parity report.
         Raises:
             TypeError: a key every parity report holds is missing.
         """

@@ -140,7 +140,11 @@ class BenchReport:
     host: HostInfo | None = None
 
     def header(self) -> str:
-        """Lines describing the model, the run and the host."""
+        """The lines above the table.
+
+        Returns:
+            Model (I/O, weight types), cost (parameters, MACs, size) and run (backend, frames, host), joined.
+        """
         macs = f"{self.macs / 1e6:,.1f} M" if self.macs is not None else "unknown"
         params = f"{self.params:,}" if self.params is not None else "unknown"
         weights = ", ".join(self.weight_dtypes) or "unknown"
@@ -154,7 +158,13 @@ class BenchReport:
         ])
 
     def table(self, markdown: bool = False) -> str:
-        """The per-thread-count table (Ultralytics-style: status, latencies, FPS)."""
+        """The per-thread-count table (Ultralytics-style: status, latencies, FPS).
+
+        Args:
+            markdown: a Markdown table instead of aligned text.
+        Returns:
+            The table's text; a failed thread count's row holds its status only.
+        """
         rows = []
         for r in self.results:
             if not r.ok:
@@ -171,7 +181,13 @@ class BenchReport:
         return format_table(headers, rows, markdown=markdown)
 
     def report(self, markdown: bool = False) -> str:
-        """Header, table and the definitions needed to read them."""
+        """Header, table and the definitions needed to read them.
+
+        Args:
+            markdown: the table in Markdown.
+        Returns:
+            The lines, joined.
+        """
         cores = self.host.cpu_count if self.host else None
         notes = [f"E2E = preprocess + invoke + postprocess of one frame; {FPS_DEFINITION}."]
         over = oversubscription_note([r.threads for r in self.results], cores) if cores else None

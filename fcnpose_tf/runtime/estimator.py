@@ -101,7 +101,13 @@ class Prediction:
         """Boolean mask of the found keypoints within `share` of the crop's size from one of its borders that lies
         inside the frame: the arm may reach past the crop there (a pose outside the workspace the model was trained
         on), and a keypoint beyond it is placed at the border or not found. A border on the frame's own edge does
-        not count (the whole frame ends there too). All False without a crop."""
+        not count (the whole frame ends there too).
+
+        Args:
+            share: the margin, as a share of the crop's width (for x) and height (for y).
+        Returns:
+            K booleans; all False without a crop.
+        """
         if self.crop is None:
             return np.zeros(len(self.keypoints), bool)
         x, y, w, h = self.crop
@@ -115,7 +121,15 @@ class Prediction:
         return self.found & (low | high).any(axis=1)
 
     def records(self, schema: KeypointSchema, decimals: int = 2) -> list[KeypointRecord]:
-        """One {name, x, y, confidence} per keypoint; x and y are None for a keypoint not found."""
+        """The keypoints as records for JSON and CSV outputs.
+
+        Args:
+            schema: the keypoint names, in the order of the rows of `keypoints`.
+            decimals: x and y are rounded to this many decimals (confidences to 4 unless whole).
+        Returns:
+            One {name, x, y, confidence} per keypoint; x and y are None for a keypoint not found, confidence None
+            when it is not finite.
+        """
         out: list[KeypointRecord] = []
         for i, name in enumerate(schema.keypoints):
             x, y = (float(v) for v in self.keypoints[i])
@@ -162,7 +176,11 @@ class KeypointPredictor(abc.ABC):
 
     @abc.abstractmethod
     def set_input(self, frame_bgr: np.ndarray) -> None:
-        """Preprocess a BGR uint8 frame into the model's input (the training preprocessing)."""
+        """Preprocess a BGR uint8 frame into the model's input (the training preprocessing).
+
+        Args:
+            frame_bgr: H x W x 3 uint8, any size (the model's view crops and resizes it).
+        """
 
     @abc.abstractmethod
     def invoke(self) -> None:
@@ -170,14 +188,20 @@ class KeypointPredictor(abc.ABC):
 
     @abc.abstractmethod
     def read_maps(self, copy: bool = True) -> np.ndarray:
-        """The output maps (M x M x C float32 probabilities) of the last invoke.
+        """The output maps of the last invoke.
 
-        With copy=False the result may be a view of a buffer the next invoke overwrites; drop it
-        before then.
+        Args:
+            copy: False may return a view of a buffer the next invoke overwrites; drop it before then.
+        Returns:
+            M x M x C float32 probabilities.
         """
 
     def describe(self) -> str:
-        """One line: model, shapes, backend and threads."""
+        """One line for progress and reports: model, shapes, backend and threads.
+
+        Returns:
+            "NAME (HxWx3 -> C maps[; crop ...]), BACKEND, N threads"; "model" when the predictor has no path.
+        """
         threads = "default threads" if self.num_threads is None else \
             f"{self.num_threads} thread{'s' if self.num_threads != 1 else ''}"
         name = getattr(self, "path", None)
@@ -195,14 +219,26 @@ class KeypointPredictor(abc.ABC):
         return f"; crop {w}x{h} at ({x}, {y}) of {self.view.frame_size[0]}x{self.view.frame_size[1]}"
 
     def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """Post-process the last output into (K x 2 keypoints in frame pixels, K confidences)."""
+        """Post-process the last output with the predictor's `decoding`.
+
+        Args:
+            frame_shape: the shape of the frame the input was made from (keypoints are mapped back to it).
+        Returns:
+            (K x 2 keypoints in frame pixels, NaN when not found; K confidences, float64).
+        """
         maps = self.read_maps(copy=False)
         keypoints, confidence = self.decoding.in_frame(maps, frame_shape, view=self.view)
         del maps
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict(self, frame_bgr: np.ndarray) -> Prediction:
-        """Keypoints of one BGR uint8 frame (any size), with the time of each stage."""
+        """Keypoints of one frame, with the time of each stage (preprocess, invoke, postprocess).
+
+        Args:
+            frame_bgr: H x W x 3 uint8, any size.
+        Returns:
+            The `Prediction`: keypoints in frame pixels, confidences, stage times, the frame's shape and the crop read.
+        """
         t0 = time.perf_counter()
         self.set_input(frame_bgr)
         t1 = time.perf_counter()
@@ -214,12 +250,23 @@ class KeypointPredictor(abc.ABC):
         return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape), self.crop_box(frame_bgr.shape))
 
     def crop_box(self, frame_shape: tuple[int, ...]) -> Box | None:
-        """The box of a frame of this shape the model reads, when it reads a crop; None for the whole frame."""
+        """The part of a frame the model reads.
+
+        Args:
+            frame_shape: the frame's shape (height, width, ...).
+        Returns:
+            (x, y, width, height) of the crop in that frame; None when the model reads the whole frame.
+        """
         return self.view.box(frame_shape) if self.view.crop is not None else None
 
     def warmup(self, frame_shape: tuple[int, int, int] = (480, 640, 3), runs: int = 1) -> None:
-        """Run `runs` untimed frames of this shape, so the first real frame pays no start-up cost
-        (XNNPACK weight packing, OpenCV's first resize)."""
+        """Predict untimed blank frames, so the first real frame pays no start-up cost (XNNPACK weight packing,
+        OpenCV's first resize).
+
+        Args:
+            frame_shape: the shape of the frames that will follow.
+            runs: how many blank frames.
+        """
         blank = np.zeros(frame_shape, np.uint8)
         for _ in range(runs):
             self.predict(blank)
@@ -270,10 +317,15 @@ class KeypointModel(KeypointPredictor):
     # -- properties ----------------------------------------------------------------------------------
     @property
     def num_maps(self) -> int:
+        """Output maps of the file (one per keypoint, then the skeleton map)."""
         return self.io.num_maps
 
     def stats(self) -> ModelStats:
-        """Parameters, MACs and file size of the model (computed once)."""
+        """Parameters, MACs and file size of the model, computed on the first call.
+
+        Returns:
+            The `interpreter.ModelStats`.
+        """
         if self._stats is None:
             self._stats = model_stats(self.interpreter, self.path)
         return self._stats
@@ -284,20 +336,33 @@ class KeypointModel(KeypointPredictor):
         return self.backend.label
 
     def describe(self) -> str:
-        """One line: file, shapes, crop, backend and threads."""
+        """One line for progress and reports: file, shapes, crop, backend and threads.
+
+        Returns:
+            The line.
+        """
         return (f"{self.path.name} ({self.io.describe()}{self._crop_words()}), {self.backend_label}, "
                 f"{self.num_threads} thread{'s' if self.num_threads != 1 else ''}")
 
     # -- the three stages ----------------------------------------------------------------------------
     def set_input(self, frame_bgr: np.ndarray) -> None:
-        """Preprocess a BGR uint8 frame into the interpreter's input tensor (the training preprocessing)."""
+        """Preprocess a frame into the interpreter's input tensor (the training preprocessing).
+
+        Args:
+            frame_bgr: H x W x 3 uint8, any size.
+        """
         view = self._input()
         self.preprocess_into(frame_bgr, view[0])
         del view  # the interpreter refuses to invoke while a view of its buffers is alive
 
     def preprocess_into(self, frame_bgr: np.ndarray, buffer: np.ndarray) -> None:
-        """The model's input for a frame, written into `buffer` (S x S x 3 of the input's dtype: the
-        interpreter's own tensor, or a `new_input` staging buffer of the pipelined run)."""
+        """The model's input for a frame, written into `buffer`.
+
+        Args:
+            frame_bgr: H x W x 3 uint8, any size.
+            buffer: H x W x 3 of the input's dtype: the interpreter's own tensor, or a `new_input` staging buffer of
+                the pipelined run.
+        """
         size = self.view
         spec = self.io.input
         if spec.holds_pixel_bytes:
@@ -313,10 +378,13 @@ class KeypointModel(KeypointPredictor):
         self.interpreter.invoke()
 
     def read_maps(self, copy: bool = True) -> np.ndarray:
-        """The output maps (M x M x C float32 probabilities) of the last invoke.
+        """The output maps of the last invoke, dequantized when the file's output is integer.
 
-        With copy=False the result is a view of the interpreter's buffer (or of a
-        reused scratch buffer) that must be dropped before the next invoke.
+        Args:
+            copy: False returns a view of the interpreter's buffer (or of a reused scratch buffer) that must be
+                dropped before the next invoke.
+        Returns:
+            M x M x C float32 probabilities.
         """
         view = self._output()[0]
         spec = self.io.output
@@ -332,7 +400,13 @@ class KeypointModel(KeypointPredictor):
     def decode(self, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
         """Post-process the last output; quantized maps are thresholded as the integers they are
         (`postprocess.quantized_cut`: the same keypoints as thresholding `read_maps`, without
-        dequantizing M x M x C values)."""
+        dequantizing M x M x C values).
+
+        Args:
+            frame_shape: the shape of the frame the input was made from.
+        Returns:
+            (K x 2 keypoints in frame pixels, NaN when not found; K confidences, float64).
+        """
         view = self._output()[0]
         result = self.decode_output(view, frame_shape)
         del view  # the interpreter refuses to invoke while a view of its buffers is alive
@@ -344,15 +418,30 @@ class KeypointModel(KeypointPredictor):
     pipelinable = True
 
     def new_input(self) -> np.ndarray:
-        """A staging buffer for `preprocess_into`: H x W x 3 of the input tensor's dtype."""
+        """A staging buffer for `preprocess_into`.
+
+        Returns:
+            An uninitialised H x W x 3 array of the input tensor's dtype.
+        """
         return np.empty(self.io.input.shape[1:], self.io.input.dtype)
 
     def new_output(self) -> np.ndarray:
-        """A buffer for the raw output `forward` copies out: H x W x C of the output tensor's dtype."""
+        """A buffer for the raw output `forward` copies out.
+
+        Returns:
+            An uninitialised H x W x C array of the output tensor's dtype.
+        """
         return np.empty(self.io.output.shape[1:], self.io.output.dtype)
 
     def forward(self, staged: np.ndarray, raw_output: np.ndarray) -> float:
-        """Copy a staged input into the interpreter, invoke, copy its raw output out; the invoke's ms."""
+        """Copy a staged input into the interpreter, invoke, copy its raw output out.
+
+        Args:
+            staged: a `new_input` buffer `preprocess_into` filled.
+            raw_output: a `new_output` buffer, overwritten with the output tensor.
+        Returns:
+            The invoke's milliseconds.
+        """
         view = self._input()
         view[0] = staged
         del view
@@ -365,7 +454,14 @@ class KeypointModel(KeypointPredictor):
         return invoke_ms
 
     def decode_output(self, raw: np.ndarray, frame_shape: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
-        """Keypoints and confidences from raw output maps (the interpreter's tensor or a `forward` copy)."""
+        """Keypoints and confidences from raw output maps.
+
+        Args:
+            raw: H x W x C of the output tensor's dtype (the interpreter's tensor or a `forward` copy).
+            frame_shape: the shape of the frame the input was made from.
+        Returns:
+            (K x 2 keypoints in frame pixels, NaN when not found; K confidences, float64).
+        """
         spec = self.io.output
         if spec.quantized:
             keypoints, confidence = self.decoding.in_frame(raw, frame_shape, view=self.view,
@@ -376,7 +472,13 @@ class KeypointModel(KeypointPredictor):
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:
-        """The raw output maps for a frame (a copy): for debugging and parity checks."""
+        """The output maps for a frame, for debugging and parity checks.
+
+        Args:
+            frame_bgr: H x W x 3 uint8, any size.
+        Returns:
+            A copy of the M x M x C float32 maps (dequantized).
+        """
         self.set_input(frame_bgr)
         self.interpreter.invoke()
         return self.read_maps(copy=True)

@@ -175,13 +175,21 @@ class TensorSpec:
         return self.dtype == np.uint8 and self.zero_point == 0 and bool(np.isclose(self.scale, 1 / 255, rtol=1e-6))
 
     def quantize(self, values: np.ndarray) -> np.ndarray:
-        """Real values as this integer tensor holds them: round(v / scale) + zero_point, saturated."""
+        """Real values as this integer tensor holds them.
+
+        Args:
+            values: real values (any shape).
+        Returns:
+            round(v / scale) + zero_point, saturated to the tensor's integer type.
+        """
         info = np.iinfo(self.dtype)
         return np.clip(np.rint(np.asarray(values, np.float32) / self.scale) + self.zero_point,
                        info.min, info.max).astype(self.dtype)
 
     @classmethod
     def from_details(cls, details: dict) -> "TensorSpec":
+        """The spec of one entry of the interpreter's `get_input_details()` / `get_output_details()` (no
+        quantization: scale 0, zero point 0)."""
         scale, zero = details.get("quantization", (0.0, 0)) or (0.0, 0)
         return cls(int(details["index"]), str(details.get("name", "")), tuple(int(d) for d in details["shape"]),
                    np.dtype(details["dtype"]), float(scale), int(zero))
@@ -205,7 +213,11 @@ class ModelIO:
         return self.output.shape[3]
 
     def describe(self) -> str:
-        """E.g. `224x224x3 float32 -> 224x224x9 float32`."""
+        """One line of the shapes and types.
+
+        Returns:
+            e.g. `224x224x3 float32 -> 224x224x9 float32`.
+        """
         i, o = self.input, self.output
         return (f"{'x'.join(map(str, i.shape[1:]))} {i.dtype.name} -> "
                 f"{'x'.join(map(str, o.shape[1:]))} {o.dtype.name}")

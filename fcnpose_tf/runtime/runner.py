@@ -109,7 +109,14 @@ class RunSummary:
                 f"RMS {jitter_rms(self.still_raw_steps_px):.2f} px as the model found them{written}")
 
     def report(self, model: KeypointPredictor, source: FrameSource) -> str:
-        """Multi-line summary: counts, the per-stage latency table, FPS with its definition, outputs."""
+        """The run's summary for the terminal: counts, the per-stage latency table, FPS with its definition, outputs.
+
+        Args:
+            model: the predictor that ran (its description and threads).
+            source: the frames it read (their description).
+        Returns:
+            The lines, joined.
+        """
         fps = self.latency.fps()
         lines = [f"Model:   {model.describe()}",
                  f"Source:  {source.describe()}; stopped: {self.end_reason}",

@@ -119,7 +119,14 @@ class RecordWriter:
             raise UserError(f"{self.path}: cannot be written ({os_error_reason(exc)})") from None
 
     def write(self, frame: Frame, prediction: Prediction) -> None:
-        """Append one frame's record line and hand it to the operating system."""
+        """Append one frame's record line and hand it to the operating system.
+
+        Args:
+            frame: the frame read (its index, time and file).
+            prediction: its keypoints.
+        Raises:
+            UserError: the write failed (the file cut back to its last complete record).
+        """
         self._write_line(self._line(frame_record(frame, prediction, self.schema)), counted=True)
 
     def _write_line(self, line: str, counted: bool) -> None:
@@ -310,7 +317,14 @@ class VideoSink:
         self.count = 0
 
     def write(self, image: np.ndarray) -> None:
-        """Append a BGR uint8 frame; WriteError (`PATH: no space left on device`) when the disk is full."""
+        """Append a frame, resized to the first frame's size when another.
+
+        Args:
+            image: H x W x 3 BGR uint8.
+        Raises:
+            WriteError: the disk is full (`PATH: no space left on device`; the partial file removed).
+            UserError: OpenCV cannot write this codec here.
+        """
         if self._writer is None:
             h, w = image.shape[:2]
             self.size = (w, h)
@@ -337,7 +351,14 @@ class VideoSink:
             raise error
 
     def close(self) -> Path | None:
-        """Finish the file and move it into place; returns its path, or None if no frame was written."""
+        """Finish the file and move it into place.
+
+        Returns:
+            Its path, or None if no frame was written.
+        Raises:
+            WriteError: the end of the file did not fit on the disk (no partial video is left in place).
+            UserError: a file appeared at the path during the run (without force): the video is kept beside it.
+        """
         self._release()
         if not self._tmp.exists():
             return None

@@ -60,7 +60,12 @@ class Frame:
 
 
 class FrameSource:
-    """Base class: iterate for frames; `end_reason` says why iteration stopped; use as a context manager."""
+    """Base class: iterate for frames; `end_reason` says why iteration stopped; use as a context manager.
+
+    Args:
+        name: what the source is called in lines and records (a path, a camera's index).
+        warn: where warnings go (default: standard error).
+    """
 
     kind: str = "source"
     live: bool = False
@@ -87,6 +92,7 @@ class FrameSource:
         self.close()
 
     def describe(self) -> str:
+        """One line for the run's summary: the kind of source and its name."""
         return f"{self.kind} {self.name}"
 
 
@@ -111,6 +117,7 @@ class ImageSource(FrameSource):
         self.end_reason = f"read {len(self.paths) - self.skipped} of {len(self.paths)} images"
 
     def describe(self) -> str:
+        """One line for the run's summary: "N images from NAME"."""
         return f"{len(self.paths)} image{'s' if len(self.paths) != 1 else ''} from {self.name}"
 
 
@@ -189,12 +196,14 @@ class VideoSource(FrameSource):
                       f"the last: {self.decoder_messages[-1]}")
 
     def close(self) -> None:
+        """Release the file (and the decoder's message capture)."""
         self._cap.release()
         if self._native_sink is not None:
             self._native_sink.close()
             self._native_sink = None
 
     def describe(self) -> str:
+        """One line for the run's summary: "video NAME (N frames, F fps)"."""
         n = f"{self.frame_count} frames" if self.frame_count else "unknown length"
         rate = f", {self.fps:g} fps" if self.fps else ""
         return f"video {self.name} ({n}{rate})"
@@ -473,6 +482,7 @@ class Picamera2Source(LiveSource):
                 pass
 
     def describe(self) -> str:
+        """One line for the run's summary: the camera, its size and pixel format."""
         return f"{self.name} ({self.size[0]}x{self.size[1]} RGB888 = BGR bytes)"
 
 

@@ -54,7 +54,11 @@ def fps_from_ms(ms: float) -> float:
 
 
 class LatencyLog:
-    """Per-frame stage times, kept compactly (8 bytes per stage per frame)."""
+    """Per-frame stage times, kept compactly (8 bytes per stage per frame).
+
+    Args:
+        times: frames' stage times to start with.
+    """
 
     def __init__(self, times: Iterable[StageTimes] = ()):
         self._stages = {s: array("d") for s in STAGES[:3]}
@@ -62,6 +66,7 @@ class LatencyLog:
             self.add(t)
 
     def add(self, times: StageTimes) -> None:
+        """Append one frame's stage times."""
         self._stages["preprocess"].append(times.preprocess_ms)
         self._stages["invoke"].append(times.invoke_ms)
         self._stages["postprocess"].append(times.postprocess_ms)
@@ -70,23 +75,44 @@ class LatencyLog:
         return len(self._stages["invoke"])
 
     def values(self, stage: str) -> np.ndarray:
-        """Milliseconds of one stage per frame (`end_to_end` = the sum of the three)."""
+        """Milliseconds of one stage per frame.
+
+        Args:
+            stage: preprocess, invoke, postprocess, or end_to_end (the sum of the three).
+        Returns:
+            One float64 per frame, in order (a copy).
+        Raises:
+            KeyError: another stage name.
+        """
         if stage == "end_to_end":
             return sum(np.frombuffer(a, np.float64) for a in self._stages.values()) \
                 if len(self) else np.empty(0)
         return np.frombuffer(self._stages[stage], np.float64).copy()
 
     def summary(self) -> dict[str, dict[str, float]]:
-        """describe_ms of every stage and of end_to_end."""
+        """Every stage's statistics.
+
+        Returns:
+            Stage (STAGES, end_to_end last) -> `describe_ms` of its milliseconds.
+        """
         return {s: describe_ms(self.values(s)) for s in STAGES}
 
     def fps(self) -> dict[str, float]:
-        """End-to-end and invoke-only FPS by the definition above."""
+        """The frame rates by the definition above (1000 / mean ms).
+
+        Returns:
+            {"end_to_end": ..., "invoke": ...}; NaN without frames.
+        """
         s = self.summary()
         return {"end_to_end": fps_from_ms(s["end_to_end"]["mean"]), "invoke": fps_from_ms(s["invoke"]["mean"])}
 
     def table(self) -> str:
-        """The per-stage latency table (ms) with the share of each stage in the end-to-end time."""
+        """The per-stage latency table (mean, std, p50, p95 in ms) with the share of each stage in the end-to-end
+        time.
+
+        Returns:
+            The table's text.
+        """
         s = self.summary()
         total = s["end_to_end"]["mean"]
         rows = []

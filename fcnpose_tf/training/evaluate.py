@@ -65,6 +65,15 @@ class KerasKeypointModel(KeypointPredictor):
     The forward pass is the model called directly on one frame (`model(x, training=False)`),
     the way a Keras user runs it; that is the "Keras" figure in reports. Preprocessing,
     decoding and timing are the runtime's own.
+
+    Args:
+        model: a tf_keras FCN-Pose, or the path of a .keras/.h5 file to load.
+        path: the model's file, for descriptions and errors (taken from `model` when it is a path).
+        num_threads: stated in descriptions and timing records (None: the default); TensorFlow's threads are set
+            by the caller (`tfsetup.set_tensorflow_threads`).
+        decoding: how maps become keypoints (`postprocess.Decoding`); default the commands' (settings).
+    Raises:
+        UserError: a model whose input size is not fixed, or not H x W x 3 in and H x W x C maps out.
     """
 
     backend_label = "tf_keras (direct call)"
@@ -94,7 +103,11 @@ class KerasKeypointModel(KeypointPredictor):
         self._maps: np.ndarray | None = None
 
     def set_input(self, frame_bgr: np.ndarray) -> None:
-        """Preprocess a BGR uint8 frame into the model's one-frame input batch."""
+        """Preprocess a frame into the model's one-frame input batch (the training preprocessing).
+
+        Args:
+            frame_bgr: H x W x 3 uint8, any size.
+        """
         preprocess_frame(frame_bgr, self.view, out=self._x[0])
 
     def invoke(self) -> None:
@@ -102,7 +115,15 @@ class KerasKeypointModel(KeypointPredictor):
         self._maps = self.model(self._x, training=False).numpy()[0]
 
     def read_maps(self, copy: bool = True) -> np.ndarray:
-        """The output maps of the last invoke."""
+        """The output maps of the last invoke.
+
+        Args:
+            copy: False returns the array the next invoke replaces (not overwrites).
+        Returns:
+            M x M x C float32 probabilities.
+        Raises:
+            RuntimeError: no invoke yet.
+        """
         if self._maps is None:
             raise RuntimeError("read_maps before any invoke")
         return self._maps.copy() if copy else self._maps

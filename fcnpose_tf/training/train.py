@@ -57,14 +57,26 @@ class FitConfig:
     `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
-        """Check every setting and that a cosine schedule is not also asked to halve on plateaus; UserError if bad."""
+        """Check every setting and that a cosine schedule is not also asked to halve on plateaus.
+
+        Raises:
+            UserError: a setting out of its range or choices, or a cosine schedule with a plateau patience.
+        """
         settings.validate_fields(self)
         settings.check_lr_schedule(self.lr_schedule, self.lr_patience or 0)
 
     def resolved(self, *, trained_start: bool, augment: str = "paper", architecture: str | None = None) -> FitConfig:
         """This config with the settings left None chosen for a run that starts from trained weights or not, with
         this augmentation, of this network: freeze and learning_rate (`settings.train_recipe`), lr_patience
-        (`settings.resolved_lr_patience`) and positive_weight (`settings.train_positive_weight`)."""
+        (`settings.resolved_lr_patience`) and positive_weight (`settings.train_positive_weight`).
+
+        Args:
+            trained_start: the run starts from trained weights (fine-tuning), not from random ones.
+            augment: the run's augmentation (settings.AUGMENT).
+            architecture: the network (`model.ARCHITECTURES`; None: FCN-Pose's recipe).
+        Returns:
+            A copy with those settings chosen; a setting given is kept.
+        """
         freeze, learning_rate = settings.train_recipe(trained_start, augment, architecture)
         freeze = self.freeze if self.freeze is not None else freeze
         learning_rate = self.learning_rate if self.learning_rate is not None else learning_rate
@@ -998,7 +1010,15 @@ class FixedTestSetRecord:
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> FixedTestSetRecord:
-        """The record of a parsed "test" object."""
+        """The record of a parsed "test" object.
+
+        Args:
+            entry: the parsed JSON object.
+        Returns:
+            The record, its metrics typed.
+        Raises:
+            KeyError: a key every record holds is missing (all but "start_model" and "start").
+        """
         start = entry.get("start")
         return cls(data=entry["data"], data_sha256=entry["data_sha256"], num_frames=entry["num_frames"],
                    definitions=entry["definitions"], start_model=entry.get("start_model"),
