@@ -207,16 +207,8 @@ class TFLiteStep:
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> TFLiteStep:
-        """The step of a parsed "quantized" or "other_quantized" entry.
-
-        Args:
-            entry: the parsed JSON object; a key without a field goes to `extra`.
-        Returns:
-            The step, its metrics and timing typed.
-        Raises:
-            TypeError: not a JSON object.
-            KeyError: no "metrics".
-        """
+        """The step of a parsed "quantized" or "other_quantized" entry; its argument, result and errors are
+        `ModelStep.from_json`'s."""
         return _step_from_json(cls, entry)
 
 
