@@ -414,13 +414,14 @@ and the time budget's epoch warning")."""
 
 class _CheckpointAndStop(keras.callbacks.Callback):
     """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early; say the epoch's
-    time and the run's ETA, and after the first epoch whether the time budget allows the epochs fine-tuning needs."""
+    time and the run's ETA, and after the first epoch whether the time budget allows the epochs fine-tuning needs
+    (to `reporter`; None: nothing said)."""
 
     def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0,
                  max_minutes: float | None = None, rate_of_progress: Callable[[float], float] | None = None,
-                 epochs: int = 1, say: Callable[[str], None] | None = None):
+                 epochs: int = 1, reporter: Reporter | None = None):
         super().__init__()
-        self.say = say
+        self.reporter = reporter
         self.first_epoch = int(state["epoch"])
         self.paths = paths
         self.state = state
@@ -473,7 +474,7 @@ class _CheckpointAndStop(keras.callbacks.Callback):
             self.model.stop_training = True
         if self.state["out_of_time"]:  # a resume with a larger --max-minutes continues
             self.model.stop_training = True
-        if self.say is not None:
+        if self.reporter is not None:
             self._say_progress(epoch + 1)
 
     def _say_progress(self, done: int) -> None:
@@ -485,15 +486,16 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         stopping = self.model.stop_training
         eta = "done" if stopping or left == 0 else \
             f"ETA {left * epoch_s / 60:.0f} min ({left} more epoch{'s' if left != 1 else ''} at most)"
-        self.say(f"epoch {done}: {epoch_s:.0f} s/epoch, best validation loss {self.state['best_val_loss']:.5f} at "
-                 f"epoch {self.state['best_epoch']}; {eta}")
+        say = self.reporter.say
+        say(f"epoch {done}: {epoch_s:.0f} s/epoch, best validation loss {self.state['best_val_loss']:.5f} at "
+            f"epoch {self.state['best_epoch']}; {eta}")
         if done == self.first_epoch + 1 and self.max_seconds is not None:
             affordable = int(self.max_seconds // epoch_s)
             if affordable < min(BUDGET_MIN_EPOCHS, self.epochs):
-                self.say(f"note: at {epoch_s:.0f} s an epoch the {self.max_seconds / 60:.3g}-minute budget trains about "
-                         f"{affordable} epochs, fewer than the {BUDGET_MIN_EPOCHS} that fine-tuning and retraining "
-                         f"needed on the proxies; give it --max-minutes {math.ceil(BUDGET_MIN_EPOCHS * epoch_s / 60)}, "
-                         "or fewer input pixels (--input-size), or a machine with fewer other jobs")
+                say(f"note: at {epoch_s:.0f} s an epoch the {self.max_seconds / 60:.3g}-minute budget trains about "
+                    f"{affordable} epochs, fewer than the {BUDGET_MIN_EPOCHS} that fine-tuning and retraining "
+                    f"needed on the proxies; give it --max-minutes {math.ceil(BUDGET_MIN_EPOCHS * epoch_s / 60)}, "
+                    "or fewer input pixels (--input-size), or a machine with fewer other jobs")
 
 
 def _save_weights(model: keras.Model, path: Path) -> None:
@@ -591,7 +593,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         if config.lr_schedule == "cosine":
             schedule = functools.partial(cosine_rate, learning_rate=config.learning_rate)
         callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes,
-                                      schedule, epochs=config.epochs, say=reporter.say)
+                                      schedule, epochs=config.epochs, reporter=reporter)
         if state["epoch"] < config.epochs and not state["stopped_early"]:
             if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have
                 train_data.epoch = state["epoch"]
