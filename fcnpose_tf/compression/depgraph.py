@@ -214,7 +214,15 @@ class DependencyGraph(Context):
         return len(self._parent)
 
     def channels_of(self, owner: str) -> np.ndarray:
-        """The channels (graph-wide numbers) a producer or model input makes, one per filter."""
+        """The channels a layer makes.
+
+        Args:
+            owner: the name of a producer or a model input.
+        Returns:
+            Its channels' graph-wide numbers, one per filter.
+        Raises:
+            KeyError: a layer that makes no channels of its own.
+        """
         return self._blocks[owner]
 
     def _root(self, channel: int) -> int:
@@ -275,11 +283,23 @@ class DependencyGraph(Context):
         return tuple(groups)
 
     def layer(self, name: str) -> Any:
-        """The model's layer called `name` (a producer of a group)."""
+        """The model's layer called `name` (a producer of a group).
+
+        Args:
+            name: the layer's name.
+        Returns:
+            The layer.
+        Raises:
+            ValueError: no such layer (Keras' `get_layer`).
+        """
         return self.model.get_layer(name)
 
     def describe(self) -> str:
-        """A table of the groups: producers, width and whether they may be pruned."""
+        """The graph for reading.
+
+        Returns:
+            A plain-text table of the groups: producers, width and whether they may be pruned.
+        """
         rows = [[g.index, short_list(g.producers), g.width, g.frozen or "prunable"] for g in self.groups]
         return format_table(["group", "producers", "channels", "status"], rows)
 

@@ -78,7 +78,15 @@ class GroupPlan:
     scores: np.ndarray | None = field(default=None, repr=False)
 
     def filters(self, producer: str) -> np.ndarray:
-        """The kept filter indices of one of the group's producers."""
+        """The kept filter indices of one of the group's producers.
+
+        Args:
+            producer: the name of a layer making the group's channels.
+        Returns:
+            Its kept output filters, sorted, int64.
+        Raises:
+            KeyError: not a producer of this group.
+        """
         return np.flatnonzero(np.isin(self.group.channel_of[producer], self.kept)).astype(np.int64)
 
 
@@ -112,7 +120,11 @@ class GraphPlan:
     macs: tuple[int | None, int | None]
 
     def kept_filters(self) -> dict[str, np.ndarray]:
-        """Producer name -> its kept filter indices, for every layer making channels (model inputs left out)."""
+        """Which filters every layer making channels keeps.
+
+        Returns:
+            Producer name -> its kept filter indices (model inputs left out).
+        """
         result = {}
         for plan in self.groups:
             for producer in plan.group.producers:
@@ -121,7 +133,12 @@ class GraphPlan:
         return result
 
     def describe(self) -> str:
-        """The groups (producers, channels before and after, status) and the totals, as a plain-text table."""
+        """The plan for reading.
+
+        Returns:
+            A plain-text table of the groups (producers, channels before and after, status), then the parameters
+            and MACs before and after.
+        """
         rows = [[p.group.index, short_list(p.group.producers), p.group.width, int(len(p.kept)),
                  p.group.frozen or "pruned"] for p in self.groups]
         table = format_table(["group", "producers", "channels", "kept", "status"], rows)

@@ -49,7 +49,11 @@ class Importance(Protocol):
         layer, which surgery never prunes, may be left out)."""
 
     def describe(self) -> CriterionFacts:
-        """What reports record about the criterion ({"importance": name, ...})."""
+        """What reports record about the criterion.
+
+        Returns:
+            {"importance": name[, "importance_frames": N for a data-aware one]}.
+        """
 
 
 def _convolutions(model: keras.Model) -> list[keras.layers.Layer]:
@@ -70,7 +74,16 @@ class WeightNorm:
         self.name = f"l{p}"
 
     def filter_scores(self, kernel: np.ndarray, input_channels: Sequence[int] | None = None) -> np.ndarray:
-        """Scores of a kernel (kh, kw, cin, cout)'s filters; only `input_channels` count if given (greedy)."""
+        """Scores of a kernel's filters.
+
+        Args:
+            kernel: a Conv2D kernel, (kh, kw, cin, cout).
+            input_channels: only these input channels count (the greedy strategy's kept inputs); None: all.
+        Returns:
+            cout float64 scores.
+        Raises:
+            UserError: a kernel of another rank.
+        """
         kernel = np.asarray(kernel)
         if kernel.ndim != 4:
             raise UserError(f"expected a Conv2D kernel of shape (kh, kw, cin, cout), got shape {kernel.shape}")
@@ -85,7 +98,7 @@ class WeightNorm:
         return {conv.name: self.filter_scores(conv.get_weights()[0]) for conv in _convolutions(model)}
 
     def describe(self) -> CriterionFacts:
-        """What the report records about the criterion."""
+        """What the report records about the criterion: {"importance": "l1" or "l2"}."""
         return {"importance": self.name}
 
 

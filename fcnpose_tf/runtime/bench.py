@@ -86,14 +86,17 @@ class ThreadResult:
 
     @property
     def ok(self) -> bool:
+        """Whether this thread count ran (status "ok")."""
         return self.status == "ok"
 
     @property
     def fps_end_to_end(self) -> float:
+        """1000 / the end-to-end mean ms (NaN when not measured)."""
         return fps_from_ms(self.end_to_end.get("mean", float("nan")))
 
     @property
     def fps_invoke(self) -> float:
+        """1000 / the invoke-only mean ms (NaN when not measured)."""
         return fps_from_ms(self.invoke.get("mean", float("nan")))
 
     @property
@@ -105,6 +108,7 @@ class ThreadResult:
         return 100.0 * (self.preprocess["mean"] + self.postprocess["mean"]) / total
 
     def to_dict(self) -> dict[str, Any]:
+        """The row as the bench report's JSON holds it (stable keys, units in the names; NaN written as null)."""
         def clean(d):
             return {k: (round(v, 4) if np.isfinite(v) else None) for k, v in d.items()}
 

@@ -28,6 +28,12 @@ class InvokeWorker:
 
     `inputs[slot]` is copied into the interpreter when the invoke starts and `outputs[slot]` receives
     its raw maps; the caller fills the other slot's input and decodes the other slot's output meanwhile.
+
+    Args:
+        model: a predictor with the staged-frame methods (`pipelinable`).
+        slots: staged inputs and outputs to alternate between.
+    Raises:
+        TypeError: a predictor that is not pipelinable.
     """
 
     def __init__(self, model: KeypointPredictor, slots: int = 2):
@@ -43,14 +49,26 @@ class InvokeWorker:
         self._thread.start()
 
     def start(self, slot: int) -> None:
-        """Begin the forward pass of `inputs[slot]` (the previous one must have been waited for)."""
+        """Begin the forward pass of `inputs[slot]`.
+
+        Args:
+            slot: which staged input to run.
+        Raises:
+            RuntimeError: the previous frame was not waited for.
+        """
         if self.busy:
             raise RuntimeError("InvokeWorker.start while a frame is in flight")
         self.busy = True
         self._todo.put(slot)
 
     def wait(self) -> tuple[int, float]:
-        """(slot, invoke ms) of the frame in flight once its output is in `outputs[slot]`; re-raises its error."""
+        """Wait for the frame in flight.
+
+        Returns:
+            (slot, invoke ms) once its output is in `outputs[slot]`.
+        Raises:
+            BaseException: whatever the forward pass raised, re-raised here.
+        """
         result = self._done.get()  # interruptible: Ctrl-C / SIGTERM reach the main thread while it waits
         self.busy = False
         if isinstance(result, BaseException):

@@ -275,6 +275,9 @@ class RollingFps:
     `add(ms)` takes a frame's end-to-end model time (preprocess + invoke +
     postprocess, the FPS definition of docs/runtime.md); `fps` is
     window / sum of those times.
+
+    Args:
+        window: frames averaged over (at least 1).
     """
 
     def __init__(self, window: int = 30):
@@ -282,6 +285,7 @@ class RollingFps:
         self._sum = 0.0
 
     def add(self, ms: float) -> None:
+        """Add one frame's end-to-end model time (ms); the oldest leaves a full window."""
         if len(self._ms) == self._ms.maxlen:
             self._sum -= self._ms[0]
         self._ms.append(ms)
@@ -289,6 +293,7 @@ class RollingFps:
 
     @property
     def fps(self) -> float:
+        """Frames in the window * 1000 / their summed ms; NaN before any frame."""
         return len(self._ms) * 1e3 / self._sum if self._sum > 0 else float("nan")
 
 
