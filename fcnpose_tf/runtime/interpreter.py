@@ -314,6 +314,7 @@ class ModelStats:
     op_counts: dict[str, int]
 
     def to_dict(self) -> dict:
+        """The costs as reports hold them: params, macs, size_bytes, weight_dtypes, conv_layers, op_counts."""
         return {"params": self.params, "macs": self.macs, "size_bytes": self.size_bytes,
                 "weight_dtypes": list(self.weight_dtypes), "conv_layers": self.conv_layers,
                 "op_counts": dict(self.op_counts)}

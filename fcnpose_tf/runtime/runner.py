@@ -177,6 +177,14 @@ class ProgressLine:
         self._width = 0
 
     def update(self, frames: int, fps: float, loop_fps: float, times) -> None:
+        """Redraw the line, unless the stream is no terminal or the last redraw is too recent.
+
+        Args:
+            frames: frames processed so far.
+            fps: the model's rolling FPS.
+            loop_fps: the whole loop's frames per second.
+            times: the last frame's `StageTimes`.
+        """
         now = time.monotonic()
         if not self.enabled or now - self._last < self.period:
             return
@@ -188,6 +196,7 @@ class ProgressLine:
         self._width = len(text)
 
     def close(self) -> None:
+        """Erase the line (on a terminal)."""
         if self.enabled and self._width:
             self.stream.write("\r" + " " * self._width + "\r")
             self.stream.flush()

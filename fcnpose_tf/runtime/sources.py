@@ -308,6 +308,8 @@ class LiveSource(FrameSource):
             yield Frame(used - 1, _as_bgr(image), stamp, self.name)
 
     def close(self) -> None:
+        """Stop the capture thread (a waiting read interrupted, the thread joined for up to 2 s) and release the
+        device."""
         self._stop.set()
         if self._thread.is_alive():
             self._interrupt()
