@@ -19,9 +19,10 @@ and how many such frames `run`'s crop_edge flags):
     leave --model M_int8.tflite --data D_test --shift -150
 
 and, on video (a motion sequence's frames in order), what each way of choosing the second pass's crop gives against
-the first pass alone on the whole frame: the first pass's box every frame (two passes a frame), the previous frame's
-second-pass keypoints (one pass a frame; the first pass only when fewer than --min-found keypoints were found), and
-the labels' box (the oracle), with the multiply-adds a frame each costs:
+the first pass alone on the whole frame: each second model alone on the whole frame, over the first pass's box every
+frame (two passes a frame), over the previous frame's keypoints (`run --track`'s `TrackingCrop`: one pass a frame, its
+own view after a frame with fewer than --min-found keypoints), and over the labels' box (the oracle), with the
+multiply-adds a frame each costs:
 
     track --first FIRST.keras --second M.keras --data D_motion [--data D_motion2 ...]
 
@@ -192,76 +193,66 @@ def _keras_predictor(spec: Path):
 
 
 def track_crop(args: argparse.Namespace) -> int:
-    """Per sequence and pooled: PCK@0.5/0.2/0.05 and EPE of the first pass alone and of the second pass over each
-    way of choosing its crop, with the multiply-adds a frame (the first pass's counted when it ran)."""
+    """Per sequence and pooled: PCK@0.5/0.2/0.05 and EPE of the first pass alone and of each second model over each
+    way of choosing its crop (`runtime.tracking.follow_box`, as `run --track` does), with the multiply-adds a frame."""
     from fcnpose_tf import metrics
     from fcnpose_tf.data.dataset import resolve_data
     from fcnpose_tf.data.via import read_via
-    from fcnpose_tf.preprocess import read_image
+    from fcnpose_tf.preprocess import FrameView, read_image
+    from fcnpose_tf.runtime.tracking import TrackingCrop, follow_box
 
     first, first_macs = _keras_predictor(args.first)
     seconds = [(str(spec), *_keras_predictor(spec)) for spec in args.second]
 
-    def second_pass(predictor, image, points):
-        h, w = image.shape[:2]
-        if len(points) < 2:
-            return None
-        x, y, cw, ch = square_crop(points.min(axis=0), points.max(axis=0), args.margin, (w, h))
-        return predictor.predict(np.ascontiguousarray(image[y:y + ch, x:x + cw])).keypoints + (x, y)
+    def over(predictor, image, keypoints):
+        """The predictor over follow_box of `keypoints` (its own view when there is no box)."""
+        own = predictor.view
+        box = follow_box(keypoints, image.shape, own.shape, args.margin, min_found=2)
+        if box is not None:
+            predictor.view = FrameView(own.height, own.width, box, (image.shape[1], image.shape[0]))
+        try:
+            return predictor.predict(image).keypoints
+        finally:
+            predictor.view = own
 
     rows: dict[str, list] = {}
     macs: dict[str, float] = {}
-    truth_all = []
+    truth_all, whole_reads = [], {}
     for data in args.data:
         via_path, images = resolve_data(data, None)
         frames = read_via(via_path, images).frames
+        pictures = [read_image(frame.image_path) for frame in frames]
         truth_all.extend(frame.keypoints for frame in frames)
-        whole = []
-        for frame in frames:
-            whole.append(first.predict(read_image(frame.image_path)).keypoints)
+        whole = [first.predict(image).keypoints for image in pictures]
         rows.setdefault("first pass alone (whole frame)", []).extend(whole)
         macs["first pass alone (whole frame)"] = first_macs
         for name, predictor, second_macs in seconds:
-            tracked, two, oracle, first_calls, previous = [], [], [], 0, None
-            for frame, found_whole in zip(frames, whole):
-                image = read_image(frame.image_path)
-                valid = lambda k: k[np.isfinite(k).all(axis=1)]  # noqa: E731
-                two.append(second_pass(predictor, image, valid(found_whole)))
-                oracle.append(second_pass(predictor, image, valid(frame.keypoints)))
-                if previous is None or np.isfinite(previous).all(axis=1).sum() < args.min_found:
-                    first_calls += 1
-                    previous = found_whole
-                result = second_pass(predictor, image, valid(previous))
-                result = found_whole if result is None else result
-                tracked.append(result)
-                previous = result
-            fill = lambda ks: [k if k is not None else np.full_like(frames[0].keypoints, np.nan) for k in ks]  # noqa: E731
-            for label, values, cost in (
-                    (f"two passes: {name} over the first pass's box", fill(two), first_macs + second_macs),
-                    (f"tracking: {name} over the previous frame's box", tracked, None),
-                    (f"oracle: {name} over the labels' box", fill(oracle), second_macs)):
+            tracker = TrackingCrop(predictor, margin=args.margin, min_found=args.min_found)
+            for label, cost, values in (
+                    (f"{name} alone (whole frame)", second_macs, [predictor.predict(im).keypoints for im in pictures]),
+                    (f"two passes: {name} over the first pass's box", first_macs + second_macs,
+                     [over(predictor, im, k) for im, k in zip(pictures, whole)]),
+                    (f"tracking: {name} over the previous frame's box", second_macs,
+                     [tracker.predict(im).keypoints for im in pictures]),
+                    (f"oracle: {name} over the labels' box", second_macs,
+                     [over(predictor, im, f.keypoints) for im, f in zip(pictures, frames)])):
                 rows.setdefault(label, []).extend(values)
-                if cost is not None:
-                    macs[label] = cost
-            calls = macs.setdefault(f"tracking: {name} over the previous frame's box@calls", 0) + first_calls
-            macs[f"tracking: {name} over the previous frame's box@calls"] = calls
-            macs[f"tracking: {name} over the previous frame's box@macs"] = second_macs
+                macs[label] = cost
+            whole_reads[name] = whole_reads.get(name, 0) + tracker.whole_view_frames
     truth = np.stack(truth_all)
-    n = len(truth)
-    print(f"{n} frames of {len(args.data)} sequences; first pass {args.first} ({first_macs / 1e9:.2f} G a frame)")
-    print("| crop | PCK@0.5 | PCK@0.2 | PCK@0.05 | EPE px | missing | G MACs a frame |")
+    print(f"{len(truth)} frames of {len(args.data)} sequences; first pass {args.first} ({first_macs / 1e9:.2f} G a "
+          f"frame); crops: follow_box, margin {args.margin:g}")
+    print("| model and crop | PCK@0.5 | PCK@0.2 | PCK@0.05 | EPE px | missing | G MACs a frame |")
     print("|---|---|---|---|---|---|---|")
     for label, values in rows.items():
         pred = np.stack(values)
+        note = ""
         if label.startswith("tracking"):
-            calls = macs[label + "@calls"]
-            cost = macs[label + "@macs"] + first_macs * calls / n
-            label = f"{label} ({calls} first passes)"
-        else:
-            cost = macs[label]
-        print(f"| {label} | {metrics.pck(pred, truth, 0.5):.3f} | {metrics.pck(pred, truth, 0.2):.3f} | "
+            name = label[len("tracking: "):label.index(" over ")]
+            note = f" ({whole_reads[name]} frames over its own view)"
+        print(f"| {label}{note} | {metrics.pck(pred, truth, 0.5):.3f} | {metrics.pck(pred, truth, 0.2):.3f} | "
               f"{metrics.pck(pred, truth, 0.05):.3f} | {metrics.epe(pred, truth):.2f} | "
-              f"{metrics.missing_fraction(pred, truth):.3f} | {cost / 1e9:.2f} |")
+              f"{metrics.missing_fraction(pred, truth):.3f} | {macs[label] / 1e9:.2f} |")
     return 0
 
 

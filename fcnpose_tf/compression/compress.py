@@ -74,7 +74,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps do not match the dataset.
         ValueError: `metadata` names a section of the report, or options not resolved (`CompressOptions.checked`).
     """
-    from fcnpose_tf.training.model import architecture_of, at_input_size, load_model, view_of
+    from fcnpose_tf.training.model import architecture_of, at_input_height, load_model, view_of
     from fcnpose_tf.compression.prune import check_chain, plan_widths
 
     base_path = Path(base_path)
@@ -96,8 +96,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if options.input_size:  # the height; an H x W input keeps its aspect
         if architecture == "fcn-pose":
             check_chain(base)  # rebuilt at another size only when the surgery understands it: refused first
-        width = max(32, int(round(options.input_size * saved_view.width / saved_view.height / 32)) * 32)
-        base = at_input_size(base, (options.input_size, width))
+        base = at_input_height(base, options.input_size)
     # the widths at the rate, computed once and read by every step; FCN-Pose that is not a plain chain of supported
     # layers is refused here, before any work
     plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0,
