@@ -122,5 +122,6 @@ def test_run_track_on_a_video(capsys, tmp_path, model_path):
     assert code == 0, err
     records = [json.loads(line) for line in records_path.read_text().splitlines()]
     assert len(records) == 6
+    assert "crop_xywh" not in records[0] and all("crop_xywh" in r for r in records[1:])  # the boxes it read
     assert "a crop following the arm" in err
     assert "frames read over the previous frame's keypoint box" in out_text and "sequential" in out_text
