@@ -72,8 +72,8 @@ def main(argv: list[str] | None = None) -> int:
     track = sub.add_parser("track", help="on motion sequences: whole frame vs two passes vs a tracking crop")
     track.add_argument("--first", type=Path, required=True, help="a whole-frame .keras model (the first pass)")
     track.add_argument("--second", type=Path, action="append", required=True,
-                       help="a .keras model that reads a crop (repeatable); at its own input size, or "
-                            "PATH@S to run it at S x S")
+                       help="a model that reads a crop (repeatable): a .keras at its own input size or PATH@S "
+                            "to run it at S x S, or a .tflite (LiteRT, as run --track runs it)")
     track.add_argument("--data", type=Path, action="append", required=True,
                        help="a motion sequence's dataset folder (repeatable; each sequence tracked on its own)")
     track.add_argument("--margin", type=float, default=0.25, help="added on each side, share of the box's side")
@@ -179,13 +179,21 @@ def leave_crop(args: argparse.Namespace) -> int:
     return 0
 
 
-def _keras_predictor(spec: Path):
-    """A Keras predictor from PATH or PATH@S (the model rebuilt at S x S), and its multiply-adds a frame."""
+def _predictor(spec: Path):
+    """A predictor from PATH (.keras/.h5, or a .tflite run by LiteRT) or PATH@S (a Keras model rebuilt at S x S), and
+    its multiply-adds a frame."""
+    path, _, size = str(spec).partition("@")
+    if path.endswith(".tflite"):
+        from fcnpose_tf.runtime.estimator import KeypointModel
+
+        if size:
+            raise SystemExit(f"{spec}: a .tflite runs at its own input size (export --input-size makes another)")
+        model = KeypointModel(path)
+        return model, model.stats().macs
     from fcnpose_tf.compression.report import model_facts
     from fcnpose_tf.training.evaluate import KerasKeypointModel
     from fcnpose_tf.training.model import at_input_size, load_model
 
-    path, _, size = str(spec).partition("@")
     model = load_model(path)
     if size:
         model = at_input_size(model, int(size))
@@ -201,8 +209,8 @@ def track_crop(args: argparse.Namespace) -> int:
     from fcnpose_tf.preprocess import FrameView, read_image
     from fcnpose_tf.runtime.tracking import TrackingCrop, follow_box
 
-    first, first_macs = _keras_predictor(args.first)
-    seconds = [(str(spec), *_keras_predictor(spec)) for spec in args.second]
+    first, first_macs = _predictor(args.first)
+    seconds = [(str(spec), *_predictor(spec)) for spec in args.second]
 
     def over(predictor, image, keypoints):
         """The predictor over follow_box of `keypoints` (its own view when there is no box)."""
