@@ -8,6 +8,19 @@ import pytest
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "2")
 
 
+LONGEST_FILES_FIRST = ("test_sweep.py", "test_compress.py", "test_reliability.py", "test_qat.py",
+                       "test_train_evaluate.py", "test_exit_path.py")
+"""The test files that take longest (`--durations`), run first. The suite runs in two processes a file at a time
+(setup.cfg: pytest-xdist, --dist loadfile), handed out in collection order: a long file handed out last ran alone
+at the end (test_sweep.py's Ray smoke run, 95-531 s as the load varies), so the longest start first and the many
+short files fill in around them."""
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's tests keep their order
+
+
 @pytest.fixture
 def cli(tmp_path):
     """Run `python -m fcnpose_tf ARGS` in a subprocess; returns CompletedProcess with text output."""
