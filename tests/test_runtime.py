@@ -20,6 +20,7 @@ in a subprocess where tensorflow, tf_keras and keras cannot be imported.
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 import os
 import subprocess
 import sys
@@ -664,6 +665,9 @@ def test_overlay_draws_keypoints_skeleton_and_fps():
     assert not out[100, 500].any()  # nothing else drawn
     bare = draw_overlay(img, pred, UR5, fps=None)
     assert not bare[5:25, 5:60].any()
+    boxed = draw_overlay(img, replace(pred, crop=(50, 200, 500, 200)), UR5, fps=None)  # the crop it read, outlined
+    assert boxed[200, 300].any() and boxed[399, 300].any() and boxed[250, 50].any() and boxed[250, 549].any()
+    assert not boxed[100, 500].any() and not boxed[250, 300].any()
 
 
 def test_rolling_fps_averages_recent_frames():

@@ -240,9 +240,14 @@ def open_record_writer(path: str | os.PathLike, schema: KeypointSchema, force: b
 
 # -- overlay -----------------------------------------------------------------------------------------------
 
+CROP_BOX_BGR = (160, 160, 160)
+"""The overlay's outline of the crop a model read (grey: not a keypoint colour)."""
+
+
 def draw_overlay(image: np.ndarray, prediction: Prediction, schema: KeypointSchema, fps: float | None = None,
                  labels: bool = True, copy: bool = True) -> np.ndarray:
-    """Draw the skeleton, the keypoints (with names) and an FPS figure top-left on a BGR frame.
+    """Draw the skeleton, the keypoints (with names), the crop the model read (if any) and an FPS figure top-left on a
+    BGR frame.
 
     Missing keypoints and the edges touching them are not drawn (`fcnpose_tf.draw`'s style and palette).
 
@@ -260,6 +265,9 @@ def draw_overlay(image: np.ndarray, prediction: Prediction, schema: KeypointSche
     h, w = out.shape[:2]
     scale = max(h, w) / 640.0
     thick = max(1, round(2 * scale))
+    if prediction.crop is not None:  # the part of the frame the model saw: its workspace, or `--track`'s box
+        x, y, cw, ch = prediction.crop
+        cv2.rectangle(out, (x, y), (x + cw - 1, y + ch - 1), CROP_BOX_BGR, 1)
     if fps is not None and math.isfinite(fps):
         text = f"FPS {fps:.1f}"
         fs = 0.6 * max(scale, 0.75)
