@@ -45,6 +45,7 @@ def test_the_box_holds_the_keypoints_with_their_margin_at_the_inputs_aspect_insi
     assert x + w == 640 and y + h == 480  # moved inside the frame, the keypoints still held
     assert follow_box(near_edge[:3], (480, 640, 3), (64, 64)) is None  # fewer than 4 found: nothing to follow
     assert follow_box(near_edge[:3], (480, 640, 3), (64, 64), min_found=3) is not None
+    assert follow_box(np.array([[0.0, 0.0], [1.0, 1.0], [0.0, 1.0], [1.0, 0.0]]), (3, 3, 3), (64, 64)) is None
 
 
 def test_a_square_box_is_square_and_its_side_whole_steps():

@@ -70,6 +70,8 @@ def follow_box(keypoints: np.ndarray, frame_shape: tuple[int, ...], input_hw: tu
     height = CROP_SIDE_STEP * math.ceil(height * fit / CROP_SIDE_STEP)
     width, height = min(width, frame_w // CROP_SIDE_STEP * CROP_SIDE_STEP), \
         min(height, frame_h // CROP_SIDE_STEP * CROP_SIDE_STEP)
+    if width < CROP_SIDE_STEP or height < CROP_SIDE_STEP:  # a frame a few pixels across: nothing to crop
+        return None
     centre = (low + high) / 2  # pixel centres: a crop of columns x..x+w-1 is centred on x + (w - 1) / 2
     x = int(np.clip(round(centre[0] - (width - 1) / 2), 0, frame_w - width))
     y = int(np.clip(round(centre[1] - (height - 1) / 2), 0, frame_h - height))
