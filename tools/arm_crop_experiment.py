@@ -206,22 +206,16 @@ def track_crop(args: argparse.Namespace) -> int:
     from fcnpose_tf import metrics
     from fcnpose_tf.data.dataset import resolve_data
     from fcnpose_tf.data.via import read_via
-    from fcnpose_tf.preprocess import FrameView, read_image
-    from fcnpose_tf.runtime.tracking import TrackingCrop, follow_box
+    from fcnpose_tf.preprocess import read_image
+    from fcnpose_tf.runtime.tracking import TrackingCrop, follow_box, predict_over
 
     first, first_macs = _predictor(args.first)
     seconds = [(str(spec), *_predictor(spec)) for spec in args.second]
 
     def over(predictor, image, keypoints):
         """The predictor over follow_box of `keypoints` (its own view when there is no box)."""
-        own = predictor.view
-        box = follow_box(keypoints, image.shape, own.shape, args.margin, min_found=2)
-        if box is not None:
-            predictor.view = FrameView(own.height, own.width, box, (image.shape[1], image.shape[0]))
-        try:
-            return predictor.predict(image).keypoints
-        finally:
-            predictor.view = own
+        box = follow_box(keypoints, image.shape, predictor.view.shape, args.margin, min_found=2)
+        return predict_over(predictor, image, box).keypoints
 
     rows: dict[str, list] = {}
     macs: dict[str, float] = {}

@@ -78,6 +78,27 @@ def follow_box(keypoints: np.ndarray, frame_shape: tuple[int, ...], input_hw: tu
     return x, y, int(width), int(height)
 
 
+def predict_over(model: KeypointPredictor, frame_bgr: np.ndarray, box: Box | None) -> Prediction:
+    """The model's prediction for a frame read over `box` instead of its own view (None: its own view), keypoints in
+    frame pixels; the model keeps its own view afterwards.
+
+    Args:
+        model: any predictor.
+        frame_bgr: the BGR uint8 frame.
+        box: (x, y, width, height) inside the frame, resized to the model's input; None for its own view.
+    Returns:
+        The prediction; its `crop` is the box.
+    """
+    if box is None:
+        return model.predict(frame_bgr)
+    own = model.view
+    model.view = FrameView(own.height, own.width, box, (frame_bgr.shape[1], frame_bgr.shape[0]))
+    try:
+        return model.predict(frame_bgr)
+    finally:
+        model.view = own
+
+
 class TrackingCrop(KeypointPredictor):
     """A predictor that reads each frame over the box of the previous frame's keypoints (`follow_box`).
 
@@ -144,15 +165,7 @@ class TrackingCrop(KeypointPredictor):
         """Keypoints of one frame, read over the box the previous frame's keypoints give (or the model's own view)."""
         size = tuple(frame_bgr.shape[:2]) if frame_bgr is not None and frame_bgr.ndim >= 2 else None
         box = self._next[1] if self._next is not None and self._next[0] == size else None
-        if box is None:
-            view = self.own_view
-        else:
-            view = FrameView(self.own_view.height, self.own_view.width, box, (size[1], size[0]))
-        self.model.view = view
-        try:
-            prediction = self.model.predict(frame_bgr)
-        finally:
-            self.model.view = self.own_view
+        prediction = predict_over(self.model, frame_bgr, box)
         self.frames += 1
         self.whole_view_frames += box is None
         following = follow_box(prediction.keypoints, frame_bgr.shape, self.own_view.shape, self.margin,
