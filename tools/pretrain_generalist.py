@@ -5,9 +5,9 @@ The generalist's data command: renders `--n` frames of each *pretraining* look f
 `--looks` (`varied` by default; `varied:3000,classic:1200` mixes families, each with its own frame
 count and seed; a held-out family such as `heldout` is refused, so the looks that measure unseen arms
 never reach pretraining), merges them into one project (`data merge`), then continues training the
-bundled generalist on them with the recipe of
-saved_models/PROVENANCE.md (online augmentation, conv1-2 fixed, a half-cosine rate over the time
-budget). Takes `--minutes` plus a few minutes of rendering on 2 cores. Run from the repository root
+bundled generalist on them with the recipe of saved_models/PROVENANCE.md (online augmentation, conv1-2 fixed, a
+half-cosine rate over the time budget; `--architecture`, `--input-size` and `--freeze` change the network, its input and
+the layers kept fixed). Takes `--minutes` plus a few minutes of rendering on 2 cores. Run from the repository root
 in an environment with '.[train]'; copy the result over saved_models/fcnpose_ur5_generalist.keras
 (with its _train.json, _loss.csv and _loss.png) only if it measures better on the proxies of
 docs/training.md, and record the run in saved_models/PROVENANCE.md.
@@ -15,6 +15,8 @@ docs/training.md, and record the run in saved_models/PROVENANCE.md.
     python tools/pretrain_generalist.py --work runs/gen --n 4000 --seed 9000 --minutes 60
     python tools/pretrain_generalist.py --work runs/gen --looks varied:3000,classic:1200 --seed 11000 \
         --init saved_models/candidates/fcnpose_ur5_generalist_mixed.keras --learning-rate 5e-4 --minutes 95
+    python tools/pretrain_generalist.py --work runs/gskip --n 1800 --seed 50000 --minutes 72 --learning-rate 1e-3 \
+        --architecture fcn-pose-skip --input-size 224x288 --freeze 1 --threads 1
     python tools/pretrain_generalist.py --work runs/gen --dry-run      # print the commands only
 """
 
@@ -65,7 +67,8 @@ def commands(args: argparse.Namespace) -> list[list[str]]:
         data = args.work / "frames.json"
         steps.append(exe + ["data", "merge", *map(str, folders), "--out", str(data)])
     steps.append(exe + ["train", "--data", str(data), "--out", str(out), "--init", args.init, "--augment", "online",
-                        "--freeze", "2", "--lr-schedule", "cosine", "--learning-rate", str(args.learning_rate),
+                        "--freeze", str(args.freeze), "--architecture", args.architecture,
+                        "--input-size", args.input_size, "--lr-schedule", "cosine", "--learning-rate", str(args.learning_rate),
                         "--max-minutes", str(args.minutes), "--patience", "60", "--threads", str(args.threads)])
     return steps
 
@@ -82,6 +85,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes", type=float, default=60.0, help="training budget in minutes (default 60)")
     parser.add_argument("--learning-rate", type=float, default=7e-4, help="start of the half cosine (default 7e-4)")
     parser.add_argument("--init", default="generalist", help="model to continue from (default: the bundled one)")
+    parser.add_argument("--architecture", default="fcn-pose", choices=("fcn-pose", "fcn-pose-skip"),
+                        help="the network pretrained (default fcn-pose, the bundled generalist's; fcn-pose-skip adds "
+                             "the skip at zero to an fcn-pose --init)")
+    parser.add_argument("--input-size", default="224", help="S or HxW (default 224; the convolutions do not depend on it)")
+    parser.add_argument("--freeze", type=int, default=2, help="convolutions kept fixed, conv1..convN (default 2)")
     parser.add_argument("--threads", type=int, default=2, help="cores for rendering and training (default 2)")
     parser.add_argument("--dry-run", action="store_true", help="print the commands, run nothing")
     args = parser.parse_args(argv)
