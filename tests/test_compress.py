@@ -697,3 +697,44 @@ def test_several_rates_in_one_run_give_a_file_set_and_rows_each_and_name_the_bes
         assert note.startswith("note: no rate kept PCK@0.5 within 0.02")
     status, _, err = cli_here("compress", "--rate", "0.5", "--rates", "0.3,0.5", "--model", base, "--data", data)
     assert status == 2 and "--rate and --rates both given" in err
+
+
+@pytest.mark.usefixtures("few_timed_frames")
+def test_int8_is_calibrated_on_the_fold_the_base_model_was_trained_on_without_retraining(setup, tmp_path,
+                                                                                          monkeypatch):
+    """With --retrain-epochs 0 and no --fold, the run's fold is still the base model's own (its NAME_train.json,
+    same data): the int8 file is calibrated on that fold's training frames, as its filters are scored and as a
+    retraining would train, never on the hold-out split's."""
+    import json
+    import shutil
+
+    from fcnpose_tf.compression import frames
+    from fcnpose_tf.compression.compress import compress_model
+    from fcnpose_tf.compression.options import CompressOptions
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.records import file_sha256
+
+    _, data, base_file = setup
+    base = tmp_path / "base.keras"
+    shutil.copy(base_file, base)
+    dataset = load_dataset(data)
+    (tmp_path / "base_train.json").write_text(json.dumps({"data": str(dataset.via_path), "fold": 1,
+                                                          "data_sha256": file_sha256(dataset.via_path)}))
+    _, eval_indices = dataset.split(None)  # the command's measured frames without --fold
+    seen = []
+
+    class Seen(Exception):
+        pass
+
+    def export_frames(quantize, input_size, train_dataset, train_indices, *rest, **more):
+        seen.append(np.asarray(train_indices))
+        raise Seen
+
+    monkeypatch.setattr(frames, "export_frames", export_frames)
+    options = CompressOptions(rate=0.5, retrain_epochs=0, quantize=("int8",), importance="l1", min_filters=0,
+                              qat_epochs=0, threads=1).checked(base)
+    with pytest.raises(Seen):
+        compress_model(base, dataset, dataset, [int(i) for i in eval_indices], tmp_path / "out", options)
+    expected = np.setdiff1d(dataset.split(1)[0], eval_indices)
+    assert not np.array_equal(expected, np.setdiff1d(dataset.split(None)[0], eval_indices))  # the test can fail
+    assert np.array_equal(seen[0], expected)

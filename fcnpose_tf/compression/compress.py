@@ -48,7 +48,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
 
     Args:
         base_path: the unpruned (or any) .keras/.h5 FCN-Pose.
-        train_dataset: dataset to retrain on (its hold-out split, or `options.fold`).
+        train_dataset: dataset to retrain on, score filters and calibrate int8 on (the fold `steps.retrain_fold`
+            decides: `options.fold`, else the base model's own, else the hold-out split).
         eval_dataset, eval_indices: the frames every step is measured on.
         out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite (one file per `options.quantize` format) and
             NAME_p70_report.json go.
@@ -135,13 +136,11 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     retrained, retrained_sections = retrain_step(run, pruned)
     say(f"[4/{steps}] measuring the retrained Keras model")
     retrained_step = measure_retrained(run, retrained)
-    retrain_data = retrained_sections.retrain_data
-    fold = retrain_data["fold"] if retrain_data is not None else options.fold
     files: list[TFLiteStep] = []
     refused: list[RefusedFormat] = []
     for i, quantize in enumerate(options.quantize):
         say(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
-        export, qat = export_or_refusal(run, retrained, quantize, fold, refused)
+        export, qat = export_or_refusal(run, retrained, quantize, refused)
         if export is None:
             remove_stale(run, quantize)
             continue

@@ -75,7 +75,9 @@ class Run:
 
     @functools.cached_property
     def fold(self) -> int | None:
-        """The fold the run retrains on and scores filters on (`retrain_fold`), decided once."""
+        """The fold whose training frames the run scores filters on, retrains on and calibrates int8 on
+        (`retrain_fold`), decided once: with 0 retraining epochs too, so the file is calibrated on the frames the
+        model it converts was trained on."""
         return retrain_fold(self)
 
     @property
@@ -181,13 +183,12 @@ def retrain_fold(run: Run) -> int | None:
     return record.fold if record.data_sha256 == run.data_sha256 else None
 
 
-def importance_frames(run: Run, fold: int | None) -> tuple[np.ndarray, np.ndarray]:
+def importance_frames(run: Run) -> tuple[np.ndarray, np.ndarray]:
     """The frames a data-aware criterion scores filters on: a seeded choice of `options.importance_frames` of the
-    retraining split's training frames (never the measured ones), unaugmented.
+    training frames of the run's fold (`Run.fold`; never the measured ones), unaugmented.
 
     Args:
         run: the compression run.
-        fold: the retraining fold (`retrain_fold`; None: the hold-out split).
     Returns:
         (images, target maps), float32.
     Raises:
@@ -195,7 +196,7 @@ def importance_frames(run: Run, fold: int | None) -> tuple[np.ndarray, np.ndarra
     """
     from fcnpose_tf.data.dataset import TrainingData
 
-    candidates = _training_frames(run, fold)
+    candidates = _training_frames(run)
     if not len(candidates):
         raise UserError(f"no training frames to score filters with in {run.train_dataset.via_path}")
     count = min(run.options.importance_frames, len(candidates))
@@ -203,12 +204,11 @@ def importance_frames(run: Run, fold: int | None) -> tuple[np.ndarray, np.ndarra
     return TrainingData(run.train_dataset, chosen, run.input_size, 0, run.options.seed).arrays()
 
 
-def importance_step(run: Run, fold: int | None) -> Importance:
-    """The run's filter importance criterion, with its frames when it is data-aware.
+def importance_step(run: Run) -> Importance:
+    """The run's filter importance criterion, with its frames when it is data-aware (`importance_frames`).
 
     Args:
         run: the compression run (its options name the criterion).
-        fold: the retraining fold the frames come from (`retrain_fold`).
     Returns:
         The criterion (`importance.make_importance`).
     """
@@ -219,7 +219,7 @@ def importance_step(run: Run, fold: int | None) -> Importance:
     if name not in DATA_AWARE:
         return make_importance(name)
     run.log(f"  scoring filters by {name} on up to {run.options.importance_frames} training frames ...")
-    images, maps = importance_frames(run, fold)
+    images, maps = importance_frames(run)
     return make_importance(name, images=images, maps=maps, loss=ground_truth_loss(run.options.positive_weight or 1.0),
                            batch_size=run.options.batch_size)
 
@@ -231,9 +231,9 @@ def shared_importance(run: Run, shared: SharedScoring) -> Importance:
 
     name = run.options.importance
     if name not in DATA_AWARE:
-        return importance_step(run, None)
+        return importance_step(run)
     if shared.importance is None or shared.importance.name != name:
-        shared.importance = _ScoredOnce(importance_step(run, run.fold))
+        shared.importance = _ScoredOnce(importance_step(run))
     else:
         run.log(f"  filters scored already (the first rate's {name} scores of the base model)")
     return shared.importance
@@ -343,30 +343,29 @@ def measure_retrained(run: Run, retrained: keras.Model) -> ModelStep:
                         file_sizes(retrained, keras_path))
 
 
-def _training_frames(run: Run, fold: int | None) -> np.ndarray:
-    """Indices of the retraining split's training frames that are not evaluation frames."""
-    train_indices, _ = run.train_dataset.split(fold)
+def _training_frames(run: Run) -> np.ndarray:
+    """Indices of the training frames of the run's fold (`Run.fold`) that are not evaluation frames."""
+    train_indices, _ = run.train_dataset.split(run.fold)
     if run.train_dataset is run.eval_dataset:
         train_indices = np.setdiff1d(train_indices, np.asarray(run.eval_indices, dtype=np.int64))
     return np.asarray(train_indices, dtype=np.int64)
 
 
-def _export_frames(run: Run, quantize: str, fold: int | None) -> tuple[np.ndarray, np.ndarray | None]:
+def _export_frames(run: Run, quantize: str) -> tuple[np.ndarray, np.ndarray | None]:
     from fcnpose_tf.compression.frames import export_frames
 
-    return export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run, fold), run.eval_dataset,
+    return export_frames(quantize, run.input_size, run.train_dataset, _training_frames(run), run.eval_dataset,
                          run.eval_indices, run.options.calibration_frames, run.options.seed)
 
 
-def export_step(run: Run, retrained: keras.Model, quantize: str, fold: int | None) -> TFLiteExport:
+def export_step(run: Run, retrained: keras.Model, quantize: str) -> TFLiteExport:
     """Write one TFLite file, verified against Keras on real frames (`frames.export_frames`: the
-    first evaluation frames; int8 calibrated on the retraining split's training frames).
+    first evaluation frames; int8 calibrated on the training frames of the run's fold, `Run.fold`).
 
     Args:
         run: the compression run.
         retrained: the model to convert.
         quantize: the format (`settings.TFLITE_FORMATS`).
-        fold: the retraining fold, whose training frames calibrate int8.
     Returns:
         The export (`export.TFLiteExport`).
     Raises:
@@ -374,12 +373,12 @@ def export_step(run: Run, retrained: keras.Model, quantize: str, fold: int | Non
     """
     from fcnpose_tf.compression.export import write_tflite
 
-    samples, calibration = _export_frames(run, quantize, fold)
+    samples, calibration = _export_frames(run, quantize)
     return write_tflite(retrained, run.paths[tflite_key(quantize)], quantize, force=run.force,
                         sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
 
 
-def qat_step(run: Run, retrained: keras.Model, fold: int | None) -> QATResult:
+def qat_step(run: Run, retrained: keras.Model) -> QATResult:
     """Quantization-aware training from the retrained model on the retraining's training frames, until its int8
     file passes the same gate against the retrained model (`fcnpose_tf.compression.qat`); the file is written when one
     passes.
@@ -387,7 +386,6 @@ def qat_step(run: Run, retrained: keras.Model, fold: int | None) -> QATResult:
     Args:
         run: the compression run.
         retrained: the float model the int8 file is held to.
-        fold: the retraining fold.
     Returns:
         The `qat.QATResult` (its export None when every epoch's file was refused).
     """
@@ -398,9 +396,9 @@ def qat_step(run: Run, retrained: keras.Model, fold: int | None) -> QATResult:
 
     options = run.options
     if run.fit_data is None:  # not retrained in this run (--retrain-epochs 0): the same split's frames
-        run.fit_data, _ = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
+        run.fit_data, _ = fold_data(run.train_dataset, run.fold, run.input_size, options.augment_copies, options.seed,
                                     options.augment, progress=run.reporter)
-    samples, calibration = _export_frames(run, "int8", fold)
+    samples, calibration = _export_frames(run, "int8")
 
     def convert(qat_model: keras.Model) -> Any:
         return export_tflite(qat_model, "int8", sample_frames=samples, calibration_frames=calibration,
@@ -444,8 +442,8 @@ def measure_quantized(run: Run, export: TFLiteExport, retrained_facts: ModelStep
                       metrics=measurement.metrics, timing=measurement.timing)
 
 
-def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, fold: int | None,
-                       refused: list[RefusedFormat]) -> tuple[TFLiteExport | None, dict[str, Any] | None]:
+def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, refused: list[RefusedFormat]
+                      ) -> tuple[TFLiteExport | None, dict[str, Any] | None]:
     """(the written export, the QAT facts if QAT made it), or (None, None) with the refusal appended to `refused`.
 
     A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
@@ -454,7 +452,7 @@ def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, fold: int
     from fcnpose_tf.compression.verify import ExportVerificationError
 
     try:
-        return export_step(run, retrained, quantize, fold), None
+        return export_step(run, retrained, quantize), None
     except ExportVerificationError as exc:
         ptq = {"reason": exc.reason, **exc.facts}
     run.log(f"  {quantize} refused by its gate: {ptq['reason']}")
@@ -462,7 +460,7 @@ def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, fold: int
     if quantize == FULL_INTEGER and run.options.qat_epochs > 0:
         run.log(f"  post-training int8 refused: quantization-aware training (tfmot), up to {run.options.qat_epochs} "
                 f"epoch(s) from the retrained model on the same training frames, the gate after each")
-        result = qat_step(run, retrained, fold)
+        result = qat_step(run, retrained)
         qat = {**result.to_dict(), "learning_rate": run.options.qat_learning_rate, "post_training_refused": ptq}
         if result.export is not None:
             run.log(f"  quantization-aware int8 passes the gate after {result.epochs_run} epoch(s), "
