@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from fcnpose_tf.compression.report import CompressReport, ModelStep, RefusedFormat, Retraining, TFLiteStep
+from fcnpose_tf.compression.report import (CompressReport, ModelStep, QATFacts, RefusedFormat, Retraining,
+                                           TFLiteStep)
 from fcnpose_tf.compression.summary import report_table
 from test_train_evaluate import make_via_folder
 from weights import randomize
@@ -384,10 +385,30 @@ def test_the_report_is_written_as_its_sections_in_order():
 
 def test_a_refused_format_keeps_quantization_aware_trainings_facts():
     qat = {"epochs_run": 3, "minutes": 1.5}
-    entry = RefusedFormat("int8", "after 3 epoch(s) of quantization-aware training: x", {"reason": "y"}, qat=qat)
+    entry = RefusedFormat("int8", "after 3 epoch(s) of quantization-aware training: x", {"reason": "y"},
+                          qat=QATFacts.from_json(qat))
     assert entry.to_json() == {"quantize": "int8", "status": "refused", "reason": entry.reason,
                                "post_training": {"reason": "y"}, "qat": qat}
-    assert RefusedFormat.from_json(entry.to_json()) == entry
+    assert RefusedFormat.from_json(entry.to_json()) == entry and entry.qat.epochs_run == 3
+
+
+def test_quantization_aware_trainings_facts_are_typed_and_written_as_before():
+    """A file's QAT facts read typed (`QATFacts`) and are written back with every key in its order, one unknown to
+    this version too; `QATFacts.of` writes what `QATResult.to_dict` and the run add, in that order."""
+    from fcnpose_tf.compression.qat import QATResult
+
+    written = {"passed": True, "epochs_run": 2, "seconds": 61.0, "minutes": 1.02,
+               "epochs": [{"epoch": 1, "passed": False}, {"epoch": 2, "passed": True}], "learning_rate": 1e-4,
+               "post_training_refused": {"reason": "keypoint 3 lost", "keypoints_lost_or_gained": 1}, "later": 1}
+    step = {**_step(14611, 0.9, quantize="int8", status="written", quantization="quantization-aware training")
+            .to_json(), "qat": written}
+    read = TFLiteStep.from_json(step)
+    assert read.qat.epochs_run == 2 and read.qat.post_training_refused["reason"] == "keypoint 3 lost"
+    assert read.to_json() == step and list(read.to_json()["qat"]) == list(written)
+    result = QATResult(export=None, epochs_run=1, seconds=30.04, epochs=[{"epoch": 1}], reason="still lost")
+    facts = QATFacts.of(result, 1e-4, {"reason": "lost"}).to_json()
+    assert facts == {**result.to_dict(), "learning_rate": 1e-4, "post_training_refused": {"reason": "lost"}}
+    assert list(facts) == [*result.to_dict(), "learning_rate", "post_training_refused"]
 
 
 def test_a_written_report_reads_back_older_ones_too():

@@ -196,13 +196,13 @@ def run(args: argparse.Namespace) -> int:
         if final.qat:
             qat = final.qat
             print(f"  quantization-aware training: post-training int8 was refused "
-                  f"({qat['post_training_refused']['reason']}); {qat['epochs_run']} QAT epoch(s), "
-                  f"{qat['minutes']:.1f} min, gave this file")
+                  f"({qat.post_training_refused['reason']}); {qat.epochs_run} QAT epoch(s), "
+                  f"{qat.minutes:.1f} min, gave this file")
     for entry in report.refused:
         print(f"{entry.quantize}: REFUSED, no file written: {entry.reason}")
         if entry.qat:
             print(f"  (post-training: {entry.post_training['reason']}; quantization-aware training "
-                  f"{entry.qat['epochs_run']} epoch(s), {entry.qat['minutes']:.1f} min)")
+                  f"{entry.qat.epochs_run} epoch(s), {entry.qat.minutes:.1f} min)")
     note = accuracy_note(report)
     if note:
         print(note)

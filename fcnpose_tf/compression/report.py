@@ -19,6 +19,8 @@ from fcnpose_tf.measurements import KeypointMetrics, Measurement, Timing
 if TYPE_CHECKING:
     import tf_keras as keras
 
+    from fcnpose_tf.compression.qat import QATResult
+
 @dataclass(frozen=True)
 class RefusedFormat:
     """A --quantize format whose file failed its keypoint gate: no file written, a row of the table. Written as
@@ -30,7 +32,7 @@ class RefusedFormat:
     """Why it was refused: the gate's reason (after quantization-aware training, that training's)."""
     post_training: dict[str, Any] = field(default_factory=dict)
     """The post-training file's gate: its "reason" and the facts it measured."""
-    qat: dict[str, Any] | None = None
+    qat: QATFacts | None = None
     """Quantization-aware training's facts, when it was tried (int8 with --qat-epochs above 0)."""
 
     def to_json(self) -> dict[str, Any]:
@@ -40,7 +42,8 @@ class RefusedFormat:
             {"quantize", "status": "refused", "reason", "post_training"[, "qat" when tried]}.
         """
         return {"quantize": self.quantize, "status": "refused", "reason": self.reason,
-                "post_training": self.post_training, **({"qat": self.qat} if self.qat is not None else {})}
+                "post_training": self.post_training,
+                **({"qat": self.qat.to_json()} if self.qat is not None else {})}
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> RefusedFormat:
@@ -54,7 +57,8 @@ class RefusedFormat:
             KeyError: no "quantize" or "reason".
         """
         return cls(quantize=entry["quantize"], reason=entry["reason"],
-                   post_training=entry.get("post_training") or {}, qat=entry.get("qat"))
+                   post_training=entry.get("post_training") or {},
+                   qat=QATFacts.from_json(entry["qat"]) if entry.get("qat") is not None else None)
 
 
 def _if_any() -> Any:
@@ -85,7 +89,7 @@ def _fields_json(section: Any) -> dict[str, Any]:
         elif value is None and f.metadata.get("if_any"):
             continue
         else:
-            out[f.name] = value.to_json() if isinstance(value, (KeypointMetrics, Timing)) else value
+            out[f.name] = value.to_json() if isinstance(value, (KeypointMetrics, Timing, QATFacts)) else value
     return out
 
 
@@ -103,11 +107,71 @@ def _unknown(cls: type, entry: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in entry.items() if k not in names}
 
 
+@dataclass(frozen=True, kw_only=True)
+class QATFacts:
+    """Quantization-aware training as a report records it (`TFLiteStep.qat` when it made the file, `RefusedFormat.qat`
+    when its files were refused too): written as {"passed", "epochs_run", "seconds", "minutes", "epochs"[, "reason"],
+    "learning_rate", "post_training_refused"}. A field a file did not hold is None and not written back; a key without
+    a field is kept in `extra`."""
+
+    passed: bool | None = _if_any()
+    """Whether an epoch's int8 file passed the gate."""
+    epochs_run: int | None = _if_any()
+    """Epochs trained (0: the calibrated copy passed before any training)."""
+    seconds: float | None = _if_any()
+    """Training plus the per-epoch conversions and gates, rounded to 0.1 s."""
+    minutes: float | None = _if_any()
+    """The same time in minutes, rounded to 0.01."""
+    epochs: list[dict[str, Any]] | None = _if_any()
+    """Per epoch: {"epoch", "loss", "passed", "reason" (the gate's, when refused), "max_abs_diff", ...the gate's
+    facts} (`qat.QATResult.epochs`)."""
+    reason: str | None = _if_any()
+    """The last refusal's reason when no epoch passed."""
+    learning_rate: float | None = _if_any()
+    post_training_refused: dict[str, Any] | None = _if_any()
+    """The post-training file's gate that sent the run to quantization-aware training: its "reason" and the facts it
+    measured."""
+    extra: dict[str, Any] = field(default_factory=dict, repr=False)
+
+    @classmethod
+    def of(cls, result: QATResult, learning_rate: float, post_training_refused: dict[str, Any]) -> QATFacts:
+        """The facts of one quantization-aware training.
+
+        Args:
+            result: what `qat.train_until_gate` returned.
+            learning_rate: its learning rate.
+            post_training_refused: the refused post-training file's gate (reason and facts).
+        Returns:
+            The facts (`QATResult.to_dict`'s, and these two).
+        """
+        return cls(**result.to_dict(), learning_rate=learning_rate, post_training_refused=post_training_refused)
+
+    def to_json(self) -> dict[str, Any]:
+        """The facts as the report holds them."""
+        return _fields_json(self)
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> QATFacts:
+        """The facts of a parsed report's "qat".
+
+        Args:
+            entry: the parsed JSON object; a key without a field goes to `extra`.
+        Returns:
+            The facts.
+        Raises:
+            TypeError: not a JSON object.
+        """
+        return cls(**_known(cls, entry), extra=_unknown(cls, entry))
+
+
 def _step_from_json(cls: type, entry: dict[str, Any]) -> Any:
-    """The step of a parsed report entry: "metrics" and "timing" typed, a key without a field kept in `extra`."""
+    """The step of a parsed report entry: "metrics", "timing" (and a file's "qat") typed, a key without a field kept
+    in `extra`."""
     values = _known(cls, entry)
     values["metrics"] = KeypointMetrics.from_json(entry["metrics"])
     values["timing"] = Timing.from_json(entry["timing"]) if entry.get("timing") else None
+    if values.get("qat") is not None:
+        values["qat"] = QATFacts.from_json(values["qat"])
     return cls(**values, extra=_unknown(cls, entry))
 
 
@@ -180,7 +244,7 @@ class TFLiteStep:
     """"written"."""
     quantization: str | None = _if_any()
     """"post-training" or "quantization-aware training"."""
-    qat: dict[str, Any] | None = _if_any()
+    qat: QATFacts | None = _if_any()
     """Quantization-aware training's facts when it made the file (with the post-training refusal it replaced)."""
     params: int
     macs: int

@@ -16,8 +16,8 @@ import numpy as np
 
 from fcnpose_tf.compression.methods import PruningMethod
 from fcnpose_tf.compression.options import CompressOptions, tflite_key
-from fcnpose_tf.compression.report import (ModelStep, PruningSections, RefusedFormat, RetrainSections, Retraining,
-                                           TFLiteStep, file_sizes, model_facts)
+from fcnpose_tf.compression.report import (ModelStep, PruningSections, QATFacts, RefusedFormat, RetrainSections,
+                                           Retraining, TFLiteStep, file_sizes, model_facts)
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.measurements import Measurement
 from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
@@ -414,7 +414,7 @@ def qat_step(run: Run, retrained: keras.Model) -> QATResult:
 
 
 def measure_quantized(run: Run, export: TFLiteExport, retrained_facts: ModelStep,
-                      qat: dict[str, Any] | None = None) -> TFLiteStep:
+                      qat: QATFacts | None = None) -> TFLiteStep:
     """One TFLite file measured: its format, how it was quantized, size (plain and gzip), export facts, operators,
     metrics and timing.
 
@@ -435,7 +435,7 @@ def measure_quantized(run: Run, export: TFLiteExport, retrained_facts: ModelStep
     tfl = KeypointModel(path, num_threads=run.options.threads, decoding=run.decoding)
     measurement = run.measure(tfl, f"the {export.quantize} TFLite model")
     return TFLiteStep(quantize=export.quantize, status="written",
-                      quantization="quantization-aware training" if qat else "post-training", qat=qat or None,
+                      quantization="quantization-aware training" if qat is not None else "post-training", qat=qat,
                       params=retrained_facts.params, macs=retrained_facts.macs, flops=retrained_facts.flops,
                       tflite_size_bytes=export.size_bytes, tflite_gzip_size_bytes=len(gzip.compress(export.data, 9)),
                       export=export.to_dict(), tflite_ops=tflite_info.get("op_counts", tflite_info.get("ops")),
@@ -443,11 +443,19 @@ def measure_quantized(run: Run, export: TFLiteExport, retrained_facts: ModelStep
 
 
 def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, refused: list[RefusedFormat]
-                      ) -> tuple[TFLiteExport | None, dict[str, Any] | None]:
-    """(the written export, the QAT facts if QAT made it), or (None, None) with the refusal appended to `refused`.
+                      ) -> tuple[TFLiteExport | None, QATFacts | None]:
+    """One format's file written, or its refusal recorded: a format refused by its gate is a row of the report, not
+    the end of the run. Post-training int8 refused falls back to quantization-aware training (`options.qat_epochs`
+    > 0).
 
-    A format refused by its gate is a row of the report, not the end of the run. Post-training int8 refused
-    falls back to quantization-aware training (`options.qat_epochs` > 0)."""
+    Args:
+        run: the compression run.
+        retrained: the model to convert.
+        quantize: the format.
+        refused: the run's refusals, to which this format's is appended when no file passed.
+    Returns:
+        (the written export, quantization-aware training's facts when it made the file), or (None, None).
+    """
     from fcnpose_tf.compression.export import FULL_INTEGER
     from fcnpose_tf.compression.verify import ExportVerificationError
 
@@ -461,7 +469,7 @@ def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, refused: 
         run.log(f"  post-training int8 refused: quantization-aware training (tfmot), up to {run.options.qat_epochs} "
                 f"epoch(s) from the retrained model on the same training frames, the gate after each")
         result = qat_step(run, retrained)
-        qat = {**result.to_dict(), "learning_rate": run.options.qat_learning_rate, "post_training_refused": ptq}
+        qat = QATFacts.of(result, run.options.qat_learning_rate, ptq)
         if result.export is not None:
             run.log(f"  quantization-aware int8 passes the gate after {result.epochs_run} epoch(s), "
                     f"{result.seconds / 60:.1f} min")
