@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from fcnpose_tf.compression.options import OutputFiles
     from fcnpose_tf.compression.report import CompressReport
 
 NAME = "compress"
@@ -144,8 +145,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails
-        for each in every:
-            check_outputs(model_path, args.out_dir, each, args.force)  # before the data is prepared
+        outputs = [check_outputs(model_path, args.out_dir, each, args.force) for each in every]  # before the data
         set_tensorflow_threads(args.threads)
         if args.data is None:
             args.data = default_data(model_path)
@@ -168,10 +168,10 @@ def run(args: argparse.Namespace) -> int:
         shared = SharedScoring()  # --rates: the base model measured and its filters scored once
         reports = [compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, each,
                                   force=args.force, eval_description=description, metadata={"preset": args.preset},
-                                  shared=shared)
-                   for each in every]
+                                  shared=shared, outputs=files)
+                   for each, files in zip(every, outputs)]
     if len(reports) > 1:
-        return _several_rates(reports, model_path, args.out_dir, every, named, description)
+        return _several_rates(reports, outputs, named, description)
     report = reports[0]
     threads = args.threads if args.threads is not None else f"all {available_cores()}"
     print(f"\nCompression at rate {args.rate:g} ({report.recipe}); measured on {description}; "
@@ -206,10 +206,10 @@ def run(args: argparse.Namespace) -> int:
     note = accuracy_note(report)
     if note:
         print(note)
-    return _finish(report, model_path, args.out_dir, options, named)
+    return _finish(report, outputs[0], named)
 
 
-def _several_rates(reports: list, model_path: Path, out_dir: Path, every: list, named: bool, description: str) -> int:
+def _several_rates(reports: list, outputs: list, named: bool, description: str) -> int:
     """`--rates`: one table of every rate's rows, the best rate within the PCK budget named, every file named."""
     from fcnpose_tf.compression.summary import best_rate_note, rates_table
 
@@ -219,19 +219,18 @@ def _several_rates(reports: list, model_path: Path, out_dir: Path, every: list, 
     print(rates_table(reports))
     print(best_rate_note(reports))
     status = 0
-    for report, options in zip(reports, every):
-        status = max(status, _finish(report, model_path, out_dir, options, named))
+    for report, files in zip(reports, outputs):
+        status = max(status, _finish(report, files, named))
     return status
 
 
-def _finish(report: CompressReport, model_path: Path, out_dir: Path, options, named: bool) -> int:
+def _finish(report: CompressReport, outputs: OutputFiles, named: bool) -> int:
     """Name every file written; the exit status (see the module doc): 2 when a named format was refused or no
     .tflite file was written, else 0."""
-    from fcnpose_tf.compression.options import output_paths
     from fcnpose_tf.compression.export import finish_formats
 
     written = [Path(p) for p in report.files.values()]
-    written += [p for p in output_paths(model_path, out_dir, options) if p.is_file() and p not in written
+    written += [p for p in outputs.every if p.is_file() and p not in written
                 and p.suffix != ".tflite"]  # the retraining's record and loss curves
     return finish_formats(written, [entry.quantize for entry in report.refused], report.quantized is not None, named)
 

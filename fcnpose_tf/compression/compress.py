@@ -28,7 +28,7 @@ from typing import Any, Sequence
 
 from fcnpose_tf import progress, settings
 from fcnpose_tf.compression.methods import pruning_method
-from fcnpose_tf.compression.options import CompressOptions, output_names, tflite_key
+from fcnpose_tf.compression.options import CompressOptions, OutputFiles, output_files
 from fcnpose_tf.compression.report import CompressReport, RefusedFormat, TFLiteStep, _check_metadata
 from fcnpose_tf.compression.steps import (Run, SharedScoring, export_or_refusal, measure_base, measure_quantized,
                                           measure_retrained, prune_step, remove_stale, retrain_step, shared_importance)
@@ -43,7 +43,8 @@ from fcnpose_tf.fileio import write_json
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
                    out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
                    eval_description: str = "", reporter: Reporter | None = None,
-                   metadata: dict[str, Any] | None = None, shared: SharedScoring | None = None) -> CompressReport:
+                   metadata: dict[str, Any] | None = None, shared: SharedScoring | None = None,
+                   outputs: OutputFiles | None = None) -> CompressReport:
     """Prune, retrain, export and measure one model at one rate; write the files; return the report.
 
     Args:
@@ -64,6 +65,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         shared: the base model's measurement and filter scores shared by several rates of the same base model
             and frames (`compress --rates`): the first call fills it, the next ones read it instead of measuring
             and scoring again.
+        outputs: the run's files as the caller's check named them (`options.check_outputs`); None: named here.
     Returns:
         The `CompressReport` (its `to_json()` written as NAME_pXX_report.json). Its `quantized` is the
         first TFLite file written (the paper's float16 by default; None if every format was refused),
@@ -86,8 +88,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     start = time.perf_counter()
     reporter = progress.resolve(reporter)
     say = reporter.say
-    names = output_names(base_path.stem, options)
-    paths = {k: Path(out_dir) / v for k, v in names.items() if k != "stem"}
+    outputs = outputs if outputs is not None else output_files(base_path, out_dir, options)
     base = load_model(base_path)
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
@@ -104,7 +105,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
                        branches=architecture != "fcn-pose")
     method = pruning_method(options, plan, base_path, architecture, reporter)
     options = replace(options, start=method.start_name)
-    run = Run(base_path, base, method, options, paths, train_dataset, eval_dataset, eval_indices, force, reporter,
+    run = Run(base_path, base, method, options, outputs, train_dataset, eval_dataset, eval_indices, force, reporter,
               options.recipe(plan.floor))
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
@@ -146,7 +147,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             continue
         say(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
         files.append(measure_quantized(run, export, retrained_step, qat))
-    written = {tflite_key(f.quantize) for f in files}
+    refused_files = {outputs.tflite[entry.quantize] for entry in refused}
     report = CompressReport(
         base_model=str(base_path), method=options.method, recipe=run.recipe, options=asdict(options),
         evaluation_frames=eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
@@ -155,7 +156,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         **vars(retrained_sections), retrained=retrained_step,
         # the first file written (the paper's float16 by default), None when every format was refused
         quantized=files[0] if files else None, other_quantized=files[1:], refused=refused,
-        files={k: str(v) for k, v in paths.items() if not k.startswith("tflite_") or k in written},
+        files={key: str(path) for key, path in outputs.paths.items() if path not in refused_files},
         seconds=round(time.perf_counter() - start, 1))
-    write_json(paths["report"], report.to_json(), force=force)
+    write_json(outputs.paths["report"], report.to_json(), force=force)
     return report

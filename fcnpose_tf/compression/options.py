@@ -1,13 +1,13 @@
 """What a compression run is asked to do: `CompressOptions` (resolved and validated once) and the files it writes.
 
-The options are the `compress` command's settings (`fcnpose_tf.settings`), the same for `sweep`; `output_names`
-and `output_paths` name every file a run writes, so a command can refuse an existing one before any work.
+The options are the `compress` command's settings (`fcnpose_tf.settings`), the same for `sweep`; `output_files` names
+every file a run writes (`OutputFiles`), once, so a command can refuse an existing one before any work.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -226,8 +226,46 @@ def output_names(base_name: str, options: CompressOptions) -> dict[str, str]:
             "report": f"{stem}_report.json"}
 
 
-def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
+@dataclass(frozen=True)
+class OutputFiles:
+    """Every file one run writes, named once (`output_files`): the command refuses an existing one with it before any
+    work (`check_outputs`) and names the files kept with it at the end; every step of the run writes to it."""
+
+    stem: str
+    """NAME_p70 (NAME_p70_192 with --input-size 192)."""
+    paths: dict[str, Path]
+    """Key -> path, the report's "files" keys in order: "keras", one `tflite_key` per format, "report"."""
+    tflite: dict[str, Path]
+    """Format -> its .tflite (the same paths)."""
+    side: tuple[Path, ...] = ()
+    """The retraining's record and loss curves (none with 0 retraining epochs)."""
+
+    @property
+    def every(self) -> list[Path]:
+        """The models, the report, then the side files."""
+        return [*self.paths.values(), *self.side]
+
+
+def output_files(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> OutputFiles:
     """Every file a run writes into `out_dir`: the models, the report and (when retraining) the training side files.
+
+    Args:
+        base_path: the model being compressed.
+        out_dir: the folder the files go to.
+        options: the run's options.
+    Returns:
+        The run's `OutputFiles`.
+    """
+    from fcnpose_tf.training.train import output_files as training_files
+
+    names = output_names(Path(base_path).stem, options)
+    paths = {key: Path(out_dir) / name for key, name in names.items() if key != "stem"}
+    side = [p for p in training_files(paths["keras"]) if p not in paths.values()] if options.retrain_epochs > 0 else []
+    return OutputFiles(names["stem"], paths, {q: paths[tflite_key(q)] for q in options.quantize}, tuple(side))
+
+
+def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
+    """Every file a run writes into `out_dir` (`output_files(...).every`).
 
     Args:
         base_path: the model being compressed.
@@ -236,17 +274,11 @@ def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, optio
     Returns:
         The paths.
     """
-    from fcnpose_tf.training.train import output_files
-
-    names = output_names(Path(base_path).stem, options)
-    paths = [Path(out_dir) / name for key, name in names.items() if key != "stem"]
-    if options.retrain_epochs > 0:
-        paths += [p for p in output_files(paths[0]) if p not in paths]
-    return paths
+    return output_files(base_path, out_dir, options).every
 
 
 def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions,
-                  force: bool = False) -> None:
+                  force: bool = False) -> OutputFiles:
     """Refuse before any work a run whose files cannot be written.
 
     Args:
@@ -254,10 +286,12 @@ def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, opti
         out_dir: the folder the files go to.
         options: the run's options.
         force: existing files may be replaced.
+    Returns:
+        The run's files (`output_files`), for `compress_model` and the command's last lines.
     Raises:
         UserError: a file the run will write exists (without `force`) or cannot be written.
     """
-    for path in output_paths(base_path, out_dir, options):
+    files = output_files(base_path, out_dir, options)
+    for path in files.every:
         check_writable(path, force)
-
-
+    return files

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 import numpy as np
 
 from fcnpose_tf.compression.methods import PruningMethod
-from fcnpose_tf.compression.options import CompressOptions, tflite_key
+from fcnpose_tf.compression.options import CompressOptions, OutputFiles
 from fcnpose_tf.compression.report import (ModelStep, PruningSections, QATFacts, RefusedFormat, RetrainSections,
                                            Retraining, TFLiteStep, file_sizes, model_facts)
 from fcnpose_tf.errors import UserError
@@ -58,7 +58,7 @@ class Run:
     base: keras.Model
     method: PruningMethod
     options: CompressOptions
-    paths: dict[str, Path]
+    files: OutputFiles
     train_dataset: Any
     eval_dataset: Any
     eval_indices: Sequence[int]
@@ -270,7 +270,7 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
     from fcnpose_tf.training.model import load_model, save_for_inference
     from fcnpose_tf.training.train import fit
 
-    options, keras_path = run.options, run.paths["keras"]
+    options, keras_path = run.options, run.files.paths["keras"]
     if options.retrain_epochs == 0:
         with atomic_path(keras_path, run.force) as tmp:
             save_for_inference(pruned, tmp)
@@ -337,7 +337,7 @@ def measure_retrained(run: Run, retrained: keras.Model) -> ModelStep:
     Returns:
         The report's "retrained" step.
     """
-    keras_path = run.paths["keras"]
+    keras_path = run.files.paths["keras"]
     return ModelStep.of(model_facts(retrained),
                         run.measure(run.keras_predictor(retrained, keras_path), "the retrained model (Keras)"),
                         file_sizes(retrained, keras_path))
@@ -374,7 +374,7 @@ def export_step(run: Run, retrained: keras.Model, quantize: str) -> TFLiteExport
     from fcnpose_tf.compression.export import write_tflite
 
     samples, calibration = _export_frames(run, quantize)
-    return write_tflite(retrained, run.paths[tflite_key(quantize)], quantize, force=run.force,
+    return write_tflite(retrained, run.files.tflite[quantize], quantize, force=run.force,
                         sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
 
 
@@ -409,7 +409,7 @@ def qat_step(run: Run, retrained: keras.Model) -> QATResult:
                               learning_rate=options.qat_learning_rate, seed=options.seed,
                               reporter=run.reporter)
     if result.export is not None:
-        write_bytes(run.paths[tflite_key("int8")], result.export.data, run.force)
+        write_bytes(run.files.tflite["int8"], result.export.data, run.force)
     return result
 
 
@@ -430,7 +430,7 @@ def measure_quantized(run: Run, export: TFLiteExport, retrained_facts: ModelStep
     from fcnpose_tf.compression.tflite_file import inspect_tflite
     from fcnpose_tf.runtime.estimator import KeypointModel
 
-    path = run.paths[tflite_key(export.quantize)]
+    path = run.files.tflite[export.quantize]
     tflite_info = inspect_tflite(path)
     tfl = KeypointModel(path, num_threads=run.options.threads, decoding=run.decoding)
     measurement = run.measure(tfl, f"the {export.quantize} TFLite model")
@@ -482,7 +482,7 @@ def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, refused: 
 
 def remove_stale(run: Run, quantize: str) -> None:
     """With --force, an earlier run's file of a format this run refused goes: it is not this model's."""
-    path = run.paths[tflite_key(quantize)]
+    path = run.files.tflite[quantize]
     if run.force and path.is_file():
         path.unlink()
         run.log(f"  removed {path}: an earlier file of the format this run refused")
