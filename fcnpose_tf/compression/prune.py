@@ -258,13 +258,15 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
         importance: the criterion scoring each filter (`fcnpose_tf.compression.importance`); default the L1 norm.
         min_filters: no layer narrower than this (all its filters if it has fewer), the parameter budget
             of `rate` kept by pruning the other layers harder (`floored_widths`); 0 is the paper's rule.
-        widths: the model's `plan_widths` at `rate` and `min_filters` when the caller has it (not computed again).
+        widths: the model's `plan_widths` at `rate` and `min_filters` when the caller has it (not computed again, and
+            the chain it checked not checked again).
     Returns:
         Layer name -> sorted kept filter indices, for every Conv2D in order. The output layer (the
         last Conv2D) keeps all its filters.
     Raises:
         UserError: for a bad rate or strategy, a greedy strategy with a data-aware criterion, or a
             model that is not a plain chain of supported layers.
+        ValueError: `widths` planned for a model with another number of Conv2D layers.
     """
     if strategy not in STRATEGIES:
         raise UserError(f"pruning strategy must be one of {', '.join(STRATEGIES)}, got {strategy!r}")
@@ -273,9 +275,11 @@ def prune_plan(model: keras.Model, rate: Rate, *, strategy: str = "independent",
     if greedy and not hasattr(importance, "filter_scores"):
         raise UserError(f"the greedy strategy ranks kernels without the removed input channels; the "
                         f"{importance.name} criterion does not rank kernels (use --strategy independent)")
-    counts = (widths or plan_widths(model, rate, min_filters)).pruned_widths
-    layers = _chain(model)
-    convs = [layer for layer in layers if type(layer) is keras.layers.Conv2D]
+    # the chain is checked once, by its plan: the caller's (`plan_widths` of this model), or the one made here
+    counts = (widths or plan_widths(model, rate, min_filters, branches=False)).pruned_widths
+    convs = [layer for layer in model.layers if type(layer) is keras.layers.Conv2D]
+    if len(convs) != len(counts) + 1:
+        raise ValueError(f"a plan of {len(counts) + 1} Conv2D layers for model {model.name}, which has {len(convs)}")
     scores = None if greedy else importance(model)
     plan: dict[str, np.ndarray] = {}
     kept_in: np.ndarray | None = None  # input channels of the next Conv2D that survive
