@@ -57,11 +57,22 @@ class Context:
     """What a rule needs from the graph being built: new channels and the coupling of two maps."""
 
     def new_channels(self, layer: Any, count: int) -> np.ndarray:
-        """A map of `count` new channels produced by `layer`."""
+        """A map of `count` new channels produced by `layer`.
+
+        Args:
+            layer: the layer making them (a `Producer`'s).
+            count: how many.
+        Returns:
+            The map: one new channel id per position.
+        """
         raise NotImplementedError
 
     def couple(self, first: np.ndarray, second: np.ndarray) -> None:
-        """Channels at the same position of the two maps are removed together."""
+        """Channels at the same position of the two maps are removed together.
+
+        Args:
+            first, second: two channel maps of the same length (a merge's inputs).
+        """
         raise NotImplementedError
 
 
@@ -71,7 +82,15 @@ class Rule:
     kind = "pass-through"
 
     def check(self, layer: Any, in_shapes: Sequence[tuple], out_shape: tuple) -> None:
-        """Raise `unsupported` for a setting the rule cannot handle."""
+        """Refuse a setting of the layer the rule cannot handle.
+
+        Args:
+            layer: the layer.
+            in_shapes: its input shapes (batch axis first).
+            out_shape: its output shape.
+        Raises:
+            UserError: `unsupported`'s, naming the layer and the setting.
+        """
         if getattr(layer, "data_format", "channels_last") != "channels_last":
             raise unsupported(layer, "channels_first data format")
         if len(in_shapes) != 1:
@@ -79,25 +98,70 @@ class Rule:
 
     def output_map(self, layer: Any, in_maps: list[np.ndarray], in_shapes: Sequence[tuple],
                    out_shape: tuple, context: Context) -> np.ndarray:
-        """The output's channel map."""
+        """The output's channel map: which channel every output position carries.
+
+        Args:
+            layer: the layer.
+            in_maps: its inputs' channel maps.
+            in_shapes: its input shapes.
+            out_shape: its output shape.
+            context: the graph being built (new channels, coupling).
+        Returns:
+            The output's map.
+        """
         return in_maps[0]
 
     def mixes_channels(self, layer: Any, in_shapes: Sequence[tuple]) -> bool:
-        """True if the layer mixes its output channels (so none of them may be removed)."""
+        """Whether the layer mixes its output channels (so none of them may be removed).
+
+        Args:
+            layer: the layer.
+            in_shapes: its input shapes.
+        Returns:
+            True for a mixing layer (a softmax over the channels, for one).
+        """
         return False
 
     def slice_weights(self, layer: Any, weights: list[np.ndarray], kept_in: list[np.ndarray],
                       kept_out: np.ndarray) -> list[np.ndarray]:
-        """The layer's weights for the kept input positions and kept output positions."""
+        """The layer's weights for the kept input positions and kept output positions.
+
+        Args:
+            layer: the layer.
+            weights: its weights (`get_weights()`).
+            kept_in: per input, the positions kept.
+            kept_out: the output positions kept.
+        Returns:
+            The sliced weights, in `get_weights()` order.
+        """
         return weights
 
     def new_config(self, layer: Any, config: dict, kept_in: list[np.ndarray], kept_out: np.ndarray) -> dict:
-        """The layer's config after the surgery."""
+        """The layer's config after the surgery.
+
+        Args:
+            layer: the layer.
+            config: its `get_config()` (changed in place).
+            kept_in: per input, the positions kept.
+            kept_out: the output positions kept.
+        Returns:
+            The config to rebuild it with.
+        """
         return config
 
     def macs(self, layer: Any, in_shapes: Sequence[tuple], out_shape: tuple, widths_in: list[int],
              width_out: int) -> int | None:
-        """Multiply-accumulates per sample at these widths (None if a spatial size is unknown)."""
+        """Multiply-accumulates per sample at these widths.
+
+        Args:
+            layer: the layer.
+            in_shapes: its input shapes.
+            out_shape: its output shape.
+            widths_in: channels of each input.
+            width_out: channels of the output.
+        Returns:
+            The count, None if a spatial size is unknown.
+        """
         return 0
 
 
@@ -244,7 +308,13 @@ class Producer(Rule):
         self.kind = kind
 
     def width(self, layer) -> int:
-        """The layer's filter (unit) count."""
+        """The layer's filter (unit) count.
+
+        Args:
+            layer: the layer.
+        Returns:
+            `units` for a Dense layer, else `filters`.
+        """
         return int(layer.units if self.kind == "dense" else layer.filters)
 
     def check(self, layer, in_shapes, out_shape):
@@ -259,7 +329,13 @@ class Producer(Rule):
         return _activation_mixes(layer.activation)
 
     def filter_kernel(self, weights: list[np.ndarray]) -> np.ndarray:
-        """The kernel that holds the filters, with the filter axis last."""
+        """The kernel that holds the filters, with the filter axis last.
+
+        Args:
+            weights: the layer's weights (`get_weights()`).
+        Returns:
+            The kernel (a separable convolution's pointwise one).
+        """
         if self.kind == "transpose":  # (kh, kw, filters, cin)
             return np.moveaxis(weights[0], 2, 3)
         if self.kind == "separable":  # depthwise (kh, kw, cin, dm), pointwise (1, 1, cin * dm, filters)

@@ -193,11 +193,22 @@ class DependencyGraph(Context):
 
     # Context, for the rules
     def new_channels(self, layer: Any, count: int) -> np.ndarray:
-        """Number `count` new channels made by `layer` (a rule's producer); returns their graph-wide numbers."""
+        """Number `count` new channels made by `layer` (a rule's producer); returns their graph-wide numbers.
+
+        Args:
+            layer: the layer making them.
+            count: how many.
+        Returns:
+            Their numbers (`Context.new_channels`).
+        """
         return self._new(layer.name, count)
 
     def couple(self, first: np.ndarray, second: np.ndarray) -> None:
-        """Join the channels of `first` and `second` pairwise into the same groups (a merge's inputs)."""
+        """Join the channels of `first` and `second` pairwise into the same groups (a merge's inputs).
+
+        Args:
+            first, second: two channel maps of the same length.
+        """
         for a, b in zip(first.tolist(), second.tolist()):
             ra, rb = self._root(a), self._root(b)
             if ra != rb:

@@ -103,7 +103,12 @@ class TFLiteExport:
         return len(self.data)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready summary (without the bytes)."""
+        """JSON-ready summary (without the bytes).
+
+        Returns:
+            {"quantize", "input_shape", "size_bytes", "convert_seconds", "verify_seconds", "parity", "graph_rewrites",
+            "calibration_frames"} (the report's "export").
+        """
         return {"quantize": self.quantize, "input_shape": list(self.input_shape), "size_bytes": self.size_bytes,
                 "convert_seconds": round(self.convert_seconds, 3), "verify_seconds": round(self.verify_seconds, 3),
                 "parity": self.parity.to_dict(), "graph_rewrites": list(self.graph_rewrites),

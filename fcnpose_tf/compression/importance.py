@@ -98,7 +98,11 @@ class WeightNorm:
         return {conv.name: self.filter_scores(conv.get_weights()[0]) for conv in _convolutions(model)}
 
     def describe(self) -> CriterionFacts:
-        """What the report records about the criterion: {"importance": "l1" or "l2"}."""
+        """What the report records about the criterion: {"importance": "l1" or "l2"}.
+
+        Returns:
+            The `CriterionFacts`.
+        """
         return {"importance": self.name}
 
 

@@ -52,9 +52,23 @@ class DepthToSpace(keras.layers.Layer):
         self.block_size = int(block_size)
 
     def call(self, inputs):
+        """Keras's forward pass.
+
+        Args:
+            inputs: N x H x W x (C * block_size**2).
+        Returns:
+            N x (H * block_size) x (W * block_size) x C.
+        """
         return tf.nn.depth_to_space(inputs, self.block_size)
 
     def compute_output_shape(self, input_shape):
+        """Keras's shape inference.
+
+        Args:
+            input_shape: N x H x W x C (sides may be None).
+        Returns:
+            N x (H * block_size) x (W * block_size) x (C / block_size**2).
+        """
         b = self.block_size
         n, h, w, c = tf.TensorShape(input_shape).as_list()
         return tf.TensorShape([n, None if h is None else h * b, None if w is None else w * b, c // (b * b)])

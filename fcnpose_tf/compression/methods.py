@@ -136,7 +136,11 @@ class FilterPruning:
         return self.start is not None
 
     def describe(self) -> str:
-        """The progress line's words: the rate, the floor, and the criterion or the pruned start."""
+        """The progress line's words: the rate, the floor, and the criterion or the pruned start.
+
+        Returns:
+            The words (`PruningMethod.describe`).
+        """
         floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
         if self.start is not None:
             return f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
@@ -188,11 +192,21 @@ class FilterPruning:
                                                 "min_filters": self.min_filters})
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
-        """Retrain the pruned network itself (`fit_fn(pruned)`); `base` is not used."""
+        """Retrain the pruned network itself (`fit_fn(pruned)`); `base` is not used.
+
+        Args:
+            base: not used.
+            pruned: the network `prune` returned.
+            fit_fn: the run's retraining.
+        """
         fit_fn(pruned)
 
     def training_record(self) -> MethodRecord:
-        """The rate, the strategy (or the pruned start), min_filters (the plan's floor) and the criterion's facts."""
+        """The rate, the strategy (or the pruned start), min_filters (the plan's floor) and the criterion's facts.
+
+        Returns:
+            The `MethodRecord`.
+        """
         start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
         return {"rate": self.rate, **start, "min_filters": self.min_filters, **(self.criterion_facts or {})}
 
@@ -214,7 +228,11 @@ class MagnitudePruning:
         self.sparsity = 0.0
 
     def describe(self) -> str:
-        """The progress line's words: "magnitude at rate R"."""
+        """The progress line's words: "magnitude at rate R".
+
+        Returns:
+            The words (`PruningMethod.describe`).
+        """
         return f"magnitude at rate {self.rate:g}"
 
     def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
@@ -233,7 +251,13 @@ class MagnitudePruning:
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         """Retrain `base` under the masks `prune` computed (tfmot keeps them while `fit_fn` trains; the file saved is
-        stripped of the wrappers); `pruned` is not used: the masks are made again from `base`'s weights."""
+        stripped of the wrappers); `pruned` is not used: the masks are made again from `base`'s weights.
+
+        Args:
+            base: the unpruned model, wrapped and retrained under the masks.
+            pruned: not used.
+            fit_fn: the run's retraining.
+        """
         import tensorflow_model_optimization as tfmot
 
         from fcnpose_tf.compression.magnitude import magnitude_prune
@@ -243,7 +267,11 @@ class MagnitudePruning:
             wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
 
     def training_record(self) -> MethodRecord:
-        """The rate, the method ("magnitude") and the sparsity."""
+        """The rate, the method ("magnitude") and the sparsity.
+
+        Returns:
+            The `MethodRecord`.
+        """
         return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
 
 

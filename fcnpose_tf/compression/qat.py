@@ -75,7 +75,11 @@ class QATResult:
     refusal_facts: dict[str, Any] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready (without the file's bytes): passed, epochs_run, seconds, minutes, per-epoch gates."""
+        """JSON-ready (without the file's bytes): passed, epochs_run, seconds, minutes, per-epoch gates.
+
+        Returns:
+            {"passed", "epochs_run", "seconds", "minutes", "epochs"[, "reason" when no epoch passed]}.
+        """
         return {"passed": self.export is not None, "epochs_run": self.epochs_run, "seconds": round(self.seconds, 1),
                 "minutes": round(self.seconds / 60, 2), "epochs": self.epochs,
                 **({"reason": self.reason} if self.reason else {})}

@@ -147,7 +147,11 @@ class QATFacts:
         return cls(**result.to_dict(), learning_rate=learning_rate, post_training_refused=post_training_refused)
 
     def to_json(self) -> dict[str, Any]:
-        """The facts as the report holds them."""
+        """The facts as the report holds them.
+
+        Returns:
+            Its fields in order, those a file did not hold left out, then `extra`'s keys.
+        """
         return _fields_json(self)
 
     @classmethod
@@ -213,7 +217,12 @@ class ModelStep:
         return Measurement(self.metrics, self.timing)
 
     def to_json(self) -> dict[str, Any]:
-        """The step as the report holds it."""
+        """The step as the report holds it.
+
+        Returns:
+            Its fields in order (metrics and timing by their `to_json`), those it does not have left out, then `extra`'s
+            keys.
+        """
         return _fields_json(self)
 
     @classmethod
@@ -266,7 +275,11 @@ class TFLiteStep:
         return ParityReport.from_dict(parity) if parity is not None else None
 
     def to_json(self) -> dict[str, Any]:
-        """The step as the report holds it."""
+        """The step as the report holds it.
+
+        Returns:
+            As `ModelStep.to_json`'s: its fields in order, those it does not have left out, then `extra`'s keys.
+        """
         return _fields_json(self)
 
     @classmethod
@@ -305,7 +318,11 @@ class Retraining:
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
 
     def to_json(self) -> dict[str, Any]:
-        """The section as the report holds it."""
+        """The section as the report holds it.
+
+        Returns:
+            Its fields in order (start_kept only for a pruned start's run), then `extra`'s keys.
+        """
         return _fields_json(self)
 
     @classmethod
@@ -404,7 +421,11 @@ class CompressReport:
 
     def to_json(self) -> dict[str, Any]:
         """The report as NAME_pXX_report.json holds it: the fields in order, `metadata`'s keys in its place, a
-        section only some runs have left out when None."""
+        section only some runs have left out when None.
+
+        Returns:
+            NAME_pXX_report.json's object: its sections in order, the metadata's keys among them.
+        """
         report: dict[str, Any] = {}
         for f in fields(self):
             value = getattr(self, f.name)

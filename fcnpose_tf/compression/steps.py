@@ -105,7 +105,11 @@ class Run:
         return Decoding(centroid=self.options.centroid)
 
     def log(self, line: str) -> None:
-        """One progress line of the run (`reporter.say`)."""
+        """One progress line of the run (`reporter.say`).
+
+        Args:
+            line: the line.
+        """
         self.reporter.say(line)
 
     def keras_predictor(self, model: keras.Model, path: Path | None = None) -> KerasKeypointModel:
@@ -226,7 +230,14 @@ def importance_step(run: Run) -> Importance:
 
 def shared_importance(run: Run, shared: SharedScoring) -> Importance:
     """The run's criterion; a data-aware one scores the base model once for every rate that shares `shared` (the
-    weight norms read the kernels, as cheap as a lookup, and the greedy strategy ranks pruned kernels with them)."""
+    weight norms read the kernels, as cheap as a lookup, and the greedy strategy ranks pruned kernels with them).
+
+    Args:
+        run: the compression run.
+        shared: what the rates of one base model share.
+    Returns:
+        The criterion (`importance_step`'s, scored once when data-aware).
+    """
     from fcnpose_tf.compression.importance import DATA_AWARE
 
     name = run.options.importance
@@ -481,7 +492,12 @@ def export_or_refusal(run: Run, retrained: keras.Model, quantize: str, refused: 
 
 
 def remove_stale(run: Run, quantize: str) -> None:
-    """With --force, an earlier run's file of a format this run refused goes: it is not this model's."""
+    """With --force, an earlier run's file of a format this run refused goes: it is not this model's.
+
+    Args:
+        run: the compression run.
+        quantize: the refused format.
+    """
     path = run.files.tflite[quantize]
     if run.force and path.is_file():
         path.unlink()

@@ -326,7 +326,11 @@ class OutputParity:
     min_top1_share: float = 1.0
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready, stable keys."""
+        """JSON-ready, stable keys.
+
+        Returns:
+            The fields in order (export_generic's "parity").
+        """
         return asdict(self)
 
 

@@ -108,7 +108,11 @@ class ThreadResult:
         return 100.0 * (self.preprocess["mean"] + self.postprocess["mean"]) / total
 
     def to_dict(self) -> dict[str, Any]:
-        """The row as the bench report's JSON holds it (stable keys, units in the names; NaN written as null)."""
+        """The row as the bench report's JSON holds it (stable keys, units in the names; NaN written as null).
+
+        Returns:
+            The row's keys in order.
+        """
         def clean(d):
             return {k: (round(v, 4) if np.isfinite(v) else None) for k, v in d.items()}
 
@@ -202,7 +206,11 @@ class BenchReport:
         return "\n".join([self.header(), "", self.table(markdown), ""] + notes)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict with stable keys and units in the key names."""
+        """JSON-ready dict with stable keys and units in the key names.
+
+        Returns:
+            The report's object.
+        """
         return {"model": self.model, "size_bytes": self.size_bytes, "params": self.params, "macs": self.macs,
                 "weight_dtypes": list(self.weight_dtypes), "input_shape": list(self.input_shape),
                 "output_shape": list(self.output_shape), "backend": self.backend,

@@ -209,7 +209,11 @@ class KeypointPredictor(abc.ABC):
                 f"{self.num_maps} maps{self._crop_words()}), {self.backend_label}, {threads}")
 
     def run_note(self) -> str | None:
-        """A line for a run's summary on how its frames were read (`runtime.tracking`); None: nothing to add."""
+        """A line for a run's summary on how its frames were read (`runtime.tracking`); None: nothing to add.
+
+        Returns:
+            The line, or None.
+        """
         return None
 
     def _crop_words(self) -> str:

@@ -189,7 +189,13 @@ class TensorSpec:
     @classmethod
     def from_details(cls, details: dict) -> "TensorSpec":
         """The spec of one entry of the interpreter's `get_input_details()` / `get_output_details()` (no
-        quantization: scale 0, zero point 0)."""
+        quantization: scale 0, zero point 0).
+
+        Args:
+            details: one entry of those lists.
+        Returns:
+            The spec.
+        """
         scale, zero = details.get("quantization", (0.0, 0)) or (0.0, 0)
         return cls(int(details["index"]), str(details.get("name", "")), tuple(int(d) for d in details["shape"]),
                    np.dtype(details["dtype"]), float(scale), int(zero))
@@ -314,7 +320,11 @@ class ModelStats:
     op_counts: dict[str, int]
 
     def to_dict(self) -> dict:
-        """The costs as reports hold them: params, macs, size_bytes, weight_dtypes, conv_layers, op_counts."""
+        """The costs as reports hold them: params, macs, size_bytes, weight_dtypes, conv_layers, op_counts.
+
+        Returns:
+            The object.
+        """
         return {"params": self.params, "macs": self.macs, "size_bytes": self.size_bytes,
                 "weight_dtypes": list(self.weight_dtypes), "conv_layers": self.conv_layers,
                 "op_counts": dict(self.op_counts)}

@@ -293,7 +293,11 @@ class RollingFps:
         self._sum = 0.0
 
     def add(self, ms: float) -> None:
-        """Add one frame's end-to-end model time (ms); the oldest leaves a full window."""
+        """Add one frame's end-to-end model time (ms); the oldest leaves a full window.
+
+        Args:
+            ms: the frame's time in milliseconds.
+        """
         if len(self._ms) == self._ms.maxlen:
             self._sum -= self._ms[0]
         self._ms.append(ms)

@@ -92,7 +92,11 @@ class FrameSource:
         self.close()
 
     def describe(self) -> str:
-        """One line for the run's summary: the kind of source and its name."""
+        """One line for the run's summary: the kind of source and its name.
+
+        Returns:
+            The line.
+        """
         return f"{self.kind} {self.name}"
 
 
@@ -117,7 +121,11 @@ class ImageSource(FrameSource):
         self.end_reason = f"read {len(self.paths) - self.skipped} of {len(self.paths)} images"
 
     def describe(self) -> str:
-        """One line for the run's summary: "N images from NAME"."""
+        """One line for the run's summary: "N images from NAME".
+
+        Returns:
+            The line.
+        """
         return f"{len(self.paths)} image{'s' if len(self.paths) != 1 else ''} from {self.name}"
 
 
@@ -203,7 +211,11 @@ class VideoSource(FrameSource):
             self._native_sink = None
 
     def describe(self) -> str:
-        """One line for the run's summary: "video NAME (N frames, F fps)"."""
+        """One line for the run's summary: "video NAME (N frames, F fps)".
+
+        Returns:
+            The line.
+        """
         n = f"{self.frame_count} frames" if self.frame_count else "unknown length"
         rate = f", {self.fps:g} fps" if self.fps else ""
         return f"video {self.name} ({n}{rate})"
@@ -484,7 +496,11 @@ class Picamera2Source(LiveSource):
                 pass
 
     def describe(self) -> str:
-        """One line for the run's summary: the camera, its size and pixel format."""
+        """One line for the run's summary: the camera, its size and pixel format.
+
+        Returns:
+            The line.
+        """
         return f"{self.name} ({self.size[0]}x{self.size[1]} RGB888 = BGR bytes)"
 
 

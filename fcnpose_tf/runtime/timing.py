@@ -66,7 +66,11 @@ class LatencyLog:
             self.add(t)
 
     def add(self, times: StageTimes) -> None:
-        """Append one frame's stage times."""
+        """Append one frame's stage times.
+
+        Args:
+            times: the frame's preprocess, invoke and postprocess times.
+        """
         self._stages["preprocess"].append(times.preprocess_ms)
         self._stages["invoke"].append(times.invoke_ms)
         self._stages["postprocess"].append(times.postprocess_ms)

@@ -138,12 +138,20 @@ class TrackingCrop(KeypointPredictor):
         return self.model.backend_label
 
     def describe(self) -> str:
-        """The model's line, with the tracking crop's rule."""
+        """The model's line, with the tracking crop's rule.
+
+        Returns:
+            The line.
+        """
         return (f"{self.model.describe()}; a crop following the arm (margin {self.margin:g}, the model's own view "
                 f"after a frame with fewer than {self.min_found} keypoints)")
 
     def run_note(self) -> str | None:
-        """How many frames were read over the model's own view."""
+        """How many frames were read over the model's own view.
+
+        Returns:
+            The summary's line.
+        """
         return (f"Tracking: {self.frames - self.whole_view_frames} of {self.frames} frames read over the previous "
                 f"frame's keypoint box, {self.whole_view_frames} over the model's own view "
                 f"({self.own_view.describe()}: the first frame, or the arm lost in the frame before)")
@@ -153,16 +161,19 @@ class TrackingCrop(KeypointPredictor):
         self._next = None
 
     def set_input(self, frame_bgr: np.ndarray) -> None:
+        """The wrapped model's (its argument: `KeypointPredictor.set_input`'s)."""
         self.model.set_input(frame_bgr)
 
     def invoke(self) -> None:
         self.model.invoke()
 
     def read_maps(self, copy: bool = True) -> np.ndarray:
+        """The wrapped model's (its argument and result: `KeypointPredictor.read_maps`'s)."""
         return self.model.read_maps(copy)
 
     def predict(self, frame_bgr: np.ndarray) -> Prediction:
-        """Keypoints of one frame, read over the box the previous frame's keypoints give (or the model's own view)."""
+        """Keypoints of one frame, read over the box the previous frame's keypoints give (or the model's own view); its
+        argument and result are `KeypointPredictor.predict`'s."""
         size = tuple(frame_bgr.shape[:2]) if frame_bgr is not None and frame_bgr.ndim >= 2 else None
         box = self._next[1] if self._next is not None and self._next[0] == size else None
         prediction = predict_over(self.model, frame_bgr, box)
@@ -174,6 +185,6 @@ class TrackingCrop(KeypointPredictor):
         return prediction
 
     def warmup(self, frame_shape: tuple[int, int, int] = (480, 640, 3), runs: int = 1) -> None:
-        """The model's warm-up (over its own view); the tracking starts afresh."""
+        """The model's warm-up (over its own view); the tracking starts afresh. Its arguments: `KeypointPredictor.warmup`'s."""
         self.model.warmup(frame_shape, runs)
         self.reset()

@@ -293,6 +293,14 @@ class KeypointBinaryCrossentropy(keras.losses.Loss):
         self.positive_weight = float(positive_weight)
 
     def call(self, y_true, y_pred):
+        """Keras's per-pixel loss.
+
+        Args:
+            y_true: the target maps (N x H x W x K).
+            y_pred: the model's maps, same shape.
+        Returns:
+            The loss per pixel (N x H x W): the keypoint maps' positive term weighted, the skeleton map's not.
+        """
         import tensorflow as tf
 
         y_true = tf.cast(y_true, y_pred.dtype)
@@ -306,6 +314,11 @@ class KeypointBinaryCrossentropy(keras.losses.Loss):
         return -tf.reduce_mean(pos + (1.0 - y_true) * tf.math.log(1.0 - p), axis=-1)
 
     def get_config(self) -> dict:
+        """Keras's serialisation.
+
+        Returns:
+            The base loss's config with "positive_weight".
+        """
         return {**super().get_config(), "positive_weight": self.positive_weight}
 
 
@@ -348,6 +361,15 @@ class DistillationLoss(keras.losses.Loss):
         self.base = ground_truth_loss(self.positive_weight)
 
     def call(self, y_true, y_pred):
+        """Keras's per-pixel loss.
+
+        Args:
+            y_true: the target maps, the teacher's maps after them on the channel axis (the ground truth alone when
+                validating).
+            y_pred: the model's maps.
+        Returns:
+            The loss per pixel: the ground truth's and the teacher's terms mixed by `weight`.
+        """
         channels = y_pred.shape[-1]
         if y_true.shape[-1] == channels:
             return self.base.call(y_true, y_pred)
@@ -355,6 +377,11 @@ class DistillationLoss(keras.losses.Loss):
         return (1.0 - self.weight) * self.base.call(truth, y_pred) + self.weight * self.base.call(teacher, y_pred)
 
     def get_config(self) -> dict:
+        """Keras's serialisation.
+
+        Returns:
+            The base loss's config with "weight" and "positive_weight".
+        """
         return {**super().get_config(), "weight": self.weight, "positive_weight": self.positive_weight}
 
 
@@ -1005,7 +1032,11 @@ class FixedTestSetRecord:
     """The trained model's."""
 
     def to_json(self) -> dict[str, Any]:
-        """{"data", "data_sha256", "num_frames", "definitions", "start_model", "start", "end"}."""
+        """{"data", "data_sha256", "num_frames", "definitions", "start_model", "start", "end"}.
+
+        Returns:
+            The object, keys in this order.
+        """
         return {"data": self.data, "data_sha256": self.data_sha256, "num_frames": self.num_frames,
                 "definitions": self.definitions, "start_model": self.start_model,
                 "start": self.start.to_json() if self.start is not None else None, "end": self.end.to_json()}
