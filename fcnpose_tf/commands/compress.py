@@ -227,7 +227,7 @@ def _several_rates(reports: list, outputs: list, named: bool, description: str) 
 def _finish(report: CompressReport, outputs: OutputFiles, named: bool) -> int:
     """Name every file written; the exit status (see the module doc): 2 when a named format was refused or no
     .tflite file was written, else 0."""
-    from fcnpose_tf.compression.export import finish_formats
+    from fcnpose_tf.compression.summary import finish_formats
 
     written = [Path(p) for p in report.files.values()]
     written += [p for p in outputs.every if p.is_file() and p not in written

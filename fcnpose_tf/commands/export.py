@@ -85,7 +85,8 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data.args import default_data, load_from_args
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.compression.export import ExportOptions, finish_formats, write_tflite
+    from fcnpose_tf.compression.export import ExportOptions, write_tflite
+    from fcnpose_tf.compression.summary import finish_formats
     from fcnpose_tf.compression.frames import export_frames
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
@@ -193,7 +194,8 @@ def _generic_inputs(args: argparse.Namespace, model, options) -> tuple:
 def _run_generic(args: argparse.Namespace, model, options, paths: dict, named: bool) -> int:
     """export of a model that is not a keypoint model: each format verified by output parity."""
     from fcnpose_tf import fileio, settings
-    from fcnpose_tf.compression.export import export_generic, finish_formats
+    from fcnpose_tf.compression.export import export_generic
+    from fcnpose_tf.compression.summary import finish_formats
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.tables import format_table
 

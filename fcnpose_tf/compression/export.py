@@ -40,7 +40,7 @@ import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -470,36 +470,3 @@ def write_tflite(model: keras.Model, path: str | os.PathLike, quantize: str = DE
     export = export_tflite(model, quantize, **options)
     fileio.write_bytes(path, export.data, force)
     return export
-
-
-
-
-def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool,
-                   gate: str = "keypoint gate") -> int:
-    """The end of a command whose formats the keypoint gate may refuse (`export`, `compress`): name every
-    file written, then its exit status.
-
-    Args:
-        written: the files written.
-        refused: the formats refused.
-        any_tflite: whether any .tflite file was written.
-        named: whether the user named the formats with --quantize (a refusal is then an error).
-        gate: what refused them, in words.
-    Returns:
-        0, with a note naming the refused formats.
-    Raises:
-        UserError: (exit 2) no .tflite file was written, or a format the user named was refused.
-    """
-    for path in written:
-        print(f"wrote {path}")
-    names = ", ".join(refused)
-    kept = f"kept {', '.join(map(str, written))}" if written else "nothing written"
-    if not any_tflite:
-        raise UserError(f"no TFLite file written: {names} refused by the {gate} (the table above gives the "
-                        f"reasons); {kept}")
-    if named and refused:
-        raise UserError(f"{names} (named with --quantize) refused by the {gate} (the table above gives the "
-                        f"reason); {kept}")
-    if refused:
-        print(f"note: {names} refused by the {gate} (see above); the other formats were written")
-    return 0

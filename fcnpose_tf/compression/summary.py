@@ -1,12 +1,15 @@
 """What a compression report says to a reader: its table (one row per step and file; several rates in one), the note
-`compress` prints when the compressed files lost more accuracy than the paper's, and the best rate of several.
+`compress` prints when the compressed files lost more accuracy than the paper's, the best rate of several, and the
+last lines of a command whose formats a gate may refuse (`finish_formats`: the files written, the exit status).
 """
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Sequence
 
 from fcnpose_tf.compression.report import CompressReport, RefusedFormat, Step, TFLiteStep
+from fcnpose_tf.errors import UserError
 
 
 PCK_DROP_BUDGET = 0.02
@@ -144,3 +147,34 @@ def best_rate_note(reports: Sequence[CompressReport]) -> str:
     rate, d = kept[-1]
     return (f"Best rate within the {PCK_DROP_BUDGET:g} PCK@0.5 budget: {rate:g} (its best file {d:+.3f} below the "
             f"unpruned model's {base:.3f})" + (f"; {beyond}" if beyond else ""))
+
+
+def finish_formats(written: Sequence[Path], refused: Sequence[str], any_tflite: bool, named: bool,
+                   gate: str = "keypoint gate") -> int:
+    """The end of a command whose formats the keypoint gate may refuse (`export`, `compress`): name every
+    file written, then its exit status.
+
+    Args:
+        written: the files written.
+        refused: the formats refused.
+        any_tflite: whether any .tflite file was written.
+        named: whether the user named the formats with --quantize (a refusal is then an error).
+        gate: what refused them, in words.
+    Returns:
+        0, with a note naming the refused formats.
+    Raises:
+        UserError: (exit 2) no .tflite file was written, or a format the user named was refused.
+    """
+    for path in written:
+        print(f"wrote {path}")
+    names = ", ".join(refused)
+    kept = f"kept {', '.join(map(str, written))}" if written else "nothing written"
+    if not any_tflite:
+        raise UserError(f"no TFLite file written: {names} refused by the {gate} (the table above gives the "
+                        f"reasons); {kept}")
+    if named and refused:
+        raise UserError(f"{names} (named with --quantize) refused by the {gate} (the table above gives the "
+                        f"reason); {kept}")
+    if refused:
+        print(f"note: {names} refused by the {gate} (see above); the other formats were written")
+    return 0
