@@ -7,9 +7,10 @@
     measured at each step on the same frames: PCK@0.5/0.2/0.05 (bbox), EPE, PCK-AUC,
     parameters, MACs, file sizes, inference time and FPS (Keras and TFLite, thread count stated).
 
-`compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs
-the steps of `fcnpose_tf.compression.steps` in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained,
-export_step, measure_quantized), each returning its part of the report. Beside it:
+`compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs the steps of
+`fcnpose_tf.compression.steps` in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained),
+then per format those of `fcnpose_tf.compression.export_steps` (export_step, measure_quantized), each returning its
+part of the report. Beside it:
 `fcnpose_tf.compression.options` (what a run is asked: `CompressOptions`, the files it writes),
 `fcnpose_tf.compression.methods` (how: a `PruningMethod`, `FilterPruning` with an importance criterion from
 `fcnpose_tf.compression.importance` or `MagnitudePruning`; both retrain through `train.fit`) and
@@ -30,8 +31,9 @@ from fcnpose_tf import progress, settings
 from fcnpose_tf.compression.methods import pruning_method
 from fcnpose_tf.compression.options import CompressOptions, OutputFiles, output_files
 from fcnpose_tf.compression.report import CompressReport, RefusedFormat, TFLiteStep, _check_metadata
-from fcnpose_tf.compression.steps import (Run, SharedScoring, export_or_refusal, measure_base, measure_quantized,
-                                          measure_retrained, prune_step, remove_stale, retrain_step, shared_importance)
+from fcnpose_tf.compression.export_steps import export_or_refusal, measure_quantized, remove_stale
+from fcnpose_tf.compression.steps import (Run, SharedScoring, measure_base, measure_retrained, prune_step, retrain_step,
+                                          shared_importance)
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.fileio import write_json
