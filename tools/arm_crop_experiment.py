@@ -190,7 +190,7 @@ def _predictor(spec: Path):
             raise SystemExit(f"{spec}: a .tflite runs at its own input size (export --input-size makes another)")
         model = KeypointModel(path)
         return model, model.stats().macs
-    from fcnpose_tf.compression.report import model_facts
+    from fcnpose_tf.compression.costs import model_facts
     from fcnpose_tf.training.evaluate import KerasKeypointModel
     from fcnpose_tf.training.model import at_input_size, load_model
 

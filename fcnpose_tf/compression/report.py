@@ -1,25 +1,20 @@
 """What a compression run measured and wrote: `CompressReport` (NAME_pXX_report.json) and its steps; what it says to
-a reader (its table, the accuracy note): `fcnpose_tf.compression.summary`.
+a reader (its table, the accuracy note): `fcnpose_tf.compression.summary`; what a model costs, the facts a step starts
+from: `fcnpose_tf.compression.costs`.
 """
 
 from __future__ import annotations
 
-import gzip
-import tempfile
-import warnings
 from dataclasses import asdict, dataclass, field, fields
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
-
-import numpy as np
 
 from fcnpose_tf.compression.verify import ParityReport
 from fcnpose_tf.measurements import KeypointMetrics, Measurement, Timing
 
 if TYPE_CHECKING:
-    import tf_keras as keras
-
+    from fcnpose_tf.compression.costs import ModelFacts
     from fcnpose_tf.compression.qat import QATResult
+
 
 @dataclass(frozen=True)
 class RefusedFormat:
@@ -64,18 +59,6 @@ class RefusedFormat:
 def _if_any() -> Any:
     """A section only some runs have: None when the run has none, and then not written."""
     return field(default=None, metadata={"if_any": True})
-
-
-@dataclass(frozen=True)
-class ModelFacts:
-    """What a Keras model costs (`model_facts`): the conv widths, parameters and MACs (FLOPs = 2 x MACs)."""
-
-    widths: list[int]
-    params: int
-    macs: int
-    flops: int
-    nonzero_weights: int
-    """Weights that are not zero (magnitude pruning zeroes weights without removing them)."""
 
 
 def _fields_json(section: Any) -> dict[str, Any]:
@@ -203,9 +186,9 @@ class ModelStep:
         """A model's step, measured.
 
         Args:
-            facts: what the model costs (`model_facts`).
+            facts: what the model costs (`costs.model_facts`).
             measurement: its metrics and timing (timing None: not timed).
-            sizes: its `file_sizes` (None: no file, as before retraining).
+            sizes: its `costs.file_sizes` (None: no file, as before retraining).
         Returns:
             The step.
         """
@@ -478,43 +461,3 @@ def _check_metadata(metadata: dict[str, Any] | None) -> None:
     clash = sorted(set(metadata or {}) & {f.name for f in fields(CompressReport)})
     if clash:
         raise ValueError(f"report metadata cannot hold {', '.join(clash)}: a section of the report")
-
-
-def file_sizes(model: keras.Model, keras_path: Path | None = None) -> dict[str, int]:
-    """Bytes of the model as .keras and .h5 (no optimizer state), and gzip-compressed .h5.
-
-    Args:
-        model: a tf_keras model.
-        keras_path: its .keras file when written (its size is read; None: the model is saved to a temporary one).
-    Returns:
-        {"h5_size_bytes", "h5_gzip_size_bytes", "keras_size_bytes"}.
-    """
-    from fcnpose_tf.training.model import h5_bytes, inference_copy, save_for_inference
-
-    with warnings.catch_warnings():  # the paper's size is the .h5; Keras calls the format legacy
-        warnings.simplefilter("ignore", UserWarning)
-        h5 = h5_bytes(inference_copy(model))
-    sizes = {"h5_size_bytes": len(h5), "h5_gzip_size_bytes": len(gzip.compress(h5, 9))}
-    with tempfile.TemporaryDirectory() as tmp:
-        if keras_path is None:
-            keras_path = Path(tmp) / "m.keras"
-            save_for_inference(model, keras_path)
-        sizes["keras_size_bytes"] = keras_path.stat().st_size
-    return sizes
-
-
-def model_facts(model: keras.Model) -> ModelFacts:
-    """Widths, parameters and MACs (FLOPs = 2 x MACs) of a model.
-
-    Args:
-        model: a tf_keras model.
-    Returns:
-        Its facts, the weights that are not zero among them.
-    """
-    from fcnpose_tf.training.model import conv_widths, describe
-
-    rows = describe(model)
-    macs = sum(r.macs for r in rows)
-    return ModelFacts(widths=list(conv_widths(model)), params=int(model.count_params()), macs=int(macs),
-                      flops=int(2 * macs),
-                      nonzero_weights=int(sum(np.count_nonzero(w) for w in model.get_weights())))

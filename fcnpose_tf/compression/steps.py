@@ -15,8 +15,8 @@ import numpy as np
 
 from fcnpose_tf.compression.methods import PruningMethod
 from fcnpose_tf.compression.options import CompressOptions, OutputFiles
-from fcnpose_tf.compression.report import (ModelStep, PruningSections, RetrainSections, Retraining, file_sizes,
-                                           model_facts)
+from fcnpose_tf.compression.costs import file_sizes, model_facts
+from fcnpose_tf.compression.report import ModelStep, PruningSections, RetrainSections, Retraining
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.measurements import Measurement
 from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor

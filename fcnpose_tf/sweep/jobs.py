@@ -481,7 +481,8 @@ def _strip(step: dict[str, Any]) -> dict[str, Any]:
 
 
 def _run_base(config: SweepConfig, job: Job, dataset: Any) -> dict[str, Any]:
-    from fcnpose_tf.compression.report import ModelStep, file_sizes, model_facts
+    from fcnpose_tf.compression.costs import file_sizes, model_facts
+    from fcnpose_tf.compression.report import ModelStep
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
     from fcnpose_tf.training.model import load_model
