@@ -90,8 +90,35 @@ def _unknown(cls: type, entry: dict[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in entry.items() if k not in names}
 
 
+class _Section:
+    """A part of the report read and written field by field: a field a file did not hold is None (or its default)
+    and not written back when it is marked `_if_any`, a key without a field is kept in `extra`."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The part as the report holds it.
+
+        Returns:
+            Its fields in order (metrics, timing and QAT facts by their `to_json`), those it does not have (`_if_any`)
+            left out, then `extra`'s keys.
+        """
+        return _fields_json(self)
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> Any:
+        """The part of a parsed report.
+
+        Args:
+            entry: the parsed JSON object; a key without a field goes to `extra`.
+        Returns:
+            The part, of this class.
+        Raises:
+            TypeError: not a JSON object.
+        """
+        return cls(**_known(cls, entry), extra=_unknown(cls, entry))
+
+
 @dataclass(frozen=True, kw_only=True)
-class QATFacts:
+class QATFacts(_Section):
     """Quantization-aware training as a report records it (`TFLiteStep.qat` when it made the file, `RefusedFormat.qat`
     when its files were refused too): written as {"passed", "epochs_run", "seconds", "minutes", "epochs"[, "reason"],
     "learning_rate", "post_training_refused"}. A field a file did not hold is None and not written back; a key without
@@ -129,27 +156,6 @@ class QATFacts:
         """
         return cls(**result.to_dict(), learning_rate=learning_rate, post_training_refused=post_training_refused)
 
-    def to_json(self) -> dict[str, Any]:
-        """The facts as the report holds them.
-
-        Returns:
-            Its fields in order, those a file did not hold left out, then `extra`'s keys.
-        """
-        return _fields_json(self)
-
-    @classmethod
-    def from_json(cls, entry: dict[str, Any]) -> QATFacts:
-        """The facts of a parsed report's "qat".
-
-        Args:
-            entry: the parsed JSON object; a key without a field goes to `extra`.
-        Returns:
-            The facts.
-        Raises:
-            TypeError: not a JSON object.
-        """
-        return cls(**_known(cls, entry), extra=_unknown(cls, entry))
-
 
 def _step_from_json(cls: type, entry: dict[str, Any]) -> Any:
     """The step of a parsed report entry: "metrics", "timing" (and a file's "qat") typed, a key without a field kept
@@ -163,7 +169,7 @@ def _step_from_json(cls: type, entry: dict[str, Any]) -> Any:
 
 
 @dataclass(frozen=True, kw_only=True)
-class ModelStep:
+class ModelStep(_Section):
     """A Keras model of the report, measured (base, pruned_before_retraining, retrained): its facts, its file sizes
     (none for the pruned model before retraining), its metrics and timing (none before retraining). A key a file
     held without a field is kept in `extra` and written back."""
@@ -199,15 +205,6 @@ class ModelStep:
         """Metrics and timing."""
         return Measurement(self.metrics, self.timing)
 
-    def to_json(self) -> dict[str, Any]:
-        """The step as the report holds it.
-
-        Returns:
-            Its fields in order (metrics and timing by their `to_json`), those it does not have left out, then `extra`'s
-            keys.
-        """
-        return _fields_json(self)
-
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> ModelStep:
         """The step of a parsed report entry (base, pruned_before_retraining, retrained).
@@ -224,7 +221,7 @@ class ModelStep:
 
 
 @dataclass(frozen=True, kw_only=True)
-class TFLiteStep:
+class TFLiteStep(_Section):
     """A TFLite file of the report, measured ("quantized", "other_quantized"): its format and how it was made, its
     cost and size, the export's facts, operators, metrics and timing. Reports written before one file per format
     hold no quantize, status nor quantization (None, not written back). A key a file held without a field is kept in
@@ -257,14 +254,6 @@ class TFLiteStep:
         parity = (self.export or {}).get("parity")
         return ParityReport.from_dict(parity) if parity is not None else None
 
-    def to_json(self) -> dict[str, Any]:
-        """The step as the report holds it.
-
-        Returns:
-            As `ModelStep.to_json`'s: its fields in order, those it does not have left out, then `extra`'s keys.
-        """
-        return _fields_json(self)
-
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> TFLiteStep:
         """The step of a parsed "quantized" or "other_quantized" entry; its argument, result and errors are
@@ -277,7 +266,7 @@ Step = ModelStep | TFLiteStep
 
 
 @dataclass(frozen=True, kw_only=True)
-class Retraining:
+class Retraining(_Section):
     """How the retraining of the pruned model went (the report's "retraining", `compress.retraining_report`). A key a
     file held without a field is kept in `extra` and written back."""
 
@@ -299,27 +288,6 @@ class Retraining:
     start_kept: bool | None = _if_any()
     """A pruned start's run: True when no epoch beat the start, which is then kept unchanged."""
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
-
-    def to_json(self) -> dict[str, Any]:
-        """The section as the report holds it.
-
-        Returns:
-            Its fields in order (start_kept only for a pruned start's run), then `extra`'s keys.
-        """
-        return _fields_json(self)
-
-    @classmethod
-    def from_json(cls, entry: dict[str, Any]) -> Retraining:
-        """The "retraining" section of a parsed report.
-
-        Args:
-            entry: the parsed JSON object; a key without a field goes to `extra`.
-        Returns:
-            The section.
-        Raises:
-            TypeError: not a JSON object.
-        """
-        return cls(**_known(cls, entry), extra=_unknown(cls, entry))
 
 
 @dataclass(frozen=True)
