@@ -30,8 +30,8 @@ from typing import Any, Sequence
 from fcnpose_tf import progress, settings
 from fcnpose_tf.compression.methods import pruning_method
 from fcnpose_tf.compression.options import CompressOptions, OutputFiles, output_files
-from fcnpose_tf.compression.report import CompressReport, RefusedFormat, TFLiteStep, _check_metadata
-from fcnpose_tf.compression.export_steps import export_or_refusal, measure_quantized, remove_stale
+from fcnpose_tf.compression.report import CompressReport, _check_metadata
+from fcnpose_tf.compression.export_steps import export_formats
 from fcnpose_tf.compression.steps import (Run, SharedScoring, measure_base, measure_retrained, prune_step, retrain_step,
                                           shared_importance)
 from fcnpose_tf.errors import UserError
@@ -139,16 +139,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     retrained, retrained_sections = retrain_step(run, pruned)
     say(f"[4/{steps}] measuring the retrained Keras model")
     retrained_step = measure_retrained(run, retrained)
-    files: list[TFLiteStep] = []
-    refused: list[RefusedFormat] = []
-    for i, quantize in enumerate(options.quantize):
-        say(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
-        export, qat = export_or_refusal(run, retrained, quantize, refused)
-        if export is None:
-            remove_stale(run, quantize)
-            continue
-        say(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
-        files.append(measure_quantized(run, export, retrained_step, qat))
+    files, refused = export_formats(run, retrained, retrained_step, steps)
     refused_files = {outputs.tflite[entry.quantize] for entry in refused}
     report = CompressReport(
         base_model=str(base_path), method=options.method, recipe=run.recipe, options=asdict(options),

@@ -1,7 +1,7 @@
-"""The export steps of one compression run (`compress.compress_model` runs them per --quantize format, after the
-retraining): export_step writes one verified TFLite file, qat_step is quantization-aware training when post-training
-int8 is refused (`export_or_refusal` decides), measure_quantized measures a written file. Each reads the run's
-`steps.Run`.
+"""The export steps of one compression run (`compress.compress_model` runs them after the retraining, through
+`export_formats`, per --quantize format): export_step writes one verified TFLite file, qat_step is quantization-aware
+training when post-training int8 is refused (`export_or_refusal` decides), measure_quantized measures a written file.
+Each reads the run's `steps.Run`.
 """
 
 from __future__ import annotations
@@ -164,3 +164,29 @@ def remove_stale(run: Run, quantize: str) -> None:
     if run.force and path.is_file():
         path.unlink()
         run.log(f"  removed {path}: an earlier file of the format this run refused")
+
+
+def export_formats(run: Run, retrained: keras.Model, retrained_step: ModelStep, steps: int
+                   ) -> tuple[list[TFLiteStep], list[RefusedFormat]]:
+    """Every --quantize format in turn: its file written and measured, or its refusal recorded (the run's steps from
+    5 on, two a format).
+
+    Args:
+        run: the compression run.
+        retrained: the model to convert.
+        retrained_step: the retrained model's step (`steps.measure_retrained`).
+        steps: the run's number of steps, for the progress lines.
+    Returns:
+        (the files written, measured, in the formats' order; the formats refused).
+    """
+    files: list[TFLiteStep] = []
+    refused: list[RefusedFormat] = []
+    for i, quantize in enumerate(run.options.quantize):
+        run.log(f"[{5 + 2 * i}/{steps}] exporting {quantize} TFLite (verified against Keras)")
+        export, qat = export_or_refusal(run, retrained, quantize, refused)
+        if export is None:
+            remove_stale(run, quantize)
+            continue
+        run.log(f"[{6 + 2 * i}/{steps}] measuring the {quantize} TFLite model")
+        files.append(measure_quantized(run, export, retrained_step, qat))
+    return files, refused
