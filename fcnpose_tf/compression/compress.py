@@ -9,8 +9,8 @@
 
 `compress_model` is the library entry point (the `compress` and `sweep` commands call it); it runs the steps of
 `fcnpose_tf.compression.steps` in order (measure_base, importance_step, prune_step, retrain_step, measure_retrained),
-then per format those of `fcnpose_tf.compression.export_steps` (export_step, measure_quantized), each returning its
-part of the report. Beside it:
+then those of `fcnpose_tf.compression.export_steps` (`export_formats`: export_step and measure_quantized per format),
+each returning its part of the report. Beside it:
 `fcnpose_tf.compression.options` (what a run is asked: `CompressOptions`, the files it writes),
 `fcnpose_tf.compression.methods` (how: a `PruningMethod`, `FilterPruning` with an importance criterion from
 `fcnpose_tf.compression.importance` or `MagnitudePruning`; both retrain through `train.fit`) and
