@@ -2,6 +2,7 @@ import inspect
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -29,6 +30,27 @@ def cli(tmp_path):
         full_env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", **(env or {}))
         return subprocess.run([sys.executable, "-m", "fcnpose_tf", *map(str, args)], cwd=cwd or tmp_path,
                               env=full_env, capture_output=True, text=True, timeout=timeout)
+
+    return run
+
+
+FEW_TIMED_CLI = Path(__file__).with_name("cli_few_timed.py")
+
+
+def run_cli_few_timed(*args, cwd, env=None, timeout=3600):  # 40 min seen for a sweep beside two trainings
+    """`python -m fcnpose_tf ARGS` in a fresh process whose evaluations time a few frames (`cli_few_timed.py`)."""
+    full_env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", **(env or {}))
+    return subprocess.run([sys.executable, str(FEW_TIMED_CLI), *map(str, args)], cwd=cwd, env=full_env,
+                          capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.fixture
+def cli_few_timed(tmp_path):
+    """`cli` for commands that evaluate a model (train, compress) in a test that asserts no timing beyond its
+    presence: the same fresh process, its evaluations timing `FEW_TIMED_FRAMES` frames after one of warm-up."""
+
+    def run(*args, cwd=None, env=None, timeout=1800):
+        return run_cli_few_timed(*args, cwd=cwd or tmp_path, env=env, timeout=timeout)
 
     return run
 

@@ -574,7 +574,8 @@ def test_train_on_a_full_disk_is_one_line_and_leaves_nothing(tiny_disk, tmp_path
 
 
 @pytest.mark.slow
-def test_a_checkpoint_the_disk_cannot_take_keeps_the_last_good_one_and_resume_continues(small_disk, tmp_path, cli):
+def test_a_checkpoint_the_disk_cannot_take_keeps_the_last_good_one_and_resume_continues(small_disk, tmp_path,
+                                                                                          cli_few_timed):
     import subprocess
 
     import numpy as np
@@ -582,7 +583,7 @@ def test_a_checkpoint_the_disk_cannot_take_keeps_the_last_good_one_and_resume_co
     data = _frames_with_stored_splits(tmp_path / "d")
     disk = small_disk("3m")  # holds epoch 1's checkpoint (2.2 MB at 64x64), not epoch 2's beside it
     train = ["train", "--data", data, "--out", disk / "m.keras", "--epochs", "3", *TINY_TRAIN]
-    proc = cli(*train)
+    proc = cli_few_timed(*train)
     assert proc.returncode == 2, proc.stderr
     ckpt = disk / "m.ckpt"
     assert _error_lines(proc) == [f"error: {ckpt}: no space left on device; the checkpoint of epoch 1 is intact: "
@@ -594,7 +595,7 @@ def test_a_checkpoint_the_disk_cannot_take_keeps_the_last_good_one_and_resume_co
     assert len(np.load(ckpt / "best.npz").files) > 0
 
     subprocess.run(["mount", "-o", "remount,size=20m", str(disk)], check=True)  # space freed
-    proc = cli(*train, "--resume")
+    proc = cli_few_timed(*train, "--resume")
     assert proc.returncode == 0, proc.stderr
     assert json.loads((disk / "m_train.json").read_text())["epochs_run"] == 3
     assert sorted(p.name for p in disk.iterdir()) == ["m.keras", "m_loss.csv", "m_loss.png", "m_train.json"]
@@ -610,13 +611,14 @@ def tiny_base(tmp_path):
 
 
 @pytest.mark.slow
-def test_compress_retraining_on_a_full_disk_is_one_line_and_leaves_nothing(small_disk, tmp_path, tiny_base, cli):
+def test_compress_retraining_on_a_full_disk_is_one_line_and_leaves_nothing(small_disk, tmp_path, tiny_base,
+                                                                           cli_few_timed):
     """compress cannot resume: its retraining checkpoint goes too, and no --resume is suggested."""
     data = _frames_with_stored_splits(tmp_path / "d")
     disk = small_disk("450k")  # holds the pruned model's first checkpoint (about 300 KB), not a second beside it
     out = disk / "out"
-    proc = cli("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "3",
-               "--out-dir", out, "--threads", "1")
+    proc = cli_few_timed("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "3",
+                         "--out-dir", out, "--threads", "1")
     assert proc.returncode == 2, proc.stderr
     assert "Epoch 2/3" in proc.stdout  # the disk filled after a complete checkpoint
     assert _error_lines(proc) == [f"error: {out / 'base_p70.ckpt'}: no space left on device"]
@@ -624,13 +626,13 @@ def test_compress_retraining_on_a_full_disk_is_one_line_and_leaves_nothing(small
 
 
 @pytest.mark.slow
-def test_compress_names_the_model_it_completed_before_the_disk_filled(tiny_disk, tmp_path, tiny_base, cli):
+def test_compress_names_the_model_it_completed_before_the_disk_filled(tiny_disk, tmp_path, tiny_base, cli_few_timed):
     """Room for the pruned model (116 KB), not for the .tflite (37 KB) after it; LiteRT's INFO line stays quiet."""
     data = _frames_with_stored_splits(tmp_path / "d")
     out = tiny_disk / "out"
     _fill(tiny_disk, 136)
-    proc = cli("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "0",
-               "--out-dir", out, "--threads", "1")
+    proc = cli_few_timed("compress", "--rate", "0.7", "--model", tiny_base, "--data", data, "--retrain-epochs", "0",
+                         "--out-dir", out, "--threads", "1")
     assert proc.returncode == 2, proc.stderr
     assert _error_lines(proc) == [f"error: {out / 'base_p70_fp16.tflite'}: no space left on device; kept the files "
                                   f"completed before it: {out / 'base_p70.keras'}"]
