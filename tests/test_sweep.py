@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from conftest import run_cli_few_timed
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
 from fcnpose_tf.progress import SILENT, Reporter
@@ -621,15 +622,10 @@ def _check_smoke_outputs(out: Path, threads: int) -> None:
             assert section["timing"]["threads"] == threads and section["metrics"]["num_frames"] == 10
 
 
-FEW_TIMED_CLI = Path(__file__).with_name("cli_few_timed.py")
-
-
 def _sweep_cli(*args, cwd, env=None):
     """`python -m fcnpose_tf ARGS` in a fresh process (the sweep sets TensorFlow's threads before it starts), its
     evaluations timing a few frames (`cli_few_timed.py`): no test here asserts a timing beyond its presence."""
-    full_env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", **(env or {}))
-    return subprocess.run([sys.executable, str(FEW_TIMED_CLI), *map(str, args)], cwd=cwd, env=full_env,
-                          capture_output=True, text=True, timeout=3600)  # 40 min seen beside two trainings
+    return run_cli_few_timed(*args, cwd=cwd, env=env)
 
 
 @pytest.fixture(scope="module")
