@@ -67,17 +67,20 @@ def _break(folder, how):
 
 
 @pytest.mark.parametrize("how", ["truncated JSON", "missing image", "unknown label", "wrong type"])
-def test_broken_dataset_is_one_line_exit_2_and_skip_bad_continues(cli, tmp_path, how):
+def test_broken_dataset_is_one_line_exit_2_and_skip_bad_continues(cli_here, tmp_path, monkeypatch, how):
+    """In this process (`cli_here`: the CLI's parser, exit path and messages); the report and preview test above runs
+    the command as a new process."""
     write_dataset(tmp_path / "demo", n=6)
     message = _break(tmp_path / "demo", how)
-    proc = cli("data", "inspect", "demo")
-    assert proc.returncode == 2, proc.stdout + proc.stderr
-    assert proc.stderr.startswith("error: ") and message in proc.stderr
-    assert "Traceback" not in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+    monkeypatch.chdir(tmp_path)
+    status, stdout, stderr = cli_here("data", "inspect", "demo")
+    assert status == 2, stdout + stderr
+    assert stderr.startswith("error: ") and message in stderr
+    assert "Traceback" not in stderr and len(stderr.strip().splitlines()) == 1
     if how != "truncated JSON":
-        skipped = cli("data", "inspect", "demo", "--skip-bad")
-        assert skipped.returncode == 0, skipped.stderr
-        assert "5 usable, 1 dropped" in skipped.stdout and "bad annotation or image (skipped)" in skipped.stdout
+        status, stdout, stderr = cli_here("data", "inspect", "demo", "--skip-bad")
+        assert status == 0, stderr
+        assert "5 usable, 1 dropped" in stdout and "bad annotation or image (skipped)" in stdout
 
 
 @pytest.mark.parametrize("args, message", [

@@ -118,11 +118,11 @@ def test_one_message_per_setting_from_every_config(kind, values, message):
         _config(kind, **values).validate()
 
 
-def test_the_cli_refuses_with_the_settings_message(cli, tmp_path):
-    proc = cli("train", "--data", tmp_path, "--out", tmp_path / "m.keras", "--input-size", "100")
-    assert proc.returncode == 2 and "input size must be auto, S or HxW" in proc.stderr
-    proc = cli("sweep", "--out", tmp_path / "res", "--learning-rate", "0")
-    assert proc.returncode == 2 and "learning rate must be a positive number, got 0.0" in proc.stderr
+def test_the_cli_refuses_with_the_settings_message(cli_here, tmp_path):
+    status, _, err = cli_here("train", "--data", tmp_path, "--out", tmp_path / "m.keras", "--input-size", "100")
+    assert status == 2 and "input size must be auto, S or HxW" in err
+    status, _, err = cli_here("sweep", "--out", tmp_path / "res", "--learning-rate", "0")
+    assert status == 2 and "learning rate must be a positive number, got 0.0" in err
     assert not (tmp_path / "res").exists()
 
 
