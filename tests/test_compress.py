@@ -764,7 +764,7 @@ def test_int8_is_calibrated_on_the_fold_the_base_model_was_trained_on_without_re
 def test_a_runs_files_are_named_once_and_checked_before_any_work(tmp_path):
     """`check_outputs` refuses an existing file and returns the run's `OutputFiles`, which every step and the
     command's last lines read: the report's keys in order, each format's file, the retraining's side files."""
-    from fcnpose_tf.compression.options import CompressOptions, check_outputs, output_paths
+    from fcnpose_tf.compression.options import CompressOptions, check_outputs, output_files
     from fcnpose_tf.errors import UserError
 
     options = CompressOptions(rate=0.7, quantize=("float16", "int8"))
@@ -772,7 +772,7 @@ def test_a_runs_files_are_named_once_and_checked_before_any_work(tmp_path):
     assert files.stem == "arm_p70" and list(files.paths) == ["keras", "tflite_fp16", "tflite_int8", "report"]
     assert files.tflite == {"float16": tmp_path / "out/arm_p70_fp16.tflite", "int8": tmp_path / "out/arm_p70_int8.tflite"}
     assert {p.name for p in files.side} == {"arm_p70_train.json", "arm_p70_loss.csv", "arm_p70_loss.png"}
-    assert files.every == output_paths(tmp_path / "arm.keras", tmp_path / "out", options)
+    assert output_files(tmp_path / "arm.keras", tmp_path / "out", options) == files  # the same names, unchecked
     unretrained = CompressOptions(rate=0.7, retrain_epochs=0, method="magnitude", quantize=("int8",))
     assert check_outputs(tmp_path / "arm.keras", tmp_path / "out", unretrained).every == [
         tmp_path / "out" / name for name in ("arm_m70.keras", "arm_m70_int8.tflite", "arm_m70_report.json")]

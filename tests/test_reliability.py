@@ -58,9 +58,9 @@ def test_compress_refuses_an_existing_side_file_before_any_work(tmp_path, capsys
 
 
 def test_compress_without_retraining_writes_no_training_side_files():
-    from fcnpose_tf.compression.options import CompressOptions, output_paths
+    from fcnpose_tf.compression.options import CompressOptions, output_files
 
-    names = [p.name for p in output_paths("m.keras", "out", CompressOptions(rate=0.5, retrain_epochs=0))]
+    names = [p.name for p in output_files("m.keras", "out", CompressOptions(rate=0.5, retrain_epochs=0)).every]
     assert names == ["m_p50.keras", "m_p50_fp16.tflite", "m_p50_int8.tflite", "m_p50_report.json"]
 
 

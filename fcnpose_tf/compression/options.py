@@ -264,19 +264,6 @@ def output_files(base_path: str | os.PathLike, out_dir: str | os.PathLike, optio
     return OutputFiles(names["stem"], paths, {q: paths[tflite_key(q)] for q in options.quantize}, tuple(side))
 
 
-def output_paths(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions) -> list[Path]:
-    """Every file a run writes into `out_dir` (`output_files(...).every`).
-
-    Args:
-        base_path: the model being compressed.
-        out_dir: the folder the files go to.
-        options: the run's options.
-    Returns:
-        The paths.
-    """
-    return output_files(base_path, out_dir, options).every
-
-
 def check_outputs(base_path: str | os.PathLike, out_dir: str | os.PathLike, options: CompressOptions,
                   force: bool = False) -> OutputFiles:
     """Refuse before any work a run whose files cannot be written.
