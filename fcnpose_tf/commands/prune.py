@@ -92,11 +92,11 @@ def run(args: argparse.Namespace) -> int:
 
     from fcnpose_tf.compression.graph_prune import plan_graph, rebuild
     from fcnpose_tf.compression.keras_file import load_any, save_to
-    from fcnpose_tf.compression.keep_rule import keep_count
+    from fcnpose_tf.compression.keep_rule import exact_rate
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import atomic_paths, check_writable, json_text
 
-    keep_count(1, args.rate)  # a rate outside [0, 1): refused before the model is read
+    exact_rate(args.rate)  # a rate outside [0, 1): refused before the model is read
     for name, value, minimum in (("--min-filters", args.min_filters, 0), ("--round-to", args.round_to, 1)):
         if value < minimum:
             raise UserError(f"{name} must be at least {minimum}, got {value}")

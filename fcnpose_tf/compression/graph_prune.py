@@ -13,6 +13,7 @@ import copy
 import math
 import numbers
 from dataclasses import dataclass, field
+from fractions import Fraction
 from typing import Any, Callable, Iterable, Mapping, Sequence, Union
 
 import numpy as np
@@ -22,7 +23,7 @@ from fcnpose_tf.compression.channel_rules import rule_for
 from fcnpose_tf.compression.depgraph import (ChannelGroup, DependencyGraph, TracedOp, dependency_graph, short_list,
                                              tensor_key)
 from fcnpose_tf.compression.importance import WeightNorm
-from fcnpose_tf.compression.keep_rule import Rate, keep_count, kept_top
+from fcnpose_tf.compression.keep_rule import Rate, exact_keep_count, exact_rate, kept_top
 from fcnpose_tf.tables import format_table
 
 AGGREGATES: dict[str, Callable[[np.ndarray], float]] = {"sum": np.sum, "mean": np.mean, "max": np.max}
@@ -158,8 +159,8 @@ def _check_count(value: Any, what: str, minimum: int) -> int:
     return int(value)
 
 
-def _group_keep_count(width: int, rate: Rate, min_filters: int, round_to: int) -> int:
-    count = max(keep_count(width, rate), min(width, min_filters))
+def _group_keep_count(width: int, rate: Fraction, min_filters: int, round_to: int) -> int:
+    count = max(exact_keep_count(int(width), rate), min(width, min_filters))
     return min(width, math.ceil(count / round_to) * round_to)
 
 
@@ -187,7 +188,7 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
         UserError: for a bad rate, importance, aggregate, min_filters, round_to or counts, or a model
             `dependency_graph` refuses.
     """
-    keep_count(1, rate)  # validates the rate
+    exact = exact_rate(rate)  # read once, before every group's count
     if aggregate not in AGGREGATES:
         raise UserError(f"aggregate must be one of {', '.join(AGGREGATES)}, got {aggregate!r}")
     min_filters = _check_count(min_filters, "min_filters", 0)
@@ -195,7 +196,7 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
     scorer = _scorer(importance)
     graph = dependency_graph(model, keep)
     wanted = _checked_counts(graph, counts) if counts is not None else \
-        [_group_keep_count(group.width, rate, min_filters, round_to) for group in prunable_groups(graph)]
+        [_group_keep_count(group.width, exact, min_filters, round_to) for group in prunable_groups(graph)]
     plans, wanted = [], iter(wanted)
     for group in graph.groups:
         if group.frozen:

@@ -3,7 +3,8 @@
 Rates are fractions in [0, 1) of the filters to *remove*. The keep rule is the paper's (and NNI's),
 ``n - floor(n * rate)``, which always keeps at least one filter; Torch-Pruning's ``floor(n * (1 - rate))`` keeps one
 fewer whenever ``n * rate`` is not a whole number. Rates are read exactly (the shortest decimal that prints as the
-float: 0.29 -> 29/100). `floored_widths` is the rule with a floor (`--min-filters`) at the same parameter budget.
+float: 0.29 -> 29/100) once per call (`exact_rate`), and the per-layer arithmetic takes the exact rate
+(`exact_keep_count`). `floored_widths` is the rule with a floor (`--min-filters`) at the same parameter budget.
 The filters kept are those an importance score ranks highest (`fcnpose_tf.compression.importance`), ties to the
 lower index, in their original order. Chain surgery (`prune`) and graph surgery (`depgraph`) both count with it.
 """
@@ -30,8 +31,18 @@ Rate = Union[float, int, Fraction, Decimal, str]
 _RATE_SLACK = Fraction(1, 10**9)
 
 
-def _exact_rate(rate: Rate) -> Fraction:
-    """The rate as an exact fraction, validated to lie in [0, 1)."""
+def exact_rate(rate: Rate) -> Fraction:
+    """The rate as an exact fraction: how every function here reads its rate, once per call, before any per-layer
+    arithmetic (`exact_keep_count`).
+
+    Args:
+        rate: fraction of filters to remove, in [0, 1); a float (read as the shortest decimal that prints as it:
+            0.29 -> 29/100), int, Fraction, Decimal or a decimal string such as ``"0.7"``.
+    Returns:
+        The fraction.
+    Raises:
+        UserError: a rate outside [0, 1) or not a number.
+    """
     if isinstance(rate, bool):
         raise UserError(f"pruning rate must be a number in [0, 1), got {rate!r}")
     try:
@@ -75,10 +86,27 @@ def keep_count(n: int, rate: Rate) -> int:
         >>> keep_count(128, 0.7), keep_count(8, 0.7), keep_count(64, 0.5)
         (39, 3, 32)
     """
+    return exact_keep_count(_filter_count(n), exact_rate(rate))
+
+
+def exact_keep_count(n: int, rate: Fraction) -> int:
+    """`keep_count` on a rate `exact_rate` read and a positive filter count: the per-layer arithmetic, nothing checked.
+
+    Args:
+        n: the layer's filter count (positive).
+        rate: the exact rate, in [0, 1).
+    Returns:
+        The number of filters kept, ``n - floor(n * rate)``, at least 1.
+    """
+    removed = math.floor(n * rate + _RATE_SLACK)
+    return n - min(int(removed), n - 1)
+
+
+def _filter_count(n: int) -> int:
+    """`n` as a filter count; UserError unless a positive integer."""
     if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
         raise UserError(f"filter count must be a positive integer, got {n!r}")
-    removed = math.floor(int(n) * _exact_rate(rate) + _RATE_SLACK)
-    return int(n) - min(int(removed), int(n) - 1)
+    return int(n)
 
 
 def pruned_widths(widths: Iterable[int], rate: Rate) -> tuple[int, ...]:
@@ -95,8 +123,12 @@ def pruned_widths(widths: Iterable[int], rate: Rate) -> tuple[int, ...]:
         >>> pruned_widths((128, 64, 32, 16, 8, 8, 16, 32, 64), 0.7)
         (39, 20, 10, 5, 3, 3, 5, 10, 20)
     """
-    _exact_rate(rate)
-    return tuple(keep_count(int(w), rate) for w in widths)
+    return _kept_widths(widths, exact_rate(rate))
+
+
+def _kept_widths(widths: Iterable[int], rate: Fraction) -> tuple[int, ...]:
+    """`pruned_widths` at a rate `exact_rate` read: each width checked, the rate not again."""
+    return tuple(exact_keep_count(_filter_count(int(w)), rate) for w in widths)
 
 
 def filter_l1_norms(kernel: np.ndarray, input_channels: Sequence[int] | None = None) -> np.ndarray:
@@ -199,18 +231,18 @@ def floored_widths(widths: Sequence[int], rate: Rate, min_filters: int,
         >>> floored_widths((128, 64, 8), 0.7, 4, count)
         ((38, 19, 4), 4)
     """
-    uniform = pruned_widths(widths, rate)
+    start = exact_rate(rate)
+    uniform = _kept_widths(widths, start)
     if isinstance(min_filters, bool) or not isinstance(min_filters, numbers.Integral) or min_filters < 0:
         raise UserError(f"the narrowest layer width must be a whole number >= 0, got {min_filters!r}")
     if all(k >= min(n, min_filters) for n, k in zip(widths, uniform)):  # always so for a floor of 0 or 1
         return uniform, int(min_filters)
     budget = param_count(uniform)
-    start = _exact_rate(rate)
     # Keep counts only change at rates m/n, so these are all the rates worth trying, in increasing order.
     rates = sorted({start} | {Fraction(m, n) for n in set(widths) for m in range(1, n) if Fraction(m, n) > start})
     for floor in range(int(min_filters), 1, -1):
         for candidate in rates:
-            kept = tuple(max(keep_count(n, candidate), min(n, floor)) for n in widths)
+            kept = tuple(max(exact_keep_count(int(n), candidate), min(n, floor)) for n in widths)
             if param_count(kept) <= budget:
                 return kept, floor
     return uniform, 1
