@@ -121,7 +121,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     else:
         say("  measured already (the first rate's figures)")
     base_step = shared.base_step
-    say(f"[2/{steps}] pruning: {run.method.describe()}")
+    say(f"[2/{steps}] pruning: {run.method.words}")
     importance = None
     if run.method.ranks_filters:
         importance = shared_importance(run, shared)

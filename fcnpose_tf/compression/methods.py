@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Protocol, TypedDict
+from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol, TypedDict
 
 from fcnpose_tf.compression.report import PruningSections
 from fcnpose_tf.errors import UserError
@@ -19,7 +19,7 @@ from fcnpose_tf.records import training_record
 if TYPE_CHECKING:
     import tf_keras as keras
 
-    from fcnpose_tf.compression.importance import CriterionFacts, Importance
+    from fcnpose_tf.compression.importance import Importance
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.prune import WidthPlan
     from fcnpose_tf.training.train import FitResult
@@ -29,8 +29,7 @@ FitFn = Callable[..., "FitResult"]
 
 
 class MethodRecord(TypedDict, total=False):
-    """What a retrained model's NAME_train.json says about the method that pruned it (`PruningMethod.training_record`),
-    in this order: filter surgery its rate, strategy (or pruned start), min_filters and criterion; magnitude pruning
+    """What a retrained model's NAME_train.json says about the method that pruned it (`Pruned.record`), in this order: filter surgery its rate, strategy (or pruned start), min_filters and criterion; magnitude pruning
     its rate, method and sparsity."""
 
     rate: float
@@ -49,19 +48,26 @@ class MethodRecord(TypedDict, total=False):
     """Frames a data-aware criterion scored the filters on."""
 
 
+class Pruned(NamedTuple):
+    """What `PruningMethod.prune` returns: the pruned model and what the report and the retraining record say of it."""
+
+    model: keras.Model
+    """The pruned model before retraining."""
+    sections: PruningSections
+    """The report sections the method adds (pruning, magnitude_sparsity)."""
+    record: MethodRecord
+    """What the retraining's NAME_train.json says about the method."""
+
+
 class PruningMethod(Protocol):
     """How a method prunes the base model and retrains the result through the same `fit`."""
 
     name: str
     start_name: str
     """Where the pruned network's weights come from: "surgery" (the base model's, cut), or a pruned start's name."""
-
-    def describe(self) -> str:
-        """The progress line's words for what is pruned.
-
-        Returns:
-            e.g. "filter surgery at rate 0.7 (no layer under 15 filters), filters ranked by taylor (independent)".
-        """
+    words: str
+    """The progress line's words for what is pruned, e.g. "filter surgery at rate 0.7 (no layer under 15 filters),
+    filters ranked by taylor (independent)"."""
 
     @property
     def ranks_filters(self) -> bool:
@@ -72,15 +78,15 @@ class PruningMethod(Protocol):
         """Whether `prune` returns trained weights of the pruned network (a pruned start), whose validation loss the
         retraining must beat: if no epoch does, the start is kept unchanged (`train.fit`'s start_is_candidate)."""
 
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
+    def prune(self, base: keras.Model, importance: Importance | None) -> Pruned:
         """Prune the base model (not changed) by the run's plan.
 
         Args:
             base: the model to prune, at the run's input size.
             importance: the criterion filters are ranked by (`ranks_filters`), else None.
         Returns:
-            The pruned model before retraining, and the report sections the method adds (pruning,
-            magnitude_sparsity).
+            The pruned model before retraining, the report sections the method adds (pruning, magnitude_sparsity)
+            and the retraining record's `MethodRecord`.
         Raises:
             UserError: a pruned start that is not this plan's network.
         """
@@ -94,13 +100,6 @@ class PruningMethod(Protocol):
             fit_fn: the run's retraining (`FitFn`).
         """
 
-    def training_record(self) -> MethodRecord:
-        """What the retraining's NAME_train.json says about the method.
-
-        Returns:
-            The `MethodRecord`.
-        """
-
 
 class FilterPruning:
     """The paper's method: remove the least important filters (exact layer surgery); the paper ranks them by
@@ -110,7 +109,7 @@ class FilterPruning:
     Args:
         plan: the run's widths (`prune.plan_widths`, with the options' floor).
         strategy: how filters are ranked (`prune.STRATEGIES`).
-        importance: the criterion's name, recorded until `prune` reads the criterion's own facts.
+        importance: the criterion's name, for the progress words (`prune` records the criterion's own facts).
         start: a pruned model whose weights the network takes instead of surgery on the base (`pruned_start`);
             None: surgery.
         start_name: the start's name for lines and records (default: its path).
@@ -120,10 +119,13 @@ class FilterPruning:
 
     def __init__(self, plan: WidthPlan, strategy: str, importance: str = "l1",
                  start: Path | None = None, start_name: str = "") -> None:
-        self.plan, self.strategy, self.importance = plan, strategy, importance
+        self.plan, self.strategy = plan, strategy
         self.rate, self.min_filters = plan.rate, plan.floor
         self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
-        self.criterion_facts: CriterionFacts | None = {"importance": importance} if start is None else None
+        floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
+        self.words = (f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
+                      if start is not None else
+                      f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {importance} ({strategy})")
 
     @property
     def ranks_filters(self) -> bool:
@@ -135,18 +137,7 @@ class FilterPruning:
         """True with a pruned start."""
         return self.start is not None
 
-    def describe(self) -> str:
-        """The progress line's words: the rate, the floor, and the criterion or the pruned start.
-
-        Returns:
-            The words (`PruningMethod.describe`).
-        """
-        floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
-        if self.start is not None:
-            return f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
-        return f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy})"
-
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
+    def prune(self, base: keras.Model, importance: Importance | None) -> Pruned:
         """Surgery on `base` at the plan's widths, the filters `importance` ranks highest kept; or the pruned start's
         weights in the network surgery would build.
 
@@ -154,8 +145,9 @@ class FilterPruning:
             base: the model to prune (not changed).
             importance: the criterion (None with a pruned start).
         Returns:
-            The pruned model, and the report's "pruning" section (criterion facts, strategy, min_filters,
-            ranking_seconds; or the start's name and file, and min_filters).
+            The pruned model; the report's "pruning" section (criterion facts, strategy, min_filters,
+            ranking_seconds; or the start's name and file, and min_filters); the record: the rate, the strategy (or
+            the pruned start), min_filters (the plan's floor) and the criterion's facts.
         Raises:
             UserError: a pruned start of another network or other widths than the plan's.
         """
@@ -166,12 +158,13 @@ class FilterPruning:
         start = time.perf_counter()
         pruned = prune_model(base, self.rate, strategy=self.strategy, importance=importance,
                              min_filters=self.min_filters, widths=self.plan)
-        self.criterion_facts = importance.describe()
-        return pruned, PruningSections(pruning={**self.criterion_facts, "strategy": self.strategy,
-                                                "min_filters": self.min_filters,
-                                                "ranking_seconds": round(time.perf_counter() - start, 1)})
+        facts = importance.describe()
+        return Pruned(pruned, PruningSections(pruning={**facts, "strategy": self.strategy,
+                                                       "min_filters": self.min_filters,
+                                                       "ranking_seconds": round(time.perf_counter() - start, 1)}),
+                      {"rate": self.rate, "strategy": self.strategy, "min_filters": self.min_filters, **facts})
 
-    def _from_start(self, base: keras.Model) -> tuple[keras.Model, PruningSections]:
+    def _from_start(self, base: keras.Model) -> Pruned:
         """The start model's weights in the network surgery would build from `base` (same widths, the base's input
         size); UserError when its widths are not surgery's."""
         from fcnpose_tf.training.model import ARCHITECTURES, architecture_of, build_fcn_pose, conv_widths, load_model, \
@@ -188,8 +181,9 @@ class FilterPruning:
                             f"--rate {self.rate:g}{floor} on this model, {widths}")
         pruned = build_fcn_pose(widths[:-1], view_of(base), widths[-1], skip=ARCHITECTURES[architecture_of(base)])
         pruned.set_weights(source.get_weights())
-        return pruned, PruningSections(pruning={"start": self.start_name, "start_file": str(self.start),
-                                                "min_filters": self.min_filters})
+        return Pruned(pruned, PruningSections(pruning={"start": self.start_name, "start_file": str(self.start),
+                                                       "min_filters": self.min_filters}),
+                      {"rate": self.rate, "start": self.start_name, "min_filters": self.min_filters})
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         """Retrain the pruned network itself (`fit_fn(pruned)`); `base` is not used.
@@ -200,15 +194,6 @@ class FilterPruning:
             fit_fn: the run's retraining.
         """
         fit_fn(pruned)
-
-    def training_record(self) -> MethodRecord:
-        """The rate, the strategy (or the pruned start), min_filters (the plan's floor) and the criterion's facts.
-
-        Returns:
-            The `MethodRecord`.
-        """
-        start = {"start": self.start_name} if self.start is not None else {"strategy": self.strategy}
-        return {"rate": self.rate, **start, "min_filters": self.min_filters, **(self.criterion_facts or {})}
 
 
 class MagnitudePruning:
@@ -226,28 +211,24 @@ class MagnitudePruning:
     def __init__(self, plan: WidthPlan) -> None:
         self.rate, self.plan = plan.rate, plan
         self.sparsity = 0.0
+        self.words = f"magnitude at rate {self.rate:g}"
 
-    def describe(self) -> str:
-        """The progress line's words: "magnitude at rate R".
-
-        Returns:
-            The words (`PruningMethod.describe`).
-        """
-        return f"magnitude at rate {self.rate:g}"
-
-    def prune(self, base: keras.Model, importance: Importance | None) -> tuple[keras.Model, PruningSections]:
+    def prune(self, base: keras.Model, importance: Importance | None) -> Pruned:
         """Zero the smallest weights of `base`'s kernels (a copy), as many as filter surgery's plan removes.
 
         Args:
             base: the model to prune (not changed).
             importance: not used (magnitude pruning ranks weights, not filters).
         Returns:
-            The masked model, and the report's "magnitude_sparsity" (1 - plan parameters / base parameters).
+            The masked model, the report's "magnitude_sparsity" (1 - plan parameters / base parameters), and the
+            record: the rate, the method ("magnitude") and the sparsity.
         """
         from fcnpose_tf.compression.magnitude import magnitude_prune
 
         self.sparsity = 1.0 - self.plan.params / base.count_params()  # the same reduction as filter surgery
-        return magnitude_prune(base, self.sparsity), PruningSections(magnitude_sparsity=round(self.sparsity, 6))
+        sparsity = round(self.sparsity, 6)
+        return Pruned(magnitude_prune(base, self.sparsity), PruningSections(magnitude_sparsity=sparsity),
+                      {"rate": self.rate, "method": self.name, "sparsity": sparsity})
 
     def retrain(self, base: keras.Model, pruned: keras.Model, fit_fn: FitFn) -> None:
         """Retrain `base` under the masks `prune` computed (tfmot keeps them while `fit_fn` trains; the file saved is
@@ -265,14 +246,6 @@ class MagnitudePruning:
         # the same masks as `prune` (computed from the base's weights), kept while fit retrains
         magnitude_prune(base, self.sparsity, train_fn=lambda wrapped, callbacks: fit_fn(
             wrapped, callbacks=callbacks, inference_model=tfmot.sparsity.keras.strip_pruning))
-
-    def training_record(self) -> MethodRecord:
-        """The rate, the method ("magnitude") and the sparsity.
-
-        Returns:
-            The `MethodRecord`.
-        """
-        return {"rate": self.rate, "method": self.name, "sparsity": round(self.sparsity, 6)}
 
 
 PRUNED_GENERALIST = "generalist-p70"

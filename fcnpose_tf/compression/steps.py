@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from fcnpose_tf.compression.methods import PruningMethod
+from fcnpose_tf.compression.methods import MethodRecord, PruningMethod
 from fcnpose_tf.compression.options import CompressOptions, OutputFiles
 from fcnpose_tf.compression.costs import file_sizes, model_facts
 from fcnpose_tf.compression.report import ModelStep, PruningSections, RetrainSections, Retraining
@@ -64,6 +64,8 @@ class Run:
     recipe: str
     fit_data: Any = None
     """The retraining's training data (`data.dataset.fold_data`), kept for quantization-aware training."""
+    method_record: MethodRecord | None = None
+    """What the pruning step says about its method in the retraining's NAME_train.json (`methods.Pruned.record`)."""
 
     @functools.cached_property
     def data_sha256(self) -> str:
@@ -257,7 +259,8 @@ def shared_importance(run: Run, shared: SharedScoring) -> Importance:
 
 
 def prune_step(run: Run, importance: Importance | None) -> tuple[keras.Model, PruningSections, ModelStep]:
-    """Prune with the run's method and measure the result before any retraining.
+    """Prune with the run's method and measure the result before any retraining; the method's record is kept for the
+    retraining (`Run.method_record`).
 
     Args:
         run: the compression run.
@@ -267,7 +270,7 @@ def prune_step(run: Run, importance: Importance | None) -> tuple[keras.Model, Pr
     """
     from fcnpose_tf.training.model import with_view
 
-    pruned, sections = run.method.prune(run.base, importance)
+    pruned, sections, run.method_record = run.method.prune(run.base, importance)
     pruned = with_view(pruned, run.input_size)  # the crop is part of the model: surgery keeps the base's
     return pruned, sections, ModelStep.of(model_facts(pruned), run.measure(
         run.keras_predictor(pruned), "the pruned model before retraining", timing=False))
@@ -299,7 +302,7 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
     entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
                                                 "train_samples": len(train_data), "val_frames": len(val_data)}}
     metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
-                "pruned_from": str(run.base_path), **run.method.training_record(), "input_size": run.input_size.size_record,
+                "pruned_from": str(run.base_path), **(run.method_record or {}), "input_size": run.input_size.size_record,
                 "view": run.input_size.to_json(),
                 "recipe": run.recipe}
     sequence = train_data.sequence(options.batch_size, seed=options.seed)
