@@ -114,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
 
     from fcnpose_tf import settings
     from fcnpose_tf.data import synthcache
-    from fcnpose_tf.bundled import KERAS_SUFFIXES, baseline_model, resolve_model
+    from fcnpose_tf.bundled import baseline_model
     from fcnpose_tf.compression.compress import compress_model
     from fcnpose_tf.compression.steps import SharedScoring
     from fcnpose_tf.compression.options import CompressOptions, check_outputs
@@ -124,7 +124,6 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
     from fcnpose_tf.fileio import removed_if_left_empty
-    from fcnpose_tf.progress import SILENT
     from fcnpose_tf.system import available_cores
 
     named = "quantize" in args.given_settings  # formats the user named: refusing one is an error (exit status 2)
@@ -138,10 +137,8 @@ def run(args: argparse.Namespace) -> int:
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     options = settings.from_args(args, CompressOptions, renamed={"patience": "retrain_patience"})
-    every = [replace(options, rate=rate).checked(model_path) for rate in rates]  # None settings: the run's choice
-    options = every[0]
-    if options.method == "l1" and options.start not in ("auto", "surgery"):
-        resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)  # a wrong --start: before the data
+    # None settings: the run's choice; a wrong --start refused before the data
+    every = [replace(options, rate=rate).checked(model_path) for rate in rates]
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails

@@ -116,18 +116,24 @@ class CompressOptions:
         return None not in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment)
 
     def checked(self, base_path: str | os.PathLike | None = None) -> CompressOptions:
-        """These options resolved for `base_path` (`resolved`) and validated (`validate`): what `compress_model`
-        takes, checked once by its caller.
+        """These options resolved for `base_path` (`resolved`) and validated (`validate`), an explicit pruned start
+        found (a file or a bundled name, before any data is read; `methods.pruned_start` opens it): what
+        `compress_model` takes, checked once by its caller.
 
         Args:
             base_path: the model to compress (its NAME_train.json is read by `resolved`).
         Returns:
             The resolved copy.
         Raises:
-            UserError: as `validate`.
+            UserError: as `validate`; an explicit start that is neither a file nor a bundled Keras model.
         """
+        from fcnpose_tf.bundled import KERAS_SUFFIXES, resolve_model
+        from fcnpose_tf.progress import SILENT
+
         options = self.resolved(base_path)
         options.validate()
+        if options.method == "l1" and options.start not in ("auto", "surgery"):
+            resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)
         return options
 
     def recipe(self, min_filters_used: int | None = None) -> str:
