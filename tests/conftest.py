@@ -22,11 +22,17 @@ def pytest_collection_modifyitems(config, items):
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))  # stable: each file's tests keep their order
 
 
+PROCESS_TIMEOUT = 1800
+"""Seconds a test gives a new process to start, to reach what it waits for or to end, before it fails: a machine
+busy with other work may take minutes to import TensorFlow. Only a failure waits this long; a test that passes goes on
+as soon as the process is there (it polls or blocks on the process, never sleeps a fixed time)."""
+
+
 @pytest.fixture
 def cli(tmp_path):
     """Run `python -m fcnpose_tf ARGS` in a subprocess; returns CompletedProcess with text output."""
 
-    def run(*args, cwd=None, env=None, timeout=1800):  # a machine busy with other work may take many minutes
+    def run(*args, cwd=None, env=None, timeout=PROCESS_TIMEOUT):
         full_env = dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2", **(env or {}))
         return subprocess.run([sys.executable, "-m", "fcnpose_tf", *map(str, args)], cwd=cwd or tmp_path,
                               env=full_env, capture_output=True, text=True, timeout=timeout)
@@ -49,7 +55,7 @@ def cli_few_timed(tmp_path):
     """`cli` for commands that evaluate a model (train, compress) in a test that asserts no timing beyond its
     presence: the same fresh process, its evaluations timing `FEW_TIMED_FRAMES` frames after one of warm-up."""
 
-    def run(*args, cwd=None, env=None, timeout=1800):
+    def run(*args, cwd=None, env=None, timeout=PROCESS_TIMEOUT):
         return run_cli_few_timed(*args, cwd=cwd or tmp_path, env=env, timeout=timeout)
 
     return run

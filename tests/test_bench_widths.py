@@ -8,6 +8,8 @@ import subprocess
 import sys
 
 import pytest
+
+from conftest import PROCESS_TIMEOUT
 from tools_loader import TOOLS, tool
 
 TOOL = TOOLS / "bench_widths.py"
@@ -78,7 +80,7 @@ def test_budget_round_prints_the_rounded_lists_without_tensorflow(tmp_path):
              "except SystemExit as e:\n    code = e.code\n"
              "assert 'tensorflow' not in sys.modules, 'imported TensorFlow'\nsys.exit(code)")
     proc = subprocess.run([sys.executable, "-c", probe, str(TOOL), "--budget-round", "4,8", "--widths", P70,
-                           "--json", str(out)], capture_output=True, text=True, timeout=120)
+                           "--json", str(out)], capture_output=True, text=True, timeout=PROCESS_TIMEOUT)
     assert proc.returncode == 0, proc.stderr
     assert "14,344" in proc.stdout and ROUNDED in proc.stdout and "28,16,12,12,8,8,12,12,16" in proc.stdout
     report = json.loads(out.read_text())

@@ -3,6 +3,8 @@ import sys
 
 import pytest
 
+from conftest import PROCESS_TIMEOUT
+
 
 def test_importing_cli_does_not_import_tensorflow():
     code = ("import sys, fcnpose_tf.cli as c; c.build_parser(); "
@@ -145,7 +147,7 @@ def test_an_existing_output_is_refused_before_tensorflow_is_imported(tmp_path, a
     code = ("import sys; from fcnpose_tf.cli import main; status = main(sys.argv[1:]); "
             "assert 'tensorflow' not in sys.modules, 'TensorFlow was imported first'; sys.exit(status)")
     proc = subprocess.run([sys.executable, "-c", code, *args], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=120)
+                          timeout=PROCESS_TIMEOUT)
     assert proc.returncode == 2, proc.stderr
     assert proc.stderr.strip().splitlines()[-1] == "error: exists.keras: already exists; pass --force to replace it"
     assert (tmp_path / "exists.keras").read_text() == "mine"

@@ -11,6 +11,7 @@ import time
 
 import pytest
 
+from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.cli import main
 
 LONG = "n" * 300  # longer than any file system's file name limit (255 bytes)
@@ -211,9 +212,9 @@ def _exists(test):
         return False
 
 
-def _signal_once_started(proc, sig, started, what, timeout=600):
+def _signal_once_started(proc, sig, started, what, timeout=PROCESS_TIMEOUT):
     """Poll (no fixed sleep) until `started()` holds, send `sig`, and wait for the end; returns (stdout, stderr)."""
-    deadline = time.monotonic() + timeout  # generous: a loaded machine may take minutes to import TensorFlow
+    deadline = time.monotonic() + timeout
     while time.monotonic() < deadline and proc.poll() is None and not _exists(started):
         time.sleep(0.05)
     assert proc.poll() is None, f"the command ended before {what}"

@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import FrameView, keypoints_to_frame, keypoints_to_input, preprocess_frame
 from test_preprocess import _blob_frame, _centroid
@@ -129,7 +130,8 @@ def test_the_pi_runtime_reads_the_crop_without_tensorflow_and_agrees_with_keras(
         f"out = [m.predict(cv2.imread({str(tmp_path)!r} + f'/f{{i}}.png')).keypoints.tolist() for i in range({len(frames)})]\n"
         "print(json.dumps({'view': m.view.to_json(), 'kps': out, "
         "'tf': [k for k in sys.modules if k.split('.')[0] in ('tensorflow', 'tf_keras', 'keras')]}))\n")
-    result = subprocess.run([sys.executable, "-c", code], env=no_tf_env, capture_output=True, text=True, timeout=300)
+    result = subprocess.run([sys.executable, "-c", code], env=no_tf_env, capture_output=True, text=True,
+                            timeout=PROCESS_TIMEOUT)
     assert result.returncode == 0, result.stderr
     answer = json.loads(result.stdout.strip().splitlines()[-1])
     assert answer["tf"] == [] and FrameView.from_json(answer["view"]) == VIEW

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.bundled import models_dir
 
 HELPER = Path(__file__).resolve().parents[1] / "tools" / "pi_emulated" / "pi_check.py"
@@ -18,7 +19,7 @@ HELPER = Path(__file__).resolve().parents[1] / "tools" / "pi_emulated" / "pi_che
 
 def _helper(*args, cwd=None):
     return subprocess.run([sys.executable, str(HELPER), *map(str, args)], capture_output=True, text=True,
-                          timeout=600, cwd=cwd)
+                          timeout=PROCESS_TIMEOUT, cwd=cwd)
 
 
 @pytest.fixture(scope="module")

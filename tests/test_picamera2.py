@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.cli import main
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.runtime import sources as rsources
@@ -232,13 +233,13 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
                              "--threads", "1", "--out", str(out), "--via", "hard/frames.json"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=no_tf_camera_env,
                             cwd=tmp_path, preexec_fn=lambda: signal.signal(signal.SIGINT, INHERITED_SIGINT[inherited]))
-    deadline = time.monotonic() + 300
+    deadline = time.monotonic() + PROCESS_TIMEOUT
     while time.monotonic() < deadline and proc.poll() is None and not (out.exists() and out.stat().st_size > 0):
         time.sleep(0.02)
     assert proc.poll() is None and out.stat().st_size > 0, proc.communicate()[1]
     proc.send_signal(sig)
     try:
-        stdout, stderr = proc.communicate(timeout=120)
+        stdout, stderr = proc.communicate(timeout=PROCESS_TIMEOUT)
     except subprocess.TimeoutExpired:  # show where every thread is, then fail
         proc.send_signal(signal.SIGUSR1)
         time.sleep(2)
@@ -263,7 +264,8 @@ def test_ctrl_c_and_sigterm_end_a_camera_run_cleanly_without_tensorflow(tmp_path
 def test_numpy_mismatch_is_one_line_from_the_command(tmp_path, model_path, no_tf_camera_env):
     env = dict(no_tf_camera_env, SIMPLEJPEG_STANDIN_BUILT_FOR="numpy1", SIMPLEJPEG_STANDIN_FAILURE="import_array")
     result = subprocess.run([sys.executable, "-m", "fcnpose_tf", "run", str(model_path), "--source", "picamera2",
-                             "--out", "k.jsonl"], env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300)
+                             "--out", "k.jsonl"], env=env, cwd=tmp_path, capture_output=True, text=True,
+                          timeout=PROCESS_TIMEOUT)
     assert result.returncode == 2
     assert result.stderr.strip().count("\n") == 0, result.stderr  # numpy's explanation is not on the terminal
     assert result.stderr.startswith("error: --source picamera2: picamera2 cannot be imported with numpy 2")

@@ -8,6 +8,8 @@ import math
 import numpy as np
 import pytest
 
+from conftest import PROCESS_TIMEOUT
+
 import fcnpose_tf.postprocess as pp
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.postprocess import decode, largest_cluster, maps_to_keypoints, probability_to_logit
@@ -465,7 +467,8 @@ def test_benchmark_tool_runs_and_checks_its_variants(tmp_path):
     tool = Path(__file__).resolve().parents[1] / "tools" / "bench_postprocess.py"
     out = tmp_path / "bench.json"
     proc = subprocess.run([sys.executable, str(tool), "--size", "48", "--rounds", "3", "--warmup", "1",
-                           "--json", str(out)], capture_output=True, text=True, timeout=120)
+                           "--json", str(out)], capture_output=True, text=True,
+                           timeout=PROCESS_TIMEOUT)
     assert proc.returncode == 0, proc.stderr
     assert "library (bbox window)" in proc.stdout and "median µs" in proc.stdout
     report = json.loads(out.read_text())

@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.cli import build_parser
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.runtime.estimator import KeypointModel
@@ -173,7 +174,7 @@ def test_missing_model_and_cameras_refused(capsys, tmp_path, model_path, quadran
 def test_predict_with_a_tflite_needs_no_tensorflow(no_tf_env, model_path, quadrant_images, tmp_path):
     result = subprocess.run([sys.executable, "-m", "fcnpose_tf", "predict", str(model_path), "--source",
                              str(quadrant_images), "--via", str(tmp_path / "pre.json")], env=no_tf_env,
-                            capture_output=True, text=True, timeout=300)
+                            capture_output=True, text=True, timeout=PROCESS_TIMEOUT)
     assert result.returncode == 0, result.stderr
     assert len(read_via(tmp_path / "pre.json").frames) == 4
 
@@ -193,12 +194,12 @@ def test_sigterm_keeps_the_frames_done_as_a_project(tmp_path, model_path):
     proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "predict", str(model_path), "--source",
                              str(long_video), "--threads", "1", "--via", str(via)], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2"))
-    deadline = time.monotonic() + 300  # a loaded machine may take long to start
+    deadline = time.monotonic() + PROCESS_TIMEOUT
     while time.monotonic() < deadline and proc.poll() is None and not (images.is_dir() and any(images.iterdir())):
         time.sleep(0.02)
     assert proc.poll() is None and any(images.iterdir()), "predict did not start saving frames in time"
     proc.send_signal(signal.SIGTERM)
-    stdout, stderr = proc.communicate(timeout=300)
+    stdout, stderr = proc.communicate(timeout=PROCESS_TIMEOUT)
     assert proc.returncode == 143, stderr  # the documented status of a stop by SIGTERM, outputs complete
     assert "terminated (SIGTERM)" in stdout
     assert stderr.splitlines()[-1] == f"terminated (SIGTERM); kept the files completed before it: {via}, {images}"

@@ -7,6 +7,7 @@ import signal
 
 import pytest
 
+from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.cli import build_parser, main
 from fcnpose_tf.progress import Reporter
 
@@ -343,7 +344,7 @@ def _temporary_made_by_a_process_now_gone(target):
 
     code = "import sys; from fcnpose_tf.fileio import temporary_path; print(temporary_path(sys.argv[1]))"
     done = subprocess.run([sys.executable, "-c", code, str(target)], capture_output=True, text=True, check=True,
-                          env=dict(os.environ), timeout=300)
+                          env=dict(os.environ), timeout=PROCESS_TIMEOUT)
     return Path(done.stdout.strip())
 
 
@@ -376,12 +377,12 @@ def test_a_run_killed_with_sigkill_leaves_no_temporary_after_the_next_run(tmp_pa
     proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "run", str(tflite_model), "--source", str(long_video),
                              "--threads", "1", "--out", str(out), "--save-video", str(target)],
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=dict(os.environ))
-    deadline = time.monotonic() + 300  # a loaded machine may take long to start the run
+    deadline = time.monotonic() + PROCESS_TIMEOUT
     while time.monotonic() < deadline and proc.poll() is None and not (out.exists() and out.stat().st_size > 0):
         time.sleep(0.02)
     assert proc.poll() is None, "the run ended before it could be killed"
     proc.kill()
-    proc.wait(timeout=300)
+    proc.wait(timeout=PROCESS_TIMEOUT)
     stranded = list(tmp_path.glob(".o.*.tmp.mp4"))
     assert len(stranded) == 1  # what SIGKILL leaves behind
     assert main(["run", str(tflite_model), "--source", str(long_video), "--threads", "1", "--max-frames", "2",

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 import pytest
 
+from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
 from fcnpose_tf.postprocess import Decoding
@@ -826,7 +827,7 @@ def no_tf_env(tmp_path_factory) -> dict:
     return dict(os.environ, PYTHONPATH=pythonpath, TF_CPP_MIN_LOG_LEVEL="2")
 
 
-def _py(env, *args, cwd=None, timeout=300):
+def _py(env, *args, cwd=None, timeout=PROCESS_TIMEOUT):
     return subprocess.run([sys.executable, *map(str, args)], env=env, cwd=cwd, capture_output=True, text=True,
                           timeout=timeout)
 

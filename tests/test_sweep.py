@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import run_cli_few_timed
+from conftest import PROCESS_TIMEOUT, run_cli_few_timed
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
 from fcnpose_tf.progress import SILENT, Reporter
@@ -294,7 +294,8 @@ def test_report_modules_import_no_tensorflow_or_ray():
     code = ("import sys, fcnpose_tf.sweep, fcnpose_tf.sweep.report, fcnpose_tf.commands.sweep; "
             "bad = [m for m in ('tensorflow', 'tf_keras', 'ray', 'matplotlib') if m in sys.modules]; "
             "assert not bad, bad")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          timeout=PROCESS_TIMEOUT)
     assert proc.returncode == 0, proc.stderr
 
 

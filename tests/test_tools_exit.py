@@ -6,12 +6,14 @@ from pathlib import Path
 
 import pytest
 
+from conftest import PROCESS_TIMEOUT
+
 TOOLS = Path(__file__).resolve().parents[1] / "tools"
 
 
 def _tool(name, *args, cwd):
     return subprocess.run([sys.executable, str(TOOLS / name), *map(str, args)], capture_output=True, text=True,
-                          cwd=cwd, timeout=300)
+                          cwd=cwd, timeout=PROCESS_TIMEOUT)
 
 
 @pytest.mark.parametrize("name, args, message", [
