@@ -11,11 +11,14 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+
+from conftest import PROCESS_TIMEOUT
 
 from fcnpose_tf.cli import build_parser, main
 from test_runtime import RED_CYCLE, _convert_plain, expected_keypoints, quadrant_frame, write_video
@@ -241,10 +244,6 @@ def test_bench_user_errors(capsys, tmp_path, model_path, args, message):
 
 def test_sigterm_ends_a_run_cleanly(tmp_path, model_path):
     """`kill` during a run: exit 143, summary printed, every record written so far is complete and named."""
-    import os
-    import signal
-    import subprocess
-    import sys
     import time
 
     frames = [quadrant_frame(64, 64, RED_CYCLE[i % 4]) for i in range(4)] * 1500
@@ -253,12 +252,12 @@ def test_sigterm_ends_a_run_cleanly(tmp_path, model_path):
     proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", "run", str(model_path), "--source", str(long_video),
                              "--threads", "1", "--out", str(out)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                             text=True, env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2"))
-    deadline = time.monotonic() + 300  # a loaded machine may take long to start the run
+    deadline = time.monotonic() + PROCESS_TIMEOUT
     while time.monotonic() < deadline and proc.poll() is None and not (out.exists() and out.stat().st_size > 0):
         time.sleep(0.02)
     assert proc.poll() is None and out.stat().st_size > 0, "the run did not start writing records in time"
     proc.send_signal(signal.SIGTERM)
-    stdout, stderr = proc.communicate(timeout=300)
+    stdout, stderr = proc.communicate(timeout=PROCESS_TIMEOUT)
     assert proc.returncode == 143, stderr
     assert "stopped: terminated (SIGTERM)" in stdout
     assert stderr.splitlines()[-1] == f"terminated (SIGTERM); kept the files completed before it: {out}"
@@ -288,29 +287,42 @@ def test_run_smooth_filters_the_records(capsys, tmp_path, model_path, video):
     assert np.all(np.abs(smooth[1:] - raw[1:])[moved] > 0.01)  # pulled back, not copied
 
 
+def _unblock_unless_done(fifo: Path, done: threading.Event, timeout: float, unblocked: list) -> None:
+    """After `timeout` s without `done`: open `fifo`'s writing end and close it (a reader blocked in open() goes on
+    and reads its end), and note it in `unblocked`. Only a command that waits on the pipe gets there."""
+    if done.wait(timeout):
+        return
+    while not done.is_set():
+        try:
+            os.close(os.open(fifo, os.O_WRONLY | os.O_NONBLOCK))
+            unblocked.append(True)
+        except OSError:  # no reader on the pipe (yet)
+            pass
+        done.wait(0.1)
+
+
 @pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="named pipes are POSIX")
 @pytest.mark.parametrize("command, name", [("run", "feed.mp4"), ("run", "feed.png"), ("predict", "feed.mp4"),
                                            ("data", "labels.json")])
-def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, model_path, command, name):
-    # Opening a FIFO blocks, in OpenCV's native code, until something writes to it: no signal ended the command.
+def test_a_named_pipe_is_refused_without_waiting_for_a_writer(tmp_path, model_path, command, name, cli_here):
+    # Opening a FIFO blocks, in OpenCV's native code, until something writes to it: no signal ends the command. It
+    # runs here (cli_here); a thread opens the pipe's other end if it still runs after 10 minutes (the cost of a
+    # failure only), so that it ends and the test fails instead of hanging.
     fifo = tmp_path / name
     os.mkfifo(fifo)
     args = {"run": ["run", model_path, "--source", fifo, "--out", tmp_path / "k.jsonl"],
             "predict": ["predict", model_path, "--source", fifo, "--via", tmp_path / "p.json"],
             "data": ["data", "inspect", fifo]}[command]
-    proc = subprocess.Popen([sys.executable, "-m", "fcnpose_tf", *map(str, args)], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True)
+    done, unblocked = threading.Event(), []
+    watchdog = threading.Thread(target=_unblock_unless_done, args=(fifo, done, 600, unblocked), daemon=True)
+    watchdog.start()
     try:
-        _, err = proc.communicate(timeout=120)
-    except subprocess.TimeoutExpired:
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.communicate(timeout=20)
-            pytest.fail(f"{command} waited on the named pipe (ended by SIGTERM)")
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            pytest.fail(f"{command} waited on the named pipe and ignored SIGTERM")
-    assert proc.returncode == 2, err
+        status, _, err = cli_here(*args)
+    finally:
+        done.set()
+        watchdog.join()
+    assert not unblocked, f"{command} waited on the named pipe (ended by opening its other end)"
+    assert status == 2, err
     assert err.strip().splitlines()[-1].startswith(f"error: {fifo}: is a named pipe"), err
     assert sorted(p.name for p in tmp_path.iterdir()) == [name]
 
