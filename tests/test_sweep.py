@@ -1,8 +1,8 @@
 """`fcnpose-tf sweep`: rate specs, tables and plot from saved jobs, resumability, executors, smoke sweeps.
 
 The fast tests use a fake job function (no TensorFlow) that writes records shaped like the real
-ones; the smoke tests run real tiny sweeps (64x64, 1 epoch) on the local executor and on a local
-Ray instance limited to 2 CPUs.
+ones; the smoke tests run real tiny sweeps (64x64, 1 epoch) on the local executor and on a Ray head
+of 2 CPUs started for this module (`ray_head`).
 """
 
 from __future__ import annotations
@@ -12,8 +12,11 @@ import io
 import json
 import os
 import shutil
+import signal
+import socket
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,6 +27,7 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import write_json
 from fcnpose_tf.progress import SILENT, Reporter
 from fcnpose_tf.sweep import Job, LocalExecutor, RayExecutor, SweepConfig, parse_rates, run_sweep, write_report
+from fcnpose_tf.sweep.executors import thread_env
 from fcnpose_tf.records import file_sha256
 from fcnpose_tf.sweep.jobs import base_model_path, job_path, plan_jobs
 from fcnpose_tf.sweep.rates import parse_per_rate_epochs, rate_label, rate_tag
@@ -688,24 +692,212 @@ def test_smoke_sweep_local_then_rerun_skips(tmp_path, smoke_frames, smoke_sweep,
     assert status == 0 and f"wrote {moved / 'summary.md'}" in stdout
 
 
-@pytest.mark.slow
-def test_smoke_sweep_on_a_local_ray_instance(tmp_path, smoke_frames, smoke_sweep, cli, cli_here):
-    """Fold 1's jobs (its base, then both rates at once on 2 CPUs) run as Ray tasks in a folder whose fold 0 the
-    local executor finished: a base before its rates, 1 thread per task, and the same records as a local run."""
+RAY_ENV = {"RAY_USAGE_STATS_ENABLED": "0", "RAY_AUTH_MODE": "disabled", "RAY_NUM_REDIS_GET_RETRIES": "1800"}
+"""The environment of the Ray head and of its drivers: no usage report, no token (a token in ~/.ray turns on token
+authentication for `ray start` alone, and a driver without it is refused), 30 minutes (not 20 s) for a driver to
+reach a slow GCS."""
+
+RAY_START = """
+import sys, time
+
+import ray._private.services as services
+from ray.scripts.scripts import main
+
+
+def patient(get_node):
+    # ray start gives the raylet a fixed 30 s to register with the GCS (Ray 2.60, ray/_private/node.py), asking
+    # get_node until then: each call here asks for up to 30 minutes instead (a loaded machine can take minutes)
+    def get_node_patiently(*args, **kwargs):
+        deadline = time.monotonic() + 1800
+        while True:
+            try:
+                return get_node(*args, **kwargs)
+            except RuntimeError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.2)
+    return get_node_patiently
+
+
+services.get_node = patient(services.get_node)
+sys.argv[0] = "ray"
+main()
+"""
+"""`ray start ARGS` (`python -c RAY_START ARGS`) without the fixed limit on the raylet's registration."""
+
+
+def _free_ports(count: int) -> list[int]:
+    """`count` distinct TCP ports free on this machine now (each bound to port 0, then released)."""
+    sockets = [socket.socket() for _ in range(count)]
+    try:
+        for sock in sockets:
+            sock.bind(("", 0))
+        return [sock.getsockname()[1] for sock in sockets]
+    finally:
+        for sock in sockets:
+            sock.close()
+
+
+def _stop_ray_head(head: subprocess.Popen, temp: str) -> None:
+    """SIGTERM to `ray start --block`, which stops every process it started; anything of its group left is killed."""
+    head.terminate()
+    try:
+        head.wait(timeout=300)
+    except subprocess.TimeoutExpired:
+        head.kill()
+        head.wait()
+    try:
+        os.killpg(head.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    shutil.rmtree(temp, ignore_errors=True)
+
+
+def _start_ray_head(log: Path) -> tuple[subprocess.Popen, str, str]:
+    """One `ray start --head --block` (RAY_START), its output in `log`; (process, temp folder, address) once Ray says
+    it started, or the process ended (a failed start)."""
+    gcs, grpc, listen, metrics, runtime_env, node_manager, objects, dashboard, client = _free_ports(9)
+    temp = tempfile.mkdtemp(prefix="ray", dir="/tmp")  # short: Ray's socket paths must fit in 107 bytes
+    command = [sys.executable, "-c", RAY_START, "start", "--head", "--block", "--port", gcs, "--num-cpus", 2,
+               "--object-store-memory", 256 * 2**20, "--include-dashboard", "false", "--disable-usage-stats",
+               "--temp-dir", temp, "--dashboard-agent-grpc-port", grpc, "--dashboard-agent-listen-port", listen,
+               "--metrics-export-port", metrics, "--runtime-env-agent-port", runtime_env,
+               "--node-manager-port", node_manager, "--object-manager-port", objects, "--dashboard-port", dashboard,
+               "--ray-client-server-port", client]
+    path = os.pathsep.join([str(Path(__file__).parent), *filter(None, [os.environ.get("PYTHONPATH")])])
+    env = dict(os.environ, **RAY_ENV, PYTHONPATH=path, RAY_enable_worker_prestart="0",
+               RAY_prestart_worker_first_driver="0", RAY_worker_niceness="0",
+               RAY_agent_register_timeout_ms=str(30 * 60 * 1000), RAY_worker_register_timeout_seconds=str(30 * 60))
+    with open(log, "w") as out:
+        head = subprocess.Popen([str(a) for a in command], stdout=out, stderr=subprocess.STDOUT, env=env,
+                                start_new_session=True)
+    deadline = time.monotonic() + 30 * 60  # generous: the wait ends as soon as Ray says it started
+    while "Ray runtime started" not in log.read_text() and head.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    return head, temp, f"127.0.0.1:{gcs}"
+
+
+@pytest.fixture(scope="module")
+def ray_head(tmp_path_factory):
+    """A Ray head of 2 CPUs on this machine, started once for the module's Ray tests (`ray start --head --block`);
+    its address ("127.0.0.1:PORT").
+
+    Ray 2.60's own limits on a start are fixed and short, and a loaded machine exceeds them: the raylet waits 15 s for
+    an agent's port file when the agent picks its port (ray-project/ray#65983; `ray.init` of a local instance cannot
+    give those ports), and `ray start` 30 s for the raylet to register. So every port is given (nothing waits for a
+    port file), the registration is asked for up to 30 minutes (RAY_START), the limits Ray reads from its environment
+    are long (their cost is only on failure), and a start that fails anyway is tried again (3 times, new ports).
+    Workers run at normal priority (Ray's default is nice 15: a loaded machine starves them), and no worker starts
+    before a task needs one (every task of a sweep has a runtime_env of its own); they import this folder's modules
+    (tasks of fake jobs). SIGTERM ends `ray start` and every process it started.
+    """
     pytest.importorskip("ray")
+    logs = tmp_path_factory.mktemp("rayhead")
+    for attempt in range(3):
+        log = logs / f"ray_start_{attempt}.txt"
+        head, temp, address = _start_ray_head(log)
+        if head.poll() is None and "Ray runtime started" in log.read_text():
+            break
+        _stop_ray_head(head, temp)
+    else:
+        pytest.fail(f"no Ray head started in 3 attempts; the last said:\n{log.read_text()[-5000:]}")
+    try:
+        yield address
+    finally:
+        _stop_ray_head(head, temp)
+
+
+def meeting_job(config: SweepConfig, job: Job) -> dict:
+    """`fake_job` once another job of the same kind (base or rate) has started too: it waits for that job's mark in
+    OUT/started, so it returns only when two tasks ran at once (after 10 minutes alone it fails instead)."""
+    started = Path(config.out) / "started"
+    started.mkdir(exist_ok=True)
+    kind = "base" if job.is_base else "rate"
+    (started / f"{kind}_{job.name}").touch()
+    deadline = time.monotonic() + 600  # only a failure waits this long
+    while len(list(started.glob(f"{kind}_*"))) < 2:
+        if time.monotonic() > deadline:
+            raise UserError(f"{job.name}: no other {kind} job ran beside it")
+        time.sleep(0.05)
+    return fake_job(config, job)
+
+
+@pytest.mark.slow
+def test_ray_tasks_run_at_once_on_workers_and_bases_before_their_rates(tmp_path, frames, ray_head, monkeypatch):
+    """Both bases at once on 2 CPUs, then the rates two at a time (each waits for another: see meeting_job), in
+    worker processes with the thread caps of the tasks' runtime_env; a rate job before its base would fail."""
+    for name, value in RAY_ENV.items():
+        monkeypatch.setenv(name, value)
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}  # ray.init sets them
+    try:
+        outcome = run_sweep(_config(tmp_path / "res", frames), RayExecutor(address=ray_head, threads=1),
+                            job_fn=meeting_job, reporter=SILENT)
+    finally:
+        for sig, handler in handlers.items():
+            signal.signal(sig, handler)
+    assert sorted(outcome.done) == ["fold0_base", "fold0_p50", "fold0_p70", "fold1_base", "fold1_p50", "fold1_p70"]
+    assert not outcome.failed
+    records = [json.loads(p.read_text()) for p in (tmp_path / "res" / "jobs").glob("*.json")]
+    assert {r["worker"]["TF_NUM_INTRAOP_THREADS"] for r in records} == {"1"}
+    pids = {r["worker"]["pid"] for r in records}
+    assert len(pids) >= 2 and os.getpid() not in pids
+    results = json.loads((tmp_path / "res" / "results.json").read_text())
+    assert results["complete"] and results["runs"][-1]["executor"] == "ray"
+    assert results["runs"][-1]["cluster"] == {"cpus": 2, "nodes": 1}
+
+
+def test_a_local_ray_instance_is_sized_by_num_cpus_and_shut_down(monkeypatch):
+    """--num-cpus: `ray.init` of a local instance of that many CPUs, no dashboard, a small object store; the run is
+    described with the instance's CPUs; Ray is shut down after the jobs (a stand-in for ray: the real one runs on the
+    module's head, `ray_head`)."""
+    import types
+
+    calls = []
+    ref = object()
+    fake = types.SimpleNamespace(
+        init=lambda **kwargs: calls.append(("init", kwargs)), cluster_resources=lambda: {"CPU": 3.0},
+        nodes=lambda: [{"Alive": True}, {"Alive": False}], shutdown=lambda: calls.append(("shutdown", {})),
+        remote=lambda fn: types.SimpleNamespace(options=lambda **options: types.SimpleNamespace(
+            remote=lambda *args: calls.append(("remote", options)) or ref)),
+        wait=lambda pending, num_returns: ([pending[0]], pending[1:]), get=lambda r: {"job": "fold0_base"})
+    monkeypatch.setitem(sys.modules, "ray", fake)
+    monkeypatch.setitem(sys.modules, "ray.exceptions", types.SimpleNamespace(RayError=RuntimeError,
+                                                                             RayTaskError=RuntimeError))
+    executor, events = RayExecutor(num_cpus=3, threads=1), []
+    executor.run(fake_job, None, [Job(0)], set(), events.append)
+    init = calls[0][1]
+    assert calls[0][0] == "init" and init["num_cpus"] == 3 and init["include_dashboard"] is False
+    assert init["object_store_memory"] == 256 * 2**20 and "address" not in init
+    assert calls[1] == ("remote", {"num_cpus": 1, "max_retries": 1,
+                                   "runtime_env": {"env_vars": thread_env(1)}})
+    assert calls[-1] == ("shutdown", {}) and [e.kind for e in events] == ["submitted", "done"]
+    assert executor.describe()["cluster"] == {"cpus": 3.0, "nodes": 1} and executor.describe()["num_cpus"] == 3
+
+
+@pytest.mark.slow
+def test_smoke_sweep_on_a_ray_cluster(tmp_path, smoke_frames, smoke_sweep, ray_head, cli, cli_here):
+    """A real job as a Ray task on the module's head (`--address`): fold 1's 70% job in a folder whose other jobs the
+    local executor finished; it compresses and exports in a Ray worker with 1 thread and writes the same record as
+    a local run. (Tasks at once on the workers, a base before its rates, the thread caps of the tasks' environment:
+    test_ray_tasks_run_at_once_on_workers_and_bases_before_their_rates, with fake jobs on the same head.)"""
     frames = smoke_frames
     out = tmp_path / "res"
     shutil.copytree(smoke_sweep[0], out)
-    for path in [*(out / "jobs").glob("fold1_*.json"), *(out / "models").glob("base_fold1*")]:
+    for path in [out / "jobs" / "fold1_p70.json", *(out / "models").glob("base_fold1_p70*")]:
         shutil.rmtree(path) if path.is_dir() else path.unlink()
-    proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus", "2",
-               "--threads", "1", env={"RAY_USAGE_STATS_ENABLED": "0"})
+    proc = cli("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--address", ray_head,
+               "--threads", "1", env=RAY_ENV)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "skipping 3 finished job(s): fold0_base, fold0_p50, fold0_p70" in proc.stdout
+    assert "skipping 5 finished job(s): fold0_base, fold0_p50, fold0_p70, fold1_base, fold1_p50" in proc.stdout
     _check_smoke_outputs(out, threads=1)
     results = json.loads((out / "results.json").read_text())
     assert results["runs"][-1]["executor"] == "ray" and results["runs"][-1]["cluster"]["cpus"] == 2
-    assert sorted(results["runs"][-1]["jobs_done"]) == ["fold1_base", "fold1_p50", "fold1_p70"]
+    assert results["runs"][-1]["address"] == ray_head and results["runs"][-1]["jobs_done"] == ["fold1_p70"]
+    record = json.loads((out / "jobs" / "fold1_p70.json").read_text())
+    assert record["tensorflow_threads"]["env_TF_NUM_INTRAOP_THREADS"] == "1"  # the task's runtime_env
+    local = json.loads((smoke_sweep[0] / "jobs" / "fold1_p70.json").read_text())
+    assert sorted(record) == sorted(local) and record["config_key"] == local["config_key"]
+    assert record["base_model_sha256"] == local["base_model_sha256"]
     status, stdout, _ = cli_here("sweep", "--data", frames, "--out", out, *SMOKE, "--executor", "ray", "--num-cpus",
                                  "2", "--threads", "1")  # every job finished: no Ray instance is started
     assert status == 0 and "skipping 6 finished job(s)" in stdout
