@@ -719,7 +719,8 @@ def patient(get_node):
     return get_node_patiently
 
 
-services.get_node = patient(services.get_node)
+if hasattr(services, "get_node"):  # another Ray may register its raylet otherwise: then its own limit applies
+    services.get_node = patient(services.get_node)
 sys.argv[0] = "ray"
 main()
 """
