@@ -29,8 +29,9 @@ FitFn = Callable[..., "FitResult"]
 
 
 class MethodRecord(TypedDict, total=False):
-    """What a retrained model's NAME_train.json says about the method that pruned it (`Pruned.record`), in this order: filter surgery its rate, strategy (or pruned start), min_filters and criterion; magnitude pruning
-    its rate, method and sparsity."""
+    """What a retrained model's NAME_train.json says about the method that pruned it (`Pruned.record`), in this
+    order: filter surgery its rate, strategy (or pruned start), min_filters and criterion; magnitude pruning its rate,
+    method and sparsity."""
 
     rate: float
     method: str
