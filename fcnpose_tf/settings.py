@@ -531,7 +531,8 @@ retraining ends before it on an idle 2-core machine; the paper's preset has none
 COMPRESS_TOTAL_MINUTES = MAX_MINUTES.variant(
     name="total_minutes", default=15.0, paper=None, label="total time budget",
     help="the whole run's time budget: the retraining gets what is left of it once the steps before it are done, "
-         "keeping as much again for the steps after (exporting, verifying, measuring), at least "
+         "keeping for the steps after (exporting, verifying, measuring) twice what the steps before took apart from "
+         "ranking filters, at least "
          f"{MIN_RETRAIN_MINUTES:g} and at most --max-minutes (none: --max-minutes alone)")
 """`compress --rate 0.7` ends in about 15 minutes on 2 cores whatever the input: the steps around the retraining took
 2.5 minutes on a 224 x 256 model and 8.2 on a 288 x 288 one beside another run, which made the second 19 minutes

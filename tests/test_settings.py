@@ -295,11 +295,12 @@ def test_compress_total_budget_leaves_the_retraining_what_the_other_steps_do_not
 
     options = CompressOptions(rate=0.7)
     assert (options.total_minutes, options.max_minutes) == (15.0, 10.0)
-    assert options.retraining_minutes(1.0) == 10.0  # 13 left: --max-minutes caps it
-    assert options.retraining_minutes(4.0) == 7.0  # 15 - 4 spent - 4 kept for the steps after
-    assert options.retraining_minutes(7.0) == 2.0  # 1 left: the least a retraining gets
+    assert options.retraining_minutes(1.0) == 10.0  # 12 left: --max-minutes caps it
+    assert options.retraining_minutes(3.0) == 6.0  # 15 - 3 spent - twice 3 kept for the steps after
+    assert options.retraining_minutes(6.0, ranking_minutes=5.0) == 7.0  # 15 - 6 spent - twice the 1 not ranking
+    assert options.retraining_minutes(5.0) == 2.0  # 0 left: the least a retraining gets
     assert replace(options, total_minutes=None).retraining_minutes(7.0) == 10.0
-    assert replace(options, max_minutes=None).retraining_minutes(2.5) == 10.0
+    assert replace(options, max_minutes=None).retraining_minutes(1.5) == 10.5
     assert replace(options, max_minutes=None, total_minutes=None).retraining_minutes(4.0) is None
     assert CompressOptions.preset("paper", rate=0.7).total_minutes is None
 

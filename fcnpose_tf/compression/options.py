@@ -172,20 +172,25 @@ class CompressOptions:
         return (f"{pruned}, retrained up to {epochs}{frames} on "
                 f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}{size}")
 
-    def retraining_minutes(self, spent_minutes: float) -> float | None:
+    def retraining_minutes(self, spent_minutes: float, ranking_minutes: float = 0.0) -> float | None:
         """The retraining's time budget once `spent_minutes` went to the steps before it.
 
+        The steps after the retraining (measuring the retrained model, exporting, verifying and measuring each file)
+        are kept twice what the steps before it took apart from ranking filters (measuring the base model, surgery,
+        measuring the pruned model), which nothing after repeats.
+
         Args:
-            spent_minutes: what the run took before its retraining (measuring the base model, scoring filters,
-                surgery).
+            spent_minutes: what the run took before its retraining.
+            ranking_minutes: the part of it spent ranking filters (a data-aware criterion's pass over its frames).
         Returns:
-            `max_minutes`, shortened so that the run ends within `total_minutes`: what is left of it after twice
-            `spent_minutes` (as much again is kept for the steps after the retraining), but at least
-            `settings.MIN_RETRAIN_MINUTES`; None (no budget) when both are None.
+            `max_minutes`, shortened so that the run ends within `total_minutes`: what is left of it after
+            `spent_minutes` and the steps after, but at least `settings.MIN_RETRAIN_MINUTES`; None (no budget) when
+            both are None.
         """
         if self.total_minutes is None:
             return self.max_minutes
-        left = max(self.total_minutes - 2 * spent_minutes, settings.MIN_RETRAIN_MINUTES)
+        after = 2 * max(spent_minutes - ranking_minutes, 0.0)
+        left = max(self.total_minutes - spent_minutes - after, settings.MIN_RETRAIN_MINUTES)
         return left if self.max_minutes is None else min(self.max_minutes, left)
 
     def fit_config(self) -> FitConfig:
