@@ -185,10 +185,10 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
     Returns:
         The `GraphPlan`.
     Raises:
-        UserError: for a bad rate, importance, aggregate, min_filters, round_to or counts, or a model
-            `dependency_graph` refuses.
+        UserError: for a bad rate (read only without `counts`), importance, aggregate, min_filters, round_to or
+            counts, or a model `dependency_graph` refuses.
     """
-    exact = exact_rate(rate)  # read once, before every group's count
+    exact = exact_rate(rate) if counts is None else None  # read once, before every group's count; counts: read already
     if aggregate not in AGGREGATES:
         raise UserError(f"aggregate must be one of {', '.join(AGGREGATES)}, got {aggregate!r}")
     min_filters = _check_count(min_filters, "min_filters", 0)
