@@ -97,9 +97,22 @@ def resolve_model(value: str | os.PathLike, suffixes: tuple[str, ...] = ANY_MODE
         path = models_dir() / file
         if not path.is_file():
             raise UserError(f"{text}: the bundled model {path} is missing")
-        progress.resolve(reporter).say(f"{text}: the bundled model {path}")
+        say_bundled(text, path, reporter)
         return path
     raise UserError(f"{text}: model file not found (or one of the bundled models: {', '.join(names)})")
+
+
+def say_bundled(value: str | os.PathLike, path: Path, reporter: Reporter | None = None) -> None:
+    """Name the bundled file a model argument stands for, as `resolve_model` does when it finds it (nothing for a
+    file given by its path): for a value found earlier and used later (compress's --start).
+
+    Args:
+        value: the argument as given.
+        path: the file `resolve_model` found for it.
+        reporter: where the line goes (default: the current reporter).
+    """
+    if Path(os.fspath(value)) != path:
+        progress.resolve(reporter).say(f"{os.fspath(value)}: the bundled model {path}")
 
 
 def model_argument(suffixes: tuple[str, ...] = ANY_MODEL) -> Callable[[str], Path]:

@@ -515,7 +515,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
             lines.append(line)
 
     def start(options, model_path=path, floor=15, architecture="fcn-pose"):
-        return pruned_start(options.resolved(), model_path, plan_widths(base, options.rate, floor), architecture,
+        return pruned_start(options.checked(), model_path, plan_widths(base, options.rate, floor), architecture,
                             Lines())
 
     assert CompressOptions(rate=0.7).start == "surgery"  # the default; auto is asked for

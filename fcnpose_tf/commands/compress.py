@@ -110,8 +110,6 @@ def _rate_list(text: str) -> tuple[float, ...]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
     from fcnpose_tf import settings
     from fcnpose_tf.data import synthcache
     from fcnpose_tf.bundled import baseline_model
@@ -137,12 +135,14 @@ def run(args: argparse.Namespace) -> int:
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     options = settings.from_args(args, CompressOptions, renamed={"patience": "retrain_patience"})
-    # None settings: the run's choice; a wrong --start refused before the data
-    every = [replace(options, rate=rate).checked(model_path) for rate in rates]
+    # checked once (None settings: the run's choice; a wrong --start refused before the data), then each other rate
+    checked = options.checked(model_path)
+    every = [checked, *(checked.at_rate(rate) for rate in rates[1:])]
     if args.out_dir.exists() and not args.out_dir.is_dir():
         raise UserError(f"{args.out_dir}: exists and is not a folder")
     with removed_if_left_empty(args.out_dir):  # a folder this run creates goes again if anything fails
-        outputs = [check_outputs(model_path, args.out_dir, each, args.force) for each in every]  # before the data
+        outputs = [check_outputs(model_path, args.out_dir, each.options, args.force)
+                   for each in every]  # before the data
         set_tensorflow_threads(args.threads)
         if args.data is None:
             args.data = default_data(model_path)

@@ -29,7 +29,7 @@ from typing import Any, Sequence
 
 from fcnpose_tf import progress, settings
 from fcnpose_tf.compression.methods import pruning_method
-from fcnpose_tf.compression.options import CompressOptions, OutputFiles, output_files
+from fcnpose_tf.compression.options import CheckedOptions, OutputFiles, output_files
 from fcnpose_tf.compression.report import CompressReport, _check_metadata
 from fcnpose_tf.compression.export_steps import export_formats
 from fcnpose_tf.compression.steps import (Run, SharedScoring, measure_base, measure_retrained, prune_step, retrain_step,
@@ -43,7 +43,7 @@ from fcnpose_tf.fileio import write_json
 
 
 def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_dataset: Any, eval_indices: Sequence[int],
-                   out_dir: str | os.PathLike, options: CompressOptions, *, force: bool = False,
+                   out_dir: str | os.PathLike, options: CheckedOptions, *, force: bool = False,
                    eval_description: str = "", reporter: Reporter | None = None,
                    metadata: dict[str, Any] | None = None, shared: SharedScoring | None = None,
                    outputs: OutputFiles | None = None) -> CompressReport:
@@ -57,8 +57,8 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         out_dir: where NAME_p70.keras, NAME_p70_fp16.tflite (one file per `options.quantize` format) and
             NAME_p70_report.json go.
         options: rate, method, strategy, quantize, calibration frames, retraining settings, threads, as
-            `CompressOptions.checked(base_path)` returns them (resolved and validated once, by the caller; the
-            report's "options" holds the values used).
+            `CompressOptions.checked(base_path)` returns them (resolved and validated once, by the caller, with an
+            explicit start's file; the report's "options" holds the values used).
         force: replace existing output files; the caller refuses them before any work (`options.check_outputs`),
             else a run that finds one writes nothing at its end.
         reporter: where the step lines and progress go (`fcnpose_tf.progress`; default: the current one): data
@@ -77,16 +77,17 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     Raises:
         UserError: an existing output without force, an unwritable folder, or a model whose
             maps do not match the dataset.
-        ValueError: `metadata` names a section of the report, or options not resolved (`CompressOptions.checked`).
+        ValueError: `metadata` names a section of the report, or options not checked (`CompressOptions.checked`).
     """
     from fcnpose_tf.training.model import architecture_of, at_input_height, load_model, view_of
     from fcnpose_tf.compression.prune import check_chain, plan_widths
 
     base_path = Path(base_path)
     _check_metadata(metadata)
-    if not options.is_resolved:
+    if not isinstance(options, CheckedOptions):
         raise ValueError("compress_model takes the options of CompressOptions.checked(base_path), every "
                          "per-run choice made")
+    checked, options = options, options.options
     start = time.perf_counter()
     reporter = progress.resolve(reporter)
     say = reporter.say
@@ -105,7 +106,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     # layers is refused here, before any work
     plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0,
                        branches=architecture != "fcn-pose")
-    method = pruning_method(options, plan, base_path, architecture, reporter)
+    method = pruning_method(checked, plan, base_path, architecture, reporter)
     options = replace(options, start=method.start_name)
     run = Run(base_path, base, method, options, outputs, train_dataset, eval_dataset, eval_indices, force, reporter,
               options.recipe(plan.floor))

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     import tf_keras as keras
 
     from fcnpose_tf.compression.importance import Importance
-    from fcnpose_tf.compression.options import CompressOptions
+    from fcnpose_tf.compression.options import CheckedOptions
     from fcnpose_tf.compression.prune import WidthPlan
     from fcnpose_tf.training.train import FitResult
 
@@ -254,35 +254,35 @@ PRUNED_GENERALIST = "generalist-p70"
 generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
 
 
-def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, architecture: str,
+def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, architecture: str,
                  reporter: Reporter = SILENT) -> tuple[str, Path | None]:
-    """The run's pruned start, `options.start` with auto decided. auto is PRUNED_GENERALIST when `base_path` is the
+    """The run's pruned start, the options' start with auto decided. auto is PRUNED_GENERALIST when `base_path` is the
     generalist or was trained from it (`records.lineage`) on views that vary (its record's augmentation is online:
     `train`'s choice for such frames) and the bundled file has the base's architecture (`model.ARCHITECTURES`) and
     the widths filter surgery gives here (`plan`); else surgery, which keeps PCK@0.5 within 0.01 on fixed-camera
-    models (docs/compression.md, "On your own model"). An explicit start is resolved as a model argument (a file, or
-    a bundled name); its widths are checked when it is loaded (`FilterPruning.prune`).
+    models (docs/compression.md, "On your own model"). An explicit start is the file the options' check found
+    (`CheckedOptions.start_file`); its widths are checked when it is loaded (`FilterPruning.prune`).
 
     Args:
-        options: the run's options (method and start).
+        checked: the run's options (method and start) and the explicit start's file.
         base_path: the model being compressed.
         plan: the run's widths.
         architecture: the base model's network (`model.ARCHITECTURES`).
         reporter: where a fallback to surgery is said, and a bundled start's file named.
     Returns:
         (the start's name, the pruned model file it names; None for surgery).
-    Raises:
-        UserError: an explicit start that is neither a file nor a bundled Keras model.
     """
-    from fcnpose_tf.bundled import BUNDLED_MODELS, KERAS_SUFFIXES, generalist_model, models_dir, resolve_model
+    from fcnpose_tf.bundled import BUNDLED_MODELS, generalist_model, models_dir, say_bundled
     from fcnpose_tf.records import lineage
     from fcnpose_tf.training.model import architecture_of, conv_widths, load_model
 
+    options = checked.options
     start = options.start
     if options.method != "l1" or start == "surgery":
         return "surgery", None
     if start != "auto":
-        return start, resolve_model(start, KERAS_SUFFIXES, reporter=reporter)
+        say_bundled(start, checked.start_file, reporter)
+        return start, checked.start_file
     generalist = generalist_model().resolve()
     ancestry = [str(base_path), *lineage(base_path)]
     if not any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
@@ -307,12 +307,12 @@ def pruned_start(options: CompressOptions, base_path: Path, plan: WidthPlan, arc
     return PRUNED_GENERALIST, path
 
 
-def pruning_method(options: CompressOptions, plan: WidthPlan, base_path: Path, architecture: str,
+def pruning_method(checked: CheckedOptions, plan: WidthPlan, base_path: Path, architecture: str,
                    reporter: Reporter = SILENT) -> PruningMethod:
-    """The pruning method `options.method` names, with its pruned start decided (`pruned_start`).
+    """The pruning method the options name, with its pruned start decided (`pruned_start`).
 
     Args:
-        options: the run's options.
+        checked: the run's options (`CompressOptions.checked`).
         plan: the widths (`prune.plan_widths` at the options' rate, with their floor for filter surgery and none for
             magnitude pruning).
         base_path: the model being compressed.
@@ -320,10 +320,9 @@ def pruning_method(options: CompressOptions, plan: WidthPlan, base_path: Path, a
         reporter: where a fallback to surgery is said, and a bundled start's file named.
     Returns:
         `FilterPruning` or `MagnitudePruning`; its `start_name` is the start the run's options record.
-    Raises:
-        UserError: an explicit start that is neither a file nor a bundled Keras model.
     """
-    start_name, start = pruned_start(options, base_path, plan, architecture, reporter)
+    options = checked.options
+    start_name, start = pruned_start(checked, base_path, plan, architecture, reporter)
     if options.method == "magnitude":
         return MagnitudePruning(plan)
     return FilterPruning(plan, options.strategy, options.importance, start, start_name)

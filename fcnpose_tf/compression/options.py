@@ -1,4 +1,5 @@
-"""What a compression run is asked to do: `CompressOptions` (resolved and validated once) and the files it writes.
+"""What a compression run is asked to do: `CompressOptions` (resolved and validated once: `CheckedOptions`) and the
+files it writes.
 
 The options are the `compress` command's settings (`fcnpose_tf.settings`), the same for `sweep`; `output_files` names
 every file a run writes (`OutputFiles`), once, so a command can refuse an existing one before any work.
@@ -115,15 +116,15 @@ class CompressOptions:
         """Whether every setting `resolved` chooses per run has been chosen."""
         return None not in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment)
 
-    def checked(self, base_path: str | os.PathLike | None = None) -> CompressOptions:
+    def checked(self, base_path: str | os.PathLike | None = None) -> CheckedOptions:
         """These options resolved for `base_path` (`resolved`) and validated (`validate`), an explicit pruned start
-        found (a file or a bundled name, before any data is read; `methods.pruned_start` opens it): what
-        `compress_model` takes, checked once by its caller.
+        found (a file or a bundled name, before any data is read): what `compress_model` takes, checked once by its
+        caller (`CheckedOptions.at_rate` for the other rates of `compress --rates`).
 
         Args:
             base_path: the model to compress (its NAME_train.json is read by `resolved`).
         Returns:
-            The resolved copy.
+            The resolved copy, with the explicit start's file (`CheckedOptions`).
         Raises:
             UserError: as `validate`; an explicit start that is neither a file nor a bundled Keras model.
         """
@@ -132,9 +133,10 @@ class CompressOptions:
 
         options = self.resolved(base_path)
         options.validate()
-        if options.method == "l1" and options.start not in ("auto", "surgery"):
-            resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)
-        return options
+        explicit = options.method == "l1" and options.start not in ("auto", "surgery")
+        # found silently here, named when the run takes its weights (`methods.pruned_start`)
+        return CheckedOptions(options, resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)
+                              if explicit else None)
 
     def recipe(self, min_filters_used: int | None = None) -> str:
         """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
@@ -203,6 +205,29 @@ class CompressOptions:
 
         return settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1))
 
+
+@dataclass(frozen=True)
+class CheckedOptions:
+    """A run's options as `CompressOptions.checked` leaves them, resolved and validated once, with what the check found:
+    what `compress_model` takes, checking nothing again."""
+
+    options: CompressOptions
+    """The options, every setting `CompressOptions.resolved` chooses per run chosen."""
+    start_file: Path | None = None
+    """The file an explicit --start names (its path, or a bundled model's file), found once; None for surgery and for
+    auto, which the run decides with its plan (`methods.pruned_start`)."""
+
+    def at_rate(self, rate: float) -> CheckedOptions:
+        """These options at another rate (`compress --rates`), only the rate checked: every other setting is the same.
+
+        Args:
+            rate: the pruning rate.
+        Returns:
+            The options at `rate`, the same start file.
+        Raises:
+            UserError: a rate outside [0, 1) (`settings.RATE`).
+        """
+        return replace(self, options=replace(self.options, rate=settings.RATE.validate(rate)))
 
 
 RATE_TAGS = {"l1": "p", "magnitude": "m"}
