@@ -153,15 +153,30 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli_here
     assert json.loads(next(out.glob("*_train.json")).read_text())["config"]["max_minutes"] == 2.0
 
 
+def recipe_of(options, base_path=None, floor=None) -> str:
+    """The recipe a run of these options states (`PruningMethod.recipe`), checked as the command checks them, at a plan
+    whose floor is `floor` (default: the one asked)."""
+    from pathlib import Path
+
+    from fcnpose_tf.compression.methods import pruning_method
+    from fcnpose_tf.compression.prune import WidthPlan
+
+    checked = options.checked(base_path)
+    asked = checked.options.min_filters if checked.options.method == "l1" else 0
+    plan = WidthPlan(checked.options.rate, asked, asked if floor is None else floor, (), 0, 0)
+    return pruning_method(checked, plan, Path(base_path or "base.keras"), "fcn-pose").recipe
+
+
 def test_recipe_names_the_floor_and_a_lowered_one():
     from fcnpose_tf.compression.options import CompressOptions
 
     options = CompressOptions(rate=0.9, min_filters=12, importance="taylor", retrain_epochs=0)
-    assert options.recipe().startswith("filter surgery at 0.9 (no layer under 12 filters, same parameter budget), ")
-    assert options.recipe(5).startswith("filter surgery at 0.9 (no layer under 5 filters: --min-filters 12 lowered "
-                                        "to fit the parameter budget), filters ranked by taylor")
-    assert CompressOptions.preset("paper", rate=0.7).recipe(0).startswith("filter surgery at 0.7, filters ranked by l1")
-    assert CompressOptions(rate=0.7).recipe().startswith("filter surgery at 0.7 (no layer under 15 filters")
+    assert recipe_of(options).startswith("filter surgery at 0.9 (no layer under 12 filters, same parameter budget), ")
+    assert recipe_of(options, floor=5).startswith("filter surgery at 0.9 (no layer under 5 filters: --min-filters 12 "
+                                                  "lowered to fit the parameter budget), filters ranked by taylor")
+    assert recipe_of(CompressOptions.preset("paper", rate=0.7), floor=0).startswith(
+        "filter surgery at 0.7, filters ranked by l1")
+    assert recipe_of(CompressOptions(rate=0.7)).startswith("filter surgery at 0.7 (no layer under 15 filters")
 
 
 @pytest.mark.slow
@@ -467,12 +482,12 @@ def test_compress_inherits_the_base_models_augmentation(tmp_path):
     (tmp_path / "views_train.json").write_text(json.dumps({"augment": "online", "config": {"positive_weight": 20}}))
     resolved = CompressOptions(rate=0.7).resolved(base)
     assert (resolved.augment, resolved.positive_weight) == ("online", 20.0)
-    assert "retrained up to 25 epochs with online augmentation on" in resolved.recipe()
+    assert "retrained up to 25 epochs with online augmentation on" in recipe_of(CompressOptions(rate=0.7), base)
     assert CompressOptions(rate=0.7, augment="paper").resolved(base).augment == "paper"
     (tmp_path / "views_train.json").write_text(json.dumps({"augment": "sideways"}))
     assert CompressOptions(rate=0.7).resolved(base).augment == "paper"
     assert CompressOptions(rate=0.7).resolved(tmp_path / "none.keras").augment == "paper"
-    assert "online" not in CompressOptions(rate=0.7).resolved().recipe()
+    assert "online" not in recipe_of(CompressOptions(rate=0.7))
 
 
 @pytest.fixture
@@ -552,7 +567,7 @@ def test_a_pruned_start_is_named_in_the_recipe_and_refused_with_magnitude_prunin
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.errors import UserError
 
-    recipe = CompressOptions(rate=0.7, start="generalist-p70", retrain_epochs=0).recipe(15)
+    recipe = recipe_of(CompressOptions(rate=0.7, start="generalist-p70", retrain_epochs=0))
     assert recipe == ("filter surgery's widths at 0.7 (no layer under 15 filters, same parameter budget), the weights "
                       "of generalist-p70, not retrained")
     assert CompressOptions.preset("paper", rate=0.7).start == "surgery"

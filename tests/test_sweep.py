@@ -417,12 +417,14 @@ def test_lr_patience_is_a_result_setting_and_folders_older_than_it_still_match(t
 
 
 def test_importance_distillation_and_floor_reach_rate_jobs_and_older_folders_still_match(tmp_path, frames):
+    from test_compress import recipe_of
+
     out = tmp_path / "res"
     config = _config(out, frames, rates="full,0.7", importance="taylor", importance_frames=32, distill=0.5,
                      min_filters=12)
     options = config.compress_options(Job(0, 0.7))
     assert (options.importance, options.importance_frames, options.distill) == ("taylor", 32, 0.5)
-    assert options.min_filters == 12 and "no layer under 12 filters" in options.recipe()
+    assert options.min_filters == 12 and "no layer under 12 filters" in recipe_of(options)
     assert config.compress_options(Job(0, 0.0)).distill == 0.0  # the unpruned export is not retrained
     run_sweep(config, LocalExecutor(), job_fn=fake_job, reporter=SILENT)
     keys = {p.stem: json.loads(p.read_text())["config_key"] for p in (out / "jobs").glob("*.json")}

@@ -108,8 +108,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
                        branches=architecture != "fcn-pose")
     method = pruning_method(checked, plan, base_path, architecture, reporter)
     options = replace(options, start=method.start_name)
-    run = Run(base_path, base, method, options, outputs, train_dataset, eval_dataset, eval_indices, force, reporter,
-              options.recipe(plan.floor))
+    run = Run(base_path, base, method, options, outputs, train_dataset, eval_dataset, eval_indices, force, reporter)
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
     say(f"[1/{steps}] base model {base_path} ({run.input_size.describe(whole='')}{resized})")
@@ -145,7 +144,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     files, refused = export_formats(run, retrained, retrained_step, steps)
     refused_files = {outputs.tflite[entry.quantize] for entry in refused}
     report = CompressReport(
-        base_model=str(base_path), method=options.method, recipe=run.recipe, options=asdict(options),
+        base_model=str(base_path), method=options.method, recipe=method.recipe, options=asdict(options),
         evaluation_frames=eval_description or f"{len(eval_indices)} frames of {eval_dataset.via_path}",
         pck_normalisation="max(w, h) of the ground-truth keypoints' bounding box", threads=options.threads,
         metadata=dict(metadata or {}), base=base_step, **vars(pruned_sections), pruned_before_retraining=pruned_step,

@@ -20,7 +20,7 @@ if TYPE_CHECKING:
     import tf_keras as keras
 
     from fcnpose_tf.compression.importance import Importance
-    from fcnpose_tf.compression.options import CheckedOptions
+    from fcnpose_tf.compression.options import CheckedOptions, CompressOptions
     from fcnpose_tf.compression.prune import WidthPlan
     from fcnpose_tf.training.train import FitResult
 
@@ -69,6 +69,9 @@ class PruningMethod(Protocol):
     words: str
     """The progress line's words for what is pruned, e.g. "filter surgery at rate 0.7 (no layer under 15 filters),
     filters ranked by taylor (independent)"."""
+    recipe: str
+    """One line naming how the file is made, the report's and the retraining record's "recipe": the pruning (the plan's
+    rate and floor, the start or the criterion) and the retraining (`retraining_words`)."""
 
     @property
     def ranks_filters(self) -> bool:
@@ -109,8 +112,9 @@ class FilterPruning:
 
     Args:
         plan: the run's widths (`prune.plan_widths`, with the options' floor).
-        strategy: how filters are ranked (`prune.STRATEGIES`).
-        importance: the criterion's name, for the progress words (`prune` records the criterion's own facts).
+        options: the run's options: strategy (`prune.STRATEGIES`), importance and importance_frames (the criterion's
+            name and frames, for the words and the recipe; `prune` records the criterion's own facts), and the
+            retraining's settings (the recipe).
         start: a pruned model whose weights the network takes instead of surgery on the base (`pruned_start`);
             None: surgery.
         start_name: the start's name for lines and records (default: its path).
@@ -118,15 +122,26 @@ class FilterPruning:
 
     name = "l1"
 
-    def __init__(self, plan: WidthPlan, strategy: str, importance: str = "l1",
-                 start: Path | None = None, start_name: str = "") -> None:
-        self.plan, self.strategy = plan, strategy
+    def __init__(self, plan: WidthPlan, options: CompressOptions, start: Path | None = None,
+                 start_name: str = "") -> None:
+        from fcnpose_tf.compression.importance import DATA_AWARE
+
+        self.plan, self.strategy, self.importance = plan, options.strategy, options.importance
         self.rate, self.min_filters = plan.rate, plan.floor
         self.start, self.start_name = start, start_name or str(start)  # a pruned model's weights (None: surgery)
-        floor = f" (no layer under {self.min_filters} filters)" if self.min_filters > 1 else ""
-        self.words = (f"filter surgery's widths at rate {self.rate:g}{floor}, the weights of {self.start_name}"
-                      if start is not None else
-                      f"filter surgery at rate {self.rate:g}{floor}, filters ranked by {importance} ({strategy})")
+        under = f" (no layer under {self.min_filters} filters" if self.min_filters > 1 else ""
+        budget = "" if not under else ", same parameter budget)" if plan.floor == plan.min_filters else \
+            f": --min-filters {plan.min_filters} lowered to fit the parameter budget)"
+        frames = f", {options.importance_frames} training frames" if self.importance in DATA_AWARE else ""
+        self.words = self._pruning(f"rate {self.rate:g}", under + (")" if under else ""), "")
+        self.recipe = self._pruning(f"{self.rate:g}", under + budget, frames) + retraining_words(options)
+
+    def _pruning(self, rate: str, floor: str, frames: str) -> str:
+        """What is pruned, in the progress line's words or (with the floor's reason and the criterion's frames) the
+        recipe's."""
+        if self.start is not None:
+            return f"filter surgery's widths at {rate}{floor}, the weights of {self.start_name}"
+        return f"filter surgery at {rate}{floor}, filters ranked by {self.importance} ({self.strategy}{frames})"
 
     @property
     def ranks_filters(self) -> bool:
@@ -203,16 +218,18 @@ class MagnitudePruning:
 
     Args:
         plan: the run's widths at the rate, with no floor; its parameters set the sparsity.
+        options: the run's options (the retraining's settings, for the recipe).
     """
 
     name = "magnitude"
     start_name = "surgery"
     ranks_filters = trained_start = False
 
-    def __init__(self, plan: WidthPlan) -> None:
+    def __init__(self, plan: WidthPlan, options: CompressOptions) -> None:
         self.rate, self.plan = plan.rate, plan
         self.sparsity = 0.0
         self.words = f"magnitude at rate {self.rate:g}"
+        self.recipe = f"magnitude pruning at {self.rate:g}" + retraining_words(options)
 
     def prune(self, base: keras.Model, importance: Importance | None) -> Pruned:
         """Zero the smallest weights of `base`'s kernels (a copy), as many as filter surgery's plan removes.
@@ -324,5 +341,30 @@ def pruning_method(checked: CheckedOptions, plan: WidthPlan, base_path: Path, ar
     options = checked.options
     start_name, start = pruned_start(checked, base_path, plan, architecture, reporter)
     if options.method == "magnitude":
-        return MagnitudePruning(plan)
-    return FilterPruning(plan, options.strategy, options.importance, start, start_name)
+        return MagnitudePruning(plan, options)
+    return FilterPruning(plan, options, start, start_name)
+
+
+def retraining_words(options: CompressOptions) -> str:
+    """The recipe's retraining part, as a method's recipe ends: the epochs, augmentation, loss, learning rate and frozen
+    layers (or "not retrained"), and the input size the model was rebuilt at.
+
+    Args:
+        options: the run's options (resolved: `CompressOptions.checked`).
+    Returns:
+        The words, from their leading comma, e.g. ", retrained up to 25 epochs on binary cross-entropy, learning rate
+        0.003, halved after 3 stale epochs".
+    """
+    from fcnpose_tf.training.train import loss_name
+
+    size = f", at {options.input_size}x{options.input_size}" if options.input_size else ""
+    if options.retrain_epochs == 0:
+        return f", not retrained{size}"
+    epochs = f"{options.retrain_epochs} epoch{'s' if options.retrain_epochs > 1 else ''}"
+    rate = (f"learning rate {options.learning_rate:g} on a cosine" if options.lr_schedule == "cosine" else
+            f"learning rate {options.learning_rate:g}, halved after {options.lr_patience} stale epochs"
+            if options.lr_patience else f"learning rate {options.learning_rate:g}")
+    frozen = f", conv1-{options.freeze} fixed" if options.freeze > 1 else ", conv1 fixed" if options.freeze else ""
+    frames = " with online augmentation" if options.augment == "online" else ""  # the paper's copies: unsaid
+    return (f", retrained up to {epochs}{frames} on {loss_name(options.positive_weight or 1.0, options.distill)}, "
+            f"{rate}{frozen}{size}")

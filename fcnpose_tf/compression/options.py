@@ -91,7 +91,7 @@ class CompressOptions:
         Args:
             base_path: the model to compress, whose NAME_train.json is read (None: none is read).
         Returns:
-            A copy with those settings chosen (`is_resolved`); nothing is validated.
+            A copy with those settings chosen; nothing is validated.
         """
         importance, min_filters, positive_weight, augment = (self.importance, self.min_filters, self.positive_weight,
                                                              self.augment)
@@ -110,11 +110,6 @@ class CompressOptions:
                                                     settings.DEFAULT_COMPRESS_LR_PATIENCE)
         return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
                        lr_patience=lr_patience, augment=augment)
-
-    @property
-    def is_resolved(self) -> bool:
-        """Whether every setting `resolved` chooses per run has been chosen."""
-        return None not in (self.importance, self.min_filters, self.lr_patience, self.positive_weight, self.augment)
 
     def checked(self, base_path: str | os.PathLike | None = None) -> CheckedOptions:
         """These options resolved for `base_path` (`resolved`) and validated (`validate`), an explicit pruned start
@@ -137,42 +132,6 @@ class CompressOptions:
         # found silently here, named when the run takes its weights (`methods.pruned_start`)
         return CheckedOptions(options, resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)
                               if explicit else None)
-
-    def recipe(self, min_filters_used: int | None = None) -> str:
-        """One line naming how the file was made: widths, criterion, strategy, distillation, loss.
-
-        Args:
-            min_filters_used: the floor the surgery could keep (`prune.WidthPlan.floor`), said when lower than
-                `min_filters`; None: `min_filters`.
-        Returns:
-            The sentence (the report's "recipe"); options not resolved are resolved without a base model first.
-        """
-        from fcnpose_tf.training.train import loss_name
-
-        if not self.is_resolved:
-            return self.resolved().recipe(min_filters_used)
-
-        used = self.min_filters if min_filters_used is None else min_filters_used
-        floor = "" if used <= 1 else (
-            f" (no layer under {used} filters, same parameter budget)" if used == self.min_filters else
-            f" (no layer under {used} filters: --min-filters {self.min_filters} lowered to fit the parameter budget)")
-        pruned = (f"magnitude pruning at {self.rate:g}" if self.method == "magnitude" else
-                  f"filter surgery's widths at {self.rate:g}{floor}, the weights of {self.start}"
-                  if self.start not in ("auto", "surgery") else
-                  f"filter surgery at {self.rate:g}{floor}, filters ranked by {self.importance} ({self.strategy}"
-                  + (f", {self.importance_frames} training frames" if self.importance in ("activation", "taylor")
-                     else "") + ")")
-        size = f", at {self.input_size}x{self.input_size}" if self.input_size else ""
-        if self.retrain_epochs == 0:
-            return f"{pruned}, not retrained{size}"
-        epochs = f"{self.retrain_epochs} epoch{'s' if self.retrain_epochs > 1 else ''}"
-        rate = (f"learning rate {self.learning_rate:g} on a cosine" if self.lr_schedule == "cosine" else
-                f"learning rate {self.learning_rate:g}, halved after {self.lr_patience} stale epochs"
-                if self.lr_patience else f"learning rate {self.learning_rate:g}")
-        frozen = f", conv1-{self.freeze} fixed" if self.freeze > 1 else ", conv1 fixed" if self.freeze else ""
-        frames = " with online augmentation" if self.augment == "online" else ""  # the paper's copies: unsaid
-        return (f"{pruned}, retrained up to {epochs}{frames} on "
-                f"{loss_name(self.positive_weight or 1.0, self.distill)}, {rate}{frozen}{size}")
 
     def retraining_minutes(self, spent_minutes: float, ranking_minutes: float = 0.0) -> float | None:
         """The retraining's time budget once `spent_minutes` went to the steps before it.

@@ -323,7 +323,8 @@ class CompressReport:
     method: str
     """The pruning method: l1 (filter surgery, whatever the criterion) or magnitude."""
     recipe: str
-    """One line naming how the file was made (`CompressOptions.recipe`); "" read back from a report older than it."""
+    """One line naming how the file was made (`methods.PruningMethod.recipe`); "" read back from a report older than
+    it."""
     options: dict[str, Any]
     """The settings used, `CompressOptions` as a dict (those left None chosen for the run)."""
     evaluation_frames: str

@@ -61,7 +61,6 @@ class Run:
     eval_indices: Sequence[int]
     force: bool
     reporter: Reporter
-    recipe: str
     fit_data: Any = None
     """The retraining's training data (`data.dataset.fold_data`), kept for quantization-aware training."""
     method_record: MethodRecord | None = None
@@ -304,7 +303,7 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
     metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
                 "pruned_from": str(run.base_path), **(run.method_record or {}), "input_size": run.input_size.size_record,
                 "view": run.input_size.to_json(),
-                "recipe": run.recipe}
+                "recipe": run.method.recipe}
     sequence = train_data.sequence(options.batch_size, seed=options.seed)
     if options.distill > 0:
         from fcnpose_tf.training.distill import with_teacher_maps
