@@ -159,7 +159,7 @@ def recipe_of(options, base_path=None, floor=None) -> str:
     from pathlib import Path
 
     from fcnpose_tf.compression.methods import pruning_method
-    from fcnpose_tf.compression.prune import WidthPlan
+    from fcnpose_tf.compression.plan import WidthPlan
 
     checked = options.checked(base_path)
     asked = checked.options.min_filters if checked.options.method == "l1" else 0
@@ -513,7 +513,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     widths it has; surgery otherwise (a fixed camera, another start), and for --start surgery and magnitude pruning."""
     from fcnpose_tf.compression.methods import pruned_start
     from fcnpose_tf.compression.options import CompressOptions
-    from fcnpose_tf.compression.prune import plan_widths
+    from fcnpose_tf.compression.plan import plan_widths
     from fcnpose_tf.progress import Reporter
     from fcnpose_tf.training.model import build_fcn_pose
 

@@ -15,7 +15,8 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.training.model import DEFAULT_WIDTHS, build_fcn_pose, conv_widths
 from fcnpose_tf.compression.costs import model_facts
 from fcnpose_tf.compression.keep_rule import filter_l1_norms, floored_widths, keep_count, kept_filters, pruned_widths
-from fcnpose_tf.compression.prune import chain_param_count, plan_widths, prune_model, prune_plan
+from fcnpose_tf.compression.plan import chain_param_count, plan_widths
+from fcnpose_tf.compression.prune import prune_model, prune_plan
 from fcnpose_tf.compression.magnitude import magnitude_prune, weight_sparsity
 
 # tfmot 0.8.1 still imports distutils' LooseVersion

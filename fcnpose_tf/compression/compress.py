@@ -80,7 +80,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         ValueError: `metadata` names a section of the report, or options not checked (`CompressOptions.checked`).
     """
     from fcnpose_tf.training.model import architecture_of, at_input_height, load_model, view_of
-    from fcnpose_tf.compression.prune import check_chain, plan_widths
+    from fcnpose_tf.compression.plan import check_chain, plan_widths
 
     base_path = Path(base_path)
     _check_metadata(metadata)

@@ -23,7 +23,7 @@ out; Keras 3 in, Keras 3 out). Before retraining, the pruned model computes exac
 the removed channels deleted.
 
 For a plain chain (FCN-Pose) every Conv2D is its own group and the output layer is frozen, so `prune_graph` with
-the L1 importance gives `prune.prune_model`'s result. Unlike `prune.plan_widths`' ``min_filters``, which keeps the
+the L1 importance gives `prune.prune_model`'s result. Unlike `plan.plan_widths`' ``min_filters``, which keeps the
 parameter budget of the rate by pruning other groups harder (what `prune.prune_model` and `compress` use on a
 branching model too), ``min_filters`` of `graph_prune.plan_graph` only floors each group's width.
 """

@@ -181,7 +181,7 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
         keep: names of layers whose channels are all kept.
         counts: how many channels each prunable group keeps, in the graph's order (`prunable_groups`), instead of
             the keep rule (rate, min_filters and round_to then unused): a plan made elsewhere, such as
-            `prune.plan_widths`' parameter budget.
+            `plan.plan_widths`' parameter budget.
     Returns:
         The `GraphPlan`.
     Raises:

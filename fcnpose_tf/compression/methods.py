@@ -21,7 +21,7 @@ if TYPE_CHECKING:
 
     from fcnpose_tf.compression.importance import Importance
     from fcnpose_tf.compression.options import CheckedOptions, CompressOptions
-    from fcnpose_tf.compression.prune import WidthPlan
+    from fcnpose_tf.compression.plan import WidthPlan
     from fcnpose_tf.training.train import FitResult
 
 FitFn = Callable[..., "FitResult"]
@@ -111,7 +111,7 @@ class FilterPruning:
     options for that reason; the criterion is recorded beside it. The widths are the run's `WidthPlan`.
 
     Args:
-        plan: the run's widths (`prune.plan_widths`, with the options' floor).
+        plan: the run's widths (`plan.plan_widths`, with the options' floor).
         options: the run's options: strategy (`prune.STRATEGIES`), importance and importance_frames (the criterion's
             name and frames, for the words and the recipe; `prune` records the criterion's own facts), and the
             retraining's settings (the recipe).
@@ -330,7 +330,7 @@ def pruning_method(checked: CheckedOptions, plan: WidthPlan, base_path: Path, ar
 
     Args:
         checked: the run's options (`CompressOptions.checked`).
-        plan: the widths (`prune.plan_widths` at the options' rate, with their floor for filter surgery and none for
+        plan: the widths (`plan.plan_widths` at the options' rate, with their floor for filter surgery and none for
             magnitude pruning).
         base_path: the model being compressed.
         architecture: the base model's network (`model.ARCHITECTURES`).
