@@ -112,12 +112,13 @@ def prune_model(model: keras.Model, rate: Rate, *, strategy: str = "independent"
             None is the L1 norm, the paper's.
         min_filters: the narrowest a layer may become, the parameter budget of `rate` kept
             (`floored_widths`); 0 (default) is the paper's keep rule.
-        widths: the model's `plan_widths` at `rate` and `min_filters` when the caller has it (not computed again).
+        widths: the model's `plan_widths` at `rate` and `min_filters` when the caller has it (not computed again, and
+            the rate it read not read again).
     Returns:
         A new, uncompiled tf_keras model (Sequential if the input was) with the same layer names.
     Raises:
-        UserError: for a rate outside [0, 1), an unknown strategy, or a model with an unsupported layer
-            ("unsupported layer NAME (TYPE)") or wiring (a shared layer, a nested model).
+        UserError: for a rate outside [0, 1) (without `widths`), an unknown strategy, or a model with an unsupported
+            layer ("unsupported layer NAME (TYPE)") or wiring (a shared layer, a nested model).
     Example:
         >>> from fcnpose_tf.training.model import build_fcn_pose, conv_widths
         >>> small = prune_model(build_fcn_pose(), 0.7)
