@@ -117,8 +117,8 @@ def test_two_rates_are_each_checked_once_and_walk_the_stages_in_data_order(frame
     base = _model(tmp_path / "skip.keras", skip=True)
     calls = Calls(monkeypatch)
     status, stdout, err = cli_here("compress", "--rates", "0.5,0.7", "--model", base, "--data", frames, "--importance",
-                                   "l1", "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", tmp_path / "out",
-                                   "--threads", "1")
+                                   "l1", "--retrain-epochs", "0", "--quantize", "float16", "--out-dir",
+                                   tmp_path / "out", "--threads", "1")
     assert status == 0, stdout[-3000:] + err[-3000:]
     assert calls.count("fcnpose_tf.settings", "validate_fields", _compress_options) == 1
     assert calls.count("fcnpose_tf.settings", "Setting.validate", _is_rate) == 2
