@@ -108,6 +108,7 @@ def _compress_options(config) -> bool:
     return type(config).__name__ == "CompressOptions"
 
 
+@pytest.mark.slow  # two compress runs' worth: 14 s of CPU, the tracing itself next to nothing
 @pytest.mark.usefixtures("few_timed_frames")
 def test_two_rates_are_each_checked_once_and_walk_the_stages_in_data_order(frames, cli_here, tmp_path,
                                                                             monkeypatch):
@@ -132,6 +133,7 @@ def test_two_rates_are_each_checked_once_and_walk_the_stages_in_data_order(frame
     assert asked_again <= {"CompressOptions.retraining_minutes", "CompressOptions.fit_config"}, asked_again
 
 
+@pytest.mark.slow
 @pytest.mark.usefixtures("few_timed_frames")
 def test_an_explicit_start_is_found_once(frames, cli_here, tmp_path, monkeypatch):
     """--start FILE: found when the options are checked (before the data), then its weights taken without finding it
