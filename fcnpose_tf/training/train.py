@@ -33,6 +33,7 @@ from fcnpose_tf.measurements import Evaluation, KeypointMetrics
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
+from fcnpose_tf.training.frozen import feature_sequence, fits_in_memory, split_frozen, worth_computing_once
 from fcnpose_tf.training.model import save_for_inference, view_of, with_view
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import TrainingRecord
@@ -152,6 +153,7 @@ def run_paths(model_path: Path) -> dict[str, Path]:
         "ckpt_dir": ckpt,
         "ckpt_model": ckpt / "last.keras",
         "ckpt_best": ckpt / "best.npz",
+        "ckpt_whole": ckpt / "whole_start.npz",
         "ckpt_state": ckpt / "state.json",
     }
 
@@ -598,16 +600,32 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
 
     keras.utils.set_random_seed(config.seed)
     state: dict[str, Any] = {"epoch": 0}
+    whole, view, prefix = model, view_of(model), None
     try:
         if resume:
             state = json.loads(paths["ckpt_state"].read_text())
-            model = with_view(keras.models.load_model(paths["ckpt_model"]), view_of(model))  # with optimizer state
+            if state.get("frozen_prefix"):  # the checkpoint holds the head; the fixed layers are the start's
+                freeze_first_convolutions(whole, config.freeze)
+                _load_weights(whole, paths["ckpt_whole"])
+                prefix = split_frozen(whole)
+                model = keras.models.load_model(paths["ckpt_model"])  # the head, with optimizer state
+                train_data, val_data = _past_prefix(prefix, train_data, val_data)
+            else:
+                model = with_view(keras.models.load_model(paths["ckpt_model"]), view)  # with optimizer state
             if state["epoch"] >= config.epochs or state.get("stopped_early"):
                 reporter.say(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
         else:
             state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
                      "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
             freeze_first_convolutions(model, config.freeze)
+            if not (config.distill or callbacks or inference_model):
+                prefix = _prefix_worth_keeping(whole, train_data, len(val_data[0]), reporter)
+            if prefix is not None:
+                with parts_of(paths["ckpt_dir"]), atomic_path(paths["ckpt_whole"], force=True) as tmp:
+                    _save_weights(whole, tmp)
+                state["frozen_prefix"] = list(prefix.cut)
+                model = prefix.head
+                train_data, val_data = _past_prefix(prefix, train_data, val_data)
             compile_for_training(model, config.learning_rate, config.positive_weight, config.distill)
             if start_is_candidate:
                 state["start_val_loss"] = state["best_val_loss"] = _validation_loss(model, val_data,
@@ -632,7 +650,9 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     except WriteError as exc:
         raise _resumable(exc, paths, resumable) from None
     try:
-        return _finish(model, model_path, state, config, paths, resumable, reporter, inference_model, metadata)
+        if prefix is not None:
+            inference_model = functools.partial(prefix.weights_into, whole)
+        return _finish(model, model_path, view, state, config, paths, resumable, reporter, inference_model, metadata)
     except KeyboardInterrupt:  # a stop while the model is written: no file was renamed into place
         raise _interrupted(state, config, paths, resumable) from None
 
@@ -650,8 +670,9 @@ def _interrupted(state: dict[str, Any], config: FitConfig, paths: dict[str, Path
                      f"continue with --resume (checkpoint in {paths['ckpt_dir']})")
 
 
-def _finish(model: keras.Model, model_path: Path, state: dict[str, Any], config: FitConfig, paths: dict[str, Path],
-            resumable: bool, reporter: Any, inference_model: Any, metadata: dict[str, Any] | None) -> FitResult:
+def _finish(model: keras.Model, model_path: Path, view: Any, state: dict[str, Any], config: FitConfig,
+            paths: dict[str, Path], resumable: bool, reporter: Any, inference_model: Any,
+            metadata: dict[str, Any] | None) -> FitResult:
     """After the last epoch: the best epoch's weights saved as `model_path`, with its loss curves and record; the
     checkpoint removed."""
     best = paths["ckpt_best"] if paths["ckpt_best"].is_file() else paths["ckpt_dir"] / "best.h5"
@@ -667,7 +688,7 @@ def _finish(model: keras.Model, model_path: Path, state: dict[str, Any], config:
     try:
         with atomic_path(model_path, force=True) as tmp:
             kept = inference_model(model) if inference_model else model
-            save_for_inference(with_view(kept, view_of(model)), tmp)  # the view, also past an inference_model
+            save_for_inference(with_view(kept, view), tmp)  # the view, also past an inference_model
         write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], state["best_epoch"],
                           config.positive_weight, config.distill, start_val_loss=state.get("start_val_loss"))
         write_json(paths["train_json"], {
@@ -682,6 +703,34 @@ def _finish(model: keras.Model, model_path: Path, state: dict[str, Any], config:
     remove_tree(paths["ckpt_dir"])
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
                      state["stopped_early"], state["history"])
+
+
+def _prefix_worth_keeping(model: keras.Model, train_data: Any, val_rows: int, reporter: Reporter) -> Any:
+    """The fixed prefix to compute once (`training.frozen`), when training has one: fixed layers in front that hold
+    enough of the work (`frozen.worth_computing_once`), fixed samples (the paper's copies: `train_data` a
+    `TrainingData.sequence`) and room in memory for the features; else None (the whole network trains, its fixed
+    layers run every batch)."""
+    if not hasattr(getattr(train_data, "data", None), "images") or not hasattr(train_data, "rows"):
+        return None  # online augmentation: new samples every epoch
+    prefix = split_frozen(model)
+    if prefix is None or not worth_computing_once(prefix):
+        return None  # nothing fixed, or too little of the work (conv1 alone)
+    rows = len(train_data.data.images) + val_rows
+    size = prefix.feature_bytes(rows)
+    size = f"{size / 2 ** 30:.1f} GB" if size >= 2 ** 30 else f"{size / 2 ** 20:.1f} MB"
+    if not fits_in_memory(prefix, rows):
+        reporter.say(f"Fixed layers run every batch: their outputs for {rows} samples ({size}) would take more than "
+                     "half the memory available")
+        return None
+    reporter.say(f"Fixed layers computed once: {', '.join(prefix.cut)}'s outputs for {rows} samples ({size}); each "
+                 "epoch trains the layers after them")
+    return prefix
+
+
+def _past_prefix(prefix: Any, train_data: Any, val_data: tuple[np.ndarray, ...]) -> tuple[Any, tuple]:
+    """The training batches and validation arrays with the prefix's features in place of the images."""
+    features = prefix.features(val_data[0])
+    return feature_sequence(prefix, train_data), (features[0] if len(features) == 1 else features, *val_data[1:])
 
 
 def _validation_loss(model: keras.Model, val_data: tuple[np.ndarray, ...], batch_size: int) -> float:
