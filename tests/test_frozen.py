@@ -28,7 +28,7 @@ def _model(skip: bool, frozen: int, size: int = 64):
 def test_the_head_on_the_prefix_computes_the_whole_networks_maps(skip, frozen, cut):
     """The cut is the prefix's last outputs the rest reads (with the skip and conv1-2 fixed, conv2's: the skip reads
     it, and pool2 moves to the head); the head trains exactly the layers the whole network trains."""
-    from fcnpose_tf.training.frozen import split_frozen, worth_computing_once
+    from fcnpose_tf.training.frozen import split_frozen
 
     model = _model(skip, frozen)
     prefix = split_frozen(model)
@@ -41,9 +41,6 @@ def test_the_head_on_the_prefix_computes_the_whole_networks_maps(skip, frozen, c
     np.testing.assert_allclose(head, whole, atol=1e-5)
     assert sorted(w.name for w in prefix.head.trainable_weights) == sorted(w.name for w in model.trainable_weights)
     assert prefix.feature_bytes(10) == 10 * 4 * sum(f[0].size for f in features)
-    # conv1 alone is about a tenth of the multiply-adds: not worth its features; conv1-2 most of them
-    assert (0.1 < prefix.share < 0.15) if frozen == 1 else prefix.share > 0.7
-    assert worth_computing_once(prefix) == (frozen > 1)
 
 
 def test_nothing_fixed_nothing_cut():

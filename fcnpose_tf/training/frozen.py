@@ -1,16 +1,16 @@
 """Training past a fixed prefix: with conv1..convN fixed (`train --freeze N`) and fixed training samples (the paper's
 offline copies), the fixed layers compute the same outputs in every epoch. They are computed once, before the first
 epoch, and each epoch trains a copy of the rest of the network (the head) from them: the same arithmetic as
-training the whole network with those layers fixed, without their forward pass (conv1 and conv2 are 1.25 G of the
-skip network's 1.75 G multiply-adds at 224 x 256) and with the batches' images replaced by the cut's features.
+training the whole network with those layers fixed, without their forward pass, the batches' images replaced by the
+cut's features.
 
     whole network ──► prefix (fixed layers, and the parameter-free layers that only they feed) ──► features
                       head (a copy of every other layer) trained on the features; its weights copied back by name
 
 The cut is where the prefix's tensors are read by the head: for FCN-Pose with conv1-2 fixed, pool2's output; with
 its skip, conv2's output (the skip reads it; pool2 moves to the head, whose input it then is). Used by
-`training.train.fit` when the prefix is worth it (`MIN_PREFIX_SHARE` of the multiply-adds) and its features fit in
-memory (`FEATURE_MEMORY_SHARE` of what is available), else the whole network trains as before.
+`training.train.fit` when the features fit in memory (`FEATURE_MEMORY_SHARE` of what is available), else the whole
+network trains as before (what it buys: docs/training.md, "Fixed layers computed once").
 """
 
 from __future__ import annotations
@@ -24,16 +24,8 @@ import numpy as np
 import tf_keras as keras
 import tensorflow as tf
 
-from fcnpose_tf.metrics import conv_macs
-
 FEATURE_MEMORY_SHARE = 0.5
 """The most of the memory available when training starts that the prefix's features may take."""
-MIN_PREFIX_SHARE = 0.25
-"""The least share of the network's multiply-adds a prefix must hold to be computed once. conv1 alone is 11 % of the
-skip network's at 224 x 256: its features (7 MB a sample, 4.3 GB for the held-out fixed camera's 624) left an epoch
-at 276 s against 246-271 s through the whole network, beside one other training (the step is mostly the backward
-pass); conv1-2 are 72 %, 1.27x a step (`tools/bench_train_step.py`, docs/training.md)."""
-
 _PREFIX_LAYERS = (keras.layers.InputLayer, keras.layers.Conv2D, keras.layers.MaxPooling2D,
                   keras.layers.AveragePooling2D, keras.layers.UpSampling2D, keras.layers.ZeroPadding2D,
                   keras.layers.Activation, keras.layers.ReLU, keras.layers.Add, keras.layers.Concatenate)
@@ -55,8 +47,6 @@ class FrozenPrefix:
     prefix: keras.Model
     head: keras.Model
     cut: tuple[str, ...]
-    share: float
-    """The prefix's share of the whole network's multiply-adds (its convolutions')."""
 
     def feature_bytes(self, rows: int) -> int:
         """Bytes of float32 features for `rows` samples."""
@@ -152,18 +142,7 @@ def split_frozen(model: keras.Model) -> FrozenPrefix | None:
         copy.trainable = layer.trainable
     head_outputs = tf.nest.map_structure(lambda t: tensors[producer[id(t)]], model.output)
     head = keras.Model(head_inputs, head_outputs, name=f"{model.name}_head")
-    macs = {layer.name: _conv_macs(layer) for layer in layers}
-    share = sum(macs[name] for name in prefix) / max(1, sum(macs.values()))
-    return FrozenPrefix(prefix_model, head, tuple(cut), share)
-
-
-def _conv_macs(layer) -> int:
-    """A Conv2D's multiply-adds for one sample (0 for any other layer)."""
-    if not isinstance(layer, keras.layers.Conv2D):
-        return 0
-    _, height, width, filters = layer.output_shape
-    k_h, k_w = layer.kernel_size
-    return conv_macs(height, width, k_h, k_w, int(layer.input_shape[-1]) // layer.groups, filters)
+    return FrozenPrefix(prefix_model, head, tuple(cut))
 
 
 def available_memory() -> int | None:
@@ -178,11 +157,6 @@ def available_memory() -> int | None:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
-
-
-def worth_computing_once(prefix: FrozenPrefix) -> bool:
-    """Whether the prefix holds enough of the network's work to be computed once (`MIN_PREFIX_SHARE`)."""
-    return prefix.share >= MIN_PREFIX_SHARE
 
 
 def fits_in_memory(prefix: FrozenPrefix, rows: int, available: int | None = None) -> bool:

@@ -33,7 +33,7 @@ from fcnpose_tf.measurements import Evaluation, KeypointMetrics
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
-from fcnpose_tf.training.frozen import feature_sequence, fits_in_memory, split_frozen, worth_computing_once
+from fcnpose_tf.training.frozen import feature_sequence, fits_in_memory, split_frozen
 from fcnpose_tf.training.model import save_for_inference, view_of, with_view
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import TrainingRecord
@@ -706,15 +706,14 @@ def _finish(model: keras.Model, model_path: Path, view: Any, state: dict[str, An
 
 
 def _prefix_worth_keeping(model: keras.Model, train_data: Any, val_rows: int, reporter: Reporter) -> Any:
-    """The fixed prefix to compute once (`training.frozen`), when training has one: fixed layers in front that hold
-    enough of the work (`frozen.worth_computing_once`), fixed samples (the paper's copies: `train_data` a
-    `TrainingData.sequence`) and room in memory for the features; else None (the whole network trains, its fixed
-    layers run every batch)."""
+    """The fixed prefix to compute once (`training.frozen`), when training has one: fixed layers in front, fixed
+    samples (the paper's copies: `train_data` a `TrainingData.sequence`) and room in memory for the features; else
+    None (the whole network trains, its fixed layers run every batch)."""
     if not hasattr(getattr(train_data, "data", None), "images") or not hasattr(train_data, "rows"):
         return None  # online augmentation: new samples every epoch
     prefix = split_frozen(model)
-    if prefix is None or not worth_computing_once(prefix):
-        return None  # nothing fixed, or too little of the work (conv1 alone)
+    if prefix is None:
+        return None
     rows = len(train_data.data.images) + val_rows
     size = prefix.feature_bytes(rows)
     size = f"{size / 2 ** 30:.1f} GB" if size >= 2 ** 30 else f"{size / 2 ** 20:.1f} MB"
