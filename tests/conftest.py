@@ -97,6 +97,21 @@ FEW_TIMED_FRAMES = 3
 """Frames an evaluation times under `few_timed_frames` (the package times at least 50 after 5 of warm-up)."""
 
 
+def stop_after_first_epoch(monkeypatch) -> None:
+    """Make `train.fit` stop like Ctrl-C once its first epoch is complete and checkpointed (`monkeypatch`: a
+    MonkeyPatch; its undo ends it)."""
+    from fcnpose_tf.training import train
+
+    original = train._CheckpointAndStop.on_epoch_end
+
+    def stop_after_first(self, epoch, logs=None):
+        original(self, epoch, logs)
+        if epoch == 0:
+            raise KeyboardInterrupt
+
+    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", stop_after_first)
+
+
 def cut_timed_frames(monkeypatch) -> None:
     """Make evaluations in this process time at most FEW_TIMED_FRAMES frames after one warm-up frame.
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fcnpose_tf.errors import UserError
+from conftest import stop_after_first_epoch
 from fcnpose_tf.progress import SILENT, Reporter
 from test_train_evaluate import make_via_folder
 from weights import randomize
@@ -61,14 +62,7 @@ def _fit(tmp_path, name, monkeypatch=None, *, cached=True, resume=False, interru
     if not cached:
         monkeypatch.setattr(train, "_prefix_worth_keeping", lambda *args: None)
     if interrupt:
-        original = train._CheckpointAndStop.on_epoch_end
-
-        def stop_after_first(self, epoch, logs=None):
-            original(self, epoch, logs)
-            if epoch == 0:
-                raise KeyboardInterrupt
-
-        monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", stop_after_first)
+        stop_after_first_epoch(monkeypatch)
     out = tmp_path / f"{name}.keras"
     return train.fit(_model(skip=True, frozen=0), train_data.sequence(4, seed=0), val_data.arrays(), out, config,
                      resume=resume, reporter=reporter, start_is_candidate=True), out

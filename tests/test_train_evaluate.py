@@ -137,6 +137,7 @@ def test_evaluate_errors(trained, cli_here, tmp_path):
 
 @pytest.mark.slow
 def test_interrupted_training_resumes(tmp_path, monkeypatch):
+    from conftest import stop_after_first_epoch
     from fcnpose_tf.training import train
     from fcnpose_tf.data.dataset import fold_data, load_dataset
     from fcnpose_tf.training.model import build_fcn_pose
@@ -145,21 +146,14 @@ def test_interrupted_training_resumes(tmp_path, monkeypatch):
     tr, va = fold_data(ds, None, 32, 0)
     out = tmp_path / "m.keras"
     config = train.FitConfig(epochs=3, patience=5, batch_size=4)
-    original = train._CheckpointAndStop.on_epoch_end
-
-    def interrupt_after_first(self, epoch, logs=None):
-        original(self, epoch, logs)
-        if epoch == 0:
-            raise KeyboardInterrupt
-
-    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", interrupt_after_first)
+    stop_after_first_epoch(monkeypatch)
     with pytest.raises(UserError, match="interrupted after 1 complete epochs; continue with --resume"):
         train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT)
     state = json.loads((tmp_path / "m.ckpt" / "state.json").read_text())
     assert state["epoch"] == 1 and not out.exists()
     with pytest.raises(UserError, match="pass --resume to continue it or --force"):
         train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT)
-    monkeypatch.setattr(train._CheckpointAndStop, "on_epoch_end", original)
+    monkeypatch.undo()
     result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, resume=True,
                        reporter=SILENT)
     assert result.epochs_run == 3 and [h["epoch"] for h in result.history] == [1, 2, 3]
