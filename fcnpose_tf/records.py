@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Iterable, TypedDict
 
 from fcnpose_tf.measurements import Measurement
-from fcnpose_tf.system import available_cores
+from fcnpose_tf.system import available_cores, memory_bytes
 
 DISTRIBUTIONS: dict[str, tuple[str, ...]] = {
     "tensorflow": ("tensorflow", "tensorflow-cpu", "tensorflow-intel"),
@@ -188,12 +188,9 @@ def machine_info(threads: int | None = None) -> MachineInfo:
     """Host, CPU model, cores, memory, OS and Python (a sweep job's record); `threads` as used by the jobs."""
     info = MachineInfo(hostname=socket.gethostname(), cpu_model=cpu_model(), cpu_cores=os.cpu_count(),
                        cpu_cores_available=available_cores())
-    try:
-        with open("/proc/meminfo", encoding="utf-8") as fh:
-            kb = next(int(line.split()[1]) for line in fh if line.startswith("MemTotal:"))
-        info["memory_bytes"] = kb * 1024
-    except (OSError, StopIteration, ValueError, IndexError):
-        pass
+    total = memory_bytes("MemTotal")
+    if total is not None:
+        info["memory_bytes"] = total
     info.update(platform=platform.platform(), python=platform.python_version())
     if threads is not None:
         info["threads"] = threads

@@ -14,6 +14,15 @@ def available_cores() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+def memory_bytes(field: str) -> int | None:
+    """A /proc/meminfo field in bytes (e.g. "MemTotal", "MemAvailable"); None where it cannot be read."""
+    try:
+        with open("/proc/meminfo", encoding="utf-8") as fh:
+            return next(int(line.split()[1]) for line in fh if line.startswith(f"{field}:")) * 1024
+    except (OSError, StopIteration, ValueError, IndexError):
+        return None
+
+
 def oversubscription_note(threads: Iterable[int], cores: int | None = None) -> str | None:
     """The sentence that thread counts above the cores here oversubscribe the CPU, or None if none is.
 

@@ -17,12 +17,13 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 import tf_keras as keras
 import tensorflow as tf
+
+from fcnpose_tf.system import memory_bytes
 
 FEATURE_MEMORY_SHARE = 0.5
 """The most of the memory available when training starts that the prefix's features may take."""
@@ -147,12 +148,9 @@ def split_frozen(model: keras.Model) -> FrozenPrefix | None:
 
 def available_memory() -> int | None:
     """Bytes of memory available to a new allocation (Linux: MemAvailable), None where unknown."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
+    available = memory_bytes("MemAvailable")
+    if available is not None:
+        return available
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
