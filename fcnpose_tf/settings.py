@@ -457,6 +457,11 @@ fine-tuned on views that vary, retrained on the paper's fixed copies of its 192 
 epochs and loses PCK@0.5 (docs/compression.md, "What to expect")."""
 AUGMENT_COPIES = Setting("augment_copies", int, 2, "with --augment paper: offline rotation/padding copies per training frame (the paper: 2)",
                          label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
+TRAIN_AUGMENT_COPIES = AUGMENT_COPIES.variant(
+    default=None, paper=2,
+    help="with --augment paper: offline rotation/padding copies per training frame (default: 4 when fine-tuning an "
+         "fcn-pose-skip network on one fixed camera, else 2, the paper's)")
+"""`train`'s copies; `train_augment_copies` resolves the default per run."""
 INIT = Setting(
     "init", str, "generalist", "start from this model's weights (trained at any input size for the same keypoints): "
     f"a .keras/.h5 file, a bundled model by name ({names_help(KERAS_SUFFIXES)}; refused for data of another keypoint "
@@ -656,15 +661,34 @@ DEFAULT_FINE_TUNE_FREEZE = 2
 `train_recipe`)."""
 
 
+def skip_fine_tune(trained_start: bool, augment: str, architecture: str | None) -> bool:
+    """True for a run that fine-tunes an fcn-pose-skip network on the paper's copies (one fixed camera): the run
+    `train_recipe` and `train_augment_copies` give their own defaults."""
+    return trained_start and augment == "paper" and architecture == "fcn-pose-skip"
+
+
 def train_recipe(trained_start: bool, augment: str, architecture: str | None) -> tuple[int, float]:
     """`train`'s default (freeze, learning rate) for a run. Fine-tuning an fcn-pose-skip network on the paper's copies
     (one fixed camera) keeps conv1 fixed (SKIP_FINE_TUNE_FREEZE) and trains the rest at SKIP_FINE_TUNE_LEARNING_RATE:
     the skip reads conv2, which then adapts to the user's camera, and conv1's gradients (and conv2's input gradient,
     the step's largest) are not paid for (docs/training.md, "Architecture"). Other trained starts keep conv1-2 fixed
     (DEFAULT_FINE_TUNE_FREEZE) at the paper's 1e-3; random weights train every layer at 1e-3."""
-    if trained_start and augment == "paper" and architecture == "fcn-pose-skip":
+    if skip_fine_tune(trained_start, augment, architecture):
         return SKIP_FINE_TUNE_FREEZE, SKIP_FINE_TUNE_LEARNING_RATE
     return (DEFAULT_FINE_TUNE_FREEZE if trained_start else 0), float(LEARNING_RATE.default)
+
+
+SKIP_FINE_TUNE_AUGMENT_COPIES = 4
+"""Fine-tuning an fcn-pose-skip network on one fixed camera makes 4 copies of each frame, not the paper's 2: its
+validation loss stops improving after about 15 epochs of 2 copies, and more copies are more views of the same frames
+(docs/training.md, "Training on your own frames")."""
+
+
+def train_augment_copies(trained_start: bool, augment: str, architecture: str | None) -> int:
+    """`train`'s default --augment-copies for a run: SKIP_FINE_TUNE_AUGMENT_COPIES where `skip_fine_tune`, else
+    the paper's AUGMENT_COPIES."""
+    return SKIP_FINE_TUNE_AUGMENT_COPIES if skip_fine_tune(trained_start, augment, architecture) \
+        else int(AUGMENT_COPIES.default)
 THREADS = Setting("threads", int, None, "CPU threads for TensorFlow and LiteRT (default: all cores)",
                   label="threads", check=lambda v: v >= 1, requirement="at least 1", parse=thread_count)
 SWEEP_THREADS = THREADS.variant(

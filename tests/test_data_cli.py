@@ -22,7 +22,9 @@ def test_inspect_reports_counts_folds_and_writes_a_preview(cli, tmp_path):
     per_frame = lines[lines.index("Keypoints per frame") + 3:lines.index("Keypoints per frame") + 5]
     assert [line.split() for line in per_frame] == [["8", "8"], ["7", "1"]]
     hold_out = next(line for line in lines if line.startswith("hold-out")).split()
-    assert hold_out == ["hold-out", "7", "2", "21"]  # 9 frames: 7 train (+2 copies each = 21), 2 val
+    # 9 frames: 7 train, 2 val; these frames vary, so train augments online: 7 samples, new transforms every epoch
+    assert "augmentation online" in out and hold_out == ["hold-out", "7", "2", "7"]
+    assert "Train samples (online augmentation: new transforms every epoch)" in out
     assert sum(1 for line in lines if line.startswith("fold ")) == 5
     assert "created" in out and (tmp_path / "demo" / "ann.splits.json").exists()
     preview = cv2.imread(str(tmp_path / "preview.png"))
@@ -30,8 +32,11 @@ def test_inspect_reports_counts_folds_and_writes_a_preview(cli, tmp_path):
 
     again = cli("data", "inspect", "demo", "--out", "preview.png")
     assert again.returncode == 2 and "preview.png: already exists; pass --force" in again.stderr
-    assert cli("data", "inspect", "demo", "--out", "preview.png", "--force", "--input-size", "64",
-               "--samples", "1").returncode == 0
+    given = cli("data", "inspect", "demo", "--out", "preview.png", "--force", "--input-size", "64",
+                "--samples", "1", "--augment-copies", "2")
+    assert given.returncode == 0
+    hold_out = next(line for line in given.stdout.splitlines() if line.startswith("hold-out")).split()
+    assert hold_out == ["hold-out", "7", "2", "21"]  # --augment-copies 2: 7 train + 2 copies each
 
 
 def test_inspect_without_preview_and_with_options(tmp_path, capsys):

@@ -79,6 +79,10 @@ def test_commands_that_differ_use_their_own_variant():
     assert settings.train_recipe(True, "paper", "fcn-pose") == settings.train_recipe(True, "online", "fcn-pose-skip") \
         == (2, 1e-3)
     assert settings.train_recipe(False, "paper", "fcn-pose-skip") == (0, 1e-3)
+    # and its copies of each frame (settings.train_augment_copies): 4 for the skip on one fixed camera, else the paper's 2
+    assert settings.train_augment_copies(True, "paper", "fcn-pose-skip") == 4
+    assert settings.train_augment_copies(True, "paper", "fcn-pose") == settings.train_augment_copies(
+        False, "paper", "fcn-pose-skip") == settings.train_augment_copies(True, "online", "fcn-pose-skip") == 2
     assert CompressOptions(rate=0.5).learning_rate == 3e-3 and CompressOptions(rate=0.5).lr_patience is None
     assert (train.lr_patience, settings.DEFAULT_TRAIN_LR_PATIENCE, sweep.lr_patience) == (None, 4, 0)
     assert (train.max_minutes, sweep.max_minutes) == (30.0, None)

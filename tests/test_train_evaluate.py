@@ -295,14 +295,18 @@ def test_fine_tune_from_a_model_and_reject_a_mismatched_one(trained, cli_here, t
                                                           tuned.get_layer(name).get_weights()))
         assert same == kept, name
     assert all(layer.trainable for layer in tuned.layers)  # the written model is a plain FCN-Pose
-    # an fcn-pose-skip start on one fixed camera keeps conv1 and trains the rest at 3e-3 (settings.train_recipe)
+    assert record["augment_copies"] == 0  # as given
+    # an fcn-pose-skip start on one fixed camera keeps conv1 and trains the rest at 3e-3 (settings.train_recipe), on
+    # 4 copies of each frame (settings.train_augment_copies)
     skip_out = _poor_start(trained_out, tmp_path / "poor_skip.keras")
     status, stdout, err = cli_here("train", "--data", data, "--out", tmp_path / "fts.keras", "--epochs", "1",
-                                   "--input-size", "64", "--augment-copies", "0", "--init", skip_out, "--quiet")
+                                   "--input-size", "64", "--init", skip_out, "--quiet")
     assert status == 0, err
     fts = json.loads((tmp_path / "fts_train.json").read_text())
     assert (fts["config"]["freeze"], fts["config"]["learning_rate"], fts["architecture"]) == (1, 3e-3, "fcn-pose-skip")
     assert "Recipe: conv1 fixed, learning rate 0.003 (fcn-pose-skip" in stdout
+    assert fts["augment_copies"] == 4 and "Augmented copies: 4 a frame (fine-tuning an fcn-pose-skip network on " \
+        "one fixed camera; --augment-copies sets it)" in stdout
     start_model, tuned_skip = load_model(skip_out), load_model(tmp_path / "fts.keras")
     assert np.array_equal(start_model.get_layer("conv1").get_weights()[0],
                           tuned_skip.get_layer("conv1").get_weights()[0])

@@ -59,8 +59,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     inspect.add_argument("--crop", choices=settings.TRAIN_CROP.choices, default=settings.TRAIN_CROP.default,
                          help="as train --crop: auto shows a fixed camera's workspace crop with --input-size auto, "
                               "workspace the crop at any input size, none the whole frame")
-    inspect.add_argument("--augment-copies", type=int, default=2,
-                         help="augmented copies per training frame (for the counts; the preview shows one)")
+    inspect.add_argument("--augment-copies", type=int, default=None,
+                         help="augmented copies per training frame (for the counts; the preview shows one); default: "
+                              "what train on its defaults chooses for these frames")
     inspect.add_argument("--seed", type=int, default=0, help="augmentation seed")
 
     merge = actions.add_parser(
@@ -106,7 +107,7 @@ def _inspect(args: argparse.Namespace) -> int:
     settings.TRAIN_INPUT_SIZE.validate(args.input_size)
     if args.samples < 1:
         raise UserError(f"--samples must be at least 1, got {args.samples}")
-    if args.augment_copies < 0:
+    if args.augment_copies is not None and args.augment_copies < 0:
         raise UserError(f"--augment-copies must be >= 0, got {args.augment_copies}")
     if args.out is not None:
         check_writable(args.out, args.force)  # fail before the work, not after it
@@ -144,7 +145,15 @@ def _inspect(args: argparse.Namespace) -> int:
         if len(ds.problems) > 10:
             print(f"  ... and {len(ds.problems) - 10} more")
 
-    copies = args.augment_copies
+    from fcnpose_tf.data.arm_size import resolve_view
+    from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
+
+    variation = view_variation([sample.image_path for sample in ds.samples])
+    augment = choose_augment(variation)
+    fixed_camera = augment == "paper"
+    online = args.augment_copies is None and augment == "online"  # fresh transforms of each frame every epoch
+    copies = 0 if online else args.augment_copies if args.augment_copies is not None else \
+        settings.train_augment_copies(True, augment, settings.FINE_TUNE_ARCHITECTURE)  # train fine-tunes the generalist
     rows = []
     names = [("hold-out", None)] + [(f"fold {i}", i) for i in range(len(ds.splits.folds))]
     for label, fold in names:
@@ -152,15 +161,12 @@ def _inspect(args: argparse.Namespace) -> int:
         rows.append((label, len(train), len(val), len(train) * (1 + copies)))
     print(f"\nSplits (seed {ds.splits.seed}, {ds.splits.k}-fold and {1 - ds.splits.val_fraction:.0%}/"
           f"{ds.splits.val_fraction:.0%} hold-out; {ds.splits_status}: {ds.splits_path})")
-    print(format_table(["Split", "Train frames", "Val frames", f"Train samples (+{copies} copies each)"], rows))
+    samples = "Train samples (online augmentation: new transforms every epoch)" if online else \
+        f"Train samples (+{copies} copies each)"
+    print(format_table(["Split", "Train frames", "Val frames", samples], rows))
     if not ds.splits.folds:
         print(f"  (too few frames for {ds.splits.k} folds)")
-    from fcnpose_tf.data.arm_size import resolve_view
-    from fcnpose_tf.data.views import FIXED_CAMERA_MAX_VARIATION, choose_augment, view_variation
-
-    variation = view_variation([sample.image_path for sample in ds.samples])
-    fixed_camera = choose_augment(variation) == "paper"
-    print(f"\nWhat `train` on its defaults chooses for these frames: augmentation {choose_augment(variation)} "
+    print(f"\nWhat `train` on its defaults chooses for these frames: augmentation {augment} "
           f"({'one fixed camera' if fixed_camera else 'views that vary'}: the frames differ from their median by "
           f"{variation:.2f} std; a fixed camera measures <= {FIXED_CAMERA_MAX_VARIATION}), and")
     view = resolve_view(ds.samples, args.input_size, args.crop, fixed_camera).chose

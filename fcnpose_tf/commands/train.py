@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.BATCH_SIZE, settings.TRAIN_LEARNING_RATE,
                     settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
                     settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP,
-                    settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES, settings.TRAIN_FOLDS):
+                    settings.TRAIN_AUGMENT, settings.TRAIN_AUGMENT_COPIES, settings.TRAIN_FOLDS):
         setting.add_to(parser)
     settings.FOLD.add_to(parser)
     settings.SEED.add_to(parser)
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     init = initial_weights(args.init)
     config = settings.from_args(args, FitConfig)  # settings left None: chosen per run (resolved)
     config.validate()
-    for setting in (settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP, settings.TRAIN_AUGMENT, settings.AUGMENT_COPIES,
+    for setting in (settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP, settings.TRAIN_AUGMENT, settings.TRAIN_AUGMENT_COPIES,
                     settings.TRAIN_FOLDS, settings.FOLD, settings.THREADS):
         setting.validate(getattr(args, setting.name))
     if args.out.suffix not in (".keras", ".h5"):
@@ -160,6 +160,13 @@ def run(args: argparse.Namespace) -> int:
     if args.architecture is None:  # the start's own network
         args.architecture = architecture_of(start_model) if start_model is not None else "fcn-pose"
     resolved = config.resolved(trained_start=init is not None, augment=args.augment, architecture=args.architecture)
+    if args.augment_copies is None:
+        args.augment_copies = settings.train_augment_copies(init is not None, args.augment, args.architecture)
+        if args.augment == "paper":
+            print(f"Augmented copies: {args.augment_copies} a frame ("
+                  + ("fine-tuning an fcn-pose-skip network on one fixed camera"
+                     if settings.skip_fine_tune(init is not None, args.augment, args.architecture)
+                     else "the paper's") + "; --augment-copies sets it)")
     for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
         check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
                          identity=run_identity(via_path, resolved, input_size=view.size_record,
