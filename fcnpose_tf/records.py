@@ -70,6 +70,8 @@ class TrainingRecord:
     """The model's input size in pixels (the size it was kept at)."""
     augment: str | None = None
     """How its training frames were augmented: "paper" (fixed offline copies) or "online" (fresh every epoch)."""
+    augment_copies: int | None = None
+    """With augment "paper", the offline copies of each training frame (None: online, or not recorded)."""
     init: str | None = None
     """The model it started from, as `train --init` named it: a bundled name (generalist) or a path; None for a
     random start (--init none) or not recorded."""
@@ -97,6 +99,7 @@ class TrainingRecord:
                    keypoints=tuple(keypoints) if keypoints is not None else None,
                    positive_weight=float(positive_weight) if positive_weight is not None else None,
                    input_size=_typed(record.get("input_size"), int), augment=_typed(record.get("augment"), str),
+                   augment_copies=_typed(record.get("augment_copies"), int),
                    init=_typed(record.get("init"), str), validation=_measurement(record.get("validation")), raw=record)
 
 

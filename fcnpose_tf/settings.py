@@ -457,6 +457,12 @@ fine-tuned on views that vary, retrained on the paper's fixed copies of its 192 
 epochs and loses PCK@0.5 (docs/compression.md, "What to expect")."""
 AUGMENT_COPIES = Setting("augment_copies", int, 2, "with --augment paper: offline rotation/padding copies per training frame (the paper: 2)",
                          label="augmented copies", check=lambda v: v >= 0, requirement=">= 0", metavar="N")
+INHERITED_AUGMENT_COPIES = AUGMENT_COPIES.variant(
+    default=None, paper=2,
+    help="with --augment paper: offline rotation/padding copies per training frame (default: the base model's, from "
+         "its NAME_train.json, else 2, the paper's)")
+"""`compress` retrains on as many copies as the base model was trained on: a model `train` fitted on 4 copies of one
+fixed camera's frames, retrained on 2, kept PCK@0.05 0.831 of its 0.902; on 4, 0.873-0.879 (docs/compression.md)."""
 TRAIN_AUGMENT_COPIES = AUGMENT_COPIES.variant(
     default=None, paper=2,
     help="with --augment paper: offline rotation/padding copies per training frame (default: 4 when fine-tuning an "

@@ -490,6 +490,24 @@ def test_compress_inherits_the_base_models_augmentation(tmp_path):
     assert "online" not in recipe_of(CompressOptions(rate=0.7))
 
 
+def test_compress_retrains_on_as_many_copies_as_the_base_model(tmp_path):
+    """Left unset, the retraining makes as many copies of each frame as the base model's training did (train's 4 on
+    one fixed camera); a record without them, or none, gives the paper's 2; a value given wins."""
+    import json
+
+    from fcnpose_tf.compression.options import CompressOptions
+
+    base = tmp_path / "fixed.keras"
+    base.write_bytes(b"")  # only the record beside it is read
+    (tmp_path / "fixed_train.json").write_text(json.dumps({"augment": "paper", "augment_copies": 4}))
+    assert CompressOptions(rate=0.7).resolved(base).augment_copies == 4
+    assert CompressOptions(rate=0.7, augment_copies=1).resolved(base).augment_copies == 1
+    (tmp_path / "fixed_train.json").write_text(json.dumps({"augment": "paper", "augment_copies": "four"}))
+    assert CompressOptions(rate=0.7).resolved(base).augment_copies == 2
+    assert CompressOptions(rate=0.7).resolved(tmp_path / "none.keras").augment_copies == 2
+    assert CompressOptions.preset("paper", rate=0.7).augment_copies == 2
+
+
 @pytest.fixture
 def bundled_pruned_generalist(tmp_path, monkeypatch):
     """A bundled-models folder whose generalist-p70 is a 64 x 64 FCN-Pose at filter surgery's widths at 0.7 (no layer

@@ -33,7 +33,8 @@ def test_a_full_record_reads_into_its_fields():
     record = TrainingRecord.from_json(raw)
     assert record == TrainingRecord(data="nc_train/ur5_synth.json", data_sha256=raw["data_sha256"], fold=2, folds=5,
                                     split="fold 2 of 5", split_seed=0, keypoints=tuple(KEYPOINTS),
-                                    positive_weight=8.0, input_size=288, augment="paper", init="generalist", raw=raw)
+                                    positive_weight=8.0, input_size=288, augment="paper", augment_copies=2,
+                                    init="generalist", raw=raw)
     assert record.raw is raw and record.raw["epochs_run"] == 31  # the rest of the file, by key
     assert isinstance(record.keypoints, tuple) and isinstance(record.positive_weight, float)
     with pytest.raises(AttributeError):
@@ -50,7 +51,8 @@ def test_the_fields_are_the_keys_train_writes():
     """Each field reads the key (or nested key) `train` writes under that name, unchanged."""
     raw = written_by_train()
     record = TrainingRecord.from_json(raw)
-    for name in ("data", "data_sha256", "fold", "folds", "split", "split_seed", "input_size", "augment", "init"):
+    for name in ("data", "data_sha256", "fold", "folds", "split", "split_seed", "input_size", "augment",
+                 "augment_copies", "init"):
         assert getattr(record, name) == raw[name], name
     assert list(record.keypoints) == raw["schema"]["keypoints"]
     assert record.positive_weight == raw["config"]["positive_weight"]

@@ -92,7 +92,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.RETRAIN_FOLD.add_to(parser)
     settings.INHERITED_AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
-                    settings.LR_SCHEDULE, settings.FREEZE, settings.AUGMENT_COPIES,
+                    settings.LR_SCHEDULE, settings.FREEZE, settings.INHERITED_AUGMENT_COPIES,
                     settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS, settings.CENTROID):
         setting.add_to(parser)
     settings.FORCE.add_to(parser)

@@ -28,7 +28,7 @@ METHODS = settings.METHOD.choices
                        ("patience", settings.RETRAIN_PATIENCE), ("max_minutes", settings.COMPRESS_MAX_MINUTES),
                        settings.COMPRESS_TOTAL_MINUTES, settings.BATCH_SIZE,
                        ("learning_rate", settings.COMPRESS_LEARNING_RATE), ("augment", settings.INHERITED_AUGMENT),
-                       settings.AUGMENT_COPIES,
+                       ("augment_copies", settings.INHERITED_AUGMENT_COPIES),
                        settings.SEED, settings.RETRAIN_FOLD, settings.THREADS,
                        ("positive_weight", settings.INHERITED_POSITIVE_WEIGHT),
                        ("lr_patience", settings.COMPRESS_LR_PATIENCE), settings.LR_SCHEDULE,
@@ -50,7 +50,8 @@ class CompressOptions:
     table's keypoints are read (`postprocess.CENTROIDS`).
 
     The defaults are `fcnpose-tf compress`'s (`CompressOptions.preset("paper", rate=...)`: the paper's recipe);
-    importance, min_filters, lr_patience, positive_weight and augment left None are chosen per run by `resolved`
+    importance, min_filters, lr_patience, positive_weight, augment and augment_copies left None are chosen per run by
+    `resolved`
     (`checked` resolves and validates them once, for `compress_model`). Defaults, checks and meanings: `fcnpose_tf.settings`."""
 
     def validate(self) -> None:
@@ -85,8 +86,8 @@ class CompressOptions:
         """These options with the settings left None chosen for the run: importance (`settings.DEFAULT_COMPRESS_IMPORTANCE`
         for filter surgery with the independent strategy, else the paper's l1: greedy ranking reads kernels only),
         min_filters (`settings.DEFAULT_COMPRESS_MIN_FILTERS` for filter surgery; magnitude pruning keeps every
-        filter), lr_patience (`settings.resolved_lr_patience`), positive_weight and augment (those `base_path` was
-        trained with, from its NAME_train.json; else 1, the paper's plain BCE, and the paper's copies).
+        filter), lr_patience (`settings.resolved_lr_patience`), positive_weight, augment and augment_copies (those
+        `base_path` was trained with, from its NAME_train.json; else 1, the paper's plain BCE, and the paper's 2 copies).
 
         Args:
             base_path: the model to compress, whose NAME_train.json is read (None: none is read).
@@ -100,16 +101,22 @@ class CompressOptions:
             importance = settings.DEFAULT_COMPRESS_IMPORTANCE if independent_surgery else "l1"
         if min_filters is None:
             min_filters = settings.DEFAULT_COMPRESS_MIN_FILTERS if self.method == "l1" else 0
-        record = training_record(base_path) if base_path is not None and None in (positive_weight, augment) else None
+        augment_copies = self.augment_copies
+        record = training_record(base_path) if base_path is not None and None in (positive_weight, augment,
+                                                                                   augment_copies) else None
         if positive_weight is None:
             positive_weight = float(record.positive_weight or 1.0) if record is not None else 1.0
         if augment is None:
             inherited = record.augment if record is not None else None
             augment = inherited if inherited in settings.AUGMENT.choices else settings.AUGMENT.default
+        if augment_copies is None:
+            inherited = record.augment_copies if record is not None else None
+            augment_copies = inherited if inherited is not None and inherited >= 0 else \
+                int(settings.AUGMENT_COPIES.default)
         lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
                                                     settings.DEFAULT_COMPRESS_LR_PATIENCE)
         return replace(self, importance=importance, min_filters=min_filters, positive_weight=positive_weight,
-                       lr_patience=lr_patience, augment=augment)
+                       lr_patience=lr_patience, augment=augment, augment_copies=augment_copies)
 
     def checked(self, base_path: str | os.PathLike | None = None) -> CheckedOptions:
         """These options resolved for `base_path` (`resolved`) and validated (`validate`), an explicit pruned start
