@@ -462,8 +462,8 @@ INHERITED_AUGMENT_COPIES = AUGMENT_COPIES.variant(
     help="with --augment paper: offline rotation/padding copies per training frame (default: the base model's, from "
          "its NAME_train.json, else 2, the paper's)")
 """`compress` retrains on as many copies as the base model was trained on, as it inherits its augmentation and keypoint
-weight: a pruned network retrained on fewer copies than its base lost more of its fine localisation (docs/compression.md,
-"Compress a model", the defaults table)."""
+weight: a pruned network retrained on fewer copies than its base lost more of its fine localisation
+(docs/compression.md, "Compress a model", the defaults table)."""
 TRAIN_AUGMENT_COPIES = AUGMENT_COPIES.variant(
     default=None, paper=2,
     help="with --augment paper: offline rotation/padding copies per training frame (default: 4 when fine-tuning an "
