@@ -505,6 +505,10 @@ def test_compress_retrains_on_as_many_copies_as_the_base_model(tmp_path):
     (tmp_path / "fixed_train.json").write_text(json.dumps({"augment": "paper", "augment_copies": "four"}))
     assert CompressOptions(rate=0.7).resolved(base).augment_copies == 2
     assert CompressOptions(rate=0.7).resolved(tmp_path / "none.keras").augment_copies == 2
+    # a record that does not say its copies were the paper's kind (the bundled baseline's: "augment_copies": 0, no
+    # "augment") keeps the paper's 2, as compress always retrained it
+    (tmp_path / "fixed_train.json").write_text(json.dumps({"augment_copies": 0}))
+    assert CompressOptions(rate=0.7).resolved(base).augment_copies == 2
     assert CompressOptions.preset("paper", rate=0.7).augment_copies == 2
 
 

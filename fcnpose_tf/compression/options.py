@@ -110,7 +110,7 @@ class CompressOptions:
             inherited = record.augment if record is not None else None
             augment = inherited if inherited in settings.AUGMENT.choices else settings.AUGMENT.default
         if augment_copies is None:
-            inherited = record.augment_copies if record is not None else None
+            inherited = record.augment_copies if record is not None and record.augment == "paper" else None
             augment_copies = inherited if inherited is not None and inherited >= 0 else \
                 int(settings.AUGMENT_COPIES.default)
         lr_patience = settings.resolved_lr_patience(self.lr_patience, self.lr_schedule,
