@@ -75,6 +75,9 @@ class TrainingRecord:
     init: str | None = None
     """The model it started from, as `train --init` named it: a bundled name (generalist) or a path; None for a
     random start (--init none) or not recorded."""
+    start_kept: bool = False
+    """`train` kept its start's weights unchanged: no epoch beat the start (best epoch 0), or the start as saved
+    measured better than the trained model (the file's start_as_saved.chose is "start")."""
     validation: Measurement | None = field(default=None, repr=False, hash=False, compare=False)
     """The kept model measured on its validation frames (`train_fold`'s "validation": metrics and timing); None in a
     compressed model's record (its NAME_pXX_report.json holds its measurements). Read from `raw`, so left out of
@@ -93,6 +96,10 @@ class TrainingRecord:
             keypoints = None
         config = record.get("config")
         positive_weight = _typed(config.get("positive_weight"), (int, float)) if isinstance(config, dict) else None
+        init = _typed(record.get("init"), str)
+        as_saved = record.get("start_as_saved")
+        start_kept = init is not None and (_typed(record.get("best_epoch"), int) == 0 or (
+            isinstance(as_saved, dict) and as_saved.get("chose") == "start"))
         return cls(data=_typed(record.get("data"), str), data_sha256=_typed(record.get("data_sha256"), str),
                    fold=_typed(record.get("fold"), int), folds=_typed(record.get("folds"), int),
                    split=_typed(record.get("split"), str), split_seed=_typed(record.get("split_seed"), int),
@@ -100,7 +107,7 @@ class TrainingRecord:
                    positive_weight=float(positive_weight) if positive_weight is not None else None,
                    input_size=_typed(record.get("input_size"), int), augment=_typed(record.get("augment"), str),
                    augment_copies=_typed(record.get("augment_copies"), int),
-                   init=_typed(record.get("init"), str), validation=_measurement(record.get("validation")), raw=record)
+                   init=init, start_kept=start_kept, validation=_measurement(record.get("validation")), raw=record)
 
 
 def _measurement(value: Any) -> Measurement | None:

@@ -818,17 +818,18 @@ IMPORTANCE_FRAMES = Setting(
     "the measured frames) the unpruned model is run on to score its filters", label="importance frames",
     check=lambda v: v >= 1, requirement="at least 1", metavar="N")
 PRUNED_START = Setting(
-    "start", str, "surgery",
+    "start", str, "auto",
     "the pruned network's weights before retraining: surgery (the base model's highest-ranked filters, the paper's), "
     "generalist-p70 (the bundled generalist pruned at 0.7 and retrained on domain-randomised frames), or a pruned "
-    ".keras file with the widths surgery gives at --rate; auto: generalist-p70 for a model fine-tuned from the "
-    "generalist on views that vary (trained with online augmentation) when the widths match, else surgery. A pruned "
-    "start is kept unchanged when no retraining epoch beats its validation loss (docs/compression.md, \"On your own "
-    "model\")", label="pruned start",
+    ".keras file with the widths surgery gives at --rate; auto: generalist-p70 when the model to compress is the "
+    "generalist as it is (the bundled file, or a model `train` kept unchanged from it: views that vary where no epoch "
+    "beat it) and the widths match, else surgery. A pruned start is kept unchanged when no retraining epoch beats its "
+    "validation loss (docs/compression.md, \"On your own model\")", label="pruned start",
     check=lambda v: bool(v.strip()), requirement="auto, surgery, a bundled name or a .keras file", metavar="START",
     paper="surgery")
-"""Where the 70 % network's weights start. Surgery stays the default: the bundled pruned generalist was not better on
-both views-that-vary models measured (docs/compression.md, "On your own model")."""
+"""Where the 70 % network's weights start. auto by default: the bundled pruned generalist is the better start for the
+generalist itself, surgery for everything else measured (docs/compression.md, "On your own model";
+`methods.pruned_start`)."""
 COMPRESS_INPUT_SIZE = INPUT_SIZE.variant(
     default=None,
     help=f"the input side the compressed model and files run at, a multiple of {INPUT_SIZE_MULTIPLE} (default: the "

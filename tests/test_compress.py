@@ -528,11 +528,11 @@ def bundled_pruned_generalist(tmp_path, monkeypatch):
     return folder
 
 
-def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_generalist(bundled_pruned_generalist,
-                                                                                       tmp_path):
-    """--start auto: generalist-p70 for the generalist itself and for models `train` fine-tuned from it on views that
-    vary (online augmentation; directly or through a round of the correction loop), at the rate and floor whose
-    widths it has; surgery otherwise (a fixed camera, another start), and for --start surgery and magnitude pruning."""
+def test_auto_starts_the_generalist_as_it_is_from_the_pruned_generalist(bundled_pruned_generalist, tmp_path):
+    """--start auto (the default): generalist-p70 for the generalist itself and for a model `train` kept unchanged
+    from it on views that vary (no epoch beat it, or the start as saved measured better; through kept rounds), at the
+    rate and floor whose widths it has; surgery otherwise (a model trained from it, a fixed camera, another start),
+    and for --start surgery and magnitude pruning."""
     from fcnpose_tf.compression.methods import pruned_start
     from fcnpose_tf.compression.options import CompressOptions
     from fcnpose_tf.compression.plan import plan_widths
@@ -543,7 +543,7 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     path = tmp_path / "mine.keras"
     path.write_bytes(b"")
     round2 = tmp_path / "round2.keras"
-    (tmp_path / "round2_train.json").write_text(json.dumps({"init": str(path), "augment": "online"}))
+    round2.write_bytes(b"")
     expected = bundled_pruned_generalist / "fcnpose_ur5_generalist_p70.keras"
     lines = []
 
@@ -555,16 +555,29 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
         return pruned_start(options.checked(), model_path, plan_widths(base, options.rate, floor), architecture,
                             Lines())
 
-    assert CompressOptions(rate=0.7).start == "surgery"  # the default; auto is asked for
-    assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)  # no record: not known to come from the generalist
-    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "generalist", "augment": "paper"}))
-    assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)  # a fixed camera: the paper's copies
-    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "generalist", "augment": "online"}))
-    assert start(CompressOptions(rate=0.7, start="auto")) == ("generalist-p70", expected)
-    assert start(CompressOptions(rate=0.7, start="auto"), round2) == ("generalist-p70", expected)
+    def record(model, **fields):
+        (model.parent / f"{model.stem}_train.json").write_text(json.dumps(fields))
+
+    auto = CompressOptions(rate=0.7)
+    assert auto.start == "auto"  # the default
+    assert start(auto) == ("surgery", None)  # no record: not known to be the generalist
+    record(path, init="generalist", augment="online", best_epoch=4)
+    assert start(auto) == ("surgery", None)  # fine-tuned from it: its own weights
+    record(path, init="generalist", augment="online", best_epoch=0)
+    assert start(auto) == ("generalist-p70", expected)  # no epoch beat the generalist: kept as it is
+    record(path, init="generalist", augment="online", best_epoch=6, start_as_saved={"chose": "start"})
+    assert start(auto) == ("generalist-p70", expected)  # the start as saved measured better
+    record(round2, init=str(path), augment="online", best_epoch=0)
+    assert start(auto, round2) == ("generalist-p70", expected)  # a second round that kept the first round's weights
+    record(round2, init=str(path), augment="online", best_epoch=3)
+    assert start(auto, round2) == ("surgery", None)
+    record(path, init="generalist", augment="paper", best_epoch=0)
+    assert start(auto) == ("surgery", None)  # a fixed camera: the paper's copies
+    record(path, init="workcell", augment="online", best_epoch=0)
+    assert start(auto) == ("surgery", None)  # kept, but not the generalist
     (bundled_pruned_generalist / "fcnpose_ur5_generalist_train.json").write_text(json.dumps({"augment": "online"}))
-    assert start(CompressOptions(rate=0.7, start="auto"), bundled_pruned_generalist / "fcnpose_ur5_generalist.keras") == (
-        "generalist-p70", expected)
+    assert start(auto, bundled_pruned_generalist / "fcnpose_ur5_generalist.keras") == ("generalist-p70", expected)
+    record(path, init="generalist", augment="online", best_epoch=0)
     assert start(CompressOptions(rate=0.7, start="surgery")) == ("surgery", None)
     assert start(CompressOptions(rate=0.7, method="magnitude", start="auto")) == ("surgery", None)
     assert lines == []
@@ -575,12 +588,9 @@ def test_auto_starts_a_model_fine_tuned_from_the_generalist_from_the_pruned_gene
     # a model with the skip: the bundled start has none
     assert start(CompressOptions(rate=0.7, start="auto"), architecture="fcn-pose-skip") == ("surgery", None)
     assert "generalist-p70 is an fcn-pose network" in lines.pop()
-    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "workcell", "augment": "online"}))
-    assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None)
     # named explicitly: a bundled name or a file, whatever the base model's lineage
     assert start(CompressOptions(rate=0.7, start="generalist-p70")) == ("generalist-p70", expected)
     assert start(CompressOptions(rate=0.5, start=str(expected))) == (str(expected), expected)
-    (tmp_path / "mine_train.json").write_text(json.dumps({"init": "generalist", "augment": "online"}))
     expected.unlink()  # an installation without the file: surgery, said
     assert start(CompressOptions(rate=0.7, start="auto")) == ("surgery", None) and "is missing" in lines[-1]
 

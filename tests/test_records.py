@@ -58,6 +58,18 @@ def test_the_fields_are_the_keys_train_writes():
     assert record.positive_weight == raw["config"]["positive_weight"]
 
 
+def test_a_start_train_kept_unchanged_is_told_apart_from_a_trained_one():
+    """start_kept: no epoch beat the start (best epoch 0), or the start as saved measured better; never for a random
+    start (no init)."""
+    assert not TrainingRecord.from_json(written_by_train()).start_kept  # best epoch 19
+    assert TrainingRecord.from_json(written_by_train(best_epoch=0)).start_kept
+    assert TrainingRecord.from_json(written_by_train(start_as_saved={"chose": "start", "start_mean_pck": 0.82})
+                                    ).start_kept
+    assert not TrainingRecord.from_json(written_by_train(start_as_saved={"chose": "trained"})).start_kept
+    assert not TrainingRecord.from_json(written_by_train(best_epoch=0, init=None)).start_kept
+    assert not TrainingRecord.from_json(written_by_train(best_epoch="0", start_as_saved="start")).start_kept
+
+
 def test_an_older_record_reads_its_missing_keys_as_none():
     """Records from before a key existed, or a compressed model's (no split, folds, schema...)."""
     raw = {"data": "labels.json", "config": {"epochs": 10}, "epochs_run": 10}

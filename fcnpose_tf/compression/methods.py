@@ -7,6 +7,7 @@ importance criterion (`fcnpose_tf.compression.importance`) or its widths taken f
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Callable, NamedTuple, Protocol, TypedDict
@@ -271,14 +272,40 @@ PRUNED_GENERALIST = "generalist-p70"
 generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
 
 
+def holds_the_generalist(model_path: str | os.PathLike, generalist: Path, max_depth: int = 16) -> bool:
+    """Whether `model_path` holds the generalist's own weights: it is the bundled file (`generalist`, resolved), or
+    `train` kept its start unchanged (`TrainingRecord.start_kept`) and that start holds them, through as many kept
+    rounds as there are (at most `max_depth`).
+
+    Args:
+        model_path: the model to compress.
+        generalist: the bundled generalist's file, resolved.
+    Returns:
+        True for the generalist as it is; False for a model trained from it, or from anything else.
+    """
+    current = Path(model_path)
+    for _ in range(max_depth):
+        if current.is_file() and current.resolve() == generalist:
+            return True
+        record = training_record(current)
+        if record is None or not record.start_kept:
+            return False
+        if record.init == "generalist":  # `train --init generalist`, the bundled name
+            return True
+        current = Path(record.init)
+    return False
+
+
 def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, architecture: str,
                  reporter: Reporter = SILENT) -> tuple[str, Path | None]:
-    """The run's pruned start, the options' start with auto decided. auto is PRUNED_GENERALIST when `base_path` is the
-    generalist or was trained from it (`records.lineage`) on views that vary (its record's augmentation is online:
-    `train`'s choice for such frames) and the bundled file has the base's architecture (`model.ARCHITECTURES`) and
-    the widths filter surgery gives here (`plan`); else surgery, which keeps PCK@0.5 within 0.01 on fixed-camera
-    models (docs/compression.md, "On your own model"). An explicit start is the file the options' check found
-    (`CheckedOptions.start_file`); its widths are checked when it is loaded (`FilterPruning.prune`).
+    """The run's pruned start, the options' start with auto decided. auto is PRUNED_GENERALIST when `base_path` holds
+    the generalist's own weights (`holds_the_generalist`: the bundled file, or a model `train` kept unchanged from it)
+    on views that vary (its record's augmentation is online) and the bundled file has the base's architecture
+    (`model.ARCHITECTURES`) and the widths filter surgery gives here (`plan`): there it is the same network pruned and
+    retrained for hours on domain-randomised frames, where surgery retrains on the user's few. Else surgery: on a
+    model fine-tuned from the generalist the pruned generalist measured below it, and on fixed-camera models surgery
+    keeps PCK@0.5 within 0.01 (docs/compression.md, "On your own model"). An explicit start is the file the options' check found (`CheckedOptions.start_file`); its widths
+    are checked when it is loaded (`FilterPruning.prune`).
 
     Args:
         checked: the run's options (method and start) and the explicit start's file.
@@ -290,7 +317,6 @@ def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, arch
         (the start's name, the pruned model file it names; None for surgery).
     """
     from fcnpose_tf.bundled import BUNDLED_MODELS, generalist_model, models_dir, say_bundled
-    from fcnpose_tf.records import lineage
     from fcnpose_tf.training.model import architecture_of, conv_widths, load_model
 
     options = checked.options
@@ -300,10 +326,7 @@ def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, arch
     if start != "auto":
         say_bundled(start, checked.start_file, reporter)
         return start, checked.start_file
-    generalist = generalist_model().resolve()
-    ancestry = [str(base_path), *lineage(base_path)]
-    if not any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
-               for name in ancestry):
+    if not holds_the_generalist(base_path, generalist_model().resolve()):
         return "surgery", None
     record = training_record(base_path)
     if record is None or record.augment != "online":  # a fixed camera: the frames show the views it will see
