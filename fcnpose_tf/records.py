@@ -234,20 +234,21 @@ def host_info() -> HostInfo:
                     python=platform.python_version(), numpy=versions["numpy"], opencv=versions["opencv"])
 
 
-def lineage(model_path: str | os.PathLike, max_depth: int = 16) -> list[str]:
+def lineage(model_path: str | os.PathLike, max_depth: int = 16, kept_only: bool = False) -> list[str]:
     """What `model_path` was trained from, nearest first: each NAME_train.json's `init` (a bundled name or a path),
     followed through the records of the files it names (a second round of `train --init round1.keras` leads back
     to round 1's start). Stops at a random start, a model without a record, a path that is no file, a loop, or
-    `max_depth` steps.
+    `max_depth` steps; with `kept_only`, also at a record whose run changed its start's weights
+    (`TrainingRecord.start_kept` false): what is left names the files holding the same weights as `model_path`.
 
-    Example: a model `train` fine-tuned from the generalist -> ["generalist"].
+    Example: a model `train` fine-tuned from the generalist -> ["generalist"] ([] with `kept_only`).
     """
     chain: list[str] = []
     seen = {Path(model_path).resolve()}
     current: str | os.PathLike = model_path
     for _ in range(max_depth):
         record = training_record(current)
-        if record is None or not record.init:
+        if record is None or not record.init or (kept_only and not record.start_kept):
             break
         chain.append(record.init)
         path = Path(record.init)

@@ -118,6 +118,12 @@ def test_lineage_follows_each_records_init_back_to_a_bundled_start(tmp_path):
     (tmp_path / "round2_train.json").write_text(json.dumps(written_by_train(init=str(tmp_path / "round1.keras"))))
     assert lineage(tmp_path / "round2.keras") == [str(tmp_path / "round1.keras"), "generalist"]
     assert lineage(tmp_path / "round1.keras") == ["generalist"]
+    assert lineage(tmp_path / "round2.keras", kept_only=True) == []  # both rounds changed their start's weights
+    (tmp_path / "round1_train.json").write_text(json.dumps(written_by_train(init="generalist", best_epoch=0)))
+    assert lineage(tmp_path / "round2.keras", kept_only=True) == []  # round 2 did
+    (tmp_path / "round2_train.json").write_text(json.dumps(written_by_train(
+        init=str(tmp_path / "round1.keras"), start_as_saved={"chose": "start"})))
+    assert lineage(tmp_path / "round2.keras", kept_only=True) == [str(tmp_path / "round1.keras"), "generalist"]
     assert lineage(tmp_path / "none.keras") == []
     (tmp_path / "scratch_train.json").write_text(json.dumps(written_by_train(init=None)))
     assert lineage(tmp_path / "scratch.keras") == []

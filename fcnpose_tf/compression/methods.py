@@ -272,10 +272,10 @@ PRUNED_GENERALIST = "generalist-p70"
 generalist, at the widths it has (filter surgery's at 0.7 with compress's default floor, no layer under 15 filters)."""
 
 
-def holds_the_generalist(model_path: str | os.PathLike, generalist: Path, max_depth: int = 16) -> bool:
+def holds_the_generalist(model_path: str | os.PathLike, generalist: Path) -> bool:
     """Whether `model_path` holds the generalist's own weights: it is the bundled file (`generalist`, resolved), or
-    `train` kept its start unchanged (`TrainingRecord.start_kept`) and that start holds them, through as many kept
-    rounds as there are (at most `max_depth`).
+    `train` kept its start unchanged, through as many kept rounds as there are (`records.lineage`, kept_only), back to
+    the generalist.
 
     Args:
         model_path: the model to compress.
@@ -283,17 +283,10 @@ def holds_the_generalist(model_path: str | os.PathLike, generalist: Path, max_de
     Returns:
         True for the generalist as it is; False for a model trained from it, or from anything else.
     """
-    current = Path(model_path)
-    for _ in range(max_depth):
-        if current.is_file() and current.resolve() == generalist:
-            return True
-        record = training_record(current)
-        if record is None or not record.start_kept:
-            return False
-        if record.init == "generalist":  # `train --init generalist`, the bundled name
-            return True
-        current = Path(record.init)
-    return False
+    from fcnpose_tf.records import lineage
+
+    return any(name == "generalist" or (Path(name).is_file() and Path(name).resolve() == generalist)
+               for name in [str(model_path), *lineage(model_path, kept_only=True)])
 
 
 def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, architecture: str,
@@ -304,8 +297,8 @@ def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, arch
     (`model.ARCHITECTURES`) and the widths filter surgery gives here (`plan`): there it is the same network pruned and
     retrained for hours on domain-randomised frames, where surgery retrains on the user's few. Else surgery: on a
     model fine-tuned from the generalist the pruned generalist measured below it, and on fixed-camera models surgery
-    keeps PCK@0.5 within 0.01 (docs/compression.md, "On your own model"). An explicit start is the file the options' check found (`CheckedOptions.start_file`); its widths
-    are checked when it is loaded (`FilterPruning.prune`).
+    keeps PCK@0.5 within 0.01 (docs/compression.md, "On your own model"). An explicit start is the file the options'
+    check found (`CheckedOptions.start_file`); its widths are checked when it is loaded (`FilterPruning.prune`).
 
     Args:
         checked: the run's options (method and start) and the explicit start's file.
