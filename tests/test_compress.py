@@ -369,12 +369,58 @@ def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_r
     note = accuracy_note(_report(quantized=_step(30, 0.8, quantize="float16", status="written"),
                                  other_quantized=[_step(30, 0.85, quantize="int8", status="written")]))
     assert note == ("note: PCK@0.5 0.850 (int8) is 0.050 below the unpruned model's 0.900 on these frames, more than "
-                    "the 0.02 the paper's files lose; a lower --rate keeps more of it: on views that vary --rate 0.5 "
-                    "came closest (docs/compression.md, \"Views that vary: a lower rate\"); --rates 0.5,0.7 "
-                    "compares them in one run")
+                    "the 0.02 the paper's files lose; PCK@0.05 0.050 below, more than 0.03; a lower --rate keeps more "
+                    "of it: on views that vary --rate 0.5 came closest (docs/compression.md, \"Views that vary: a lower "
+                    "rate\"); --rates 0.5,0.7 compares them in one run")
     at_half = accuracy_note(_report(options={"quantize": ("float16",), "rate": 0.5}))
-    assert at_half.endswith("more than the 0.02 the paper's files lose; a lower --rate keeps more of it")
+    assert at_half.endswith("more than the 0.02 the paper's files lose; PCK@0.05 0.100 below, more than 0.03; a lower "
+                            "--rate keeps more of it")
     assert accuracy_note(_report(quantized=None)) is None
+
+
+def _at(pck: dict, **more) -> ModelStep | TFLiteStep:
+    """A step whose PCK@0.5 and PCK@0.05 differ: `pck` maps 0.5 and 0.05 to theirs."""
+    step = _step(30, pck[0.5], **more).to_json()
+    step["metrics"]["pck@0.05_bbox"] = pck[0.05]
+    return (TFLiteStep if "quantize" in more else ModelStep).from_json(step)
+
+
+def test_a_file_that_keeps_pck_at_half_but_loses_fine_localisation_gets_its_own_note():
+    """PCK@0.5 within 0.02 but PCK@0.05 beyond 0.03 (keypoints on the right part, less finely placed: views that
+    vary): the note says so, from the file best at PCK@0.05; within both budgets none."""
+    from fcnpose_tf.compression.summary import accuracy_note
+
+    base = _at({0.5: 0.958, 0.05: 0.517}, h5_size_bytes=4000, timing=TIMING)
+    fp16 = _at({0.5: 0.946, 0.05: 0.477}, quantize="float16", status="written")
+    int8 = _at({0.5: 0.946, 0.05: 0.483}, quantize="int8", status="written")
+    note = accuracy_note(_report(base=base, quantized=fp16, other_quantized=[int8]))
+    assert note.startswith("note: PCK@0.05 0.483 (int8) is 0.034 below the unpruned model's 0.517 on these frames, "
+                           "more than the 0.03 budget for fine localisation (PCK@0.5 within 0.02: keypoints on the "
+                           "right part of the arm, less finely placed); a lower --rate"), note
+    close = _at({0.5: 0.946, 0.05: 0.490}, quantize="int8", status="written")
+    assert accuracy_note(_report(base=base, quantized=fp16, other_quantized=[close])) is None
+
+
+def test_the_best_rate_note_names_the_rate_within_both_budgets_when_the_best_loses_fine_localisation():
+    """`best_rate_note`: the highest rate within 0.02 PCK@0.5; when it loses more than 0.03 PCK@0.05, by how much and
+    the highest rate within both (or none); no rate within 0.02: says so."""
+    from fcnpose_tf.compression.summary import best_rate_note
+
+    base = _at({0.5: 0.95, 0.05: 0.50}, h5_size_bytes=4000, timing=TIMING)
+
+    def at(rate, pck):
+        return _report(base=base, options={"quantize": ("float16",), "rate": rate},
+                       quantized=_at(pck, quantize="float16", status="written"))
+
+    half, six, seven = (at(0.5, {0.5: 0.945, 0.05: 0.49}), at(0.6, {0.5: 0.94, 0.05: 0.45}),
+                        at(0.7, {0.5: 0.90, 0.05: 0.40}))
+    assert best_rate_note([seven, half, six]) == (
+        "Best rate within the 0.02 PCK@0.5 budget: 0.6 (its best file +0.010 below the unpruned model's 0.950); "
+        "0.7 loses 0.050; at 0.6 PCK@0.05 loses 0.050, more than 0.03 (fine localisation): 0.5 keeps both")
+    assert best_rate_note([six]).endswith("more than 0.03 (fine localisation): no rate measured keeps both")
+    assert best_rate_note([half]) == ("Best rate within the 0.02 PCK@0.5 budget: 0.5 (its best file +0.005 below the "
+                                      "unpruned model's 0.950)")
+    assert best_rate_note([seven]).startswith("note: no rate kept PCK@0.5 within 0.02 of the unpruned model's 0.950")
 
 
 def test_the_report_is_written_as_its_sections_in_order():
