@@ -73,7 +73,11 @@ def read_metadata(model: bytes | str | os.PathLike) -> dict[str, bytes]:
     Raises:
         ValueError: bytes that are not a FlatBuffer of that shape (a truncated or foreign file).
     """
-    data = model if isinstance(model, (bytes, bytearray, memoryview)) else open(os.fspath(model), "rb").read()
+    if isinstance(model, (bytes, bytearray, memoryview)):
+        data = model
+    else:
+        with open(os.fspath(model), "rb") as file:
+            data = file.read()
     data = bytes(data)
     reader = _Reader(data)
     try:
