@@ -1,4 +1,5 @@
-"""Keypoint schemas: the names of a robot's keypoints and the skeleton edges between them. numpy only.
+"""Keypoint schemas: the names of a robot's keypoints and the skeleton edges between them, and how long a serial
+robot's limbs are in frames (`LimbPrior`). numpy only.
 
 A schema is data a dataset carries (it is stored in the dataset's VIA file
 attributes and in model reports); the network's number of output maps follows
@@ -7,8 +8,11 @@ it: one map per keypoint plus one skeleton map, keypoint maps first.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import Sequence
+
+import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import entry_problem
@@ -86,3 +90,49 @@ def spelling_hint(names: Sequence[str], reference: Sequence[str] = UR5.keypoints
     return (f"did you mean {', '.join(b for _, b in pairs[:3])}{more}? The keypoint names differ from {whose} only "
             f"in spelling ({', '.join(f'{a} for {b}' for a, b in pairs[:3])}{more}): rename them in the VIA file's "
             "keypoint options and points")
+
+
+@dataclass(frozen=True)
+class LimbPrior:
+    """How long a serial chain's limbs are in labelled frames: per skeleton edge (keypoint k to k + 1) the mean and the
+    standard deviation of log(length / the keypoints' box side, max(w, h)), both in frame pixels."""
+
+    mean: tuple[float, ...]
+    sd: tuple[float, ...]
+
+    @classmethod
+    def of(cls, keypoints: np.ndarray) -> "LimbPrior":
+        """The prior of N x K x 2 labelled keypoints (frame pixels, NaN where unlabelled).
+
+        Raises:
+            UserError: fewer than 2 keypoints per frame, or an edge labelled in fewer than 2 frames.
+        """
+        kps = np.asarray(keypoints, np.float64)
+        if kps.ndim != 3 or kps.shape[1] < 2 or kps.shape[2] != 2:
+            raise UserError(f"expected N x K x 2 keypoints with K >= 2, got shape {kps.shape}")
+        with np.errstate(invalid="ignore", divide="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # a frame with no labels: its box is NaN
+            side = np.nanmax(np.nanmax(kps, axis=1) - np.nanmin(kps, axis=1), axis=1)
+            logs = np.log(np.linalg.norm(kps[:, 1:] - kps[:, :-1], axis=2) / side[:, None])
+        logs[~np.isfinite(logs)] = np.nan
+        if (np.isfinite(logs).sum(axis=0) < 2).any():
+            raise UserError("every limb needs both its keypoints labelled in at least 2 frames for its lengths")
+        return cls(tuple(float(v) for v in np.nanmean(logs, axis=0)), tuple(float(v) for v in np.nanstd(logs, axis=0)))
+
+    @classmethod
+    def pooled(cls, priors: Sequence["LimbPrior"]) -> "LimbPrior":
+        """One prior weighing each of `priors` equally (label conventions, say): the mean of their means, the
+        spread of their lengths and of their means together."""
+        means, sds = np.array([p.mean for p in priors]), np.array([p.sd for p in priors])
+        sd = np.sqrt((sds ** 2).mean(axis=0) + means.var(axis=0))
+        return cls(tuple(round(float(v), 3) for v in means.mean(axis=0)), tuple(round(float(v), 3) for v in sd))
+
+
+UR5_LIMBS = LimbPrior(mean=(-1.886, -0.605, -0.776, -2.242, -2.535, -2.354, -1.924),
+                      sd=(0.476, 0.323, 0.448, 0.616, 0.685, 0.541, 0.719))
+"""The UR5's limbs (base-shoulder, ..., flange-tool) in generated frames that vary in every way the generator
+varies them: `LimbPrior.pooled` of the two label conventions, `synth --scene random --n 2400 --seed 80000` (the
+visible joint caps) and `synth --scene random --looks varied --labels kinematic --n 480 --seed 70000` (the kinematic
+joint frames); `python tools/limb_prior.py DATA DATA` prints it. What `postprocess`'s chained cluster choice
+(`Decoding(cluster="chain")`) holds a pair of clusters' distance to (docs/postprocess.md, "Choosing among
+clusters")."""

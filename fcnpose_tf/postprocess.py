@@ -53,14 +53,26 @@ import numpy as np
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.keypoints import UR5_LIMBS, LimbPrior
 from fcnpose_tf.preprocess import FrameView, keypoints_to_frame
 
 __all__ = ["maps_to_keypoints", "decode", "check_fallback", "check_centroid", "Decoding",
-           "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut", "CENTROIDS"]
+           "largest_cluster", "probability_to_logit", "dequantize", "quantized_cut", "CENTROIDS", "CLUSTERS"]
 
 CENTROIDS = settings.CENTROID.choices
 """How a keypoint's position is read from its cluster: the plain mean of its pixels (Algorithm 1) or weighted
 by (p - threshold)^2."""
+CLUSTERS = settings.CLUSTER.choices
+"""Which of a map's clusters is the keypoint: the largest (Algorithm 1) or the one the chain chooses (`_chain`)."""
+SUPPORT_WEIGHT = 4.0
+"""The chain's weight of log(skeleton support) between two consecutive clusters against log(size / the map's largest
+size) of each (docs/postprocess.md, "Choosing among clusters": 1 and 4 measured, 4 no worse anywhere)."""
+LENGTH_WEIGHT = 0.25
+"""The chain's weight of a limb's squared z-score (its log length against `keypoints.UR5_LIMBS`), halved."""
+SUPPORT_FLOOR = 0.02
+"""The least skeleton support a pair is scored at: log(0) would forbid a pair the skeleton map misses."""
+SUPPORT_SAMPLES = 16
+"""Points of the skeleton map read along the segment between two clusters."""
 
 
 def probability_to_logit(threshold: float) -> float:
@@ -358,6 +370,110 @@ def _frame_keypoints(maps3: np.ndarray, cut: float, min_size: int,
         out_conf[i] = size
 
 
+Candidate = tuple[int, int, float, float, tuple[int, int, int, int]]
+"""A cluster the chain may choose: (label, pixels, x, y, its box (x0, y0, w, h)), (x, y) its plain centroid."""
+
+
+def _candidates(active: np.ndarray, min_size: int) -> tuple[np.ndarray | None, tuple[int, int], list[Candidate]]:
+    """The 4-connected clusters of a boolean map (Algorithm 1's, M = 1), labelled inside the box of its active
+    pixels: the labels, the box's corner (x, y) in the map, and the clusters of at least `min_size` pixels, in the
+    order of their first pixel in row-major order (Algorithm 1's tie order), in map pixels."""
+    plane = active.view(np.uint8)
+    x0, y0, w, h = cv2.boundingRect(plane)
+    if not w:
+        return None, (0, 0), []
+    count, labels, stats, centroids = cv2.connectedComponentsWithStats(plane[y0:y0 + h, x0:x0 + w], connectivity=4)
+    return labels, (x0, y0), [
+        (j, int(stats[j, cv2.CC_STAT_AREA]), x0 + float(centroids[j, 0]), y0 + float(centroids[j, 1]),
+         tuple(int(v) for v in stats[j, :4])) for j in range(1, count) if stats[j, cv2.CC_STAT_AREA] >= min_size]
+
+
+def _skeleton_support(skeleton: np.ndarray, probability, before: np.ndarray, now: np.ndarray) -> np.ndarray:
+    """The skeleton map's mean probability at SUPPORT_SAMPLES points on each segment from a centroid of `before`
+    (A x 2, x and y) to one of `now` (B x 2): A x B. `skeleton` holds the map's raw values (`probability` reads
+    them)."""
+    t = np.linspace(0.0, 1.0, SUPPORT_SAMPLES)
+    a, b = before[:, None, None, :], now[None, :, None, :]
+    points = np.rint(a + t[None, None, :, None] * (b - a)).astype(np.intp)
+    xs = np.clip(points[..., 0], 0, skeleton.shape[1] - 1)
+    ys = np.clip(points[..., 1], 0, skeleton.shape[0] - 1)
+    return probability(skeleton[ys, xs]).mean(axis=2)
+
+
+def _chain(maps3: np.ndarray, cut: float, min_size: int, out_kp: np.ndarray, out_conf: np.ndarray,
+           fallback_cut: float | None, weights, probability, pixel_scale: tuple[float, float] | None) -> None:
+    """One cluster per keypoint map, chosen jointly along the serial chain (keypoint k joined to k + 1) by Viterbi:
+    each cluster scores log(its pixels / the map's largest cluster's), each consecutive pair SUPPORT_WEIGHT x
+    log(the skeleton map's mean along the segment between them, at least SUPPORT_FLOOR) and, for the UR5's 8
+    keypoints, - LENGTH_WEIGHT x z^2 / 2, z the pair's log length as a share of the box of the maps' largest clusters
+    against `keypoints.UR5_LIMBS` in its standard deviations (lengths in the frame's proportions: `pixel_scale`). A
+    map without a cluster (after the fallback) is missing and splits the chain. Writes what `_frame_keypoints` does:
+    the chosen cluster's centroid (weighted by `weights` when given) and its pixel count."""
+    k = maps3.shape[-1] - 1
+    maps3 = np.ascontiguousarray(maps3)
+    sx, sy = pixel_scale or (1.0, 1.0)
+    found = []
+    for i in range(k):
+        labels, corner, candidates = _candidates(maps3[..., i] > cut, min_size)
+        level = 0
+        if not candidates and fallback_cut is not None:
+            labels, corner, candidates = _candidates(maps3[..., i] > fallback_cut, min_size)
+            level = 1
+        found.append((labels, corner, candidates, level))
+    prior: LimbPrior | None = UR5_LIMBS if k == len(UR5_LIMBS.mean) + 1 else None
+    side = 1.0
+    if prior is not None:
+        largest = np.array([[c[2] * sx, c[3] * sy] for _, _, cs, _ in found if cs
+                            for c in [max(cs, key=lambda c: c[1])]])
+        side = max(float(np.ptp(largest, axis=0).max()) if len(largest) > 1 else 0.0, 4.0 * max(sx, sy))
+    skeleton = maps3[..., k]
+
+    def unary(candidates):
+        sizes = np.array([c[1] for c in candidates], np.float64)
+        return np.log(sizes / sizes.max())
+
+    chosen: list[int | None] = [None] * k
+    start = 0
+    while start < k:
+        if not found[start][2]:
+            start += 1
+            continue
+        end = start
+        while end + 1 < k and found[end + 1][2]:
+            end += 1
+        score, back = unary(found[start][2]), []
+        for i in range(start + 1, end + 1):
+            before = np.array([c[2:4] for c in found[i - 1][2]])  # the clusters' centroids, x and y
+            now = np.array([c[2:4] for c in found[i][2]])
+            pair = SUPPORT_WEIGHT * np.log(np.maximum(_skeleton_support(skeleton, probability, before, now),
+                                                      SUPPORT_FLOOR))
+            if prior is not None:
+                step = (before[:, None, :] - now[None, :, :]) * (sx, sy)
+                length = np.log(np.maximum(np.hypot(step[..., 0], step[..., 1]), 1e-3) / side)
+                pair -= LENGTH_WEIGHT * ((length - prior.mean[i - 1]) / prior.sd[i - 1]) ** 2 / 2
+            total = score[:, None] + pair + unary(found[i][2])[None, :]
+            back.append(total.argmax(axis=0))
+            score = total.max(axis=0)
+        j = int(score.argmax())
+        for i in range(end, start - 1, -1):
+            chosen[i] = j
+            if i > start:
+                j = int(back[i - 1 - start][j])
+        start = end + 1
+    for i, j in enumerate(chosen):
+        if j is None:
+            out_kp[i] = np.nan
+            out_conf[i] = 0
+            continue
+        labels, (left, top), candidates, level = found[i]
+        label, size, x, y, (bx, by, bw, bh) = candidates[j]
+        if weights is not None:
+            mask = labels[by:by + bh, bx:bx + bw] == label
+            x, y = _weighted_centroid(maps3[..., i], (top + by, left + bx, bh, bw, mask), weights, level, x, y)
+        out_kp[i, 0], out_kp[i, 1] = x, y
+        out_conf[i] = size
+
+
 @dataclass(frozen=True)
 class Decoding:
     """How a model's maps become keypoints, passed whole from the settings to every decoder: Algorithm 1's
@@ -368,6 +484,7 @@ class Decoding:
     threshold: float = settings.THRESHOLD.default
     fallback: float | None = settings.FALLBACK.default
     centroid: str = settings.CENTROID.default
+    cluster: str = settings.CLUSTER.default
 
     def __post_init__(self) -> None:
         if not 0.0 < float(self.threshold) < 1.0:
@@ -375,30 +492,36 @@ class Decoding:
         object.__setattr__(self, "threshold", float(self.threshold))
         object.__setattr__(self, "fallback", check_fallback(self.threshold, self.fallback))
         check_centroid(self.centroid)
+        check_cluster(self.cluster)
 
     @classmethod
     def from_args(cls, args: Any) -> Decoding:
         """The decoding a command's options ask for.
 
         Args:
-            args: the parsed options: --threshold and --centroid (`settings.add_decoding_arguments`), and --fallback
-                when the command has it (else none).
+            args: the parsed options: --threshold, --centroid and --cluster (`settings.add_decoding_arguments`),
+                and --fallback when the command has it (else none).
         Returns:
             The decoding.
         Raises:
             UserError: a value out of range.
         """
-        return cls(args.threshold, getattr(args, "fallback", None), args.centroid)
+        return cls(args.threshold, getattr(args, "fallback", None), args.centroid, args.cluster)
 
     def describe(self) -> str:
         """One line naming the decoding, for reports."""
         weighted = f" weighted by (p - {self.threshold:g})^2" if self.centroid == "weighted" else ""
-        text = f"Algorithm 1 (largest cluster above {self.threshold:g}, its centroid{weighted})"
+        if self.cluster == "chain":
+            text = (f"clusters above {self.threshold:g} chained along the arm (one per map: size, skeleton map, limb "
+                    f"lengths), its centroid{weighted}")
+        else:
+            text = f"Algorithm 1 (largest cluster above {self.threshold:g}, its centroid{weighted})"
         return text if self.fallback is None else f"{text}; a map with none: above {self.fallback:g} (--fallback)"
 
     def to_json(self) -> dict[str, Any]:
-        """{"threshold", "fallback", "centroid"}: what reports record."""
-        return {"threshold": self.threshold, "fallback": self.fallback, "centroid": self.centroid}
+        """{"threshold", "fallback", "centroid", "cluster"}: what reports record."""
+        return {"threshold": self.threshold, "fallback": self.fallback, "centroid": self.centroid,
+                "cluster": self.cluster}
 
     def keypoints(self, maps: np.ndarray, **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints in map pixels: `maps_to_keypoints` with this decoding.
@@ -409,7 +532,8 @@ class Decoding:
         Returns:
             (keypoints, confidence) as `maps_to_keypoints` returns them: (x, y) in map pixels, NaN where missing.
         """
-        return maps_to_keypoints(maps, self.threshold, fallback=self.fallback, centroid=self.centroid, **kwargs)
+        return maps_to_keypoints(maps, self.threshold, fallback=self.fallback, centroid=self.centroid,
+                                 cluster=self.cluster, **kwargs)
 
     def in_frame(self, maps: np.ndarray, frame_shape: tuple[int, ...], **kwargs: Any) -> tuple[np.ndarray, np.ndarray]:
         """Keypoints in frame pixels: `decode` with this decoding.
@@ -421,7 +545,8 @@ class Decoding:
         Returns:
             (keypoints, confidence) as `decode` returns them: (x, y) in frame pixels, NaN where missing.
         """
-        return decode(maps, frame_shape, self.threshold, fallback=self.fallback, centroid=self.centroid, **kwargs)
+        return decode(maps, frame_shape, self.threshold, fallback=self.fallback, centroid=self.centroid,
+                      cluster=self.cluster, **kwargs)
 
 
 def check_centroid(centroid: str) -> str:
@@ -429,6 +554,13 @@ def check_centroid(centroid: str) -> str:
     if centroid not in CENTROIDS:
         raise UserError(f"centroid must be one of {', '.join(CENTROIDS)}, got {centroid!r}")
     return centroid
+
+
+def check_cluster(cluster: str) -> str:
+    """`cluster` if it is one of CLUSTERS, else UserError naming them."""
+    if cluster not in CLUSTERS:
+        raise UserError(f"cluster must be one of {', '.join(CLUSTERS)}, got {cluster!r}")
+    return cluster
 
 
 def check_fallback(threshold: float, fallback: float | None) -> float | None:
@@ -444,7 +576,8 @@ def check_fallback(threshold: float, fallback: float | None) -> float | None:
 def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool = False,
                       quantization: tuple[float, int] | None = None,
                       min_size: int = 1, fallback: float | None = None,
-                      centroid: str = settings.CENTROID.default) -> tuple[np.ndarray, np.ndarray]:
+                      centroid: str = settings.CENTROID.default, cluster: str = settings.CLUSTER.default,
+                      pixel_scale: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints from FCN-Pose output maps by Expansion Clustering (the paper's Algorithm 1, M = 1).
 
     Args:
@@ -468,6 +601,10 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
             ``threshold`` on unfamiliar views; docs/postprocess.md has the measurements.
         centroid: "plain" (the paper's: the mean of the cluster's pixel indices) or "weighted" (weighted by
             (p - t)^2, p the pixel's probability and t the threshold that made the cluster).
+        cluster: "largest" (the paper's: each map's largest cluster) or "chain" (one cluster per map, chosen
+            jointly along the serial chain: `_chain`); where every map holds one cluster the two agree.
+        pixel_scale: frame pixels per map pixel in x and y (`decode` passes the view's): the chain compares limb
+            lengths in the frame's proportions; None: square pixels.
 
     Returns:
         (keypoints, confidence): keypoints float64 of shape (C-1, 2), or (N, C-1, 2), holding
@@ -503,34 +640,43 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
     min_size = int(min_size)
     if min_size < 1:
         raise UserError(f"min_size must be at least 1, got {min_size}")
-    weights = None
-    if check_centroid(centroid) == "weighted":
-        levels = (float(threshold), fallback)
-        if quantization is not None:
-            scale, zero_point = float(quantization[0]), int(quantization[1])
+    if quantization is not None:
+        scale, zero_point = float(quantization[0]), int(quantization[1])
 
-            def weights(values, level):
-                return ((values.astype(np.float64) - zero_point) * scale - levels[level]) ** 2
-        elif logits:
-            def weights(values, level):
-                return (1.0 / (1.0 + np.exp(-values.astype(np.float64))) - levels[level]) ** 2
-        else:
-            def weights(values, level):
-                return (values.astype(np.float64) - levels[level]) ** 2
+        def probability(values):
+            return (values.astype(np.float64) - zero_point) * scale
+    elif logits:
+        def probability(values):
+            return 1.0 / (1.0 + np.exp(-values.astype(np.float64)))
+    else:
+        def probability(values):
+            return values.astype(np.float64)
+    levels = (float(threshold), fallback)
+
+    def weighted(values, level):
+        return (probability(values) - levels[level]) ** 2
+
+    weights = weighted if check_centroid(centroid) == "weighted" else None
+    chained = check_cluster(cluster) == "chain"
     batch = arr.ndim == 4
     frames = arr if batch else arr[None]
     n, k = frames.shape[0], frames.shape[-1] - 1
     keypoints = np.empty((n, k, 2), np.float64)
     confidence = np.empty((n, k), np.int64)
     for j in range(n):
-        _frame_keypoints(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut, weights)
+        if chained:
+            _chain(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut, weights, probability,
+                   pixel_scale)
+        else:
+            _frame_keypoints(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut, weights)
     return (keypoints, confidence) if batch else (keypoints[0], confidence[0])
 
 
 def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.5, *,
            logits: bool = False, quantization: tuple[float, int] | None = None,
            min_size: int = 1, fallback: float | None = None,
-           centroid: str = settings.CENTROID.default, view: FrameView | None = None) -> tuple[np.ndarray, np.ndarray]:
+           centroid: str = settings.CENTROID.default, cluster: str = settings.CLUSTER.default,
+           view: FrameView | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 
@@ -540,7 +686,7 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     Args:
         maps: H x W x C or N x H x W x C maps (see :func:`maps_to_keypoints`).
         frame_shape: the original frame's shape, (height, width[, channels]).
-        threshold, logits, quantization, min_size, fallback, centroid: as in :func:`maps_to_keypoints`.
+        threshold, logits, quantization, min_size, fallback, centroid, cluster: as in :func:`maps_to_keypoints`.
         view: the model's `FrameView` (its crop); None: the whole frame at the maps' size.
 
     Returns:
@@ -561,6 +707,8 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
         raise UserError(f"maps of {h} x {w} do not match the model's {view.height} x {view.width} input")
     if len(frame_shape) < 2 or min(frame_shape[:2]) < 1:
         raise UserError(f"expected a frame shape (height, width[, channels]), got {tuple(frame_shape)}")
+    box = view.box(tuple(frame_shape))
     keypoints, confidence = maps_to_keypoints(arr, threshold, logits=logits, quantization=quantization,
-                                              min_size=min_size, fallback=fallback, centroid=centroid)
+                                              min_size=min_size, fallback=fallback, centroid=centroid, cluster=cluster,
+                                              pixel_scale=(box[2] / w, box[3] / h))
     return keypoints_to_frame(keypoints, tuple(frame_shape), view), confidence

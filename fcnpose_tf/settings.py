@@ -751,6 +751,13 @@ CENTROID = Setting(
     "cluster's pixels (Algorithm 1, the paper's); docs/postprocess.md", label="centroid", choices=("weighted", "plain"))
 """Every decoder's default (`postprocess.CENTROIDS`; the library's signatures repeat it, and a test holds them
 to it)."""
+CLUSTER = Setting(
+    "cluster", str, "largest", "which of a map's clusters is the keypoint: largest (Algorithm 1, the paper's) or "
+    "chain, one per map chosen jointly along the arm by the clusters' sizes, the skeleton map between consecutive "
+    "keypoints and the UR5's limb lengths (PCK@0.5 +0.01-0.03 on looks the model was not trained on, about the "
+    "same elsewhere; about 1 ms more a frame); docs/postprocess.md", label="cluster choice",
+    choices=("largest", "chain"))
+"""Every decoder's default (`postprocess.CLUSTERS`)."""
 SWEEP_CENTROID = CENTROID.variant(
     default="plain", help="where in its cluster a keypoint is read: plain (the default: Algorithm 1, the paper's, so "
     "the sweep reproduces its tables and a results folder resumes runs made before) or weighted (the other commands' "
@@ -759,9 +766,10 @@ SWEEP_CENTROID = CENTROID.variant(
 
 
 def add_decoding_arguments(parser: argparse.ArgumentParser, fallback: bool = True) -> None:
-    """--threshold, --centroid (and --fallback) for a command that decodes maps into keypoints."""
+    """--threshold, --centroid, --cluster (and --fallback) for a command that decodes maps into keypoints."""
     THRESHOLD.add_to(parser)
     CENTROID.add_to(parser)
+    CLUSTER.add_to(parser)
     if fallback:
         FALLBACK.add_to(parser)
 

@@ -683,10 +683,136 @@ def test_one_decoding_object_checks_its_values_and_reads_as_the_functions_do():
     maps = np.zeros((4, 4, 2), np.float32)
     maps[1, 1:3, 0] = [0.3, 0.4]  # nothing above 0.5: only the fallback finds it
     decoding = pp.Decoding(fallback=0.2, centroid="plain")
-    assert decoding.to_json() == {"threshold": 0.5, "fallback": 0.2, "centroid": "plain"}
+    assert decoding.to_json() == {"threshold": 0.5, "fallback": 0.2, "centroid": "plain", "cluster": "largest"}
     assert "above 0.2 (--fallback)" in decoding.describe()
     kp, conf = decoding.keypoints(maps)
     np.testing.assert_array_equal(kp, maps_to_keypoints(maps, 0.5, fallback=0.2, centroid="plain")[0])
     assert conf[0] == 2 and np.isnan(pp.Decoding().keypoints(maps)[0][0]).all()
     in_frame, _ = decoding.in_frame(maps, (8, 8, 3))
     np.testing.assert_array_equal(in_frame, decode(maps, (8, 8, 3), fallback=0.2, centroid="plain")[0])
+
+
+# --------------------------------------------------------------------------------------------
+# The chained choice among a map's clusters (cluster="chain")
+# --------------------------------------------------------------------------------------------
+
+def _blob(plane: np.ndarray, x: float, y: float, radius: float, peak: float = 0.95) -> None:
+    yy, xx = np.mgrid[:plane.shape[0], :plane.shape[1]]
+    inside = np.hypot(xx - x, yy - y) <= radius
+    plane[inside] = np.maximum(plane[inside], peak - 0.3 * np.hypot(xx - x, yy - y)[inside] / max(radius, 1))
+
+
+def _segment(plane: np.ndarray, a: tuple, b: tuple, width: float) -> None:
+    yy, xx = np.mgrid[:plane.shape[0], :plane.shape[1]]
+    d = np.subtract(b, a, dtype=float)
+    t = np.clip(((xx - a[0]) * d[0] + (yy - a[1]) * d[1]) / (d @ d), 0, 1)
+    plane[np.hypot(xx - a[0] - t * d[0], yy - a[1] - t * d[1]) <= width / 2] = 0.9
+
+
+def _arm(points: list[tuple], size: int = 96) -> np.ndarray:
+    """Maps with one blob per keypoint at `points` and the skeleton drawn between consecutive ones."""
+    maps = np.zeros((size, size, len(points) + 1), np.float32)
+    for k, (x, y) in enumerate(points):
+        _blob(maps[..., k], x, y, 3)
+    for a, b in zip(points, points[1:]):
+        _segment(maps[..., -1], a, b, 6)
+    return maps
+
+
+def test_the_chain_agrees_with_the_largest_cluster_where_every_map_holds_one():
+    """One cluster per map (or none): the chain has nothing to choose, and reads what Algorithm 1 reads, with either
+    centroid, on probabilities, logits and quantized maps, with a fallback, in a batch."""
+    rng = np.random.default_rng(21)
+    for _ in range(6):
+        points = [tuple(rng.uniform(6, 90, 2)) for _ in range(8)]
+        maps = _arm(points)
+        maps[..., 3] = 0.0  # a missing keypoint splits the chain
+        for centroid in CENTROIDS_ALL:
+            np.testing.assert_allclose(maps_to_keypoints(maps, centroid=centroid, cluster="chain")[0],
+                                       maps_to_keypoints(maps, centroid=centroid)[0], atol=1e-9)
+        assert (maps_to_keypoints(maps, cluster="chain")[1] == maps_to_keypoints(maps)[1]).all()
+    raw = np.clip(np.rint(maps * 256) - 128, -128, 127).astype(np.int8)
+    probs = pp.dequantize(raw, 1 / 256, -128)
+    quantized = maps_to_keypoints(raw, quantization=(1 / 256, -128), cluster="chain")[0]
+    np.testing.assert_allclose(quantized, maps_to_keypoints(probs)[0], atol=1e-6)
+    with np.errstate(divide="ignore"):
+        logits = np.log(probs.astype(np.float64)) - np.log1p(-probs.astype(np.float64))
+    np.testing.assert_allclose(maps_to_keypoints(logits, logits=True, cluster="chain")[0],
+                               maps_to_keypoints(probs)[0], atol=1e-6)
+    faint = maps * np.where(np.arange(9) == 5, 0.4, 1.0).astype(np.float32)  # map 5 only above a fallback
+    np.testing.assert_allclose(maps_to_keypoints(faint, fallback=0.2, cluster="chain")[0],
+                               maps_to_keypoints(faint, fallback=0.2)[0], atol=1e-9)
+    batch = np.stack([maps, faint])
+    np.testing.assert_allclose(maps_to_keypoints(batch, cluster="chain")[0][1], maps_to_keypoints(faint)[0])
+    # two clusters the skeleton joins alike (a generic chain: no limb lengths): the larger, as Algorithm 1
+    line = _arm([(10, 48), (48, 48), (86, 48)])
+    line[..., 1] = 0.0
+    _blob(line[..., 1], 30, 48, 3)
+    _blob(line[..., 1], 66, 48, 4)
+    for centroid in CENTROIDS_ALL:
+        chosen = maps_to_keypoints(line, centroid=centroid, cluster="chain")
+        assert chosen[0][1] == pytest.approx([66, 48], abs=0.5)
+        np.testing.assert_allclose(chosen[0], maps_to_keypoints(line, centroid=centroid)[0], atol=1e-9)
+
+
+CENTROIDS_ALL = pp.CENTROIDS
+
+
+def test_the_chain_takes_the_cluster_the_skeleton_joins_to_its_neighbours_over_a_larger_stray_one():
+    """A generic chain (5 keypoints: no limb lengths): the elbow's larger cluster lies off the arm, its smaller
+    one on the skeleton between its neighbours; Algorithm 1 takes the larger, the chain the joined one."""
+    points = [(10, 80), (20, 60), (30, 40), (40, 20), (50, 10)]
+    maps = _arm(points)
+    _blob(maps[..., 2], 80, 80, 5)  # a stray cluster, larger than the elbow's own
+    largest, _ = maps_to_keypoints(maps, centroid="plain")
+    chained, conf = maps_to_keypoints(maps, centroid="plain", cluster="chain")
+    assert largest[2] == pytest.approx([80, 80], abs=0.5)
+    assert chained[2] == pytest.approx(points[2], abs=0.5) and conf[2] < maps_to_keypoints(maps)[1][2]
+    np.testing.assert_allclose(np.delete(chained, 2, 0), np.delete(largest, 2, 0))
+
+
+def test_the_chain_weighs_the_ur5s_limb_lengths_where_the_skeleton_cannot_tell():
+    """The UR5's 8 keypoints on a straight arm whose limbs have `UR5_LIMBS`' mean lengths; wrist 2 has a second,
+    larger cluster on the same line (up the arm, where the skeleton joins it to wrist 1 and 3 as well) at lengths the
+    prior finds unlikely: the chain keeps the one at the right distance; through a view that stretched the frame
+    (`decode`'s pixel scale) it reads the same."""
+    from fcnpose_tf.keypoints import UR5_LIMBS
+
+    lengths = np.exp(UR5_LIMBS.mean)
+    along = np.concatenate([[0.0], np.cumsum(lengths)])
+    side = 80.0 / along[-1]  # the box's side: the arm from end to end, 80 px
+    points = [(8 + side * a, 48.0) for a in along]
+    maps = _arm(points)
+    wrong = ((points[1][0] + points[2][0]) / 2, 48.0)  # between the shoulder and the elbow: on the skeleton too
+    _blob(maps[..., 4], *wrong, 4)
+    largest, _ = maps_to_keypoints(maps, centroid="plain")
+    chained, _ = maps_to_keypoints(maps, centroid="plain", cluster="chain")
+    assert largest[4] == pytest.approx(wrong, abs=0.6)
+    assert chained[4] == pytest.approx(points[4], abs=0.6)
+    # the same frame through a view that stretched it 2x across: lengths measured in the frame's proportions agree
+    in_frame, _ = decode(maps, (96, 192, 3), centroid="plain", cluster="chain")
+    assert in_frame[4] == pytest.approx(keypoints_to_frame(chained, (96, 192, 3), 96)[4], abs=1e-9)
+
+
+def test_the_cluster_choice_is_checked_and_travels_in_the_decoding():
+    maps = _arm([(10, 10), (40, 40)])
+    with pytest.raises(UserError, match="cluster must be one of largest, chain, got 'best'"):
+        maps_to_keypoints(maps, cluster="best")
+    with pytest.raises(UserError, match="cluster must be one of"):
+        pp.Decoding(cluster="best")
+    decoding = pp.Decoding(cluster="chain")
+    assert decoding.to_json()["cluster"] == "chain" and decoding.describe().startswith("clusters above 0.5 chained")
+    np.testing.assert_array_equal(decoding.keypoints(maps)[0], maps_to_keypoints(maps, cluster="chain")[0])
+
+
+def test_limb_priors_are_read_from_labels_and_pooled():
+    from fcnpose_tf.keypoints import LimbPrior
+
+    kps = np.array([[[0, 0], [3, 4], [3, 14]], [[0, 0], [6, 8], [6, 18]], [[0, 0], [np.nan, np.nan], [1, 1]]], float)
+    prior = LimbPrior.of(kps)  # box sides 10 and 14; the third frame has no limb
+    assert prior.mean == pytest.approx([(np.log(5 / 14) + np.log(10 / 18)) / 2, (np.log(10 / 14) + np.log(10 / 18)) / 2])
+    assert prior.sd == pytest.approx([abs(np.log(5 / 14) - np.log(10 / 18)) / 2, abs(np.log(10 / 14) - np.log(10 / 18)) / 2])
+    pooled = LimbPrior.pooled([LimbPrior((0.0, -1.0), (0.3, 0.4)), LimbPrior((-1.0, -1.0), (0.5, 0.4))])
+    assert pooled.mean == (-0.5, -1.0) and pooled.sd == pytest.approx([round(math.sqrt(0.17 + 0.25), 3), 0.4])
+    with pytest.raises(UserError, match="at least 2 frames"):
+        LimbPrior.of(kps[2:])

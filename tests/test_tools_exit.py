@@ -19,6 +19,7 @@ def _tool(name, *args, cwd):
 @pytest.mark.parametrize("name, args, message", [
     ("bench_pipeline.py", ["missing.tflite", "--video", "missing.mp4"], "missing.mp4: no such file or folder"),
     ("check_frame_path.py", ["--tflite", "missing.tflite", "--out", "k.npz"], "missing.tflite"),
+    ("limb_prior.py", ["missing_frames"], "missing_frames"),
 ])
 def test_a_package_user_error_is_one_line_and_status_2(tmp_path, name, args, message):
     proc = _tool(name, *args, cwd=tmp_path)

@@ -101,7 +101,7 @@ def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, 
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["timing"]["frames_timed"] >= 50 and report["timing"]["threads"] == 1
     assert set(report["metrics"]) >= {"pck@0.5_bbox", "pck@0.2_bbox", "pck@0.05_bbox", "epe_px", "pck_auc_0-20px"}
-    assert report["decoding"] == {"threshold": 0.5, "fallback": None, "centroid": "weighted"}
+    assert report["decoding"] == {"threshold": 0.5, "fallback": None, "centroid": "weighted", "cluster": "largest"}
     assert "Decoding: Algorithm 1 (largest cluster above 0.5, its centroid weighted by (p - 0.5)^2)" in stdout
     cut_timed_frames(monkeypatch)  # the runs below check what is scored and said, not what is timed
     status, stdout, err = cli_here("evaluate", out, "--data", data, "--json", tmp_path / "w.json", "--threads", "1",
@@ -109,6 +109,13 @@ def test_evaluate_picks_validation_frames_of_own_data_and_all_of_other(trained, 
     assert status == 0, err
     assert "Decoding: Algorithm 1 (largest cluster above 0.5, its centroid)" in stdout
     assert json.loads((tmp_path / "w.json").read_text())["decoding"]["centroid"] == "plain"
+    status, stdout, err = cli_here("evaluate", out, "--data", data, "--json", tmp_path / "c.json", "--threads", "1",
+                                   "--cluster", "chain")
+    assert status == 0, err
+    assert "Decoding: clusters above 0.5 chained along the arm" in stdout
+    assert json.loads((tmp_path / "c.json").read_text())["decoding"]["cluster"] == "chain"
+    status, _, err = cli_here("evaluate", out, "--data", data, "--cluster", "best")
+    assert status == 2 and "--cluster" in err and "chain" in err
     other = make_via_folder(tmp_path / "other", n=4, seed=5)
     status, stdout, err = cli_here("evaluate", out, "--data", other)
     assert status == 0, err

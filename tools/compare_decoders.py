@@ -1,6 +1,6 @@
 """Is fine localisation limited by decoding? Several ways of reading a position from the same maps.
 
-    python tools/compare_decoders.py MODEL.keras --data DATA [--train-data DATA] [--threads 1]
+    python tools/compare_decoders.py MODEL.keras --data DATA [--threads 1]
 
 Runs MODEL once per frame of DATA and reads every keypoint map with: Algorithm 1 (the paper's: the
 largest 4-connected cluster above 0.5, its centroid; `fcnpose_tf.postprocess`), the same at
@@ -9,9 +9,8 @@ argmax of the map blurred by a 2-pixel Gaussian, and Algorithm 1 with a fallback
 above 0.5 read above 0.2 or 0.1: `--fallback`, docs/postprocess.md). Two readings choose among a map's clusters
 instead of taking the largest: the chain (one cluster per keypoint, chosen jointly along the serial chain by the
 clusters' sizes and the skeleton map's support between consecutive keypoints) and, as a bound on any such choice,
-the cluster nearest the ground truth (an oracle: not a decoder). With --train-data the chain also weighs the
-distance between consecutive clusters against the arm's limb lengths in the training labels (each a share of the
-keypoints' box, on a log scale; the box read from the skeleton map's extent). Prints PCK@0.5/0.2/0.05, EPE and the median error
+the cluster nearest the ground truth (an oracle: not a decoder); and the package's own chain (`--cluster chain`:
+the same choice weighing the UR5's limb lengths too, read at the plain centroid). Prints PCK@0.5/0.2/0.05, EPE and the median error
 per decoder, and PCK@0.05 per keypoint. docs/training.md ("Training on your own frames") and docs/results.md have
 its figures.
 """
@@ -74,36 +73,12 @@ def skeleton_support(skeleton: np.ndarray, a: tuple, b: tuple, samples: int = 16
     return float(skeleton[ys, xs].mean())
 
 
-LimbPrior = tuple[np.ndarray, np.ndarray]
-"""Per edge of the serial chain (keypoint k to k + 1): the mean and standard deviation of log(length / the keypoints'
-box side, max(w, h)) over labelled frames."""
-
-
-def limb_prior(dataset, side: int) -> LimbPrior:
-    """The limb lengths of `dataset`'s labels in the maps of a `side` x `side` model (`LimbPrior`)."""
-    from fcnpose_tf.preprocess import keypoints_to_input
-
-    logs = []
-    for sample in dataset.samples:
-        kp = keypoints_to_input(sample.keypoints, (sample.height, sample.width), side)
-        box = np.nanmax(kp, axis=0) - np.nanmin(kp, axis=0)
-        logs.append(np.log(np.linalg.norm(kp[1:] - kp[:-1], axis=1) / max(box) + 1e-3))
-    logs = np.array(logs)
-    return np.nanmean(logs, axis=0), np.nanstd(logs, axis=0)
-
-
-def cluster_chain(maps: np.ndarray, threshold: float = 0.5, floor: float = 0.02, prior: LimbPrior | None = None,
-                  support_weight: float = 1.0, length_weight: float = 0.25) -> np.ndarray:
+def cluster_chain(maps: np.ndarray, threshold: float = 0.5, floor: float = 0.02) -> np.ndarray:
     """One cluster per keypoint map, chosen jointly along the serial chain (Viterbi): each cluster scores
-    log(size / the map's largest size), each consecutive pair `support_weight` x log(skeleton support between them)
-    (at least `floor`); with a `prior`, also - `length_weight` x z^2 / 2, z the pair's log limb length (a share of
-    the skeleton map's extent less its line width) in the prior's standard deviations. A keypoint without clusters
-    is missing and splits the chain. (K, 2) map pixels, NaN if missing."""
+    log(size / the map's largest size), each consecutive pair log(skeleton support between them) (at least
+    `floor`); a keypoint without clusters is missing and splits the chain. (K, 2) map pixels, NaN if missing."""
     k_count = maps.shape[-1] - 1
     skeleton = maps[..., k_count].astype(np.float32)
-    ys, xs = np.nonzero(skeleton > threshold)
-    line = 30.0 * min(skeleton.shape) / 224  # the skeleton's thickness in the target maps (data.masks)
-    side = max(np.ptp(xs) - line, np.ptp(ys) - line, 4.0) if len(xs) else 4.0
     found = [clusters(maps[..., k].astype(np.float32), threshold) for k in range(k_count)]
     out = np.full((k_count, 2), np.nan)
     k = 0
@@ -121,12 +96,8 @@ def cluster_chain(maps: np.ndarray, threshold: float = 0.5, floor: float = 0.02,
 
         score, back = unary(run[0]), []
         for prev, cur in zip(run, run[1:]):
-            pair = support_weight * np.log(np.maximum(
-                [[skeleton_support(skeleton, a, b) for b in found[cur]] for a in found[prev]], floor))
-            if prior is not None:
-                length = np.log([[np.hypot(a[0] - b[0], a[1] - b[1]) / side + 1e-3 for b in found[cur]]
-                                 for a in found[prev]])
-                pair = pair - length_weight * ((length - prior[0][prev]) / prior[1][prev]) ** 2 / 2
+            pair = np.log(np.maximum([[skeleton_support(skeleton, a, b) for b in found[cur]] for a in found[prev]],
+                                     floor))
             total = score[:, None] + pair + unary(cur)[None, :]
             back.append(total.argmax(axis=0))
             score = total.max(axis=0)
@@ -167,14 +138,13 @@ DECODERS = {
     "clusters chained along the skeleton": cluster_chain,
 }
 ORACLE = "oracle: the cluster nearest the truth"
+CHAIN = "--cluster chain (and limb lengths)"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("model")
     parser.add_argument("--data", required=True)
-    parser.add_argument("--train-data", help="the frames the model was trained on: their limb lengths weigh the "
-                        "chain's choice as one more reading")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
 
@@ -186,21 +156,18 @@ def main() -> None:
     dataset = load_dataset(args.data)
     model = open_model(args.model, threads=args.threads)
     gt = np.stack([s.keypoints for s in dataset.samples])
-    decoders = dict(DECODERS)
-    if args.train_data:
-        prior = limb_prior(load_dataset(args.train_data), model.view.height)
-        for weight in (1.0, 4.0):
-            decoders[f"chained, limb lengths, support x{weight:g}"] = \
-                lambda m, w=weight: cluster_chain(m, prior=prior, support_weight=w)
-    preds: dict[str, list[np.ndarray]] = {name: [] for name in [*decoders, ORACLE]}
+    from fcnpose_tf.postprocess import decode
+
+    preds: dict[str, list[np.ndarray]] = {name: [] for name in [*DECODERS, CHAIN, ORACLE]}
     for i in range(len(dataset.samples)):
         frame = dataset.load_image(i)
         model.set_input(frame)
         model.invoke()
         maps = model.read_maps()
         maps = maps[0] if maps.ndim == 4 else maps
-        for name, decoder in decoders.items():
+        for name, decoder in DECODERS.items():
             preds[name].append(keypoints_to_frame(decoder(maps), frame.shape, maps.shape[0]))
+        preds[CHAIN].append(decode(maps, frame.shape, centroid="plain", cluster="chain", view=model.view)[0])
         truth = keypoints_to_input(gt[i], frame.shape, maps.shape[0])  # the maps have the input's size
         preds[ORACLE].append(keypoints_to_frame(nearest_cluster(maps, truth), frame.shape, maps.shape[0]))
     names = dataset.schema.keypoints
