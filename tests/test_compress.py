@@ -101,16 +101,17 @@ def test_compress_writes_model_tflite_and_report(setup, cli_here):
 @pytest.mark.usefixtures("few_timed_frames")
 def test_data_aware_criterion_and_distillation_are_recorded(setup, cli_here):
     """--importance taylor --distill 0.5: filters ranked on training frames, retrained against the base model's
-    maps too; the report, its table line and NAME_train.json name the recipe."""
+    maps too; the report, its table line and NAME_train.json name the recipe (and --cluster chain the reading)."""
     root, data, base = setup
     out = root / "taylor"
     status, stdout, err = cli_here("compress", "--rate", "0.5", "--model", base, "--data", data, "--retrain-epochs",
                                    "1", "--importance", "taylor", "--importance-frames", "6", "--distill", "0.5",
                                    "--quantize", "float16", "--positive-weight", "20", "--lr-schedule", "cosine",
-                                   "--min-filters", "0", "--out-dir", out, "--threads", "1")
+                                   "--min-filters", "0", "--out-dir", out, "--threads", "1", "--cluster", "chain")
     assert status == 0, stdout[-3000:] + err[-3000:]
     report = json.loads((out / "base_p50_report.json").read_text())
     assert report["pruning"]["importance"] == "taylor" and report["pruning"]["importance_frames"] == 6
+    assert report["options"]["cluster"] == "chain" and "(--cluster chain); PCK normalised" in stdout
     assert report["options"]["importance"] == "taylor" and report["options"]["distill"] == 0.5
     assert report["distillation"]["weight"] == 0.5 and report["distillation"]["teacher_maps"] == "cached"
     assert report["retraining"]["loss"] == "distillation" and report["retraining"]["distill"] == 0.5

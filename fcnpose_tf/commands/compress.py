@@ -94,7 +94,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.INHERITED_AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
                     settings.LR_SCHEDULE, settings.FREEZE, settings.INHERITED_AUGMENT_COPIES,
-                    settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS, settings.CENTROID):
+                    settings.INHERITED_POSITIVE_WEIGHT, settings.SEED, settings.THREADS, settings.CENTROID,
+                    settings.CLUSTER):
         setting.add_to(parser)
     settings.FORCE.add_to(parser)
 
@@ -169,10 +170,10 @@ def run(args: argparse.Namespace) -> int:
                                   shared=shared, outputs=files)
                    for each, files in zip(every, outputs)]
     if len(reports) > 1:
-        return _several_rates(reports, outputs, named, description)
+        return _several_rates(reports, outputs, named, description + _reading(args))
     report = reports[0]
     threads = args.threads if args.threads is not None else f"all {available_cores()}"
-    print(f"\nCompression at rate {args.rate:g} ({report.recipe}); measured on {description}; "
+    print(f"\nCompression at rate {args.rate:g} ({report.recipe}); measured on {description}{_reading(args)}; "
           f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
     print(report_table(report))
     base = report.base
@@ -205,6 +206,11 @@ def run(args: argparse.Namespace) -> int:
     if note:
         print(note)
     return _finish(report, outputs[0], named)
+
+
+def _reading(args: argparse.Namespace) -> str:
+    """How the table's keypoints were read, in words, when not by each map's largest cluster."""
+    return ", each map's cluster chosen along the arm (--cluster chain)" if args.cluster == "chain" else ""
 
 
 def _several_rates(reports: list, outputs: list, named: bool, description: str) -> int:

@@ -35,7 +35,7 @@ METHODS = settings.METHOD.choices
                        ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
                        settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.PRUNED_START,
                        ("input_size", settings.COMPRESS_INPUT_SIZE), settings.QAT_EPOCHS,
-                       settings.QAT_LEARNING_RATE, settings.CENTROID)
+                       settings.QAT_LEARNING_RATE, settings.CENTROID, settings.CLUSTER)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
@@ -46,8 +46,8 @@ class CompressOptions:
     narrowest a pruned layer may become at the same parameter budget), start (the pruned network's weights before
     retraining: surgery, auto, or a pruned model: `pruned_start`), input_size (the side the model is rebuilt, retrained
     and exported at; None: its own), and qat_epochs / qat_learning_rate
-    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback); centroid: how the
-    table's keypoints are read (`postprocess.CENTROIDS`).
+    (quantization-aware training when post-training int8 is refused; 0 epochs: no fallback); centroid and cluster:
+    how the table's keypoints are read (`postprocess.CENTROIDS`, `postprocess.CLUSTERS`).
 
     The defaults are `fcnpose-tf compress`'s (`CompressOptions.preset("paper", rate=...)`: the paper's recipe);
     importance, min_filters, lr_patience, positive_weight, augment and augment_copies left None are chosen per run by

@@ -108,8 +108,9 @@ class Run:
 
     @property
     def decoding(self) -> Decoding:
-        """How every measurement reads keypoints (the options' centroid, the commands' threshold)."""
-        return Decoding(centroid=self.options.centroid)
+        """How every measurement reads keypoints (the options' centroid and cluster choice, the commands'
+        threshold)."""
+        return Decoding(centroid=self.options.centroid, cluster=self.options.cluster)
 
     def log(self, line: str) -> None:
         """One progress line of the run (`reporter.say`).

@@ -125,11 +125,11 @@ def record_matches(record: JobRecord | None, key: ConfigKey, by_rate: Any = ()) 
 
 
 SWEEP_FIXED = ("method", "strategy", "quantize", "calibration_frames", "augment", "qat_epochs", "qat_learning_rate",
-               "start", "input_size")
+               "start", "input_size", "cluster")
 """CompressOptions settings a sweep does not vary: filter surgery with independent ranking, the float16 and int8 files,
 the paper's offline copies, compress's QAT fallback (CompressOptions' defaults), surgery on each fold's own base
-model as the pruned start (the paper's), at that model's own input size (the sweep's --input-size). Every other one is
-the sweep's own."""
+model as the pruned start (the paper's), at that model's own input size (the sweep's --input-size), each map's
+largest cluster (Algorithm 1). Every other one is the sweep's own."""
 
 
 @dataclass(frozen=True)
