@@ -24,6 +24,10 @@ Rules (see docs/postprocess.md):
   quantized value dequantized): the sure middle of a blob counts more than its rim. Measured against the
   plain centroid on held-out looks at 288-384 px (docs/postprocess.md): PCK@0.05 +0.02-0.04, the rest
   unchanged.
+- **Chained choice** (``cluster="chain"``, not the paper's): instead of each map's largest cluster, one cluster per
+  map chosen jointly along the arm's chain (`_chain`: cluster sizes, the skeleton map between neighbours, the UR5's
+  limb lengths); the same keypoints where every map holds one cluster. PCK@0.5 +0.01-0.03 on held-out looks, about
+  1 ms more a frame (docs/postprocess.md, "`--cluster chain`").
 
 How it stays under a millisecond per 224 x 224 frame of 8 maps: all maps are thresholded in one
 contiguous pass (numpy is ~9x slower on a strided per-map slice), de-interleaved with one
