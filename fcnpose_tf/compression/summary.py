@@ -17,9 +17,9 @@ PCK_DROP_BUDGET = 0.02
 within it at the rates it ships, and so do the bundled 70 % files and three fixed-camera users' (docs/compression.md,
 "On your own model"). Beyond it `accuracy_note` says so."""
 FINE_PCK_DROP_BUDGET = 0.03
-"""PCK@0.05 (fine localisation) a compressed file may lose against the unpruned model on the measured frames: the
-bundled 70 % files lose none and fixed-camera users' 0.006-0.033, where keypoints on views that vary lose 0.03-0.08
-with PCK@0.5 held (docs/compression.md, "On your own model"). Beyond it `accuracy_note` says so, after PCK@0.5."""
+"""PCK@0.05 (fine localisation) a compressed file may lose against the unpruned model on the measured frames: about
+what the bundled 70 % files and fixed-camera users' lose, less than keypoints on views that vary lose with PCK@0.5
+held (docs/compression.md, "On your own model"). Beyond it `accuracy_note` says so, after PCK@0.5."""
 VARIED_VIEWS_RATE = 0.5
 """The rate that came closest to PCK_DROP_BUDGET on the views-that-vary models measured, where 0.7 fell short
 (docs/compression.md, "Views that vary: a lower rate")."""
