@@ -152,6 +152,7 @@ def test_freeze_keeps_the_first_convolutions_of_the_pruned_model(setup, cli_here
     assert "retraining budget 2.0 min (the least it gets: this run takes longer than its total)" in stdout
     assert report["options"]["max_minutes"] == 2.0 and report["options"]["total_minutes"] == 0.01
     assert json.loads(next(out.glob("*_train.json")).read_text())["config"]["max_minutes"] == 2.0
+    assert isinstance(report["retraining"]["stopped_by_time_budget"], bool)  # written (which: the machine's load)
 
 
 def recipe_of(options, base_path=None, floor=None) -> str:
@@ -400,6 +401,14 @@ def test_a_file_that_keeps_pck_at_half_but_loses_fine_localisation_gets_its_own_
                            "right part of the arm, less finely placed); a lower --rate"), note
     close = _at({0.5: 0.946, 0.05: 0.490}, quantize="int8", status="written")
     assert accuracy_note(_report(base=base, quantized=fp16, other_quantized=[close])) is None
+    # a retraining the time budget ended (a busy machine): that first, then the lower rate
+    cut = accuracy_note(_report(base=base, quantized=fp16, options={"quantize": ("float16",), "rate": 0.7,
+                                                                      "retrain_epochs": 25},
+                                retraining=Retraining(epochs_run=18, stopped_by_time_budget=True)))
+    assert ("; the retraining stopped at its time budget after 18 of 25 epochs (a slow or busy machine): more "
+            "minutes may recover it (--max-minutes none runs every epoch") in cut and cut.endswith(
+        "else a lower --rate keeps more of it: on views that vary --rate 0.5 came closest (docs/compression.md, "
+        "\"Views that vary: a lower rate\"); --rates 0.5,0.7 compares them in one run"), cut
 
 
 def test_the_best_rate_note_names_the_rate_within_both_budgets_when_the_best_loses_fine_localisation():

@@ -287,6 +287,9 @@ class Retraining(_Section):
     """The learning rate of every epoch."""
     start_kept: bool | None = _if_any()
     """A pruned start's run: True when no epoch beat the start, which is then kept unchanged."""
+    stopped_by_time_budget: bool | None = _if_any()
+    """Whether the time budget (`--max-minutes`, `--total-minutes`) ended the retraining before its epochs and early
+    stopping did (reports before it: not known)."""
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
 
 

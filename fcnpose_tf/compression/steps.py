@@ -332,7 +332,7 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
 
 def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> Retraining:
     """The report's "retraining" part: epochs, best epoch and loss (validation: against the ground truth), time,
-    loss function, positive and teacher weights, learning rates.
+    loss function, positive and teacher weights, learning rates, whether the time budget ended it.
 
     Args:
         result: what `train.fit` returned.
@@ -344,7 +344,8 @@ def retraining_report(result: FitResult, loss: str, positive_weight: float, dist
     """
     return Retraining(epochs_run=result.epochs_run, best_epoch=result.best_epoch, best_val_loss=result.best_val_loss,
                       seconds=round(result.seconds, 1), loss=loss, positive_weight=positive_weight, distill=distill,
-                      learning_rates=[float(f"{h['lr']:.6g}") for h in result.history if "lr" in h])
+                      learning_rates=[float(f"{h['lr']:.6g}") for h in result.history if "lr" in h],
+                      stopped_by_time_budget=result.stopped_by_time_budget)
 
 
 def measure_retrained(run: Run, retrained: keras.Model) -> ModelStep:

@@ -133,6 +133,8 @@ class FitResult:
     seconds: float
     stopped_early: bool
     history: list[dict[str, float]] = field(default_factory=list)
+    stopped_by_time_budget: bool = False
+    """The time budget (`FitConfig.max_minutes`) ended the run before its epochs and early stopping did."""
 
 
 def run_paths(model_path: Path) -> dict[str, Path]:
@@ -702,7 +704,7 @@ def _finish(model: keras.Model, model_path: Path, view: Any, state: dict[str, An
         raise _resumable(exc, paths, resumable) from None
     remove_tree(paths["ckpt_dir"])
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
-                     state["stopped_early"], state["history"])
+                     state["stopped_early"], state["history"], bool(state.get("out_of_time")))
 
 
 def _prefix_worth_keeping(model: keras.Model, train_data: Any, val_rows: int, reporter: Reporter) -> Any:
