@@ -125,7 +125,7 @@ class LimbPrior:
         spread of their lengths and of their means together."""
         means, sds = np.array([p.mean for p in priors]), np.array([p.sd for p in priors])
         sd = np.sqrt((sds ** 2).mean(axis=0) + means.var(axis=0))
-        return cls(tuple(round(float(v), 3) for v in means.mean(axis=0)), tuple(round(float(v), 3) for v in sd))
+        return cls(tuple(float(v) for v in means.mean(axis=0)), tuple(float(v) for v in sd))
 
 
 UR5_LIMBS = LimbPrior(mean=(-1.886, -0.605, -0.776, -2.242, -2.535, -2.354, -1.924),
@@ -134,5 +134,5 @@ UR5_LIMBS = LimbPrior(mean=(-1.886, -0.605, -0.776, -2.242, -2.535, -2.354, -1.9
 varies them: `LimbPrior.pooled` of the two label conventions, `synth --scene random --n 2400 --seed 80000` (the
 visible joint caps) and `synth --scene random --looks varied --labels kinematic --n 480 --seed 70000` (the kinematic
 joint frames); `python tools/limb_prior.py DATA DATA` prints it. What `postprocess`'s chained cluster choice
-(`Decoding(cluster="chain")`) holds a pair of clusters' distance to (docs/postprocess.md, "Choosing among
-clusters")."""
+(`Decoding(cluster="chain")`) holds a pair of clusters' distance to (docs/postprocess.md, "`--cluster
+chain`")."""

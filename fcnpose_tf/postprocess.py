@@ -57,7 +57,7 @@ import numpy as np
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.keypoints import UR5_LIMBS, LimbPrior
+from fcnpose_tf.keypoints import UR5, UR5_LIMBS, LimbPrior
 from fcnpose_tf.preprocess import FrameView, keypoints_to_frame
 
 __all__ = ["maps_to_keypoints", "decode", "check_fallback", "check_centroid", "Decoding",
@@ -70,7 +70,7 @@ CLUSTERS = settings.CLUSTER.choices
 """Which of a map's clusters is the keypoint: the largest (Algorithm 1) or the one the chain chooses (`_chain`)."""
 SUPPORT_WEIGHT = 4.0
 """The chain's weight of log(skeleton support) between two consecutive clusters against log(size / the map's largest
-size) of each (docs/postprocess.md, "Choosing among clusters": 1 and 4 measured, 4 no worse anywhere)."""
+size) of each (docs/postprocess.md, "`--cluster chain`": 1 and 4 measured, 4 no worse anywhere)."""
 LENGTH_WEIGHT = 0.25
 """The chain's weight of a limb's squared z-score (its log length against `keypoints.UR5_LIMBS`), halved."""
 SUPPORT_FLOOR = 0.02
@@ -424,7 +424,8 @@ def _chain(maps3: np.ndarray, cut: float, min_size: int, out_kp: np.ndarray, out
             labels, corner, candidates = _candidates(maps3[..., i] > fallback_cut, min_size)
             level = 1
         found.append((labels, corner, candidates, level))
-    prior: LimbPrior | None = UR5_LIMBS if k == len(UR5_LIMBS.mean) + 1 else None
+    # 9 maps are the UR5's, as the runtime reads them (`runtime.estimator.schema_for_maps`)
+    prior: LimbPrior | None = UR5_LIMBS if k == UR5.num_keypoints else None
     side = 1.0
     if prior is not None:
         largest = np.array([[c[2] * sx, c[3] * sy] for _, _, cs, _ in found if cs

@@ -10,9 +10,9 @@ above 0.5 read above 0.2 or 0.1: `--fallback`, docs/postprocess.md). Two reading
 instead of taking the largest: the chain (one cluster per keypoint, chosen jointly along the serial chain by the
 clusters' sizes and the skeleton map's support between consecutive keypoints) and, as a bound on any such choice,
 the cluster nearest the ground truth (an oracle: not a decoder); and the package's own chain (`--cluster chain`:
-the same choice weighing the UR5's limb lengths too, read at the plain centroid). Prints PCK@0.5/0.2/0.05, EPE and the median error
-per decoder, and PCK@0.05 per keypoint. docs/training.md ("Training on your own frames") and docs/results.md have
-its figures.
+the same choice weighing the UR5's limb lengths too, read at the plain centroid). Prints PCK@0.5/0.2/0.05, EPE and
+the median error per decoder, and PCK@0.05 per keypoint. docs/training.md ("Training on your own frames") and
+docs/results.md have its figures.
 """
 
 from __future__ import annotations

@@ -21,13 +21,17 @@ def main() -> None:
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.keypoints import LimbPrior
 
+    def shown(prior: LimbPrior) -> str:
+        return (f"LimbPrior(mean=({', '.join(f'{v:.3f}' for v in prior.mean)}), "
+                f"sd=({', '.join(f'{v:.3f}' for v in prior.sd)}))")
+
     priors = []
     for data in args.data:
         dataset = load_dataset(data)
         priors.append(LimbPrior.of(dataset.keypoints()))
-        print(f"{data} ({len(dataset)} frames): {priors[-1]}")
+        print(f"{data} ({len(dataset)} frames): {shown(priors[-1])}")
     if len(priors) > 1:
-        print(f"pooled: {LimbPrior.pooled(priors)}")
+        print(f"pooled: {shown(LimbPrior.pooled(priors))}")
 
 
 if __name__ == "__main__":
