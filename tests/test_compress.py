@@ -160,13 +160,14 @@ def recipe_of(options, base_path=None, floor=None) -> str:
     whose floor is `floor` (default: the one asked)."""
     from pathlib import Path
 
-    from fcnpose_tf.compression.methods import pruning_method
+    from fcnpose_tf.compression.methods import pruned_start, pruning_method
     from fcnpose_tf.compression.plan import WidthPlan
 
     checked = options.checked(base_path)
     asked = checked.options.min_filters if checked.options.method == "l1" else 0
     plan = WidthPlan(checked.options.rate, asked, asked if floor is None else floor, (), 0, 0)
-    return pruning_method(checked, plan, Path(base_path or "base.keras"), "fcn-pose").recipe
+    start = pruned_start(checked, Path(base_path or "base.keras"), plan, "fcn-pose")
+    return pruning_method(checked.options, plan, *start).recipe
 
 
 def test_recipe_names_the_floor_and_a_lowered_one():
@@ -698,6 +699,36 @@ def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths
     assert status == 2 and len(err.strip().splitlines()) == 1
     assert err.startswith("error: nope: model file not found (or one of the bundled models: ")
     assert "loading" not in out_text.lower() and not refused.exists()
+
+
+@pytest.mark.slow
+@pytest.mark.usefixtures("few_timed_frames")
+def test_compress_runs_at_the_height_its_pruned_start_was_retrained_at(setup, cli_here, tmp_path):
+    """A pruned start retrained at another input size than the model's (the bundled generalist-p70 at 256 for the
+    generalist at 224): the run rebuilds the model at the start's height, says why, and the recipe and the report's
+    options record it; the files keep the names the command checked; --input-size keeps the user's height."""
+    from fcnpose_tf.training.model import build_fcn_pose, load_model
+
+    root, data, base = setup
+    assert load_model(base).input_shape == (None, 64, 64, 3)
+    start = tmp_path / "pruned96.keras"
+    randomize(build_fcn_pose(P70_WIDTHS, input_size=96), seed=5).save(start)
+    out = tmp_path / "out"
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
+                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert f"96x96, rebuilt from its 64x64: the height {start} was retrained at" in stdout
+    assert load_model(out / "base_p70.keras").input_shape == (None, 96, 96, 3)
+    report = json.loads((out / "base_p70_report.json").read_text())
+    assert report["options"]["input_size"] == 96 and report["recipe"].endswith("not retrained, at 96x96")
+    mine = tmp_path / "mine"
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
+                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", mine,
+                                   "--input-size", "64", "--threads", "1")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert "rebuilt" not in stdout and load_model(mine / "base_p70_64.keras").input_shape == (None, 64, 64, 3)
+    at_64 = json.loads((mine / "base_p70_64_report.json").read_text())
+    assert report["base"]["macs"] == at_64["base"]["macs"] * 9 // 4  # the unpruned model measured at 96 too
 
 
 @pytest.mark.slow

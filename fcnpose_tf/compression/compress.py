@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from fcnpose_tf import progress, settings
-from fcnpose_tf.compression.methods import pruning_method
+from fcnpose_tf.compression.methods import pruned_start, pruning_method, start_height
 from fcnpose_tf.compression.options import CheckedOptions, OutputFiles, output_files
 from fcnpose_tf.compression.report import CompressReport, _check_metadata
 from fcnpose_tf.compression.export_steps import export_formats
@@ -106,11 +106,18 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     # layers is refused here, before any work
     plan = plan_widths(base, options.rate, options.min_filters if options.method == "l1" else 0,
                        branches=architecture != "fcn-pose")
-    method = pruning_method(checked, plan, base_path, architecture, reporter)
+    start_name, start_file = pruned_start(checked, base_path, plan, architecture, reporter)
+    start_side = start_height(start_file, base, options)
+    if start_side is not None:  # the pruned start's own pixel density; the plan's widths are the same at any side
+        base = at_input_height(base, start_side)
+        plan = plan_widths(base, options.rate, options.min_filters, branches=architecture != "fcn-pose")
+        options = replace(options, input_size=start_side)  # the recipe and the report say so; the files keep their names
+    method = pruning_method(options, plan, start_name, start_file)
     options = replace(options, start=method.start_name)
     run = Run(base_path, base, method, options, outputs, train_dataset, eval_dataset, eval_indices, force, reporter)
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
+    resized += f": the height {start_name} was retrained at" if start_side is not None else ""
     say(f"[1/{steps}] base model {base_path} ({run.input_size.describe(whole='')}{resized})")
     if plan.floor < options.min_filters:
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "

@@ -298,7 +298,8 @@ def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, arch
     retrained for hours on domain-randomised frames, where surgery retrains on the user's few. Else surgery: on a
     model fine-tuned from the generalist the pruned generalist measured below it, and on fixed-camera models surgery
     keeps PCK@0.5 within 0.01 (docs/compression.md, "On your own model"). An explicit start is the file the options'
-    check found (`CheckedOptions.start_file`); its widths are checked when it is loaded (`FilterPruning.prune`).
+    check found (`CheckedOptions.start_file`); its widths are checked when it is loaded (`FilterPruning.prune`). The
+    run then takes the start's input height (`start_height`).
 
     Args:
         checked: the run's options (method and start) and the explicit start's file.
@@ -340,22 +341,43 @@ def pruned_start(checked: CheckedOptions, base_path: Path, plan: WidthPlan, arch
     return PRUNED_GENERALIST, path
 
 
-def pruning_method(checked: CheckedOptions, plan: WidthPlan, base_path: Path, architecture: str,
-                   reporter: Reporter = SILENT) -> PruningMethod:
-    """The pruning method the options name, with its pruned start decided (`pruned_start`).
+def start_height(start: Path | None, base: keras.Model, options: CompressOptions) -> int | None:
+    """The input height a run takes from its pruned start: the height the start was retrained at (the bundled
+    generalist-p70's 256), when no --input-size is given, neither model crops the frame and the base's height is
+    another. A pruned start's weights learnt the arm at its own pixel density: on random views the 70 % generalist
+    retrained at 256 stays within 0.02 PCK@0.5 and 0.03 PCK@0.05 of the unpruned model where the same network at 224
+    loses 0.04-0.06 PCK@0.05 (docs/compression.md, "On your own model").
 
     Args:
-        checked: the run's options (`CompressOptions.checked`).
+        start: the pruned start's file (`pruned_start`; None: surgery, the base's own height).
+        base: the model to compress, as loaded.
+        options: the run's options (`input_size`: the user's height, which wins).
+    Returns:
+        The height to rebuild the base at (its width following at its aspect: `model.at_input_height`), or None.
+    """
+    from fcnpose_tf.training.model import load_model, view_of
+
+    if start is None or options.input_size:
+        return None
+    base_view, start_view = view_of(base), view_of(load_model(start))
+    if base_view.crop is not None or start_view.crop is not None or start_view.height == base_view.height:
+        return None
+    return start_view.height
+
+
+def pruning_method(options: CompressOptions, plan: WidthPlan, start_name: str = "surgery",
+                   start: Path | None = None) -> PruningMethod:
+    """The pruning method the options name.
+
+    Args:
+        options: the run's options (`CompressOptions.checked`'s).
         plan: the widths (`plan.plan_widths` at the options' rate, with their floor for filter surgery and none for
-            magnitude pruning).
-        base_path: the model being compressed.
-        architecture: the base model's network (`model.ARCHITECTURES`).
-        reporter: where a fallback to surgery is said, and a bundled start's file named.
+            magnitude pruning), at the run's input size.
+        start_name: the pruned start as the run's options record it (`pruned_start`).
+        start: its file (None: surgery).
     Returns:
         `FilterPruning` or `MagnitudePruning`; its `start_name` is the start the run's options record.
     """
-    options = checked.options
-    start_name, start = pruned_start(checked, base_path, plan, architecture, reporter)
     if options.method == "magnitude":
         return MagnitudePruning(plan, options)
     return FilterPruning(plan, options, start, start_name)
