@@ -840,12 +840,13 @@ generalist itself, surgery for everything else measured (docs/compression.md, "O
 `methods.pruned_start`)."""
 COMPRESS_INPUT_SIZE = INPUT_SIZE.variant(
     default=None,
-    help=f"the input side the compressed model and files run at, a multiple of {INPUT_SIZE_MULTIPLE} (default: the "
-         "model's own, or the height a pruned --start was retrained at when the frame is not cropped: 256 for "
-         "generalist-p70): FCN-Pose is fully convolutional, so the model is rebuilt at this size with its weights, pruned, "
-         "retrained and exported at it, and the files are named NAME_p70_SIZE; a smaller side costs fewer MACs (192: "
-         "0.73x of 224's) and localises coarser (docs/compression.md, \"A smaller input\"); for a model whose input "
-         "is H x W, the height, the width following at the same aspect (a multiple of 32), the crop kept")
+    help=f"the input side the compressed model and files run at, a multiple of {INPUT_SIZE_MULTIPLE}: FCN-Pose is "
+         "fully convolutional, so the model is rebuilt at this size with its weights, pruned, retrained and exported "
+         "at it, and the files are named NAME_p70_SIZE; a smaller side costs fewer MACs (192: 0.73x of 224's) and "
+         "localises coarser (docs/compression.md, \"A smaller input\"); for a model whose input is H x W, the height, "
+         "the width following at the same aspect (a multiple of 32), the crop kept (default: the model's own, or the "
+         "height a pruned --start was retrained at when the frame is not cropped, 256 for generalist-p70, the files "
+         "named NAME_p70)")
 """None keeps the model's own size (the paper's protocol), or takes a pruned start's (`methods.start_height`); the sweep
 always keeps it (each fold's base at its size, surgery)."""
 EXPORT_INPUT_SIZE = COMPRESS_INPUT_SIZE.variant(

@@ -111,7 +111,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if start_side is not None:  # the pruned start's own pixel density; the plan's widths are the same at any side
         base = at_input_height(base, start_side)
         plan = plan_widths(base, options.rate, options.min_filters, branches=architecture != "fcn-pose")
-        options = replace(options, input_size=start_side)  # the recipe and the report say so; the files keep their names
+        options = replace(options, input_size=start_side)  # recipe and report say so; the files keep their names
     method = pruning_method(options, plan, start_name, start_file)
     options = replace(options, start=method.start_name)
     run = Run(base_path, base, method, options, outputs, train_dataset, eval_dataset, eval_indices, force, reporter)
