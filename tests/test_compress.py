@@ -434,6 +434,28 @@ def test_the_best_rate_note_names_the_rate_within_both_budgets_when_the_best_los
     assert best_rate_note([seven]).startswith("note: no rate kept PCK@0.5 within 0.02 of the unpruned model's 0.950")
 
 
+def test_a_rate_at_a_pruned_starts_height_is_judged_and_shown_against_the_unpruned_model_there():
+    """`compress --rates` on the generalist: 0.5 by surgery at the model's height, 0.7 from generalist-p70 at 256
+    (`methods.start_height`). Each rate's note figure is its own unpruned measurement, and the table gives the
+    other height's unpruned row beside that rate's."""
+    from fcnpose_tf.compression.summary import best_rate_note, rates_table
+
+    at_224 = _at({0.5: 0.95, 0.05: 0.50}, h5_size_bytes=4000, timing=TIMING)
+    at_256 = _at({0.5: 0.94, 0.05: 0.49}, h5_size_bytes=4000, timing=TIMING)
+    half = _report(base=at_224, options={"quantize": ("float16",), "rate": 0.5, "input_size": None},
+                   quantized=_at({0.5: 0.945, 0.05: 0.49}, quantize="float16", status="written"))
+    seven = _report(base=at_256, options={"quantize": ("float16",), "rate": 0.7, "input_size": 256},
+                    quantized=_at({0.5: 0.93, 0.05: 0.48}, quantize="float16", status="written"))
+    assert best_rate_note([half, seven]) == ("Best rate within the 0.02 PCK@0.5 budget: 0.7 (its best file +0.010 "
+                                             "below the unpruned model's 0.940)")
+    table = rates_table([half, seven]).splitlines()
+    unpruned = [line for line in table if "unpruned" in line]
+    assert [line.split("  ")[0] for line in unpruned] == ["unpruned (Keras; size as .h5)",
+                                                          "rate 0.7: unpruned at height 256 (Keras)"]
+    assert "0.950" in unpruned[0] and "0.940" in unpruned[1]
+    assert sum("unpruned" in line for line in rates_table([half]).splitlines()) == 1
+
+
 def test_the_report_is_written_as_its_sections_in_order():
     """`to_json` is the NAME_pXX_report.json object: the sections in the file's order, the caller's metadata in
     its place, a section the run does not have left out (but "quantized", null when every format was refused)."""

@@ -123,11 +123,11 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         say(f"  --min-filters {options.min_filters} does not fit the parameter budget of rate {options.rate:g}: "
             f"no layer under {plan.floor} filters")
     shared = shared if shared is not None else SharedScoring()
-    if shared.base_step is None:
-        shared.base_step = measure_base(run)
+    if run.input_size not in shared.base_steps:
+        shared.base_steps[run.input_size] = measure_base(run)
     else:
-        say("  measured already (the first rate's figures)")
-    base_step = shared.base_step
+        say("  measured already (an earlier rate's figures)")
+    base_step = shared.base_steps[run.input_size]
     say(f"[2/{steps}] pruning: {run.method.words}")
     importance = None
     if run.method.ranks_filters:

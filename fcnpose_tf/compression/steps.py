@@ -7,7 +7,7 @@ model's measurement and filter scores from one rate to the next.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
 
@@ -138,10 +138,11 @@ class SharedScoring:
     importance scores, each computed by the first rate that needs it and read by the others.
 
     Valid for one base model file, one set of frames and one importance setting (the rates' options differ only in
-    the rate); `compress_model` fills it.
+    the rate); `compress_model` fills it. The base model is measured once per input view: a rate whose pruned start
+    rebuilds it at another height (`methods.start_height`) measures it there.
     """
 
-    base_step: ModelStep | None = None
+    base_steps: dict[FrameView, ModelStep] = field(default_factory=dict)
     importance: Importance | None = None
 
 

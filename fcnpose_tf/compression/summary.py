@@ -134,7 +134,8 @@ def report_table(report: CompressReport | dict[str, Any], markdown: bool = False
 
 def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> str:
     """Several rates of one model in one table (`compress --rates`): the unpruned model once (the first report's
-    measurement), then per rate its retrained Keras model and its files, each row named by its rate.
+    measurement), then per rate its retrained Keras model and its files, each row named by its rate; a rate that ran
+    at another input height (a pruned start's: `methods.start_height`) has its own unpruned row, measured there.
 
     Args:
         reports: one report per rate, of the same model.
@@ -147,6 +148,9 @@ def rates_table(reports: Sequence[CompressReport], markdown: bool = False) -> st
     rows = [_row("unpruned (Keras; size as .h5)", reports[0].base, reports[0].base.h5_size_bytes)]
     for report in reports:
         prefix = f"rate {report.options['rate']:g}: "
+        height = report.options.get("input_size")
+        if height != reports[0].options.get("input_size"):
+            rows.append(_row(f"{prefix}unpruned at height {height} (Keras)", report.base, report.base.h5_size_bytes))
         rows += [_row(f"{prefix}retrained (Keras; size as .h5)", report.retrained, report.retrained.h5_size_bytes),
                  *_file_rows(report, prefix)]
     return format_table(_COLUMNS, rows, markdown=markdown, digits=_DIGITS)
@@ -162,17 +166,18 @@ def best_rate_note(reports: Sequence[CompressReport]) -> str:
     Returns:
         The line.
     """
-    base = reports[0].base.metrics.pck[0.5]
+    base = {report.options["rate"]: report.base.metrics.pck[0.5] for report in reports}  # each rate's own
     measured = sorted(((report.options["rate"], _drops(report)) for report in reports), key=lambda pair: pair[0])
     kept = [(rate, d) for rate, d in measured if d is not None and d[0] <= PCK_DROP_BUDGET]
     beyond = ", ".join(f"{rate:g} loses {d[0]:.3f}" if d is not None else f"{rate:g} wrote no file"
                        for rate, d in measured if d is None or d[0] > PCK_DROP_BUDGET)
     if not kept:
-        return (f"note: no rate kept PCK@0.5 within {PCK_DROP_BUDGET:g} of the unpruned model's {base:.3f} on these "
+        return (f"note: no rate kept PCK@0.5 within {PCK_DROP_BUDGET:g} of the unpruned model's "
+                f"{base[reports[0].options['rate']]:.3f} on these "
                 f"frames ({beyond}); try lower rates")
     rate, (coarse, fine) = kept[-1]
     line = (f"Best rate within the {PCK_DROP_BUDGET:g} PCK@0.5 budget: {rate:g} (its best file {coarse:+.3f} below "
-            f"the unpruned model's {base:.3f})" + (f"; {beyond}" if beyond else ""))
+            f"the unpruned model's {base[rate]:.3f})" + (f"; {beyond}" if beyond else ""))
     if fine <= FINE_PCK_DROP_BUDGET:
         return line
     both = [r for r, d in measured if _within(d)]
