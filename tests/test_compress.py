@@ -689,6 +689,14 @@ def test_a_pruned_start_is_named_in_the_recipe_and_refused_with_magnitude_prunin
         CompressOptions(rate=0.7, start=" ").validate()
 
 
+def compress_from_start(cli_here, setup, start, out, *more):
+    """`compress --rate 0.7` of the test model from the pruned start `start` into `out`, not retrained unless `more`
+    says, the float16 file only, one thread: (status, stdout, stderr)."""
+    root, data, base = setup
+    return cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start, "--retrain-epochs",
+                    "0", "--quantize", "float16", "--out-dir", out, "--threads", "1", *more)
+
+
 @pytest.mark.slow
 @pytest.mark.usefixtures("few_timed_frames")
 def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths(setup, cli_here, tmp_path):
@@ -700,8 +708,7 @@ def test_compress_from_a_pruned_start_takes_its_weights_and_refuses_other_widths
     start = tmp_path / "pruned.keras"
     randomize(build_fcn_pose(P70_WIDTHS, input_size=64), seed=5).save(start)
     out = tmp_path / "out"
-    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
-                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    status, stdout, err = compress_from_start(cli_here, setup, start, out)
     assert status == 0, stdout[-3000:] + err[-3000:]
     assert "scoring filters" not in stdout
     for w0, w1 in zip(load_model(start).get_weights(), load_model(out / "base_p70.keras").get_weights()):
@@ -736,17 +743,14 @@ def test_compress_runs_at_the_height_its_pruned_start_was_retrained_at(setup, cl
     start = tmp_path / "pruned96.keras"
     randomize(build_fcn_pose(P70_WIDTHS, input_size=96), seed=5).save(start)
     out = tmp_path / "out"
-    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
-                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", out, "--threads", "1")
+    status, stdout, err = compress_from_start(cli_here, setup, start, out)
     assert status == 0, stdout[-3000:] + err[-3000:]
     assert f"96x96, rebuilt from its 64x64: the height {start} was retrained at" in stdout
     assert load_model(out / "base_p70.keras").input_shape == (None, 96, 96, 3)
     report = json.loads((out / "base_p70_report.json").read_text())
     assert report["options"]["input_size"] == 96 and report["recipe"].endswith("not retrained, at 96x96")
     mine = tmp_path / "mine"
-    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
-                                   "--retrain-epochs", "0", "--quantize", "float16", "--out-dir", mine,
-                                   "--input-size", "64", "--threads", "1")
+    status, stdout, err = compress_from_start(cli_here, setup, start, mine, "--input-size", "64")
     assert status == 0, stdout[-3000:] + err[-3000:]
     assert "rebuilt" not in stdout and load_model(mine / "base_p70_64.keras").input_shape == (None, 64, 64, 3)
     at_64 = json.loads((mine / "base_p70_64_report.json").read_text())
@@ -760,13 +764,11 @@ def test_compress_keeps_a_pruned_start_that_no_retraining_epoch_beats(setup, cli
     (here a learning rate of 50 throws every weight far off) the start is what compress keeps, and says so."""
     from fcnpose_tf.training.model import build_fcn_pose, load_model
 
-    root, data, base = setup
     start = tmp_path / "pruned.keras"
     randomize(build_fcn_pose(P70_WIDTHS, input_size=64), seed=5).save(start)
     out = tmp_path / "out"
-    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--start", start,
-                                   "--retrain-epochs", "1", "--learning-rate", "50", "--quantize", "float16",
-                                   "--out-dir", out, "--threads", "1")
+    status, stdout, err = compress_from_start(cli_here, setup, start, out, "--retrain-epochs", "1",
+                                              "--learning-rate", "50")
     assert status == 0, stdout[-3000:] + err[-3000:]
     assert "the start is kept, unchanged" in stdout
     for w0, w1 in zip(load_model(start).get_weights(), load_model(out / "base_p70.keras").get_weights()):
