@@ -82,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
                              epilog="examples:\n" + module.EXAMPLES.rstrip())
         cmd.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                          help="show full tracebacks for errors")
+        settings.QUIET.add_to(cmd)
         module.add_arguments(cmd)
         cmd.set_defaults(_run=module.run, _uses_tensorflow=getattr(module, "USES_TENSORFLOW", False),
                          _outputs=getattr(module, "OUTPUTS", ()),
@@ -167,7 +168,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             import_tensorflow_quietly()
         return args._run(args)
 
-    return run_guarded(command, debug=args.debug, private_temp=private_temp, quiet=bool(getattr(args, "quiet", False)))
+    return run_guarded(command, debug=args.debug, private_temp=private_temp, quiet=args.quiet)
 
 
 def run_guarded(work: Callable[[], int | None], *, debug: bool = False, private_temp: bool = True,

@@ -727,6 +727,10 @@ SELECT_BY = Setting(
     choices=("uniform", "uncertain", "jump", "disagree"))
 """`predict --select`'s score (`correction.selection.STRATEGIES`, which a test holds equal). Uniform is the default:
 DeepLabCut found uncertainty sampling no better than uniform (docs/data.md)."""
+QUIET = Setting("quiet", bool, False, "no progress bars and no loop progress, also on a terminal: messages and one "
+                "line per epoch (for logs; without a terminal there are no bars either)", label="--quiet")
+"""Every command's progress setting (the CLI adds it to each, as --debug): it makes the command's `progress.Reporter`
+quiet."""
 FORCE = Setting("force", bool, False, "replace existing output files", label="--force")
 """No command replaces a file that exists without it (docs/design.md, conventions); a command names what it replaces
 in its own words (`FORCE.variant(help=...)` where it adds the option)."""

@@ -88,6 +88,34 @@ def test_every_command_help_shows_an_example(cli_here):
         assert "examples:" in out and f"fcnpose-tf {module.NAME}" in out
 
 
+def test_every_command_takes_quiet_from_one_setting():
+    """--quiet is one setting the CLI adds to every command, as --debug: the command's reporter is quiet with it and
+    only with it (synth's --no-progress, its name before, is the same option)."""
+    import argparse
+
+    from fcnpose_tf import cli, settings
+
+    parser = cli.build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
+    for name, command in commands.items():
+        quiet = [a for a in command._actions if a.dest == "quiet" and a.help != argparse.SUPPRESS]
+        assert [getattr(a, "setting", None) for a in quiet] == [settings.QUIET], name
+    assert parser.parse_args(["synth", "--out", "x"]).quiet is False
+    assert parser.parse_args(["synth", "--out", "x", "--quiet"]).quiet is True
+    assert parser.parse_args(["synth", "--out", "x", "--no-progress"]).quiet is True
+    assert parser.parse_args(["summary", "--quiet"]).quiet is True
+
+
+def test_quiet_makes_the_commands_reporter_quiet(monkeypatch):
+    from fcnpose_tf import cli, progress
+
+    seen = []
+    for argv in (["summary", "--quiet"], ["summary"]):
+        monkeypatch.setattr("fcnpose_tf.commands.summary.run", lambda args: seen.append(progress.current().quiet) or 0)
+        assert cli.main(argv) == 0
+    assert seen == [True, False]
+
+
 def _dests(parser):
     """Every option destination of `parser` and of its subcommands (`data inspect`, `data merge`)."""
     import argparse

@@ -237,22 +237,22 @@ def _outputs(tmp_path):
 def test_synth_stopped_leaves_nothing_and_a_rerun_works(tmp_path, sig):
     ds = tmp_path / "ds"
     proc = _start(tmp_path, "synth", "--out", ds, "--n", "3000", "--width", "64", "--height", "64",
-                  "--workers", "1", "--no-progress")
+                  "--workers", "1", "--quiet")
     status = _signal_once_started(proc, sig, lambda: any(ds.rglob("*.png")), "the first frame")
     stdout, stderr = _outputs(tmp_path)
     assert status == STATUS[sig], stderr
     assert stderr.splitlines() == [LINE[sig]]
     assert not ds.exists()
-    assert main(["synth", "--out", str(ds), "--n", "2", "--width", "64", "--height", "64", "--no-progress"]) == 0
+    assert main(["synth", "--out", str(ds), "--n", "2", "--width", "64", "--height", "64", "--quiet"]) == 0
 
 
 def test_synth_force_stopped_keeps_the_earlier_set_whole(tmp_path):
     ds = tmp_path / "ds"
     assert main(["synth", "--out", str(ds), "--n", "3", "--width", "64", "--height", "64", "--workers", "1",
-                 "--no-progress"]) == 0
+                 "--quiet"]) == 0
     before = {p.relative_to(ds): p.read_bytes() for p in ds.rglob("*") if p.is_file()}
     proc = _start(tmp_path, "synth", "--out", ds, "--n", "3000", "--seed", "1", "--width", "64", "--height", "64",
-                  "--workers", "1", "--no-progress", "--force")
+                  "--workers", "1", "--quiet", "--force")
 
     def new_frame():
         return any(p.name.endswith(".png") and p.relative_to(ds) not in before for p in ds.rglob("*"))
@@ -514,7 +514,7 @@ def test_synth_on_a_full_disk_names_the_output_folder_not_its_staging_folder(tmp
     _disk_full_at_write(2, monkeypatch)
     out = tmp_path / "set"
     status = main(["synth", "--out", str(out), "--n", "3", "--width", "64", "--height", "48", "--workers", "1",
-                   "--no-progress"])
+                   "--quiet"])
     line = _one_error_line(status, capsys.readouterr().err)
     assert line == f"error: {out}: no space left on device"
     assert list(tmp_path.iterdir()) == []

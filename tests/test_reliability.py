@@ -285,7 +285,7 @@ def _one_line_write_error(status, err, path_part):
 @pytest.mark.parametrize("workers", ["1", "2"])
 def test_synth_on_a_full_disk_leaves_nothing(tiny_disk, capsys, workers):
     status = main(["synth", "--out", str(tiny_disk / "ds"), "--n", "40", "--width", "160", "--height", "120",
-                   "--workers", workers, "--no-progress"])
+                   "--workers", workers, "--quiet"])
     err = capsys.readouterr().err
     _one_line_write_error(status, err, str(tiny_disk / "ds"))
     assert "kept" not in err and list(tiny_disk.iterdir()) == []  # frames without their VIA file are no output
@@ -294,7 +294,7 @@ def test_synth_on_a_full_disk_leaves_nothing(tiny_disk, capsys, workers):
 def test_synth_preview_on_a_full_disk_keeps_the_whole_set_and_names_it(tiny_disk, capsys):
     ds = tiny_disk / "ds"
     status = main(["synth", "--out", str(ds), "--n", "3", "--width", "64", "--height", "64", "--workers", "2",
-                   "--no-progress", "--preview", str(tiny_disk / "preview.png")])
+                   "--quiet", "--preview", str(tiny_disk / "preview.png")])
     err = capsys.readouterr().err
     _one_line_write_error(status, err, str(tiny_disk / "preview.png"))
     assert err.rstrip().endswith(f"; kept the files completed before it: {ds}")

@@ -279,7 +279,7 @@ def test_cli_force_with_bad_tight_framing_exits_2_and_keeps_the_files(cli, tmp_p
 
 def test_cli_writes_a_dataset_and_a_preview(cli, tmp_path):
     proc = cli("synth", "--out", tmp_path / "s", "--n", 2, "--width", W, "--height", H, "--workers", 1,
-               "--preview", tmp_path / "p.png", "--no-progress")
+               "--preview", tmp_path / "p.png", "--quiet")
     assert proc.returncode == 0, proc.stderr
     assert "frames" in proc.stdout and "ur5_synth.json" in proc.stdout
     assert (tmp_path / "s/images/synth_00001.png").is_file() and (tmp_path / "p.png").stat().st_size > 0
@@ -386,7 +386,7 @@ def test_unknown_scene_is_a_user_error(tmp_path):
 
 def test_cli_scene_option(cli, tmp_path):
     proc = cli("synth", "--out", tmp_path / "s", "--n", 2, "--width", W, "--height", H, "--scene", "random",
-               "--scene-seed", 3, "--no-progress", "--workers", 1)
+               "--scene-seed", 3, "--quiet", "--workers", 1)
     assert proc.returncode == 0, proc.stderr
     bad = cli("synth", "--out", tmp_path / "t", "--scene", "lab")
     assert bad.returncode == 2 and "invalid choice: 'lab'" in bad.stderr

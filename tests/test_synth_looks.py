@@ -189,7 +189,7 @@ def test_lens_is_drawn_only_for_families_with_distortion():
 @pytest.mark.parametrize("labels", LABEL_CONVENTIONS)
 def test_cli_synth_looks_and_labels(cli, tmp_path, labels):
     result = cli("synth", "--out", tmp_path / "d", "--n", "2", "--width", "96", "--height", "72",
-                 "--looks", "heldout", "--labels", labels, "--workers", "1", "--no-progress")
+                 "--looks", "heldout", "--labels", labels, "--workers", "1", "--quiet")
     assert result.returncode == 0, result.stderr
     assert f"heldout / {labels}" in result.stdout and "ur5e 2" in result.stdout
 

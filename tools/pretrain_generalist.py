@@ -60,7 +60,7 @@ def commands(args: argparse.Namespace) -> list[list[str]]:
     folders = [args.work / (f"frames_{family}" if len(plan) > 1 else "frames") for family, _ in plan]
     out = args.work / "generalist.keras"
     steps = [exe + ["synth", "--out", str(folder), "--scene", "random", "--looks", family, "--n", str(frames),
-                    "--seed", str(args.seed + i * SEED_STEP), "--workers", str(args.threads), "--no-progress"]
+                    "--seed", str(args.seed + i * SEED_STEP), "--workers", str(args.threads), "--quiet"]
              for i, ((family, frames), folder) in enumerate(zip(plan, folders))]
     data = folders[0]
     if len(plan) > 1:

@@ -81,7 +81,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="re-measure inference time and FPS (Keras and TFLite) of every finished job from its "
                              "saved model files, sequentially on this machine with the sweep's --threads, without "
                              "retraining; the metrics must come out identical; then rebuild the report")
-    parser.add_argument("--quiet", action="store_true", help="one line per epoch instead of progress bars (logs)")
 
 
 def resolve_threads(args: argparse.Namespace) -> int:

@@ -46,7 +46,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.FORCE.variant(help="write into a non-empty folder, replacing an earlier synthetic set").add_to(parser)
     parser.add_argument("--preview", type=Path, metavar="PNG",
                         help="also write a grid of the first 6 frames with keypoints and skeleton drawn")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-progress", dest="quiet", action="store_true", default=argparse.SUPPRESS,
+                        help=argparse.SUPPRESS)  # --quiet's name before every command had it
     parser.add_argument("--scene", choices=("workcell", "random"), default="workcell",
                         help="workcell: one robot cell filmed by one fixed camera, as in the paper (the default); "
                              "random: a new cell and camera for every frame (domain randomisation)")
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
         check_writable(args.preview, force=args.force)  # fail before rendering, not after
     report = generate_dataset(args.out, n=args.n, seed=args.seed, width=args.width, height=args.height,
-                              workers=args.workers, force=args.force, progress=not args.no_progress,
+                              workers=args.workers, force=args.force,
                               tight_framing=args.tight_framing, scene=args.scene, scene_seed=args.scene_seed,
                               looks=args.looks, labels=args.labels, motion_fps=args.motion)
     print(format_table(["Synthetic UR5 set", "Value"], report.summary_rows()))

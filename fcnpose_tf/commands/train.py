@@ -67,9 +67,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     settings.FORCE.variant(help="replace existing model files / start over").add_to(parser)
-    parser.add_argument("--quiet", action="store_true",
-                        help="one line per epoch and no progress bars, also on a terminal (for logs; without a "
-                             "terminal there are no bars either)")
 
 
 def initial_weights(init: str) -> Path | None:
