@@ -407,7 +407,7 @@ def test_a_file_that_keeps_pck_at_half_but_loses_fine_localisation_gets_its_own_
                                                                       "retrain_epochs": 25},
                                 retraining=Retraining(epochs_run=18, stopped_by_time_budget=True)))
     assert ("; the retraining stopped at its time budget after 18 of 25 epochs (a slow or busy machine): more "
-            "minutes may recover it (--max-minutes none runs every epoch") in cut and cut.endswith(
+            "minutes may recover it (--max-minutes none --total-minutes none runs every epoch") in cut and cut.endswith(
         "else a lower --rate keeps more of it: on views that vary --rate 0.5 came closest (docs/compression.md, "
         "\"Views that vary: a lower rate\"); --rates 0.5,0.7 compares them in one run"), cut
 

@@ -59,7 +59,7 @@ def accuracy_note(report: CompressReport) -> str | None:
     if retraining is not None and retraining.stopped_by_time_budget:
         advice = (f"the retraining stopped at its time budget after {retraining.epochs_run} of "
                   f"{report.options['retrain_epochs']} epochs (a slow or busy machine): more minutes may recover it "
-                  f"(--max-minutes none runs every epoch; docs/compression.md, \"Time budget\"), else {advice}")
+                  f"(--max-minutes none --total-minutes none runs every epoch; docs/compression.md, \"Time budget\"), else {advice}")
     coarse, fine = drops
     also = f"; PCK@0.05 {fine:.3f} below, more than {FINE_PCK_DROP_BUDGET:g}" if fine > FINE_PCK_DROP_BUDGET else ""
     if coarse <= PCK_DROP_BUDGET:
