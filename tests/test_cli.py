@@ -95,15 +95,25 @@ def test_every_command_takes_quiet_from_one_setting():
 
     from fcnpose_tf import cli, settings
 
+    def commands(parser, prefix=""):  # every command and subcommand (`data inspect`, `data merge`)
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for name, command in action.choices.items():
+                    yield f"{prefix}{name}", command
+                    yield from commands(command, f"{prefix}{name} ")
+
     parser = cli.build_parser()
-    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices
-    for name, command in commands.items():
+    named = dict(commands(parser))
+    assert "data merge" in named and "compress" in named
+    for name, command in named.items():
         quiet = [a for a in command._actions if a.dest == "quiet" and a.help != argparse.SUPPRESS]
         assert [getattr(a, "setting", None) for a in quiet] == [settings.QUIET], name
     assert parser.parse_args(["synth", "--out", "x"]).quiet is False
     assert parser.parse_args(["synth", "--out", "x", "--quiet"]).quiet is True
     assert parser.parse_args(["synth", "--out", "x", "--no-progress"]).quiet is True
     assert parser.parse_args(["summary", "--quiet"]).quiet is True
+    assert parser.parse_args(["data", "inspect", "d", "--quiet"]).quiet is True
+    assert parser.parse_args(["data", "inspect", "d"]).quiet is False
 
 
 def test_quiet_makes_the_commands_reporter_quiet(monkeypatch):

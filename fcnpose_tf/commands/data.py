@@ -48,6 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         epilog="examples:\n" + EXAMPLES.rstrip())
     inspect.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                          help="show full tracebacks for errors")
+    settings.QUIET.add_to(inspect)
     add_data_arguments(inspect)
     inspect.add_argument("--out", type=Path, help="write a preview PNG here")
     settings.FORCE.variant(help="overwrite --out if it exists").add_to(inspect)
@@ -73,6 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         epilog="examples:\n" + MERGE_EXAMPLES.rstrip())
     merge.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                        help="show full tracebacks for errors")
+    settings.QUIET.add_to(merge)
     merge.add_argument("inputs", nargs="+", type=Path, metavar="VIA",
                        help="VIA project files (or dataset folders holding one), earliest round first")
     merge.add_argument("--out", type=Path, required=True, metavar="OUT.json", help="the merged VIA project")
