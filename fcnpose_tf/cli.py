@@ -80,9 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
         summary = " ".join(doc.split("\n\n")[0].split()) if doc else module_name  # the first sentence, whole
         cmd = sub.add_parser(module.NAME, help=summary, description=doc, formatter_class=_Formatter,
                              epilog="examples:\n" + module.EXAMPLES.rstrip())
-        cmd.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                         help="show full tracebacks for errors")
-        settings.QUIET.add_to(cmd)
+        settings.add_command_options(cmd)
         module.add_arguments(cmd)
         cmd.set_defaults(_run=module.run, _uses_tensorflow=getattr(module, "USES_TENSORFLOW", False),
                          _outputs=getattr(module, "OUTPUTS", ()),

@@ -729,8 +729,16 @@ SELECT_BY = Setting(
 DeepLabCut found uncertainty sampling no better than uniform (docs/data.md)."""
 QUIET = Setting("quiet", bool, False, "no progress bars and no loop progress, also on a terminal: messages and one "
                 "line per epoch (for logs; without a terminal there are no bars either)", label="--quiet")
-"""Every command's progress setting (the CLI adds it to each, as --debug): it makes the command's `progress.Reporter`
-quiet."""
+"""Every command's progress setting (`add_command_options`): it makes the command's `progress.Reporter` quiet."""
+
+
+def add_command_options(parser: argparse.ArgumentParser) -> None:
+    """--debug and --quiet, which every command and subcommand (`data inspect`, `data merge`) takes."""
+    parser.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                        help="show full tracebacks for errors")
+    QUIET.add_to(parser)
+
+
 FORCE = Setting("force", bool, False, "replace existing output files", label="--force")
 """No command replaces a file that exists without it (docs/design.md, conventions); a command names what it replaces
 in its own words (`FORCE.variant(help=...)` where it adds the option)."""

@@ -46,9 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         description="Load a dataset as training will (same drops, same stored splits), print what it holds "
                     "and optionally write a preview of frames with keypoints, skeleton and target maps.",
         epilog="examples:\n" + EXAMPLES.rstrip())
-    inspect.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                         help="show full tracebacks for errors")
-    settings.QUIET.add_to(inspect)
+    settings.add_command_options(inspect)
     add_data_arguments(inspect)
     inspect.add_argument("--out", type=Path, help="write a preview PNG here")
     settings.FORCE.variant(help="overwrite --out if it exists").add_to(inspect)
@@ -72,9 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     "project (relative to it). A frame annotated differently in two inputs is an error naming it "
                     "(or --prefer last); identical annotations are kept once; the keypoint schemas must match.",
         epilog="examples:\n" + MERGE_EXAMPLES.rstrip())
-    merge.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
-                       help="show full tracebacks for errors")
-    settings.QUIET.add_to(merge)
+    settings.add_command_options(merge)
     merge.add_argument("inputs", nargs="+", type=Path, metavar="VIA",
                        help="VIA project files (or dataset folders holding one), earliest round first")
     merge.add_argument("--out", type=Path, required=True, metavar="OUT.json", help="the merged VIA project")
