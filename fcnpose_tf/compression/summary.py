@@ -25,8 +25,9 @@ VARIED_VIEWS_RATE = 0.5
 (docs/compression.md, "Views that vary: a lower rate")."""
 
 
-MORE_FRAMES_ADVICE = ("more frames of your own camera, labelled by your model and given the minutes, keep more of it "
-                      "(fcnpose-tf predict, data merge, then --data: docs/compression.md, \"More frames of your look\")")
+MORE_FRAMES_ADVICE = ("more frames of your own camera, labelled by your model and given the minutes, keep more of "
+                      "it (fcnpose-tf predict, data merge, then --data: docs/compression.md, \"More frames of your "
+                      "look\")")
 """What `accuracy_note` names first: frames of the user's own camera pre-labelled by the unpruned model and merged
 into the retraining data, the lever that measured best where the 70 % network lost most (docs/compression.md,
 "More frames of your look")."""
