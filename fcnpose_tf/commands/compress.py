@@ -24,7 +24,8 @@ quantization-aware training (tfmot; up to --qat-epochs epochs from the retrained
 training frames, the int8 file converted and held to the same gate after each epoch) and says so;
 its minutes and result are in the report (--qat-epochs 0: no fallback). When the best file written loses more
 than 0.02 PCK@0.5 (the paper's budget), or more than 0.03 PCK@0.05 (fine localisation), against the unpruned model
-on the measured frames, a `note:` line after the table says by how much and names a lower --rate (`accuracy_note`).
+on the measured frames, a `note:` line after the table says by how much and what to try: more frames of your camera
+labelled by your model (docs/compression.md, "More frames of your look"), else a lower --rate (`accuracy_note`).
 
 Exit status: 0 when every format was written, and also when a format of the default --quantize
 (float16,int8) was refused but at least one .tflite file was written; 2 (after the table, with an
