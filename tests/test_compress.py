@@ -373,15 +373,15 @@ def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_r
                                  other_quantized=[_step(30, 0.85, quantize="int8", status="written")]))
     assert note == ("note: PCK@0.5 0.850 (int8) is 0.050 below the unpruned model's 0.900 on these frames, more than "
                     "the 0.02 the paper's files lose; PCK@0.05 0.050 below, more than 0.03; more frames of your own "
-                    "camera, labelled by your model and given the minutes, keep more of it (fcnpose-tf predict, "
-                    "data merge, then --data: docs/compression.md, \"More frames of your look\"); else a lower "
+                    "camera, labelled by your model and given the minutes, keep more of it (--more-frames "
+                    "VIDEO_OR_FOLDER: docs/compression.md, \"More frames of your look\"); else a lower "
                     "--rate keeps more of it: on views that vary --rate 0.5 came closest (docs/compression.md, "
                     "\"Views that vary: a lower rate\"); --rates 0.5,0.7 compares them in one run")
     at_half = accuracy_note(_report(options={"quantize": ("float16",), "rate": 0.5}))
     assert at_half.endswith("more than the 0.02 the paper's files lose; PCK@0.05 0.100 below, more than 0.03; more "
                             "frames of your own camera, labelled by your model and given the minutes, keep more of "
-                            "it (fcnpose-tf predict, data merge, then --data: docs/compression.md, \"More frames of "
-                            "your look\"); else a lower "
+                            "it (--more-frames VIDEO_OR_FOLDER: docs/compression.md, \"More frames of your "
+                            "look\"); else a lower "
                             "--rate keeps more of it")
     assert accuracy_note(_report(quantized=None)) is None
 

@@ -36,6 +36,8 @@ refused or no .tflite file could be written; 2 for bad input, before any work.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -91,6 +93,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                     settings.METHOD, settings.STRATEGY, settings.COMPRESS_MIN_FILTERS, settings.PRUNED_START,
                     settings.COMPRESS_INPUT_SIZE, settings.COMPRESS_IMPORTANCE, settings.IMPORTANCE_FRAMES, settings.DISTILL):
         setting.add_to(parser)
+    settings.MORE_FRAMES.add_to(parser)
+    settings.MORE_FRAMES_COUNT.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.INHERITED_AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
@@ -137,6 +141,13 @@ def run(args: argparse.Namespace) -> int:
     model_path = args.model
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
+    if args.more_frames is not None:  # the source opened once, before anything heavy: a wrong one fails at once
+        from fcnpose_tf.correction.pseudolabel import open_frames
+
+        settings.MORE_FRAMES_COUNT.validate(args.more_frames_count)
+        if args.retrain_epochs == 0:
+            raise UserError("--more-frames adds frames to the retraining; --retrain-epochs 0 retrains nothing")
+        open_frames(args.more_frames).close()
     options = settings.from_args(args, CompressOptions, renamed={"patience": "retrain_patience"})
     # checked once (None settings: the run's choice; a wrong --start refused before the data), then each other rate
     checked = options.checked(model_path)
@@ -166,15 +177,23 @@ def run(args: argparse.Namespace) -> int:
             eval_indices = [int(i) for i in val]
             description = f"{len(val)} validation frames of {train_dataset.via_path}"
         shared = SharedScoring()  # --rates: the base model measured and its filters scored once
-        reports = [compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, each,
-                                  force=args.force, eval_description=description, metadata={"preset": args.preset},
-                                  shared=shared, outputs=files)
-                   for each, files in zip(every, outputs)]
+        with contextlib.ExitStack() as stack:
+            if args.more_frames is not None:  # labelled into a folder kept until the last rate's retraining is done
+                folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="fcnpose-more-frames-"))
+                grown, every = _more_frames(args, model_path, train_dataset, eval_dataset, every, folder)
+                # measured on the validation frames: the same frames, first in the grown dataset
+                eval_dataset = grown if eval_dataset is train_dataset else eval_dataset
+                train_dataset = grown
+            reports = [compress_model(model_path, train_dataset, eval_dataset, eval_indices, args.out_dir, each,
+                                      force=args.force, eval_description=description,
+                                      metadata={"preset": args.preset}, shared=shared, outputs=files)
+                       for each, files in zip(every, outputs)]
     if len(reports) > 1:
         return _several_rates(reports, outputs, named, description + _reading(args))
     report = reports[0]
     threads = args.threads if args.threads is not None else f"all {available_cores()}"
-    print(f"\nCompression at rate {args.rate:g} ({report.recipe}); measured on {description}{_reading(args)}; "
+    print(f"\nCompression at rate {args.rate:g} ({report.recipe}{_added(report)}); measured on {description}"
+          f"{_reading(args)}; "
           f"PCK normalised by max(bbox w, h); timing on {threads} thread(s), mean of >= 50 frames")
     print(report_table(report))
     base = report.base
@@ -209,6 +228,54 @@ def run(args: argparse.Namespace) -> int:
     return _finish(report, outputs[0], named)
 
 
+def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_dataset, every: list, folder: str):
+    """--more-frames: the source's frames labelled by the model to compress into `folder`, added to the training
+    split of `dataset`; the time budgets of `every` rate's options grown for them (`with_added_frames`).
+
+    Returns:
+        (the dataset with the frames, the options of every rate).
+    """
+    import time
+    from dataclasses import replace
+
+    from fcnpose_tf.correction.pseudolabel import label_frames
+    from fcnpose_tf.data.dataset import with_training_frames
+    from fcnpose_tf.postprocess import Decoding
+    from fcnpose_tf.progress import current
+    from fcnpose_tf.settings import GIVEN
+    from fcnpose_tf.training.evaluate import open_model
+
+    started = time.perf_counter()
+    options = every[0].options
+    labeller = open_model(model_path, args.threads, Decoding(centroid=options.centroid, cluster=options.cluster))
+    known = [sample.image_path for sample in (*dataset.samples, *eval_dataset.samples)]
+    labelled = label_frames(labeller, args.more_frames, folder, args.more_frames_count, known_images=known,
+                            labelled_by=str(model_path))
+    extra = labelled.load(dataset.schema, dataset.min_visible)
+    grown = with_training_frames(dataset, extra, labelled.added(len(extra), dataset.min_visible))
+    training = len(dataset.split(args.fold)[0])
+    minutes = (time.perf_counter() - started) / 60
+    every = [replace(each, options=each.options.with_added_frames(training, len(extra), minutes,
+                                                                   getattr(args, GIVEN, ())))
+             for each in every]
+    budget = every[0].options
+    current().say(f"more frames: {grown.added.description}; retraining on {training} + {len(extra)} "
+                  f"frames, time budget {_minutes(budget.max_minutes)} of retraining, {_minutes(budget.total_minutes)} "
+                  "in all (docs/compression.md, \"More frames of your look\")")
+    return grown, every
+
+
+def _added(report: CompressReport) -> str:
+    """The frames --more-frames added to the retraining, in words for the table's title ("" without)."""
+    added = (report.retrain_data or {}).get("added_frames")
+    return f", with {added['frames']} more frames of {added['source']} labelled by {added['labelled_by']}" if added \
+        else ""
+
+
+def _minutes(value: float | None) -> str:
+    return "none" if value is None else f"{value:.1f} min"
+
+
 def _reading(args: argparse.Namespace) -> str:
     """How the table's keypoints were read, in words, when not by each map's largest cluster."""
     return ", each map's cluster chosen along the arm (--cluster chain)" if args.cluster == "chain" else ""
@@ -219,7 +286,7 @@ def _several_rates(reports: list, outputs: list, named: bool, description: str) 
     from fcnpose_tf.compression.summary import best_rate_note, rates_table
 
     rates = ", ".join(f"{report.options['rate']:g}" for report in reports)
-    print(f"\nCompression at rates {rates} ({reports[0].recipe}); "
+    print(f"\nCompression at rates {rates} ({reports[0].recipe}{_added(reports[0])}); "
           f"measured on {description}; PCK normalised by max(bbox w, h); one report per rate")
     print(rates_table(reports))
     print(best_rate_note(reports))

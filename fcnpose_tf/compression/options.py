@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Collection
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
@@ -160,6 +160,32 @@ class CompressOptions:
         after = 2 * max(spent_minutes - ranking_minutes, 0.0)
         left = max(self.total_minutes - spent_minutes - after, settings.MIN_RETRAIN_MINUTES)
         return left if self.max_minutes is None else min(self.max_minutes, left)
+
+    def with_added_frames(self, training_frames: int, added: int, spent_minutes: float,
+                          given: Collection[str] = ()) -> CompressOptions:
+        """The time budgets of a run whose retraining gets `added` frames beside the `training_frames` of the user's
+        split (`compress --more-frames`), `spent_minutes` after labelling them.
+
+        An epoch takes (training_frames + added) / training_frames as long, so a retraining budget left at its
+        default (not in `given`) grows by that factor, and a total budget left at its default by the minutes the
+        retraining gained; a total budget (given or not) loses the minutes the labelling took, down to
+        `settings.MIN_RETRAIN_MINUTES`. A retraining budget the user gave keeps its value.
+
+        Args:
+            training_frames: the training frames of the user's split (at least 1).
+            added: the frames added to it.
+            spent_minutes: what labelling them took.
+            given: the settings the command line gave (`settings.GIVEN`): "max_minutes", "total_minutes".
+        Returns:
+            A copy with `max_minutes` and `total_minutes` set.
+        """
+        max_minutes, total_minutes = self.max_minutes, self.total_minutes
+        if max_minutes is not None and "max_minutes" not in given:
+            max_minutes = max_minutes * (training_frames + added) / max(training_frames, 1)
+        if total_minutes is not None:
+            grown = total_minutes + (max_minutes or 0.0) - (self.max_minutes or 0.0)
+            total_minutes = max(grown - spent_minutes, settings.MIN_RETRAIN_MINUTES)
+        return replace(self, max_minutes=max_minutes, total_minutes=total_minutes)
 
     def fit_config(self) -> FitConfig:
         """The retraining's optimisation settings, carried from these options.

@@ -306,6 +306,8 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
                 "pruned_from": str(run.base_path), **(run.method_record or {}), "input_size": run.input_size.size_record,
                 "view": run.input_size.to_json(),
                 "recipe": run.method.recipe}
+    if run.train_dataset.added is not None:  # frames in the training split only (`compress --more-frames`)
+        entries["retrain_data"]["added_frames"] = metadata["added_frames"] = run.train_dataset.added.to_json()
     sequence = train_data.sequence(options.batch_size, seed=options.seed)
     if options.distill > 0:
         from fcnpose_tf.training.distill import with_teacher_maps

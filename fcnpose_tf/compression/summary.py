@@ -26,11 +26,20 @@ VARIED_VIEWS_RATE = 0.5
 
 
 MORE_FRAMES_ADVICE = ("more frames of your own camera, labelled by your model and given the minutes, keep more of "
-                      "it (fcnpose-tf predict, data merge, then --data: docs/compression.md, \"More frames of your "
-                      "look\")")
-"""What `accuracy_note` names first: frames of the user's own camera pre-labelled by the unpruned model and merged
-into the retraining data, the lever that measured best where the 70 % network lost most (docs/compression.md,
-"More frames of your look")."""
+                      "it (--more-frames VIDEO_OR_FOLDER: docs/compression.md, \"More frames of your look\")")
+"""What `accuracy_note` names first: frames of the user's own camera labelled by the unpruned model and added to the
+retraining's training frames (`compress --more-frames`), the lever that measured best where the 70 % network lost
+most (docs/compression.md, "More frames of your look")."""
+
+
+def _more_frames_advice(report: CompressReport) -> str:
+    """MORE_FRAMES_ADVICE, or for a run that added frames already, how many and what more would take."""
+    added = (report.retrain_data or {}).get("added_frames")
+    if not added:
+        return MORE_FRAMES_ADVICE
+    return (f"this run retrained on {added['frames']} more frames of {added['source']}: more of them "
+            "(--more-frames-count) or more minutes (--max-minutes) may keep more of it (docs/compression.md, "
+            "\"More frames of your look\")")
 
 
 def _drops(report: CompressReport) -> tuple[float, float] | None:
@@ -63,7 +72,7 @@ def accuracy_note(report: CompressReport) -> str | None:
     lower = (f"a lower --rate keeps more of it: on views that vary --rate {VARIED_VIEWS_RATE:g} came closest "
              f"(docs/compression.md, \"Views that vary: a lower rate\"); --rates {VARIED_VIEWS_RATE:g},{rate:g} "
              "compares them in one run" if rate > VARIED_VIEWS_RATE else "a lower --rate keeps more of it")
-    advice = f"{MORE_FRAMES_ADVICE}; else {lower}"
+    advice = f"{_more_frames_advice(report)}; else {lower}"
     retraining = report.retraining
     if retraining is not None and retraining.stopped_by_time_budget:
         advice = (f"the retraining stopped at its time budget after {retraining.epochs_run} of "

@@ -19,7 +19,7 @@ from __future__ import annotations
 import functools
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Iterable
 
@@ -52,12 +52,32 @@ class Sample:
         return int(np.isfinite(self.keypoints).all(axis=1).sum())
 
 
+@dataclass(frozen=True)
+class AddedFrames:
+    """Frames added to every training split of a dataset (`with_training_frames`), as its records name them."""
+
+    source: str
+    """Where they came from (a video, an image folder), as the user named it."""
+    labelled_by: str
+    """What labelled them (a model's file)."""
+    frames: int
+    description: str
+    """One line: how many, how chosen, how labelled."""
+
+    def to_json(self) -> dict[str, str | int]:
+        """The record's entry: {"source", "labelled_by", "frames", "description"}."""
+        return {"source": self.source, "labelled_by": self.labelled_by, "frames": self.frames,
+                "description": self.description}
+
+
 @dataclass
 class Dataset:
     """Annotated frames of one VIA file, with the drop counts and the stored splits.
 
     `dropped` maps a reason to a frame count; `splits_status` says whether the
     splits were "loaded" from `splits_path`, "created" there, or "not saved".
+    `added` names frames of another project added to every training split (`with_training_frames`): the splits'
+    validation frames are all of `via_path`.
     """
 
     via_path: Path
@@ -71,6 +91,7 @@ class Dataset:
     attribute: str = "keypoint"
     min_visible: int = 1
     ignored_regions: int = 0
+    added: AddedFrames | None = None
 
     def __len__(self) -> int:
         return len(self.samples)
@@ -102,6 +123,30 @@ class Dataset:
     def split(self, fold: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(train, val) sample indices of K-fold fold `fold` (0-based), or the 80/20 hold-out split when None."""
         return self.splits.get(fold)
+
+
+def with_training_frames(dataset: Dataset, extra: Dataset, added: AddedFrames) -> Dataset:
+    """`dataset` with the frames of `extra` after its own, in the training split of its hold-out split and of every
+    fold and never in a validation split: frames a model labelled (`correction.pseudolabel`) that validation must not
+    be measured on.
+
+    Args:
+        dataset: the user's frames, with their splits (unchanged: `via_path`, its splits file and its frames' roles).
+        extra: the frames to add (their own splits are not read).
+        added: how the records name them.
+    Returns:
+        A new `Dataset`: `samples` the two lists, `splits` with the added indices in every training split, `added` set.
+    Raises:
+        UserError: the two keypoint schemas differ.
+    """
+    if extra.schema.to_dict() != dataset.schema.to_dict():
+        raise UserError(f"{extra.via_path}: keypoint schema {extra.schema.name!r} "
+                        f"({', '.join(extra.schema.keypoints)}) differs from {dataset.via_path}'s "
+                        f"{dataset.schema.name!r} "
+                        f"({', '.join(dataset.schema.keypoints)})")
+    indices = np.arange(len(dataset), len(dataset) + len(extra), dtype=np.int64)
+    return replace(dataset, samples=[*dataset.samples, *extra.samples], splits=dataset.splits.with_training(indices),
+                   added=added)
 
 
 def resolve_data(data: str | os.PathLike, images: str | os.PathLike | None = None) -> tuple[Path, Path | None]:

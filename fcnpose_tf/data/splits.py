@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -46,6 +46,22 @@ class Splits:
         if not 0 <= fold < self.k:
             raise UserError(f"fold must be between 0 and {self.k - 1}, got {fold}")
         return self.folds[fold]
+
+    def with_training(self, indices: np.ndarray) -> Splits:
+        """These splits with `indices` (frames after the split ones) in the training side of the hold-out split and
+        of every fold, and in no validation side.
+
+        Args:
+            indices: the added frames' indices, none of them already split.
+        Returns:
+            The new splits (sorted index arrays, as every split's).
+        """
+        indices = np.asarray(indices, dtype=np.int64)
+
+        def grown(train: np.ndarray, val: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return np.sort(np.concatenate([train, indices])), val
+
+        return replace(self, holdout=grown(*self.holdout), folds=tuple(grown(*fold) for fold in self.folds))
 
 
 def _permutation(n: int, seed: int) -> np.ndarray:

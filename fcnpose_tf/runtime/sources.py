@@ -568,7 +568,7 @@ def parse_size(text: str) -> tuple[int, int]:
 
 
 def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | None = None,
-                warn: Warn | None = None, refuse_cameras: str | None = None) -> FrameSource:
+                warn: Warn | None = None, refuse_cameras: str | None = None, flag: str = "--source") -> FrameSource:
     """Open a frame source from a command-line spec.
 
     `0`, `1`, ... -> camera index; `/dev/videoN` -> that camera; `rtsp://...`/`http://...` -> a stream
@@ -582,6 +582,7 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
         warn: where a source's warnings go (default: stderr).
         refuse_cameras: with it (the reason, for the error) only files are accepted: a camera spec is refused before
             anything is opened.
+        flag: the option the spec was given with, for the errors.
     Returns:
         The source.
     Raises:
@@ -593,7 +594,7 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
     index = isinstance(spec, int) or text.strip().isdigit()
     url = re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text) is not None
     if refuse_cameras and (picamera2 or text.startswith("picamera2:") or index or url or text.startswith("/dev/")):
-        raise UserError(f"--source {text}: {refuse_cameras}")
+        raise UserError(f"{flag} {text}: {refuse_cameras}")
     if picamera2:
         return Picamera2Source(int(picamera2.group(1) or 0), camera_size, warn)
     if text.startswith("picamera2:"):
