@@ -25,7 +25,12 @@ training frames, the int8 file converted and held to the same gate after each ep
 its minutes and result are in the report (--qat-epochs 0: no fallback). When the best file written loses more
 than 0.02 PCK@0.5 (the paper's budget), or more than 0.03 PCK@0.05 (fine localisation), against the unpruned model
 on the measured frames, a `note:` line after the table says by how much and what to try: more frames of your camera
-labelled by your model (docs/compression.md, "More frames of your look"), else a lower --rate (`accuracy_note`).
+labelled by your model (--more-frames), else a lower --rate (`accuracy_note`).
+
+--more-frames VIDEO_OR_FOLDER: up to --more-frames-count frames of your camera (720, evenly spread), labelled by the
+model being compressed, join the retraining's training frames (never its validation frames), and the time budgets
+left at their defaults grow in proportion to the frames: on views that vary this kept the 70 % files nearest the
+unpruned model (docs/compression.md, "More frames of your look").
 
 Exit status: 0 when every format was written, and also when a format of the default --quantize
 (float16,int8) was refused but at least one .tflite file was written; 2 (after the table, with an
@@ -58,6 +63,7 @@ EXAMPLES = """\
   fcnpose-tf compress --rate 0.7 --min-filters 0       # the paper's widths (default: no layer under 15)
   fcnpose-tf compress --rate 0.7 --max-minutes 30      # a longer retraining budget (default: 10 minutes)
   fcnpose-tf compress --rates 0.5,0.6,0.7 --model models/arm.keras --data my_frames/  # the trade-off, one table
+  fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --more-frames cell.mp4  # + 720 frames
   fcnpose-tf compress --rate 0.7 --distill 0.5         # retrain half on the unpruned model's maps
   fcnpose-tf compress --rate 0.7 --input-size 192      # files at 192x192: 0.73x the MACs of 224
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/

@@ -4,5 +4,6 @@
     model's keypoints) ──► corrected in VIA ──► merge (rounds joined by file name and image) ──► train --init
 
 `selection` and `prelabel` run on the Pi as well (numpy and OpenCV; no TensorFlow); `merge` reads and writes VIA
-projects with `fcnpose_tf.data.via`. The Pi runtime (`fcnpose_tf.runtime`) imports nothing from here or from data.
+projects with `fcnpose_tf.data.via`. `pseudolabel` is the loop without the person: `compress --more-frames` has the
+model label frames of the user's camera (`prelabel`'s project) for the 70 % network's retraining. The Pi runtime (`fcnpose_tf.runtime`) imports nothing from here or from data.
 """

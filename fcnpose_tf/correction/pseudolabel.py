@@ -83,7 +83,7 @@ class LabelledFrames:
         spread = f"{self.read} of its {self.total}, evenly spread" if self.total else f"its first {self.read}"
         return AddedFrames(self.source, self.labelled_by, kept,
                            f"{kept} frames of {self.source} ({spread}{left_out}) labelled by "
-                           f"{self.labelled_by}: {self.keypoints} keypoints, {self.not_found} not found, in "
+                           f"{self.labelled_by}: {self.keypoints:,} keypoints, {self.not_found:,} not found, in "
                            f"{self.seconds / 60:.1f} min")
 
 
