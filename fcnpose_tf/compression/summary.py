@@ -38,8 +38,7 @@ def _more_frames_advice(report: CompressReport) -> str:
     if not added:
         return MORE_FRAMES_ADVICE
     return (f"this run retrained on {added['frames']} more frames of {added['source']}: more of them "
-            "(--more-frames-count) or more minutes (--max-minutes) may keep more of it (docs/compression.md, "
-            "\"More frames of your look\")")
+            "(--more-frames-count) may keep more of it (docs/compression.md, \"More frames of your look\")")
 
 
 def _drops(report: CompressReport) -> tuple[float, float] | None:
