@@ -5,5 +5,6 @@
 
 `selection` and `prelabel` run on the Pi as well (numpy and OpenCV; no TensorFlow); `merge` reads and writes VIA
 projects with `fcnpose_tf.data.via`. `pseudolabel` is the loop without the person: `compress --more-frames` has the
-model label frames of the user's camera (`prelabel`'s project) for the 70 % network's retraining. The Pi runtime (`fcnpose_tf.runtime`) imports nothing from here or from data.
+model label frames of the user's camera (`prelabel`'s project) for the 70 % network's retraining. The Pi runtime
+(`fcnpose_tf.runtime`) imports nothing from here or from data.
 """

@@ -53,6 +53,8 @@ class LabelledFrames:
     """Keypoints the model did not find (no point)."""
     labelled_by: str
     seconds: float
+    most_points: int
+    """The most keypoints the model found in one frame."""
 
     def load(self, schema: KeypointSchema, min_visible: int) -> Dataset:
         """The frames as a dataset of `schema`, those with fewer than `min_visible` keypoints left out (counted by
@@ -61,16 +63,16 @@ class LabelledFrames:
         Raises:
             UserError: no frame has `min_visible` keypoints.
         """
-        via_log = logging.getLogger(read_via.__module__)
-        level = via_log.level
-        via_log.setLevel(logging.ERROR)
-        try:
-            return load_dataset(self.via_path, schema=schema, min_visible=min_visible, write_splits=False)
-        except UserError:
+        if self.most_points < min_visible:
             raise UserError(f"--more-frames {self.source}: in none of the {self.frames} frames labelled did "
                             f"{self.labelled_by} find {min_visible} keypoints; frames it cannot label add nothing "
                             f"(look with `fcnpose-tf predict {self.labelled_by} --source {self.source} --via "
-                            "check.json --draw pictures/`)") from None
+                            "check.json --draw pictures/`)")
+        via_log = logging.getLogger(read_via.__module__)
+        level = via_log.level
+        via_log.setLevel(logging.ERROR)  # its warning of the frames dropped would name the temporary file
+        try:
+            return load_dataset(self.via_path, schema=schema, min_visible=min_visible, write_splits=False)
         finally:
             via_log.setLevel(level)
 
@@ -200,7 +202,8 @@ def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, f
         why = f"all {read} frames read are frames of --data or --test-data" if read else "no frame could be read"
         raise UserError(f"{source_spec}: no frame to add ({why})")
     return LabelledFrames(written, os.fspath(source_spec), total, read, left_out, len(collected.frames),
-                          collected.points, collected.not_found, labelled_by, round(time.perf_counter() - started, 1))
+                          collected.points, collected.not_found, labelled_by, round(time.perf_counter() - started, 1),
+                          max(int(np.isfinite(frame.keypoints).all(axis=1).sum()) for frame in collected.frames))
 
 
 __all__ = ["LabelledFrames", "VIA_NAME", "spread_indices", "label_frames", "open_frames", "source_length"]
