@@ -90,8 +90,8 @@ class LabelledFrames:
 
 
 FILES_ONLY = ("a camera; --more-frames reads a video file or an image folder: save a camera's frames first "
-              "(`fcnpose-tf run MODEL --source CAMERA --via cam/cam.json --via-every 10`) and pass their folder, "
-              "cam/images")
+              "(`fcnpose-tf run MODEL.tflite --source CAMERA --via cam/cam.json --via-every 10`) and pass their "
+              "folder, cam/images")
 """Why a camera is refused: a run needs a fixed set of frames, read once."""
 
 
