@@ -273,7 +273,7 @@ def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_datas
 
 def _added(report: CompressReport) -> str:
     """The frames --more-frames added to the retraining, in words for the table's title ("" without)."""
-    added = (report.retrain_data or {}).get("added_frames")
+    added = report.added_frames
     return f", with {added['frames']} more frames of {added['source']} labelled by {added['labelled_by']}" if added \
         else ""
 

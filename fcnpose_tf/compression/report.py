@@ -374,6 +374,11 @@ class CompressReport:
         """The TFLite files written: "quantized" first, then "other_quantized"."""
         return [step for step in [self.quantized, *self.other_quantized] if step is not None]
 
+    @property
+    def added_frames(self) -> dict[str, Any] | None:
+        """The frames `compress --more-frames` added to the retraining (`data.dataset.AddedFrames.to_json`), or None."""
+        return (self.retrain_data or {}).get("added_frames")
+
     def to_json(self) -> dict[str, Any]:
         """The report as NAME_pXX_report.json holds it: the fields in order, `metadata`'s keys in its place, a
         section only some runs have left out when None.

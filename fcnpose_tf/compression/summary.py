@@ -34,7 +34,7 @@ most (docs/compression.md, "More frames of your look")."""
 
 def _more_frames_advice(report: CompressReport) -> str:
     """MORE_FRAMES_ADVICE, or for a run that added frames already, how many and what more would take."""
-    added = (report.retrain_data or {}).get("added_frames")
+    added = report.added_frames
     if not added:
         return MORE_FRAMES_ADVICE
     return (f"this run retrained on {added['frames']} more frames of {added['source']}: more of them "
