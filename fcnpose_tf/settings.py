@@ -840,18 +840,25 @@ IMPORTANCE_FRAMES = Setting(
 MORE_FRAMES = Setting(
     "more_frames", str, None, "a video or an image folder of your camera: up to --more-frames-count of its frames "
     "(evenly spread), labelled by --model, are added to the retraining's training frames (never to validation), and "
-    "the time budgets left at their defaults grow with the frames (docs/compression.md, \"More frames of your look\")",
-    label="--more-frames", check=lambda v: bool(v.strip()), requirement="a video file or an image folder",
-    metavar="SOURCE")
+    "the time budgets left at their defaults grow with the frames; a VIA project (.json, one --more-frames-via kept, "
+    "corrected or not) adds its frames with their labels as they are (docs/compression.md, \"More frames of your "
+    "look\")", label="--more-frames", check=lambda v: bool(v.strip()),
+    requirement="a video file, an image folder or a VIA .json project", metavar="SOURCE")
 """The lever that kept a 70 % network within 0.02 PCK@0.5 of its unpruned model on a look it was never pretrained on
 (720 frames labelled by the model beside the user's 192, 45 minutes of retraining); none by default: it costs the
 minutes."""
 MORE_FRAMES_COUNT = Setting(
     "more_frames_count", int, 720, "--more-frames: at most this many frames, evenly spread over the source (the first "
-    "and the last among them; a video that does not say its length gives its first N)", label="--more-frames-count", check=lambda v: v >= 1, requirement="at least 1",
-    metavar="N")
+    "and the last among them; a video that does not say its length gives its first N)", label="--more-frames-count",
+    check=lambda v: v >= 1, requirement="at least 1", metavar="N")
 """The count measured: 720 frames gained 0.04 PCK@0.5 in 45 minutes; 240 in 25 minutes gained nothing
 (docs/results.md)."""
+MORE_FRAMES_VIA = Setting(
+    "more_frames_via", str, None, "--more-frames: keep the frames the model labelled as this VIA project (a video's "
+    "frames saved as PNGs in images/ beside it), to look at, correct, and pass back as --more-frames OUT.json; kept "
+    "also when a later step fails (default: a temporary folder, removed)", label="--more-frames-via",
+    check=lambda v: v.lower().endswith(".json"), requirement="a .json file", metavar="OUT.json")
+"""None by default: a video's 720 frames as PNGs are hundreds of megabytes a user asks for."""
 PRUNED_START = Setting(
     "start", str, "auto",
     "the pruned network's weights before retraining: surgery (the base model's highest-ranked filters, the paper's), "

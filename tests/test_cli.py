@@ -156,7 +156,7 @@ def test_every_command_module_declares_the_outputs_it_creates():
         declared[module.NAME] = (*getattr(module, "OUTPUTS", ()), *getattr(module, "RESUMABLE_OUTPUTS", ()))
         assert set(declared[module.NAME]) <= _dests(commands[module.NAME]), module.NAME
         assert commands[module.NAME].get_default("_outputs") == getattr(module, "OUTPUTS", ())
-    assert declared["compress"] == ("out_dir",) and declared["export"] == ("out_dir", "json")
+    assert declared["compress"] == ("out_dir", "more_frames_via") and declared["export"] == ("out_dir", "json")
     for command in ("train", "evaluate", "bench", "run", "predict", "synth", "sweep"):
         assert declared[command], command
 

@@ -9,7 +9,7 @@ import pytest
 
 from fcnpose_tf import settings
 from fcnpose_tf.compression.options import CompressOptions
-from fcnpose_tf.correction.pseudolabel import label_frames, spread_indices
+from fcnpose_tf.correction.pseudolabel import label_frames, project_frames, spread_indices
 from fcnpose_tf.data.dataset import AddedFrames, load_dataset, with_training_frames
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema
@@ -17,7 +17,6 @@ from fcnpose_tf.runtime.estimator import Prediction, StageTimes
 from test_runtime import write_video
 from test_train_evaluate import make_via_folder
 from weights import randomize
-
 
 
 class _FixedPredictor:
@@ -98,9 +97,8 @@ def test_image_folder_frames_are_labelled_and_measured_frames_left_out(tmp_path)
     for i in (0, 4, 9):  # the same bytes under another name
         (folder / f"cam_{i:02d}.jpg").write_bytes((user / "images" / f"cam_{i % 3:02d}.jpg").read_bytes())
     predictor = _FixedPredictor(missing=2)
-    (tmp_path / "out").mkdir()
-    labelled = label_frames(predictor, folder, tmp_path / "out", 5, known_images=sorted((user / "images").iterdir()),
-                            labelled_by="arm.keras")
+    labelled = label_frames(predictor, folder, tmp_path / "out" / "p.json", 5,
+                            known_images=sorted((user / "images").iterdir()), labelled_by="arm.keras")
     picked = sorted(spread_indices(10, 5))
     assert picked == [0, 2, 4, 7, 9]
     assert (labelled.read, labelled.known, labelled.frames) == (5, 3, 2) and predictor.seen == 2
@@ -116,23 +114,75 @@ def test_image_folder_frames_are_labelled_and_measured_frames_left_out(tmp_path)
 def test_a_video_s_frames_are_saved_beside_the_project(tmp_path):
     frames = [np.full((48, 64, 3), 10 * i, np.uint8) for i in range(9)]
     video = write_video(tmp_path / "clip.avi", frames)
-    (tmp_path / "out").mkdir()
-    labelled = label_frames(_FixedPredictor(), video, tmp_path / "out", 3)
+    labelled = label_frames(_FixedPredictor(), video, tmp_path / "out" / "p.json", 3)
     assert (labelled.total, labelled.read, labelled.frames, labelled.keypoints) == (9, 3, 3, 24)
     saved = sorted(p.name for p in (tmp_path / "out" / "images").iterdir())
     assert saved == ["clip_000000.png", "clip_000004.png", "clip_000008.png"]
+    assert sorted(p.name for p in labelled.saved) == saved
     assert len(load_dataset(labelled.via_path, write_splits=False)) == 3
+    with pytest.raises(UserError, match="p.json: already exists; pass --force"):
+        label_frames(_FixedPredictor(), video, tmp_path / "out" / "p.json", 3)
+    again = label_frames(_FixedPredictor(missing=1), video, tmp_path / "out" / "p.json", 3, force=True)
+    assert again.keypoints == 21
+
+
+class _FailingPredictor(_FixedPredictor):
+    """Fails on its `fail_at`-th frame, as a model, a full disk or a Ctrl-C may."""
+
+    def __init__(self, fail_at: int):
+        super().__init__()
+        self.fail_at = fail_at
+
+    def predict(self, image):
+        if self.seen + 1 == self.fail_at:
+            raise KeyboardInterrupt
+        return super().predict(image)
+
+
+def test_a_labelling_stopped_midway_leaves_no_frame_and_no_project(tmp_path):
+    video = write_video(tmp_path / "clip.avi", [np.full((48, 64, 3), 10 * i, np.uint8) for i in range(9)])
+    with pytest.raises(KeyboardInterrupt):
+        label_frames(_FailingPredictor(fail_at=3), video, tmp_path / "out" / "p.json", 5)
+    assert not (tmp_path / "out" / "p.json").exists() and not list((tmp_path / "out").glob("images/*"))
 
 
 def test_nothing_to_add_is_an_error_naming_why(tmp_path):
     user = make_via_folder(tmp_path / "user", n=3)
-    (tmp_path / "out").mkdir()
     with pytest.raises(UserError, match="no frame to add \\(all 3 frames read are frames of --data or --test-data\\)"):
-        label_frames(_FixedPredictor(), user / "images", tmp_path / "out", 5,
+        label_frames(_FixedPredictor(), user / "images", tmp_path / "out" / "p.json", 5,
                      known_images=sorted((user / "images").iterdir()))
-    labelled = label_frames(_FixedPredictor(missing=6), user / "images", tmp_path / "out", 5)
+    labelled = label_frames(_FixedPredictor(missing=6), user / "images", tmp_path / "out" / "p.json", 5)
     with pytest.raises(UserError, match="in none of the 3 frames labelled did the model find 4 keypoints"):
         labelled.load(UR5, 4)
+
+
+def test_a_project_s_frames_are_added_with_their_labels_as_they_are(tmp_path):
+    """A VIA project (one --more-frames-via kept, then corrected): its labels unchanged, its frames that are the user's
+    left out, a frame with too few keypoints dropped, the rest spread evenly to the count, no splits file written."""
+    from fcnpose_tf.data.via import ViaFrame, write_via_project
+
+    user = make_via_folder(tmp_path / "user", n=3)
+    folder = make_via_folder(tmp_path / "more", n=11, seed=5)
+    for i in (0, 9):  # the same bytes under another name
+        (folder / "images" / f"cam_{i:02d}.jpg").write_bytes((user / "images" / f"cam_{i % 3:02d}.jpg").read_bytes())
+    original = load_dataset(folder, write_splits=False)
+    frames = [ViaFrame(s.filename, s.width, s.height, s.keypoints.copy()) for s in original.samples]
+    frames[10].keypoints[3:] = np.nan  # corrected: the model's points past the third were wrong
+    project = folder / "corrected.json"
+    write_via_project(project, frames, UR5)
+    (folder / "labels.json").unlink()
+    extra, added = project_frames(project, UR5, 4, 5, known_images=sorted((user / "images").iterdir()))
+    names = [s.filename for s in extra.samples]
+    assert names == ["cam_01.jpg", "cam_03.jpg", "cam_05.jpg", "cam_06.jpg", "cam_08.jpg"]  # 5 of 8, evenly spread
+    by_name = {s.filename: s.keypoints for s in original.samples}
+    assert all(np.array_equal(s.keypoints, by_name[s.filename]) for s in extra.samples)
+    assert added.labelled_by is None and added.frames == 5 and added.source == str(project)
+    assert added.description.startswith(f"5 frames of {project} (5 of its 8, evenly spread; its labels as they are, "
+                                        "40 keypoints; left out: 2 frames of --data or --test-data, 1 ")
+    assert not list(folder.glob("*.splits.json"))
+    with pytest.raises(UserError, match="no frame to add \\(all 2 of its frames are frames of --data"):
+        write_via_project(project, frames[:1] + frames[9:10], UR5, force=True)
+        project_frames(project, UR5, 4, 5, known_images=sorted((user / "images").iterdir()))
 
 
 def _saturated_model(path: Path) -> Path:
@@ -170,8 +220,65 @@ def test_compress_retrains_on_the_added_frames_and_says_so(cli_here, tmp_path):
     assert not list(Path(tmp_path).glob("**/more_frames.json"))  # the labelled project was the run's own
 
 
+@pytest.mark.slow  # two compress runs with one retraining epoch each: about 20 s of CPU
+@pytest.mark.usefixtures("few_timed_frames")
+def test_kept_frames_are_looked_at_corrected_and_added_as_they_are(cli_here, tmp_path):
+    """--more-frames-via keeps a video's labelled frames as a VIA project with its PNGs; passed back as --more-frames,
+    the project's frames join the retraining with their labels as they are (no model labels them again)."""
+    from fcnpose_tf.data.via import ViaFrame, write_via_project
+
+    base = _saturated_model(tmp_path / "arm.keras")
+    data = make_via_folder(tmp_path / "user", n=20)
+    video = write_video(tmp_path / "cell.avi", [np.full((48, 64, 3), 8 * i, np.uint8) for i in range(30)])
+    kept = tmp_path / "kept" / "more.json"
+    common = ("compress", "--rate", "0.7", "--model", base, "--data", data, "--retrain-epochs", "1", "--quantize",
+              "float16", "--threads", "1")
+    status, stdout, err = cli_here(*common, "--more-frames", video, "--more-frames-via", kept, "--more-frames-count",
+                                   "12", "--out-dir", tmp_path / "out")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert f"; kept in {kept} (look: `fcnpose-tf data inspect {kept} --out preview.png`" in stdout + err
+    labelled = load_dataset(kept, write_splits=False)
+    assert len(labelled) == 12 and len(list((kept.parent / "images").glob("cell_*.png"))) == 12
+    corrected = [ViaFrame(s.filename, s.width, s.height, s.keypoints + 1.0) for s in labelled.samples[:10]]
+    write_via_project(kept, corrected, UR5, force=True)  # a person's round: 2 frames deleted, every point moved
+    status, stdout, err = cli_here(*common, "--more-frames", kept, "--out-dir", tmp_path / "again")
+    assert status == 0, stdout[-3000:] + err[-3000:]
+    assert f"with 10 more frames of {kept}, their labels as they are); measured on 4" in stdout
+    added = json.loads((tmp_path / "again" / "arm_p70_report.json").read_text())["retrain_data"]["added_frames"]
+    assert (added["frames"], added["labelled_by"], added["source"]) == (10, None, str(kept))
+    assert "labelling frames" not in stdout + err
+
+
+@pytest.mark.slow  # one compress run's labelling and data: a few seconds of CPU
+def test_kept_frames_outlive_a_later_failure(cli_here, tmp_path, monkeypatch):
+    """The labelling is minutes of work: a run that fails after it keeps the project (named on the error line) and
+    removes its half-made output folder."""
+    import fcnpose_tf.compression.compress as pipeline
+
+    def fails(*args, **kwargs):
+        raise UserError("retraining failed (a stand-in for a full disk)")
+
+    monkeypatch.setattr(pipeline, "compress_model", fails)
+    base = _saturated_model(tmp_path / "arm.keras")
+    data = make_via_folder(tmp_path / "user", n=6)
+    video = write_video(tmp_path / "cell.avi", [np.full((48, 64, 3), 8 * i, np.uint8) for i in range(9)])
+    kept = tmp_path / "kept" / "more.json"
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--more-frames", video,
+                                   "--more-frames-via", kept, "--out-dir", tmp_path / "out", "--threads", "1")
+    assert status == 2 and "retraining failed" in err, err[-2000:]
+    assert "kept the files completed before it: " in err, err
+    assert err.rstrip().endswith(f"{kept}, {kept.parent / 'images'}"), err
+    assert len(load_dataset(kept, write_splits=False)) == 9 and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("extra, message", [
     (("--more-frames", "0"), "--more-frames 0: a camera; --more-frames reads a video file or an image folder"),
+    (("--more-frames-via", "{tmp}/k.json"), "--more-frames-via keeps the frames --more-frames labels"),
+    (("--more-frames", "{more}", "--more-frames-via", "{tmp}/k.txt"), "--more-frames-via must be a .json file"),
+    (("--more-frames", "{user}/labels.json", "--more-frames-via", "{tmp}/k.json"),
+     "labels.json is a VIA project, whose labels are used as they are"),
+    (("--more-frames", "{tmp}/missing.json"), "--more-frames {tmp}/missing.json: VIA project not found"),
+    (("--more-frames", "{more}", "--more-frames-via", "{user}/labels.json"), "labels.json: already exists"),
     (("--more-frames", "nothere"), "nothere: no such file or folder"),
     (("--more-frames", "{more}", "--more-frames-count", "0"), "--more-frames-count must be at least 1, got 0"),
     (("--more-frames", "{more}", "--retrain-epochs", "0"), "--more-frames adds frames to the retraining"),
@@ -181,8 +288,8 @@ def test_bad_more_frames_are_one_line_and_leave_nothing(cli_here, tmp_path, extr
     base = _saturated_model(tmp_path / "arm.keras")
     user = make_via_folder(tmp_path / "user", n=6)
     more = make_via_folder(tmp_path / "more", n=3, seed=3) / "images"
-    extra = [part.format(more=more, user=user) for part in extra]
+    extra = [part.format(more=more, user=user, tmp=tmp_path) for part in extra]
     status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", user, *extra,
                                    "--out-dir", tmp_path / "out", "--threads", "1")
-    assert status == 2 and message in err, err[-2000:]
-    assert not (tmp_path / "out").exists()
+    assert status == 2 and message.format(tmp=tmp_path) in err, err[-2000:]
+    assert not (tmp_path / "out").exists() and not list(tmp_path.glob("k.*"))

@@ -30,7 +30,8 @@ labelled by your model (--more-frames), else a lower --rate (`accuracy_note`).
 --more-frames VIDEO_OR_FOLDER: up to --more-frames-count frames of your camera (720, evenly spread), labelled by the
 model being compressed, join the retraining's training frames (never its validation frames), and the time budgets
 left at their defaults grow in proportion to the frames: on views that vary this kept the 70 % files nearest the
-unpruned model (docs/compression.md, "More frames of your look").
+unpruned model (docs/compression.md, "More frames of your look"). --more-frames-via OUT.json keeps the labelled frames
+as a VIA project to look at and correct; --more-frames OUT.json then adds them with their labels as they are.
 
 Exit status: 0 when every format was written, and also when a format of the default --quantize
 (float16,int8) was refused but at least one .tflite file was written; 2 (after the table, with an
@@ -42,6 +43,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
 import tempfile
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -52,7 +54,9 @@ if TYPE_CHECKING:
 
 NAME = "compress"
 USES_TENSORFLOW = True
-OUTPUTS = ("out_dir",)
+OUTPUTS = ("out_dir", "more_frames_via")
+FILE_OUTPUTS = ("more_frames_via",)
+"""The outputs that name files: one that exists is refused (without --force) before anything heavy is imported."""
 EXAMPLES = """\
   fcnpose-tf compress --rate 0.7                       # bundled baseline, synthetic data, ./compressed/
   fcnpose-tf compress --rate 0.7 --preset paper        # the paper's recipe: L1 ranking, its widths, 1e-3, float16
@@ -64,6 +68,9 @@ EXAMPLES = """\
   fcnpose-tf compress --rate 0.7 --max-minutes 30      # a longer retraining budget (default: 10 minutes)
   fcnpose-tf compress --rates 0.5,0.6,0.7 --model models/arm.keras --data my_frames/  # the trade-off, one table
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --more-frames cell.mp4  # + 720 frames
+  fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --more-frames cell.mp4 \\
+      --more-frames-via more/more.json                 # and keep the labelled frames, to look at and correct
+  fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --more-frames more/more.json  # as corrected
   fcnpose-tf compress --rate 0.7 --distill 0.5         # retrain half on the unpruned model's maps
   fcnpose-tf compress --rate 0.7 --input-size 192      # files at 192x192: 0.73x the MACs of 224
   fcnpose-tf compress --rate 0.7 --model models/arm.keras --data my_frames/ --out-dir models/
@@ -101,6 +108,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         setting.add_to(parser)
     settings.MORE_FRAMES.add_to(parser)
     settings.MORE_FRAMES_COUNT.add_to(parser)
+    settings.MORE_FRAMES_VIA.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.INHERITED_AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
@@ -148,12 +156,18 @@ def run(args: argparse.Namespace) -> int:
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     if args.more_frames is not None:  # the source opened once, before anything heavy: a wrong one fails at once
-        from fcnpose_tf.correction.pseudolabel import open_frames
+        from fcnpose_tf.correction.pseudolabel import check_source, is_project
 
         settings.MORE_FRAMES_COUNT.validate(args.more_frames_count)
         if args.retrain_epochs == 0:
             raise UserError("--more-frames adds frames to the retraining; --retrain-epochs 0 retrains nothing")
-        open_frames(args.more_frames).close()
+        settings.MORE_FRAMES_VIA.validate(args.more_frames_via)
+        if args.more_frames_via is not None and is_project(args.more_frames):
+            raise UserError(f"--more-frames-via keeps the frames the model labels; --more-frames {args.more_frames} "
+                            "is a VIA project, whose labels are used as they are")
+        check_source(args.more_frames)
+    elif args.more_frames_via is not None:
+        raise UserError("--more-frames-via keeps the frames --more-frames labels; give --more-frames VIDEO_OR_FOLDER")
     options = settings.from_args(args, CompressOptions, renamed={"patience": "retrain_patience"})
     # checked once (None settings: the run's choice; a wrong --start refused before the data), then each other rate
     checked = options.checked(model_path)
@@ -185,8 +199,13 @@ def run(args: argparse.Namespace) -> int:
         shared = SharedScoring()  # --rates: the base model measured and its filters scored once
         with contextlib.ExitStack() as stack:
             if args.more_frames is not None:  # labelled into a folder kept until the last rate's retraining is done
-                folder = stack.enter_context(tempfile.TemporaryDirectory(prefix="fcnpose-more-frames-"))
-                grown, every = _more_frames(args, model_path, train_dataset, eval_dataset, every, folder)
+                from fcnpose_tf.correction.pseudolabel import VIA_NAME, is_project
+
+                via = args.more_frames_via
+                if via is None and not is_project(args.more_frames):
+                    via = os.path.join(stack.enter_context(tempfile.TemporaryDirectory(prefix="fcnpose-more-frames-")),
+                                       VIA_NAME)
+                grown, every = _more_frames(args, model_path, train_dataset, eval_dataset, every, via)
                 # measured on the validation frames: the same frames, first in the grown dataset
                 eval_dataset = grown if eval_dataset is train_dataset else eval_dataset
                 train_dataset = grown
@@ -234,9 +253,11 @@ def run(args: argparse.Namespace) -> int:
     return _finish(report, outputs[0], named)
 
 
-def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_dataset, every: list, folder: str):
-    """--more-frames: the source's frames labelled by the model to compress into `folder`, added to the training
-    split of `dataset`; the time budgets of `every` rate's options grown for them (`with_added_frames`).
+def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_dataset, every: list,
+                 via: str | None):
+    """--more-frames: the source's frames labelled by the model to compress into the VIA project `via` (or a VIA
+    project's frames with their own labels), added to the training split of `dataset`; the time budgets of `every`
+    rate's options grown for them (`with_added_frames`).
 
     Returns:
         (the dataset with the frames, the options of every rate).
@@ -244,7 +265,7 @@ def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_datas
     import time
     from dataclasses import replace
 
-    from fcnpose_tf.correction.pseudolabel import label_frames
+    from fcnpose_tf.correction.pseudolabel import is_project, label_frames, project_frames
     from fcnpose_tf.data.dataset import with_training_frames
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.progress import current
@@ -253,19 +274,28 @@ def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_datas
 
     started = time.perf_counter()
     options = every[0].options
-    labeller = open_model(model_path, args.threads, Decoding(centroid=options.centroid, cluster=options.cluster))
     known = [sample.image_path for sample in (*dataset.samples, *eval_dataset.samples)]
-    labelled = label_frames(labeller, args.more_frames, folder, args.more_frames_count, known_images=known,
-                            labelled_by=str(model_path))
-    extra = labelled.load(dataset.schema, dataset.min_visible)
-    grown = with_training_frames(dataset, extra, labelled.added(len(extra), dataset.min_visible))
+    kept = ""
+    if is_project(args.more_frames):
+        extra, added = project_frames(args.more_frames, dataset.schema, dataset.min_visible, args.more_frames_count,
+                                      known_images=known)
+    else:
+        labeller = open_model(model_path, args.threads, Decoding(centroid=options.centroid, cluster=options.cluster))
+        labelled = label_frames(labeller, args.more_frames, via, args.more_frames_count, force=args.force,
+                                known_images=known, labelled_by=str(model_path))
+        extra = labelled.load(dataset.schema, dataset.min_visible)
+        added = labelled.added(len(extra), dataset.min_visible)
+        if args.more_frames_via is not None:
+            kept = (f"; kept in {labelled.via_path} (look: `fcnpose-tf data inspect {labelled.via_path} --out "
+                    f"preview.png`; correct in VIA, then pass it as --more-frames {labelled.via_path})")
+    grown = with_training_frames(dataset, extra, added)
     training = len(dataset.split(args.fold)[0])
     minutes = (time.perf_counter() - started) / 60
     every = [replace(each, options=each.options.with_added_frames(training, len(extra), minutes,
                                                                    getattr(args, GIVEN, ())))
              for each in every]
     budget = every[0].options
-    current().say(f"more frames: {grown.added.description}; retraining on {training} + {len(extra)} "
+    current().say(f"more frames: {added.description}{kept}; retraining on {training} + {len(extra)} "
                   f"frames, time budget {_minutes(budget.max_minutes)} of retraining, {_minutes(budget.total_minutes)} "
                   "in all (docs/compression.md, \"More frames of your look\")")
     return grown, every
@@ -274,8 +304,10 @@ def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_datas
 def _added(report: CompressReport) -> str:
     """The frames --more-frames added to the retraining, in words for the table's title ("" without)."""
     added = report.added_frames
-    return f", with {added['frames']} more frames of {added['source']} labelled by {added['labelled_by']}" if added \
-        else ""
+    if not added:
+        return ""
+    how = f" labelled by {added['labelled_by']}" if added["labelled_by"] else ", their labels as they are"
+    return f", with {added['frames']} more frames of {added['source']}{how}"
 
 
 def _minutes(value: float | None) -> str:

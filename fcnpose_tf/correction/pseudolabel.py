@@ -1,9 +1,10 @@
 """More frames of the user's camera for retraining, labelled by the user's own model (pseudo-labels).
 
 `label_frames` runs a model over up to `count` frames of a video or an image folder, evenly spread over it, and
-writes them as a VIA project into a folder the caller owns (`prelabel.ViaPredictions`: a video's frames saved as PNGs,
-images referenced where they are), skipping images that are frames of the user's labelled or measured sets. `compress
---more-frames` adds them to the retraining's training split only (`data.dataset.with_training_frames`): a 70 % network
+writes them as a VIA project (`prelabel.ViaPredictions`: a video's frames saved as PNGs, images referenced where they
+are), skipping images that are frames of the user's labelled or measured sets. `project_frames` reads such a project
+back, corrected by hand or not, with its labels as they are. `compress --more-frames` adds either to the retraining's
+training split only (`data.dataset.with_training_frames`): a 70 % network
 retrained on 720 such frames beside the user's 192 kept the unpruned model's PCK@0.5 within 0.02 on a look it was
 never pretrained on, where the user's frames alone lost 0.05 (docs/compression.md, "More frames of your look").
 """
@@ -13,14 +14,14 @@ from __future__ import annotations
 import logging
 import os
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterable
 
 import numpy as np
 
 from fcnpose_tf.correction.merge import same_image
-from fcnpose_tf.data.dataset import AddedFrames, Dataset, load_dataset
+from fcnpose_tf.data.dataset import AddedFrames, Dataset, load_dataset, resolve_data
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
@@ -29,7 +30,7 @@ from fcnpose_tf.runtime.estimator import KeypointPredictor
 from fcnpose_tf.runtime.sources import FrameSource, open_source
 
 VIA_NAME = "more_frames.json"
-"""The labelled frames' VIA project in the caller's folder."""
+"""The labelled frames' VIA project in a temporary folder (`compress --more-frames` without --more-frames-via)."""
 
 
 @dataclass(frozen=True)
@@ -55,10 +56,12 @@ class LabelledFrames:
     seconds: float
     most_points: int
     """The most keypoints the model found in one frame."""
+    saved: tuple[Path, ...] = ()
+    """A video's frames saved as PNGs for the project (an image folder's are referenced)."""
 
     def load(self, schema: KeypointSchema, min_visible: int) -> Dataset:
         """The frames as a dataset of `schema`, those with fewer than `min_visible` keypoints left out (counted by
-        `added`, not warned about: the project is the caller's temporary file).
+        `added`, not warned about: the warning would repeat the count, naming a file the user may not know).
 
         Raises:
             UserError: no frame has `min_visible` keypoints.
@@ -149,17 +152,20 @@ def _is_known(path: Path, known: dict[int, list[Path]]) -> bool:
     return any(same_image(path, other) for other in known.get(size, ()))
 
 
-def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, folder: str | os.PathLike, count: int,
-                 *, known_images: Iterable[str | os.PathLike] = (), labelled_by: str = "the model",
-                 reporter: Reporter | None = None) -> LabelledFrames:
-    """Label up to `count` frames of a video or image folder with a model, as a VIA project in `folder`.
+def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, via_path: str | os.PathLike,
+                 count: int, *, force: bool = False, known_images: Iterable[str | os.PathLike] = (),
+                 labelled_by: str = "the model", reporter: Reporter | None = None) -> LabelledFrames:
+    """Label up to `count` frames of a video or image folder with a model, as the VIA project `via_path`.
 
     Args:
         predictor: the model (its keypoints become the frames' labels; those it does not find are left out).
         source_spec: a video file or an image folder (a camera is refused: a run needs a fixed set of frames).
-        folder: an empty folder the caller owns and removes (the project and a video's frames go there).
+        via_path: the .json project to write (a video's frames go to images/ beside it); a project that is
+            complete is kept and named by the command's exit path however it ends, the frames of one that is not
+            are removed.
         count: at most this many frames, evenly spread over the source (`spread_indices`; the first `count` frames
             when a video does not say its length).
+        force: replace an existing project and frame PNGs of the same names.
         known_images: image files of the user's labelled and measured sets: a source image that is one of them
             (the same file, or the same bytes) is left out, so no measured frame is trained on.
         labelled_by: the model's name, for the record.
@@ -167,7 +173,8 @@ def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, f
     Returns:
         What was written (`LabelledFrames`).
     Raises:
-        UserError: a camera or a missing, unreadable or empty source; `count` below 1; no frame left to write.
+        UserError: a camera or a missing, unreadable or empty source; `count` below 1; an existing project without
+            `force`; no frame left to write.
     """
     from fcnpose_tf.correction.prelabel import ViaPredictions
 
@@ -176,11 +183,12 @@ def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, f
     reporter = resolve(reporter)
     started = time.perf_counter()
     source = open_frames(source_spec)
+    collected = None
     try:
         total = source_length(source)
         wanted = spread_indices(total, count)
         known = _known_images(known_images) if source.kind == "images" else {}
-        collected = ViaPredictions(Path(folder) / VIA_NAME, predictor.schema, source)
+        collected = ViaPredictions(via_path, predictor.schema, source, force=force)
         read = left_out = 0
         expected = len(wanted) if wanted is not None else count
         with reporter.counter(expected, f"labelling frames of {source_spec} with {labelled_by}") as counter:
@@ -196,6 +204,10 @@ def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, f
                 if read >= expected:
                     break
         written = collected.close()
+    except BaseException:
+        if collected is not None:
+            collected.discard()
+        raise
     finally:
         source.close()
     if written is None:
@@ -203,7 +215,65 @@ def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, f
         raise UserError(f"{source_spec}: no frame to add ({why})")
     return LabelledFrames(written, os.fspath(source_spec), total, read, left_out, len(collected.frames),
                           collected.points, collected.not_found, labelled_by, round(time.perf_counter() - started, 1),
-                          max(int(np.isfinite(frame.keypoints).all(axis=1).sum()) for frame in collected.frames))
+                          max(int(np.isfinite(frame.keypoints).all(axis=1).sum()) for frame in collected.frames),
+                          tuple(collected.saved))
 
 
-__all__ = ["LabelledFrames", "VIA_NAME", "spread_indices", "label_frames", "open_frames", "source_length"]
+def is_project(source_spec: str | os.PathLike) -> bool:
+    """Whether a --more-frames source is a VIA project (its frames added with their labels) rather than frames."""
+    return Path(source_spec).suffix.lower() == ".json"
+
+
+def check_source(source_spec: str | os.PathLike) -> None:
+    """Refuse, before anything heavy, a --more-frames source that cannot be read: a missing project, a camera, a
+    missing or unreadable video, a folder without images (`open_frames`).
+
+    Raises:
+        UserError: as above, naming --more-frames.
+    """
+    if is_project(source_spec):
+        if not Path(source_spec).is_file():
+            raise UserError(f"--more-frames {source_spec}: VIA project not found")
+        resolve_data(source_spec)
+    else:
+        open_frames(source_spec).close()
+
+
+def project_frames(project: str | os.PathLike, schema: KeypointSchema, min_visible: int, count: int, *,
+                   known_images: Iterable[str | os.PathLike] = ()) -> tuple[Dataset, AddedFrames]:
+    """The frames of a VIA project with their labels as they are (one `label_frames` wrote and a person corrected,
+    or any project of the same keypoints): up to `count` of them, evenly spread, those that are frames of the
+    user's sets left out.
+
+    Args:
+        project: the VIA .json file (its images beside it, in images/, or where it says).
+        schema: the keypoints the model to compress predicts.
+        min_visible: frames with fewer labelled keypoints are left out (warned about: the file is the user's).
+        count: at most this many frames (`spread_indices` over those left).
+        known_images: image files of the user's labelled and measured sets, left out (`label_frames`).
+    Returns:
+        (the frames as a dataset whose own splits are not to be read, how the records name them).
+    Raises:
+        UserError: not a readable VIA project of `schema`'s keypoints, or no frame left.
+    """
+    started = time.perf_counter()
+    loaded = load_dataset(project, schema=schema, min_visible=min_visible, write_splits=False)
+    known = _known_images(known_images)
+    unknown = [sample for sample in loaded.samples if not _is_known(Path(sample.image_path), known)]
+    if not unknown:
+        raise UserError(f"--more-frames {project}: no frame to add (all {len(loaded)} of its frames are frames of "
+                        "--data or --test-data)")
+    samples = [unknown[i] for i in sorted(spread_indices(len(unknown), count))]
+    left = [f"{len(loaded) - len(unknown)} frames of --data or --test-data"] if len(unknown) < len(loaded) else []
+    left += [f"{n} {reason}" for reason, n in loaded.dropped.items() if n]
+    spread = f"{len(samples)} of its {len(unknown)}, evenly spread; " if len(samples) < len(unknown) else ""
+    points = sum(int(np.isfinite(sample.keypoints).all(axis=1).sum()) for sample in samples)
+    description = (f"{len(samples)} frames of {project} ({spread}its labels as they are, {points:,} keypoints"
+                   f"{'; left out: ' + ', '.join(left) if left else ''}; read in "
+                   f"{(time.perf_counter() - started) / 60:.1f} min)")
+    added = AddedFrames(os.fspath(project), None, len(samples), description)
+    return replace(loaded, samples=samples), added
+
+
+__all__ = ["LabelledFrames", "VIA_NAME", "spread_indices", "label_frames", "open_frames", "source_length",
+           "is_project", "check_source", "project_frames"]

@@ -57,9 +57,9 @@ class AddedFrames:
     """Frames added to every training split of a dataset (`with_training_frames`), as its records name them."""
 
     source: str
-    """Where they came from (a video, an image folder), as the user named it."""
-    labelled_by: str
-    """What labelled them (a model's file)."""
+    """Where they came from (a video, an image folder, a VIA project), as the user named it."""
+    labelled_by: str | None
+    """What labelled them (a model's file); None: a project's own labels, as they are."""
     frames: int
     description: str
     """One line: how many, how chosen, how labelled."""
