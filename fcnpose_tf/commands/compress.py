@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     if not Path(model_path).is_file():
         raise UserError(f"{model_path}: model file not found")
     if args.more_frames is not None:  # the source opened once, before anything heavy: a wrong one fails at once
-        from fcnpose_tf.correction.pseudolabel import check_source, is_project
+        from fcnpose_tf.correction.pseudolabel import VIA_NAME, check_source, is_project
 
         settings.MORE_FRAMES_COUNT.validate(args.more_frames_count)
         if args.retrain_epochs == 0:
@@ -199,8 +199,6 @@ def run(args: argparse.Namespace) -> int:
         shared = SharedScoring()  # --rates: the base model measured and its filters scored once
         with contextlib.ExitStack() as stack:
             if args.more_frames is not None:  # labelled into a folder kept until the last rate's retraining is done
-                from fcnpose_tf.correction.pseudolabel import VIA_NAME, is_project
-
                 via = args.more_frames_via
                 if via is None and not is_project(args.more_frames):
                     via = os.path.join(stack.enter_context(tempfile.TemporaryDirectory(prefix="fcnpose-more-frames-")),

@@ -56,8 +56,6 @@ class LabelledFrames:
     seconds: float
     most_points: int
     """The most keypoints the model found in one frame."""
-    saved: tuple[Path, ...] = ()
-    """A video's frames saved as PNGs for the project (an image folder's are referenced)."""
 
     def load(self, schema: KeypointSchema, min_visible: int) -> Dataset:
         """The frames as a dataset of `schema`, those with fewer than `min_visible` keypoints left out (counted by
@@ -215,8 +213,7 @@ def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, v
         raise UserError(f"{source_spec}: no frame to add ({why})")
     return LabelledFrames(written, os.fspath(source_spec), total, read, left_out, len(collected.frames),
                           collected.points, collected.not_found, labelled_by, round(time.perf_counter() - started, 1),
-                          max(int(np.isfinite(frame.keypoints).all(axis=1).sum()) for frame in collected.frames),
-                          tuple(collected.saved))
+                          max(int(np.isfinite(frame.keypoints).all(axis=1).sum()) for frame in collected.frames))
 
 
 def is_project(source_spec: str | os.PathLike) -> bool:
