@@ -499,6 +499,9 @@ def test_time_budget_ends_training_after_the_epoch_that_reaches_it(tmp_path):
     assert result.epochs_run == 1 and not result.stopped_early and result.stopped_by_time_budget
     record = json.loads((tmp_path / "m_train.json").read_text())
     assert record["stopped_by_time_budget"] is True and record["config"]["max_minutes"] == 1e-6
+    last = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "one.keras",
+                     train.FitConfig(epochs=1, patience=5, batch_size=4, max_minutes=1e-6), reporter=SILENT)
+    assert last.epochs_run == 1 and not last.stopped_by_time_budget  # reached by the last epoch: it stopped nothing
     with pytest.raises(UserError, match="time budget must be a positive number of minutes"):
         train.FitConfig(max_minutes=0).validate()
 

@@ -492,7 +492,9 @@ class _CheckpointAndStop(keras.callbacks.Callback):
                 keras.backend.set_value(lr_var, max(lr * 0.5, MIN_LEARNING_RATE))  # saved with the optimizer
         self.state["epoch"] = epoch + 1
         self.state["seconds"] = self.trained_seconds()
-        self.state["out_of_time"] = self.max_seconds is not None and self.state["seconds"] >= self.max_seconds
+        # the budget stops the run only when epochs are left: one reached by the last epoch stopped nothing
+        self.state["out_of_time"] = (self.max_seconds is not None and self.state["seconds"] >= self.max_seconds
+                                     and epoch + 1 < self.epochs)
         files = [self.paths["ckpt_best"]] if improved else []
         files += [self.paths["ckpt_model"], self.paths["ckpt_state"]]  # the state renamed last: the epoch is complete
         with parts_of(self.paths["ckpt_dir"]), atomic_paths(files, force=True) as temporaries:
