@@ -35,7 +35,7 @@ most (docs/compression.md, "More frames of your look")."""
 def _more_frames_advice(report: CompressReport) -> str:
     """MORE_FRAMES_ADVICE, or for a run that added frames already, how many and what more would take: more of them,
     and, when a model labelled them, their labels corrected (the same 720 frames with their true labels lost 0.006
-    PCK@0.05 where the model's labels lost 0.018-0.037: docs/compression.md, "More frames of your look")."""
+    PCK@0.05 where the model's labels lost 0.018-0.068: docs/compression.md, "More frames of your look")."""
     added = report.added_frames
     if not added:
         return MORE_FRAMES_ADVICE
