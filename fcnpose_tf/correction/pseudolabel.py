@@ -21,7 +21,7 @@ from typing import Iterable
 import numpy as np
 
 from fcnpose_tf.correction.merge import same_image
-from fcnpose_tf.data.dataset import AddedFrames, Dataset, load_dataset, resolve_data
+from fcnpose_tf.data.dataset import AddedFrames, Dataset, load_dataset
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import KeypointSchema
@@ -231,7 +231,6 @@ def check_source(source_spec: str | os.PathLike) -> None:
     if is_project(source_spec):
         if not Path(source_spec).is_file():
             raise UserError(f"--more-frames {source_spec}: VIA project not found")
-        resolve_data(source_spec)
     else:
         open_frames(source_spec).close()
 
