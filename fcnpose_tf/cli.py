@@ -178,7 +178,8 @@ def run_guarded(work: Callable[[], int | None], *, debug: bool = False, private_
     `private_temp` gives it a private temporary folder; `quiet` turns progress bars into log lines.
     """
     reporter = progress.Reporter(quiet=quiet)
-    with progress.using(reporter), fileio.command_outputs() as outputs, fileio.stop_signals_handled(), \
+    with _stdout_past_a_closed_pipe(), progress.using(reporter), fileio.command_outputs() as outputs, \
+            fileio.stop_signals_handled(), \
             (fileio.private_temporary_folder() if private_temp else contextlib.nullcontext()):
         try:
             status = int(work() or 0)
@@ -213,6 +214,52 @@ def run_guarded(work: Callable[[], int | None], *, debug: bool = False, private_
             print(reason + _kept(outputs), file=sys.stderr, flush=True)
             return stop_status
         return status
+
+
+class _ReportStream:
+    """Standard output while a command runs: once the reader of its pipe has gone (`synth ... | head -1`), what is
+    still written is dropped instead of raising BrokenPipeError, so the command finishes its files (they are the
+    product; the report is what the reader chose to cut short) and ends with its own status."""
+
+    def __init__(self, stream):
+        self._stream = stream
+        self.reader_gone = False
+
+    def write(self, text: str) -> int:
+        if not self.reader_gone:
+            try:
+                return self._stream.write(text)
+            except BrokenPipeError:
+                self._drop_the_rest()
+        return len(text)
+
+    def flush(self) -> None:
+        if not self.reader_gone:
+            try:
+                self._stream.flush()
+            except BrokenPipeError:
+                self._drop_the_rest()
+
+    def _drop_the_rest(self) -> None:
+        self.reader_gone = True
+        with contextlib.suppress(AttributeError, OSError, ValueError):  # the descriptor too: the interpreter's
+            devnull = os.open(os.devnull, os.O_WRONLY)                 # last flush at exit then finds no pipe
+            os.dup2(devnull, self._stream.fileno())
+            os.close(devnull)
+
+    def __getattr__(self, name: str):
+        return getattr(self._stream, name)
+
+
+@contextlib.contextmanager
+def _stdout_past_a_closed_pipe():
+    """`sys.stdout` as a `_ReportStream` for the block."""
+    stream = sys.stdout
+    sys.stdout = _ReportStream(stream)
+    try:
+        yield
+    finally:
+        sys.stdout = stream
 
 
 def run_tool(tool_main: Callable[[], int | None]) -> int:

@@ -13,6 +13,7 @@ import pytest
 
 from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.cli import main
+from fcnpose_tf.data.via import read_via
 
 LONG = "n" * 300  # longer than any file system's file name limit (255 bytes)
 STATUS = {signal.SIGINT: 130, signal.SIGTERM: 143}
@@ -262,6 +263,24 @@ def test_synth_force_stopped_keeps_the_earlier_set_whole(tmp_path):
     after = {p.relative_to(ds): p.read_bytes() for p in ds.rglob("*") if p.is_file()}
     assert after == before and sorted(p.name for p in ds.iterdir()) == ["images", "ur5_synth.json"]
 
+
+
+def test_a_pipe_whose_reader_has_gone_loses_the_report_not_the_files(tmp_path):
+    """`synth ... | head -1`: the reader gone (here before the first line), the command still writes every frame and
+    its project and ends with status 0 and nothing on stderr; what it would have printed is dropped."""
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # every write to the pipe now fails with EPIPE
+    ds = tmp_path / "ds"
+    try:
+        done = subprocess.run([sys.executable, "-m", "fcnpose_tf", "synth", "--out", str(ds), "--n", "3", "--width",
+                               "64", "--height", "64", "--workers", "1"], stdout=write_end, stderr=subprocess.PIPE,
+                              text=True, cwd=tmp_path, timeout=PROCESS_TIMEOUT,
+                              env=dict(os.environ, TF_CPP_MIN_LOG_LEVEL="2"))
+    finally:
+        os.close(write_end)
+    assert (done.returncode, done.stderr) == (0, "")
+    assert len(read_via(ds / "ur5_synth.json").frames) == 3
+    assert sorted(p.name for p in (ds / "images").iterdir()) == [f"synth_{i:05d}.png" for i in range(3)]
 
 def _tmpdir_holds_a_file(tmpdir):
     return any(p.is_file() for p in tmpdir.rglob("*"))
