@@ -175,6 +175,26 @@ def test_predict_select_on_images_by_disagree_references_the_picked_images(capsy
     assert not (tmp_path / "images").exists()
 
 
+
+def test_more_picks_than_a_contact_sheet_are_named_by_the_highest_scores(capsys, tmp_path):
+    """--select 13 of 14 stills: the line names the 12 highest-scoring picks, highest first, and where the other one
+    is, not every pick (200 picks were one line of 6,000 characters)."""
+    import cv2
+
+    folder = tmp_path / "stills"
+    folder.mkdir()
+    for i in range(14):
+        cv2.imwrite(str(folder / f"f{i:02d}.png"), quadrant_frame(160, 120, RED_CYCLE[i % 4]))
+    via = tmp_path / "pre.json"
+    code, out, err = _run(capsys, "predict", BUNDLED_P70, "--source", folder, "--via", via, "--select", "13",
+                          "--by", "uncertain", "--threads", 1)
+    assert code == 0, err
+    line = out.split("Selected")[1].splitlines()[0]
+    named, rest = line.split("the 12 highest-scoring: ")[1].split("; the other 1 in ")
+    scores = [float(pick.rsplit("(", 1)[1].rstrip(")")) for pick in named.split(", ")]
+    assert len(scores) == 12 and scores == sorted(scores, reverse=True)
+    assert rest == str(via) and len(read_via(via, min_visible=0).frames) == 13
+
 def test_select_options_are_checked_before_the_model_loads(capsys, tmp_path, clip12):
     via = tmp_path / "pre.json"
     code, _, err = _run(capsys, "predict", BUNDLED_P70, "--source", clip12, "--via", via, "--by", "jump")

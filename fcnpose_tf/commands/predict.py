@@ -196,7 +196,21 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
     fewer = (f" (only {len(picks)} fit {gap} frames apart in {len(scores.records)} processed frames)"
              if len(picks) < args.select else "")
     print(f"Selected {len(picks)} of {len(scores.records)} processed frames by {args.by}, at least {gap} frame(s) "
-          f"apart{fewer}: " + ", ".join(names[r.index] + (f" ({score[r.index]:.3g})" if args.by != "uniform" else "")
-                                       for r in picks))
+          f"apart{fewer}: {_picks_named(picks, names, score if args.by != 'uniform' else None, written)}")
     print(f"{written}: {collected.describe()}")
     return 0
+
+
+def _picks_named(picks: list, names: dict[int, str], score: dict[int, float] | None, via) -> str:
+    """The picks by name (with their scores) in source order; more than the contact sheet's SHEET_TILES of them: the
+    highest-scoring SHEET_TILES, highest first (a uniform choice: the first), and how many more `via` holds."""
+    from fcnpose_tf.correction.prelabel import SHEET_TILES
+
+    shown = picks
+    if len(picks) > SHEET_TILES:
+        shown = sorted(picks, key=lambda r: -score[r.index])[:SHEET_TILES] if score else picks[:SHEET_TILES]
+    listed = ", ".join(names[r.index] + (f" ({score[r.index]:.3g})" if score else "") for r in shown)
+    if len(shown) == len(picks):
+        return listed
+    which = "highest-scoring" if score else "first"
+    return f"the {len(shown)} {which}: {listed}; the other {len(picks) - len(shown)} in {via}"
