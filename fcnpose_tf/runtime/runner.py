@@ -134,12 +134,12 @@ class RunSummary:
         if len(self.raw_steps_px):
             raw = float(np.median(self.raw_steps_px))
             if self.smoothing is None:
-                lines.append(f"Steadiness: keypoints moved a median {raw:.2f} px from frame to frame (all of it "
-                             "jitter where the arm stands still; --smooth filters it)")
+                lines.append(f"Steadiness: keypoints moved a median {raw:.2f} px from frame to frame (the arm's "
+                             "motion and jitter; where the arm stands still it is all jitter, which --smooth filters)")
             else:
                 lines.append(f"Smoothing: {self.smoothing.describe()}; keypoints moved a median {raw:.2f} px from "
                              f"frame to frame as the model found them, {float(np.median(self.steps_px)):.2f} px as "
-                             "written (all of it jitter where the arm stands still)")
+                             "written (the arm's motion and jitter; where the arm stands still it is all jitter)")
             lines.append(self._jitter())
         if model.view.crop is not None:
             lines.append(f"Crop:    the model sees {model.view.describe()}; {self.crop_edge_frames} of {self.frames} "
