@@ -341,7 +341,7 @@ def test_run_reports_how_steady_the_keypoints_are_and_what_smoothing_did(capsys,
     assert frame_step_px(np.array([[0.0, 0.0], [np.nan, 0.0]]), np.array([[3.0, 4.0], [1.0, 1.0]])) == 5.0
     code, out, err = _run(capsys, "run", model_path, "--source", video, "--threads", 1)
     assert code == 0, err
-    assert "Steadiness: keypoints moved a median" in out and "--smooth filters it" in out
+    assert "Steadiness: keypoints moved a median" in out and "all jitter, which --smooth filters" in out
     code, out, err = _run(capsys, "run", model_path, "--source", video, "--threads", 1, "--smooth")
     assert code == 0, err
     line = next(line for line in out.splitlines() if line.startswith("Smoothing: One-Euro filter (cut-off"))
