@@ -387,8 +387,8 @@ def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_r
     added = {"fold": None, "added_frames": {"source": "cell.mp4", "labelled_by": "arm.keras", "frames": 720,
                                             "description": "720 frames"}}
     after_more = accuracy_note(_report(retrain_data=added))
-    assert "; this run retrained on 720 more frames of cell.mp4: more of them (--more-frames-count), or their labels " \
-           "corrected (--more-frames-via OUT.json, then --more-frames OUT.json) may keep more of it " \
+    assert "; this run retrained on 720 more frames of cell.mp4: more of them (--more-frames-count), or every one " \
+           "of their labels corrected (--more-frames-via OUT.json, then --more-frames OUT.json) may keep more of it " \
            "(docs/compression.md, \"More frames of your look\"); else a lower --rate" in after_more
     assert "VIDEO_OR_FOLDER" not in after_more
     as_corrected = dict(added, added_frames=dict(added["added_frames"], source="more.json", labelled_by=None))

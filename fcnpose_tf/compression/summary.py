@@ -34,12 +34,12 @@ most (docs/compression.md, "More frames of your look")."""
 
 def _more_frames_advice(report: CompressReport) -> str:
     """MORE_FRAMES_ADVICE, or for a run that added frames already, how many and what more would take: more of them,
-    and, when a model labelled them, their labels corrected (the same 720 frames with their true labels lost 0.006
-    PCK@0.05 where the model's labels lost 0.018-0.068: docs/compression.md, "More frames of your look")."""
+    and, when a model labelled them, every label corrected (docs/compression.md, "More frames of your look": true
+    labels for all the frames kept the fine-localisation budget, true labels for a part of them did not)."""
     added = report.added_frames
     if not added:
         return MORE_FRAMES_ADVICE
-    corrected = (", or their labels corrected (--more-frames-via OUT.json, then --more-frames OUT.json)"
+    corrected = (", or every one of their labels corrected (--more-frames-via OUT.json, then --more-frames OUT.json)"
                  if added["labelled_by"] else "")
     return (f"this run retrained on {added['frames']} more frames of {added['source']}: more of them "
             f"(--more-frames-count){corrected} may keep more of it (docs/compression.md, \"More frames of your look\")")
