@@ -152,13 +152,18 @@ def test_predict_select_writes_only_the_picked_video_frames(capsys, tmp_path, cl
     assert len(json.loads(via2.read_text())["_via_img_metadata"]) == 3
 
 
-def test_predict_select_on_images_by_disagree_references_the_picked_images(capsys, tmp_path):
-    folder = tmp_path / "frames"
-    folder.mkdir()
+def _stills(folder: Path, count: int) -> Path:
+    """`count` PNG frames f00.png, f01.png ... of the quadrant patch in turn (RED_CYCLE), in a new `folder`."""
     import cv2
 
-    for i in range(5):
-        cv2.imwrite(str(folder / f"f{i}.png"), quadrant_frame(160, 120, RED_CYCLE[i % 4]))
+    folder.mkdir()
+    for i in range(count):
+        cv2.imwrite(str(folder / f"f{i:02d}.png"), quadrant_frame(160, 120, RED_CYCLE[i % 4]))
+    return folder
+
+
+def test_predict_select_on_images_by_disagree_references_the_picked_images(capsys, tmp_path):
+    folder = _stills(tmp_path / "frames", 5)
     via = tmp_path / "pre.json"
     code, out, err = _run(capsys, "predict", BUNDLED_P70, "--source", folder, "--via", via, "--select", "2",
                           "--by", "disagree", "--threads", 1)
@@ -175,16 +180,10 @@ def test_predict_select_on_images_by_disagree_references_the_picked_images(capsy
     assert not (tmp_path / "images").exists()
 
 
-
 def test_more_picks_than_a_contact_sheet_are_named_by_the_highest_scores(capsys, tmp_path):
     """--select 13 of 14 stills: the line names the 12 highest-scoring picks, highest first, and where the other one
     is, not every pick (200 picks were one line of 6,000 characters)."""
-    import cv2
-
-    folder = tmp_path / "stills"
-    folder.mkdir()
-    for i in range(14):
-        cv2.imwrite(str(folder / f"f{i:02d}.png"), quadrant_frame(160, 120, RED_CYCLE[i % 4]))
+    folder = _stills(tmp_path / "stills", 14)
     via = tmp_path / "pre.json"
     code, out, err = _run(capsys, "predict", BUNDLED_P70, "--source", folder, "--via", via, "--select", "13",
                           "--by", "uncertain", "--threads", 1)
@@ -194,6 +193,7 @@ def test_more_picks_than_a_contact_sheet_are_named_by_the_highest_scores(capsys,
     scores = [float(pick.rsplit("(", 1)[1].rstrip(")")) for pick in named.split(", ")]
     assert len(scores) == 12 and scores == sorted(scores, reverse=True)
     assert rest == str(via) and len(read_via(via, min_visible=0).frames) == 13
+
 
 def test_select_options_are_checked_before_the_model_loads(capsys, tmp_path, clip12):
     via = tmp_path / "pre.json"
