@@ -264,7 +264,6 @@ def test_synth_force_stopped_keeps_the_earlier_set_whole(tmp_path):
     assert after == before and sorted(p.name for p in ds.iterdir()) == ["images", "ur5_synth.json"]
 
 
-
 def test_a_pipe_whose_reader_has_gone_loses_the_report_not_the_files(tmp_path):
     """`synth ... | head -1`: the reader gone (here before the first line), the command still writes every frame and
     its project and ends with status 0 and nothing on stderr; what it would have printed is dropped."""
@@ -281,6 +280,7 @@ def test_a_pipe_whose_reader_has_gone_loses_the_report_not_the_files(tmp_path):
     assert (done.returncode, done.stderr) == (0, "")
     assert len(read_via(ds / "ur5_synth.json").frames) == 3
     assert sorted(p.name for p in (ds / "images").iterdir()) == [f"synth_{i:05d}.png" for i in range(3)]
+
 
 def _tmpdir_holds_a_file(tmpdir):
     return any(p.is_file() for p in tmpdir.rglob("*"))
