@@ -68,6 +68,9 @@ def test_round_trip_through_via_and_a_hand_correction(capsys, tmp_path, synth_fr
         np.testing.assert_allclose(frame.keypoints, want, atol=1e-3)  # VIA keeps 1/1000 px
     found = sum(int(np.isfinite(k).all(axis=1).sum()) for k in predicted)
     assert f"{len(images)} frames, {found} keypoints as points" in stdout
+    steadiness = next(line for line in stdout.splitlines() if line.startswith("Steadiness:"))
+    assert "px from image to image in name order (for a sequence of frames, the arm's motion" in steadiness
+    assert steadiness.endswith("for stills that are not one it measures nothing)")
 
     # In VIA: move the first frame's elbow, delete the second frame's tool, save the project.
     data = json.loads(via.read_text())

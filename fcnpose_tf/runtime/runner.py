@@ -29,7 +29,7 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import signals_deferred
 from fcnpose_tf.runtime.estimator import KeypointPredictor, Prediction, StageTimes
 from fcnpose_tf.runtime.sinks import RecordWriter, RollingFps, VideoSink, draw_overlay
-from fcnpose_tf.runtime.sources import Frame, FrameSource
+from fcnpose_tf.runtime.sources import Frame, FrameSource, ImageSource
 from fcnpose_tf.runtime.timing import FPS_DEFINITION, LatencyLog, describe_ms
 from fcnpose_tf.smoothing import STILL_LEVELS, STILL_THUMBNAIL_WIDTH, KeypointSmoother, OneEuroParams, \
     frame_step_px, is_still, jitter_rms
@@ -133,13 +133,18 @@ class RunSummary:
                          f"({DELIVERED_DEFINITION})")
         if len(self.raw_steps_px):
             raw = float(np.median(self.raw_steps_px))
+            stills = isinstance(source, ImageSource)
+            step = "from image to image in name order" if stills else "from frame to frame"
+            meaning = ("the arm's motion and jitter; where the arm stands still it is all jitter"
+                       + (", which --smooth filters" if self.smoothing is None else ""))
+            if stills:
+                meaning = f"for a sequence of frames, {meaning}; for stills that are not one it measures nothing"
             if self.smoothing is None:
-                lines.append(f"Steadiness: keypoints moved a median {raw:.2f} px from frame to frame (the arm's "
-                             "motion and jitter; where the arm stands still it is all jitter, which --smooth filters)")
+                lines.append(f"Steadiness: keypoints moved a median {raw:.2f} px {step} ({meaning})")
             else:
-                lines.append(f"Smoothing: {self.smoothing.describe()}; keypoints moved a median {raw:.2f} px from "
-                             f"frame to frame as the model found them, {float(np.median(self.steps_px)):.2f} px as "
-                             "written (the arm's motion and jitter; where the arm stands still it is all jitter)")
+                lines.append(f"Smoothing: {self.smoothing.describe()}; keypoints moved a median {raw:.2f} px {step} "
+                             f"as the model found them, {float(np.median(self.steps_px)):.2f} px as written "
+                             f"({meaning})")
             lines.append(self._jitter())
         if model.view.crop is not None:
             lines.append(f"Crop:    the model sees {model.view.describe()}; {self.crop_edge_frames} of {self.frames} "
