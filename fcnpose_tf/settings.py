@@ -497,8 +497,12 @@ allow three halvings before stopping: the bundled baseline's recipe (saved_model
 RETRAIN_PATIENCE = PATIENCE.variant(
     name="retrain_patience", default=5, paper=5, label="retraining patience",
     help="early-stopping patience while retraining")
-"""Retraining starts from trained weights and converges within a few epochs; 20 epochs of patience
-would mostly retrain past the best epoch. The paper states no retraining patience, so its preset keeps 5."""
+"""The sweep's retraining patience: the paper states none, and its tables were reproduced with 5."""
+COMPRESS_RETRAIN_PATIENCE = RETRAIN_PATIENCE.variant(default=10)
+"""`compress`'s: the validation loss of a retraining over a few hundred frames is noisy, its plateaus last up to 7
+epochs before a better one (halving the learning rate after 3), and the epochs past them placed keypoints more finely;
+within the 25 epochs and the time budget, early stopping after 10 mostly only ends an idle run that has converged
+(docs/compression.md, "Retraining"). `--preset paper` keeps 5."""
 RETRAIN_EPOCHS = Setting(
     "retrain_epochs", int, 25, "retraining epochs with early stopping (the paper: up to 100); 0 skips retraining",
     label="retrain epochs", check=lambda v: v >= 0, requirement=">= 0", paper=100)

@@ -65,8 +65,9 @@ def test_commands_that_differ_use_their_own_variant():
 
     train, compress, sweep = _parsed(*TRAIN), _parsed("compress", "--rate", "0.5"), _parsed("sweep")
     assert (train.epochs, sweep.epochs) == (FitConfig().epochs, SweepConfig("o", "d").epochs) == (500, 60)
-    assert (train.patience, compress.retrain_patience, sweep.patience, sweep.retrain_patience) == (12, 5, 20, 5)
-    assert CompressOptions(rate=0.5).patience == SweepConfig("o", "d").retrain_patience == 5
+    assert (train.patience, compress.retrain_patience, sweep.patience, sweep.retrain_patience) == (12, 10, 20, 5)
+    assert (CompressOptions(rate=0.5).patience, SweepConfig("o", "d").retrain_patience) == (10, 5)
+    assert CompressOptions.preset("paper", rate=0.5).patience == 5
     # train serves a user's frames; compress and sweep reproduce the paper's tables
     assert compress.positive_weight is None and (train.positive_weight, sweep.positive_weight) == (None, 1.0)
     # train resolves its weight per run from its start and augmentation (settings.train_positive_weight, above)

@@ -25,7 +25,7 @@ METHODS = settings.METHOD.choices
 
 @settings.config_class(settings.RATE, settings.METHOD, settings.STRATEGY, settings.QUANTIZE,
                        settings.CALIBRATION_FRAMES, settings.RETRAIN_EPOCHS,
-                       ("patience", settings.RETRAIN_PATIENCE), ("max_minutes", settings.COMPRESS_MAX_MINUTES),
+                       ("patience", settings.COMPRESS_RETRAIN_PATIENCE), ("max_minutes", settings.COMPRESS_MAX_MINUTES),
                        settings.COMPRESS_TOTAL_MINUTES, settings.BATCH_SIZE,
                        ("learning_rate", settings.COMPRESS_LEARNING_RATE), ("augment", settings.INHERITED_AUGMENT),
                        ("augment_copies", settings.INHERITED_AUGMENT_COPIES),
