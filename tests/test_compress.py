@@ -1,6 +1,7 @@
 """`fcnpose-tf compress` end to end on a tiny model, and its refusals (nothing partial left behind)."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -401,6 +402,9 @@ def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_r
                             "docs/compression.md, \"Retraining in fcnpose-tf compress\"); the bundled 70 % files in "
                             "saved_models/ are a run at 0.886, and --seed S makes another"), bundled
     assert "--more-frames" not in bundled and "--rate" not in bundled
+    shipped = json.loads((Path(__file__).parents[1] / "saved_models" / "fcnpose_ur5_p70_report.json").read_text())
+    assert f"against the unpruned {shipped['base']['metrics']['pck@0.05_bbox']:.3f}" in bundled  # the files' figures
+    assert f"a run at {shipped['quantized']['metrics']['pck@0.05_bbox']:.3f}" in bundled
 
 
 def _at(pck: dict, **more) -> ModelStep | TFLiteStep:

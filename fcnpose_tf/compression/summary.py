@@ -36,8 +36,9 @@ BUNDLED_TASK_ADVICE = ("on the bundled task fine localisation varies from run to
                        "count (70 % files at PCK@0.05 0.80-0.89 against the unpruned 0.877: docs/compression.md, "
                        "\"Retraining in fcnpose-tf compress\"); the bundled 70 % files in saved_models/ are a run at "
                        "0.886, and --seed S makes another")
-"""What `accuracy_note` says on the README's command (the bundled baseline on its own synthetic frames): no frames of a
-camera to add, and the runs measured there lost between -0.009 and 0.073 PCK@0.05 (docs/results.md, 2026-12-04)."""
+"""What `accuracy_note` says on the README's command (the bundled baseline on its own synthetic frames), where there are
+no frames of a camera to add: the spread of the runs measured over seeds and thread counts (docs/results.md,
+2026-12-04), and the bundled files' own figure (saved_models/fcnpose_ur5_p70_report.json, held equal by a test)."""
 
 
 def _more_frames_advice(report: CompressReport) -> str:
