@@ -1,6 +1,7 @@
 """`fcnpose-tf compress` end to end on a tiny model, and its refusals (nothing partial left behind)."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -395,13 +396,25 @@ def test_a_file_that_loses_more_than_the_papers_pck_gets_a_note_naming_a_lower_r
     as_corrected = dict(added, added_frames=dict(added["added_frames"], source="more.json", labelled_by=None))
     assert "720 more frames of more.json: more of them (--more-frames-count) may keep more of it" in accuracy_note(
         _report(retrain_data=as_corrected))
-    # the README's command: no camera's frames to add, the run-to-run spread and the bundled files instead
-    bundled = accuracy_note(_report(), bundled_task=True)
+    # the README's command: no camera's frames to add; a loss within the task's spread names the spread and the
+    # bundled files, a larger one a lower rate
+    readme = _report(base=_at({0.5: 1.0, 0.05: 0.877}, h5_size_bytes=4000, timing=TIMING),
+                     quantized=_at({0.5: 0.996, 0.05: 0.838}, quantize="float16", status="written"))
+    bundled = accuracy_note(readme, bundled_task=True)
     assert bundled.endswith("; on the bundled task fine localisation varies from run to run with the seed and the "
                             "thread count (70 % files at PCK@0.05 0.80-0.89 against the unpruned 0.877: "
                             "docs/compression.md, \"Retraining in fcnpose-tf compress\"); the bundled 70 % files in "
                             "saved_models/ are a run at 0.886, and --seed S makes another"), bundled
     assert "--more-frames" not in bundled and "--rate" not in bundled
+    shipped = json.loads((Path(__file__).parents[1] / "saved_models" / "fcnpose_ur5_p70_report.json").read_text())
+    assert f"against the unpruned {shipped['base']['metrics']['pck@0.05_bbox']:.3f}" in bundled  # the files' figures
+    assert f"a run at {shipped['quantized']['metrics']['pck@0.05_bbox']:.3f}" in bundled
+    for beyond in (_at({0.5: 0.996, 0.05: 0.790}, quantize="float16", status="written"),  # PCK@0.05 past the spread
+                   _at({0.5: 0.970, 0.05: 0.838}, quantize="float16", status="written")):  # PCK@0.5 lost
+        far = accuracy_note(replace(readme, quantized=beyond), bundled_task=True)
+        assert far.endswith("; a lower --rate keeps more of it: on views that vary --rate 0.5 came closest "
+                            "(docs/compression.md, \"Views that vary: a lower rate\"); --rates 0.5,0.7 compares "
+                            "them in one run"), far
     shipped = json.loads((Path(__file__).parents[1] / "saved_models" / "fcnpose_ur5_p70_report.json").read_text())
     assert f"against the unpruned {shipped['base']['metrics']['pck@0.05_bbox']:.3f}" in bundled  # the files' figures
     assert f"a run at {shipped['quantized']['metrics']['pck@0.05_bbox']:.3f}" in bundled
