@@ -93,7 +93,7 @@ def accuracy_note(report: CompressReport, bundled_task: bool = False) -> str | N
     coarse, fine = drops
     if not bundled_task:
         advice = f"{_more_frames_advice(report)}; else {lower}"
-    else:  # a loss the bundled task's spread explains, else one of the options given
+    else:  # a loss within the bundled task's run-to-run spread; beyond it, a lower rate
         advice = BUNDLED_TASK_ADVICE if coarse <= PCK_DROP_BUDGET and fine <= BUNDLED_TASK_FINE_SPREAD else lower
     retraining = report.retraining
     if retraining is not None and retraining.stopped_by_time_budget:
