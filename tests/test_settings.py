@@ -233,7 +233,8 @@ def test_the_sweep_passes_every_setting_on_to_its_runs():
     for f in dataclasses.fields(CompressOptions):  # none dropped: the sweep's own, fixed, or the job's
         assert f.name in held | set(SWEEP_FIXED) | {"rate", "fold", "patience", "total_minutes"}, f.name
     assert (options.max_minutes, options.total_minutes) == (None, None)  # rates compared at equal epochs
-    assert {f.name for f in dataclasses.fields(FitConfig)} <= held
+    assert {f.name for f in dataclasses.fields(FitConfig)} <= held | set(SWEEP_FIXED)
+    assert (fit.keep_best, options.keep_best) == ("loss", "loss")  # fixed: the paper's rule, base and retraining
 
 
 @pytest.mark.parametrize("rate, params", [(0.5, 35185), (0.7, 14668)])

@@ -1,5 +1,6 @@
 """Training, resuming, evaluation and their CLI errors on a small, non-synthetic VIA dataset built on the fly."""
 
+import io
 import json
 from dataclasses import fields
 from pathlib import Path
@@ -251,6 +252,82 @@ def test_a_loss_that_becomes_nan_stops_training_keeps_the_best_epoch_or_writes_n
         train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "n.keras",
                   train.FitConfig(epochs=4, patience=5, batch_size=4), reporter=SILENT)
     assert not (tmp_path / "n.keras").exists() and not (tmp_path / "n.ckpt").exists()
+
+
+def test_validation_keypoints_score_the_maps_as_the_files_read_them(tmp_path):
+    """`ValidationKeypoints.score`: maps drawn at the true keypoints score a mean PCK of 1 and a sub-pixel EPE; the
+    same maps shifted by 3 pixels lose PCK@0.05 and gain 3 px of EPE; empty maps find nothing (EPE None)."""
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.training.train import ValidationKeypoints
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=10))
+    _, va = fold_data(ds, None, 64, 0)
+    images, maps = va.arrays()
+    truth = ValidationKeypoints.of(va)
+    assert truth.keypoints.shape == (len(images), UR5.num_keypoints, 2) and truth.names == tuple(UR5.keypoints)
+
+    class Maps:  # a model whose output is given
+        def __init__(self, out):
+            self.out = out
+
+        def predict(self, inputs, batch_size, verbose):
+            assert len(inputs) == len(self.out)
+            return self.out
+
+    exact = truth.score(Maps(maps), images, 4)
+    assert exact["mean_pck"] == 1.0 and exact["pck_fine"] == 1.0 and exact["epe_px"] < 1.0
+    shifted = truth.score(Maps(np.roll(maps, 3, axis=2)), images, 4)
+    assert shifted["pck_fine"] < 1.0 and 2.0 < shifted["epe_px"] < 4.0 and shifted["mean_pck"] < 1.0
+    assert truth.score(Maps(np.zeros_like(maps)), images, 4) == {"mean_pck": 0.0, "pck_fine": 0.0, "epe_px": None}
+
+
+def test_the_better_score_is_the_higher_mean_pck_then_the_lower_epe():
+    from fcnpose_tf.training.train import better_score
+
+    score = {"mean_pck": 0.9, "pck_fine": 0.8, "epe_px": 5.0}
+    assert better_score(score, None)
+    assert better_score(score, {**score, "mean_pck": 0.89, "epe_px": 1.0})
+    assert not better_score(score, {**score, "mean_pck": 0.91, "epe_px": 9.0})
+    assert better_score(score, {**score, "epe_px": 5.5}) and not better_score(score, {**score, "epe_px": 4.5})
+    assert not better_score(score, score)  # a tie keeps the earlier epoch
+    assert better_score(score, {**score, "epe_px": None}) and not better_score({**score, "epe_px": None}, score)
+
+
+def test_keep_best_keypoints_keeps_the_epoch_whose_keypoints_score_best(tmp_path, monkeypatch):
+    """keep_best "keypoints": the kept epoch is the best-scoring one whatever the loss did, patience waits on the
+    score, and the record, the loss CSV and the progress lines say what chose it; without the validation keypoints
+    `fit` refuses before any work. A trained start is epoch 0's candidate by its score too."""
+    from fcnpose_tf.data.dataset import fold_data, load_dataset
+    from fcnpose_tf.progress import Reporter
+    from fcnpose_tf.training import train
+    from fcnpose_tf.training.model import build_fcn_pose
+
+    ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
+    tr, va = fold_data(ds, None, 32, 0)
+    scores = iter([0.2, 0.6, 0.5, 0.4, 0.3, 0.1])  # epochs 1-4 (the run stops after 2 without a better score)
+    monkeypatch.setattr(train.ValidationKeypoints, "score", lambda self, model, inputs, batch_size: {
+        "mean_pck": next(scores), "pck_fine": 0.5, "epe_px": 3.0})
+    config = train.FitConfig(epochs=6, patience=2, batch_size=4, keep_best="keypoints", lr_patience=0)
+    with pytest.raises(ValueError, match="pass val_keypoints"):
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "x.keras", config,
+                  reporter=SILENT)
+    log = io.StringIO()
+    out = tmp_path / "m.keras"
+    result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config,
+                       reporter=Reporter(quiet=True, stream=log), val_keypoints=train.ValidationKeypoints.of(va))
+    assert (result.epochs_run, result.best_epoch, result.stopped_early) == (4, 2, True)
+    assert result.best_keypoints == {"mean_pck": 0.6, "pck_fine": 0.5, "epe_px": 3.0}
+    assert result.best_val_loss == result.history[1]["val_loss"]  # the kept epoch's loss, whichever is lowest
+    record = json.loads((tmp_path / "m_train.json").read_text())
+    assert (record["kept_by"], record["best_val_keypoints"]["mean_pck"], record["config"]["keep_best"]) == \
+        ("keypoints", 0.6, "keypoints")
+    csv = (tmp_path / "m_loss.csv").read_text().splitlines()
+    assert csv[0] == "epoch,loss,val_loss,val_mean_pck,val_pck_fine,val_epe_px" and csv[2].endswith(",0.6,0.5,3")
+    assert "best validation keypoints at epoch 2 (mean PCK 0.600, PCK@0.05 0.500, EPE 3.00 px)" in log.getvalue()
+    scores = iter([0.7, 0.6, 0.5, 0.4])  # the start (epoch 0) scores best: it is the model written
+    start = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "s.keras", config,
+                      reporter=SILENT, val_keypoints=train.ValidationKeypoints.of(va), start_is_candidate=True)
+    assert (start.best_epoch, start.epochs_run, start.best_keypoints["mean_pck"]) == (0, 2, 0.7)
 
 
 def test_weighted_bce_equals_keras_bce_at_weight_one_and_weights_discs():

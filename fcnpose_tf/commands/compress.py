@@ -99,6 +99,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "held-out synthetic frames)")
     settings.RETRAIN_EPOCHS.add_to(parser)
     settings.COMPRESS_RETRAIN_PATIENCE.add_to(parser, "--patience")
+    settings.KEEP_BEST.add_to(parser)
     settings.COMPRESS_MAX_MINUTES.add_to(parser)
     settings.COMPRESS_TOTAL_MINUTES.add_to(parser)
     parser.add_argument("--out-dir", type=Path, default=Path("compressed"), help="folder for the outputs")

@@ -35,12 +35,13 @@ METHODS = settings.METHOD.choices
                        ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
                        settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.PRUNED_START,
                        ("input_size", settings.COMPRESS_INPUT_SIZE), settings.QAT_EPOCHS,
-                       settings.QAT_LEARNING_RATE, settings.CENTROID, settings.CLUSTER)
+                       settings.QAT_LEARNING_RATE, settings.CENTROID, settings.CLUSTER, settings.KEEP_BEST)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
-    positive_weight (use the base model's), lr_patience and lr_schedule; importance (the filter criterion) with
+    positive_weight (use the base model's), lr_patience, lr_schedule and keep_best (the retraining's kept epoch:
+    `train.FitConfig`); importance (the filter criterion) with
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
     retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
     narrowest a pruned layer may become at the same parameter budget), start (the pruned network's weights before

@@ -275,7 +275,7 @@ class Retraining(_Section):
     best_epoch: int | None = None
     """The epoch whose model was kept (0: the start)."""
     best_val_loss: float | None = None
-    """The best validation loss (against the ground truth)."""
+    """The kept epoch's validation loss (against the ground truth): the lowest when the loss chose it."""
     seconds: float | None = None
     """Wall time of the retraining, rounded to 0.1 s."""
     loss: str | None = None
@@ -290,6 +290,10 @@ class Retraining(_Section):
     stopped_by_time_budget: bool | None = _if_any()
     """Whether the time budget (`--max-minutes`, `--total-minutes`) ended the retraining before its epochs and early
     stopping did (reports before it: not known)."""
+    kept_by: str | None = _if_any()
+    """What chose the kept epoch (`--keep-best`): "keypoints" or "loss" (reports before it: the loss)."""
+    best_val_keypoints: dict[str, Any] | None = _if_any()
+    """The kept epoch's validation keypoints when they chose it (`train.KeptScore`: mean_pck, pck_fine, epe_px)."""
     extra: dict[str, Any] = field(default_factory=dict, repr=False)
 
 

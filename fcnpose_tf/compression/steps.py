@@ -289,7 +289,7 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
     from fcnpose_tf.data.dataset import fold_data
     from fcnpose_tf.fileio import atomic_path
     from fcnpose_tf.training.model import load_model, save_for_inference
-    from fcnpose_tf.training.train import fit
+    from fcnpose_tf.training.train import ValidationKeypoints, fit
 
     options, keras_path = run.options, run.files.paths["keras"]
     if options.retrain_epochs == 0:
@@ -321,12 +321,14 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
         result = fit(model, sequence, val_data.arrays(),
                      keras_path, options.fit_config(), force=run.force, reporter=run.reporter.lines(),
                      metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False,
-                     start_is_candidate=run.method.trained_start)
+                     start_is_candidate=run.method.trained_start,
+                     val_keypoints=ValidationKeypoints.of(val_data, run.decoding))
         entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
         if run.method.trained_start:
             entries["retraining"] = replace(entries["retraining"], start_kept=result.best_epoch == 0)
             if result.best_epoch == 0:
-                run.log("  no epoch beat the pruned start's validation loss: the start is kept, unchanged")
+                judged = "keypoints" if result.best_keypoints is not None else "loss"
+                run.log(f"  no epoch beat the pruned start's validation {judged}: the start is kept, unchanged")
         return result
 
     run.method.retrain(run.base, pruned, fit_fn)
@@ -335,7 +337,8 @@ def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSec
 
 def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> Retraining:
     """The report's "retraining" part: epochs, best epoch and loss (validation: against the ground truth), time,
-    loss function, positive and teacher weights, learning rates, whether the time budget ended it.
+    loss function, positive and teacher weights, learning rates, whether the time budget ended it, what chose the
+    kept epoch and (keypoints) its validation keypoints.
 
     Args:
         result: what `train.fit` returned.
@@ -348,7 +351,9 @@ def retraining_report(result: FitResult, loss: str, positive_weight: float, dist
     return Retraining(epochs_run=result.epochs_run, best_epoch=result.best_epoch, best_val_loss=result.best_val_loss,
                       seconds=round(result.seconds, 1), loss=loss, positive_weight=positive_weight, distill=distill,
                       learning_rates=[float(f"{h['lr']:.6g}") for h in result.history if "lr" in h],
-                      stopped_by_time_budget=result.stopped_by_time_budget)
+                      stopped_by_time_budget=result.stopped_by_time_budget,
+                      kept_by="loss" if result.best_keypoints is None else "keypoints",
+                      best_val_keypoints=result.best_keypoints)
 
 
 def measure_retrained(run: Run, retrained: keras.Model) -> ModelStep:

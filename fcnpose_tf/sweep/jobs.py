@@ -125,11 +125,12 @@ def record_matches(record: JobRecord | None, key: ConfigKey, by_rate: Any = ()) 
 
 
 SWEEP_FIXED = ("method", "strategy", "quantize", "calibration_frames", "augment", "qat_epochs", "qat_learning_rate",
-               "start", "input_size", "cluster")
+               "start", "input_size", "cluster", "keep_best")
 """CompressOptions settings a sweep does not vary: filter surgery with independent ranking, the float16 and int8 files,
 the paper's offline copies, compress's QAT fallback (CompressOptions' defaults), surgery on each fold's own base
 model as the pruned start (the paper's), at that model's own input size (the sweep's --input-size), each map's
-largest cluster (Algorithm 1). Every other one is the sweep's own."""
+largest cluster (Algorithm 1), the epoch of the lowest validation loss kept (the paper's). Every other one is the
+sweep's own."""
 
 
 @dataclass(frozen=True)
@@ -208,10 +209,10 @@ class SweepConfig:
 
     def fit_config(self) -> FitConfig:
         """How the base models are trained: every FitConfig setting the sweep's (random weights: no layer frozen,
-        no teacher)."""
+        no teacher, the epoch of the lowest validation loss kept: the paper's)."""
         from fcnpose_tf.training.train import FitConfig
 
-        return settings.carried(self, FitConfig, freeze=0, distill=0.0)
+        return settings.carried(self, FitConfig, freeze=0, distill=0.0, keep_best=settings.TRAIN_KEEP_BEST.paper)
 
     def compress_options(self, job: Job) -> CompressOptions:
         """How a rate job compresses its fold's base model (the unpruned export, rate 0, is not retrained): every
@@ -221,6 +222,7 @@ class SweepConfig:
         defaults = CompressOptions.preset(settings.DEFAULT_PRESET, rate=float(job.rate))
         fixed = {name: getattr(defaults, name) for name in SWEEP_FIXED}
         fixed["start"] = settings.PRUNED_START.paper  # surgery: the paper's protocol
+        fixed["keep_best"] = settings.KEEP_BEST.paper  # the lowest validation loss, as the base models'
         return settings.carried(
             self, CompressOptions, renamed={"patience": "retrain_patience"}, **fixed, rate=float(job.rate),
             fold=job.fold, retrain_epochs=0 if job.rate == 0 else self.retrain_epochs_at(job.rate),

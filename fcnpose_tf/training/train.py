@@ -2,7 +2,8 @@
 
 A run writes, next to the model file NAME.keras:
 
-    NAME.keras             the best weights (lowest validation loss), no optimizer state
+    NAME.keras             the best epoch's weights (`FitConfig.keep_best`: the validation frames' keypoints
+                           or the lowest validation loss), no optimizer state
     NAME_loss.csv/.png     training and validation loss per epoch (the paper's loss figure)
     NAME_train.json        configuration, epochs run, best epoch, time
     NAME.ckpt/             while running: the last epoch's model with optimizer state, the best
@@ -43,11 +44,12 @@ from fcnpose_tf.records import TrainingRecord
                        ("learning_rate", settings.TRAIN_LEARNING_RATE), settings.SEED,
                        ("positive_weight", settings.TRAIN_POSITIVE_WEIGHT),
                        ("lr_patience", settings.TRAIN_LR_PATIENCE), settings.LR_SCHEDULE,
-                       ("max_minutes", settings.TRAIN_MAX_MINUTES), ("freeze", settings.TRAIN_FREEZE), settings.DISTILL)
+                       ("max_minutes", settings.TRAIN_MAX_MINUTES), ("freeze", settings.TRAIN_FREEZE), settings.DISTILL,
+                       ("keep_best", settings.TRAIN_KEEP_BEST))
 class FitConfig:
     """Optimisation settings of one training run: epochs, patience, batch_size, learning_rate, seed,
     positive_weight and lr_patience (halve the learning rate after this many epochs without a better
-    validation loss, down to MIN_LEARNING_RATE; 0 keeps it constant), lr_schedule ("cosine": the rate
+    validation score, down to MIN_LEARNING_RATE; 0 keeps it constant), lr_schedule ("cosine": the rate
     of each epoch is `cosine_rate` of the budget spent, epochs or time, instead; lr_patience 0), max_minutes
     (no new epoch starts once the run has trained this long; None: no time budget), freeze (conv1..convN keep
     their weights) and distill (weight of a teacher's maps in the loss; the training batches must
@@ -135,6 +137,109 @@ class FitResult:
     history: list[dict[str, float]] = field(default_factory=list)
     stopped_by_time_budget: bool = False
     """The time budget (`FitConfig.max_minutes`) ended the run before its epochs and early stopping did."""
+    best_keypoints: KeptScore | None = None
+    """The kept epoch's validation keypoints (`ValidationKeypoints.score`) when they chose it (keep_best
+    "keypoints")."""
+
+    def describe_kept(self) -> str:
+        """`best validation keypoints at epoch 14 (...)` or `best validation loss 0.01234 at epoch 14`: what chose the
+        kept epoch, for progress lines (`describe_kept`)."""
+        return describe_kept(self.best_epoch, self.best_val_loss, self.best_keypoints)
+
+
+class KeptScore(TypedDict):
+    """The validation frames' keypoints measured after an epoch (`ValidationKeypoints.score`; NAME_train.json's
+    "best_val_keypoints")."""
+
+    mean_pck: float
+    """`metrics.mean_pck`: the mean of PCK@0.5, @0.2 and @0.05 (bbox), the score compared first."""
+    pck_fine: float
+    """PCK@0.05 (bbox), for the progress line."""
+    epe_px: float | None
+    """Mean end-point error in input pixels (None: no keypoint found); compared when the mean PCK ties, lower
+    better."""
+
+
+def better_score(score: KeptScore, best: KeptScore | None) -> bool:
+    """Whether `score` beats `best` (None: nothing yet): a higher mean PCK, or the same with a lower EPE."""
+    if best is None:
+        return True
+    if score["mean_pck"] != best["mean_pck"]:
+        return score["mean_pck"] > best["mean_pck"]
+    inf = math.inf
+    return (score["epe_px"] if score["epe_px"] is not None else inf) < \
+        (best["epe_px"] if best["epe_px"] is not None else inf)
+
+
+def describe_kept(epoch: int, val_loss: float, keypoints: KeptScore | None) -> str:
+    """The kept epoch and what chose it, in words.
+
+    Args:
+        epoch: the kept epoch (0: the start).
+        val_loss: its validation loss.
+        keypoints: its validation keypoints when they chose it, else None (the loss did).
+    Returns:
+        `best validation keypoints at epoch N (mean PCK m, PCK@0.05 f, EPE e px)` or `best validation loss L at
+        epoch N`.
+    """
+    if keypoints is None:
+        return f"best validation loss {val_loss:.5f} at epoch {epoch}"
+    return f"best validation keypoints at epoch {epoch} ({keypoints_text(keypoints)})"
+
+
+def keypoints_text(keypoints: KeptScore) -> str:
+    """`mean PCK 0.912, PCK@0.05 0.803, EPE 7.10 px`: a validation keypoints' score in words."""
+    epe = "no keypoint found" if keypoints["epe_px"] is None else f"EPE {keypoints['epe_px']:.2f} px"
+    return f"mean PCK {keypoints['mean_pck']:.3f}, PCK@0.05 {keypoints['pck_fine']:.3f}, {epe}"
+
+
+@dataclass(frozen=True)
+class ValidationKeypoints:
+    """The validation frames' true keypoints and how the model's are read: what `fit` scores each epoch with when
+    `FitConfig.keep_best` is "keypoints" (`score`).
+
+    The loss weighs every pixel of every map; a keypoint is read from the cluster of its map above the threshold, and
+    two epochs of nearly the same loss can place it a pixel or two apart (docs/compression.md, "Retraining")."""
+
+    keypoints: np.ndarray
+    """N x K x 2 in input pixels, NaN where missing, row for row with the validation arrays
+    (`data.dataset.TrainingData.keypoints`)."""
+    names: tuple[str, ...]
+    """The K keypoint names."""
+    decoding: Decoding = field(default_factory=Decoding)
+    """How maps become keypoints (the files' own, from the command's settings)."""
+
+    @classmethod
+    def of(cls, data: Any, decoding: Decoding | None = None) -> ValidationKeypoints:
+        """The keypoints of validation `data` (a `TrainingData` without augmented copies).
+
+        Args:
+            data: the validation frames as `data.dataset.fold_data` returns them.
+            decoding: how maps become keypoints (None: the commands' default).
+        Returns:
+            The keypoints to score with.
+        """
+        return cls(np.asarray(data.keypoints, np.float64), tuple(data.schema.keypoints),
+                   decoding if decoding is not None else Decoding())
+
+    def score(self, model: keras.Model, inputs: Any, batch_size: int) -> KeptScore:
+        """The model's keypoints on the validation inputs against the true ones.
+
+        Args:
+            model: the model being trained (its outputs are the maps; a frozen prefix's head takes the features).
+            inputs: the validation inputs as `fit` passes them to Keras (images, or the prefix's features).
+            batch_size: frames per forward pass.
+        Returns:
+            The mean PCK, PCK@0.05 and EPE in input pixels.
+        """
+        from fcnpose_tf.metrics import keypoint_report, mean_pck
+
+        maps = model.predict(inputs, batch_size=batch_size, verbose=0)
+        predicted, _ = self.decoding.keypoints(maps)
+        report = keypoint_report(predicted, self.keypoints, self.names)
+        epe = report.epe_px
+        return KeptScore(mean_pck=round(mean_pck(report), 6), pck_fine=round(float(report.pck.get(0.05) or 0.0), 6),
+                         epe_px=None if epe is None or not math.isfinite(epe) else round(float(epe), 4))
 
 
 def run_paths(model_path: Path) -> dict[str, Path]:
@@ -207,6 +312,8 @@ class RunIdentity(TypedDict):
     lr_patience: int | None
     lr_schedule: str | None
     freeze: int | None
+    keep_best: str | None
+    """Checkpoints written before it have none: their runs keep the lowest validation loss."""
 
 
 RESUME_SETTINGS = tuple(name for name in RunIdentity.__annotations__ if name not in ("data", "data_sha256"))
@@ -444,15 +551,20 @@ and the time budget's epoch warning")."""
 
 
 class _CheckpointAndStop(keras.callbacks.Callback):
-    """Per epoch: record losses, keep the best weights, write a resumable checkpoint, stop early; say the epoch's
-    time and the run's ETA, and after the first epoch whether the time budget allows the epochs fine-tuning needs
-    (to `reporter`; None: nothing said)."""
+    """Per epoch: record losses (and the validation keypoints' score, `validation`), keep the best weights, write a
+    resumable checkpoint, stop early; say the epoch's time and the run's ETA, and after the first epoch whether the
+    time budget allows the epochs fine-tuning needs (to `reporter`; None: nothing said).
+
+    The best epoch is the one whose validation keypoints score best (`better_score`) when `validation` is given, else
+    the one of the lowest validation loss; patience and the plateau's halving wait on the same."""
 
     def __init__(self, paths: dict[str, Path], state: dict[str, Any], patience: int, lr_patience: int = 0,
                  max_minutes: float | None = None, rate_of_progress: Callable[[float], float] | None = None,
-                 epochs: int = 1, reporter: Reporter | None = None):
+                 epochs: int = 1, reporter: Reporter | None = None,
+                 validation: tuple[ValidationKeypoints, Any, int] | None = None):
         super().__init__()
         self.reporter = reporter
+        self.validation = validation
         self.first_epoch = int(state["epoch"])
         self.paths = paths
         self.state = state
@@ -482,10 +594,16 @@ class _CheckpointAndStop(keras.callbacks.Callback):
             self.state["diverged_at"] = epoch + 1
             self.model.stop_training = True
             return
+        if self.validation is not None:
+            keypoints, inputs, batch_size = self.validation
+            score = keypoints.score(self.model, inputs, batch_size)
+            row.update(val_mean_pck=score["mean_pck"], val_pck_fine=score["pck_fine"], val_epe_px=score["epe_px"])
+            improved = better_score(score, self.state.get("best_keypoints"))
+        else:
+            score, improved = None, row["val_loss"] < self.state["best_val_loss"]
         self.state["history"].append(row)
-        improved = row["val_loss"] < self.state["best_val_loss"]
         if improved:
-            self.state.update(best_val_loss=row["val_loss"], best_epoch=epoch + 1, wait=0)
+            self.state.update(best_val_loss=row["val_loss"], best_epoch=epoch + 1, wait=0, best_keypoints=score)
         else:
             self.state["wait"] += 1
             if self.lr_patience and self.state["wait"] % self.lr_patience == 0 and lr > MIN_LEARNING_RATE:
@@ -520,8 +638,8 @@ class _CheckpointAndStop(keras.callbacks.Callback):
         eta = "done" if stopping or left == 0 else \
             f"ETA {left * epoch_s / 60:.0f} min ({left} more epoch{'s' if left != 1 else ''} at most)"
         say = self.reporter.say
-        say(f"epoch {done}: {epoch_s:.0f} s/epoch, best validation loss {self.state['best_val_loss']:.5f} at "
-            f"epoch {self.state['best_epoch']}; {eta}")
+        kept = describe_kept(self.state["best_epoch"], self.state["best_val_loss"], self.state.get("best_keypoints"))
+        say(f"epoch {done}: {epoch_s:.0f} s/epoch, {kept}; {eta}")
         if done == self.first_epoch + 1 and self.max_seconds is not None:
             affordable = int(self.max_seconds // epoch_s)
             if affordable < min(BUDGET_MIN_EPOCHS, self.epochs):
@@ -554,7 +672,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         metadata: dict[str, Any] | None = None, reporter: Reporter | None = None,
         callbacks: Sequence[keras.callbacks.Callback] = (),
         inference_model: Callable[[keras.Model], keras.Model] | None = None,
-        identity: RunIdentity | None = None, resumable: bool = True, start_is_candidate: bool = False) -> FitResult:
+        identity: RunIdentity | None = None, resumable: bool = True, start_is_candidate: bool = False,
+        val_keypoints: ValidationKeypoints | None = None) -> FitResult:
     """Train `model` on `train_data` (batches of (images, maps)) with validation and early stopping.
 
     Args:
@@ -576,18 +695,25 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
         identity: what a resumed checkpoint must match (`run_identity`); stored in the checkpoint.
         resumable: whether the caller can resume (`train --resume`); if not (`compress`), a run that
             fails or is interrupted removes its checkpoint instead of pointing at --resume.
-        start_is_candidate: `model` holds trained weights: its validation loss before the first epoch is the one
+        start_is_candidate: `model` holds trained weights: its validation score before the first epoch is the one
             to beat (epoch 0), and if no epoch beats it the saved model is the start, unchanged: a few hundred
             frames of a kind the start already knows well can make it worse.
+        val_keypoints: the validation frames' keypoints, row for row with `val_data` (`ValidationKeypoints.of`);
+            needed when `config.keep_best` is "keypoints", which then scores them after every epoch. A resumed run
+            keeps the rule it was started with.
     Returns:
-        FitResult with the epochs run, the best epoch and its validation loss.
+        FitResult with the epochs run, the best epoch, its validation loss and (keep_best "keypoints") keypoints.
     Raises:
+        ValueError: keep_best "keypoints" without `val_keypoints`, or distillation without the teacher's maps.
         UserError: output exists without force, nothing to resume, a checkpoint exists
             and neither resume nor force was given, or the checkpoint was started on other data or settings.
     """
     reporter = progress.resolve(reporter)
     config = config.resolved(trained_start=start_is_candidate)  # what train_fold has not chosen yet
     config.validate()
+    if config.keep_best == "keypoints" and val_keypoints is None:
+        raise ValueError("keep_best 'keypoints' scores the validation frames' keypoints: pass val_keypoints "
+                         "(ValidationKeypoints.of)")
     if config.distill and not getattr(train_data, "carries_teacher_maps", False):
         raise ValueError("distillation needs training batches that carry the teacher's maps "
                          "(fcnpose_tf.training.distill.with_teacher_maps)")
@@ -620,7 +746,8 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                 reporter.say(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
         else:
             state = {"epoch": 0, "best_val_loss": math.inf, "best_epoch": 0, "wait": 0, "stopped_early": False,
-                     "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity}
+                     "history": [], "seconds": 0.0, "config": asdict(config), "identity": identity,
+                     "keep_best": config.keep_best}
             freeze_first_convolutions(model, config.freeze)
             if not (config.distill or callbacks or inference_model):
                 prefix = _prefix_worth_keeping(whole, train_data, len(val_data[0]), reporter)
@@ -634,15 +761,25 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
             if start_is_candidate:
                 state["start_val_loss"] = state["best_val_loss"] = _validation_loss(model, val_data,
                                                                                     config.batch_size)
-                reporter.say(f"epoch 0 (the starting model): validation loss {state['start_val_loss']:.5f}")
+                said = f"validation loss {state['start_val_loss']:.5f}"
+                if config.keep_best == "keypoints":
+                    state["start_keypoints"] = state["best_keypoints"] = val_keypoints.score(model, val_data[0],
+                                                                                             config.batch_size)
+                    said = f"validation keypoints: {keypoints_text(state['start_keypoints'])}; {said}"
+                reporter.say(f"epoch 0 (the starting model): {said}")
                 with parts_of(paths["ckpt_dir"]), atomic_path(paths["ckpt_best"], force=True) as tmp:
                     _save_weights(model, tmp)
 
         schedule = None
         if config.lr_schedule == "cosine":
             schedule = functools.partial(cosine_rate, learning_rate=config.learning_rate)
+        by_keypoints = state.get("keep_best", "loss") == "keypoints"  # a resumed run keeps its own rule
+        if by_keypoints and val_keypoints is None:
+            raise ValueError("this checkpoint keeps the epoch by the validation frames' keypoints: pass val_keypoints")
         callback = _CheckpointAndStop(paths, state, config.patience, config.lr_patience, config.max_minutes,
-                                      schedule, epochs=config.epochs, reporter=reporter)
+                                      schedule, epochs=config.epochs, reporter=reporter,
+                                      validation=(val_keypoints, val_data[0], config.batch_size) if by_keypoints
+                                      else None)
         if state["epoch"] < config.epochs and not state["stopped_early"]:
             if hasattr(train_data, "epoch"):  # online augmentation: a resumed run draws the epochs it would have
                 train_data.epoch = state["epoch"]
@@ -699,6 +836,8 @@ def _finish(model: keras.Model, model_path: Path, view: Any, state: dict[str, An
             **(metadata or {}), "config": asdict(config), "epochs_run": state["epoch"],
             "start_val_loss": state.get("start_val_loss"),
             "best_epoch": state["best_epoch"], "best_val_loss": state["best_val_loss"],
+            "kept_by": state.get("keep_best", "loss"), "best_val_keypoints": state.get("best_keypoints"),
+            "start_val_keypoints": state.get("start_keypoints"),
             "stopped_early": state["stopped_early"], "stopped_by_time_budget": bool(state.get("out_of_time")),
             "diverged_at_epoch": state.get("diverged_at"), "train_seconds": round(state["seconds"], 1),
         }, force=True)
@@ -706,7 +845,8 @@ def _finish(model: keras.Model, model_path: Path, view: Any, state: dict[str, An
         raise _resumable(exc, paths, resumable) from None
     remove_tree(paths["ckpt_dir"])
     return FitResult(model_path, state["epoch"], state["best_epoch"], state["best_val_loss"], state["seconds"],
-                     state["stopped_early"], state["history"], bool(state.get("out_of_time")))
+                     state["stopped_early"], state["history"], bool(state.get("out_of_time")),
+                     state.get("best_keypoints"))
 
 
 def _prefix_worth_keeping(model: keras.Model, train_data: Any, val_rows: int, reporter: Reporter) -> Any:
@@ -919,8 +1059,9 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
              "val_frames": len(val_data), "schema": dataset.schema.to_dict(), "architecture": architecture_of(model)}
     result = fit(model, train_data.sequence(config.batch_size, shuffle=True, seed=config.seed), val_data.arrays(),
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
-                 reporter=reporter, identity=identity, start_is_candidate=init is not None)
-    log(f"{label}: best validation loss {result.best_val_loss:.5f} at epoch {result.best_epoch} of "
+                 reporter=reporter, identity=identity, start_is_candidate=init is not None,
+                 val_keypoints=ValidationKeypoints.of(val_data, decoding))
+    log(f"{label}: {result.describe_kept()} of "
         f"{result.epochs_run}{' (the starting model: no epoch improved on it)' if init is not None and result.best_epoch == 0 else ''}"
         f"{' (early stop)' if result.stopped_early else ''}"
         f"{' (time budget reached)' if config.max_minutes and result.seconds >= 60 * config.max_minutes else ''}; "
@@ -1183,19 +1324,32 @@ def loss_name(positive_weight: float, distill: float = 0.0) -> str:
     return name if not distill else f"{name}, teacher weight {distill:g}"
 
 
+KEYPOINT_COLUMNS = ("val_mean_pck", "val_pck_fine", "val_epe_px")
+"""The loss CSV's columns of the validation keypoints' score, when it chose the kept epoch (`KeptScore`: mean PCK,
+PCK@0.05, EPE in input pixels)."""
+
+
 def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path: Path, best_epoch: int,
                       positive_weight: float = 1.0, distill: float = 0.0, start_val_loss: float | None = None) -> None:
-    """Write the per-epoch losses as CSV and as a PNG plot.
+    """Write the per-epoch losses as CSV and as a PNG plot, with the validation keypoints' score (KEYPOINT_COLUMNS)
+    when it chose the kept epoch.
 
     Args:
-        history: one {"epoch", "loss", "val_loss"} per epoch.
+        history: one {"epoch", "loss", "val_loss"} per epoch (and KEYPOINT_COLUMNS with keep_best "keypoints").
         csv_path: the CSV file.
         png_path: the plot (not written without epochs).
         best_epoch: the kept epoch, marked.
         positive_weight, distill: the loss, named in the plot (`loss_name`).
         start_val_loss: the starting model's validation loss, plotted as epoch 0 (None: a random start).
     """
-    lines = ["epoch,loss,val_loss"] + [f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}" for h in history]
+    scored = bool(history) and all("val_mean_pck" in h for h in history)  # keep_best "keypoints"
+    extra = ",".join(KEYPOINT_COLUMNS)
+
+    def line(h: dict[str, Any]) -> str:
+        text = f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}"
+        return text + "".join("," + ("" if h[c] is None else f"{h[c]:.6g}") for c in KEYPOINT_COLUMNS) if scored else text
+
+    lines = ["epoch,loss,val_loss" + (f",{extra}" if scored else "")] + [line(h) for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
     if not history:
         return
@@ -1210,13 +1364,20 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
     ax.plot(epochs, [h["val_loss"] for h in history], label="validation")
     if start_val_loss is not None:
         ax.plot([0], [start_val_loss], marker="o", linestyle="none", color="C1", label="validation, starting model")
-    ax.axvline(best_epoch, color="grey", linestyle=":", label=f"best (epoch {best_epoch})")
+    ax.axvline(best_epoch, color="grey", linestyle=":", label=f"kept (epoch {best_epoch})")
     ax.set_xlabel("epoch")
     ax.set_ylabel(loss_name(positive_weight, distill))
     ax.set_yscale("log")
     ax.set_title("FCN-Pose training loss")
     ax.grid(alpha=0.3)
-    ax.legend()
+    handles, labels = ax.get_legend_handles_labels()
+    if scored:  # the score that chose the kept epoch, on its own axis
+        right = ax.twinx()
+        right.plot(epochs, [h["val_mean_pck"] for h in history], color="C2", label="validation keypoints (mean PCK)")
+        right.set_ylabel("validation mean PCK (@0.5, @0.2, @0.05)")
+        more_handles, more_labels = right.get_legend_handles_labels()
+        handles, labels = handles + more_handles, labels + more_labels
+    ax.legend(handles, labels, fontsize="small")
     fig.tight_layout()
     with atomic_path(png_path, force=True) as tmp:
         fig.savefig(tmp)
