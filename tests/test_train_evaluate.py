@@ -323,7 +323,7 @@ def test_keep_best_keypoints_keeps_the_epoch_whose_keypoints_score_best(tmp_path
         ("keypoints", 0.6, "keypoints")
     csv = (tmp_path / "m_loss.csv").read_text().splitlines()
     assert csv[0] == "epoch,loss,val_loss,val_mean_pck,val_pck_fine,val_epe_px" and csv[2].endswith(",0.6,0.5,3")
-    assert "best validation keypoints at epoch 2 (mean PCK 0.600, PCK@0.05 0.500, EPE 3.00 px)" in log.getvalue()
+    assert "best validation keypoints at epoch 2 (mean PCK 0.600, PCK@0.05 0.500, EPE 3.00 input px)" in log.getvalue()
     scores = iter([0.7, 0.6, 0.5, 0.4])  # the start (epoch 0) scores best: it is the model written
     start = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), tmp_path / "s.keras", config,
                       reporter=SILENT, val_keypoints=train.ValidationKeypoints.of(va), start_is_candidate=True)

@@ -179,7 +179,7 @@ def describe_kept(epoch: int, val_loss: float, keypoints: KeptScore | None) -> s
         val_loss: its validation loss.
         keypoints: its validation keypoints when they chose it, else None (the loss did).
     Returns:
-        `best validation keypoints at epoch N (mean PCK m, PCK@0.05 f, EPE e px)` or `best validation loss L at
+        `best validation keypoints at epoch N (mean PCK m, PCK@0.05 f, EPE e input px)` or `best validation loss L at
         epoch N`.
     """
     if keypoints is None:
@@ -188,8 +188,9 @@ def describe_kept(epoch: int, val_loss: float, keypoints: KeptScore | None) -> s
 
 
 def keypoints_text(keypoints: KeptScore) -> str:
-    """`mean PCK 0.912, PCK@0.05 0.803, EPE 7.10 px`: a validation keypoints' score in words."""
-    epe = "no keypoint found" if keypoints["epe_px"] is None else f"EPE {keypoints['epe_px']:.2f} px"
+    """`mean PCK 0.912, PCK@0.05 0.803, EPE 7.10 input px`: a validation keypoints' score in words (the EPE in the
+    model's input pixels, not the frame's)."""
+    epe = "no keypoint found" if keypoints["epe_px"] is None else f"EPE {keypoints['epe_px']:.2f} input px"
     return f"mean PCK {keypoints['mean_pck']:.3f}, PCK@0.05 {keypoints['pck_fine']:.3f}, {epe}"
 
 
@@ -1368,7 +1369,7 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
     ax.set_xlabel("epoch")
     ax.set_ylabel(loss_name(positive_weight, distill))
     ax.set_yscale("log")
-    ax.set_title("FCN-Pose training loss")
+    ax.set_title("FCN-Pose training loss" + (" and validation keypoints" if scored else ""))
     ax.grid(alpha=0.3)
     handles, labels = ax.get_legend_handles_labels()
     if scored:  # the score that chose the kept epoch, on its own axis
