@@ -494,10 +494,9 @@ KEEP_BEST = Setting(
     "which epoch is kept and what early stopping and the plateau's halving wait on: keypoints, the validation frames' "
     "keypoints read as the model's files are (the mean of PCK@0.5, @0.2 and @0.05, then the EPE); loss, the lowest "
     "validation loss (the paper's)", label="kept epoch", choices=("keypoints", "loss"), paper="loss")
-"""`compress`'s retraining keeps the epoch whose validation keypoints score best: the validation loss's pick placed
-keypoints less finely than the epochs after it (bundled task, seeds 0 and 2: held-out PCK@0.05 0.838 and 0.846 at the
-loss's pick, 0.870 and 0.871 at the validation keypoints' pick, the unpruned model 0.877; docs/compression.md,
-"Retraining")."""
+"""`compress`'s retraining keeps the epoch whose validation keypoints score best: on the bundled task the lowest
+validation loss came while fine localisation was still improving, and on the hardest proxy the two rules' picks were
+within epoch-to-epoch noise (docs/compression.md, "Retraining in fcnpose-tf compress", the kept epoch)."""
 TRAIN_KEEP_BEST = KEEP_BEST.variant(default="loss")
 """`train` keeps the lowest validation loss: not measured against the keypoints' rule on its proxies yet."""
 PATIENCE = Setting("patience", int, 20, "stop after this many epochs without a better validation score (--keep-best)",

@@ -200,7 +200,8 @@ class ValidationKeypoints:
     `FitConfig.keep_best` is "keypoints" (`score`).
 
     The loss weighs every pixel of every map; a keypoint is read from the cluster of its map above the threshold, and
-    two epochs of nearly the same loss can place it a pixel or two apart (docs/compression.md, "Retraining")."""
+    two epochs of nearly the same loss can place it a pixel or two apart (docs/compression.md, "Retraining in
+    fcnpose-tf compress", the kept epoch)."""
 
     keypoints: np.ndarray
     """N x K x 2 in input pixels, NaN where missing, row for row with the validation arrays
