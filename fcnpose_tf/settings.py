@@ -498,7 +498,8 @@ KEEP_BEST = Setting(
 validation loss came while fine localisation was still improving, and on the hardest proxy the two rules' picks were
 within epoch-to-epoch noise (docs/compression.md, "Retraining in fcnpose-tf compress", the kept epoch)."""
 TRAIN_KEEP_BEST = KEEP_BEST.variant(default="loss")
-"""`train` keeps the lowest validation loss: not measured against the keypoints' rule on its proxies yet."""
+"""`train` keeps the lowest validation loss: on the hardest proxy the keypoints' rule measured the same
+(docs/results.md, "The kept epoch by the validation keypoints"), and its fixed-camera proxies are not measured yet."""
 PATIENCE = Setting("patience", int, 20, "stop after this many epochs without a better validation score (--keep-best)",
                    label="patience", check=lambda v: v >= 1, requirement="at least 1", metavar="N")
 TRAIN_PATIENCE = PATIENCE.variant(default=12)

@@ -88,6 +88,10 @@ def test_compress_writes_model_tflite_and_report(setup, cli_here):
     assert json.loads((out / "base_p70_train.json").read_text())["config"]["lr_patience"] == 2
     assert report["retraining"]["loss"] == "binary_crossentropy"
     assert report["retraining"]["learning_rates"] == [pytest.approx(3e-3)]  # compress's default rate
+    # the kept epoch by the validation frames' keypoints (--keep-best keypoints, compress's default)
+    assert report["retraining"]["kept_by"] == "keypoints" and report["options"]["keep_best"] == "keypoints"
+    assert set(report["retraining"]["best_val_keypoints"]) == {"mean_pck", "pck_fine", "epe_px"}
+    assert (out / "base_p70_loss.csv").read_text().startswith("epoch,loss,val_loss,val_mean_pck,")
     # the default criterion: first-order Taylor on (at most 256) training frames, never the measured ones
     assert report["pruning"]["importance"] == "taylor" and report["options"]["importance"] == "taylor"
     assert report["pruning"]["importance_frames"] == 16 and report["options"]["distill"] == 0.0
