@@ -144,7 +144,9 @@ def test_evaluate_errors(trained, cli_here, tmp_path):
 
 
 @pytest.mark.slow
-def test_interrupted_training_resumes(tmp_path, monkeypatch):
+@pytest.mark.parametrize("keep_best", ["loss", "keypoints"])
+def test_interrupted_training_resumes(tmp_path, monkeypatch, keep_best):
+    """A run stopped after its first epoch resumes where it stopped, keeping its epoch by the same rule."""
     from conftest import stop_after_first_epoch
     from fcnpose_tf.training import train
     from fcnpose_tf.data.dataset import fold_data, load_dataset
@@ -153,19 +155,25 @@ def test_interrupted_training_resumes(tmp_path, monkeypatch):
     ds = load_dataset(make_via_folder(tmp_path / "d", n=6))
     tr, va = fold_data(ds, None, 32, 0)
     out = tmp_path / "m.keras"
-    config = train.FitConfig(epochs=3, patience=5, batch_size=4)
+    config = train.FitConfig(epochs=3, patience=5, batch_size=4, keep_best=keep_best)
+    scored = train.ValidationKeypoints.of(va)
     stop_after_first_epoch(monkeypatch)
     with pytest.raises(UserError, match="interrupted after 1 complete epochs; continue with --resume"):
-        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT)
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT,
+                  val_keypoints=scored)
     state = json.loads((tmp_path / "m.ckpt" / "state.json").read_text())
-    assert state["epoch"] == 1 and not out.exists()
+    assert state["epoch"] == 1 and not out.exists() and state["keep_best"] == keep_best
     with pytest.raises(UserError, match="pass --resume to continue it or --force"):
-        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT)
+        train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, reporter=SILENT,
+                  val_keypoints=scored)
     monkeypatch.undo()
     result = train.fit(build_fcn_pose(input_size=32), tr.sequence(4), va.arrays(), out, config, resume=True,
-                       reporter=SILENT)
+                       reporter=SILENT, val_keypoints=scored)
     assert result.epochs_run == 3 and [h["epoch"] for h in result.history] == [1, 2, 3]
     assert out.is_file() and not (tmp_path / "m.ckpt").exists()
+    # the rule it started with, every epoch: the keypoints' score in each row and the kept one's in the result
+    assert all(("val_mean_pck" in h) == (keep_best == "keypoints") for h in result.history)
+    assert (result.best_keypoints is not None) == (keep_best == "keypoints")
 
 
 def test_an_interrupted_run_that_cannot_resume_says_what_to_do_and_leaves_no_checkpoint(tmp_path, monkeypatch):
