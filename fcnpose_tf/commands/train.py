@@ -49,8 +49,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
                         help="where to save the best model (.keras or .h5); with --folds, NAME_foldK.keras")
     settings.add_preset_argument(parser)
-    for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.TRAIN_KEEP_BEST, settings.BATCH_SIZE, settings.TRAIN_LEARNING_RATE,
-                    settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
+    for setting in (settings.EPOCHS, settings.TRAIN_PATIENCE, settings.TRAIN_KEEP_BEST, settings.BATCH_SIZE,
+                    settings.TRAIN_LEARNING_RATE, settings.TRAIN_LR_PATIENCE, settings.LR_SCHEDULE, settings.TRAIN_MAX_MINUTES,
                     settings.TRAIN_POSITIVE_WEIGHT, settings.TRAIN_FREEZE, settings.TRAIN_INPUT_SIZE, settings.TRAIN_CROP,
                     settings.TRAIN_AUGMENT, settings.TRAIN_AUGMENT_COPIES, settings.TRAIN_FOLDS):
         setting.add_to(parser)

@@ -141,11 +141,6 @@ class FitResult:
     """The kept epoch's validation keypoints (`ValidationKeypoints.score`) when they chose it (keep_best
     "keypoints")."""
 
-    def describe_kept(self) -> str:
-        """`best validation keypoints at epoch 14 (...)` or `best validation loss 0.01234 at epoch 14`: what chose the
-        kept epoch, for progress lines (`describe_kept`)."""
-        return describe_kept(self.best_epoch, self.best_val_loss, self.best_keypoints)
-
 
 class KeptScore(TypedDict):
     """The validation frames' keypoints measured after an epoch (`ValidationKeypoints.score`; NAME_train.json's
@@ -1063,7 +1058,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
                  model_path, config, resume=resume, force=force, metadata={**facts, **(metadata or {})},
                  reporter=reporter, identity=identity, start_is_candidate=init is not None,
                  val_keypoints=ValidationKeypoints.of(val_data, decoding))
-    log(f"{label}: {result.describe_kept()} of "
+    log(f"{label}: {describe_kept(result.best_epoch, result.best_val_loss, result.best_keypoints)} of "
         f"{result.epochs_run}{' (the starting model: no epoch improved on it)' if init is not None and result.best_epoch == 0 else ''}"
         f"{' (early stop)' if result.stopped_early else ''}"
         f"{' (time budget reached)' if config.max_minutes and result.seconds >= 60 * config.max_minutes else ''}; "
@@ -1345,13 +1340,13 @@ def write_loss_curves(history: list[dict[str, float]], csv_path: Path, png_path:
         start_val_loss: the starting model's validation loss, plotted as epoch 0 (None: a random start).
     """
     scored = bool(history) and all("val_mean_pck" in h for h in history)  # keep_best "keypoints"
-    extra = ",".join(KEYPOINT_COLUMNS)
+    columns = ["epoch", "loss", "val_loss", *(KEYPOINT_COLUMNS if scored else ())]
 
     def line(h: dict[str, Any]) -> str:
-        text = f"{h['epoch']},{h['loss']:.6g},{h['val_loss']:.6g}"
-        return text + "".join("," + ("" if h[c] is None else f"{h[c]:.6g}") for c in KEYPOINT_COLUMNS) if scored else text
+        values = [h[c] for c in columns]
+        return ",".join("" if v is None else str(v) if isinstance(v, int) else f"{v:.6g}" for v in values)
 
-    lines = ["epoch,loss,val_loss" + (f",{extra}" if scored else "")] + [line(h) for h in history]
+    lines = [",".join(columns)] + [line(h) for h in history]
     write_text(csv_path, "\n".join(lines) + "\n", force=True)
     if not history:
         return
