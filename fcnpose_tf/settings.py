@@ -868,6 +868,16 @@ MORE_FRAMES_COUNT = Setting(
     check=lambda v: v >= 1, requirement="at least 1", metavar="N")
 """The count measured: 720 frames gained 0.04 PCK@0.5 in 45 minutes; 240 in 25 minutes gained nothing
 (docs/results.md)."""
+POLISH_MINUTES = Setting(
+    "polish_minutes", float, 10.0, "--more-frames: after the retraining on your frames and the added ones, retrain "
+    "this many minutes more on your own labelled frames alone, at a tenth of the learning rate with conv1-2 fixed, "
+    "keeping the epoch whose validation keypoints score best (filter surgery; the total budget grows by it; 0: "
+    "none)", label="--polish-minutes", check=lambda v: v >= 0, requirement=">= 0", metavar="M")
+"""Frames a model labelled carry its errors: a network retrained on them places keypoints less finely than on the
+user's own labels, and a short retraining on those alone afterwards gives the fine placement back (docs/compression.md,
+"More frames of your look")."""
+POLISH_LEARNING_RATE_SCALE = 0.1
+"""The polish's learning rate: the retraining's times this (3e-4 after compress's 3e-3)."""
 MORE_FRAMES_VIA = Setting(
     "more_frames_via", str, None, "--more-frames: keep the frames the model labelled as this VIA project (a video's "
     "frames saved as PNGs in images/ beside it), to look at, correct, and pass back as --more-frames OUT.json; kept "

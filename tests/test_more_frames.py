@@ -9,6 +9,7 @@ import pytest
 
 from fcnpose_tf import settings
 from fcnpose_tf.compression.options import CompressOptions
+from fcnpose_tf.compression.report import CompressReport
 from fcnpose_tf.correction.pseudolabel import label_frames, project_frames, spread_indices
 from fcnpose_tf.data.dataset import AddedFrames, load_dataset, with_training_frames
 from fcnpose_tf.errors import UserError
@@ -48,17 +49,54 @@ def test_frames_spread_evenly_over_the_source_first_and_last_among_them():
 
 def test_the_budgets_grow_with_the_frames_and_lose_the_labelling_minutes():
     """192 training frames and 720 more: an epoch 4.75x as long, the default 10-minute retraining 47.5 and the
-    15-minute total 52.5, less the 2 minutes labelling took; a budget the user gave keeps its value."""
+    15-minute total 62.5 with the polish's 10, less the 2 minutes labelling took; a budget the user gave keeps its
+    value."""
     options = CompressOptions(rate=0.7)
-    assert (options.max_minutes, options.total_minutes) == (10.0, 15.0)
+    assert (options.max_minutes, options.total_minutes, options.polish_minutes) == (10.0, 15.0, 10.0)
     grown = options.with_added_frames(192, 720, spent_minutes=2.0)
-    assert grown.max_minutes == pytest.approx(47.5) and grown.total_minutes == pytest.approx(50.5)
+    assert grown.max_minutes == pytest.approx(47.5) and grown.total_minutes == pytest.approx(60.5)
     given = options.with_added_frames(192, 720, 2.0, given={"max_minutes"})
-    assert given.max_minutes == 10.0 and given.total_minutes == pytest.approx(13.0)
+    assert given.max_minutes == 10.0 and given.total_minutes == pytest.approx(23.0)
     unbounded = CompressOptions(rate=0.7, max_minutes=None, total_minutes=None).with_added_frames(192, 720, 2.0)
     assert (unbounded.max_minutes, unbounded.total_minutes) == (None, None)
     spent = options.with_added_frames(192, 0, spent_minutes=60.0)  # labelling took the whole budget: the least left
     assert spent.max_minutes == 10.0 and spent.total_minutes == settings.MIN_RETRAIN_MINUTES
+
+
+def test_the_polish_gets_its_own_minutes_after_the_retraining():
+    """With frames added, the total grows by the polish's 10 minutes too, and the retraining's share of a total
+    leaves them for the polish; --polish-minutes 0 adds nothing."""
+    options = CompressOptions(rate=0.7, polish_minutes=10.0)
+    grown = options.with_added_frames(192, 720, spent_minutes=2.0)
+    assert grown.max_minutes == pytest.approx(47.5) and grown.total_minutes == pytest.approx(60.5)
+    # 3 minutes before the retraining, 6 kept for the steps after it, 10 for the polish: 41.5 of the 60.5 left
+    assert grown.retraining_minutes(3.0, polish_minutes=10.0) == pytest.approx(41.5)
+    assert grown.retraining_minutes(3.0) == pytest.approx(47.5)  # no polish: the retraining's whole budget
+    unpolished = CompressOptions(rate=0.7, polish_minutes=0.0).with_added_frames(192, 720, spent_minutes=2.0)
+    assert unpolished.total_minutes == pytest.approx(50.5)
+
+
+@pytest.mark.parametrize("method, freeze, frozen", [("l1", 0, 2), ("l1", 4, 4), ("magnitude", 0, 0)])
+def test_the_polish_is_the_retraining_at_a_tenth_of_its_learning_rate(method, freeze, frozen):
+    options = CompressOptions(rate=0.7, method=method, freeze=freeze, learning_rate=3e-3, polish_minutes=7.0,
+                              retrain_epochs=25, keep_best="keypoints")
+    config = options.polish_config()
+    assert config.learning_rate == pytest.approx(3e-4) and config.max_minutes == 7.0
+    assert config.freeze == frozen  # conv1-2 fixed, as train fine-tunes; magnitude pruning retrains every weight
+    assert (config.epochs, config.keep_best, config.seed) == (25, "keypoints", options.seed)
+    assert settings.POLISH_MINUTES.default == 10.0
+
+
+def test_the_user_s_own_frames_come_back_with_their_splits(tmp_path):
+    from fcnpose_tf.data.dataset import own_frames
+
+    dataset = load_dataset(make_via_folder(tmp_path / "user", n=20), folds=5)
+    extra = load_dataset(make_via_folder(tmp_path / "more", n=6, seed=3), write_splits=False)
+    own = own_frames(with_training_frames(dataset, extra, AddedFrames("clip.mp4", "arm.keras", 6, "6 frames")))
+    assert own.added is None and own.samples == dataset.samples
+    for fold in (None, *range(5)):
+        assert all(np.array_equal(a, b) for a, b in zip(own.split(fold), dataset.split(fold)))
+    assert own_frames(dataset) is dataset
 
 
 def test_added_frames_train_every_split_and_validate_none(tmp_path):
@@ -209,7 +247,8 @@ def test_compress_retrains_on_the_added_frames_and_says_so(cli_here, tmp_path):
     said = stdout + err
     assert f"more frames: 12 frames of {more} (12 of its 30, evenly spread) labelled by {base}: 96 keypoints" in said
     assert "retraining on 16 + 12 frames, time budget 17.5 min of retraining" in said
-    assert f"with 12 more frames of {more} labelled by {base}); measured on 4 validation frames" in said
+    assert f"with 12 more frames of {more} labelled by {base}, then 1 epoch on your frames alone at learning rate " \
+           "0.0003); measured on 4 validation frames" in said
     report = json.loads((tmp_path / "out" / "arm_p70_report.json").read_text())
     assert report["retrain_data"]["val_frames"] == 4  # the user's validation frames only
     assert report["retrain_data"]["added_frames"]["frames"] == 12
@@ -217,6 +256,19 @@ def test_compress_retrains_on_the_added_frames_and_says_so(cli_here, tmp_path):
     record = json.loads((tmp_path / "out" / "arm_p70_train.json").read_text())
     assert record["added_frames"] == report["retrain_data"]["added_frames"]
     assert not list(Path(tmp_path).glob("**/more_frames.json"))  # the labelled project was the run's own
+    # the polish: the user's 16 frames alone, the retrained model the epoch to beat, its record the file's
+    assert "then 10 min on the 16 alone" in said
+    assert f"polish: up to 10 min more on the 16 training frames of {data / 'labels.json'} alone, learning rate " \
+           "0.0003, conv1-2 fixed" in said
+    polish = report["polish"]
+    assert polish["kept_by"] == "keypoints" and polish["learning_rates"] == [pytest.approx(3e-4)]
+    assert polish["epochs_run"] == 1 and isinstance(polish["start_kept"], bool)
+    assert record["retraining_before_polish"] == report["retraining"] and record["config"]["freeze"] == 2
+    assert record["start_val_keypoints"] is not None  # the retrained model scored as epoch 0
+    assert CompressReport.from_json(report).to_json() == report
+    assert sorted(p.name for p in (tmp_path / "out").iterdir()) == [
+        "arm_p70.keras", "arm_p70_fp16.tflite", "arm_p70_loss.csv", "arm_p70_loss.png", "arm_p70_report.json",
+        "arm_p70_train.json"]  # the retraining's own files went with their temporary folder
 
 
 @pytest.mark.slow  # two compress runs with one retraining epoch each: about 20 s of CPU
@@ -240,11 +292,14 @@ def test_kept_frames_are_looked_at_corrected_and_added_as_they_are(cli_here, tmp
     assert len(labelled) == 12 and len(list((kept.parent / "images").glob("cell_*.png"))) == 12
     corrected = [ViaFrame(s.filename, s.width, s.height, s.keypoints + 1.0) for s in labelled.samples[:10]]
     write_via_project(kept, corrected, UR5, force=True)  # a person's round: 2 frames deleted, every point moved
-    status, stdout, err = cli_here(*common, "--more-frames", kept, "--out-dir", tmp_path / "again")
+    status, stdout, err = cli_here(*common, "--more-frames", kept, "--out-dir", tmp_path / "again",
+                                   "--polish-minutes", "0")
     assert status == 0, stdout[-3000:] + err[-3000:]
     assert f"with 10 more frames of {kept}, their labels as they are); measured on 4" in stdout
-    added = json.loads((tmp_path / "again" / "arm_p70_report.json").read_text())["retrain_data"]["added_frames"]
+    report = json.loads((tmp_path / "again" / "arm_p70_report.json").read_text())
+    added = report["retrain_data"]["added_frames"]
     assert (added["frames"], added["labelled_by"], added["source"]) == (10, None, str(kept))
+    assert "polish" not in report and "polish:" not in stdout + err  # --polish-minutes 0: none
     assert "labelling frames" not in stdout + err
 
 
@@ -281,6 +336,7 @@ def test_kept_frames_outlive_a_later_failure(cli_here, tmp_path, monkeypatch):
     (("--more-frames", "nothere"), "nothere: no such file or folder"),
     (("--more-frames", "{more}", "--more-frames-count", "0"), "--more-frames-count must be at least 1, got 0"),
     (("--more-frames", "{more}", "--retrain-epochs", "0"), "--more-frames adds frames to the retraining"),
+    (("--more-frames", "{more}", "--polish-minutes", "-1"), "--polish-minutes must be >= 0, got -1"),
     (("--more-frames", "{user}/images"), "no frame to add (all 6 frames read are frames of --data or --test-data)"),
 ])
 def test_bad_more_frames_are_one_line_and_leave_nothing(cli_here, tmp_path, extra, message):

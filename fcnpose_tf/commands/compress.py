@@ -110,6 +110,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.MORE_FRAMES.add_to(parser)
     settings.MORE_FRAMES_COUNT.add_to(parser)
     settings.MORE_FRAMES_VIA.add_to(parser)
+    settings.POLISH_MINUTES.add_to(parser)
     settings.RETRAIN_FOLD.add_to(parser)
     settings.INHERITED_AUGMENT.add_to(parser)
     for setting in (settings.BATCH_SIZE, settings.COMPRESS_LEARNING_RATE, settings.COMPRESS_LR_PATIENCE,
@@ -296,9 +297,10 @@ def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_datas
                                                                    getattr(args, GIVEN, ())))
              for each in every]
     budget = every[0].options
+    polish = f", then {budget.polish_minutes:g} min on the {training} alone" if budget.polish_minutes and extra else ""
     current().say(f"more frames: {added.description}{kept}; retraining on {training} + {len(extra)} "
-                  f"frames, time budget {_minutes(budget.max_minutes)} of retraining, {_minutes(budget.total_minutes)} "
-                  "in all (docs/compression.md, \"More frames of your look\")")
+                  f"frames, time budget {_minutes(budget.max_minutes)} of retraining{polish}, "
+                  f"{_minutes(budget.total_minutes)} in all (docs/compression.md, \"More frames of your look\")")
     return grown, every
 
 
@@ -308,7 +310,11 @@ def _added(report: CompressReport) -> str:
     if not added:
         return ""
     how = f" labelled by {added['labelled_by']}" if added["labelled_by"] else ", their labels as they are"
-    return f", with {added['frames']} more frames of {added['source']}{how}"
+    polish = report.polish
+    polished = "" if polish is None or not polish.learning_rates else \
+        (f", then {polish.epochs_run} epoch{'s' if polish.epochs_run != 1 else ''} on your frames alone at learning "
+         f"rate {polish.learning_rates[0]:g}")
+    return f", with {added['frames']} more frames of {added['source']}{how}{polished}"
 
 
 def _minutes(value: float | None) -> str:

@@ -135,13 +135,14 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     pruned, pruned_sections, pruned_step = prune_step(run, importance)
     spent = (time.perf_counter() - start) / 60
     ranking = (pruned_sections.pruning or {}).get("ranking_seconds", 0.0) / 60
-    budget = options.retraining_minutes(spent, ranking)
+    budget = options.retraining_minutes(spent, ranking, options.polish_minutes if run.polishes else 0.0)
     if budget != options.max_minutes and options.retrain_epochs:
         over = " (the least it gets: this run takes longer than its total)" \
             if budget == settings.MIN_RETRAIN_MINUTES else ""
         ranked = f" ({ranking:.1f} of them ranking filters)" if ranking >= 0.05 else ""
         say(f"  retraining budget {budget:.1f} min{over}: what --total-minutes {options.total_minutes:g} leaves after "
-            f"{spent:.1f} min before retraining{ranked}, twice the rest kept for the steps after (--max-minutes "
+            f"{spent:.1f} min before retraining{ranked}, twice the rest kept for the steps after"
+            f"{f' and {options.polish_minutes:g} for the polish' if run.polishes else ''} (--max-minutes "
             f"{'none' if options.max_minutes is None else f'{options.max_minutes:g}'})")
         options = run.options = replace(options, max_minutes=budget)
     say(f"[3/{steps}] retraining: up to {options.retrain_epochs} epochs")

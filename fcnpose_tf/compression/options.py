@@ -35,13 +35,15 @@ METHODS = settings.METHOD.choices
                        ("importance", settings.COMPRESS_IMPORTANCE), settings.IMPORTANCE_FRAMES, settings.DISTILL,
                        settings.FREEZE, ("min_filters", settings.COMPRESS_MIN_FILTERS), settings.PRUNED_START,
                        ("input_size", settings.COMPRESS_INPUT_SIZE), settings.QAT_EPOCHS,
-                       settings.QAT_LEARNING_RATE, settings.CENTROID, settings.CLUSTER, settings.KEEP_BEST)
+                       settings.QAT_LEARNING_RATE, settings.CENTROID, settings.CLUSTER, settings.KEEP_BEST,
+                       settings.POLISH_MINUTES)
 class CompressOptions:
     """Settings of one compression run: rate, method, strategy, quantize (the TFLite files, one per format),
     calibration_frames (int8), and the retraining's
     retrain_epochs, patience, batch_size, learning_rate, augment, augment_copies, seed, fold, threads,
     positive_weight (use the base model's), lr_patience, lr_schedule and keep_best (the retraining's kept epoch:
-    `train.FitConfig`); importance (the filter criterion) with
+    `train.FitConfig`), polish_minutes (a retraining with frames added, `compress --more-frames`: the minutes more on
+    the user's frames alone, `polish_config`); importance (the filter criterion) with
     importance_frames (data-aware criteria), distill (the base model's weight as a teacher while
     retraining), freeze (conv1..convN keep their pruned weights while retraining), min_filters (the
     narrowest a pruned layer may become at the same parameter budget), start (the pruned network's weights before
@@ -141,24 +143,27 @@ class CompressOptions:
         return CheckedOptions(options, resolve_model(options.start, KERAS_SUFFIXES, reporter=SILENT)
                               if explicit else None)
 
-    def retraining_minutes(self, spent_minutes: float, ranking_minutes: float = 0.0) -> float | None:
+    def retraining_minutes(self, spent_minutes: float, ranking_minutes: float = 0.0,
+                           polish_minutes: float = 0.0) -> float | None:
         """The retraining's time budget once `spent_minutes` went to the steps before it.
 
         The steps after the retraining (measuring the retrained model, exporting, verifying and measuring each file)
         are kept twice what the steps before it took apart from ranking filters (measuring the base model, surgery,
-        measuring the pruned model), which nothing after repeats.
+        measuring the pruned model), which nothing after repeats; a polish after it (`polish_config`) keeps its own
+        minutes.
 
         Args:
             spent_minutes: what the run took before its retraining.
             ranking_minutes: the part of it spent ranking filters (a data-aware criterion's pass over its frames).
+            polish_minutes: the polish's budget, when the run polishes (frames added: `with_added_frames`).
         Returns:
             `max_minutes`, shortened so that the run ends within `total_minutes`: what is left of it after
-            `spent_minutes` and the steps after, but at least `settings.MIN_RETRAIN_MINUTES`; None (no budget) when
-            both are None.
+            `spent_minutes`, the polish and the steps after, but at least `settings.MIN_RETRAIN_MINUTES`; None (no
+            budget) when both are None.
         """
         if self.total_minutes is None:
             return self.max_minutes
-        after = 2 * max(spent_minutes - ranking_minutes, 0.0)
+        after = 2 * max(spent_minutes - ranking_minutes, 0.0) + polish_minutes
         left = max(self.total_minutes - spent_minutes - after, settings.MIN_RETRAIN_MINUTES)
         return left if self.max_minutes is None else min(self.max_minutes, left)
 
@@ -168,9 +173,10 @@ class CompressOptions:
         split (`compress --more-frames`), `spent_minutes` after labelling them.
 
         An epoch takes (training_frames + added) / training_frames as long, so a retraining budget left at its
-        default (not in `given`) grows by that factor, and a total budget left at its default by the minutes the
-        retraining gained; a total budget (given or not) loses the minutes the labelling took, down to
-        `settings.MIN_RETRAIN_MINUTES`. A retraining budget the user gave keeps its value.
+        default (not in `given`) grows by that factor, and the total budget by the minutes the retraining gained and
+        the polish's (`polish_minutes`, after the retraining on the user's frames alone: `polish_config`); a total
+        budget (given or not) loses the minutes the labelling took, down to `settings.MIN_RETRAIN_MINUTES`. A
+        retraining budget the user gave keeps its value.
 
         Args:
             training_frames: the training frames of the user's split (at least 1).
@@ -184,7 +190,8 @@ class CompressOptions:
         if max_minutes is not None and "max_minutes" not in given:
             max_minutes = max_minutes * (training_frames + added) / max(training_frames, 1)
         if total_minutes is not None:
-            grown = total_minutes + (max_minutes or 0.0) - (self.max_minutes or 0.0)
+            polish = self.polish_minutes if added else 0.0
+            grown = total_minutes + (max_minutes or 0.0) - (self.max_minutes or 0.0) + polish
             total_minutes = max(grown - spent_minutes, settings.MIN_RETRAIN_MINUTES)
         return replace(self, max_minutes=max_minutes, total_minutes=total_minutes)
 
@@ -197,6 +204,19 @@ class CompressOptions:
         from fcnpose_tf.training.train import FitConfig
 
         return settings.carried(self, FitConfig, epochs=max(self.retrain_epochs, 1))
+
+    def polish_config(self) -> FitConfig:
+        """The polish's optimisation settings: after a retraining with frames added (`compress --more-frames`), the
+        retraining's own settings on the user's frames alone, `polish_minutes` long, at
+        `settings.POLISH_LEARNING_RATE_SCALE` of its learning rate, conv1-2 fixed as `train` fine-tunes a trained model
+        (`settings.DEFAULT_FINE_TUNE_FREEZE`; magnitude pruning retrains every weight it masks).
+
+        Returns:
+            The `train.FitConfig`.
+        """
+        freeze = max(self.freeze, settings.DEFAULT_FINE_TUNE_FREEZE) if self.method == "l1" else self.freeze
+        return replace(self.fit_config(), learning_rate=self.learning_rate * settings.POLISH_LEARNING_RATE_SCALE,
+                       max_minutes=self.polish_minutes, freeze=freeze)
 
 
 @dataclass(frozen=True)

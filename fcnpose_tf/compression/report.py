@@ -316,13 +316,16 @@ class RetrainSections:
     distillation: dict[str, Any] | None = None
     """The base model as a teacher: weight and its facts (None: --distill 0)."""
     retraining: Retraining | None = None
+    polish: Retraining | None = None
+    """After a retraining with frames added, the one on the user's frames alone (`options.CompressOptions.polish_config`);
+    None: none."""
 
 
 @dataclass(frozen=True, kw_only=True)
 class CompressReport:
     """What `compress_model` measured and wrote: one field per top-level key of NAME_pXX_report.json, in the
     file's order (`to_json`). A measured step is a `ModelStep` or a `TFLiteStep`; a refused format is a `RefusedFormat`.
-    A section only some runs have (pruning, magnitude_sparsity, retrain_data, distillation, retraining) is None
+    A section only some runs have (pruning, magnitude_sparsity, retrain_data, distillation, retraining, polish) is None
     when the run has none and is then not written; "quantized" is written either way (null: every format refused)."""
 
     base_model: str
@@ -357,6 +360,9 @@ class CompressReport:
     """The base model as a teacher while retraining: weight and its facts (None: --distill 0)."""
     retraining: Retraining | None = _if_any()
     """How the retraining went (`retraining_report`); None: not retrained."""
+    polish: Retraining | None = _if_any()
+    """After a retraining with frames added (`compress --more-frames`), how the retraining on the user's frames alone
+    went (`--polish-minutes`); None: none."""
     retrained: ModelStep
     """The retrained model as saved (Keras, NAME_pXX.keras)."""
     quantized: TFLiteStep | None
@@ -426,8 +432,9 @@ class CompressReport:
             raise ValueError(f"not a compress report: no {', '.join(missing)}")
         values = {k: v for k, v in report.items() if k in names}
         values.setdefault("recipe", "")
-        if values.get("retraining") is not None:
-            values["retraining"] = Retraining.from_json(values["retraining"])
+        for name in ("retraining", "polish"):
+            if values.get(name) is not None:
+                values[name] = Retraining.from_json(values[name])
         for name in ("base", "pruned_before_retraining", "retrained"):
             values[name] = ModelStep.from_json(values[name])
         if values.get("quantized") is not None:

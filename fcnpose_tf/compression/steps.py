@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
-from fcnpose_tf.compression.methods import MethodRecord, PruningMethod
+from fcnpose_tf.compression.methods import FitFn, MethodRecord, PruningMethod
 from fcnpose_tf.compression.options import CompressOptions, OutputFiles
 from fcnpose_tf.compression.costs import file_sizes, model_facts
 from fcnpose_tf.compression.report import ModelStep, PruningSections, RetrainSections, Retraining
@@ -77,6 +77,13 @@ class Run:
         (`retrain_fold`), decided once: with 0 retraining epochs too, so the file is calibrated on the frames the
         model it converts was trained on."""
         return retrain_fold(self)
+
+    @property
+    def polishes(self) -> bool:
+        """Whether the retraining is polished on the user's frames alone afterwards: frames were added to it
+        (`compress --more-frames`) and `options.polish_minutes` is not 0."""
+        return self.train_dataset.added is not None and self.options.polish_minutes > 0 \
+            and self.options.retrain_epochs > 0
 
     @property
     def input_size(self) -> FrameView:
@@ -278,61 +285,107 @@ def prune_step(run: Run, importance: Importance | None) -> tuple[keras.Model, Pr
 
 
 def retrain_step(run: Run, pruned: keras.Model) -> tuple[keras.Model, RetrainSections]:
-    """Retrain the pruned model through `train.fit`, or only save it with 0 retraining epochs.
+    """Retrain the pruned model through `train.fit`, or only save it with 0 retraining epochs; with frames added
+    (`Run.polishes`), polish it afterwards on the user's frames alone (`CompressOptions.polish_config`), the retrained
+    model the epoch to beat.
 
     Args:
         run: the compression run.
         pruned: the pruned model (`prune_step`).
     Returns:
-        The model as saved, and the report sections (retrain_data, distillation, retraining; none with 0 epochs).
+        The model as saved, and the report sections (retrain_data, distillation, retraining, polish; none with 0
+        epochs).
     """
-    from fcnpose_tf.data.dataset import fold_data
+    import tempfile
+
+    from fcnpose_tf.data.dataset import own_frames
     from fcnpose_tf.fileio import atomic_path
     from fcnpose_tf.training.model import load_model, save_for_inference
-    from fcnpose_tf.training.train import ValidationKeypoints, fit
 
     options, keras_path = run.options, run.files.paths["keras"]
     if options.retrain_epochs == 0:
         with atomic_path(keras_path, run.force) as tmp:
             save_for_inference(pruned, tmp)
         return pruned, RetrainSections()
-    data_sha256, fold = run.data_sha256, run.fold
-    train_data, val_data = fold_data(run.train_dataset, fold, run.input_size, options.augment_copies, options.seed,
+    entries: dict[str, Any] = {}
+    if not run.polishes:
+        run.method.retrain(run.base, pruned, _fitting(run, run.train_dataset, keras_path, entries))
+        return load_model(keras_path), RetrainSections(**entries)
+    with tempfile.TemporaryDirectory(prefix="fcnpose-retrain-") as folder:  # the retraining's files: the polish's kept
+        run.method.retrain(run.base, pruned, _fitting(run, run.train_dataset, Path(folder) / keras_path.name, entries))
+        retrained = load_model(Path(folder) / keras_path.name)
+    own = own_frames(run.train_dataset)
+    config = options.polish_config()
+    run.log(f"  polish: up to {config.max_minutes:g} min more on the {len(own.split(run.fold)[0])} training frames of "
+            f"{own.via_path} alone, learning rate {config.learning_rate:g}"
+            + (f", conv1-{config.freeze} fixed" if config.freeze > 1 else ""))
+    # magnitude pruning masks the retrained model's own zeros again, at the same sparsity
+    run.method.retrain(retrained, retrained, _fitting(run, own, keras_path, entries, polish=True))
+    return load_model(keras_path), RetrainSections(**entries)
+
+
+def _fitting(run: Run, dataset: Any, keras_path: Path, entries: dict[str, Any], polish: bool = False) -> FitFn:
+    """The fit function a method's `retrain` calls: `train.fit` on `dataset`'s training frames of the run's fold,
+    saving the kept model as `keras_path` and its report section in `entries` ("retraining", with "retrain_data" and
+    "distillation"; "polish" when `polish`, with `CompressOptions.polish_config` and its start the epoch to beat).
+
+    Args:
+        run: the compression run (its fit data set to this retraining's, for quantization-aware training).
+        dataset: the frames (the run's, or the user's own for the polish).
+        keras_path: where the kept model goes.
+        entries: the report sections, filled when the function runs.
+        polish: the polish after a retraining with frames added.
+    Returns:
+        The function (`methods.FitFn`).
+    """
+    from fcnpose_tf.data.dataset import fold_data
+    from fcnpose_tf.training.train import ValidationKeypoints, fit
+
+    options = run.options
+    train_data, val_data = fold_data(dataset, run.fold, run.input_size, options.augment_copies, options.seed,
                                      options.augment, progress=run.reporter)
     run.fit_data = train_data
-    entries: dict[str, Any] = {"retrain_data": {"data": str(run.train_dataset.via_path), "fold": fold,
-                                                "train_samples": len(train_data), "val_frames": len(val_data)}}
-    metadata = {"data": str(run.train_dataset.via_path), "data_sha256": data_sha256, "fold": fold,
+    metadata = {"data": str(dataset.via_path), "data_sha256": run.data_sha256, "fold": run.fold,
                 "pruned_from": str(run.base_path), **(run.method_record or {}), "input_size": run.input_size.size_record,
                 "view": run.input_size.to_json(),
                 "recipe": run.method.recipe}
     if run.train_dataset.added is not None:  # frames in the training split only (`compress --more-frames`)
-        entries["retrain_data"]["added_frames"] = metadata["added_frames"] = run.train_dataset.added.to_json()
+        metadata["added_frames"] = run.train_dataset.added.to_json()
+    if polish:
+        metadata["retraining_before_polish"] = entries["retraining"].to_json()
+    else:
+        entries["retrain_data"] = {"data": str(dataset.via_path), "fold": run.fold, "train_samples": len(train_data),
+                                   "val_frames": len(val_data)}
+        if dataset.added is not None:
+            entries["retrain_data"]["added_frames"] = metadata["added_frames"]
     sequence = train_data.sequence(options.batch_size, seed=options.seed)
     if options.distill > 0:
         from fcnpose_tf.training.distill import with_teacher_maps
 
-        run.log(f"  distillation: the base model's maps weigh {options.distill:g} in the retraining loss")
+        if not polish:
+            run.log(f"  distillation: the base model's maps weigh {options.distill:g} in the retraining loss")
         sequence, facts = with_teacher_maps(train_data, sequence, run.base, options.batch_size)
         entries["distillation"] = {"weight": options.distill, **facts}
         metadata["distillation"] = entries["distillation"]
+    config = options.polish_config() if polish else options.fit_config()
+    trained_start = polish or run.method.trained_start
+    key = "polish" if polish else "retraining"
 
     def fit_fn(model: keras.Model, callbacks: Sequence = (), inference_model: Callable | None = None) -> FitResult:
-        result = fit(model, sequence, val_data.arrays(),
-                     keras_path, options.fit_config(), force=run.force, reporter=run.reporter.lines(),
-                     metadata=metadata, callbacks=callbacks, inference_model=inference_model, resumable=False,
-                     start_is_candidate=run.method.trained_start,
+        result = fit(model, sequence, val_data.arrays(), keras_path, config, force=run.force,
+                     reporter=run.reporter.lines(), metadata=metadata, callbacks=callbacks,
+                     inference_model=inference_model, resumable=False, start_is_candidate=trained_start,
                      val_keypoints=ValidationKeypoints.of(val_data, run.decoding))
-        entries["retraining"] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
-        if run.method.trained_start:
-            entries["retraining"] = replace(entries["retraining"], start_kept=result.best_epoch == 0)
+        entries[key] = retraining_report(result, _loss_name(model), options.positive_weight, options.distill)
+        if trained_start:
+            entries[key] = replace(entries[key], start_kept=result.best_epoch == 0)
             if result.best_epoch == 0:
                 judged = "keypoints" if result.best_keypoints is not None else "loss"
-                run.log(f"  no epoch beat the pruned start's validation {judged}: the start is kept, unchanged")
+                start = "the retrained model" if polish else "the pruned start"
+                run.log(f"  no epoch beat {start}'s validation {judged}: it is kept, unchanged")
         return result
 
-    run.method.retrain(run.base, pruned, fit_fn)
-    return load_model(keras_path), RetrainSections(**entries)
+    return fit_fn
 
 
 def retraining_report(result: FitResult, loss: str, positive_weight: float, distill: float = 0.0) -> Retraining:

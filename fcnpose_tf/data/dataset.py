@@ -149,6 +149,20 @@ def with_training_frames(dataset: Dataset, extra: Dataset, added: AddedFrames) -
                    added=added)
 
 
+def own_frames(dataset: Dataset) -> Dataset:
+    """`dataset` without the frames `with_training_frames` added: the user's own, with their own splits.
+
+    Args:
+        dataset: a dataset, with frames added or not.
+    Returns:
+        The dataset of its own frames (`dataset` itself when none were added).
+    """
+    if dataset.added is None:
+        return dataset
+    count = len(dataset) - dataset.added.frames
+    return replace(dataset, samples=dataset.samples[:count], splits=dataset.splits.before(count), added=None)
+
+
 def resolve_data(data: str | os.PathLike, images: str | os.PathLike | None = None) -> tuple[Path, Path | None]:
     """(VIA file, images folder or None for the default search) for a `--data DATA [--images DIR]` pair."""
     data = Path(data)

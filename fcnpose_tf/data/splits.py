@@ -63,6 +63,20 @@ class Splits:
 
         return replace(self, holdout=grown(*self.holdout), folds=tuple(grown(*fold) for fold in self.folds))
 
+    def before(self, count: int) -> Splits:
+        """These splits with only the frames before index `count` (the split frames, without those `with_training`
+        added after them).
+
+        Args:
+            count: how many frames the splits were made for.
+        Returns:
+            The splits of those frames.
+        """
+        def kept(train: np.ndarray, val: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return train[train < count], val[val < count]
+
+        return replace(self, holdout=kept(*self.holdout), folds=tuple(kept(*fold) for fold in self.folds))
+
 
 def _permutation(n: int, seed: int) -> np.ndarray:
     return np.random.default_rng(seed).permutation(n)

@@ -125,12 +125,12 @@ def record_matches(record: JobRecord | None, key: ConfigKey, by_rate: Any = ()) 
 
 
 SWEEP_FIXED = ("method", "strategy", "quantize", "calibration_frames", "augment", "qat_epochs", "qat_learning_rate",
-               "start", "input_size", "cluster", "keep_best")
+               "start", "input_size", "cluster", "keep_best", "polish_minutes")
 """CompressOptions settings a sweep does not vary: filter surgery with independent ranking, the float16 and int8 files,
 the paper's offline copies, compress's QAT fallback (CompressOptions' defaults), surgery on each fold's own base
 model as the pruned start (the paper's), at that model's own input size (the sweep's --input-size), each map's
-largest cluster (Algorithm 1), the epoch of the lowest validation loss kept (the paper's). Every other one is the
-sweep's own."""
+largest cluster (Algorithm 1), the epoch of the lowest validation loss kept (the paper's), the polish's minutes (a
+sweep adds no frames, so nothing is polished). Every other one is the sweep's own."""
 
 
 @dataclass(frozen=True)
