@@ -297,7 +297,8 @@ def _more_frames(args: argparse.Namespace, model_path: Path, dataset, eval_datas
                                                                    getattr(args, GIVEN, ())))
              for each in every]
     budget = every[0].options
-    polish = f", then {budget.polish_minutes:g} min on the {training} alone" if budget.polish_minutes and extra else ""
+    polish = f", then {budget.polish_minutes:g} min on the {training} alone" \
+        if budget.polish_minutes and len(extra) else ""
     current().say(f"more frames: {added.description}{kept}; retraining on {training} + {len(extra)} "
                   f"frames, time budget {_minutes(budget.max_minutes)} of retraining{polish}, "
                   f"{_minutes(budget.total_minutes)} in all (docs/compression.md, \"More frames of your look\")")

@@ -317,8 +317,8 @@ class RetrainSections:
     """The base model as a teacher: weight and its facts (None: --distill 0)."""
     retraining: Retraining | None = None
     polish: Retraining | None = None
-    """After a retraining with frames added, the one on the user's frames alone (`options.CompressOptions.polish_config`);
-    None: none."""
+    """After a retraining with frames added, the one on the user's frames alone
+    (`options.CompressOptions.polish_config`); None: none."""
 
 
 @dataclass(frozen=True, kw_only=True)
