@@ -870,9 +870,9 @@ MORE_FRAMES_COUNT = Setting(
 (docs/results.md)."""
 POLISH_MINUTES = Setting(
     "polish_minutes", float, 10.0, "--more-frames: after the retraining on your frames and the added ones, retrain "
-    "this many minutes more on your own labelled frames alone, at a tenth of the learning rate with conv1-2 fixed, "
-    "keeping the epoch whose validation keypoints score best (filter surgery; the total budget grows by it; 0: "
-    "none)", label="--polish-minutes", check=lambda v: v >= 0, requirement=">= 0", metavar="M")
+    "this many minutes more on your own labelled frames alone, at a tenth of the learning rate (conv1-2 fixed with "
+    "filter surgery), the retrained model the epoch to beat (--keep-best); the total budget grows by them; 0: none",
+    label="--polish-minutes", check=lambda v: v >= 0, requirement=">= 0", metavar="M")
 """Frames a model labelled carry its errors: a network retrained on them places keypoints less finely than on the
 user's own labels, and a short retraining on those alone afterwards gives the fine placement back (docs/compression.md,
 "More frames of your look")."""
