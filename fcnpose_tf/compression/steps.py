@@ -381,9 +381,8 @@ def _fitting(run: Run, dataset: Any, keras_path: Path, entries: dict[str, Any], 
             entries[key] = replace(entries[key], start_kept=result.best_epoch == 0)
             if result.best_epoch == 0:
                 judged = "keypoints" if result.best_keypoints is not None else "loss"
-                start = "the retrained model's validation {}: it is" if polish else \
-                    "the pruned start's validation {}: the start is"
-                run.log(f"  no epoch beat {start.format(judged)} kept, unchanged")
+                start, kept = ("the retrained model", "it") if polish else ("the pruned start", "the start")
+                run.log(f"  no epoch beat {start}'s validation {judged}: {kept} is kept, unchanged")
         return result
 
     return fit_fn
