@@ -786,7 +786,7 @@ CLUSTER = Setting(
     choices=("largest", "chain"))
 """Every decoder's default (`postprocess.CLUSTERS`)."""
 SWEEP_CENTROID = CENTROID.variant(
-    default="plain", help="where in its cluster a keypoint is read: plain (the default: Algorithm 1, the paper's, so "
+    default="plain", paper="plain", help="where in its cluster a keypoint is read: plain (the default: Algorithm 1, the paper's, so "
     "the sweep reproduces its tables and a results folder resumes runs made before) or weighted (the other commands' "
     "default; docs/postprocess.md)")
 """The sweep measures the paper's protocol; a results folder holds jobs of one decoding (`sweep.jobs.KEY_FIELDS`)."""
@@ -898,7 +898,7 @@ PRUNED_START = Setting(
 generalist itself, surgery for everything else measured (docs/compression.md, "On your own model";
 `methods.pruned_start`)."""
 COMPRESS_INPUT_SIZE = INPUT_SIZE.variant(
-    default=None,
+    default=None, paper=None,
     help=f"the input side the compressed model and files run at, a multiple of {INPUT_SIZE_MULTIPLE}: FCN-Pose is "
          "fully convolutional, so the model is rebuilt at this size with its weights, pruned, retrained and exported "
          "at it, and the files are named NAME_p70_SIZE; a smaller side costs fewer MACs (192: 0.73x of 224's) and "

@@ -188,6 +188,7 @@ def test_compress_options_mean_what_compress_means():
     assert (paper.importance, paper.min_filters, paper.learning_rate, paper.lr_patience, paper.positive_weight) == \
         ("l1", 0, 1e-3, 0, 1.0)
     assert (paper.retrain_epochs, paper.quantize) == (100, ("float16",))
+    assert paper.input_size is None  # the paper's protocol runs the files at the model's own size
     for options in (recommended, paper):  # what compress_model retrains with passes fit's checks
         options.validate()
         options.fit_config().validate()
@@ -243,7 +244,9 @@ def test_the_sweeps_paper_preset_keeps_the_papers_parameter_counts(rate, params)
     from fcnpose_tf.compression.prune import prune_model
     from fcnpose_tf.sweep.jobs import Job, SweepConfig
 
-    options = SweepConfig.preset("paper", out="o", data="d").compress_options(Job(0, rate))
+    config = SweepConfig.preset("paper", out="o", data="d")
+    assert config.centroid == "plain"  # the paper's Algorithm 1, as under the sweep's recommended preset
+    options = config.compress_options(Job(0, rate))
     assert (options.min_filters, options.importance, options.retrain_epochs) == (0, "l1", 100)
     pruned = prune_model(build_fcn_pose(input_size=64), options.rate, min_filters=options.min_filters)
     assert pruned.count_params() == params
