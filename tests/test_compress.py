@@ -285,6 +285,21 @@ def test_unsupported_layer_and_unwritable_output(setup, cli_here, tmp_path):
     assert status == 2 and "not a folder" in err
 
 
+def test_compress_with_too_few_frames_for_int8_refuses_before_any_work(setup, cli_here, tmp_path):
+    """int8's gate needs 16 real frames: a project with fewer is refused before measuring or retraining anything, as
+    `export` refuses it, not after the retraining with the float16 file written and no report."""
+    _, _, base = setup
+    data = make_via_folder(tmp_path / "frames", n=12)
+    out = tmp_path / "out"
+    status, stdout, err = cli_here("compress", "--rate", "0.7", "--model", base, "--data", data, "--out-dir", out,
+                                   "--threads", "1")
+    assert status == 2, err
+    assert err.strip().splitlines()[-1].startswith("error: int8 export is verified on keypoints of at least 16 real "
+                                                   "frames;")
+    assert "has 12 (add frames, or leave int8 out of --quantize)" in err
+    assert "[1/" not in stdout and not out.exists()
+
+
 @pytest.mark.slow
 def test_export_command_writes_verified_files_next_to_the_model(setup, cli_here, tmp_path):
     """`fcnpose-tf export`: one file per format, the int8 one calibrated on the data's training split."""

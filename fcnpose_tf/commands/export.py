@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.compression.export import ExportOptions, write_tflite
     from fcnpose_tf.compression.summary import finish_formats
-    from fcnpose_tf.compression.frames import export_frames
+    from fcnpose_tf.compression.frames import check_enough_frames, export_frames
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.training.model import view_of
@@ -124,13 +124,7 @@ def run(args: argparse.Namespace) -> int:
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W
-    most = max(f.min_frames for f in settings.TFLITE_FORMATS.values())
-    available = min(len(val) + len(train), most)  # what export_frames can gather
-    short = [q for q in paths if settings.TFLITE_FORMATS[q].min_frames > available]
-    if short:  # known before anything is converted: refuse before writing any file
-        raise UserError(f"{', '.join(short)} export is verified on keypoints of at least "
-                        f"{max(settings.TFLITE_FORMATS[q].min_frames for q in short)} real frames; {dataset.via_path} has "
-                        f"{len(val) + len(train)} (add frames, or leave {', '.join(short)} out of --quantize)")
+    check_enough_frames(paths, len(val), len(train), dataset.via_path)  # before anything is converted or written
     rows, records, refused = [], [], []
     for quantize, path in paths.items():
         samples, calibration = export_frames(quantize, view, dataset, train, dataset, val, options.calibration_frames,

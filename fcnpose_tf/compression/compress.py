@@ -80,6 +80,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         ValueError: `metadata` names a section of the report, or options not checked (`CompressOptions.checked`).
     """
     from fcnpose_tf.training.model import architecture_of, at_input_height, load_model, view_of
+    from fcnpose_tf.compression.frames import check_enough_frames
     from fcnpose_tf.compression.plan import check_chain, plan_widths
 
     base_path = Path(base_path)
@@ -115,6 +116,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     method = pruning_method(options, plan, start_name, start_file)
     options = replace(options, start=method.start_name)
     run = Run(base_path, base, method, options, outputs, train_dataset, eval_dataset, eval_indices, force, reporter)
+    check_enough_frames(options.quantize, len(eval_indices), len(run.training_frames), train_dataset.via_path)
     steps = 4 + 2 * len(options.quantize)
     resized = f", rebuilt from its {saved_view.height}x{saved_view.width}" if saved_view != run.input_size else ""
     resized += f": the height {start_name} was retrained at" if start_side is not None else ""

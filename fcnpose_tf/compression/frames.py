@@ -13,6 +13,24 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import ViewLike
 from fcnpose_tf.settings import TFLITE_FORMATS
 
+def check_enough_frames(quantize: Sequence[str], check_count: int, train_count: int, source: Any) -> None:
+    """Refuse, before any work, the formats whose gate needs more real frames than `export_frames` can gather.
+
+    Args:
+        quantize: the formats to write (`settings.TFLITE_FORMATS` keys).
+        check_count, train_count: the frames the file is verified on, and the training frames that top them up.
+        source: what holds the frames, for the message (the VIA project's path).
+    Raises:
+        UserError: one line naming the formats, the frames they need and the frames there are.
+    """
+    available = check_count + train_count
+    short = [q for q in quantize if TFLITE_FORMATS[q].min_frames > available]
+    if short:
+        raise UserError(f"{', '.join(short)} export is verified on keypoints of at least "
+                        f"{max(TFLITE_FORMATS[q].min_frames for q in short)} real frames; {source} has {available} "
+                        f"(add frames, or leave {', '.join(short)} out of --quantize)")
+
+
 def export_frames(quantize: str, input_size: ViewLike, train_dataset: Any, train_indices: Sequence[int],
                   check_dataset: Any, check_indices: Sequence[int], calibration_count: int,
                   seed: int = settings.CALIBRATION_SEED.default) -> tuple[np.ndarray, np.ndarray | None]:
