@@ -87,11 +87,12 @@ from the record or the command it names.
 | `fcnpose_ur5_generalist.keras` (+ `_train.json`, `_loss.csv/.png`) | the generalist: the baseline fine-tuned on 16,000 domain-randomised frames (13 epochs at 160 x 160, 29 at 224, the last 25 annealed); `train`'s starting point for your frames (PROVENANCE.md) |
 | `fcnpose_ur5_generalist_p70.keras` (+ `_train.json`, `_loss.csv/.png`) | the generalist pruned at 0.7 (the widths of `compress --rate 0.7`: no layer under 15 filters) and retrained on domain-randomised frames (37 minutes on 1,920 at 224, two hours on 3,200 more, then 81 minutes on 2,400 at 256 x 256, the side it runs at); `compress`'s pruned start for the generalist itself (`--start auto`, the default) and with `--start generalist-p70`, the model rebuilt at 256 (docs/compression.md, PROVENANCE.md) |
 
-Every command uses `fcnpose_ur5.keras` when no model is given; `run`/`bench` take the .tflite.
+`evaluate`, `predict` and `compress` use `fcnpose_ur5.keras` when no model is given (`train` starts from the
+generalist); `run`/`bench` take the .tflite.
 
 ## Training
 
-- Data: `fcnpose-tf synth --n {train['num_frames']} --seed 0` (640 x 480, the default workcell: scene seed 0, one
+- Data: `fcnpose-tf synth --out DIR --n {train['num_frames']} --seed 0` (640 x 480, the default workcell: scene seed 0, one
   fixed camera, the arm in a new pose in every frame), {train['split']} split:
   {train['train_samples']} training samples ({train['augment_copies']} augmented copies per frame), {train['val_frames']} validation frames.
 - Adam (learning rate {cfg['learning_rate']}), batch {cfg['batch_size']}, binary cross-entropy with keypoint-disc pixels
@@ -103,7 +104,7 @@ Every command uses `fcnpose_ur5.keras` when no model is given; `run`/`bench` tak
 
 ## Held-out figures
 
-{held['frames']} (`fcnpose-tf synth --n 100 --seed 1`: the same workcell, poses from a seed never used for training).
+{held['frames']} (`fcnpose-tf synth --out DIR --n 100 --seed 1`: the same workcell, poses from a seed never used for training).
 PCK normalised by max(w, h) of the ground-truth keypoints' bounding box; EPE in 640 x 480 frame pixels.
 
 | keypoint | PCK@0.5 | PCK@0.2 | PCK@0.05 | EPE px | missing |

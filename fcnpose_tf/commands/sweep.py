@@ -1,8 +1,9 @@
-"""Reproduce the paper's experiment: every pruning rate on every fold, Keras and float16 TFLite, as tables and a plot.
+"""Reproduce the paper's experiment: every pruning rate on every fold, Keras, float16 and int8 TFLite, as tables and a
+plot.
 
 Per fold K it trains the unpruned model on the fold's training frames (or reuses
-OUT/models/base_foldK.keras); per (fold, rate) it prunes (L1 filters), retrains, exports a
-verified float16 TFLite model and measures both on the fold's validation frames. It writes the
+OUT/models/base_foldK.keras); per (fold, rate) it prunes (L1 filters), retrains, exports
+verified float16 and int8 TFLite files and measures them on the fold's validation frames. It writes the
 paper's tables ("5-Folds Desktop", "Pruning Results", "Requirements", "Pruning and
 Quantization") as Markdown and CSV, OUT/summary.md, OUT/pck_vs_fps.png and OUT/results.json.
 Each finished job is saved at once (OUT/jobs/): Ctrl-C loses at most the running job(s), and
