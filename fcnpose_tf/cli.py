@@ -61,7 +61,9 @@ class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaults
     """Examples kept as written; defaults shown only where there is one worth showing."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
-        if action.default in (None, False, [], argparse.SUPPRESS) or "%(default)" in (action.help or ""):
+        # `is`, not `in`: 0 == False, and a default of 0 is one worth showing
+        if any(action.default is none for none in (None, False, argparse.SUPPRESS)) or action.default == [] \
+                or "%(default)" in (action.help or ""):
             return action.help or ""
         return super()._get_help_string(action)
 

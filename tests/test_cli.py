@@ -88,6 +88,16 @@ def test_every_command_help_shows_an_example(cli_here):
         assert "examples:" in out and f"fcnpose-tf {module.NAME}" in out
 
 
+def test_a_help_shows_a_default_of_zero_once_and_hides_none_and_false(cli_here, monkeypatch):
+    """0 == False in Python: the help's rule must tell them apart, or a seed's default 0 goes unsaid."""
+    monkeypatch.setenv("COLUMNS", "400")  # one line per option
+    status, out, _ = cli_here("synth", "--help")
+    lines = {line.split()[0]: line for line in out.splitlines() if line.strip().startswith("--")}
+    assert status == 0
+    assert lines["--seed"].endswith("(default: 0)") and lines["--scene-seed"].count("(default: 0)") == 1
+    assert "(default: None)" not in out and "(default: False)" not in out
+
+
 def test_every_command_takes_quiet_from_one_setting():
     """--quiet is one setting the CLI adds to every command, as --debug: the command's reporter is quiet with it and
     only with it (synth's --no-progress, its name before, is the same option)."""

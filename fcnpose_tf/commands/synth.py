@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "random: a new cell and camera for every frame (domain randomisation)")
     parser.add_argument("--scene-seed", type=int, default=0, metavar="S",
                         help="which workcell (robot look, mount, room, light, camera); frames of every --seed "
-                             "share it, so a held-out set is the same cell in new poses (default: 0)")
+                             "share it, so a held-out set is the same cell in new poses")
     parser.add_argument("--looks", choices=LOOKS, default=DEFAULT_LOOKS,
                         help="look family: classic (a silver UR5 with blue-grey caps, a webcam), "
                              "varied (UR3/5/10/16 and e-series arms, any paint, grippers, vacuum cups, spindles, "
