@@ -61,9 +61,10 @@ class _Formatter(argparse.RawDescriptionHelpFormatter, argparse.ArgumentDefaults
     """Examples kept as written; defaults shown only where there is one worth showing."""
 
     def _get_help_string(self, action: argparse.Action) -> str:
-        # `is`, not `in`: 0 == False, and a default of 0 is one worth showing
+        # `is`, not `in`: 0 == False, and a default of 0 is one worth showing; a help that states its default
+        # ("(default 2)", "%(default)s") is not given a second one
         if any(action.default is none for none in (None, False, argparse.SUPPRESS)) or action.default == [] \
-                or "%(default)" in (action.help or ""):
+                or "%(default)" in (action.help or "") or "(default" in (action.help or ""):
             return action.help or ""
         return super()._get_help_string(action)
 

@@ -96,6 +96,10 @@ def test_a_help_shows_a_default_of_zero_once_and_hides_none_and_false(cli_here, 
     assert status == 0
     assert lines["--seed"].endswith("(default: 0)") and lines["--scene-seed"].count("(default: 0)") == 1
     assert "(default: None)" not in out and "(default: False)" not in out
+    status, out, _ = cli_here("run", "--help")  # a help that states its default is not given another
+    lines = {line.split()[0]: line for line in out.splitlines() if line.strip().startswith("--")}
+    assert status == 0 and lines["--smooth-coast"].endswith("(default 2)")
+    assert all(line.count("(default") <= 1 for line in lines.values())
 
 
 def test_every_command_takes_quiet_from_one_setting():
