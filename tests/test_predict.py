@@ -245,3 +245,29 @@ def test_draw_pictures_every_frame_written_with_its_points(capsys, tmp_path, mod
     code, stdout, err = _run(capsys, "predict", model_path, "--source", quadrant_images, "--via", tmp_path / "t.json",
                              "--draw", picks)
     assert code == 2 and "already holds files; pass --force" in err and not (tmp_path / "t.json").exists()
+
+
+def test_a_stop_signal_while_predict_writes_its_project_waits_for_it(capsys, tmp_path, monkeypatch, model_path):
+    """A second Ctrl-C while the project, its frames and its pictures are being written is remembered, not obeyed
+    at once: a project is never kept without the frames it names (they were once deleted under it)."""
+    import os
+    import signal
+
+    from fcnpose_tf.correction.prelabel import ViaPredictions
+
+    write_sheet = ViaPredictions._write_sheet
+
+    def write_sheet_stopped(self):
+        os.kill(os.getpid(), signal.SIGINT)  # arrives after the project is written, before the contact sheet
+        return write_sheet(self)
+
+    monkeypatch.setattr(ViaPredictions, "_write_sheet", write_sheet_stopped)
+    clip = write_video(tmp_path / "clip.avi", [quadrant_frame(320, 240, RED_CYCLE[i % 4]) for i in range(6)])
+    via, pictures = tmp_path / "out" / "clip.json", tmp_path / "drawn"
+    code, _, err = _run(capsys, "predict", model_path, "--source", clip, "--via", via, "--draw", pictures,
+                        "--threads", 1)
+    assert code == 130, err
+    assert err.strip().splitlines()[-1].startswith("interrupted (Ctrl-C); kept the files completed before it: ")
+    names = [Path(frame.filename).name for frame in read_via(via, min_visible=0).frames]
+    assert len(names) == 6 and all((tmp_path / "out" / "images" / name).is_file() for name in names)
+    assert (pictures / "contact_sheet.png").is_file()

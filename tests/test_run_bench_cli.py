@@ -375,3 +375,34 @@ def test_jitter_is_measured_on_still_frames_only(capsys, tmp_path, model_path):
     moving = write_video(tmp_path / "moving.avi", [quadrant_frame(320, 240, RED_CYCLE[i % 4]) for i in range(4)])
     code, out, err = _run(capsys, "run", model_path, "--source", moving, "--threads", 1)
     assert "Jitter:  no still frames" in out
+
+
+def test_a_stop_signal_while_run_closes_its_outputs_waits_for_them(capsys, tmp_path, monkeypatch, model_path, video):
+    """A second Ctrl-C (or a `kill`) while the outputs are being finished is remembered, not obeyed at once: the
+    video and the VIA project with its frames are finished whole, named as kept, and no temporary video stays."""
+    from fcnpose_tf.runtime.sinks import VideoSink
+
+    close = VideoSink.close
+
+    def close_stopped(self):
+        os.kill(os.getpid(), signal.SIGINT)  # arrives while the video is being finished
+        return close(self)
+
+    monkeypatch.setattr(VideoSink, "close", close_stopped)
+    out, clip, via = tmp_path / "k.jsonl", tmp_path / "o.avi", tmp_path / "via" / "p.json"
+    code, _, err = _run(capsys, "run", model_path, "--source", video, "--out", out, "--save-video", clip, "--via", via,
+                        "--via-every", 2, "--threads", 1)
+    assert code == 130, err
+    assert err.strip().splitlines()[-1].startswith("interrupted (Ctrl-C); kept the files completed before it: ")
+    assert len(out.read_text().splitlines()) == 8
+    capture = cv2.VideoCapture(str(clip))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 8
+    capture.release()
+    frames = read_via_frames(via)
+    assert len(frames) == 4 and all((via.parent / "images" / name).is_file() for name in frames)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["k.jsonl", "o.avi", "via"]  # no temporary video
+
+
+def read_via_frames(via: Path) -> list[str]:
+    """The image file names a VIA project lists."""
+    return [entry["filename"] for entry in json.loads(via.read_text())["_via_img_metadata"].values()]

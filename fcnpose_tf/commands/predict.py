@@ -77,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.training.evaluate import open_model
-    from fcnpose_tf.fileio import stop_signals_as_interrupt
+    from fcnpose_tf.fileio import stop_signals_as_interrupt, stop_signals_ignored
     from fcnpose_tf.correction.prelabel import check_via_output
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
@@ -115,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
         with stop_signals_as_interrupt():  # Ctrl-C or a `kill` ends it: the frames done so far, in the VIA file
             summary = run_stream(predictor, source, max_frames=args.max_frames, progress=ProgressLine(),
                                  on_frame=collected.add, every=args.every, smooth=params_from_args(args))
-        written = collected.close()
+        with stop_signals_ignored():  # the project and its frames written whole: a further Ctrl-C waits for them
+            written = collected.close()
     if written is not None:
         summary.outputs.append(f"{written}: {collected.describe()}")
     print(summary.report(predictor, source))
@@ -148,7 +149,7 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
     import sys
 
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.fileio import stop_signals_as_interrupt
+    from fcnpose_tf.fileio import stop_signals_as_interrupt, stop_signals_ignored
     from fcnpose_tf.runtime.estimator import Prediction
     from fcnpose_tf.runtime.runner import ProgressLine, run_stream
     from fcnpose_tf.runtime.sources import open_source
@@ -191,7 +192,8 @@ def _select(args: argparse.Namespace, predictor, source) -> int:
         if len(collected.frames) != len(wanted):
             raise UserError(f"{args.source}: {len(wanted) - len(collected.frames)} picked frame(s) could not be "
                             "read again; no VIA file written")
-        written = collected.close()
+        with stop_signals_ignored():
+            written = collected.close()
     score = dict(zip((r.index for r in scores.records), scores.scores()))
     fewer = (f" (only {len(picks)} fit {gap} frames apart in {len(scores.records)} processed frames)"
              if len(picks) < args.select else "")

@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
 
     from fcnpose_tf import settings
     from fcnpose_tf.errors import UserError
-    from fcnpose_tf.fileio import check_writable, stop_signals_as_interrupt
+    from fcnpose_tf.fileio import check_writable, stop_signals_as_interrupt, stop_signals_ignored
     from fcnpose_tf.correction.prelabel import ViaPredictions, check_via_output
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.runtime.estimator import KeypointModel
@@ -146,22 +146,29 @@ def run(args: argparse.Namespace) -> int:
                                  smooth=params_from_args(args), pipelined=args.pipeline)
         finished = True
     finally:
-        source.close()
-        for writer in writers:
-            writer.close()
-        if video is not None and not finished:
-            video.discard()
-        if collected is not None and not finished:
-            collected.discard()
-    if collected is not None:
-        written_via = collected.close()
-        summary.outputs.append(f"{written_via}: {collected.describe()}" if written_via else
-                               f"{args.via}: not written (no frames)")
-    if video is not None:
-        written = video.close()
-        summary.outputs.append(f"{written} ({video.count} frames)" if written else
-                               f"{args.save_video}: not written (no frames)")
+        with stop_signals_ignored():  # the outputs closed whole: a further Ctrl-C or `kill` waits for them
+            source.close()
+            for writer in writers:
+                writer.close()
+            if not finished:
+                if video is not None:
+                    video.discard()
+                if collected is not None:
+                    collected.discard()
+    with stop_signals_ignored():
+        try:
+            if summary.frames == 0:  # before the report: the outputs it would name are removed with the error
+                raise UserError(f"{args.source}: no frame was processed ({summary.end_reason})")
+            if collected is not None:
+                written_via = collected.close()
+                summary.outputs.append(f"{written_via}: {collected.describe()}" if written_via else
+                                       f"{args.via}: not written (no frames)")
+            if video is not None:
+                written = video.close()
+                summary.outputs.append(f"{written} ({video.count} frames)" if written else
+                                       f"{args.save_video}: not written (no frames)")
+        finally:
+            if video is not None:
+                video.discard()  # one a failure above left unfinished: no temporary file stays (no-op after close)
     print(summary.report(model, source))
-    if summary.frames == 0:
-        raise UserError(f"{args.source}: no frame was processed ({summary.end_reason})")
     return 0
