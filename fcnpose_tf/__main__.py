@@ -1,5 +1,5 @@
 """`python -m fcnpose_tf` is the same as the `fcnpose-tf` command."""
 
-from fcnpose_tf.cli import console_main
+from fcnpose_tf.console import main
 
-raise SystemExit(console_main())
+raise SystemExit(main())

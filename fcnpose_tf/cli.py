@@ -275,8 +275,19 @@ def run_tool(tool_main: Callable[[], int | None]) -> int:
 def console_main() -> int:
     """The `fcnpose-tf` command and `python -m fcnpose_tf`: `main`, after which a Ctrl-C or SIGTERM that arrives
     while the interpreter winds down (TensorFlow's finalizers, threads joined) ends the process as the signal's
-    default action does, not with an `Exception ignored ... KeyboardInterrupt` traceback after the command's line."""
-    status = main()
+    default action does, not with an `Exception ignored ... KeyboardInterrupt` traceback after the command's line.
+
+    The stop signals are handled from the start: one that arrives while the commands' modules load (before `main`'s
+    exit path, a quarter of a second here and longer on a Pi) ends the process with the signal's one line and
+    status, not a traceback, and is not lost when the process inherited an ignored SIGINT (`cmd &` in a script)."""
+    with fileio.stop_signals_handled():
+        try:
+            status = main()
+        except KeyboardInterrupt:
+            if fileio.stop_signal() is None:  # not a signal before `main`'s exit path began (--debug re-raises its own)
+                raise
+            reason, status = fileio.STOP_SIGNALS[fileio.stop_signal()]  # nothing was created yet
+            print(reason, file=sys.stderr, flush=True)
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, signal.SIG_DFL)
     return status

@@ -218,3 +218,52 @@ def test_the_console_command_leaves_stop_signals_to_their_default_action_for_the
     finally:
         for signum, handler in before.items():
             signal.signal(signum, handler)
+
+
+@pytest.mark.parametrize("signum, line, status", [("SIGINT", "interrupted (Ctrl-C)", 130),
+                                                  ("SIGTERM", "terminated (SIGTERM)", 143)])
+def test_a_stop_signal_while_the_commands_load_is_one_line_even_if_sigint_was_ignored(monkeypatch, capsys, signum,
+                                                                                      line, status):
+    """Ctrl-C (or a `kill`) before a command's exit path begins, while the commands' modules load: the signal's one
+    line and status, no traceback; and a SIGINT the process inherited as ignored (a script's `cmd &`) still stops
+    it."""
+    import os
+    import signal
+
+    from fcnpose_tf import cli
+
+    build = cli.build_parser
+
+    def build_stopped():
+        os.kill(os.getpid(), getattr(signal, signum))  # arrives while the parser is being built
+        return build()
+
+    monkeypatch.setattr(cli, "build_parser", build_stopped)
+    monkeypatch.setattr(sys, "argv", ["fcnpose-tf", "summary"])
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        assert cli.console_main() == status
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)
+    assert capsys.readouterr().err.strip().splitlines() == [line]
+
+
+def test_the_entry_point_takes_a_stop_signal_before_the_command_line_modules_load(tmp_path):
+    """`fcnpose-tf` (`console.main`) handles SIGINT before it imports `cli`: a Ctrl-C or `kill -INT` while the
+    modules load is the one line and status 130, also in a process that inherited an ignored SIGINT."""
+    code = ("import importlib.abc, os, signal, sys\n"
+            "signal.signal(signal.SIGINT, signal.SIG_IGN)  # as a script's `cmd &` starts it\n"
+            "class StopOnImport(importlib.abc.MetaPathFinder):\n"
+            "    def find_spec(self, name, path, target=None):\n"
+            "        if name == 'fcnpose_tf.cli':\n"
+            "            os.kill(os.getpid(), signal.SIGINT)\n"
+            "sys.meta_path.insert(0, StopOnImport())\n"
+            "from fcnpose_tf.console import main\n"
+            "sys.argv = ['fcnpose-tf', 'summary']\n"
+            "sys.exit(main())\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True,
+                          timeout=PROCESS_TIMEOUT)
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines() == ["interrupted (Ctrl-C)"] and proc.stdout == ""
