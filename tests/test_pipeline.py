@@ -23,7 +23,7 @@ from fcnpose_tf.runtime.estimator import KeypointModel
 from fcnpose_tf.runtime.pipeline import WORKER_NAME
 from fcnpose_tf.runtime.runner import run_stream
 from fcnpose_tf.runtime.sinks import JsonlWriter
-from fcnpose_tf.runtime.sources import Frame, FrameSource, open_source
+from fcnpose_tf.runtime.sources import Frame, FrameSource, LiveSource, open_source
 from test_run_bench_cli import model_path  # noqa: F401 - the structured .tflite fixture, one definition
 from test_runtime import RED_CYCLE, quadrant_frame, write_video
 
@@ -140,6 +140,35 @@ def test_max_frames_every_and_a_skipped_frame_read_what_the_sequential_loop_read
     assert pipe.skipped == seq.skipped == 1 and len(warnings) == 2
     assert pipe.end_reason == seq.end_reason == "reached --max-frames 3"
     assert pipe_source.handed == seq_source.handed == 7
+
+
+class GatedCamera(LiveSource):
+    """A live source whose next frame is captured only once the one before it has been delivered (`delivered`, the
+    run's on_frame hook): a camera slower than the model, with no timing in the test."""
+
+    def __init__(self, image):
+        super().__init__("gated", first_frame_timeout_s=60.0, stall_timeout_s=60.0)  # a defect ends it in 2 min
+        self.image, self.gate = image, threading.Semaphore(1)
+        self._start_grabbing()
+
+    def _read(self):
+        return self.image.copy() if self.gate.acquire(timeout=0.01) else None
+
+    def delivered(self, frame, prediction):
+        self.gate.release()
+
+
+def test_a_live_frame_is_delivered_when_its_invoke_ends_not_when_the_next_frame_comes(model_path):
+    """Pipelined on a camera slower than the model: each frame's keypoints are delivered as soon as its invoke
+    ends, not held until the camera's next frame arrives (a whole frame period of latency; here it never would)."""
+    model = KeypointModel(model_path, 1)
+    camera = GatedCamera(_frames(1)[0])
+    try:
+        summary = run_stream(model, camera, on_frame=camera.delivered, max_frames=4, pipelined=True)
+    finally:
+        camera.close()
+    assert summary.pipelined and summary.frames == 4 and summary.end_reason == "reached --max-frames 4"
+    assert camera.dropped == 0 and not _workers_alive()
 
 
 def test_ctrl_c_in_a_pipelined_run_keeps_what_was_written_and_stops_the_worker(model_path, tmp_path):

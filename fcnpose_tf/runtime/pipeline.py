@@ -44,6 +44,7 @@ class InvokeWorker:
         self.outputs: list[np.ndarray] = [model.new_output() for _ in range(slots)]
         self._todo: queue.SimpleQueue = queue.SimpleQueue()
         self._done: queue.SimpleQueue = queue.SimpleQueue()
+        self._finished = threading.Event()  # set when the frame in flight is done (its result waiting)
         self.busy = False
         self._thread = threading.Thread(target=self._loop, name=WORKER_NAME, daemon=True)
         self._thread.start()
@@ -59,7 +60,12 @@ class InvokeWorker:
         if self.busy:
             raise RuntimeError("InvokeWorker.start while a frame is in flight")
         self.busy = True
+        self._finished.clear()
         self._todo.put(slot)
+
+    def finished(self, timeout: float) -> bool:
+        """Whether the frame in flight is done (`wait` then returns at once), waiting up to `timeout` seconds."""
+        return self._finished.wait(timeout)
 
     def wait(self) -> tuple[int, float]:
         """Wait for the frame in flight.
@@ -84,6 +90,7 @@ class InvokeWorker:
                 self._done.put((slot, self.model.forward(self.inputs[slot], self.outputs[slot])))
             except BaseException as exc:  # noqa: BLE001 - handed to the main thread, raised there
                 self._done.put(exc)
+            self._finished.set()
 
     def close(self) -> None:
         """Stop the thread after the invoke in progress (its result is dropped); safe to call twice."""

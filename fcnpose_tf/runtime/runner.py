@@ -307,7 +307,11 @@ def _sequential_loop(model: KeypointPredictor, source: FrameSource, frames_iter,
 
 def _pipelined_loop(model: KeypointPredictor, source: FrameSource, frames_iter, every: int,
                     delivery: "_Delivery") -> None:
-    """Invoke frame n on the worker while this thread writes frame n-1 and reads and preprocesses n+1."""
+    """Invoke frame n on the worker while this thread writes frame n-1 and reads and preprocesses n+1.
+
+    A live source's frame n+1 does not exist until the camera sends it: there frame n is delivered as soon as its
+    invoke ends, unless a newer frame came first (then that one is read and preprocessed meanwhile, as from a
+    video), so a model faster than the camera adds no camera frame's wait to each frame's latency."""
     from fcnpose_tf.runtime.pipeline import InvokeWorker
 
     summary = delivery.summary
@@ -341,6 +345,11 @@ def _pipelined_loop(model: KeypointPredictor, source: FrameSource, frames_iter, 
             in_flight, slot = (frame, slot, preprocess_ms, read_at), 1 - slot
             if done is not None and delivery.deliver_raw(worker, *done):
                 return
+            if source.live and not _newer_frame_first(worker, source):
+                done = (in_flight, *worker.wait())
+                in_flight = None
+                if delivery.deliver_raw(worker, *done):
+                    return
         if in_flight is not None:
             done = (in_flight, *worker.wait())
             in_flight = None
@@ -348,6 +357,15 @@ def _pipelined_loop(model: KeypointPredictor, source: FrameSource, frames_iter, 
     finally:
         if worker is not None:
             worker.close()  # waits for an invoke still running (a stopped run drops its frame)
+
+
+def _newer_frame_first(worker, source: FrameSource, poll_s: float = 0.001) -> bool:
+    """Wait until the frame in flight is done (False) or the live source has a newer frame (True), whichever
+    comes first: the invoke's end is seen at once, a camera frame within `poll_s`."""
+    while not worker.finished(poll_s):
+        if source.frame_waiting():
+            return True
+    return False
 
 
 def _thumbnail(image: np.ndarray) -> np.ndarray:

@@ -85,6 +85,11 @@ class FrameSource:
     def close(self) -> None:
         """Release the device or file; safe to call twice."""
 
+    def frame_waiting(self) -> bool:
+        """Whether the next read returns without waiting for a frame to be captured: always, but for a live source
+        (`LiveSource`), whose next frame may not exist yet."""
+        return True
+
     def __enter__(self) -> "FrameSource":
         return self
 
@@ -245,6 +250,7 @@ class LiveSource(FrameSource):
         self._cond = threading.Condition()
         self._latest: tuple[np.ndarray, float] | None = None
         self._captured = 0  # frames grabbed by the thread
+        self._used = 0  # frames the consumer has taken (the newest at each take)
         self._failure: str | None = None
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._grab_loop, name=f"grab-{self.name}", daemon=True)
@@ -293,9 +299,14 @@ class LiveSource(FrameSource):
             self._failure = self._failure or "stopped"
             self._cond.notify_all()
 
+    def frame_waiting(self) -> bool:
+        """Whether the next read returns at once: a frame newer than the last one taken, or the source's end."""
+        with self._cond:
+            return self._captured > self._used or self._failure is not None
+
     def __iter__(self) -> Iterator[Frame]:
         self.end_reason = "running"
-        used = 0
+        used = self._used = 0
         while True:
             # Twice the grab thread's limit: its own verdict (reads failing) comes first; this one
             # catches a read that blocks forever (some USB cameras when unplugged).
@@ -304,7 +315,7 @@ class LiveSource(FrameSource):
                 arrived = self._cond.wait_for(lambda: self._captured > used or self._failure is not None, timeout)
                 if self._captured > used:
                     self.dropped += self._captured - used - 1
-                    used = self._captured
+                    used = self._used = self._captured
                     image, stamp = self._latest
                     self._latest = None  # the consumer owns this buffer now
                 elif self._failure is not None:
