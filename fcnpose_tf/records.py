@@ -8,6 +8,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import socket
 import sys
 from dataclasses import dataclass, field
@@ -52,6 +53,10 @@ class TrainingRecord:
 
     data: str | None = None
     """The annotation file trained on, as given (a path)."""
+    data_absolute: str | None = None
+    """The same file's absolute path (`train` since 2026-12-05; None in older records)."""
+    images: str | None = None
+    """The images' folder `train --images` gave (absolute), None when the images are where the VIA file says."""
     data_sha256: str | None = None
     """Hex SHA-256 of that annotation file: tells whether a dataset is the one trained on."""
     fold: int | None = None
@@ -101,6 +106,7 @@ class TrainingRecord:
         start_kept = init is not None and (_typed(record.get("best_epoch"), int) == 0 or (
             isinstance(as_saved, dict) and as_saved.get("chose") == "start"))
         return cls(data=_typed(record.get("data"), str), data_sha256=_typed(record.get("data_sha256"), str),
+                   data_absolute=_typed(record.get("data_absolute"), str), images=_typed(record.get("images"), str),
                    fold=_typed(record.get("fold"), int), folds=_typed(record.get("folds"), int),
                    split=_typed(record.get("split"), str), split_seed=_typed(record.get("split_seed"), int),
                    keypoints=tuple(keypoints) if keypoints is not None else None,
@@ -122,10 +128,16 @@ def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
     """The NAME_train.json written beside a model by `fcnpose-tf train`, or None (none, unreadable, or no
     JSON object).
 
-    An export or a compressed model (NAME_fp16.tflite, NAME_p70.keras) finds NAME_train.json too.
+    An export or a compressed model (NAME_fp16.tflite, NAME_p70.keras: a format's file tag or a rate's pNN after the
+    last underscore) finds NAME_train.json too; another model whose name only begins so (NAME_best.keras) does not.
     """
+    from fcnpose_tf.settings import QUANTIZE_FILE_TAGS
+
     stem = Path(model_path).with_suffix("")
-    for candidate in (Path(f"{stem}_train.json"), stem.with_name(f"{stem.name.rsplit('_', 1)[0]}_train.json")):
+    base, _, tag = stem.name.rpartition("_")
+    derived = base and (tag in QUANTIZE_FILE_TAGS.values() or re.fullmatch(r"p\d{1,2}", tag))
+    candidates = [Path(f"{stem}_train.json")] + ([stem.with_name(f"{base}_train.json")] if derived else [])
+    for candidate in candidates:
         if candidate.is_file():
             try:
                 record = json.loads(candidate.read_text())

@@ -98,10 +98,12 @@ def test_from_json_refuses_what_is_no_json_object(value):
 
 def test_training_record_reads_the_file_beside_the_model_and_its_derivatives(tmp_path):
     (tmp_path / "m_train.json").write_text(json.dumps(written_by_train()))
-    for model in ("m.keras", "m_fp16.tflite", "m_p70.keras"):
+    for model in ("m.keras", "m_fp16.tflite", "m_int8.tflite", "m_p70.keras", "m_p5.keras"):
         record = training_record(tmp_path / model)
         assert isinstance(record, TrainingRecord) and record.fold == 2 and record.keypoints == tuple(KEYPOINTS)
     assert training_record(tmp_path / "other.keras") is None  # none beside it
+    for other in ("m_best.keras", "m_v2.keras", "m_p700.keras"):  # another model named like it: not its record
+        assert training_record(tmp_path / other) is None, other
 
 
 @pytest.mark.parametrize("text", ["", "{not json", "[1, 2, 3]", '"a string"', "42", "null", "\xff\xfe"])
@@ -159,3 +161,33 @@ def test_every_bundled_record_and_report_reads_unchanged():
         report = CompressReport.from_json(written)
         assert report.to_json() == written, path.name
         assert "float16 TFLite" in report_table(report), path.name
+
+
+def test_the_frames_a_model_was_trained_on_are_found_from_any_folder_or_refused(tmp_path, monkeypatch):
+    """`export`/`compress` without --data: the annotation file and images folder `train` recorded, found from any
+    current folder; a user's model whose recorded frames are gone is refused, never given the synthetic frames."""
+    from fcnpose_tf.data import synthcache
+    from fcnpose_tf.data.args import default_data
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.records import file_sha256
+
+    project = tmp_path / "project"
+    project.mkdir()
+    via = project / "labels.json"
+    via.write_text("{}")
+    models = tmp_path / "models"
+    models.mkdir()
+    record = {"data": "project/labels.json", "data_sha256": file_sha256(via), "data_absolute": str(via),
+              "images": str(tmp_path / "photos")}
+    (models / "arm_train.json").write_text(json.dumps(record))
+    said = []
+    monkeypatch.chdir(models)  # not the folder train ran in: the path as given does not resolve here
+    assert default_data(models / "arm_int8.tflite", say=said.append) == (via, tmp_path / "photos")
+    assert default_data(models / "arm.keras", tmp_path / "mine", say=said.append) == (via, tmp_path / "mine")
+    assert said[0] == f"Data: {via}, the frames arm_int8.tflite was trained on (its training record)"
+    via.write_text("{ }")  # changed since
+    with pytest.raises(UserError, match="not there or has changed; give them with --data"):
+        default_data(models / "arm.keras", say=said.append)
+    monkeypatch.setattr(synthcache, "default_training_data", lambda: tmp_path / "synth.json")
+    assert default_data(models / "other.keras", say=said.append) == (tmp_path / "synth.json", None)  # no record
+    assert "no training record names the frames other.keras was trained on" in said[-1]

@@ -74,7 +74,8 @@ def test_train_writes_model_curves_and_record(trained):
     assert record["architecture"] == record["architecture_auto"] == "fcn-pose-skip"
     assert "Architecture: fcn-pose-skip (fine-tuning the generalist" in stdout
     typed = training_record(out)  # every field read from what train wrote, with its type (fold: the hold-out split)
-    assert [f.name for f in fields(typed) if getattr(typed, f.name) is None] == ["fold"]
+    assert [f.name for f in fields(typed) if getattr(typed, f.name) is None] == ["images", "fold"]  # no --images
+    assert typed.data_absolute == str(Path(record["data"]).resolve())  # found from any folder (export, compress)
     assert typed.keypoints == tuple(UR5.keypoints) and typed.positive_weight == record["config"]["positive_weight"]
     assert (typed.data_sha256, typed.split, typed.folds, typed.input_size) == \
         (record["data_sha256"], record["split"], record["folds"], record["input_size"])

@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
                    for each in every]  # before the data
         set_tensorflow_threads(args.threads)
         if args.data is None:
-            args.data = default_data(model_path)
+            args.data, args.images = default_data(model_path, args.images)
         train_dataset = load_from_args(args)
         bundled_task = False  # the bundled baseline on its own synthetic frames: the README's command
         if args.test_data is not None:

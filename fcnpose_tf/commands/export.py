@@ -120,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
 
         model = at_input_height(model, args.input_size)
     if args.data is None:
-        args.data = default_data(args.model)
+        args.data, args.images = default_data(args.model, args.images)
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W

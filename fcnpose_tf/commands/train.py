@@ -127,7 +127,10 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.bundled import BUNDLED_MODELS
 
     metadata: dict = {"init": args.init if args.init in BUNDLED_MODELS else (str(init) if init else None),
-                      "preset": args.preset}
+                      "preset": args.preset,
+                      # where the frames are, from any folder: `export` and `compress` find them without --data
+                      "data_absolute": str(via_path.resolve()),
+                      "images": str(Path(args.images).resolve()) if args.images is not None else None}
     if args.architecture is None and args.init == "generalist":
         args.architecture = metadata["architecture_auto"] = settings.FINE_TUNE_ARCHITECTURE
         print(f"Architecture: {args.architecture} (fine-tuning the generalist: conv2's half-resolution block added "

@@ -11,6 +11,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from fcnpose_tf.errors import UserError
 from fcnpose_tf.settings import FOLDS
 
 
@@ -55,32 +56,55 @@ def load_from_args(args: argparse.Namespace) -> Any:
                         skip_bad=args.skip_bad, folds=folds, split_seed=args.split_seed, resplit=args.resplit)
 
 
-def recorded_data(model_path: str | Path) -> Path | None:
-    """The annotation file `model_path` was trained on, as its NAME_train.json records it (`records.training_record`),
-    when that file is still there unchanged (the same SHA-256); None otherwise. A relative path is looked up from
-    the current folder, then from the model's."""
+def recorded_data(model_path: str | Path) -> tuple[Path, Path | None] | None:
+    """The annotation file `model_path` was trained on and its images' folder (None: where the file says), as its
+    NAME_train.json records them (`records.training_record`), when that file is still there unchanged (the same
+    SHA-256); None otherwise. Looked up at its absolute path, then (an older record's path as given) from the current
+    folder and from the model's."""
     from fcnpose_tf.records import file_sha256, training_record
 
     record = training_record(model_path)
     if record is None or not record.data or not record.data_sha256:
         return None
     recorded = Path(record.data)
-    for candidate in (recorded, Path(model_path).parent / recorded) if not recorded.is_absolute() else (recorded,):
+    candidates = [Path(record.data_absolute)] if record.data_absolute else []
+    candidates += [recorded, Path(model_path).parent / recorded] if not recorded.is_absolute() else [recorded]
+    for candidate in candidates:
         try:
             if candidate.is_file() and file_sha256(candidate) == record.data_sha256:
-                return candidate
+                return candidate, Path(record.images) if record.images else None
         except OSError:
             continue
     return None
 
 
-def default_data(model_path: str | Path, say: Any = print) -> Path:
-    """`--data` left out: the frames `model_path` was trained on (`recorded_data`), else the synthetic frames the
-    bundled models were trained on. Says which."""
-    from fcnpose_tf.data import synthcache
+def default_data(model_path: str | Path, images: str | Path | None = None,
+                 say: Any = print) -> tuple[Path, Path | None]:
+    """`--data` left out: (the annotation file, its images' folder) `model_path` was trained on (`recorded_data`;
+    `images`, the command's --images, wins), else the synthetic frames the bundled models were trained on. Says which.
 
+    Raises:
+        UserError: a model of the user's (not bundled) whose training record names frames that are not found or have
+            changed: another set of frames, the synthetic ones least of all, is never taken in their place.
+    """
+    from fcnpose_tf.bundled import models_dir
+    from fcnpose_tf.data import synthcache
+    from fcnpose_tf.records import training_record
+
+    name = Path(model_path).name
     recorded = recorded_data(model_path)
     if recorded is not None:
-        say(f"Data: {recorded}, the frames {Path(model_path).name} was trained on (its training record)")
-        return recorded
-    return synthcache.default_training_data()
+        say(f"Data: {recorded[0]}, the frames {name} was trained on (its training record)")
+        return recorded[0], images if images is not None else recorded[1]
+    record = training_record(model_path)
+    try:
+        bundled = Path(model_path).resolve().parent == models_dir().resolve()
+    except UserError:  # no bundled models on this machine
+        bundled = False
+    if record is not None and record.data and not bundled:
+        raise UserError(f"{model_path}: its training record names {record.data_absolute or record.data} as the frames "
+                        f"it was trained on, and that file is not there or has changed; give them with --data")
+    data = synthcache.default_training_data()
+    say(f"Data: {data}, the synthetic frames the bundled models were trained on "
+        f"({'a bundled model' if bundled else f'no training record names the frames {name} was trained on'})")
+    return data, images
