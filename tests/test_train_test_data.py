@@ -113,6 +113,19 @@ def test_train_measures_the_start_and_every_fold_on_the_fixed_test_set(tmp_path,
     lines = [line for line in stdout.splitlines() if "Test set " in line]
     assert any(line.startswith("fold 1: Test set ") for line in lines)
     assert all("no starting model to compare (--init none" in line for line in lines)
+    # stopped before fold 1 began: --resume keeps fold 0 (read from its record) and trains fold 1
+    fold0 = (tmp_path / "models" / "scratch_fold0.keras").read_bytes()
+    for path in (tmp_path / "models").glob("scratch_fold1*"):
+        path.unlink()
+    again = ("train", "--data", data, "--out", out2, "--test-data", test, "--init", "none", "--folds", "2", *TRAIN)
+    status, stdout, err = cli_here(*again, "--resume")
+    assert status == 0, stdout + err
+    assert "scratch_fold0.keras: fold 0 was finished before (its record)" in stdout
+    assert (tmp_path / "models" / "scratch_fold1.keras").is_file()
+    assert (tmp_path / "models" / "scratch_fold0.keras").read_bytes() == fold0
+    assert "pck@0.5" in stdout.lower() and "mean" in stdout.lower()  # the folds' summary, both folds in it
+    status, _, err = cli_here(*again, "--resume")
+    assert status == 2 and "all 2 folds of" in err and "nothing to resume" in err
 
 
 @pytest.mark.slow

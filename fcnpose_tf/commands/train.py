@@ -119,10 +119,15 @@ def run(args: argparse.Namespace) -> int:
         folds = list(range(k))
     else:
         folds = [None]
-    if not args.resume:
-        for fold in folds:  # fail before any training, not after the first fold
-            check_outputs(fold_model_path(args.out, fold), args.force)
     via_path, images_dir = resolve_data(args.data, args.images)
+    finished = _finished_folds(args, folds, via_path) if args.resume and len(folds) > 1 else {}
+    resumes = {fold: args.resume and fold not in finished and (len(folds) == 1 or _has_checkpoint(args.out, fold))
+               for fold in folds}  # --resume --folds K: each fold's checkpoint continued, the folds never begun begun
+    if args.resume and len(folds) > 1 and not finished and not any(resumes.values()):
+        raise UserError(f"{args.out}: no fold of {len(folds)} was finished or left a checkpoint: nothing to resume")
+    for fold in folds:  # fail before any training, not after the first fold
+        if fold not in finished and not resumes[fold]:
+            check_outputs(fold_model_path(args.out, fold), args.force)
     # a bundled start is recorded by its name (its path is this machine's), a user's model by the path given
     from fcnpose_tf.bundled import BUNDLED_MODELS
 
@@ -167,8 +172,8 @@ def run(args: argparse.Namespace) -> int:
                   + ("fine-tuning an fcn-pose-skip network on one fixed camera"
                      if settings.skip_fine_tune(init is not None, args.augment, args.architecture)
                      else "the paper's") + "; --augment-copies sets it)")
-    for fold in folds:  # a checkpoint that cannot be resumed is refused before any frame is prepared
-        check_checkpoint(fold_model_path(args.out, fold), resume=args.resume, force=args.force,
+    for fold in [f for f in folds if f not in finished]:  # a checkpoint that cannot be resumed: refused before the data
+        check_checkpoint(fold_model_path(args.out, fold), resume=resumes[fold], force=args.force,
                          identity=run_identity(via_path, resolved, input_size=view.size_record,
                                                crop=view.to_json()["crop_xywh"], fold=fold, folds=k,
                                                augment=args.augment, augment_copies=args.augment_copies,
@@ -185,11 +190,21 @@ def run(args: argparse.Namespace) -> int:
     reports = []
     test_lines = []
     for fold in folds:
-        record = train_fold(dataset, fold, fold_model_path(args.out, fold), config, input_size=args.input_size,
-                            augment_copies=args.augment_copies, augment=args.augment, init=init, resume=args.resume,
-                            force=args.force, metadata=metadata,
-                            threads=args.threads, test_data=test,
-                            test_start=test_start, size_was_chosen=size_was_chosen, architecture=args.architecture)
+        if fold in finished:
+            record = finished[fold]
+            print(f"{fold_model_path(args.out, fold)}: fold {fold} was finished before (its record)")
+        else:
+            try:
+                record = train_fold(dataset, fold, fold_model_path(args.out, fold), config,
+                                    input_size=args.input_size, augment_copies=args.augment_copies,
+                                    augment=args.augment, init=init, resume=resumes[fold], force=args.force,
+                                    metadata=metadata, threads=args.threads, test_data=test, test_start=test_start,
+                                    size_was_chosen=size_was_chosen, architecture=args.architecture)
+            except UserError as exc:
+                if len(folds) > 1 and fold != folds[0]:  # the folds before it are finished: --resume skips them
+                    raise UserError(f"{exc} (folds {folds[0]}-{fold - 1} are finished: `--resume` continues "
+                                    f"from fold {fold})") from None
+                raise
         print(f"Validation ({record.split}, {record.raw['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         validation = record.validation
         print(format_report(validation.metrics))
@@ -204,6 +219,36 @@ def run(args: argparse.Namespace) -> int:
         for line in test_lines:
             print(line)
     return 0
+
+
+def _has_checkpoint(out: Path, fold: int | None) -> bool:
+    """Whether the run writing that fold's model left a checkpoint to resume."""
+    from fcnpose_tf.training.train import run_paths
+
+    paths = run_paths(fold_model_path(out, fold))
+    return paths["ckpt_state"].is_file() and paths["ckpt_model"].is_file()
+
+
+def _finished_folds(args: argparse.Namespace, folds: list, via_path: Path) -> dict:
+    """`--resume --folds K`: fold -> the record of each fold an earlier run of this command finished (its model and
+    record written, no checkpoint left); refused when one was trained on other frames or another split."""
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.records import file_sha256, training_record
+
+    finished = {}
+    for fold in folds:
+        path = fold_model_path(args.out, fold)
+        if _has_checkpoint(args.out, fold) or not path.is_file():
+            continue
+        record = training_record(path)
+        if record is None or record.validation is None or record.fold != fold or record.folds != len(folds) \
+                or record.data_sha256 != file_sha256(via_path):
+            raise UserError(f"{path}: not a finished fold {fold} of {len(folds)} of {via_path} (its record says "
+                            "otherwise, or it has none); pass --force (without --resume) to train every fold again")
+        finished[fold] = record
+    if len(finished) == len(folds):
+        raise UserError(f"all {len(folds)} folds of {args.out} are finished: nothing to resume")
+    return finished
 
 
 def _training_images(dataset, image: Path) -> set[Path]:
