@@ -406,3 +406,45 @@ def test_a_stop_signal_while_run_closes_its_outputs_waits_for_them(capsys, tmp_p
 def read_via_frames(via: Path) -> list[str]:
     """The image file names a VIA project lists."""
     return [entry["filename"] for entry in json.loads(via.read_text())["_via_img_metadata"].values()]
+
+
+class _ScriptedCapture:
+    """A cv2.VideoCapture stand-in reading a script: True gives a frame, False a frame that cannot be decoded."""
+
+    def __init__(self, script):
+        self.script, self.at = list(script), 0
+
+    def read(self):
+        ok = self.at < len(self.script) and self.script[self.at]
+        self.at += 1
+        return (True, quadrant_frame(64, 48, "tl")) if ok else (False, None)
+
+    def get(self, prop):
+        return -1.0
+
+    def release(self):
+        pass
+
+
+@pytest.mark.parametrize("script, read, skipped, ended", [
+    ([True] * 4 + [False] + [True] * 3, [0, 1, 2, 3, 5, 6, 7], 1, "end of video"),  # a damaged frame: skipped
+    ([True] * 3 + [False, False] + [True] * 3, [0, 1, 2, 5, 6, 7], 2, "end of video"),
+    ([True] * 3 + [False] * 5, [0, 1, 2], 0, "video ended after 3 of 8 frames"),  # truncated: ends, nothing skipped
+])
+def test_a_video_frame_that_cannot_be_read_is_skipped_and_counted(video, script, read, skipped, ended):
+    """One undecodable frame (a glitch on an SD card) is skipped with a warning, not the end of the video; frames
+    that never come (a truncated file) end it where the readable part ends."""
+    from fcnpose_tf.runtime.sources import VideoSource
+
+    warnings = []
+    source = VideoSource(video, warn=warnings.append)
+    source._cap.release()
+    source._cap, source.frame_count = _ScriptedCapture(script), len(script)
+    source.MAX_UNREADABLE_IN_A_ROW = 4
+    try:
+        assert [frame.index for frame in source] == read
+    finally:
+        source.close()
+    assert source.skipped == skipped and source.end_reason.startswith(ended)
+    if skipped:
+        assert any("cannot be read: skipped" in line for line in warnings)

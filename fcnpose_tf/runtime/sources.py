@@ -167,10 +167,15 @@ class VideoSource(FrameSource):
         except OSError:
             self._native_sink = None
 
+    MAX_UNREADABLE_IN_A_ROW = 10
+    """Unreadable frames in a row after which a video with frames left (by its header) is taken to end there: a
+    damaged frame is skipped, a truncated file ends."""
+
     def __iter__(self) -> Iterator[Frame]:
         self.end_reason = "running"
         self.decoder_messages, self.damaged_frames = [], 0
         index = 0
+        unreadable = 0  # frames in a row that could not be read, from index - unreadable
         try:
             while True:
                 with quiet_opencv(sink=self._native_sink) as native:
@@ -187,7 +192,19 @@ class VideoSource(FrameSource):
                 if failure is not None:
                     self.warn(f"{self.path}: frame {index} cannot be decoded ({failure})")
                 if not ok or image is None:
-                    break
+                    unreadable += 1
+                    if self.frame_count is None or index + 1 >= self.frame_count \
+                            or unreadable >= self.MAX_UNREADABLE_IN_A_ROW:
+                        index -= unreadable - 1  # the frames after the last one read were not there to skip
+                        break
+                    index += 1  # a damaged frame: the next may read (it keeps its own number)
+                    continue
+                if unreadable:
+                    first = index - unreadable
+                    self.skipped += unreadable
+                    self.warn(f"{self.path}: frame{f's {first}-{index - 1}' if unreadable > 1 else f' {first}'} "
+                              "cannot be read: skipped")
+                    unreadable = 0
                 media = self._cap.get(cv2.CAP_PROP_POS_MSEC)
                 yield Frame(index, _as_bgr(image), time.time(), self.name, media / 1e3 if media >= 0 else None)
                 index += 1
