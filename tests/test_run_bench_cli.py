@@ -121,6 +121,7 @@ def test_run_single_image_csv_and_video(capsys, tmp_path, model_path):
     code, stdout, err = _run(capsys, "run", model_path, "--source", image, "--out", tmp_path / "k.csv",
                              "--save-video", tmp_path / "o.avi")
     assert code == 0, err
+    assert "Delivered: one frame (no rate), " in stdout and "nan" not in stdout
     lines = (tmp_path / "k.csv").read_text().splitlines()
     assert len(lines) == 2 and lines[0].startswith("frame,timestamp,source,width,height")
     row = dict(zip(lines[0].split(","), lines[1].split(",")))
@@ -146,6 +147,7 @@ def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
 
 @pytest.mark.parametrize("args, message", [
     (["--source", "{missing}"], "no such file or folder"),
+    (["--source", " "], "--source is empty"),  # an unset shell variable: not the current folder's images
     (["--source", "97"], "camera 97: cannot be opened"),
     (["--source", "/dev/video97"], "no such camera device"),
     (["--source", "{video}", "--out", "k.txt"], "use .jsonl or .csv"),

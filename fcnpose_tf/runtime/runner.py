@@ -128,7 +128,8 @@ class RunSummary:
                       f"({_threads(model.num_threads)}; {FPS_DEFINITION})",
                       f"Loop:    {self.loop_fps:.1f} frames/s wall clock (with capture, drawing and writing)"]
             d = describe_ms(self.read_to_keypoints_ms)
-            lines.append(f"Delivered: {self.delivered_fps:.1f} frames/s, {self._mode()}; per frame "
+            rate = f"{self.delivered_fps:.1f} frames/s" if self.frames > 1 else "one frame (no rate)"
+            lines.append(f"Delivered: {rate}, {self._mode()}; per frame "
                          f"{d['median']:.1f} ms p50, {d['p95']:.1f} ms p95 from read to records written "
                          f"({DELIVERED_DEFINITION})")
         if len(self.raw_steps_px):

@@ -618,6 +618,8 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
             unreadable video or image, a folder without images, picamera2 missing or unimportable.
     """
     text = os.fspath(spec) if not isinstance(spec, int) else str(spec)
+    if not text.strip():  # an empty shell variable: not the current folder's images
+        raise UserError(f"{flag} is empty: give a camera index, picamera2, a video, an image folder or an image")
     picamera2 = PICAMERA2_SPEC.fullmatch(text)
     index = isinstance(spec, int) or text.strip().isdigit()
     url = re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text) is not None
