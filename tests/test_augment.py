@@ -97,3 +97,15 @@ def test_bad_input():
         augment_copies(image, np.array([[9.0, 5.0]]), copies=-1)
     with pytest.raises(UserError, match="rotation"):
         AugmentConfig(max_rotation_deg=200)
+
+
+def test_without_albumentations_augmenting_is_one_line_naming_the_extra(monkeypatch):
+    """The Pi-only install (`pip install 'fcnpose-tf[pi]'`) has no Albumentations: `data inspect --out` there says
+    which extra augments frames instead of a traceback."""
+    import sys
+
+    monkeypatch.setitem(sys.modules, "albumentations", None)  # import albumentations raises ImportError
+    image = np.zeros((48, 64, 3), np.uint8)
+    keypoints = np.full((8, 2), 20.0)
+    with pytest.raises(UserError, match=r"needs Albumentations .*pip install 'fcnpose-tf\[train\]'"):
+        augment_frame(image, keypoints, np.random.default_rng(0), AugmentConfig())

@@ -73,8 +73,11 @@ def inside_frame(keypoints: np.ndarray, width: int, height: int) -> bool:
 
 def _albumentations():
     os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # no network check at import
-    import albumentations as A
-
+    try:
+        import albumentations as A
+    except ImportError as exc:  # the Pi-only install (the pi extra) has no augmentation
+        raise UserError(f"augmenting frames needs Albumentations ({exc}); install the training extra: "
+                        "pip install 'fcnpose-tf[train]'") from None
     return A
 
 
