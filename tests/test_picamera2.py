@@ -101,7 +101,7 @@ def test_a_camera_that_raises_mid_run_ends_it(standin):
     src.close()
     assert 1 <= len(frames) <= 5
     assert src.end_reason == "picamera2 camera 0 failed: Device timeout detected, attempting a restart"
-    assert messages == [src.end_reason] and _events(standin)[-2:] == ["stop", "close"]
+    assert messages == [src.end_reason] and _events(standin)[-2:] == ["stop", "close"] and src.failed
 
 
 def test_a_camera_that_stops_delivering_ends_the_run(standin):
@@ -110,6 +110,7 @@ def test_a_camera_that_stops_delivering_ends_the_run(standin):
     src = rsources.Picamera2Source(0, warn=messages.append, stall_timeout_s=0.1)
     frames = list(src)
     assert len(frames) <= 3 and "sent no frame within 0.2 s (disconnected?)" in src.end_reason and messages
+    assert src.failed
     src.close()  # stop() releases the capture_array that waits forever
     assert not src._thread.is_alive() and _events(standin)[-2:] == ["stop", "close"]
 
@@ -191,6 +192,19 @@ def test_run_cli_on_the_camera_module(capsys, tmp_path, standin, model_path):
     assert [int(p.stem[-6:]) for p in saved] == [r["frame"] for r in records[::2]]  # processed frames 1, 3, 5
     assert "cam.json: 3 frames" in stdout
     assert _events(standin)[-2:] == ["stop", "close"]
+
+
+def test_a_camera_that_fails_mid_run_ends_run_with_status_1_and_its_outputs_kept(capsys, tmp_path, standin,
+                                                                                   model_path):
+    """A camera that fails is not a clean stop: a script or a systemd unit (Restart=on-failure) can tell them apart
+    by the status (1: done, part of the work failed), and the records written are kept."""
+    standin.update(fps=200, fail_after=5)
+    out = tmp_path / "k.jsonl"
+    code, stdout, err = _run(capsys, "run", model_path, "--source", "picamera2", "--out", out, "--threads", 1)
+    assert code == 1, err
+    assert err.strip().splitlines()[-1] == ("error: picamera2 camera 0 failed: Device timeout detected, attempting a "
+                                            "restart: the run ended early (its outputs are kept)")
+    assert 1 <= len(out.read_text().splitlines()) <= 5 and "Frames:  " in stdout
 
 
 def test_run_cli_errors_are_one_line(capsys, tmp_path, standin, model_path, monkeypatch):

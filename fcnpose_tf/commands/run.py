@@ -171,4 +171,7 @@ def run(args: argparse.Namespace) -> int:
             if video is not None:
                 video.discard()  # one a failure above left unfinished: no temporary file stays (no-op after close)
     print(summary.report(model, source))
+    if source.failed:  # the frames ended because the camera failed, not by a stop or --max-frames: a script sees it
+        print(f"error: {source.end_reason}: the run ended early (its outputs are kept)", file=sys.stderr)
+        return 1
     return 0

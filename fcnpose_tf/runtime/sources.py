@@ -78,6 +78,7 @@ class FrameSource:
         self.skipped = 0  # unreadable frames/images passed over
         self.dropped = 0  # camera frames replaced by newer ones before use
         self.end_reason = "not started"
+        self.failed = False  # a live source whose device failed or went silent ended the frames (not a stop)
 
     def __iter__(self) -> Iterator[Frame]:
         raise NotImplementedError
@@ -338,11 +339,13 @@ class LiveSource(FrameSource):
                 elif self._failure is not None:
                     self.end_reason = self._failure
                     if self._failure != "stopped":
+                        self.failed = True
                         self.warn(self._failure)
                     return
                 elif not arrived:
                     self.end_reason = (f"{self.name} sent no frame within {timeout:g} s"
                                        + (" of opening" if used == 0 else " (disconnected?)"))
+                    self.failed = True
                     self.warn(self.end_reason)
                     return
             yield Frame(used - 1, _as_bgr(image), stamp, self.name)
