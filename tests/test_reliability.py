@@ -463,6 +463,9 @@ def test_more_folds_than_frames_is_refused_before_any_split_is_stored(tmp_path, 
     assert main(["train", "--data", str(data), "--out", str(tmp_path / "m.keras"), "--folds", "99", "--resplit",
                  "--init", "none"]) == 2  # train (as sweep and compress) loads through the same check
     assert capsys.readouterr().err == expected and splits.read_text() == stored
+    assert main(["data", "inspect", str(data)]) == 0  # no K asked for: the stored 3 folds serve the hold-out split
+    assert main(["data", "inspect", str(data), "--folds", "5"]) == 2  # another K asked for: refused
+    assert "stored splits use seed 0, 3 folds" in capsys.readouterr().err and splits.read_text() == stored
 
 
 def test_a_dataset_smaller_than_the_default_folds_still_loads_for_the_hold_out_split(tmp_path, capsys):

@@ -217,12 +217,13 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
     """The dataset's stored splits, or new ones saved beside the VIA file (when `write`).
 
     `k`: the K folds asked for, refused (`check_fold_count`) when there are fewer frames; None:
-    the default K (5), whose folds a dataset too small for them simply lacks (the hold-out split
-    still serves). Returns (splits, path of the splits file, status) with status "loaded",
+    no K asked for: the stored splits' K, whatever it is, or for new splits the default K (5), whose folds a dataset
+    too small for them simply lacks (the hold-out split still serves). Returns (splits, path of the splits file, status) with status "loaded",
     "created", or "not saved" (folder not writable or write=False). Stored
     splits made with another seed, K or fraction, or for another frame list, are
     an error unless `resplit` replaces them.
     """
+    asked = k
     if k is None:
         k = FOLDS.default
     else:
@@ -235,6 +236,7 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
             reason = fileio.os_error_reason(exc) if isinstance(exc, OSError) else fileio.entry_problem(exc)
             raise UserError(f"{path}: cannot read splits file ({reason}); delete it to split again") from None
         splits = splits_from_dict(data, names, str(path))
+        k = splits.k if asked is None else k  # a command that asks for no K (the hold-out split) takes the stored one
         if (splits.seed, splits.k) != (seed, k) or abs(splits.val_fraction - val_fraction) > 1e-9:
             raise UserError(f"{path}: stored splits use seed {splits.seed}, {splits.k} folds, validation fraction "
                             f"{splits.val_fraction:g}, but seed {seed}, {k} folds, {val_fraction:g} were asked for; "
