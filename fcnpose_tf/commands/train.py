@@ -119,14 +119,17 @@ def run(args: argparse.Namespace) -> int:
         folds = list(range(k))
     else:
         folds = [None]
+    if not args.resume:
+        for fold in folds:  # fail before any training, not after the first fold
+            check_outputs(fold_model_path(args.out, fold), args.force)
     via_path, images_dir = resolve_data(args.data, args.images)
     finished = _finished_folds(args, folds, via_path) if args.resume and len(folds) > 1 else {}
     resumes = {fold: args.resume and fold not in finished and (len(folds) == 1 or _has_checkpoint(args.out, fold))
                for fold in folds}  # --resume --folds K: each fold's checkpoint continued, the folds never begun begun
-    if args.resume and len(folds) > 1 and not finished and not any(resumes.values()):
-        raise UserError(f"{args.out}: no fold of {len(folds)} was finished or left a checkpoint: nothing to resume")
-    for fold in folds:  # fail before any training, not after the first fold
-        if fold not in finished and not resumes[fold]:
+    if args.resume and len(folds) > 1:
+        if not finished and not any(resumes.values()):
+            raise UserError(f"{args.out}: no fold of {len(folds)} was finished or left a checkpoint: nothing to resume")
+        for fold in [f for f in folds if f not in finished and not resumes[f]]:
             check_outputs(fold_model_path(args.out, fold), args.force)
     # a bundled start is recorded by its name (its path is this machine's), a user's model by the path given
     from fcnpose_tf.bundled import BUNDLED_MODELS

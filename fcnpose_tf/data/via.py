@@ -301,6 +301,28 @@ def _region_attribute_names(metadata: dict) -> set[str]:
     return names
 
 
+def _attribute_naming_keypoints(data: object, metadata: dict, present: set[str],
+                                schema: KeypointSchema | None) -> str | None:
+    """The one region attribute whose every value is a keypoint name (of `schema`, else of the file's stored schema,
+    the attribute's dropdown options or UR5's), or None when none or several are."""
+    stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
+    naming = []
+    for name in sorted(present):
+        known = schema or (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
+                           else _schema_from_attributes(data, name) or UR5)
+        values = set()
+        for meta in metadata.values():
+            regions = meta.get("regions") if isinstance(meta, dict) else None
+            regions = list(regions.values()) if isinstance(regions, dict) else regions
+            for region in regions if isinstance(regions, list) else ():
+                attributes = region.get("region_attributes") if isinstance(region, dict) else None
+                if isinstance(attributes, dict) and name in attributes:
+                    values.add(attributes[name] if isinstance(attributes[name], str) else None)
+        if values and values <= set(known.keypoints):
+            naming.append(name)
+    return naming[0] if len(naming) == 1 else None
+
+
 def _image_dirs(path: Path, images_dir: str | os.PathLike | None, settings: dict) -> list[Path]:
     if images_dir is not None:
         images_dir = Path(images_dir)
@@ -480,6 +502,13 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
     path = Path(path)
     data = _load_json(path)
     metadata, settings = _split_file(path, data)
+    present = _region_attribute_names(metadata)
+    if present and attribute not in present:
+        named = _attribute_naming_keypoints(data, metadata, present, schema)
+        if named is not None:  # the labels under another name: read by it, not guessed in schema order
+            logger.warning("%s: no region has the attribute %r (--keypoint-attr); reading the keypoint names from %r, "
+                           "whose values are all keypoint names", path, attribute, named)
+            attribute = named
     if schema is None:
         stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
         schema = (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
@@ -490,8 +519,7 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
         raise UserError(f"min_visible must be between 0 and {schema.num_keypoints} for schema {schema.name!r}, "
                         f"got {min_visible}")
     dirs = _image_dirs(path, images_dir, settings)
-    present = _region_attribute_names(metadata)
-    if present and attribute not in present:  # labels under another name: schema order would be a silent guess
+    if present and attribute not in present:  # no attribute names the points: schema order is a guess, said
         logger.warning("%s: no region has the attribute %r (--keypoint-attr), so points are taken in schema "
                        "order; the regions' attributes are: %s", path, attribute, ", ".join(sorted(present)))
 
