@@ -450,3 +450,27 @@ def test_a_video_frame_that_cannot_be_read_is_skipped_and_counted(video, script,
     assert source.skipped == skipped and source.end_reason.startswith(ended)
     if skipped:
         assert any("cannot be read: skipped" in line for line in warnings)
+
+
+def test_a_stream_whose_server_sends_nothing_is_refused_after_the_first_frame_timeout():
+    """A stream server that accepts and never sends (rpicam-vid starting, a wrong port forward) held FFmpeg's open,
+    and Ctrl-C with it, for 30 s; the open now gives up after the first frame's timeout, saying what to check."""
+    import socket
+
+    from fcnpose_tf.errors import UserError
+    from fcnpose_tf.runtime.sources import CameraSource
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(1)
+    accepted = []
+    thread = threading.Thread(target=lambda: accepted.append(server.accept()), daemon=True)
+    thread.start()
+    try:
+        with pytest.raises(UserError, match=r"no stream there within 1 s: is its server running, e\.g\. `rpicam-vid "
+                                            r"--listen`"):
+            CameraSource(f"tcp://127.0.0.1:{server.getsockname()[1]}", first_frame_timeout_s=1.0)
+    finally:
+        for connection, _ in accepted:
+            connection.close()
+        server.close()

@@ -360,6 +360,10 @@ class LiveSource(FrameSource):
         self._release()
 
 
+URL_SPEC = re.compile(r"^[a-zA-Z][a-zA-Z0-9+.-]*://")
+"""A stream URL (rtsp://, http://, tcp://...): opened by OpenCV's FFmpeg like a camera."""
+
+
 class CameraSource(LiveSource):
     """A camera or stream that OpenCV opens (index, /dev/videoN, URL), read by LiveSource's thread.
 
@@ -375,12 +379,19 @@ class CameraSource(LiveSource):
         super().__init__(f"camera {device}" if isinstance(device, int) else str(device), warn,
                          first_frame_timeout_s, stall_timeout_s)
         self.device = device
+        url = isinstance(device, str) and URL_SPEC.match(device) is not None
+        # a stream's server that accepts and sends nothing would hold FFmpeg's open (and Ctrl-C) for 30 s
+        params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, round(first_frame_timeout_s * 1e3),
+                  cv2.CAP_PROP_READ_TIMEOUT_MSEC, round(stall_timeout_s * 1e3)] \
+            if url and hasattr(cv2, "CAP_PROP_OPEN_TIMEOUT_MSEC") else []
         with quiet_opencv():
-            self._cap = cv2.VideoCapture(device)
+            self._cap = cv2.VideoCapture(device, cv2.CAP_ANY, params) if params else cv2.VideoCapture(device)
         if not self._cap.isOpened():
             self._cap.release()
-            raise UserError(f"{self.name}: cannot be opened (not connected, in use by another program, "
-                            "or no permission; list cameras with `v4l2-ctl --list-devices`)")
+            raise UserError(f"{self.name}: cannot be opened " + (
+                f"(no stream there within {first_frame_timeout_s:g} s: is its server running, e.g. `rpicam-vid "
+                "--listen`, at that address and port?)" if url else "(not connected, in use by another program, or "
+                "no permission; list cameras with `v4l2-ctl --list-devices`)"))
         if size is not None:
             self._cap.set(cv2.CAP_PROP_FRAME_WIDTH, size[0])
             self._cap.set(cv2.CAP_PROP_FRAME_HEIGHT, size[1])
@@ -625,7 +636,7 @@ def open_source(spec: str | int | os.PathLike, camera_size: tuple[int, int] | No
         raise UserError(f"{flag} is empty: give a camera index, picamera2, a video, an image folder or an image")
     picamera2 = PICAMERA2_SPEC.fullmatch(text)
     index = isinstance(spec, int) or text.strip().isdigit()
-    url = re.match(r"^[a-zA-Z][a-zA-Z0-9+.-]*://", text) is not None
+    url = URL_SPEC.match(text) is not None
     if refuse_cameras and (picamera2 or text.startswith("picamera2:") or index or url or text.startswith("/dev/")):
         raise UserError(f"{flag} {text}: {refuse_cameras}")
     if picamera2:
