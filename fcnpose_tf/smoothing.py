@@ -53,9 +53,17 @@ class OneEuroParams:
     def check(self) -> "OneEuroParams":
         from fcnpose_tf.errors import UserError
 
-        if not (self.min_cutoff_hz > 0 and self.d_cutoff_hz > 0 and self.beta >= 0 and self.max_coast >= 0):
-            raise UserError(f"smoothing parameters must be positive (cut-offs > 0 Hz, beta >= 0, coasting >= 0 "
-                            f"frames), got {self}")
+        wrong = []  # each in the words of its option
+        if not self.min_cutoff_hz > 0:
+            wrong.append(f"--smooth-min-cutoff must be above 0 Hz, got {self.min_cutoff_hz:g}")
+        if not self.d_cutoff_hz > 0:
+            wrong.append(f"the speed's cut-off must be above 0 Hz, got {self.d_cutoff_hz:g}")
+        if not self.beta >= 0:
+            wrong.append(f"--smooth-beta must be >= 0, got {self.beta:g}")
+        if not self.max_coast >= 0:
+            wrong.append(f"--smooth-coast must be >= 0 frames, got {self.max_coast:g}")
+        if wrong:
+            raise UserError("; ".join(wrong))
         return self
 
 

@@ -148,6 +148,8 @@ def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
 @pytest.mark.parametrize("args, message", [
     (["--source", "{missing}"], "no such file or folder"),
     (["--source", " "], "--source is empty"),  # an unset shell variable: not the current folder's images
+    (["--source", "{video}", "--smooth", "--smooth-min-cutoff", "0", "--smooth-coast", "-1"],
+     "--smooth-min-cutoff must be above 0 Hz, got 0; --smooth-coast must be >= 0 frames, got -1"),
     (["--source", "97"], "camera 97: cannot be opened"),
     (["--source", "/dev/video97"], "no such camera device"),
     (["--source", "{video}", "--out", "k.txt"], "use .jsonl or .csv"),
@@ -236,10 +238,11 @@ def test_bench_on_a_real_image(capsys, tmp_path, model_path):
     (["--threads", "1,x"], "expected positive integers"),
     (["--frames", "0"], "--frames must be >= 1"),
     (["--image", "{missing}"], "image not found"),
+    (["--image", "{folder}"], "a folder, not an image"),
     (["--frame-size", "640"], "expected WIDTHxHEIGHT"),
 ])
 def test_bench_user_errors(capsys, tmp_path, model_path, args, message):
-    args = [a.format(missing=tmp_path / "nope.png") for a in args]
+    args = [a.format(missing=tmp_path / "nope.png", folder=tmp_path) for a in args]
     code, _, err = _run(capsys, "bench", model_path, *args)
     _one_line_error(code, err, message)
 

@@ -264,7 +264,7 @@ def load_frame(path: str | os.PathLike | None, size: tuple[int, int] = (640, 480
         return synthetic_frame(*size), f"synthetic {size[0]}x{size[1]}"
     path = Path(path)
     if not path.is_file():
-        raise UserError(f"{path}: image not found")
+        raise UserError(f"{path}: {'a folder, not an image' if path.is_dir() else 'image not found'}")
     image = read_image(path)
     if image is None:
         raise UserError(f"{path}: cannot be read as an image")
