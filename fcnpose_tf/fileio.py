@@ -450,10 +450,10 @@ def private_temporary_folder() -> Iterator[Path | None]:
 def check_writable(path: str | os.PathLike, force: bool = False) -> Path:
     """Raise UserError if `path` exists (and not force) or its folder cannot be created or written."""
     path = Path(path)
+    if path.is_dir():  # before "exists": --force would not help
+        raise UserError(f"{path}: is a folder, expected a file path")
     if path.exists() and not force:
         raise UserError(f"{path}: already exists; pass --force to replace it")
-    if path.is_dir():
-        raise UserError(f"{path}: is a folder, expected a file path")
     make_folder(path.parent)
     try:  # os.access says yes to root everywhere; only a real file proves the folder takes files
         with tempfile.TemporaryFile(dir=path.parent):

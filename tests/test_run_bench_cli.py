@@ -148,6 +148,7 @@ def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
 @pytest.mark.parametrize("args, message", [
     (["--source", "{missing}"], "no such file or folder"),
     (["--source", " "], "--source is empty"),  # an unset shell variable: not the current folder's images
+    (["--source", "{video}", "--out", "records.jsonl"], "is a folder, expected a file path"),  # not "pass --force"
     (["--source", "{video}", "--smooth", "--smooth-min-cutoff", "0", "--smooth-coast", "-1"],
      "--smooth-min-cutoff must be above 0 Hz, got 0; --smooth-coast must be >= 0 frames, got -1"),
     (["--source", "97"], "camera 97: cannot be opened"),
@@ -168,6 +169,7 @@ def test_run_truncated_video_ends_cleanly(capsys, tmp_path, model_path):
 ])
 def test_run_user_errors(capsys, tmp_path, monkeypatch, model_path, video, args, message):
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "records.jsonl").mkdir()  # a folder where a file is named
     args = [a.format(missing=tmp_path / "nope.mp4", video=video) for a in args]
     code, _, err = _run(capsys, "run", model_path, *args)
     _one_line_error(code, err, message)
