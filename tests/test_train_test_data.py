@@ -3,6 +3,7 @@ stopped before its first epoch ends (nothing to resume, nothing left behind)."""
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 
@@ -143,9 +144,15 @@ def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_tr
     copy = tmp_path / "copy"
     shutil.copytree(data, copy, ignore=shutil.ignore_patterns("*.splits.json"))
     project = json.loads((copy / "labels.json").read_text())
-    for meta in project["_via_img_metadata"].values():
+    for i, meta in enumerate(project["_via_img_metadata"].values()):
         (copy / "images" / meta["filename"]).rename(copy / "images" / f"x_{meta['filename']}")
         meta["filename"] = f"x_{meta['filename']}"
+        if i % 2:  # the decoded JPEG saved as a PNG: other bytes, the same pixels
+            image_path = copy / "images" / meta["filename"]
+            assert cv2.imwrite(str(image_path.with_suffix(".png")), cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED))
+            image_path.unlink()
+            meta["filename"] = image_path.with_suffix(".png").name
+    project["_via_img_metadata"] = {f"{m['filename']}-1": m for m in project["_via_img_metadata"].values()}
     (copy / "labels.json").write_text(json.dumps(project))
     status, _, err = cli_here("train", "--data", data, "--out", out, "--test-data", copy / "labels.json", *TRAIN)
     assert status == 2 and "6 of its 6 frames are also frames of --data" in err, err

@@ -256,21 +256,14 @@ def _finished_folds(args: argparse.Namespace, folds: list, via_path: Path) -> di
 
 def _training_images(dataset, image: Path) -> set[Path]:
     """The image itself when it is one of the training frames: the same file, or another file with the same bytes
-    (a copy under another name or folder: `correction.merge.same_image`); else an empty set."""
-    from fcnpose_tf.correction.merge import same_image
+    (a copy under another name or folder, or the same pixels in another file: `correction.merge.image_fingerprint`);
+    else an empty set."""
+    from fcnpose_tf.correction.merge import image_fingerprint
 
-    by_size = getattr(dataset, "_images_by_size", None)
-    if by_size is None:
-        by_size = {}
-        for sample in dataset.samples:
-            by_size.setdefault(sample.image_path.stat().st_size, []).append(sample.image_path)
-        dataset._images_by_size = by_size
-    try:
-        candidates = by_size.get(image.stat().st_size, [])
-        same = any(same_image(image, c) for c in candidates)
-    except OSError:
-        return set()
-    return {image} if same else set()
+    prints = getattr(dataset, "_image_fingerprints", None)
+    if prints is None:
+        prints = dataset._image_fingerprints = {image_fingerprint(s.image_path) for s in dataset.samples} - {None}
+    return {image} if image_fingerprint(image) in prints else set()
 
 
 def _load_test_data(args: argparse.Namespace, dataset):

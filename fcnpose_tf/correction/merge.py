@@ -16,10 +16,14 @@ from __future__ import annotations
 
 import copy
 import filecmp
+import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
+
+import cv2
+import numpy as np
 
 from fcnpose_tf.data import via as _via
 from fcnpose_tf.data.dataset import resolve_data
@@ -60,12 +64,27 @@ class MergeResult:
 
 
 def same_image(a: Path, b: Path) -> bool:
-    """The same image: one file (a path, a link) or two files of the same bytes. What `data merge` and `train
-    --test-data` call one frame."""
+    """The same image: one file (a path, a link), two files of the same bytes, or two files of the same pixels (a
+    frame saved again, another PNG encoder). What `data merge`, `train --test-data` and `compress --more-frames` call
+    one frame."""
     try:
-        return a.resolve() == b.resolve() or os.path.samefile(a, b) or filecmp.cmp(a, b, shallow=False)
+        if a.resolve() == b.resolve() or os.path.samefile(a, b) or filecmp.cmp(a, b, shallow=False):
+            return True
     except OSError:
         return False
+    first = image_fingerprint(a)
+    return first is not None and first == image_fingerprint(b)
+
+
+def image_fingerprint(path: Path) -> str | None:
+    """A digest of the image's decoded pixels and size (None: not readable as an image): equal for the same picture
+    in two files of other bytes, so a set of them finds a frame among many at one decoding each."""
+    from fcnpose_tf.preprocess import read_image
+
+    image = read_image(path, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        return None
+    return f"{image.shape}:{image.dtype}:{hashlib.sha256(np.ascontiguousarray(image).tobytes()).hexdigest()}"
 
 
 def _relative(folder: Path, base: Path) -> str:
@@ -196,4 +215,4 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
     return result
 
 
-__all__ = ["MergeResult", "PREFER_CHOICES", "merge_via_projects", "same_image"]
+__all__ = ["MergeResult", "PREFER_CHOICES", "image_fingerprint", "merge_via_projects", "same_image"]

@@ -20,7 +20,7 @@ from typing import Iterable
 
 import numpy as np
 
-from fcnpose_tf.correction.merge import same_image
+from fcnpose_tf.correction.merge import image_fingerprint
 from fcnpose_tf.data.dataset import AddedFrames, Dataset, load_dataset
 from fcnpose_tf.data.via import read_via
 from fcnpose_tf.errors import UserError
@@ -131,23 +131,14 @@ def source_length(source: FrameSource) -> int | None:
     return getattr(source, "frame_count", None)
 
 
-def _known_images(paths: Iterable[str | os.PathLike]) -> dict[int, list[Path]]:
-    """The given images by byte size, to tell a source image that is one of them (`same_image`) at a stat's cost."""
-    by_size: dict[int, list[Path]] = {}
-    for path in paths:
-        try:
-            by_size.setdefault(os.stat(path).st_size, []).append(Path(path))
-        except OSError:
-            continue
-    return by_size
+def _known_images(paths: Iterable[str | os.PathLike]) -> set[str]:
+    """The given images' pixel fingerprints (`merge.image_fingerprint`), to tell a source image that is one of them,
+    under any name or encoding of the same pixels, at one decoding each."""
+    return {digest for digest in map(image_fingerprint, map(Path, paths)) if digest is not None}
 
 
-def _is_known(path: Path, known: dict[int, list[Path]]) -> bool:
-    try:
-        size = os.stat(path).st_size
-    except OSError:
-        return False
-    return any(same_image(path, other) for other in known.get(size, ()))
+def _is_known(path: Path, known: set[str]) -> bool:
+    return bool(known) and image_fingerprint(path) in known
 
 
 def label_frames(predictor: KeypointPredictor, source_spec: str | os.PathLike, via_path: str | os.PathLike,
