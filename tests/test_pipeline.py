@@ -245,3 +245,40 @@ def test_run_cli_pipeline_flag(capsys, model_path, video, tmp_path):
         assert ("pipelined (invoke on its own thread)" in stdout) == (flag == "--pipeline")
         assert "Delivered:" in stdout
     assert _records(outs["--pipeline"]) == _records(outs["--no-pipeline"])
+
+
+class LiveList(ListSource):
+    """Frames of a camera the model kept up with only now and then: their indices count every captured frame."""
+
+    live = True
+
+    def __init__(self, images, indices):
+        super().__init__(images)
+        self.indices = indices
+
+    def __iter__(self):
+        self.end_reason = "running"
+        for index, image in zip(self.indices, self.images):
+            yield Frame(index, image, time.time(), self.name)
+        self.end_reason = "stopped"
+
+
+class CountingVideo:
+    def __init__(self):
+        self.frames = []
+
+    def write(self, image):
+        self.frames.append(image)
+
+
+@pytest.mark.parametrize("pipelined", [False, True])
+def test_a_live_run_s_video_holds_a_frame_over_the_camera_frames_the_model_had_no_time_for(model_path, pipelined):
+    """--save-video from a camera faster than the model: written at the camera's rate, the video holds each frame
+    until the next processed one, so it plays in real time (it played 5x too fast with the dropped frames left out)."""
+    model = KeypointModel(model_path, 1)
+    video = CountingVideo()
+    source = LiveList(_frames(4), [0, 3, 4, 9])
+    summary = run_stream(model, source, video=video, pipelined=pipelined)
+    assert summary.frames == 4 and len(video.frames) == 10
+    held = [next(i for i, f in enumerate(video.frames) if f is frame) for frame in video.frames]
+    assert held == [0, 0, 0, 3, 4, 4, 4, 4, 4, 9]  # frame 0 three times, 3, then 4 held until 9

@@ -391,8 +391,21 @@ class _Delivery:
         self.last_raw: np.ndarray | None = None  # the previous frame's keypoints, as found and as written
         self.last_written: np.ndarray | None = None
         self.last_thumbnail: np.ndarray | None = None  # the previous frame's grey thumbnail (still frames)
+        self.last_overlay: tuple[int, np.ndarray] | None = None  # a live source's last frame in the video, by index
         self.rolling = RollingFps(fps_window)
         self.start = time.perf_counter()
+
+    def _write_video(self, frame: Frame, overlay: np.ndarray) -> None:
+        """The overlay into the video; from a live source, the last frame written held over the camera frames the
+        model had no time for (their indices count every captured frame), so the video written at the camera's rate
+        plays in real time."""
+        if self.source.live and self.last_overlay is not None:
+            last_index, last = self.last_overlay
+            for _ in range(frame.index - last_index - 1):
+                self.video.write(last)
+        self.video.write(overlay)
+        if self.source.live:
+            self.last_overlay = (frame.index, overlay)
 
     def skip(self, frame: Frame, exc: UserError) -> None:
         self.summary.skipped += 1
@@ -444,7 +457,7 @@ class _Delivery:
         if self.video is not None or self.show:
             overlay = draw_overlay(frame.image, prediction, self.model.schema, self.rolling.fps)
             if self.video is not None:
-                self.video.write(overlay)
+                self._write_video(frame, overlay)
             if self.show:
                 cv2.imshow(WINDOW_NAME, overlay)
                 if cv2.waitKey(1) & 0xFF in (ord("q"), 27):
