@@ -191,3 +191,18 @@ def test_the_frames_a_model_was_trained_on_are_found_from_any_folder_or_refused(
     monkeypatch.setattr(synthcache, "default_training_data", lambda: tmp_path / "synth.json")
     assert default_data(models / "other.keras", say=said.append) == (tmp_path / "synth.json", None)  # no record
     assert "no training record names the frames other.keras was trained on" in said[-1]
+
+
+def test_evaluating_a_model_without_a_record_on_frames_with_stored_splits_says_its_training_frames_may_be_among_them(
+        tmp_path):
+    """An exported file copied away from NAME_train.json is measured on every frame; when the frames have stored
+    splits (something was trained on them), the description says its training frames may be among them."""
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.training.evaluate import choose_frames
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=6)
+    first = load_dataset(data)  # splits created now: a set nothing was trained on yet
+    assert choose_frames(first, tmp_path / "m_fp16.tflite", "auto", None)[1] == "all 6 frames"
+    indices, described = choose_frames(load_dataset(data), tmp_path / "m_fp16.tflite", "auto", None)
+    assert indices == list(range(6)) and described.startswith("all 6 frames; no training record beside m_fp16.tflite")

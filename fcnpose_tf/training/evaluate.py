@@ -44,6 +44,7 @@ def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold:
     Returns:
         (indices, e.g. "validation frames of the hold-out 80/20 split (20 frames)").
     """
+    unknown = ""
     if split == "auto":
         record = training_record(model_path)
         if record is not None and record.data_sha256 == file_sha256(dataset.via_path):
@@ -52,8 +53,11 @@ def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold:
                 fold = record.fold
         else:
             split = "all"
+            if record is None and dataset.splits_status == "loaded":  # frames some model was trained on, maybe this
+                unknown = (f"; no training record beside {Path(model_path).name} says which frames it was trained on: "
+                           "if these, its training frames are among them (--split val takes the validation frames)")
     if split == "all":
-        return list(range(len(dataset))), f"all {len(dataset)} frames"
+        return list(range(len(dataset))), f"all {len(dataset)} frames{unknown}"
     _, val = dataset.split(fold)
     name = "hold-out 80/20" if fold is None else f"fold {fold}"
     return [int(i) for i in val], f"validation frames of the {name} split ({len(val)} frames)"
