@@ -125,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     via_path, images_dir = resolve_data(args.data, args.images)
     finished = _finished_folds(args, folds, via_path) if args.resume and len(folds) > 1 else {}
     resumes = {fold: args.resume and fold not in finished and (len(folds) == 1 or _has_checkpoint(args.out, fold))
-               for fold in folds}  # --resume --folds K: each fold's checkpoint continued, the folds never begun begun
+               for fold in folds}  # --resume --folds K: each fold's checkpoint continued, the folds never begun started
     if args.resume and len(folds) > 1:
         if not finished and not any(resumes.values()):
             raise UserError(f"{args.out}: no fold of {len(folds)} was finished or left a checkpoint: nothing to resume")
@@ -205,8 +205,9 @@ def run(args: argparse.Namespace) -> int:
                                     size_was_chosen=size_was_chosen, architecture=args.architecture)
             except UserError as exc:
                 if len(folds) > 1 and fold != folds[0]:  # the folds before it are finished: --resume skips them
-                    raise UserError(f"{exc} (folds {folds[0]}-{fold - 1} are finished: `--resume` continues "
-                                    f"from fold {fold})") from None
+                    done = ", ".join(str(f) for f in folds[:folds.index(fold)])
+                    raise UserError(f"{exc} (fold{'s' if ',' in done else ''} {done} finished: `--resume` "
+                                    f"continues from fold {fold})") from None
                 raise
         print(f"Validation ({record.split}, {record.raw['val_frames']} frames, PCK normalised by max(bbox w, h)):")
         validation = record.validation
@@ -260,10 +261,10 @@ def _training_images(dataset, image: Path) -> set[Path]:
     else an empty set."""
     from fcnpose_tf.correction.merge import image_fingerprint
 
-    prints = getattr(dataset, "_image_fingerprints", None)
-    if prints is None:
-        prints = dataset._image_fingerprints = {image_fingerprint(s.image_path) for s in dataset.samples} - {None}
-    return {image} if image_fingerprint(image) in prints else set()
+    known = getattr(dataset, "_image_fingerprints", None)
+    if known is None:
+        known = dataset._image_fingerprints = {image_fingerprint(s.image_path) for s in dataset.samples} - {None}
+    return {image} if image_fingerprint(image) in known else set()
 
 
 def _load_test_data(args: argparse.Namespace, dataset):

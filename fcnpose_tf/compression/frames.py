@@ -13,6 +13,7 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.preprocess import ViewLike
 from fcnpose_tf.settings import TFLITE_FORMATS
 
+
 def check_enough_frames(quantize: Sequence[str], check_count: int, train_count: int, source: Any) -> None:
     """Refuse, before any work, the formats whose gate needs more real frames than `export_frames` can gather.
 

@@ -218,8 +218,8 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
 
     `k`: the K folds asked for, refused (`check_fold_count`) when there are fewer frames; None:
     no K asked for: the stored splits' K, whatever it is, or for new splits the default K (5), whose folds a dataset
-    too small for them simply lacks (the hold-out split still serves). Returns (splits, path of the splits file, status) with status "loaded",
-    "created", or "not saved" (folder not writable or write=False). Stored
+    too small for them simply lacks (the hold-out split still serves). Returns (splits, path of the splits file,
+    status) with status "loaded", "created", or "not saved" (folder not writable or write=False). Stored
     splits made with another seed, K or fraction, or for another frame list, are
     an error unless `resplit` replaces them.
     """
