@@ -255,3 +255,18 @@ def test_images_dir_argument_and_default_filepath(tmp_path):
 def test_viaframe_shape_is_checked_by_the_writer(tmp_path):
     with pytest.raises(UserError, match="expected 8 x 2 keypoints"):
         write_via_project(tmp_path / "p.json", [ViaFrame("a.png", 10, 10, np.zeros((3, 2)))])
+
+
+def test_a_project_none_of_whose_images_is_found_points_to_images_not_skip_bad(tmp_path):
+    """Every image missing means the images are elsewhere: the error names --images, not --skip-bad (which would
+    then leave no frame)."""
+    from test_train_evaluate import make_via_folder
+
+    data = make_via_folder(tmp_path / "d", n=3)
+    (data / "images").rename(tmp_path / "photos")
+    with pytest.raises(UserError, match=r"none of its images is there; pass --images DIR"):
+        read_via(data / "labels.json")
+    assert len(read_via(data / "labels.json", tmp_path / "photos").frames) == 3
+    (tmp_path / "photos" / sorted(p.name for p in (tmp_path / "photos").iterdir())[0]).unlink()
+    with pytest.raises(UserError, match=r"fix the file or pass --skip-bad"):  # one missing: the frame is the problem
+        read_via(data / "labels.json", tmp_path / "photos")

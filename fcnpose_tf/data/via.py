@@ -549,6 +549,9 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
     if problems:
         if not skip_bad:
             more = f" (and {len(problems) - 1} more problem(s))" if len(problems) > 1 else ""
+            if not result.frames and all("image file not found" in p for p in problems):  # the images are elsewhere
+                raise UserError(f"{path}: {problems[0]}{more}: none of its images is there; pass --images DIR with "
+                                "the folder that holds them")
             raise UserError(f"{path}: {problems[0]}{more}; fix the file or pass --skip-bad to skip bad frames")
         result.problems = problems
         result.dropped["bad annotation or image (skipped)"] = len(problems)
