@@ -290,6 +290,13 @@ def _split_file(path: Path, data) -> tuple[dict, dict]:
 def _region_attribute_names(metadata: dict) -> set[str]:
     """Every region attribute name used in the file's regions (malformed entries are left to the parser)."""
     names: set[str] = set()
+    for attributes in _region_attributes(metadata):
+        names.update(str(name) for name in attributes)
+    return names
+
+
+def _region_attributes(metadata: dict):
+    """Each region's attributes (a dict), over every frame (malformed entries are left to the parser)."""
     for meta in metadata.values():
         regions = meta.get("regions") if isinstance(meta, dict) else None
         if isinstance(regions, dict):
@@ -297,8 +304,7 @@ def _region_attribute_names(metadata: dict) -> set[str]:
         for region in regions if isinstance(regions, list) else ():
             attributes = region.get("region_attributes") if isinstance(region, dict) else None
             if isinstance(attributes, dict):
-                names.update(str(name) for name in attributes)
-    return names
+                yield attributes
 
 
 def _attribute_naming_keypoints(data: object, metadata: dict, present: set[str],
@@ -310,14 +316,8 @@ def _attribute_naming_keypoints(data: object, metadata: dict, present: set[str],
     for name in sorted(present):
         known = schema or (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
                            else _schema_from_attributes(data, name) or UR5)
-        values = set()
-        for meta in metadata.values():
-            regions = meta.get("regions") if isinstance(meta, dict) else None
-            regions = list(regions.values()) if isinstance(regions, dict) else regions
-            for region in regions if isinstance(regions, list) else ():
-                attributes = region.get("region_attributes") if isinstance(region, dict) else None
-                if isinstance(attributes, dict) and name in attributes:
-                    values.add(attributes[name] if isinstance(attributes[name], str) else None)
+        values = {attributes[name] if isinstance(attributes[name], str) else None
+                  for attributes in _region_attributes(metadata) if name in attributes}
         if values and values <= set(known.keypoints):
             naming.append(name)
     return naming[0] if len(naming) == 1 else None
