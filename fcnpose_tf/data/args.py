@@ -56,14 +56,13 @@ def load_from_args(args: argparse.Namespace) -> Any:
                         skip_bad=args.skip_bad, folds=folds, split_seed=args.split_seed, resplit=args.resplit)
 
 
-def recorded_data(model_path: str | Path) -> tuple[Path, Path | None] | None:
+def recorded_data(model_path: str | Path, record: Any) -> tuple[Path, Path | None] | None:
     """The annotation file `model_path` was trained on and its images' folder (None: where the file says), as its
-    NAME_train.json records them (`records.training_record`), when that file is still there unchanged (the same
-    SHA-256); None otherwise. Looked up at its absolute path, then (an older record's path as given) from the current
-    folder and from the model's."""
-    from fcnpose_tf.records import file_sha256, training_record
+    training record (`records.training_record`, or None) names them, when that file is still there unchanged (the
+    same SHA-256); None otherwise. Looked up at its absolute path, then (an older record's path as given) from the
+    current folder and from the model's."""
+    from fcnpose_tf.records import file_sha256
 
-    record = training_record(model_path)
     if record is None or not record.data or not record.data_sha256:
         return None
     recorded = Path(record.data)
@@ -92,11 +91,11 @@ def default_data(model_path: str | Path, images: str | Path | None = None,
     from fcnpose_tf.records import training_record
 
     name = Path(model_path).name
-    recorded = recorded_data(model_path)
+    record = training_record(model_path)
+    recorded = recorded_data(model_path, record)
     if recorded is not None:
         say(f"Data: {recorded[0]}, the frames {name} was trained on (its training record)")
         return recorded[0], images if images is not None else recorded[1]
-    record = training_record(model_path)
     try:
         bundled = Path(model_path).resolve().parent == models_dir().resolve()
     except UserError:  # no bundled models on this machine

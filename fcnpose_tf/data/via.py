@@ -307,15 +307,21 @@ def _region_attributes(metadata: dict):
                 yield attributes
 
 
+def _file_schema(data: object, attribute: str) -> KeypointSchema:
+    """The schema a VIA file holds: the one this package stored in it, else the attribute's dropdown options, else
+    UR5's."""
+    stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
+    return (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
+            else _schema_from_attributes(data, attribute) or UR5)
+
+
 def _attribute_naming_keypoints(data: object, metadata: dict, present: set[str],
                                 schema: KeypointSchema | None) -> str | None:
     """The one region attribute whose every value is a keypoint name (of `schema`, else of the file's stored schema,
     the attribute's dropdown options or UR5's), or None when none or several are."""
-    stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
     naming = []
     for name in sorted(present):
-        known = schema or (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
-                           else _schema_from_attributes(data, name) or UR5)
+        known = schema or _file_schema(data, name)
         values = {attributes[name] if isinstance(attributes[name], str) else None
                   for attributes in _region_attributes(metadata) if name in attributes}
         if values and values <= set(known.keypoints):
@@ -510,9 +516,7 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
                            "whose values are all keypoint names", path, attribute, named)
             attribute = named
     if schema is None:
-        stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
-        schema = (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
-                  else _schema_from_attributes(data, attribute) or UR5)
+        schema = _file_schema(data, attribute)
     if min_visible is None:
         min_visible = default_min_visible(schema)
     if not 0 <= min_visible <= schema.num_keypoints:
