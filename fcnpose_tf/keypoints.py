@@ -2,12 +2,15 @@
 robot's limbs are in frames (`LimbPrior`). numpy only.
 
 A schema is data a dataset carries (it is stored in the dataset's VIA file
-attributes and in model reports); the network's number of output maps follows
-it: one map per keypoint plus one skeleton map, keypoint maps first.
+attributes, in the model files trained on it and in their reports); the network's
+number of output maps follows it: one map per keypoint plus one skeleton map,
+keypoint maps first.
 """
 
 from __future__ import annotations
 
+import json
+import os
 import warnings
 from dataclasses import dataclass
 from typing import Sequence
@@ -72,6 +75,59 @@ class KeypointSchema:
 
 UR5 = KeypointSchema.chain("ur5", ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"))
 """The paper's 8 UR5 keypoints, base to tool, joined in a chain."""
+
+
+def schema_for_maps(num_maps: int) -> KeypointSchema:
+    """The schema of a model that names none (`named_schema` found nothing): UR5 for 9 maps, else a chain of generic
+    names kp0..kpN (one map per keypoint + skeleton).
+
+    Args:
+        num_maps: the model's output maps.
+    Returns:
+        The schema.
+    """
+    if num_maps == UR5.num_maps:
+        return UR5
+    return KeypointSchema.chain("generic", [f"kp{i}" for i in range(num_maps - 1)])
+
+
+def named_schema(num_maps: int, stored: bytes | str | None, model_path: str | os.PathLike) -> KeypointSchema | None:
+    """The keypoints a model file names for its maps: the schema stored in the file (`training.model.SCHEMA_ENTRY`
+    of a .keras or .h5, `runtime.tflite_metadata.SCHEMA_METADATA` of a .tflite: files written since 2026-12-05),
+    else the one its training record names (`records.training_record`: a file written before). Without either,
+    `schema_for_maps` is the caller's.
+
+    Args:
+        num_maps: the model's output maps.
+        stored: the stored entry (the JSON of `KeypointSchema.to_dict`), None when the file has none.
+        model_path: the model file, for its training record and for messages.
+    Returns:
+        The schema, or None.
+    Raises:
+        UserError: a stored entry that is no schema, or one whose keypoints do not fit the maps.
+    """
+    from fcnpose_tf.records import training_record
+
+    if stored is not None:
+        try:
+            data = json.loads(stored)
+        except (ValueError, RecursionError) as exc:
+            raise UserError(f"{model_path}: its stored keypoint schema is not JSON ({entry_problem(exc)})") from None
+        schema = KeypointSchema.from_dict(data)
+        if schema.num_maps != num_maps:
+            raise UserError(f"{model_path}: its stored keypoint schema {schema.name!r} has {schema.num_keypoints} "
+                            f"keypoints, but the model has {num_maps} output maps ({num_maps - 1} keypoints + skeleton)")
+        return schema
+    record = training_record(model_path)
+    recorded = record.raw.get("schema") if record is not None else None
+    if isinstance(recorded, dict):
+        try:
+            schema = KeypointSchema.from_dict(recorded)
+        except UserError:  # a hand-edited record: no names rather than a refusal
+            return None
+        if schema.num_maps == num_maps:
+            return schema
+    return None
 
 
 def _spelling(name: str) -> str:

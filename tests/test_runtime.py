@@ -34,12 +34,12 @@ import pytest
 
 from conftest import PROCESS_TIMEOUT
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.keypoints import UR5
+from fcnpose_tf.keypoints import UR5, schema_for_maps
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.runtime import bench as rbench
 from fcnpose_tf.runtime import interpreter as rinterp
 from fcnpose_tf.runtime import sources as rsources
-from fcnpose_tf.runtime.estimator import KeypointModel, Prediction, StageTimes, schema_for_maps
+from fcnpose_tf.runtime.estimator import KeypointModel, Prediction, StageTimes
 from fcnpose_tf.runtime.runner import run_stream
 from fcnpose_tf.runtime.sinks import (CsvWriter, JsonlWriter, RollingFps, VideoSink, draw_overlay,
                                       open_record_writer)

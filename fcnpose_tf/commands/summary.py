@@ -38,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.preprocess import FrameView
-    from fcnpose_tf.training.model import ARCHITECTURES, build_fcn_pose, describe, load_model, view_of
+    from fcnpose_tf.training.model import (ARCHITECTURES, build_fcn_pose, describe, given_schema, load_model, schema_of,
+                                           view_of)
     from fcnpose_tf.tables import format_table
 
     if args.model is None:
@@ -63,4 +64,7 @@ def run(args: argparse.Namespace) -> int:
         size = args.model.stat().st_size
         print(f"File size:        {size:,} bytes ({size / 1e6:.3f} MB)")
         print(f"View:             {view_of(model).describe()}")
+        schema = schema_of(model)
+        print(f"Keypoints:        {', '.join(schema.keypoints)} (schema {schema.name!r}"
+              f"{'' if given_schema(model) is not None else ', not named by the file: the default'})")
     return 0

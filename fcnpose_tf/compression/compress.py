@@ -79,7 +79,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps do not match the dataset.
         ValueError: `metadata` names a section of the report, or options not checked (`CompressOptions.checked`).
     """
-    from fcnpose_tf.training.model import architecture_of, at_input_height, load_model, view_of
+    from fcnpose_tf.training.model import architecture_of, at_input_height, load_model, view_of, with_schema
     from fcnpose_tf.compression.frames import check_enough_frames
     from fcnpose_tf.compression.plan import check_chain, plan_widths
 
@@ -97,6 +97,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
+    with_schema(base, train_dataset.schema)  # what the files' maps stand for: the data they are retrained on
     architecture = architecture_of(base)
     saved_view = view_of(base)
     if options.input_size:  # the height; an H x W input keeps its aspect

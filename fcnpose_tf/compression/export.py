@@ -188,27 +188,34 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
     return _pixel_scaled_input(data) if quantize == FULL_INTEGER and pixel_interface else data
 
 
-def _with_view(data: bytes, model: keras.Model) -> bytes:
-    """The file with the model's crop and input size in its metadata (`runtime.tflite_metadata.VIEW_METADATA`),
-    where the runtime reads it; a whole-frame model's file as converted."""
+def _with_metadata(data: bytes, model: keras.Model) -> bytes:
+    """The file with the model's crop and input size (`runtime.tflite_metadata.VIEW_METADATA`, when it has a crop)
+    and its keypoint schema (`SCHEMA_METADATA`, when it was given one) in its metadata, where the runtime reads them;
+    else the file as converted."""
     import json
 
-    from fcnpose_tf.runtime.tflite_metadata import VIEW_METADATA
-    from fcnpose_tf.training.model import given_view
+    from fcnpose_tf.runtime.tflite_metadata import SCHEMA_METADATA, VIEW_METADATA
+    from fcnpose_tf.training.model import given_schema, given_view
 
-    view = given_view(model)
-    if view is None or view.crop is None:
+    entries = {}
+    if (view := given_view(model)) is not None and view.crop is not None:
+        entries[VIEW_METADATA] = view.to_json()
+    if (keypoints := given_schema(model)) is not None:
+        entries[SCHEMA_METADATA] = keypoints.to_dict()
+    if not entries:
         return data
     from ai_edge_litert import schema_py_generated as schema
     import flatbuffers
 
     tree = schema.ModelT.InitFromPackedBuf(data, 0)
-    buffer = schema.BufferT()
-    buffer.data = list(json.dumps(view.to_json(), sort_keys=True).encode("utf-8"))
-    tree.buffers.append(buffer)
-    entry = schema.MetadataT()
-    entry.name, entry.buffer = VIEW_METADATA.encode("utf-8"), len(tree.buffers) - 1
-    tree.metadata = [*(tree.metadata or []), entry]
+    tree.metadata = list(tree.metadata or [])
+    for name, value in entries.items():
+        buffer = schema.BufferT()
+        buffer.data = list(json.dumps(value, sort_keys=True).encode("utf-8"))
+        tree.buffers.append(buffer)
+        entry = schema.MetadataT()
+        entry.name, entry.buffer = name.encode("utf-8"), len(tree.buffers) - 1
+        tree.metadata.append(entry)
     builder = flatbuffers.Builder(len(data) + 1024)
     builder.Finish(tree.Pack(builder), file_identifier=b"TFL3")
     return bytes(builder.Output())
@@ -285,7 +292,7 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
                         f"real frames, got {len(frames)} sample frame(s)")
     start = time.perf_counter()
     graph, rewrites = _inference_graph(model) if fold_upsampling else (model, ())
-    data = _with_view(_convert(graph, quantize, input_shape, calibration), model if reference is None else reference)
+    data = _with_metadata(_convert(graph, quantize, input_shape, calibration), model if reference is None else reference)
     convert_seconds = time.perf_counter() - start
     start = time.perf_counter()
     # Always against the original model: the rewrite is checked together with the conversion.
@@ -354,7 +361,7 @@ def export_generic(model: Any, quantize: str = DEFAULT_QUANTIZE, *, sample_input
                        if calibration_inputs is not None else
                        random_inputs(input_shape, calibration_count, input_range, seed + 1))
     start = time.perf_counter()
-    data = _with_view(_convert(model, quantize, input_shape, calibration, pixel_interface=False), model)
+    data = _with_metadata(_convert(model, quantize, input_shape, calibration, pixel_interface=False), model)
     convert_seconds = time.perf_counter() - start
     start = time.perf_counter()
     parity = verify_outputs(model, data, frames, output_rtol=fmt.output_rtol, top1_share=fmt.top1_share,

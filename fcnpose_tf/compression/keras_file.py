@@ -87,7 +87,7 @@ def load_any(path: str | os.PathLike) -> Any:
 def save_to(model: Any, path: str | os.PathLike) -> None:
     """Save `model` (uncompiled, no optimizer state) to a .keras or .h5 file with the Keras it was built with, at
     once (`save_atomically` is the safe one; this writes a temporary of `fileio.atomic_paths`). A tf_keras model
-    keeps its view (`fcnpose_tf.training.model.save_for_inference`).
+    keeps its view and keypoint schema (`fcnpose_tf.training.model.save_for_inference`).
 
     Args:
         model: a tf_keras or Keras 3 model.

@@ -14,6 +14,7 @@ import numpy as np
 import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.training.model import with_facts_of
 
 TrainFn = Callable[[keras.Model, list], None]
 
@@ -37,7 +38,7 @@ def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | 
         include_output: also prune the output layer (the last Conv2D); off by default, as in
             `prune_model`. Biases are never pruned.
     Returns:
-        A plain tf_keras model (wrappers stripped) with the same layers and names.
+        A plain tf_keras model (wrappers stripped) with the same layers and names, and `model`'s view and schema.
     Raises:
         UserError: for a sparsity outside [0, 1) or a model without a Conv2D to prune.
     Example:
@@ -69,6 +70,7 @@ def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | 
         return layer
 
     wrapped = keras.models.clone_model(copy, clone_function=wrap)  # shares the copy's layers and weights
+    with_facts_of(wrapped, model)  # the crop and keypoint names, for the file `train_fn` saves
     wrappers = [layer for layer in wrapped.layers if isinstance(layer, _prune_wrapper_type())]
     # Step 0 of the schedule: compute the masks from the current weights and apply them now.
     for layer in wrappers:
@@ -79,7 +81,7 @@ def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | 
         train_fn(wrapped, [sparsity_api.UpdatePruningStep()])
         for layer in wrappers:  # the last optimizer step may have moved masked weights
             layer.pruning_obj.weight_mask_op()
-    return sparsity_api.strip_pruning(wrapped)
+    return with_facts_of(sparsity_api.strip_pruning(wrapped), model)
 
 
 def _prune_wrapper_type() -> type:

@@ -276,10 +276,11 @@ def prune_step(run: Run, importance: Importance | None) -> tuple[keras.Model, Pr
     Returns:
         The pruned model, the method's report sections, and the report's pruned_before_retraining.
     """
-    from fcnpose_tf.training.model import with_view
+    from fcnpose_tf.training.model import schema_of, with_schema, with_view
 
     pruned, sections, run.method_record = run.method.prune(run.base, importance)
-    pruned = with_view(pruned, run.input_size)  # the crop is part of the model: surgery keeps the base's
+    # the crop and the keypoint names are part of the model: surgery keeps the base's
+    pruned = with_schema(with_view(pruned, run.input_size), schema_of(run.base))
     return pruned, sections, ModelStep.of(model_facts(pruned), run.measure(
         run.keras_predictor(pruned), "the pruned model before retraining", timing=False))
 

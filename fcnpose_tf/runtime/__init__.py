@@ -26,7 +26,6 @@ _EXPORTS = {
     "find_backend": "interpreter", "load_interpreter": "interpreter", "inspect_io": "interpreter",
     "model_stats": "interpreter", "default_num_threads": "interpreter", "BACKENDS": "interpreter",
     "KeypointModel": "estimator", "Prediction": "estimator", "StageTimes": "estimator",
-    "schema_for_maps": "estimator",
     "Frame": "sources", "FrameSource": "sources", "CameraSource": "sources", "VideoSource": "sources",
     "ImageSource": "sources", "LiveSource": "sources", "Picamera2Source": "sources", "open_source": "sources",
     "JsonlWriter": "sinks", "CsvWriter": "sinks", "VideoSink": "sinks", "open_record_writer": "sinks",

@@ -22,25 +22,12 @@ from typing import TypedDict
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.keypoints import UR5, KeypointSchema
+from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.postprocess import dequantize
 from fcnpose_tf.preprocess import Box, FrameView, preprocess_frame, preprocess_frame_bytes
 from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
-                                            load_interpreter, model_stats, read_view)
-
-
-def schema_for_maps(num_maps: int) -> KeypointSchema:
-    """UR5 for a 9-map model, else a chain of generic names kp0..kpN (one map per keypoint + skeleton).
-
-    Args:
-        num_maps: the model's output maps.
-    Returns:
-        The schema.
-    """
-    if num_maps == UR5.num_maps:
-        return UR5
-    return KeypointSchema.chain("generic", [f"kp{i}" for i in range(num_maps - 1)])
+                                            load_interpreter, model_stats, read_schema, read_view)
 
 
 class KeypointRecord(TypedDict):
@@ -285,7 +272,7 @@ class KeypointModel(KeypointPredictor):
         num_threads: interpreter threads; None = all cores.
         decoding: how maps become keypoints (`postprocess.Decoding`: threshold, fallback, centroid); default the
             commands' (settings).
-        schema: keypoint names; default UR5 for 9 maps, kp0..kpN otherwise.
+        schema: keypoint names; default the file's (`runtime.interpreter.read_schema`).
         backend: `auto`, `ai_edge_litert`, `tflite_runtime` or `tensorflow`.
     Raises:
         UserError: missing, corrupt or non-FCN-Pose file; no interpreter installed.
@@ -303,7 +290,7 @@ class KeypointModel(KeypointPredictor):
         self.backend: Backend
         self.interpreter, self.backend = load_interpreter(self.path, self.num_threads, backend)
         self.io: ModelIO = inspect_io(self.interpreter, self.path)
-        self.schema = schema or schema_for_maps(self.io.num_maps)
+        self.schema = schema or read_schema(self.path, self.io)
         if self.schema.num_maps != self.io.num_maps:
             raise UserError(f"{self.path}: {self.io.num_maps} output maps, but schema {self.schema.name!r} "
                             f"needs {self.schema.num_maps} ({self.schema.num_keypoints} keypoints + skeleton)")

@@ -22,10 +22,11 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import entry_problem, native_name
 from fcnpose_tf.metrics import conv_macs
+from fcnpose_tf.keypoints import KeypointSchema, named_schema, schema_for_maps
 from fcnpose_tf.nativelog import native_stderr_captured
 from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.records import distribution_version
-from fcnpose_tf.runtime.tflite_metadata import VIEW_METADATA, read_metadata
+from fcnpose_tf.runtime.tflite_metadata import SCHEMA_METADATA, VIEW_METADATA, read_metadata
 from fcnpose_tf.system import available_cores
 
 BACKENDS: tuple[str, ...] = ("ai_edge_litert", "tflite_runtime", "tensorflow")
@@ -273,6 +274,25 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
         raise UserError(f"{path}: output type {spec_out.dtype.name} without quantization parameters; "
                         "expected probability maps")
     return ModelIO(spec_in, spec_out)
+
+
+def read_schema(path: str | os.PathLike, io: ModelIO) -> KeypointSchema:
+    """What a .tflite model's maps stand for.
+
+    Args:
+        path: the .tflite file.
+        io: its input and output (`inspect_io`).
+    Returns:
+        The schema in its metadata (`tflite_metadata.SCHEMA_METADATA`), else its training record's, else
+        `keypoints.schema_for_maps` (`keypoints.named_schema`).
+    Raises:
+        UserError: unreadable metadata, or a stored schema that does not fit the file's maps.
+    """
+    try:
+        stored = read_metadata(path).get(SCHEMA_METADATA)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: its metadata cannot be read ({exc})") from exc
+    return named_schema(io.num_maps, stored, path) or schema_for_maps(io.num_maps)
 
 
 def read_view(path: str | os.PathLike, io: ModelIO) -> FrameView:

@@ -23,7 +23,7 @@ from fcnpose_tf.metrics import keypoint_report
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.preprocess import preprocess_frame
 from fcnpose_tf.records import file_sha256, training_record
-from fcnpose_tf.runtime.estimator import KeypointPredictor, schema_for_maps
+from fcnpose_tf.runtime.estimator import KeypointPredictor
 from fcnpose_tf.runtime.timing import LatencyLog, fps_from_ms
 
 MIN_TIMED_FRAMES = 50
@@ -88,7 +88,7 @@ class KerasKeypointModel(KeypointPredictor):
             from fcnpose_tf.training.model import load_model
 
             path, model = model, load_model(model)
-        from fcnpose_tf.training.model import check_fixed_input, view_of
+        from fcnpose_tf.training.model import check_fixed_input, schema_of, view_of
 
         check_fixed_input(model, path)
         shape = model.input_shape
@@ -102,7 +102,7 @@ class KerasKeypointModel(KeypointPredictor):
         self.num_threads = num_threads
         self.view = view_of(model)
         self.num_maps = int(model.output_shape[-1])
-        self.schema = schema_for_maps(self.num_maps)
+        self.schema = schema_of(model)
         self._x = np.empty((1, *self.view.shape, 3), np.float32)
         self._maps: np.ndarray | None = None
 

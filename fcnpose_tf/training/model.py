@@ -7,10 +7,12 @@ Every Conv2D is 3x3 'same'; conv1..conv9 use ReLU, conv10 a sigmoid with one
 map per keypoint plus the skeleton map. Upsampling factors are 2, 2, 2 and 4,
 so an input of H x W (both multiples of 32) gives H x W maps.
 
-What the model sees of a frame (its `preprocess.FrameView`: a crop and the input size) travels with it: in
-memory as `view_of(model)` (set by `load_model`, `with_view`, kept by `at_input_size` and `inference_copy`),
-on disk inside the .keras file (an extra entry of its zip, `VIEW_ENTRY`) or the .h5 file (a root attribute), so
-that one model file is enough; a model file without one sees the whole frame.
+What the model sees of a frame (its `preprocess.FrameView`: a crop and the input size) and what its maps stand
+for (its `keypoints.KeypointSchema`) travel with it: in memory as `view_of(model)` and `schema_of(model)` (set by
+`load_model`, `with_view`, `with_schema`; kept by `at_input_size`, `inference_copy` and `with_facts_of`), on disk
+inside the .keras file (extra entries of its zip, `VIEW_ENTRY` and `SCHEMA_ENTRY`) or the .h5 file (root
+attributes), so that one model file is enough; a model file without a view sees the whole frame, one without a
+schema takes its training record's (`keypoints.named_schema`).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import entry_problem, native_name
+from fcnpose_tf.keypoints import KeypointSchema, named_schema, schema_for_maps
 from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.preprocess import FrameView, ViewLike
 from fcnpose_tf.settings import INPUT_SIZE, INPUT_SIZE_MULTIPLE, check_input_size  # noqa: F401 - re-exported
@@ -40,7 +43,10 @@ SKIP_LAYERS = ("skip2", "skip_up", "skip_add")
 
 VIEW_ENTRY = "fcnpose_tf_view.json"
 """The .keras zip entry (and .h5 root attribute) holding the model's `FrameView` as JSON."""
+SCHEMA_ENTRY = "fcnpose_tf_schema.json"
+"""The .keras zip entry (and .h5 root attribute) holding the model's `KeypointSchema` as JSON (`to_dict`)."""
 _VIEW_ATTRIBUTE = "_fcnpose_tf_view"
+_SCHEMA_ATTRIBUTE = "_fcnpose_tf_schema"
 
 
 def input_shape_of(input_size: ViewLike) -> tuple[int, int]:
@@ -153,12 +159,11 @@ def as_architecture(model: keras.Model, architecture: str) -> keras.Model:
         raise UserError(f"model {model.name} is an fcn-pose-skip network: --architecture fcn-pose would drop its "
                         "trained skip (start from an fcn-pose model, or keep --architecture fcn-pose-skip)")
     widths = conv_widths(model)
-    view = view_of(model)
-    skipped = build_fcn_pose(widths[:-1], view.shape, widths[-1], name=model.name, skip=True)
+    skipped = build_fcn_pose(widths[:-1], view_of(model).shape, widths[-1], name=model.name, skip=True)
     for layer in model.layers:
         if layer.weights:
             skipped.get_layer(layer.name).set_weights(layer.get_weights())
-    return with_view(skipped, view)
+    return with_facts_of(skipped, model)
 
 
 def given_view(model: keras.Model) -> FrameView | None:
@@ -206,6 +211,84 @@ def with_view(model: keras.Model, view: ViewLike) -> keras.Model:
     return model
 
 
+def given_schema(model: keras.Model) -> KeypointSchema | None:
+    """The keypoint schema `model` was given (`with_schema`, `load_model`).
+
+    Args:
+        model: a tf_keras model.
+    Returns:
+        The schema, or None.
+    """
+    return getattr(model, _SCHEMA_ATTRIBUTE, None)
+
+
+def schema_of(model: keras.Model) -> KeypointSchema:
+    """What `model`'s maps stand for.
+
+    Args:
+        model: a tf_keras keypoint-map model.
+    Returns:
+        The schema it was given (`given_schema`), else `keypoints.schema_for_maps` of its output maps.
+    """
+    schema = given_schema(model)
+    return schema if schema is not None else schema_for_maps(int(model.output_shape[-1]))
+
+
+def with_schema(model: keras.Model, schema: KeypointSchema) -> keras.Model:
+    """`model` with its keypoint schema set.
+
+    Args:
+        model: a tf_keras keypoint-map model.
+        schema: the keypoints its maps stand for, in map order.
+    Returns:
+        `model` (for chaining).
+    Raises:
+        UserError: the schema needs another number of maps than the model has.
+    """
+    maps = int(model.output_shape[-1])
+    if schema.num_maps != maps:
+        raise UserError(f"{model.name}: {maps} output maps cannot stand for schema {schema.name!r} "
+                        f"({schema.num_keypoints} keypoints + skeleton)")
+    object.__setattr__(model, _SCHEMA_ATTRIBUTE, schema)  # past Keras' attribute tracking, as the view
+    return model
+
+
+def with_facts_of(model: keras.Model, source: keras.Model) -> keras.Model:
+    """`model` with the view and the keypoint schema `source` was given (each only when given): what a rebuilt,
+    cloned or pruned copy of `source` keeps.
+
+    Args:
+        model: a tf_keras model of `source`'s input size and maps.
+        source: the model whose facts it takes.
+    Returns:
+        `model` (for chaining).
+    """
+    if (view := given_view(source)) is not None:
+        with_view(model, view)
+    if (schema := given_schema(source)) is not None:
+        with_schema(model, schema)
+    return model
+
+
+def _read_entry(path, entry: str) -> str | None:
+    """The text of a .keras zip entry or .h5 root attribute, None when the file has none."""
+    import zipfile
+    from pathlib import Path
+
+    if Path(path).suffix == ".keras":
+        with zipfile.ZipFile(path) as archive:
+            if entry not in archive.namelist():
+                return None
+            return archive.read(entry).decode("utf-8")
+    import h5py
+
+    with h5py.File(native_name(path), "r") as h5:
+        value = h5.attrs.get(entry)
+    if value is None:
+        return None
+    return value.decode("utf-8") if isinstance(value, bytes) else str(value)
+
+
 def read_stored_view(path) -> FrameView | None:
     """The view stored in a .keras or .h5 model file.
 
@@ -217,42 +300,50 @@ def read_stored_view(path) -> FrameView | None:
         UserError: a stored view that cannot be read.
     """
     import zipfile
-    from pathlib import Path
 
-    path = Path(path)
     try:
-        if path.suffix == ".keras":
-            with zipfile.ZipFile(path) as archive:
-                if VIEW_ENTRY not in archive.namelist():
-                    return None
-                text = archive.read(VIEW_ENTRY).decode("utf-8")
-        else:
-            import h5py
-
-            with h5py.File(native_name(path), "r") as h5:
-                value = h5.attrs.get(VIEW_ENTRY)
-            if value is None:
-                return None
-            text = value.decode("utf-8") if isinstance(value, bytes) else str(value)
-        return FrameView.from_json(json.loads(text))
+        text = _read_entry(path, VIEW_ENTRY)
+        return None if text is None else FrameView.from_json(json.loads(text))
     except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, RecursionError) as exc:
         raise UserError(f"{path}: its stored frame view cannot be read ({entry_problem(exc)})") from exc
 
 
-def _store_view(path, view: FrameView) -> None:
-    """Add the view to a model file just written (before it is renamed into place)."""
+def read_stored_schema(path, num_maps: int) -> KeypointSchema | None:
+    """The keypoint schema a .keras or .h5 model file names (`keypoints.named_schema`: stored, else recorded).
+
+    Args:
+        path: the model file.
+        num_maps: the model's output maps.
+    Returns:
+        The schema, or None.
+    Raises:
+        UserError: a stored schema that cannot be read or does not fit the maps.
+    """
+    import zipfile
+
+    try:
+        text = _read_entry(path, SCHEMA_ENTRY)
+    except (OSError, ValueError, zipfile.BadZipFile) as exc:
+        raise UserError(f"{path}: its stored keypoint schema cannot be read ({entry_problem(exc)})") from exc
+    return named_schema(num_maps, text, path)
+
+
+def _store_entries(path, entries: dict[str, str]) -> None:
+    """Add text entries (zip entries of a .keras, root attributes of an .h5) to a model file just written (before
+    it is renamed into place)."""
     import zipfile
     from pathlib import Path
 
-    text = json.dumps(view.to_json(), sort_keys=True)
     if Path(path).suffix == ".keras":
         with zipfile.ZipFile(path, "a") as archive:
-            archive.writestr(VIEW_ENTRY, text)
+            for name, text in entries.items():
+                archive.writestr(name, text)
     else:
         import h5py
 
         with h5py.File(path, "a") as h5:
-            h5.attrs[VIEW_ENTRY] = text
+            for name, text in entries.items():
+                h5.attrs[name] = text
 
 
 @dataclass(frozen=True)
@@ -321,6 +412,8 @@ def at_input_size(model: keras.Model, input_size: ViewLike) -> keras.Model:
     inputs = keras.Input((height, width, model.input_shape[-1]), name=model.input_names[0])
     resized = keras.models.clone_model(model, input_tensors=inputs)
     resized.set_weights(model.get_weights())
+    if (schema := given_schema(model)) is not None:
+        with_schema(resized, schema)
     return with_view(resized, view)
 
 
@@ -418,12 +511,13 @@ def inference_copy(model: keras.Model) -> keras.Model:
     for source, layer in zip(model.layers, clone.layers):  # per layer: a model's weight order puts frozen ones last
         layer.set_weights(source.get_weights())
         layer.trainable = True  # frozen layers are a training-time choice, not part of the model
-    return with_view(clone, view_of(model))
+    return with_facts_of(clone, model)
 
 
 def save_for_inference(model: keras.Model, path) -> None:
-    """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count, and the
-    model's view (`view_of`) when it is not the whole frame at its input size.
+    """Save weights and architecture without optimizer state (.keras or .h5), as the paper's sizes count, the
+    model's view (`view_of`) when it is not the whole frame at its input size, and its keypoint schema when it was
+    given one (`given_schema`).
 
     Args:
         model: a tf_keras model.
@@ -436,21 +530,26 @@ def save_for_inference(model: keras.Model, path) -> None:
         Path(path).write_bytes(h5_bytes(clone))
     else:
         clone.save(path)  # .keras: a zip written by Python (HDF5 only in memory inside it)
-    view = view_of(model)
-    if view.crop is not None:
-        _store_view(path, view)
+    entries = {}
+    if (view := view_of(model)).crop is not None:
+        entries[VIEW_ENTRY] = json.dumps(view.to_json(), sort_keys=True)
+    if (schema := given_schema(model)) is not None:
+        entries[SCHEMA_ENTRY] = json.dumps(schema.to_dict(), sort_keys=True)
+    if entries:
+        _store_entries(path, entries)
 
 
 def load_model(path) -> keras.Model:
-    """Load a .keras or .h5 model file for inference, with its stored view.
+    """Load a .keras or .h5 model file for inference, with its stored view and its keypoint schema
+    (`read_stored_schema`).
 
     Args:
         path: the model file.
     Returns:
         The model, uncompiled.
     Raises:
-        UserError: a missing or unreadable file, another format, a stored view that does not fit the input, or an
-            input size that is not fixed (`check_fixed_input`).
+        UserError: a missing or unreadable file, another format, a stored view that does not fit the input, a stored
+            schema that does not fit the maps, or an input size that is not fixed (`check_fixed_input`).
     """
     from pathlib import Path
 
@@ -472,6 +571,10 @@ def load_model(path) -> keras.Model:
             raise UserError(f"{path}: its stored view ({view.describe()}) does not fit its "
                             f"{model.input_shape[1]}x{model.input_shape[2]} input")
         with_view(model, view)
+    shape = model.output_shape
+    if isinstance(shape, tuple) and len(shape) == 4 and shape[-1]:  # maps (`prune` loads other CNNs too)
+        if (schema := read_stored_schema(path, int(shape[-1]))) is not None:
+            with_schema(model, schema)
     return model
 
 

@@ -35,7 +35,7 @@ from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
 from fcnpose_tf.training.frozen import feature_sequence, fits_in_memory, split_frozen
-from fcnpose_tf.training.model import save_for_inference, view_of, with_view
+from fcnpose_tf.training.model import save_for_inference, view_of, with_facts_of, with_schema
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.records import TrainingRecord
 
@@ -727,7 +727,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
 
     keras.utils.set_random_seed(config.seed)
     state: dict[str, Any] = {"epoch": 0}
-    whole, view, prefix = model, view_of(model), None
+    whole, prefix = model, None
     try:
         if resume:
             state = json.loads(paths["ckpt_state"].read_text())
@@ -738,7 +738,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
                 model = keras.models.load_model(paths["ckpt_model"])  # the head, with optimizer state
                 train_data, val_data = _past_prefix(prefix, train_data, val_data)
             else:
-                model = with_view(keras.models.load_model(paths["ckpt_model"]), view)  # with optimizer state
+                model = with_facts_of(keras.models.load_model(paths["ckpt_model"]), whole)  # with optimizer state
             if state["epoch"] >= config.epochs or state.get("stopped_early"):
                 reporter.say(f"checkpoint already finished ({state['epoch']} epochs); writing the model")
         else:
@@ -790,7 +790,7 @@ def fit(model: keras.Model, train_data: keras.utils.Sequence, val_data: tuple[np
     try:
         if prefix is not None:
             inference_model = functools.partial(prefix.weights_into, whole)
-        return _finish(model, model_path, view, state, config, paths, resumable, reporter, inference_model, metadata)
+        return _finish(model, model_path, whole, state, config, paths, resumable, reporter, inference_model, metadata)
     except KeyboardInterrupt:  # a stop while the model is written: no file was renamed into place
         raise _interrupted(state, config, paths, resumable) from None
 
@@ -808,11 +808,11 @@ def _interrupted(state: dict[str, Any], config: FitConfig, paths: dict[str, Path
                      f"continue with --resume (checkpoint in {paths['ckpt_dir']})")
 
 
-def _finish(model: keras.Model, model_path: Path, view: Any, state: dict[str, Any], config: FitConfig,
+def _finish(model: keras.Model, model_path: Path, whole: keras.Model, state: dict[str, Any], config: FitConfig,
             paths: dict[str, Path], resumable: bool, reporter: Any, inference_model: Any,
             metadata: dict[str, Any] | None) -> FitResult:
-    """After the last epoch: the best epoch's weights saved as `model_path`, with its loss curves and record; the
-    checkpoint removed."""
+    """After the last epoch: the best epoch's weights saved as `model_path` with the view and schema of `whole` (the
+    model `fit` was given), its loss curves and record; the checkpoint removed."""
     best = paths["ckpt_best"] if paths["ckpt_best"].is_file() else paths["ckpt_dir"] / "best.h5"
     if "diverged_at" in state:
         diverged = (f"the loss became NaN or infinite in epoch {state['diverged_at']} (learning rate "
@@ -826,7 +826,7 @@ def _finish(model: keras.Model, model_path: Path, view: Any, state: dict[str, An
     try:
         with atomic_path(model_path, force=True) as tmp:
             kept = inference_model(model) if inference_model else model
-            save_for_inference(with_view(kept, view), tmp)  # the view, also past an inference_model
+            save_for_inference(with_facts_of(kept, whole), tmp)  # view and schema, also past an inference_model
         write_loss_curves(state["history"], paths["loss_csv"], paths["loss_png"], state["best_epoch"],
                           config.positive_weight, config.distill, start_val_loss=state.get("start_val_loss"))
         write_json(paths["train_json"], {
@@ -935,7 +935,7 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
         schema: the keypoints the data has.
         input_size: S, (H, W) or a `preprocess.FrameView` whose crop it takes (None: the view it was saved with).
     Returns:
-        The model at that input size.
+        The model at that input size, its maps named by `schema`.
     Raises:
         UserError: `init` is no keypoint-map model, predicts other maps than `schema` needs, or its training record
             names other keypoints.
@@ -957,7 +957,7 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
                         f"{', '.join(schema.keypoints)}; " + (f"{hint}" if hint else
                         "pass --init none to train from scratch, or --init MODEL with a model of this schema"))
-    return source if input_size is None else at_input_size(source, input_size)
+    return with_schema(source if input_size is None else at_input_size(source, input_size), schema)
 
 
 def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: Any,
@@ -1043,6 +1043,7 @@ def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: F
         model = as_architecture(initial_model(init, dataset.schema, view), architecture)
     else:  # random weights, or the checkpoint's (`fit` loads them) in the network that wrote it
         model = build_fcn_pose(input_size=view, num_maps=num_maps, skip=ARCHITECTURES[architecture])
+    with_schema(model, dataset.schema)  # the data's keypoint names go with the model file
     folds = dataset.splits.k
     split_name = "hold-out 80/20" if fold is None else f"fold {fold} of {folds}"
     train_data, val_data = fold_data(dataset, fold, view, augment_copies, config.seed, augment,

@@ -1,0 +1,117 @@
+"""A model carries the names of its keypoints: train stores the data's schema in the model file, export in the
+.tflite metadata, so that predict, run and the correction loop (predict -> correct -> data merge) speak the user's
+names, not kp0..kpN or UR5's; files written before take their training record's."""
+
+import json
+import zipfile
+
+import cv2
+import numpy as np
+import pytest
+
+from fcnpose_tf.errors import UserError
+from fcnpose_tf.keypoints import UR5, KeypointSchema, named_schema, schema_for_maps
+
+MINE = KeypointSchema("arm4", ("j0", "j1", "j2", "tip"), ((0, 1), (1, 2), (2, 3)))
+TRAIN = ("--epochs", "1", "--input-size", "64", "--init", "none", "--augment", "paper", "--augment-copies", "0",
+         "--batch-size", "4", "--quiet", "--threads", "1")
+
+
+def _own_schema_folder(folder, schema=MINE, n=6, size=64):
+    from fcnpose_tf.data.via import ViaFrame, write_via_project
+
+    rng = np.random.default_rng(3)
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for i in range(n):
+        image = np.full((size, size, 3), 40, np.uint8)
+        kps = np.c_[rng.uniform(8, size - 9, schema.num_keypoints), rng.uniform(8, size - 9, schema.num_keypoints)]
+        for k, (x, y) in enumerate(kps):
+            cv2.circle(image, (int(round(x)), int(round(y))), 3, (60 * k, 255 - 60 * k, 200), -1)
+        cv2.imwrite(str(folder / "images" / f"f{i}.png"), image)
+        frames.append(ViaFrame(f"f{i}.png", size, size, kps))
+    write_via_project(folder / "labels.json", frames, schema)
+    return folder
+
+
+def test_named_schema_reads_the_stored_entry_then_the_record(tmp_path):
+    model = tmp_path / "m.keras"
+    assert named_schema(5, None, model) is None  # neither: the caller's default (kp0..kp3)
+    assert schema_for_maps(5).keypoints == ("kp0", "kp1", "kp2", "kp3")
+    assert named_schema(5, json.dumps(MINE.to_dict()), model) == MINE
+    (tmp_path / "m_train.json").write_text(json.dumps({"schema": MINE.to_dict()}))
+    assert named_schema(5, None, model) == MINE
+    assert named_schema(5, None, tmp_path / "m_fp16.tflite") == MINE  # an export of it finds the record too
+    assert named_schema(9, None, model) is None  # a record of another map count says nothing
+    assert named_schema(9, json.dumps(UR5.to_dict()), model) == UR5  # the stored entry wins
+    with pytest.raises(UserError, match="stored keypoint schema 'arm4' has 4 keypoints, but the model has 9 output"):
+        named_schema(9, json.dumps(MINE.to_dict()), model)
+    with pytest.raises(UserError, match="stored keypoint schema is not JSON"):
+        named_schema(5, "{", model)
+    with pytest.raises(UserError, match="invalid keypoint schema"):
+        named_schema(5, json.dumps({"name": "x"}), model)
+
+
+def test_the_schema_survives_saving_resizing_and_surgery(tmp_path):
+    from fcnpose_tf.compression.magnitude import magnitude_prune
+    from fcnpose_tf.compression.prune import prune_model
+    from fcnpose_tf.preprocess import FrameView
+    from fcnpose_tf.training.model import (SCHEMA_ENTRY, at_input_size, build_fcn_pose, given_schema, given_view,
+                                           load_model, save_for_inference, schema_of, with_facts_of, with_schema,
+                                           with_view)
+
+    model = build_fcn_pose(input_size=64, num_maps=MINE.num_maps)
+    assert given_schema(model) is None and schema_of(model).keypoints == ("kp0", "kp1", "kp2", "kp3")
+    with pytest.raises(UserError, match="5 output maps cannot stand for schema 'ur5'"):
+        with_schema(model, UR5)
+    with_schema(model, MINE)
+    assert schema_of(at_input_size(model, 96)) == MINE
+    for suffix in (".keras", ".h5"):
+        path = tmp_path / f"m{suffix}"
+        save_for_inference(model, path)
+        assert schema_of(load_model(path)) == MINE
+    with zipfile.ZipFile(tmp_path / "m.keras") as archive:
+        assert json.loads(archive.read(SCHEMA_ENTRY)) == MINE.to_dict()
+    pruned = with_facts_of(prune_model(model, 0.5), model)
+    assert schema_of(pruned) == MINE
+    view = FrameView(64, 64, crop=(8, 8, 48, 48), frame_size=(64, 64))
+    sparse = magnitude_prune(with_view(model, view), 0.5)  # compress --method magnitude: the crop was lost too
+    assert schema_of(sparse) == MINE and given_view(sparse) == view
+    plain = build_fcn_pose(input_size=64, num_maps=MINE.num_maps)
+    save_for_inference(plain, tmp_path / "plain.keras")  # no schema given: none stored, no record: the default
+    assert given_schema(load_model(tmp_path / "plain.keras")) is None
+
+
+@pytest.mark.slow
+def test_own_keypoints_go_from_train_through_export_predict_and_run_to_merge(tmp_path, cli_here):
+    from fcnpose_tf.runtime.estimator import KeypointModel
+    from fcnpose_tf.runtime.tflite_metadata import SCHEMA_METADATA, read_metadata
+    from fcnpose_tf.training.model import load_model, schema_of
+
+    data = _own_schema_folder(tmp_path / "mine")
+    model = tmp_path / "models" / "arm.keras"
+    status, out, err = cli_here("train", "--data", data, "--out", model, *TRAIN)
+    assert status == 0, out + err
+    assert schema_of(load_model(model)) == MINE
+    status, out, err = cli_here("export", model, "--data", data, "--quantize", "float16", "--threads", "1", "--quiet")
+    assert status == 0, out + err
+    tflite = tmp_path / "models" / "arm_fp16.tflite"
+    assert json.loads(read_metadata(tflite)[SCHEMA_METADATA]) == MINE.to_dict()
+    alone = tmp_path / "pi" / "arm_fp16.tflite"  # on the Pi the file travels without its training record
+    alone.parent.mkdir()
+    alone.write_bytes(tflite.read_bytes())
+    assert KeypointModel(alone, num_threads=1).schema == MINE
+    status, out, err = cli_here("run", alone, "--source", data / "images", "--out", tmp_path / "run.jsonl",
+                                "--threads", "1", "--quiet")
+    assert status == 0, out + err
+    first = json.loads((tmp_path / "run.jsonl").read_text().splitlines()[0])
+    assert [k["name"] for k in first["keypoints"]] == list(MINE.keypoints)
+    for source in (model, alone):  # the Keras model and the Pi's file: predict, correct, merge
+        project = tmp_path / f"pre_{source.suffix[1:]}" / "pre.json"
+        status, out, err = cli_here("predict", source, "--source", data / "images", "--via", project, "--threads",
+                                    "1", "--quiet")
+        assert status == 0, out + err
+        assert json.loads(project.read_text())["fcnpose_schema"] == MINE.to_dict()
+        merged = tmp_path / f"merged_{source.suffix[1:]}" / "m.json"
+        status, out, err = cli_here("data", "merge", data / "labels.json", project, "--out", merged, "--prefer", "last")
+        assert status == 0, out + err
