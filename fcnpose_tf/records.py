@@ -45,6 +45,13 @@ def _typed(value: Any, kind: type | tuple[type, ...]) -> Any:
     return value if isinstance(value, kind) and not isinstance(value, bool) else None
 
 
+DEPLOYED_RECORD_KEYS = ("data_sha256", "fold", "folds", "split", "split_seed")
+"""What an exported .tflite keeps of its model's training record (`TrainingRecord.deployed`, the
+`runtime.tflite_metadata.RECORD_METADATA` entry): which frames it was trained on, so that `evaluate` of the file
+away from NAME_train.json (another folder, a Pi, `export --input-size`'s NAME_S_fp16.tflite) still takes the
+validation frames. No paths: a file may be shared."""
+
+
 @dataclass(frozen=True)
 class TrainingRecord:
     """The NAME_train.json written beside a model by `fcnpose-tf train` (and by `compress` beside a retrained
@@ -90,6 +97,10 @@ class TrainingRecord:
     raw: dict[str, Any] = field(default_factory=dict, repr=False, hash=False)
     """The whole JSON object, for keys without a field (config, epochs_run, validation...). Not to be changed."""
 
+    def deployed(self) -> dict[str, Any]:
+        """The keys of `DEPLOYED_RECORD_KEYS` this record holds, for an exported file's metadata."""
+        return {key: self.raw[key] for key in DEPLOYED_RECORD_KEYS if key in self.raw}
+
     @classmethod
     def from_json(cls, record: dict[str, Any]) -> TrainingRecord:
         """The record of a parsed NAME_train.json object; TypeError if it is no JSON object (dict)."""
@@ -130,9 +141,13 @@ def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
 
     An export or a compressed model (NAME_fp16.tflite, NAME_p70.keras: a format's file tag or a rate's pNN after the
     last underscore) finds NAME_train.json too; another model whose name only begins so (NAME_best.keras) does not.
+    A .tflite exported since 2026-12-05 holds its own (`TrainingRecord.deployed`: the frames, no paths), which it
+    reads first, wherever the file lies.
     """
     from fcnpose_tf.settings import QUANTIZE_FILE_TAGS
 
+    if Path(model_path).suffix == ".tflite" and (own := _record_in_metadata(model_path)) is not None:
+        return own
     stem = Path(model_path).with_suffix("")
     base, _, tag = stem.name.rpartition("_")
     derived = base and (tag in QUANTIZE_FILE_TAGS.values() or re.fullmatch(r"p\d{1,2}", tag))
@@ -145,6 +160,19 @@ def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
                 return None
             return TrainingRecord.from_json(record) if isinstance(record, dict) else None
     return None
+
+
+def _record_in_metadata(path: str | os.PathLike) -> TrainingRecord | None:
+    """The record a .tflite holds in its metadata (`runtime.tflite_metadata.RECORD_METADATA`), or None (none, an
+    unreadable file or entry)."""
+    from fcnpose_tf.runtime.tflite_metadata import RECORD_METADATA, read_metadata
+
+    try:
+        stored = read_metadata(path).get(RECORD_METADATA)
+        record = json.loads(stored) if stored is not None else None
+    except (OSError, ValueError, RecursionError):
+        return None
+    return TrainingRecord.from_json(record) if isinstance(record, dict) else None
 
 
 def distribution_version(name: str) -> str | None:

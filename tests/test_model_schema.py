@@ -1,6 +1,7 @@
 """A model carries the names of its keypoints: train stores the data's schema in the model file, export in the
 .tflite metadata, so that predict, run and the correction loop (predict -> correct -> data merge) speak the user's
-names, not kp0..kpN or UR5's; files written before take their training record's."""
+names, not kp0..kpN or UR5's; files written before take their training record's. An exported file also carries which
+frames its model was trained on, so that evaluate away from the record still measures on validation frames."""
 
 import json
 import zipfile
@@ -85,7 +86,8 @@ def test_the_schema_survives_saving_resizing_and_surgery(tmp_path):
 @pytest.mark.slow
 def test_own_keypoints_go_from_train_through_export_predict_and_run_to_merge(tmp_path, cli_here):
     from fcnpose_tf.runtime.estimator import KeypointModel
-    from fcnpose_tf.runtime.tflite_metadata import SCHEMA_METADATA, read_metadata
+    from fcnpose_tf.records import DEPLOYED_RECORD_KEYS, file_sha256, training_record
+    from fcnpose_tf.runtime.tflite_metadata import RECORD_METADATA, SCHEMA_METADATA, read_metadata
     from fcnpose_tf.training.model import load_model, schema_of
 
     data = _own_schema_folder(tmp_path / "mine")
@@ -101,6 +103,12 @@ def test_own_keypoints_go_from_train_through_export_predict_and_run_to_merge(tmp
     alone.parent.mkdir()
     alone.write_bytes(tflite.read_bytes())
     assert KeypointModel(alone, num_threads=1).schema == MINE
+    own = training_record(alone)  # which frames it was trained on travels with it too, without paths
+    assert own is not None and own.data_sha256 == file_sha256(data / "labels.json") and own.split == "hold-out 80/20"
+    assert set(json.loads(read_metadata(alone)[RECORD_METADATA])) <= set(DEPLOYED_RECORD_KEYS)
+    status, out, err = cli_here("evaluate", alone, "--data", data, "--threads", "1", "--quiet", "--worst", "0")
+    assert status == 0, out + err
+    assert "validation frames of the hold-out 80/20 split (" in out, out
     status, out, err = cli_here("run", alone, "--source", data / "images", "--out", tmp_path / "run.jsonl",
                                 "--threads", "1", "--quiet")
     assert status == 0, out + err

@@ -5,8 +5,8 @@ PCK@0.5/0.2/0.05 are normalised by max(w, h) of the ground-truth keypoints' boun
 the mean pixel error in original frame pixels. Missing predictions count as wrong. Timing: mean
 and std over at least 50 frames after warm-up; FPS = 1 / (preprocess + inference + post-processing).
 
-Which frames: on the dataset a model was trained on (recorded in NAME_train.json), its
-validation split; on any other dataset, every frame (--split overrides).
+Which frames: on the dataset a model was trained on (recorded in NAME_train.json, and in the metadata of a
+.tflite exported since 2026-12-05), its validation split; on any other dataset, every frame (--split overrides).
 
 The worst frames are listed by name (--worst N, 5 by default): ranked by the mean over their annotated keypoints
 of each error as a share of the frame's keypoint box, capped at 0.5, a missing keypoint counted at the cap.

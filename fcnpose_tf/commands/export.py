@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.frames import check_enough_frames, export_frames
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
+    from fcnpose_tf.records import training_record
     from fcnpose_tf.training.model import view_of
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
@@ -124,6 +125,7 @@ def run(args: argparse.Namespace) -> int:
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W
+    trained_on = record.deployed() if (record := training_record(args.model)) is not None else None
     check_enough_frames(paths, len(val), len(train), dataset.via_path)  # before anything is converted or written
     rows, records, refused = [], [], []
     for quantize, path in paths.items():
@@ -131,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
                                              options.seed)
         try:
             export = write_tflite(model, path, quantize, force=args.force, sample_frames=samples,
-                                  calibration_frames=calibration, num_threads=options.threads)
+                                  calibration_frames=calibration, num_threads=options.threads, trained_on=trained_on)
         except ExportVerificationError as exc:  # a row, not the end of the run
             rows.append(_refused(refused, path, quantize, exc, args.force, columns=8))
             continue

@@ -188,20 +188,22 @@ def _convert(model: keras.Model, quantize: str, input_shape: tuple[int, ...],
     return _pixel_scaled_input(data) if quantize == FULL_INTEGER and pixel_interface else data
 
 
-def _with_metadata(data: bytes, model: keras.Model) -> bytes:
-    """The file with the model's crop and input size (`runtime.tflite_metadata.VIEW_METADATA`, when it has a crop)
-    and its keypoint schema (`SCHEMA_METADATA`, when it was given one) in its metadata, where the runtime reads them;
-    else the file as converted."""
+def _with_metadata(data: bytes, model: keras.Model, trained_on: dict[str, Any] | None = None) -> bytes:
+    """The file with the model's crop and input size (`runtime.tflite_metadata.VIEW_METADATA`, when it has a crop),
+    its keypoint schema (`SCHEMA_METADATA`, when it was given one) and `trained_on` (`RECORD_METADATA`) in its
+    metadata, where the runtime and `records.training_record` read them; else the file as converted."""
     import json
 
-    from fcnpose_tf.runtime.tflite_metadata import SCHEMA_METADATA, VIEW_METADATA
+    from fcnpose_tf.runtime.tflite_metadata import RECORD_METADATA, SCHEMA_METADATA, VIEW_METADATA
     from fcnpose_tf.training.model import given_schema, given_view
 
-    entries = {}
+    entries: dict[str, Any] = {}
     if (view := given_view(model)) is not None and view.crop is not None:
         entries[VIEW_METADATA] = view.to_json()
     if (keypoints := given_schema(model)) is not None:
         entries[SCHEMA_METADATA] = keypoints.to_dict()
+    if trained_on:
+        entries[RECORD_METADATA] = trained_on
     if not entries:
         return data
     from ai_edge_litert import schema_py_generated as schema
@@ -255,7 +257,7 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
                   check_keypoints: bool = True, num_threads: int | None = None,
                   fold_upsampling: bool | None = None,
                   calibration_frames: np.ndarray | None = None,
-                  reference: keras.Model | None = None) -> TFLiteExport:
+                  reference: keras.Model | None = None, trained_on: dict[str, Any] | None = None) -> TFLiteExport:
     """Convert a tf_keras model to TFLite and verify the result by running it.
 
     Same as `to_tflite`, but returns the bytes together with the conversion time, the parity
@@ -267,6 +269,8 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
         reference: the model the file is verified against (default: `model` itself): a quantization-aware copy of
             a model (`fcnpose_tf.compression.qat`) is converted, and its file is held to the model it was trained
             from.
+        trained_on: which frames the model was trained on, stored in the file (`records.TrainingRecord.deployed`
+            of its training record; None: nothing stored).
     Returns:
         A `TFLiteExport`.
     Raises:
@@ -292,7 +296,8 @@ def export_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sampl
                         f"real frames, got {len(frames)} sample frame(s)")
     start = time.perf_counter()
     graph, rewrites = _inference_graph(model) if fold_upsampling else (model, ())
-    data = _with_metadata(_convert(graph, quantize, input_shape, calibration), model if reference is None else reference)
+    data = _with_metadata(_convert(graph, quantize, input_shape, calibration),
+                          model if reference is None else reference, trained_on)
     convert_seconds = time.perf_counter() - start
     start = time.perf_counter()
     # Always against the original model: the rewrite is checked together with the conversion.

@@ -31,6 +31,15 @@ def _export_frames(run: Run, quantize: str) -> tuple[np.ndarray, np.ndarray | No
                          run.eval_indices, run.options.calibration_frames, run.options.seed)
 
 
+def _trained_on(run: Run) -> dict[str, Any] | None:
+    """What the files keep of the retrained model's training record (`records.TrainingRecord.deployed`): the
+    retraining's (or the polish's) NAME_pXX_train.json, or with 0 retraining epochs the base model's NAME_train.json."""
+    from fcnpose_tf.records import training_record
+
+    record = training_record(run.files.paths["keras"]) or training_record(run.base_path)
+    return record.deployed() if record is not None else None
+
+
 def export_step(run: Run, retrained: keras.Model, quantize: str) -> TFLiteExport:
     """Write one TFLite file, verified against Keras on real frames (`frames.export_frames`: the
     first evaluation frames; int8 calibrated on the training frames of the run's fold, `Run.fold`).
@@ -48,7 +57,8 @@ def export_step(run: Run, retrained: keras.Model, quantize: str) -> TFLiteExport
 
     samples, calibration = _export_frames(run, quantize)
     return write_tflite(retrained, run.files.tflite[quantize], quantize, force=run.force,
-                        sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads)
+                        sample_frames=samples, calibration_frames=calibration, num_threads=run.options.threads,
+                        trained_on=_trained_on(run))
 
 
 def qat_step(run: Run, retrained: keras.Model) -> QATResult:
@@ -75,7 +85,8 @@ def qat_step(run: Run, retrained: keras.Model) -> QATResult:
 
     def convert(qat_model: keras.Model) -> Any:
         return export_tflite(qat_model, "int8", sample_frames=samples, calibration_frames=calibration,
-                             num_threads=options.threads, fold_upsampling=False, reference=retrained)
+                             num_threads=options.threads, fold_upsampling=False, reference=retrained,
+                             trained_on=_trained_on(run))
 
     sequence = run.fit_data.sequence(options.batch_size, seed=options.seed)
     result = train_until_gate(retrained, sequence, calibration, convert, epochs=options.qat_epochs,

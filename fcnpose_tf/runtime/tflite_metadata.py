@@ -2,8 +2,9 @@
 
 A .tflite model is a FlatBuffer whose root table (`Model` in TFLite's schema) lists `metadata` entries: a
 name and the index of a buffer holding the bytes. The exporter stores the model's frame view there
-(`VIEW_METADATA`: the crop and input size as JSON) and the names of its keypoints (`SCHEMA_METADATA`), so that
-the one file copied to a Raspberry Pi carries everything the runtime needs. Reading it takes four table look-ups; this module does them by the
+(`VIEW_METADATA`: the crop and input size as JSON), the names of its keypoints (`SCHEMA_METADATA`) and which frames
+it was trained on (`RECORD_METADATA`), so that the one file copied to a Raspberry Pi, or anywhere else, carries
+everything the runtime and `evaluate` need. Reading it takes four table look-ups; this module does them by the
 FlatBuffers layout rules so that every interpreter package (LiteRT, the old tflite_runtime of a 32-bit Pi OS)
 can read it, with no schema package installed.
 """
@@ -17,6 +18,9 @@ VIEW_METADATA = "fcnpose_tf.view"
 """The metadata entry holding the model's `preprocess.FrameView` as JSON (`FrameView.to_json`)."""
 SCHEMA_METADATA = "fcnpose_tf.schema"
 """The metadata entry holding the keypoint schema of the model's maps as JSON (`KeypointSchema.to_dict`)."""
+RECORD_METADATA = "fcnpose_tf.training_record"
+"""The metadata entry holding what the file keeps of its model's training record as JSON
+(`records.TrainingRecord.deployed`: which frames it was trained on, no paths)."""
 
 # Field numbers in TFLite's schema.fbs: Model.buffers = 4, Model.metadata = 6; Metadata.name = 0,
 # Metadata.buffer = 1; Buffer.data = 0, Buffer.offset = 1 (for files over 2 GB, data stored after the buffer).
