@@ -45,6 +45,11 @@ Box = tuple[int, int, int, int]
 """(x, y, width, height) of a box in frame pixels: columns x..x+width-1, rows y..y+height-1."""
 
 
+ASPECT_TOLERANCE = 0.01
+"""Frames whose width/height differs from a crop's frames' by more than this share get `FrameView.aspect_note`
+(1280x720 against 640x480: 0.33; a rounding of the same mode, 1278x720 against 1280x720: 0.002)."""
+
+
 @dataclass(frozen=True)
 class FrameView:
     """What a model sees of a frame: `crop` (the whole frame when None) resized to height x width.
@@ -114,6 +119,20 @@ class FrameView:
         x0, y0 = int(round(x * sx)), int(round(y * sy))
         x1, y1 = int(round((x + w) * sx)), int(round((y + h) * sy))
         return x0, y0, max(1, min(fw, x1) - x0), max(1, min(fh, y1) - y0)
+
+    def aspect_note(self, frame_shape: tuple[int, ...]) -> str | None:
+        """What to tell a user whose frames differ in aspect (beyond `ASPECT_TOLERANCE`) from the frames the crop is
+        stated in, else None: a camera mode of another aspect sees another part of the scene, so the crop, scaled per
+        axis (`box`), no longer frames the same workspace."""
+        if self.crop is None:
+            return None
+        fh, fw = int(frame_shape[0]), int(frame_shape[1])
+        cw, ch = self.frame_size
+        if abs((fw / fh) / (cw / ch) - 1) <= ASPECT_TOLERANCE:
+            return None
+        return (f"frames of {fw}x{fh} are not of the aspect of the {cw}x{ch} frames the model's crop was set on "
+                f"({fw / fh:.2f} against {cw / ch:.2f}): the crop is stretched to fit them and may not frame the arm's "
+                f"workspace; give it frames of a {cw}x{ch} camera mode (or its aspect), or train on frames of this one")
 
     def cropped(self, frame: np.ndarray) -> np.ndarray:
         """The part of `frame` the model sees (a numpy view, no copy)."""

@@ -167,3 +167,18 @@ def test_keypoints_at_an_inner_border_of_the_crop_are_flagged_and_the_frames_own
     edge = Prediction(kps, np.ones(6), times, (480, 640, 3), crop).at_crop_edge()
     assert edge.tolist() == [True, True, False, False, False, False]
     assert not Prediction(kps, np.ones(6), times, (480, 640, 3)).at_crop_edge().any()  # no crop, no edge
+
+
+def test_frames_of_another_aspect_than_the_crops_are_warned_about_once_per_size(cropped_tflite, caplog):
+    from fcnpose_tf.runtime.estimator import KeypointModel
+
+    assert VIEW.aspect_note((480, 640, 3)) is None and VIEW.aspect_note((960, 1280)) is None  # the same mode, scaled
+    assert VIEW.aspect_note((479, 640)) is None and FrameView(64, 96).aspect_note((720, 1280)) is None
+    note = VIEW.aspect_note((720, 1280, 3))
+    assert note.startswith("frames of 1280x720 are not of the aspect of the 640x480 frames the model's crop was set "
+                           "on (1.78 against 1.33)")
+    model = KeypointModel(cropped_tflite / "m.tflite", num_threads=1)
+    with caplog.at_level("WARNING", logger="fcnpose_tf.runtime.estimator"):
+        for shape in ((480, 640, 3), (960, 1280, 3), (720, 1280, 3), (720, 1280, 3), (360, 640, 3)):
+            model.predict(np.zeros(shape, np.uint8))
+    assert [r.getMessage() for r in caplog.records] == [f"m.tflite: {note}", f"m.tflite: {VIEW.aspect_note((360, 640))}"]

@@ -12,6 +12,7 @@ No per-frame allocation of model-sized buffers; not thread-safe (one model per t
 from __future__ import annotations
 
 import abc
+import logging
 import math
 import os
 import time
@@ -28,6 +29,8 @@ from fcnpose_tf.postprocess import dequantize
 from fcnpose_tf.preprocess import Box, FrameView, preprocess_frame, preprocess_frame_bytes
 from fcnpose_tf.runtime.interpreter import (Backend, ModelIO, ModelStats, default_num_threads, inspect_io,
                                             load_interpreter, model_stats, read_schema, read_view)
+
+logger = logging.getLogger(__name__)
 
 
 class KeypointRecord(TypedDict):
@@ -241,14 +244,23 @@ class KeypointPredictor(abc.ABC):
         return Prediction(keypoints, confidence, times, tuple(frame_bgr.shape), self.crop_box(frame_bgr.shape))
 
     def crop_box(self, frame_shape: tuple[int, ...]) -> Box | None:
-        """The part of a frame the model reads.
+        """The part of a frame the model reads. The first frame of each size whose aspect is not that of the frames
+        the crop was set on gets a warning on stderr (`preprocess.FrameView.aspect_note`).
 
         Args:
             frame_shape: the frame's shape (height, width, ...).
         Returns:
             (x, y, width, height) of the crop in that frame; None when the model reads the whole frame.
         """
-        return self.view.box(frame_shape) if self.view.crop is not None else None
+        if self.view.crop is None:
+            return None
+        size = tuple(frame_shape[:2])
+        noted = self.__dict__.setdefault("_sizes_seen", set())
+        if size not in noted:
+            noted.add(size)
+            if (note := self.view.aspect_note(frame_shape)) is not None:
+                logger.warning("%s: %s", self.path.name if getattr(self, "path", None) else "the model", note)
+        return self.view.box(frame_shape)
 
     def warmup(self, frame_shape: tuple[int, int, int] = (480, 640, 3), runs: int = 1) -> None:
         """Predict untimed blank frames, so the first real frame pays no start-up cost (XNNPACK weight packing,
