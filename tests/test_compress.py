@@ -305,6 +305,9 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli_here,
     """`fcnpose-tf export`: one file per format, the int8 one calibrated on the data's training split."""
     import shutil
 
+    from fcnpose_tf.compression.frames import describe_check_frames
+    from fcnpose_tf.data.dataset import load_dataset
+
     root, data, base = setup
     model = tmp_path / "arm.keras"
     shutil.copy(base, model)
@@ -318,6 +321,11 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli_here,
     assert int8["quantize"] == "int8" and int8["calibration_frames"] == 16 and int8["graph_rewrites"]
     assert int8["parity"]["frames"] == 16 and int8["parity"]["min_keypoint_share"] == 0.95
     assert "arm_int8.tflite" in stdout and "folded" in stdout
+    validation = len(load_dataset(data).split(None)[1])  # fewer than 16: topped up with training frames, said so
+    assert validation < 16 and record["verification_frames"] == (
+        f"the {validation} of the validation split and the first {16 - validation} of the training split")
+    assert f"on {record['verification_frames']} of " in stdout
+    assert describe_check_frames(16, 40) == "the first 16 of the validation split"
     status, _, err = cli_here("export", model, "--data", data, "--quantize", "int8")
     assert status == 2 and "already exists; pass --force" in err
 

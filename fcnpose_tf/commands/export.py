@@ -7,7 +7,8 @@ NAME_fp32.tflite, NAME_int8w.tflite, NAME_fp16native.tflite (float16 with reduce
 computed in float16 on a Raspberry Pi 5, docs/raspberry-pi.md). Frames come from --data (default:
 the frames the model was trained on, as its NAME_train.json names them, else the synthetic frames the
 bundled models were trained on): int8 is calibrated on the training split's frames and every file is
-verified on the validation split's first 16 frames, never calibrated on them. --input-size S rebuilds the model at S
+verified on the validation split's first 16 frames (topped up with training frames when it has fewer), never
+calibrated on them. --input-size S rebuilds the model at S
 with its weights (nothing retrained) and names the files NAME_S_fp16.tflite: a file for `run --track`.
 
 Any other model (a Keras 3 model, a classifier, a pruned MobileNetV2: anything whose output is not 2-D maps of a
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.compression.export import ExportOptions, write_tflite
     from fcnpose_tf.compression.summary import finish_formats
-    from fcnpose_tf.compression.frames import check_enough_frames, export_frames
+    from fcnpose_tf.compression.frames import check_enough_frames, describe_check_frames, export_frames
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.records import training_record
@@ -142,7 +143,8 @@ def run(args: argparse.Namespace) -> int:
         rows.append([path.name, export.size_bytes / 1e3, export.calibration_frames or None, p.frames,
                      f"{p.keypoints_within_px}/{p.keypoints_compared}", p.keypoints_lost_or_gained,
                      p.max_keypoint_px, p.max_abs_diff, "folded" if export.graph_rewrites else "plain"])
-    print(f"Verified against {args.model} on {len(samples)} real frames of {dataset.via_path} "
+    checked = describe_check_frames(len(samples), len(val))
+    print(f"Verified against {args.model} on {checked} of {dataset.via_path} "
           f"(keypoints in map px; int8 gate: >= 95 % within 2 px, none lost or gained)")
     print(format_table(["file", "size KB", "calibrated on", "frames", "kp within", "lost/gained", "max kp px",
                         "max map diff", "upsampling"], rows, digits=[None, 1, None, None, None, None, 2, 3, None]))
@@ -150,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{entry['quantize']}: REFUSED, no file written: {entry['reason']}")
     if args.json:
         write_json(args.json, {"model": str(args.model), "data": str(dataset.via_path),
-                               "verification_frames": f"the first {len(samples)} of the validation split",
+                               "verification_frames": checked,
                                "calibration": f"seeded choice (seed {options.seed}) of the training split's "
                                               f"{len(train)} frames", "files": records, "refused": refused},
                    force=args.force)

@@ -67,6 +67,22 @@ def export_frames(quantize: str, input_size: ViewLike, train_dataset: Any, train
     return samples, calibration
 
 
+def describe_check_frames(samples: int, check_count: int, check_name: str = "validation split") -> str:
+    """Which frames `export_frames` verified a file on, in words: "the first 16 of the validation split", or with
+    fewer than `samples` there "the 5 of the validation split and the first 11 of the training split".
+
+    Args:
+        samples: the frames verified on.
+        check_count: the frames the check part had (`check_indices`).
+        check_name: what the check part is.
+    Returns:
+        The phrase.
+    """
+    if check_count >= samples:
+        return f"the first {samples} of the {check_name}"
+    return f"the {check_count} of the {check_name} and the first {samples - check_count} of the training split"
+
+
 def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_size: ViewLike,
                        seed: int = settings.CALIBRATION_SEED.default) -> np.ndarray:
     """`count` frames drawn (seeded, without replacement) from `indices` of `dataset`, preprocessed as
