@@ -204,6 +204,35 @@ def test_bench_table_markdown_and_json(capsys, tmp_path, model_path):
     _one_line_error(code, err, "already exists")
 
 
+def test_a_stopped_bench_keeps_the_thread_counts_that_finished(capsys, tmp_path, model_path, monkeypatch):
+    """Ctrl-C during a long run (a Pi's --frames 1000): the finished counts printed and written, status 130."""
+    from fcnpose_tf.runtime import bench
+
+    measured = bench.bench_threads
+    calls = []
+
+    def stopped_at_the_second_count(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return measured(*args, **kwargs)
+
+    monkeypatch.setattr(bench, "bench_threads", stopped_at_the_second_count)
+    out = tmp_path / "bench.json"
+    code, stdout, err = _run(capsys, "bench", model_path, model_path, "--threads", "1,2,3", "--frames", 3,
+                             "--warmup", 0, "--json", out)
+    assert code == 130, err
+    assert "Stopped: 1 of 3 thread counts finished." in stdout and stdout.count("Model:   ") == 1
+    assert err.strip().splitlines()[-1].startswith("interrupted (Ctrl-C)") and str(out) in err
+    data = json.loads(out.read_text())
+    assert [r["threads"] for r in data["results"]] == [1] and data["stopped_after_of"] == [1, 3]
+    calls.clear()
+    monkeypatch.setattr(bench, "bench_threads", lambda *a, **k: (_ for _ in ()).throw(KeyboardInterrupt))
+    code, stdout, err = _run(capsys, "bench", model_path, "--threads", "1", "--frames", 3, "--json",
+                             tmp_path / "none.json")  # stopped before anything finished: nothing written
+    assert code == 130 and "Model:" not in stdout and not (tmp_path / "none.json").exists()
+
+
 def test_bench_several_models_one_table_each(capsys, tmp_path, model_path):
     """`bench INT8 FP16`: the bundled int8 file beside another, each with its own header and table."""
     from fcnpose_tf.bundled import models_dir

@@ -55,8 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    import signal
     import sys
 
+    from fcnpose_tf import fileio
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.postprocess import Decoding
@@ -75,9 +77,20 @@ def run(args: argparse.Namespace) -> int:
     reports = []
     progress = Reporter(stream=sys.stderr)  # the tables go to stdout
     for i, model in enumerate(args.model):
-        reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
-                                 decoding=Decoding.from_args(args), reporter=progress))
-        print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
+        try:
+            reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
+                                     decoding=Decoding.from_args(args), reporter=progress))
+        except KeyboardInterrupt:  # stopped before this model's first count finished: the earlier models stand
+            if not reports:
+                raise
+            stopped = True
+        else:
+            print(("\n" if i else "") + reports[-1].report(markdown=args.markdown))
+            stopped = reports[-1].stopped_after is not None
+        if stopped:  # what finished is printed (and written with --json); the exit path says stopped, status 130
+            if fileio.stop_signal() is None:  # a KeyboardInterrupt no handler of ours saw
+                fileio.note_stop_signal(signal.SIGINT)
+            break
     if len(reports) > 1:
         print("\nComparison (the models ran one after the other; for a speed claim, repeat in the other order):")
         print(comparison_table(reports, markdown=args.markdown))

@@ -146,6 +146,9 @@ class BenchReport:
     threshold: float
     results: list[ThreadResult] = field(default_factory=list)
     host: HostInfo | None = None
+    stopped_after: int | None = None
+    """A stop signal (Ctrl-C) ended the run: the thread counts asked for; `results` holds the ones that finished.
+    None: every count ran."""
 
     def header(self) -> str:
         """The lines above the table.
@@ -203,6 +206,8 @@ class BenchReport:
             notes.append(over)
         if self.frames < MIN_FRAMES_FOR_STATS:
             notes.append(f"Fewer than {MIN_FRAMES_FOR_STATS} timed frames: indicative figures only.")
+        if self.stopped_after is not None:
+            notes.append(f"Stopped: {len(self.results)} of {self.stopped_after} thread counts finished.")
         return "\n".join([self.header(), "", self.table(markdown), ""] + notes)
 
     def to_dict(self) -> dict[str, Any]:
@@ -216,7 +221,8 @@ class BenchReport:
                 "output_shape": list(self.output_shape), "backend": self.backend,
                 "backend_version": self.backend_version, "frames": self.frames, "warmup": self.warmup,
                 "frame": self.frame, "threshold": self.threshold, "fps_definition": FPS_DEFINITION,
-                "host": self.host.to_json() if self.host else {}, "results": [r.to_dict() for r in self.results]}
+                "host": self.host.to_json() if self.host else {}, "results": [r.to_dict() for r in self.results],
+                **({"stopped_after_of": [len(self.results), self.stopped_after]} if self.stopped_after else {})}
 
 
 def comparison_table(reports: list[BenchReport], markdown: bool = False) -> str:
@@ -312,9 +318,11 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
         backend, decoding: as for KeypointModel.
         reporter: where a short line goes before each thread count (default: nowhere).
     Returns:
-        A BenchReport; a thread count whose interpreter fails is reported with its error as status.
+        A BenchReport; a thread count whose interpreter fails is reported with its error as status. A stop signal
+        (Ctrl-C) after at least one count finished ends it early with those counts (`BenchReport.stopped_after`).
     Raises:
         UserError: a missing/corrupt/non-FCN-Pose model, bad counts.
+        KeyboardInterrupt: a stop signal before the first count finished.
     """
     if frames < 1 or warmup < 0:
         raise UserError(f"--frames must be >= 1 and --warmup >= 0, got {frames} and {warmup}")
@@ -339,5 +347,10 @@ def benchmark(model_path: str | os.PathLike, threads: Sequence[int] | None = Non
             report.results.append(bench_threads(model, frame, frames, warmup))
         except (RuntimeError, ValueError) as exc:  # an interpreter failure at this count; keep the others
             report.results.append(ThreadResult(n, f"failed: {' '.join(str(exc).split())[:60]}"))
+        except KeyboardInterrupt:  # Ctrl-C: the counts that finished are the report (a long --frames run on a Pi)
+            if not report.results:
+                raise
+            report.stopped_after = len(counts)
+            break
         model = None  # free this interpreter before creating the next
     return report
