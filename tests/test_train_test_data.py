@@ -163,6 +163,26 @@ def test_a_test_set_that_shares_frames_or_differs_in_schema_is_refused_before_tr
                               tmp_path / "frames" / "images" / "arm3.json", "--min-visible", "1", *TRAIN)
     assert status == 2 and "keypoint schema 'arm3'" in err
     assert not out.exists() and not (tmp_path / "m.ckpt").exists()
+    # compress measures on --test-data under the same rule, before any work
+    status, _, err = cli_here("compress", "--rate", "0.7", "--model", "workcell", "--data", data, "--test-data", copy / "labels.json",
+                              "--out-dir", tmp_path / "c", "--quantize", "float16", "--threads", "1")
+    assert status == 2 and "6 of its 6 frames are also frames of --data" in err, err
+    assert not (tmp_path / "c").exists()
+
+
+def test_a_test_set_whose_images_lie_elsewhere_is_read_with_test_images(tmp_path, cli_here):
+    data = make_via_folder(tmp_path / "frames", n=6, size=(64, 64))
+    test = make_via_folder(tmp_path / "test", n=3, size=(64, 64), seed=7)
+    labels = tmp_path / "labels_apart" / "test.json"  # the VIA file in one folder, its images in another
+    labels.parent.mkdir()
+    (test / "labels.json").rename(labels)
+    out = tmp_path / "m.keras"
+    status, _, err = cli_here("train", "--data", data, "--out", out, "--test-data", labels, *TRAIN)
+    assert status == 2 and "pass --images DIR" in err  # the hint names the option of the data it is about
+    status, stdout, err = cli_here("train", "--data", data, "--out", out, "--test-data", labels, "--test-images",
+                                   test / "images", "--init", "none", *TRAIN)
+    assert status == 0, stdout + err
+    assert json.loads((tmp_path / "m_train.json").read_text())["test"]["num_frames"] == 3
 
 
 def test_a_start_that_is_no_keypoint_model_and_a_single_frame_are_refused_in_one_line(tmp_path, cli_here):

@@ -80,7 +80,7 @@ EXAMPLES = """\
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf import settings
-    from fcnpose_tf.data.args import add_data_arguments
+    from fcnpose_tf.data.args import add_data_arguments, add_test_data_arguments
 
     settings.RATE.add_to(parser)
     parser._option_string_actions["--rate"].required = False  # or --rates
@@ -94,9 +94,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", type=model_argument(KERAS_SUFFIXES), default="workcell", metavar="MODEL",
                         help=f"the .keras/.h5 model to compress, or a bundled one by name ({names_help(KERAS_SUFFIXES)})")
     add_data_arguments(parser, positional=False, required=False)
-    parser.add_argument("--test-data", type=Path, metavar="DATA",
-                        help="frames to measure on (default: --data's validation split; without --data, "
-                             "held-out synthetic frames)")
+    add_test_data_arguments(parser, "frames to measure on, never trained on (default: --data's validation split; "
+                            "without --data, held-out synthetic frames)")
     settings.RETRAIN_EPOCHS.add_to(parser)
     settings.COMPRESS_RETRAIN_PATIENCE.add_to(parser, "--patience")
     settings.KEEP_BEST.add_to(parser)
@@ -140,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.steps import SharedScoring
     from fcnpose_tf.compression.options import CompressOptions, check_outputs
     from fcnpose_tf.compression.summary import accuracy_note, report_table
-    from fcnpose_tf.data.args import default_data, load_from_args
+    from fcnpose_tf.data.args import default_data, load_from_args, load_test_data
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
@@ -185,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
         train_dataset = load_from_args(args)
         bundled_task = False  # the bundled baseline on its own synthetic frames: the README's command
         if args.test_data is not None:
-            eval_dataset = load_dataset(args.test_data)
+            eval_dataset = load_test_data(args, train_dataset)
             eval_indices = list(range(len(eval_dataset)))
             description = f"all {len(eval_dataset)} frames of {args.test_data}"
         elif Path(model_path) == baseline_model() and args.images is None \

@@ -43,7 +43,7 @@ EXAMPLES = """\
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from fcnpose_tf import settings
-    from fcnpose_tf.data.args import add_data_arguments
+    from fcnpose_tf.data.args import add_data_arguments, add_test_data_arguments
 
     add_data_arguments(parser, positional=False, folds_option=False)
     parser.add_argument("--out", type=Path, required=True, metavar="MODEL.keras",
@@ -60,10 +60,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     settings.ARCHITECTURE.variant(default=None, help=settings.ARCHITECTURE.help + " (default: "
                                   f"{settings.FINE_TUNE_ARCHITECTURE} from the bundled generalist, the --init model's "
                                   "own otherwise, fcn-pose from random weights)").add_to(parser)
-    parser.add_argument("--test-data", type=Path, metavar="T",
-                        help="a fixed test set (dataset folder or VIA file, images found as for --data; frames never "
-                             "trained on): the starting model and every trained one are measured on it (PCK@0.5/0.2/"
-                             "0.05, EPE, missing, per keypoint), in NAME_train.json and one line comparing them")
+    add_test_data_arguments(parser, "a fixed test set (dataset folder or VIA file; frames never trained on): the "
+                            "starting model and every trained one are measured on it (PCK@0.5/0.2/0.05, EPE, missing, "
+                            "per keypoint), in NAME_train.json and one line comparing them")
     settings.THREADS.add_to(parser)
     parser.add_argument("--resume", action="store_true", help="continue an interrupted run from its checkpoint")
     settings.FORCE.variant(help="replace existing model files / start over").add_to(parser)
@@ -91,7 +90,7 @@ def fold_model_path(out: Path, fold: int | None) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
-    from fcnpose_tf.data.args import load_from_args
+    from fcnpose_tf.data.args import load_from_args, load_test_data
     from fcnpose_tf.data.dataset import resolve_data
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.evaluate import format_timing
@@ -182,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
                                                augment=args.augment, augment_copies=args.augment_copies,
                                                split_seed=args.split_seed))
     dataset = load_from_args(args)  # --folds K or a --fold: K folds required of the data; else the hold-out split
-    test = _load_test_data(args, dataset) if args.test_data is not None else None
+    test = load_test_data(args, dataset) if args.test_data is not None else None
 
     set_tensorflow_threads(args.threads)
     test_start = None
@@ -253,38 +252,6 @@ def _finished_folds(args: argparse.Namespace, folds: list, via_path: Path) -> di
     if len(finished) == len(folds):
         raise UserError(f"all {len(folds)} folds of {args.out} are finished: nothing to resume")
     return finished
-
-
-def _training_images(dataset, image: Path) -> set[Path]:
-    """The image itself when it is one of the training frames: the same file, or another file with the same bytes
-    (a copy under another name or folder, or the same pixels in another file: `correction.merge.image_fingerprint`);
-    else an empty set."""
-    from fcnpose_tf.correction.merge import image_fingerprint
-
-    known = getattr(dataset, "_image_fingerprints", None)
-    if known is None:
-        known = dataset._image_fingerprints = {image_fingerprint(s.image_path) for s in dataset.samples} - {None}
-    return {image} if image_fingerprint(image) in known else set()
-
-
-def _load_test_data(args: argparse.Namespace, dataset):
-    """The --test-data set, loaded as --data is (same keypoint attribute, drops) without writing splits beside it;
-    refused when its schema differs from the data's or it shares frames with the training data."""
-    from fcnpose_tf.data.dataset import load_dataset
-    from fcnpose_tf.errors import UserError
-
-    test = load_dataset(args.test_data, attribute=args.keypoint_attr, min_visible=args.min_visible,
-                        skip_bad=args.skip_bad, write_splits=False)
-    if test.schema.to_dict() != dataset.schema.to_dict():
-        raise UserError(f"--test-data {test.via_path}: keypoint schema {test.schema.name!r} "
-                        f"({', '.join(test.schema.keypoints)}) differs from the data's {dataset.schema.name!r} "
-                        f"({', '.join(dataset.schema.keypoints)})")
-    shared = [s.filename for s in test.samples if s.image_path in _training_images(dataset, s.image_path)]
-    if shared:
-        raise UserError(f"--test-data {test.via_path}: {len(shared)} of its {len(test)} frames are also frames of "
-                        f"--data {dataset.via_path} ({', '.join(shared[:3])}{', ...' if len(shared) > 3 else ''}); "
-                        "a test set must hold frames never trained on (the same images, under any name)")
-    return test
 
 
 def _print_fold_summary(reports: list) -> None:

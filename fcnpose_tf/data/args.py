@@ -41,6 +41,39 @@ def add_data_arguments(parser: argparse.ArgumentParser, positional: bool = True,
     parser.add_argument("--resplit", action="store_true", help="replace the stored splits")
 
 
+def add_test_data_arguments(parser: argparse.ArgumentParser, what: str) -> None:
+    """`--test-data T` (`what` it is for) and `--test-images DIR`, read by `load_test_data`."""
+    parser.add_argument("--test-data", type=Path, metavar="T", help=f"{what}; images found as for --data")
+    parser.add_argument("--test-images", type=Path, metavar="DIR",
+                        help="folder of the images --test-data's VIA file names, as --images is for --data")
+
+
+def load_test_data(args: argparse.Namespace, dataset: Any) -> Any:
+    """The --test-data set (its images in --test-images, else where its VIA file says), loaded as --data is (the same
+    keypoint attribute, drops) without writing splits beside it.
+
+    Raises:
+        UserError: its schema differs from `dataset`'s, or it holds frames of `dataset` (the same pixels under any
+            name: `correction.merge.image_fingerprint`).
+    """
+    from fcnpose_tf.correction.merge import image_fingerprint
+    from fcnpose_tf.data.dataset import load_dataset
+
+    test = load_dataset(args.test_data, getattr(args, "test_images", None), attribute=args.keypoint_attr,
+                        min_visible=args.min_visible, skip_bad=args.skip_bad, write_splits=False)
+    if test.schema.to_dict() != dataset.schema.to_dict():
+        raise UserError(f"--test-data {test.via_path}: keypoint schema {test.schema.name!r} "
+                        f"({', '.join(test.schema.keypoints)}) differs from the data's {dataset.schema.name!r} "
+                        f"({', '.join(dataset.schema.keypoints)})")
+    known = {image_fingerprint(s.image_path) for s in dataset.samples} - {None}
+    shared = [s.filename for s in test.samples if image_fingerprint(s.image_path) in known]
+    if shared:
+        raise UserError(f"--test-data {test.via_path}: {len(shared)} of its {len(test)} frames are also frames of "
+                        f"--data {dataset.via_path} ({', '.join(shared[:3])}{', ...' if len(shared) > 3 else ''}); "
+                        "a test set must hold frames never trained on (the same images, under any name)")
+    return test
+
+
 def load_from_args(args: argparse.Namespace) -> Any:
     """load_dataset with the options of add_data_arguments.
 
