@@ -148,6 +148,32 @@ def spelling_hint(names: Sequence[str], reference: Sequence[str] = UR5.keypoints
             "keypoint options and points")
 
 
+def keypoint_difference(names: Sequence[str], reference: Sequence[str], names_owner: str = "the model",
+                        reference_owner: str = "the data") -> str | None:
+    """How two lists of keypoint names differ, in words, or None when they are the same list. When they differ only
+    in spelling, `spelling_hint`'s sentence says to rename `reference`'s (a VIA file's) to `names`'.
+
+    Args:
+        names: keypoint names in their order (a model's maps, a file's dropdown).
+        reference: the names they are compared with.
+        names_owner, reference_owner: how the sentence names their owners ("arm.keras", "the data").
+    Returns:
+        "the same keypoints in another order (...)", or what each side lacks; None when equal.
+    """
+    names, reference = tuple(names), tuple(reference)
+    if names == reference:
+        return None
+    if set(names) == set(reference):
+        return (f"the same keypoints in another order: {names_owner} ({', '.join(names)}) and {reference_owner} "
+                f"({', '.join(reference)})")
+    extra = [n for n in names if n not in reference]
+    missing = [n for n in reference if n not in names]
+    parts = ([f"{reference_owner} lacks {', '.join(extra)}"] if extra else []) + (
+        [f"{names_owner} lacks {', '.join(missing)}"] if missing else [])
+    hint = spelling_hint(reference, names, f"{names_owner}'s")
+    return "; ".join(parts) + (f"; {hint}" if hint else "")
+
+
 @dataclass(frozen=True)
 class LimbPrior:
     """How long a serial chain's limbs are in labelled frames: per skeleton edge (keypoint k to k + 1) the mean and the

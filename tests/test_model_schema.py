@@ -14,8 +14,9 @@ from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema, named_schema, schema_for_maps
 
 MINE = KeypointSchema("arm4", ("j0", "j1", "j2", "tip"), ((0, 1), (1, 2), (2, 3)))
-TRAIN = ("--epochs", "1", "--input-size", "64", "--init", "none", "--augment", "paper", "--augment-copies", "0",
-         "--batch-size", "4", "--quiet", "--threads", "1")
+TRAIN_FROM = ("--epochs", "1", "--input-size", "64", "--augment", "paper", "--augment-copies", "0", "--batch-size",
+              "4", "--quiet", "--threads", "1")
+TRAIN = (*TRAIN_FROM, "--init", "none")
 
 
 def _own_schema_folder(folder, schema=MINE, n=6, size=64):
@@ -123,3 +124,86 @@ def test_own_keypoints_go_from_train_through_export_predict_and_run_to_merge(tmp
         merged = tmp_path / f"merged_{source.suffix[1:]}" / "m.json"
         status, out, err = cli_here("data", "merge", data / "labels.json", project, "--out", merged, "--prefer", "last")
         assert status == 0, out + err
+
+
+TREE = KeypointSchema("gripper", ("base", "wrist", "finger L", "finger R"), ((0, 1), (1, 2), (1, 3)))
+
+
+def _reordered(folder, schema, order, name="labels.json"):
+    """The same frames and points, the dropdown (and the stored schema) listing the keypoints in `order`."""
+    from fcnpose_tf.data.via import read_via, write_via_project
+
+    frames = read_via(folder / "labels.json").frames
+    other = KeypointSchema(schema.name, tuple(schema.keypoints[i] for i in order),
+                           tuple((order.index(a), order.index(b)) for a, b in schema.edges))
+    moved = [type(f)(f.filename, f.width, f.height, f.keypoints[list(order)]) for f in frames]
+    write_via_project(folder / name, moved, other)
+    return other
+
+
+def test_a_model_is_read_by_its_keypoint_names_and_refused_for_other_ones(tmp_path, cli_here):
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.training.evaluate import KerasKeypointModel, evaluate_predictor
+    from fcnpose_tf.training.model import build_fcn_pose, save_for_inference, with_schema
+    from tests.weights import randomize
+
+    data = _own_schema_folder(tmp_path / "d", TREE)
+    model = tmp_path / "m.keras"
+    save_for_inference(with_schema(randomize(build_fcn_pose(input_size=64, num_maps=5), seed=1), TREE), model)
+    swapped = tmp_path / "swapped"
+    swapped.mkdir()
+    (swapped / "images").symlink_to(data / "images")
+    _reordered(data, TREE, (0, 1, 3, 2), name="swapped.json")
+    (data / "swapped.json").rename(swapped / "labels.json")
+    predictor = KerasKeypointModel(model, num_threads=1)
+    original, other = load_dataset(data, write_splits=False), load_dataset(swapped, write_splits=False)
+    assert other.schema.keypoints == ("base", "wrist", "finger R", "finger L")
+    a = evaluate_predictor(predictor, original, range(len(original)), original.schema, min_timed_frames=0, warmup=0)
+    b = evaluate_predictor(predictor, other, range(len(other)), other.schema, min_timed_frames=0, warmup=0)
+    assert np.array_equal(a.predictions[:, [0, 1, 3, 2]], b.predictions, equal_nan=True)  # finger R read as finger R
+    mine = _own_schema_folder(tmp_path / "mine", MINE)
+    status, _, err = cli_here("evaluate", model, "--data", mine, "--threads", "1")
+    assert status == 2 and "m.keras: trained for base, wrist, finger L, finger R, but the data's schema" in err
+    assert "the data lacks base, wrist, finger L, finger R; m.keras lacks j0, j1, j2, tip" in err
+    lone = tmp_path / "lone"  # no training record beside it: the names stored in the file decide
+    lone.mkdir()
+    (lone / "m.keras").write_bytes(model.read_bytes())
+    status, _, err = cli_here("train", "--data", mine, "--init", lone / "m.keras", "--out", tmp_path / "t.keras",
+                              *TRAIN_FROM)
+    assert status == 2 and "m.keras: trained for base, wrist, finger L, finger R" in err
+    status, _, err = cli_here("train", "--data", swapped, "--init", lone / "m.keras", "--out", tmp_path / "t.keras",
+                              *TRAIN_FROM)
+    assert status == 2 and "the same keypoints in another order" in err
+    status, _, err = cli_here("compress", "--rate", "0.7", "--model", lone / "m.keras", "--data", mine, "--out-dir",
+                              tmp_path / "c", "--quantize", "float16", "--threads", "1")
+    assert status == 2 and "compress it with frames of its own keypoints" in err and not (tmp_path / "c").exists()
+
+
+def test_the_schema_survives_a_save_in_via_and_projects_of_the_same_keypoints_merge(tmp_path, cli_here):
+    from fcnpose_tf.data.via import SCHEMA_KEY, read_via
+
+    data = _own_schema_folder(tmp_path / "d", TREE, n=4)
+    project = json.loads((data / "labels.json").read_text())
+    via_keys = ("_via_settings", "_via_img_metadata", "_via_attributes", "_via_data_format_version",
+                "_via_image_id_list")  # what VIA 2's Project > Save writes (via.js, project_save_confirmed)
+    saved = tmp_path / "saved"
+    saved.mkdir()
+    (saved / "images").symlink_to(data / "images")
+    (saved / "labels.json").write_text(json.dumps({k: project[k] for k in via_keys}))
+    assert SCHEMA_KEY not in json.loads((saved / "labels.json").read_text())
+    assert read_via(saved / "labels.json").schema == TREE  # name, order and skeleton, from the description
+    status, out, err = cli_here("data", "merge", data / "labels.json", saved / "labels.json", "--out",
+                                tmp_path / "m" / "m.json")
+    assert status == 0, out + err
+    reordered = tmp_path / "reordered"  # another project listing the same keypoints in another order
+    reordered.mkdir()
+    (reordered / "images").symlink_to(data / "images")
+    _reordered(data, TREE, (3, 2, 1, 0), name="other.json")
+    (data / "other.json").rename(reordered / "labels.json")
+    status, out, err = cli_here("data", "merge", data / "labels.json", reordered / "labels.json", "--out",
+                                tmp_path / "m2" / "m.json")
+    assert status == 0, out + err  # identical annotations, read by name
+    assert read_via(tmp_path / "m2" / "m.json").schema == TREE
+    status, _, err = cli_here("data", "merge", data / "labels.json", _own_schema_folder(tmp_path / "mine", MINE) /
+                              "labels.json", "--out", tmp_path / "m3" / "m.json")
+    assert status == 2 and "only projects of the same keypoints can be merged" in err and "lacks" in err

@@ -76,10 +76,12 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
         refused format writes no file and does not end the run; `files` names the files written.
     Raises:
         UserError: an existing output without force, an unwritable folder, or a model whose
-            maps do not match the dataset.
+            maps or keypoint names do not match the dataset.
         ValueError: `metadata` names a section of the report, or options not checked (`CompressOptions.checked`).
     """
-    from fcnpose_tf.training.model import architecture_of, at_input_height, load_model, view_of, with_schema
+    from fcnpose_tf.keypoints import keypoint_difference
+    from fcnpose_tf.training.model import (architecture_of, at_input_height, given_schema, load_model, view_of,
+                                           with_schema)
     from fcnpose_tf.compression.frames import check_enough_frames
     from fcnpose_tf.compression.plan import check_chain, plan_widths
 
@@ -97,6 +99,12 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
+    named = given_schema(base)
+    if named is not None and (difference := keypoint_difference(named.keypoints, train_dataset.schema.keypoints,
+                                                                base_path.name)):
+        raise UserError(f"{base_path}: trained for {', '.join(named.keypoints)}, but the data's schema "
+                        f"{train_dataset.schema.name!r} has {', '.join(train_dataset.schema.keypoints)} ({difference}); "
+                        "compress it with frames of its own keypoints (--data)")
     with_schema(base, train_dataset.schema)  # what the files' maps stand for: the data they are retrained on
     architecture = architecture_of(base)
     saved_view = view_of(base)

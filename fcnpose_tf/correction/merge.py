@@ -15,6 +15,7 @@ drew is lost; frames with few keypoints are kept too (training drops them by its
 from __future__ import annotations
 
 import copy
+import json
 import filecmp
 import hashlib
 import os
@@ -29,7 +30,7 @@ from fcnpose_tf.data import via as _via
 from fcnpose_tf.data.dataset import resolve_data
 from fcnpose_tf.data.splits import stored_roles
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.keypoints import KeypointSchema
+from fcnpose_tf.keypoints import KeypointSchema, keypoint_difference
 
 PREFER_CHOICES = ("error", "last")
 
@@ -95,6 +96,14 @@ def _relative(folder: Path, base: Path) -> str:
         return os.fspath(folder)
 
 
+def _regions(meta: dict) -> list[str]:
+    """A frame's regions in an order of their own: the same points listed in another order are the same
+    annotation (a project whose dropdown lists the keypoints in another order writes them so)."""
+    regions = meta.get("regions")
+    regions = list(regions.values()) if isinstance(regions, dict) else regions if isinstance(regions, list) else []
+    return sorted(json.dumps(region, sort_keys=True) for region in regions)
+
+
 def _schema_text(schema: KeypointSchema) -> str:
     return f"{schema.name!r} ({', '.join(schema.keypoints)})"
 
@@ -135,9 +144,14 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
         annotations = _via.read_via(via_path, attribute=attribute, min_visible=0, skip_bad=skip_bad)
         if schema is None:
             schema = annotations.schema
-        elif annotations.schema.to_dict() != schema.to_dict():
+        elif set(annotations.schema.keypoints) != set(schema.keypoints):
+            difference = keypoint_difference(schema.keypoints, annotations.schema.keypoints, paths[0].name, "it")
             raise UserError(f"{via_path}: keypoint schema {_schema_text(annotations.schema)} differs from "
-                            f"{paths[0]}'s {_schema_text(schema)}; only projects of one schema can be merged")
+                            f"{paths[0]}'s {_schema_text(schema)} ({difference}); only projects of the same "
+                            "keypoints can be merged")
+        elif annotations.schema != schema:  # the same keypoints (another order, name or skeleton): the first's
+            annotations = _via.read_via(via_path, attribute=attribute, schema=schema, min_visible=0,
+                                        skip_bad=skip_bad)
         result.skipped += [f"{via_path}: {message}" for message in annotations.problems]
         data = _via._load_json(via_path)
         metadata, _ = _via._split_file(via_path, data)
@@ -160,7 +174,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
             if earlier is None:
                 named.append(entry)
                 continue
-            if earlier.meta.get("regions") == entry.meta.get("regions") and \
+            if _regions(earlier.meta) == _regions(entry.meta) and \
                     earlier.meta.get("file_attributes") == entry.meta.get("file_attributes"):
                 result.identical.append(frame.filename)
                 continue

@@ -52,19 +52,29 @@ def load_test_data(args: argparse.Namespace, dataset: Any) -> Any:
     """The --test-data set (its images in --test-images, else where its VIA file says), loaded as --data is (the same
     keypoint attribute, drops) without writing splits beside it.
 
+    Its keypoints are read by name in the data's order (a VIA file whose dropdown lists them in another order, or
+    whose schema has another name or skeleton, holds the same keypoints).
+
     Raises:
-        UserError: its schema differs from `dataset`'s, or it holds frames of `dataset` (the same pixels under any
+        UserError: it names other keypoints than `dataset`, or it holds frames of `dataset` (the same pixels under any
             name: `correction.merge.image_fingerprint`).
     """
     from fcnpose_tf.correction.merge import image_fingerprint
     from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.keypoints import keypoint_difference
 
-    test = load_dataset(args.test_data, getattr(args, "test_images", None), attribute=args.keypoint_attr,
-                        min_visible=args.min_visible, skip_bad=args.skip_bad, write_splits=False)
-    if test.schema.to_dict() != dataset.schema.to_dict():
+    def load(schema=None):
+        return load_dataset(args.test_data, getattr(args, "test_images", None), attribute=args.keypoint_attr,
+                            schema=schema, min_visible=args.min_visible, skip_bad=args.skip_bad, write_splits=False)
+
+    test = load()
+    if set(test.schema.keypoints) != set(dataset.schema.keypoints):
         raise UserError(f"--test-data {test.via_path}: keypoint schema {test.schema.name!r} "
                         f"({', '.join(test.schema.keypoints)}) differs from the data's {dataset.schema.name!r} "
-                        f"({', '.join(dataset.schema.keypoints)})")
+                        f"({', '.join(dataset.schema.keypoints)}): "
+                        f"{keypoint_difference(dataset.schema.keypoints, test.schema.keypoints, 'the data', 'it')}")
+    if test.schema != dataset.schema:
+        test = load(dataset.schema)
     known = {image_fingerprint(s.image_path) for s in dataset.samples} - {None}
     shared = [s.filename for s in test.samples if image_fingerprint(s.image_path) in known]
     if shared:

@@ -5,8 +5,9 @@ in frame pixels, pixel i's centre at coordinate i). A region attribute (default
 `keypoint`) names each point after a schema keypoint; in a frame where no point
 carries a name, the points are taken in schema order. Missing keypoints are NaN.
 
-The schema a file was written with is stored under the top-level key
-`fcnpose_schema`, which VIA ignores, so a project round-trips through VIA.
+The schema a file was written with (names, order, skeleton) is stored under the top-level key
+`fcnpose_schema`, and again at the end of the keypoint attribute's description: VIA's Project > Save
+keeps only its own keys, so after a save in VIA the description holds it (`DESCRIBED_SCHEMA`).
 """
 
 from __future__ import annotations
@@ -28,6 +29,9 @@ from fcnpose_tf.keypoints import UR5, KeypointSchema
 
 VIA_DATA_FORMAT_VERSION = "2.0.10"
 SCHEMA_KEY = "fcnpose_schema"
+DESCRIBED_SCHEMA = "robot keypoint; fcnpose-tf schema: "
+"""What precedes the schema's JSON in the keypoint attribute's description (VIA keeps `_via_attributes` when it saves
+a project, not `SCHEMA_KEY`)."""
 
 
 @dataclass
@@ -138,8 +142,8 @@ def via_project_dict(frames: Sequence[ViaFrame], schema: KeypointSchema = UR5, a
         },
         "_via_img_metadata": metadata,
         "_via_attributes": {
-            "region": {attribute: {"type": "dropdown", "description": "robot keypoint (fcnpose-tf schema "
-                                                                      f"{schema.name!r})",
+            "region": {attribute: {"type": "dropdown",
+                                   "description": DESCRIBED_SCHEMA + json.dumps(schema.to_dict(), sort_keys=True),
                                    "options": {name: "" for name in schema.keypoints}, "default_options": {}}},
             "file": {},
         },
@@ -308,11 +312,31 @@ def _region_attributes(metadata: dict):
 
 
 def _file_schema(data: object, attribute: str) -> KeypointSchema:
-    """The schema a VIA file holds: the one this package stored in it, else the attribute's dropdown options, else
-    UR5's."""
+    """The schema a VIA file holds: the one this package stored in it (`SCHEMA_KEY`; else, after VIA saved the
+    project without that key, the one in the attribute's description while its dropdown lists the same keypoints),
+    else the attribute's dropdown options, else UR5's."""
     stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
-    return (KeypointSchema.from_dict(stored) if isinstance(stored, dict)
-            else _schema_from_attributes(data, attribute) or UR5)
+    if isinstance(stored, dict):
+        return KeypointSchema.from_dict(stored)
+    options = _schema_from_attributes(data, attribute)
+    described = _described_schema(data, attribute)
+    if described is not None and options is not None and set(described.keypoints) == set(options.keypoints):
+        return described
+    return options or UR5
+
+
+def _described_schema(data: object, attribute: str) -> KeypointSchema | None:
+    """The schema `via_project_dict` wrote into the region attribute's description (`DESCRIBED_SCHEMA`), or None."""
+    try:
+        description = data["_via_attributes"]["region"][attribute]["description"]
+    except (KeyError, TypeError):
+        return None
+    if not isinstance(description, str) or DESCRIBED_SCHEMA not in description:
+        return None
+    try:
+        return KeypointSchema.from_dict(json.loads(description.split(DESCRIBED_SCHEMA, 1)[1]))
+    except (ValueError, RecursionError, UserError):  # edited by hand: the dropdown decides
+        return None
 
 
 def _attribute_naming_keypoints(data: object, metadata: dict, present: set[str],

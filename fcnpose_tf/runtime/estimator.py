@@ -23,7 +23,7 @@ from typing import TypedDict
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.keypoints import KeypointSchema
+from fcnpose_tf.keypoints import KeypointSchema, schema_for_maps
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.postprocess import dequantize
 from fcnpose_tf.preprocess import Box, FrameView, preprocess_frame, preprocess_frame_bytes
@@ -154,7 +154,10 @@ class KeypointPredictor(abc.ABC):
     num_threads: int | None
     """Threads of the forward pass (None: the library's default)."""
     schema: KeypointSchema
-    """Keypoint names and skeleton of the output maps (`schema_for_maps` unless given)."""
+    """Keypoint names and skeleton of the output maps: the model's own, else `keypoints.schema_for_maps`."""
+    names_keypoints: bool = False
+    """Whether `schema` is the model's own (given, or stored in its file or its training record), not the default for
+    its number of maps: `training.evaluate.evaluate_predictor` then reads the data's keypoints by these names."""
     pipelinable: bool = False
     """True when the backend implements the staged-frame methods (`new_input`, `preprocess_into`,
     `new_output`, `forward`, `decode_output`) that `runtime.pipeline` runs on two threads."""
@@ -302,7 +305,9 @@ class KeypointModel(KeypointPredictor):
         self.backend: Backend
         self.interpreter, self.backend = load_interpreter(self.path, self.num_threads, backend)
         self.io: ModelIO = inspect_io(self.interpreter, self.path)
-        self.schema = schema or read_schema(self.path, self.io)
+        named = schema or read_schema(self.path, self.io)
+        self.schema = named or schema_for_maps(self.io.num_maps)
+        self.names_keypoints = named is not None
         if self.schema.num_maps != self.io.num_maps:
             raise UserError(f"{self.path}: {self.io.num_maps} output maps, but schema {self.schema.name!r} "
                             f"needs {self.schema.num_maps} ({self.schema.num_keypoints} keypoints + skeleton)")

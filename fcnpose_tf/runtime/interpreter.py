@@ -22,7 +22,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import entry_problem, native_name
 from fcnpose_tf.metrics import conv_macs
-from fcnpose_tf.keypoints import KeypointSchema, named_schema, schema_for_maps
+from fcnpose_tf.keypoints import KeypointSchema, named_schema
 from fcnpose_tf.nativelog import native_stderr_captured
 from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.records import distribution_version
@@ -276,15 +276,15 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
     return ModelIO(spec_in, spec_out)
 
 
-def read_schema(path: str | os.PathLike, io: ModelIO) -> KeypointSchema:
-    """What a .tflite model's maps stand for.
+def read_schema(path: str | os.PathLike, io: ModelIO) -> KeypointSchema | None:
+    """What a .tflite model names its maps.
 
     Args:
         path: the .tflite file.
         io: its input and output (`inspect_io`).
     Returns:
-        The schema in its metadata (`tflite_metadata.SCHEMA_METADATA`), else its training record's, else
-        `keypoints.schema_for_maps` (`keypoints.named_schema`).
+        The schema in its metadata (`tflite_metadata.SCHEMA_METADATA`), else its training record's
+        (`keypoints.named_schema`); None when neither names one (`keypoints.schema_for_maps` is the default).
     Raises:
         UserError: unreadable metadata, or a stored schema that does not fit the file's maps.
     """
@@ -292,7 +292,7 @@ def read_schema(path: str | os.PathLike, io: ModelIO) -> KeypointSchema:
         stored = read_metadata(path).get(SCHEMA_METADATA)
     except (OSError, ValueError) as exc:
         raise UserError(f"{path}: its metadata cannot be read ({exc})") from exc
-    return named_schema(io.num_maps, stored, path) or schema_for_maps(io.num_maps)
+    return named_schema(io.num_maps, stored, path)
 
 
 def read_view(path: str | os.PathLike, io: ModelIO) -> FrameView:

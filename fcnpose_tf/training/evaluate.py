@@ -17,7 +17,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.keypoints import KeypointSchema
+from fcnpose_tf.keypoints import KeypointSchema, keypoint_difference
 from fcnpose_tf.measurements import Evaluation, SequenceReport, StageTiming, Timing, TrackScores
 from fcnpose_tf.metrics import keypoint_report
 from fcnpose_tf.postprocess import Decoding
@@ -88,7 +88,7 @@ class KerasKeypointModel(KeypointPredictor):
             from fcnpose_tf.training.model import load_model
 
             path, model = model, load_model(model)
-        from fcnpose_tf.training.model import check_fixed_input, schema_of, view_of
+        from fcnpose_tf.training.model import check_fixed_input, given_schema, schema_of, view_of
 
         check_fixed_input(model, path)
         shape = model.input_shape
@@ -103,6 +103,7 @@ class KerasKeypointModel(KeypointPredictor):
         self.view = view_of(model)
         self.num_maps = int(model.output_shape[-1])
         self.schema = schema_of(model)
+        self.names_keypoints = given_schema(model) is not None
         self._x = np.empty((1, *self.view.shape, 3), np.float32)
         self._maps: np.ndarray | None = None
 
@@ -160,6 +161,24 @@ def open_model(path: str | os.PathLike, threads: int | None = None, decoding: De
     raise UserError(f"{path}: unknown model format; expected .keras, .h5 or .tflite")
 
 
+def _by_name(predictor: KeypointPredictor, schema: KeypointSchema) -> list[int] | None:
+    """The model's map for each of the data's keypoints when the model names the same keypoints in another order;
+    None when it names them in the data's order or names none (`KeypointPredictor.names_keypoints`).
+
+    Raises:
+        UserError: the model names other keypoints than the data's.
+    """
+    if not getattr(predictor, "names_keypoints", False) or predictor.schema.keypoints == schema.keypoints:
+        return None
+    own = predictor.schema.keypoints
+    if set(own) != set(schema.keypoints):
+        name = predictor.path.name if getattr(predictor, "path", None) else "the model"
+        raise UserError(f"{name}: trained for {', '.join(own)}, but the data's schema {schema.name!r} has "
+                        f"{', '.join(schema.keypoints)} ({keypoint_difference(own, schema.keypoints, name)}); "
+                        "evaluate it on frames of its own keypoints")
+    return [own.index(name) for name in schema.keypoints]
+
+
 def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequence[int], schema: KeypointSchema,
                        min_timed_frames: int = MIN_TIMED_FRAMES, warmup: int = WARMUP_FRAMES,
                        progress: bool = False) -> Evaluation:
@@ -181,7 +200,8 @@ def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequ
     Returns:
         Metrics, timing, and the predicted and ground-truth keypoints.
     Raises:
-        UserError: no frames, or a model whose maps do not fit the schema.
+        UserError: no frames, or a model whose maps do not fit the schema: another number, or other keypoint names
+            (a model that names the same keypoints in another order is read by name).
     """
     indices = [int(i) for i in indices]
     if not indices:
@@ -189,6 +209,7 @@ def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequ
     if getattr(predictor, "num_maps", schema.num_maps) != schema.num_maps:
         raise UserError(f"the model has {predictor.num_maps} output maps but the dataset's schema "
                         f"{schema.name!r} needs {schema.num_maps} ({schema.num_keypoints} keypoints + skeleton)")
+    order = _by_name(predictor, schema)
     frames = {i: dataset.load_image(i) for i in indices}
     for _ in range(warmup):
         predictor.predict(frames[indices[0]])
@@ -205,7 +226,7 @@ def evaluate_predictor(predictor: KeypointPredictor, dataset: Any, indices: Sequ
         result = predictor.predict(frames[indices[j]])
         log.add(result.times)
         if step < len(indices):
-            pred[j] = result.keypoints
+            pred[j] = result.keypoints if order is None else result.keypoints[order]
     summary = log.summary()
 
     def stage(name: str) -> StageTiming:

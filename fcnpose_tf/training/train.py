@@ -937,12 +937,11 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
     Returns:
         The model at that input size, its maps named by `schema`.
     Raises:
-        UserError: `init` is no keypoint-map model, predicts other maps than `schema` needs, or its training record
-            names other keypoints.
+        UserError: `init` is no keypoint-map model, predicts other maps than `schema` needs, or names other keypoints
+            (or the same in another order: its file's schema, else its training record's).
     """
-    from fcnpose_tf.keypoints import spelling_hint
-    from fcnpose_tf.records import training_record
-    from fcnpose_tf.training.model import at_input_size, conv_widths, load_model
+    from fcnpose_tf.keypoints import keypoint_difference
+    from fcnpose_tf.training.model import at_input_size, conv_widths, given_schema, load_model
 
     source = load_model(init)
     widths = conv_widths(source)
@@ -950,13 +949,14 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
     if not widths or len(out_shape) != 4 or out_shape[1:3] != in_shape[1:3]:
         raise UserError(f"{init}: not a keypoint-map model (input {in_shape[1:]}, output {out_shape[1:]}); --init "
                         "takes an FCN-Pose model file that train or compress wrote, whose maps have its input's size")
-    trained_for = record.keypoints if (record := training_record(init)) is not None else None
-    if widths[-1] != schema.num_maps or (trained_for is not None and list(trained_for) != list(schema.keypoints)):
-        names = ", ".join(trained_for) if trained_for else f"{widths[-1] - 1} keypoints"
-        hint = spelling_hint(schema.keypoints, trained_for, f"{Path(init).name}'s") if trained_for else None
+    named = given_schema(source)
+    difference = (keypoint_difference(named.keypoints, schema.keypoints, Path(init).name) if named is not None
+                  else None)
+    if widths[-1] != schema.num_maps or difference:
+        names = ", ".join(named.keypoints) if named is not None else f"{widths[-1] - 1} keypoints"
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
-                        f"{', '.join(schema.keypoints)}; " + (f"{hint}" if hint else
-                        "pass --init none to train from scratch, or --init MODEL with a model of this schema"))
+                        f"{', '.join(schema.keypoints)}" + (f" ({difference})" if difference else "") +
+                        "; pass --init none to train from scratch, or --init MODEL with a model of this schema")
     return with_schema(source if input_size is None else at_input_size(source, input_size), schema)
 
 
