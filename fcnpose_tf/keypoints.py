@@ -106,7 +106,7 @@ def named_schema(num_maps: int, stored: bytes | str | None, model_path: str | os
     Raises:
         UserError: a stored entry that is no schema, or one whose keypoints do not fit the maps.
     """
-    from fcnpose_tf.records import training_record
+    from fcnpose_tf.records import recorded_schema
 
     if stored is not None:
         try:
@@ -118,8 +118,7 @@ def named_schema(num_maps: int, stored: bytes | str | None, model_path: str | os
             raise UserError(f"{model_path}: its stored keypoint schema {schema.name!r} has {schema.num_keypoints} "
                             f"keypoints, but the model has {num_maps} output maps ({num_maps - 1} keypoints + skeleton)")
         return schema
-    record = training_record(model_path)
-    recorded = record.raw.get("schema") if record is not None else None
+    recorded = recorded_schema(model_path)
     if isinstance(recorded, dict):
         try:
             schema = KeypointSchema.from_dict(recorded)

@@ -144,21 +144,47 @@ def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
     A .tflite exported since 2026-12-05 holds its own (`TrainingRecord.deployed`: the frames, no paths), which it
     reads first, wherever the file lies.
     """
-    from fcnpose_tf.settings import QUANTIZE_FILE_TAGS
-
     if Path(model_path).suffix == ".tflite" and (own := _record_in_metadata(model_path)) is not None:
         return own
-    stem = Path(model_path).with_suffix("")
-    base, _, tag = stem.name.rpartition("_")
-    derived = base and (tag in QUANTIZE_FILE_TAGS.values() or re.fullmatch(r"p\d{1,2}", tag))
-    candidates = [Path(f"{stem}_train.json")] + ([stem.with_name(f"{base}_train.json")] if derived else [])
-    for candidate in candidates:
+    for candidate in _record_files(model_path):
         if candidate.is_file():
             try:
                 record = json.loads(candidate.read_text())
             except (OSError, ValueError, RecursionError):  # unreadable, not JSON, nested beyond Python's parser
                 return None
             return TrainingRecord.from_json(record) if isinstance(record, dict) else None
+    return None
+
+
+def _record_files(model_path: str | os.PathLike) -> list[Path]:
+    """Where `training_record` looks: NAME_train.json, then for a derived file (a format's tag or a rate's pNN after
+    the last underscore, repeatedly: NAME_p70_fp16 -> NAME_p70 -> NAME) its origins' records."""
+    from fcnpose_tf.settings import QUANTIZE_FILE_TAGS
+
+    stem = Path(model_path).with_suffix("")
+    files = [Path(f"{stem}_train.json")]
+    while True:
+        base, _, tag = stem.name.rpartition("_")
+        if not (base and (tag in QUANTIZE_FILE_TAGS.values() or re.fullmatch(r"p\d{1,2}", tag))):
+            return files
+        stem = stem.with_name(base)
+        files.append(Path(f"{stem}_train.json"))
+
+
+def recorded_schema(model_path: str | os.PathLike) -> dict[str, Any] | None:
+    """The keypoint schema (`KeypointSchema.to_dict`) the nearest training record of a model file holds (a .tflite's
+    own, NAME_train.json, then its origins': a compressed model's record written before 2026-12-05 holds none, its
+    base model's does), or None."""
+    own = _record_in_metadata(model_path) if Path(model_path).suffix == ".tflite" else None
+    if own is not None and isinstance(own.raw.get("schema"), dict):
+        return own.raw["schema"]
+    for candidate in _record_files(model_path):
+        try:
+            record = json.loads(candidate.read_text()) if candidate.is_file() else None
+        except (OSError, ValueError, RecursionError):
+            continue
+        if isinstance(record, dict) and isinstance(record.get("schema"), dict):
+            return record["schema"]
     return None
 
 

@@ -44,6 +44,9 @@ def test_named_schema_reads_the_stored_entry_then_the_record(tmp_path):
     (tmp_path / "m_train.json").write_text(json.dumps({"schema": MINE.to_dict()}))
     assert named_schema(5, None, model) == MINE
     assert named_schema(5, None, tmp_path / "m_fp16.tflite") == MINE  # an export of it finds the record too
+    (tmp_path / "m_p70_train.json").write_text(json.dumps({"pruned_from": "m.keras"}))  # compress's, before today
+    for derived in ("m_p70.keras", "m_p70_fp16.tflite", "m_p70_int8.tflite"):
+        assert named_schema(5, None, tmp_path / derived) == MINE, derived  # the base's record names them
     assert named_schema(9, None, model) is None  # a record of another map count says nothing
     assert named_schema(9, json.dumps(UR5.to_dict()), model) == UR5  # the stored entry wins
     with pytest.raises(UserError, match="stored keypoint schema 'arm4' has 4 keypoints, but the model has 9 output"):
@@ -56,6 +59,7 @@ def test_named_schema_reads_the_stored_entry_then_the_record(tmp_path):
 
 def test_the_schema_survives_saving_resizing_and_surgery(tmp_path):
     from fcnpose_tf.compression.magnitude import magnitude_prune
+    from fcnpose_tf.compression.graph_prune import prune_graph
     from fcnpose_tf.compression.prune import prune_model
     from fcnpose_tf.preprocess import FrameView
     from fcnpose_tf.training.model import (SCHEMA_ENTRY, at_input_size, build_fcn_pose, given_schema, given_view,
@@ -74,11 +78,11 @@ def test_the_schema_survives_saving_resizing_and_surgery(tmp_path):
         assert schema_of(load_model(path)) == MINE
     with zipfile.ZipFile(tmp_path / "m.keras") as archive:
         assert json.loads(archive.read(SCHEMA_ENTRY)) == MINE.to_dict()
-    pruned = with_facts_of(prune_model(model, 0.5), model)
-    assert schema_of(pruned) == MINE
     view = FrameView(64, 64, crop=(8, 8, 48, 48), frame_size=(64, 64))
-    sparse = magnitude_prune(with_view(model, view), 0.5)  # compress --method magnitude: the crop was lost too
-    assert schema_of(sparse) == MINE and given_view(sparse) == view
+    with_view(model, view)
+    for pruned in (prune_model(model, 0.5), prune_graph(model, 0.5), magnitude_prune(model, 0.5),
+                   with_facts_of(build_fcn_pose(input_size=64, num_maps=MINE.num_maps), model)):
+        assert schema_of(pruned) == MINE and given_view(pruned) == view  # the library's surgery lost both before
     plain = build_fcn_pose(input_size=64, num_maps=MINE.num_maps)
     save_for_inference(plain, tmp_path / "plain.keras")  # no schema given: none stored, no record: the default
     assert given_schema(load_model(tmp_path / "plain.keras")) is None

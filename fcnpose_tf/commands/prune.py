@@ -111,9 +111,6 @@ def run(args: argparse.Namespace) -> int:
     plan = plan_graph(model, args.rate, importance=args.importance, aggregate=args.aggregate,
                       min_filters=args.min_filters, round_to=args.round_to, keep=args.keep)
     pruned = rebuild(plan)
-    from fcnpose_tf.training.model import with_facts_of
-
-    with_facts_of(pruned, model)  # a tf_keras FCN-Pose's crop and keypoint names go with it
     seconds = time.perf_counter() - start
     print(plan.describe())  # the groups, then parameters and MACs before -> after (share left)
     print(f"{plan.graph.keras.__name__} model {model.name}: {sum(not p.group.frozen for p in plan.groups)} of "

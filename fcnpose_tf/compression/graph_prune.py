@@ -19,6 +19,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence, Union
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.compression.keras_file import TF_KERAS
 from fcnpose_tf.compression.channel_rules import rule_for
 from fcnpose_tf.compression.depgraph import (ChannelGroup, DependencyGraph, TracedOp, dependency_graph, short_list,
                                              tensor_key)
@@ -353,7 +354,8 @@ def rebuild(plan: GraphPlan) -> Any:
     Args:
         plan: the channels each group keeps (`plan_graph`, `plan_kept`).
     Returns:
-        The pruned model, of the Keras that built the original.
+        The pruned model, of the Keras that built the original; a tf_keras model keeps the view and keypoint schema
+        the original was given (`training.model.with_facts_of`).
     Raises:
         UserError: for a layer that cannot be re-created from its config.
     """
@@ -376,6 +378,10 @@ def rebuild(plan: GraphPlan) -> Any:
                              outputs if len(outputs) > 1 else outputs[0], name=model.name)
     for layer, weights in new_layers:
         layer.set_weights(weights)
+    if keras.__name__ == TF_KERAS:  # an FCN-Pose's crop and keypoint names go with it
+        from fcnpose_tf.training.model import with_facts_of
+
+        with_facts_of(pruned, model)
     return pruned
 
 

@@ -347,6 +347,7 @@ def _fitting(run: Run, dataset: Any, keras_path: Path, entries: dict[str, Any], 
                                      options.augment, progress=run.reporter)
     run.fit_data = train_data
     metadata = {"data": str(dataset.via_path), "data_sha256": run.data_sha256, "fold": run.fold,
+                "folds": dataset.splits.k, "split_seed": dataset.splits.seed, "schema": dataset.schema.to_dict(),
                 "pruned_from": str(run.base_path), **(run.method_record or {}), "input_size": run.input_size.size_record,
                 "view": run.input_size.to_json(),
                 "recipe": run.method.recipe}
