@@ -545,6 +545,25 @@ def test_magnitude_prune_bad_sparsity(sparsity):
         magnitude_prune(build_fcn_pose(input_size=32), sparsity)
 
 
+def test_magnitude_prune_spares_only_a_conv_that_is_the_models_output():
+    """A classifier's last Conv2D feeds a Dense head: it is pruned like the others (it was left dense as "the output
+    layer"); Keras 3 models and unknown layer names are refused in one line."""
+    import tf_keras as keras
+
+    inputs = keras.Input((16, 16, 3))
+    x = keras.layers.Conv2D(8, 3, name="c1")(inputs)
+    x = keras.layers.Conv2D(8, 3, name="c2")(x)
+    x = keras.layers.GlobalAveragePooling2D()(x)
+    classifier = keras.Model(inputs, keras.layers.Dense(4, name="fc")(x))
+    sparse = weight_sparsity(magnitude_prune(classifier, 0.5))
+    assert sparse == pytest.approx({"c1": 0.5, "c2": 0.5}, abs=0.01)
+    assert weight_sparsity(magnitude_prune(build_fcn_pose(input_size=32), 0.5))["conv10"] == 0.0
+    with pytest.raises(UserError, match="no Conv2D layer named fc, nope"):
+        weight_sparsity(classifier, ["nope", "fc"])
+    with pytest.raises(UserError, match="not a tf_keras model"):
+        magnitude_prune(object(), 0.5)
+
+
 def test_the_examples_in_the_docstrings_hold():
     import doctest
 

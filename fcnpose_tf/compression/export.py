@@ -442,6 +442,7 @@ def to_tflite(model: keras.Model, quantize: str = DEFAULT_QUANTIZE, *, sample_fr
             or disagrees with the Keras model; the message says by how much and where.
     Example:
         >>> from fcnpose_tf.training.model import build_fcn_pose
+        >>> from fcnpose_tf.compression.tflite_file import inspect_tflite
         >>> data = to_tflite(build_fcn_pose(input_size=64), "float16")
         >>> inspect_tflite(data)["inputs"][0]["shape"]
         [1, 64, 64, 3]
@@ -472,7 +473,7 @@ def write_tflite(model: keras.Model, path: str | os.PathLike, quantize: str = DE
         UserError: if the path exists (without force) or cannot be written, or conversion fails.
         ExportVerificationError: if the converted model disagrees with Keras (nothing written).
     Example:
-        >>> export = write_tflite(model, "saved_models/fcn_pose_p70_fp16.tflite")  # doctest: +SKIP
+        >>> export = write_tflite(model, "out/fcnpose_ur5_p70_fp16.tflite")  # doctest: +SKIP
     """
     path = Path(path)
     if path.suffix != ".tflite":

@@ -35,12 +35,13 @@ def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | 
         train_fn: called as ``train_fn(wrapped_model, callbacks)`` to retrain; it must compile the
             model and pass `callbacks` (tfmot's ``UpdatePruningStep``) to ``fit``. None skips it.
         frequency: training steps between mask updates while retraining.
-        include_output: also prune the output layer (the last Conv2D); off by default, as in
-            `prune_model`. Biases are never pruned.
+        include_output: also prune a Conv2D that is the model's output layer (FCN-Pose's conv10); off by default,
+            as in `prune_model`. Biases are never pruned.
     Returns:
         A plain tf_keras model (wrappers stripped) with the same layers and names, and `model`'s view and schema.
     Raises:
-        UserError: for a sparsity outside [0, 1) or a model without a Conv2D to prune.
+        UserError: for a sparsity outside [0, 1), a model that is not tf_keras (tfmot wraps tf_keras layers only), or
+            one without a Conv2D to prune.
     Example:
         >>> from fcnpose_tf.training.model import build_fcn_pose
         >>> sparse = magnitude_prune(build_fcn_pose(input_size=64), 0.7)
@@ -53,8 +54,12 @@ def magnitude_prune(model: keras.Model, sparsity: float, *, train_fn: TrainFn | 
         raise UserError(f"sparsity must be a number in [0, 1), got {sparsity!r}")
     if isinstance(frequency, bool) or not isinstance(frequency, numbers.Integral) or frequency < 1:
         raise UserError(f"frequency must be a positive number of steps, got {frequency!r}")
+    if not isinstance(model, keras.Model):
+        raise UserError(f"model {getattr(model, 'name', model)!r} is not a tf_keras model: magnitude pruning (tfmot) "
+                        "takes tf_keras models only")
     convs = [layer.name for layer in model.layers if type(layer) is keras.layers.Conv2D]
-    targets = set(convs if include_output else convs[:-1])
+    outputs = set(model.output_names)  # the layers whose outputs are the model's
+    targets = {name for name in convs if include_output or name not in outputs}
     if not targets:
         raise UserError(f"model {model.name} has no Conv2D layer to prune")
     sparsity_api = tfmot.sparsity.keras
@@ -98,8 +103,13 @@ def weight_sparsity(model: keras.Model, layer_names: Iterable[str] | None = None
         layer_names: the Conv2D layers to measure; all of them if None.
     Returns:
         Layer name -> fraction of zeros in its kernel (biases are not counted), in layer order.
+    Raises:
+        UserError: a name that is no Conv2D layer of the model.
     """
     wanted = None if layer_names is None else set(layer_names)
+    convs = {layer.name for layer in model.layers if type(layer) is keras.layers.Conv2D}
+    if wanted is not None and wanted - convs:
+        raise UserError(f"model {model.name} has no Conv2D layer named {', '.join(sorted(wanted - convs))}")
     result = {}
     for layer in model.layers:
         if type(layer) is keras.layers.Conv2D and (wanted is None or layer.name in wanted):

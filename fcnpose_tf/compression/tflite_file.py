@@ -85,7 +85,7 @@ def inspect_tflite(model: bytes | str | os.PathLike) -> TFLiteInfo:
     Raises:
         UserError: if the file is missing or is not a TFLite flatbuffer.
     Example:
-        >>> info = inspect_tflite("saved_models/fcn_pose_p70_fp16.tflite")  # doctest: +SKIP
+        >>> info = inspect_tflite("saved_models/fcnpose_ur5_p70_fp16.tflite")  # doctest: +SKIP
         >>> info["constant_dtypes"], info["op_counts"]["DEQUANTIZE"]  # doctest: +SKIP
         ({'FLOAT16': 20, 'INT32': 4}, 20)
     """

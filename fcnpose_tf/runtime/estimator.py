@@ -236,6 +236,9 @@ class KeypointPredictor(abc.ABC):
         Returns:
             The `Prediction`: keypoints in frame pixels, confidences, stage times, the frame's shape and the crop read.
         """
+        if not isinstance(frame_bgr, np.ndarray):  # a `sources.Frame`: its image is the frame
+            raise TypeError(f"predict takes an H x W x 3 uint8 image, not {type(frame_bgr).__name__}"
+                            + (" (pass frame.image)" if hasattr(frame_bgr, "image") else ""))
         t0 = time.perf_counter()
         self.set_input(frame_bgr)
         t1 = time.perf_counter()
@@ -292,9 +295,9 @@ class KeypointModel(KeypointPredictor):
     Raises:
         UserError: missing, corrupt or non-FCN-Pose file; no interpreter installed.
     Example:
-        >>> model = KeypointModel("p70_fp16.tflite", num_threads=2)
-        >>> pred = model.predict(cv2.imread("frame.png"))
-        >>> pred.keypoints, pred.confidence, pred.times.total_ms
+        >>> model = KeypointModel("p70_fp16.tflite", num_threads=2)  # doctest: +SKIP
+        >>> pred = model.predict(cv2.imread("frame.png"))  # doctest: +SKIP
+        >>> pred.keypoints, pred.confidence, pred.times.total_ms  # doctest: +SKIP
     """
 
     def __init__(self, model_path: str | os.PathLike, num_threads: int | None = None,

@@ -107,9 +107,10 @@ class TrackingCrop(KeypointPredictor):
         margin: `follow_box`'s margin.
         min_found: `follow_box`'s minimum of keypoints found.
     Example:
-        >>> tracked = TrackingCrop(KeypointModel("arm_p70_int8.tflite"))
-        >>> for frame in frames:
-        ...     prediction = tracked.predict(frame)  # prediction.crop: the box it read
+        >>> tracked = TrackingCrop(KeypointModel("arm_p70_int8.tflite"))  # doctest: +SKIP
+        >>> with open_source("clip.mp4") as frames:  # doctest: +SKIP
+        ...     for frame in frames:
+        ...         prediction = tracked.predict(frame.image)  # prediction.crop: the box it read
     """
 
     pipelinable = False
