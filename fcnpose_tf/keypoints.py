@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import warnings
 from dataclasses import dataclass
 from typing import Sequence
@@ -46,6 +47,15 @@ class KeypointSchema:
         """Output maps of a model for this schema: one per keypoint plus the skeleton map."""
         return len(self.keypoints) + 1
 
+    @property
+    def mirror(self) -> tuple[int, ...]:
+        """Where each keypoint's label goes when the frame is flipped left-right: its partner's index for a left/right
+        pair (`mirrored_name`: `gripper L` and `gripper R`, `left_finger` and `right_finger`), else its own. A
+        flip without the swap would teach the model to put the left finger on the right one. UR5's chain has no
+        pair: the identity."""
+        return tuple(self.keypoints.index(partner) if (partner := mirrored_name(name)) in self.keypoints else i
+                     for i, name in enumerate(self.keypoints))
+
     def index(self, name: str) -> int:
         """Position of a keypoint name; UserError naming the known labels if it is unknown."""
         try:
@@ -71,6 +81,27 @@ class KeypointSchema:
             shown = repr(data) if len(repr(data)) <= 200 else repr(data)[:200] + "..."
             raise UserError(f"invalid keypoint schema {shown}: expected name, keypoints (a list of names) and "
                             f"edges (pairs of keypoint numbers) ({entry_problem(exc)})") from None
+
+
+_SIDES = {"left": "right", "right": "left", "l": "r", "r": "l", "lft": "rgt", "rgt": "lft"}
+
+
+def mirrored_name(name: str) -> str | None:
+    """The name of the keypoint on the other side: each left/right word of `name` (`left`, `L`, `lft`, whole words
+    between spaces, `_`, `-` or `.`, any case) swapped for the other side's, in the same case; None when it has none.
+
+    Example:
+        >>> mirrored_name("gripper L"), mirrored_name("Left_finger"), mirrored_name("elbow")
+        ('gripper R', 'Right_finger', None)
+    """
+    parts = re.split(r"([\s_.-]+)", name)
+    swapped = False
+    for i, part in enumerate(parts):
+        other = _SIDES.get(part.lower())
+        if other is not None and i % 2 == 0:
+            parts[i] = other.upper() if part.isupper() else other.capitalize() if part[:1].isupper() else other
+            swapped = True
+    return "".join(parts) if swapped else None
 
 
 UR5 = KeypointSchema.chain("ur5", ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"))

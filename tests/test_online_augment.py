@@ -65,6 +65,25 @@ def test_flip_keeps_identities_and_mirrors_x():
     np.testing.assert_allclose(moved[:, 1], scaled[:, 1], atol=1e-4)
 
 
+def test_a_flip_swaps_the_labels_of_left_right_pairs():
+    """A gripper's L and R fingers: flipped, the left finger is where a right finger is, and is labelled so (review:
+    half the online-augmented targets swapped L and R); an unflipped sample keeps its labels."""
+    from fcnpose_tf.correction.selection import flip_back
+    from fcnpose_tf.keypoints import KeypointSchema
+
+    schema = KeypointSchema.chain("gripper", ("base", "finger L", "finger R"))
+    assert schema.mirror == (0, 2, 1)
+    kps = np.array([[60.0, 80.0], [40.0, 30.0], [90.0, 30.0]])
+    scaled = (kps + 0.5) * np.array([S / W, S / H]) - 0.5
+    flipping = OnlineAugmenter(S, OnlineAugmentConfig(flip_p=1.0, affine_p=0.0, **NO_APPEARANCE), schema.mirror)
+    _, moved = flipping(dot_image(kps), kps, sample_rng(0, 0, 0))
+    assert moved[1, 0] < moved[2, 0]  # finger L still on the left of the picture
+    np.testing.assert_allclose(moved[[0, 2, 1], 0], S - 1 - scaled[:, 0], atol=1e-4)
+    still = OnlineAugmenter(S, OnlineAugmentConfig(flip_p=0.0, affine_p=0.0, **NO_APPEARANCE), schema.mirror)
+    np.testing.assert_allclose(still(dot_image(kps), kps, sample_rng(0, 0, 0))[1], scaled, atol=1e-4)
+    np.testing.assert_allclose(flip_back(kps, 160, schema.mirror), [[99.0, 80.0], [69.0, 30.0], [119.0, 30.0]])
+
+
 def test_visible_keypoints_stay_in_the_frame_and_missing_ones_stay_missing():
     kps = np.array([[2.0, 2.0], [W - 3.0, H - 3.0], [np.nan, np.nan]])  # near corners: many draws rejected
     augment = OnlineAugmenter(S, OnlineAugmentConfig(max_rotation_deg=45, min_scale=1.3, max_scale=1.3))

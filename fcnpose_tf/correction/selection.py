@@ -13,8 +13,8 @@ folder). Strategies (docs/data.md, "Correcting and merging rounds"):
 - `jump`: the largest distance (frame pixels) of a keypoint from the midpoint of its positions in the
   previous and the next processed frame (at either end: from the line through the two on one side, scaled
   so noise scores alike): one frame off its track scores high, smooth fast motion does not.
-- `disagree`: test-time augmentation: the frame flipped left-right (no keypoints swapped: the UR5 chain has
-  no left/right pairs) and zoomed out (centred on a canvas PAD_FRACTION larger, as the training's padding),
+- `disagree`: test-time augmentation: the frame flipped left-right (the labels of left/right pairs swapped back,
+  `keypoints.KeypointSchema.mirror`; the UR5 chain has none) and zoomed out (centred on a canvas PAD_FRACTION larger, as the training's padding),
   each predicted and mapped back; per keypoint the largest distance to the plain prediction (the frame's
   diagonal when found in one and not the other), averaged over keypoints.
 
@@ -49,11 +49,12 @@ class FrameRecord:
     views: list[np.ndarray] = field(default_factory=list)
 
 
-def flip_back(keypoints: np.ndarray, width: int) -> np.ndarray:
-    """Keypoints predicted on a left-right flipped frame, in the frame's pixels (pixel i's centre at i)."""
+def flip_back(keypoints: np.ndarray, width: int, mirror: Sequence[int] | None = None) -> np.ndarray:
+    """Keypoints predicted on a left-right flipped frame, in the frame's pixels (pixel i's centre at i); with
+    `mirror` (`KeypointSchema.mirror`) each left/right pair's labels swapped back."""
     out = np.array(keypoints, np.float64, copy=True)
     out[:, 0] = (width - 1) - out[:, 0]
-    return out
+    return out if mirror is None else out[list(mirror)]
 
 
 def zoom_out(frame: np.ndarray, fraction: float = PAD_FRACTION) -> tuple[np.ndarray, tuple[int, int]]:
@@ -64,10 +65,12 @@ def zoom_out(frame: np.ndarray, fraction: float = PAD_FRACTION) -> tuple[np.ndar
     return canvas, (pad_x, pad_y)
 
 
-def augmented_views(predict: Callable[[np.ndarray], np.ndarray], frame: np.ndarray) -> list[np.ndarray]:
-    """`disagree`'s views of a frame, each predicted by `predict` (BGR frame -> K x 2) and mapped back."""
+def augmented_views(predict: Callable[[np.ndarray], np.ndarray], frame: np.ndarray,
+                    mirror: Sequence[int] | None = None) -> list[np.ndarray]:
+    """`disagree`'s views of a frame, each predicted by `predict` (BGR frame -> K x 2) and mapped back (`mirror`:
+    the schema's left/right pairs, `KeypointSchema.mirror`)."""
     width = frame.shape[1]
-    flipped = flip_back(predict(np.ascontiguousarray(frame[:, ::-1])), width)
+    flipped = flip_back(predict(np.ascontiguousarray(frame[:, ::-1])), width, mirror)
     canvas, (dx, dy) = zoom_out(frame)
     zoomed = np.array(predict(canvas), np.float64, copy=True) - (dx, dy)
     return [flipped, zoomed]
@@ -94,7 +97,8 @@ class FrameScores:
         """Keep one frame's prediction (and for `disagree` its augmented views' keypoints)."""
         views = []
         if self.strategy == "disagree":
-            views = augmented_views(lambda image: self.predictor.predict(image).keypoints, frame.image)
+            views = augmented_views(lambda image: self.predictor.predict(image).keypoints, frame.image,
+                                    self.predictor.schema.mirror)
         self.records.append(FrameRecord(int(frame.index), np.array(prediction.keypoints, np.float64, copy=True),
                                         np.array(prediction.confidence, np.float64, copy=True),
                                         tuple(frame.image.shape), views))

@@ -13,7 +13,8 @@ docs/training.md, "Training on your own frames"). Here each training sample is d
           saturation, channel shuffle, blur, sensor noise, JPEG artefacts, occluding patches
       ──► target maps drawn from the moved keypoints (`masks.make_target_maps`)
 
-A flip keeps keypoint identities: the UR5 chain (base ... tool) has no left/right pairs.
+A flip swaps the labels of left/right pairs (`keypoints.KeypointSchema.mirror`: `gripper L` and `gripper R`); the
+UR5 chain (base ... tool) has none, so its keypoints keep their identities.
 Every random choice of sample `i` of epoch `e` comes from a generator seeded with
 (seed, e, i), so the same seed gives the same batches, in any order and after a resume.
 """
@@ -94,7 +95,8 @@ def _geometry(config: OnlineAugmentConfig):
                   scale=(config.min_scale, config.max_scale),
                   translate_percent=(-config.max_shift, config.max_shift), keep_ratio=True,
                   interpolation=cv2.INTER_LINEAR, border_mode=cv2.BORDER_CONSTANT, fill=0, p=config.affine_p)],
-        keypoint_params=A.KeypointParams(format="xy", remove_invisible=False, check_each_transform=False))
+        keypoint_params=A.KeypointParams(format="xy", remove_invisible=False, check_each_transform=False),
+        save_applied_params=True)  # whether the flip ran: left/right pairs swap labels then
 
 
 def _appearance(config: OnlineAugmentConfig, input_size: int):
@@ -121,9 +123,12 @@ def sample_rng(seed: int, epoch: int, index: int) -> np.random.Generator:
 class OnlineAugmenter:
     """Draws augmented (image, keypoints) pairs at the input size from cached working-size frames."""
 
-    def __init__(self, input_size: ViewLike, config: OnlineAugmentConfig = OnlineAugmentConfig()):
+    def __init__(self, input_size: ViewLike, config: OnlineAugmentConfig = OnlineAugmentConfig(),
+                 mirror: Sequence[int] | None = None):
         self.input_size = FrameView.of(input_size).shape
         self.config = config
+        self.mirror = list(mirror) if mirror is not None and list(mirror) != sorted(mirror) else None
+        """`KeypointSchema.mirror` when it swaps a pair: the keypoints' order after a flip; None: no pair."""
         self._geometry = _geometry(config)
         self._appearance = _appearance(config, min(self.input_size))
 
@@ -153,6 +158,8 @@ class OnlineAugmenter:
             out = self._geometry(image=image_rgb, keypoints=kps[visible].astype(np.float32))
             candidate = np.full_like(kps, np.nan)
             candidate[visible] = np.asarray(out["keypoints"], np.float64).reshape(-1, 2)[:, :2]
+            if self.mirror is not None and any(name == "HorizontalFlip" for name, _ in out["applied_transforms"]):
+                candidate = candidate[self.mirror]  # the left finger, flipped, is where a right finger is
             if inside_frame(candidate, w, h):
                 warped, moved = out["image"], candidate
                 break
@@ -212,7 +219,7 @@ class OnlineTrainingData:
             rgb, kps = working_frame(frame, kps, min(self.input_size), config.work_scale)
             self.frames.append(rgb)
             self.keypoints.append(kps)
-        self.augmenter = OnlineAugmenter(self.input_size, config)
+        self.augmenter = OnlineAugmenter(self.input_size, config, self.schema.mirror)
 
     def __len__(self) -> int:
         return self.samples_per_epoch
