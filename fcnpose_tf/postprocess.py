@@ -57,7 +57,7 @@ import numpy as np
 
 from fcnpose_tf import settings
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.keypoints import UR5, UR5_LIMBS, LimbPrior
+from fcnpose_tf.keypoints import UR5, UR5_LIMBS, KeypointSchema, LimbPrior, schema_for_maps
 from fcnpose_tf.preprocess import FrameView, keypoints_to_frame
 
 __all__ = ["maps_to_keypoints", "decode", "check_fallback", "check_centroid", "Decoding",
@@ -404,13 +404,27 @@ def _skeleton_support(skeleton: np.ndarray, probability, before: np.ndarray, now
     return probability(skeleton[ys, xs]).mean(axis=2)
 
 
+def _chain_prior(schema: KeypointSchema | None, k: int) -> LimbPrior | None:
+    """The limb lengths the chain holds k keypoints' maps to: UR5's for UR5's names (`schema` None: the default for
+    k + 1 maps, `keypoints.schema_for_maps`), else none; UserError for a schema that is no serial chain or other
+    maps."""
+    schema = schema if schema is not None else schema_for_maps(k + 1)
+    if schema.num_keypoints != k:
+        raise UserError(f"schema {schema.name!r} has {schema.num_keypoints} keypoints, the maps {k}")
+    if set(schema.edges) != {(i, i + 1) for i in range(k - 1)}:
+        raise UserError(f"--cluster chain follows a serial chain of keypoints (each joined to the next); schema "
+                        f"{schema.name!r}'s skeleton is not one: use --cluster largest")
+    return UR5_LIMBS if schema.keypoints == UR5.keypoints else None
+
+
 def _chain(maps3: np.ndarray, cut: float, min_size: int, out_kp: np.ndarray, out_conf: np.ndarray,
-           fallback_cut: float | None, weights, probability, pixel_scale: tuple[float, float] | None) -> None:
+           fallback_cut: float | None, weights, probability, pixel_scale: tuple[float, float] | None,
+           prior: LimbPrior | None) -> None:
     """One cluster per keypoint map, chosen jointly along the serial chain (keypoint k joined to k + 1) by Viterbi:
     each cluster scores log(its pixels / the map's largest cluster's), each consecutive pair SUPPORT_WEIGHT x
-    log(the skeleton map's mean along the segment between them, at least SUPPORT_FLOOR) and, for the UR5's 8
-    keypoints, - LENGTH_WEIGHT x z^2 / 2, z the pair's log length as a share of the box of the maps' largest clusters
-    against `keypoints.UR5_LIMBS` in its standard deviations (lengths in the frame's proportions: `pixel_scale`). A
+    log(the skeleton map's mean along the segment between them, at least SUPPORT_FLOOR) and, with a `prior` (UR5's
+    names: `_chain_prior`), - LENGTH_WEIGHT x z^2 / 2, z the pair's log length as a share of the box of the maps'
+    largest clusters against the prior in its standard deviations (lengths in the frame's proportions: `pixel_scale`). A
     map without a cluster (after the fallback) is missing and splits the chain. Writes what `_frame_keypoints` does:
     the chosen cluster's centroid (weighted by `weights` when given) and its pixel count."""
     k = maps3.shape[-1] - 1
@@ -424,8 +438,6 @@ def _chain(maps3: np.ndarray, cut: float, min_size: int, out_kp: np.ndarray, out
             labels, corner, candidates = _candidates(maps3[..., i] > fallback_cut, min_size)
             level = 1
         found.append((labels, corner, candidates, level))
-    # 9 maps are the UR5's, as the runtime reads them (`runtime.estimator.schema_for_maps`)
-    prior: LimbPrior | None = UR5_LIMBS if k == UR5.num_keypoints else None
     side = 1.0
     if prior is not None:
         largest = np.array([[c[2] * sx, c[3] * sy] for _, _, cs, _ in found if cs
@@ -517,8 +529,8 @@ class Decoding:
         """One line naming the decoding, for reports."""
         weighted = f" weighted by (p - {self.threshold:g})^2" if self.centroid == "weighted" else ""
         if self.cluster == "chain":
-            text = (f"clusters above {self.threshold:g} chained along the arm (one per map: size, skeleton map, limb "
-                    f"lengths), its centroid{weighted}")
+            text = (f"clusters above {self.threshold:g} chained along the arm (one per map: size, skeleton map, UR5's "
+                    f"limb lengths for UR5's keypoints), its centroid{weighted}")
         else:
             text = f"Algorithm 1 (largest cluster above {self.threshold:g}, its centroid{weighted})"
         return text if self.fallback is None else f"{text}; a map with none: above {self.fallback:g} (--fallback)"
@@ -533,7 +545,7 @@ class Decoding:
 
         Args:
             maps: H x W x C (or N x H x W x C) output maps, keypoints first and the skeleton map last.
-            **kwargs: `maps_to_keypoints`' logits, quantization, min_size.
+            **kwargs: `maps_to_keypoints`' logits, quantization, min_size, schema.
         Returns:
             (keypoints, confidence) as `maps_to_keypoints` returns them: (x, y) in map pixels, NaN where missing.
         """
@@ -546,7 +558,7 @@ class Decoding:
         Args:
             maps: H x W x C (or N x H x W x C) output maps.
             frame_shape: the shape of the frame the model's input was made from.
-            **kwargs: `decode`'s logits, quantization, min_size, view.
+            **kwargs: `decode`'s logits, quantization, min_size, view, schema.
         Returns:
             (keypoints, confidence) as `decode` returns them: (x, y) in frame pixels, NaN where missing.
         """
@@ -582,7 +594,8 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
                       quantization: tuple[float, int] | None = None,
                       min_size: int = 1, fallback: float | None = None,
                       centroid: str = settings.CENTROID.default, cluster: str = settings.CLUSTER.default,
-                      pixel_scale: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      pixel_scale: tuple[float, float] | None = None,
+                      schema: KeypointSchema | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints from FCN-Pose output maps by Expansion Clustering (the paper's Algorithm 1, M = 1).
 
     Args:
@@ -610,6 +623,8 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
             jointly along the serial chain: `_chain`); where every map holds one cluster the two agree.
         pixel_scale: frame pixels per map pixel in x and y (`decode` passes the view's): the chain compares limb
             lengths in the frame's proportions; None: square pixels.
+        schema: the keypoints the maps stand for (None: `keypoints.schema_for_maps`, UR5's for 9 maps). The chain
+            needs a serial chain of keypoints; it holds limbs to `keypoints.UR5_LIMBS` only for UR5's names.
 
     Returns:
         (keypoints, confidence): keypoints float64 of shape (C-1, 2), or (N, C-1, 2), holding
@@ -618,7 +633,8 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
         kept cluster's pixel count, 0 when missing.
 
     Raises:
-        UserError: maps that are not H x W x C / N x H x W x C with C >= 2, or a bad threshold.
+        UserError: maps that are not H x W x C / N x H x W x C with C >= 2, a bad threshold, or the chain asked of a
+            schema whose skeleton is not a serial chain.
 
     Example:
         >>> maps = np.zeros((8, 8, 3), np.float32)
@@ -666,12 +682,13 @@ def maps_to_keypoints(maps: np.ndarray, threshold: float = 0.5, *, logits: bool 
     batch = arr.ndim == 4
     frames = arr if batch else arr[None]
     n, k = frames.shape[0], frames.shape[-1] - 1
+    prior = _chain_prior(schema, k) if chained else None
     keypoints = np.empty((n, k, 2), np.float64)
     confidence = np.empty((n, k), np.int64)
     for j in range(n):
         if chained:
             _chain(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut, weights, probability,
-                   pixel_scale)
+                   pixel_scale, prior)
         else:
             _frame_keypoints(frames[j], cut, min_size, keypoints[j], confidence[j], fallback_cut, weights)
     return (keypoints, confidence) if batch else (keypoints[0], confidence[0])
@@ -681,7 +698,7 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
            logits: bool = False, quantization: tuple[float, int] | None = None,
            min_size: int = 1, fallback: float | None = None,
            centroid: str = settings.CENTROID.default, cluster: str = settings.CLUSTER.default,
-           view: FrameView | None = None) -> tuple[np.ndarray, np.ndarray]:
+           view: FrameView | None = None, schema: KeypointSchema | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints in the original frame's pixels: :func:`maps_to_keypoints`, then
     :func:`fcnpose_tf.preprocess.keypoints_to_frame`.
 
@@ -691,7 +708,8 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     Args:
         maps: H x W x C or N x H x W x C maps (see :func:`maps_to_keypoints`).
         frame_shape: the original frame's shape, (height, width[, channels]).
-        threshold, logits, quantization, min_size, fallback, centroid, cluster: as in :func:`maps_to_keypoints`.
+        threshold, logits, quantization, min_size, fallback, centroid, cluster, schema: as in
+            :func:`maps_to_keypoints`.
         view: the model's `FrameView` (its crop); None: the whole frame at the maps' size.
 
     Returns:
@@ -715,5 +733,5 @@ def decode(maps: np.ndarray, frame_shape: tuple[int, ...], threshold: float = 0.
     box = view.box(tuple(frame_shape))
     keypoints, confidence = maps_to_keypoints(arr, threshold, logits=logits, quantization=quantization,
                                               min_size=min_size, fallback=fallback, centroid=centroid, cluster=cluster,
-                                              pixel_scale=(box[2] / w, box[3] / h))
+                                              pixel_scale=(box[2] / w, box[3] / h), schema=schema)
     return keypoints_to_frame(keypoints, tuple(frame_shape), view), confidence

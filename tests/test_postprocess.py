@@ -792,6 +792,17 @@ def test_the_chain_weighs_the_ur5s_limb_lengths_where_the_skeleton_cannot_tell()
     # the same frame through a view that stretched it 2x across: lengths measured in the frame's proportions agree
     in_frame, _ = decode(maps, (96, 192, 3), centroid="plain", cluster="chain")
     assert in_frame[4] == pytest.approx(keypoints_to_frame(chained, (96, 192, 3), 96)[4], abs=1e-9)
+    # another robot's 8 keypoints: UR5's lengths say nothing of its limbs (the skeleton decides alone, as for any
+    # other count), and a skeleton that is no serial chain is refused
+    from fcnpose_tf.keypoints import UR5, KeypointSchema
+
+    other = KeypointSchema.chain("arm8", [f"j{i}" for i in range(8)])
+    unweighted, _ = maps_to_keypoints(maps, centroid="plain", cluster="chain", schema=other)
+    assert unweighted[4] == pytest.approx(largest[4], abs=0.6)  # the larger cluster, both on the skeleton
+    tree = KeypointSchema("tree", other.keypoints, ((0, 1), (1, 2), (1, 3), (3, 4), (4, 5), (5, 6), (6, 7)))
+    with pytest.raises(UserError, match="schema 'tree''s skeleton is not one: use --cluster largest"):
+        maps_to_keypoints(maps, cluster="chain", schema=tree)
+    assert maps_to_keypoints(maps, cluster="chain", schema=UR5)[0][4] == pytest.approx(points[4], abs=0.6)
 
 
 def test_the_cluster_choice_is_checked_and_travels_in_the_decoding():

@@ -97,8 +97,9 @@ class FrameScores:
         """Keep one frame's prediction (and for `disagree` its augmented views' keypoints)."""
         views = []
         if self.strategy == "disagree":
+            schema = getattr(self.predictor, "schema", None)
             views = augmented_views(lambda image: self.predictor.predict(image).keypoints, frame.image,
-                                    self.predictor.schema.mirror)
+                                    schema.mirror if schema is not None else None)
         self.records.append(FrameRecord(int(frame.index), np.array(prediction.keypoints, np.float64, copy=True),
                                         np.array(prediction.confidence, np.float64, copy=True),
                                         tuple(frame.image.shape), views))

@@ -224,7 +224,7 @@ class KeypointPredictor(abc.ABC):
             (K x 2 keypoints in frame pixels, NaN when not found; K confidences, float64).
         """
         maps = self.read_maps(copy=False)
-        keypoints, confidence = self.decoding.in_frame(maps, frame_shape, view=self.view)
+        keypoints, confidence = self.decoding.in_frame(maps, frame_shape, view=self.view, schema=self.schema)
         del maps
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
@@ -475,11 +475,11 @@ class KeypointModel(KeypointPredictor):
         """
         spec = self.io.output
         if spec.quantized:
-            keypoints, confidence = self.decoding.in_frame(raw, frame_shape, view=self.view,
+            keypoints, confidence = self.decoding.in_frame(raw, frame_shape, view=self.view, schema=self.schema,
                                                            quantization=(spec.scale, spec.zero_point))
         else:
             maps = raw if raw.dtype == np.float32 else raw.astype(np.float32)
-            keypoints, confidence = self.decoding.in_frame(maps, frame_shape, view=self.view)
+            keypoints, confidence = self.decoding.in_frame(maps, frame_shape, view=self.view, schema=self.schema)
         return keypoints, np.array(confidence, dtype=np.float64, copy=True)
 
     def predict_maps(self, frame_bgr: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ import tf_keras as keras
 from fcnpose_tf import progress, settings
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.measurements import Evaluation, KeypointMetrics
+from fcnpose_tf.keypoints import KeypointSchema
 from fcnpose_tf.postprocess import Decoding
 from fcnpose_tf.fileio import (WriteError, atomic_path, atomic_paths, check_writable, json_text, make_folder, parts_of,
                                remove_tree, write_json, write_text)
@@ -205,6 +206,8 @@ class ValidationKeypoints:
     """The K keypoint names."""
     decoding: Decoding = field(default_factory=Decoding)
     """How maps become keypoints (the files' own, from the command's settings)."""
+    schema: KeypointSchema | None = None
+    """The keypoints the maps stand for (the chain's skeleton and limb lengths: `postprocess.maps_to_keypoints`)."""
 
     @classmethod
     def of(cls, data: Any, decoding: Decoding | None = None) -> ValidationKeypoints:
@@ -217,7 +220,7 @@ class ValidationKeypoints:
             The keypoints to score with.
         """
         return cls(np.asarray(data.keypoints, np.float64), tuple(data.schema.keypoints),
-                   decoding if decoding is not None else Decoding())
+                   decoding if decoding is not None else Decoding(), data.schema)
 
     def score(self, model: keras.Model, inputs: Any, batch_size: int) -> KeptScore:
         """The model's keypoints on the validation inputs against the true ones.
@@ -232,7 +235,7 @@ class ValidationKeypoints:
         from fcnpose_tf.metrics import keypoint_report, mean_pck
 
         maps = model.predict(inputs, batch_size=batch_size, verbose=0)
-        predicted, _ = self.decoding.keypoints(maps)
+        predicted, _ = self.decoding.keypoints(maps, schema=self.schema)
         report = keypoint_report(predicted, self.keypoints, self.names)
         epe = report.epe_px
         return KeptScore(mean_pck=round(mean_pck(report), 6), pck_fine=round(float(report.pck.get(0.05) or 0.0), 6),
