@@ -194,6 +194,16 @@ def test_broken_files_give_one_clear_error_naming_file_and_region(tmp_path, case
     assert len(ann.problems) == 1
 
 
+def test_another_robots_names_typed_as_text_point_to_a_dropdown(tmp_path):
+    """A VIA text attribute holding another robot's names declares no schema: UR5's is expected, and the error says
+    how to declare one (a typo in UR5's names keeps the plain message)."""
+    image(tmp_path, "a.png")
+    path = export(tmp_path, [("a.png", [region(5, 5, "Base"), region(9, 9, "Gripper")])])
+    with pytest.raises(UserError, match="the file declares no keypoints, so UR5's are expected: for your own robot's, "
+                                        "make 'keypoint' a dropdown region attribute"):
+        read_via(path)
+
+
 def test_skip_bad_keeps_good_frames_and_errors_count_the_rest(tmp_path):
     for name in ("a.png", "b.png", "c.png"):
         image(tmp_path, name)

@@ -539,6 +539,8 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
             logger.warning("%s: no region has the attribute %r (--keypoint-attr); reading the keypoint names from %r, "
                            "whose values are all keypoint names", path, attribute, named)
             attribute = named
+    undeclared = schema is None and _schema_from_attributes(data, attribute) is None and not (
+        isinstance(data, dict) and isinstance(data.get(SCHEMA_KEY), dict))  # UR5's by default
     if schema is None:
         schema = _file_schema(data, attribute)
     if min_visible is None:
@@ -580,6 +582,11 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
             if not result.frames and all("image file not found" in p for p in problems):  # the images are elsewhere
                 raise UserError(f"{path}: {problems[0]}{more}: none of its images is there; pass --images DIR with "
                                 "the folder that holds them")
+            labels = {a.get(attribute) for a in _region_attributes(metadata)}
+            if undeclared and not labels & set(schema.keypoints):  # another robot's names, typed as text
+                raise UserError(f"{path}: {problems[0]}{more}; the file declares no keypoints, so UR5's are expected: "
+                                f"for your own robot's, make {attribute!r} a dropdown region attribute whose options "
+                                "are its keypoint names in chain order (docs/data.md, \"Keypoint schema\")")
             raise UserError(f"{path}: {problems[0]}{more}; fix the file or pass --skip-bad to skip bad frames")
         result.problems = problems
         result.dropped["bad annotation or image (skipped)"] = len(problems)
