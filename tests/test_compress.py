@@ -326,6 +326,7 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli_here,
         f"the {validation} of the validation split and the first {16 - validation} of the training split")
     assert f"on {record['verification_frames']} of " in stdout
     assert describe_check_frames(16, 40) == "the first 16 of the validation split"
+    assert record["schema"]["keypoints"][0] == "base"  # the names the files' maps stand for
     status, _, err = cli_here("export", model, "--data", data, "--quantize", "int8")
     assert status == 2 and "already exists; pass --force" in err
 

@@ -254,11 +254,17 @@ def test_wrong_interface_is_refused(fcn64, monkeypatch):
 
 
 def test_keypoint_disagreement_is_named():
+    from fcnpose_tf.keypoints import KeypointSchema
+    from fcnpose_tf.training.model import with_schema
+
     keras_model = blob_model(channel=0)
     wrong = to_tflite(blob_model(channel=1), "float32", sample_frames=blob_frames())  # maps of the other blob
     with pytest.raises(ExportVerificationError,
-                       match=r"decodes keypoint 0 of frame 0 at \(21\.5, 22\.0\), the Keras model at \(7\.5, 6\.0\), "
-                             r"\d+\.\d+ px > 1 px \(4 keypoint\(s\) disagree"):
+                       match=r"decodes kp0 \(keypoint 0\) of frame 0 at \(21\.5, 22\.0\), the Keras model at "
+                             r"\(7\.5, 6\.0\), \d+\.\d+ px > 1 px \(4 keypoint\(s\) disagree"):
+        verify_tflite(keras_model, wrong, blob_frames(), map_atol=1.0)
+    with_schema(keras_model, KeypointSchema.chain("gripper", ("finger L", "finger R")))  # the user's own names
+    with pytest.raises(ExportVerificationError, match=r"decodes finger L \(keypoint 0\) of frame 0"):
         verify_tflite(keras_model, wrong, blob_frames(), map_atol=1.0)
 
 

@@ -106,7 +106,7 @@ def test_compress_without_qat_ends_with_its_table_and_the_refusal(faint, cli_her
     assert report["quantized"]["quantize"] == "float16" and report["other_quantized"] == []
     (refused,) = report["refused"]
     assert refused["quantize"] == "int8" and refused["status"] == "refused" and "qat" not in refused
-    assert refused["reason"].startswith("the int8 TFLite model decodes keypoint ")
+    assert refused["reason"].startswith("the int8 TFLite model decodes ")
     assert refused["post_training"]["keypoints_lost_or_gained"] >= 1
     assert f"int8: REFUSED, no file written: {refused['reason']}" in stdout
     assert not (out / "faint_p00_int8.tflite").exists()
@@ -151,7 +151,7 @@ def test_compress_falls_back_to_quantization_aware_int8_that_passes(faint, cli_h
     assert int8["quantize"] == "int8" and int8["quantization"] == "quantization-aware training"
     qat = int8["qat"]
     assert qat["passed"] and qat["epochs"][-1]["passed"] and qat["minutes"] >= 0
-    assert qat["post_training_refused"]["reason"].startswith("the int8 TFLite model decodes keypoint ")
+    assert qat["post_training_refused"]["reason"].startswith("the int8 TFLite model decodes ")
     assert "post-training int8 refused: quantization-aware training" in stdout
     assert f"{qat['epochs_run']} QAT epoch(s)" in stdout and table_row(stdout, "int8 QAT TFLite (.tflite)")
     assert f"wrote {out / 'faint_p00_int8.tflite'}" in stdout

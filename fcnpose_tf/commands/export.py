@@ -92,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.verify import ExportVerificationError
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.records import training_record
-    from fcnpose_tf.training.model import view_of
+    from fcnpose_tf.training.model import schema_of, view_of
     from fcnpose_tf.tables import format_table
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
 
@@ -152,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{entry['quantize']}: REFUSED, no file written: {entry['reason']}")
     if args.json:
         write_json(args.json, {"model": str(args.model), "data": str(dataset.via_path),
+                               "schema": schema_of(model).to_dict(),
                                "verification_frames": checked,
                                "calibration": f"seeded choice (seed {options.seed}) of the training split's "
                                               f"{len(train)} frames", "files": records, "refused": refused},

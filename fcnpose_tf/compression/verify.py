@@ -12,7 +12,7 @@ Each format's tolerances are a row of `settings.TFLITE_FORMATS` (why each is wha
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, fields
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Sequence
 
 import numpy as np
 
@@ -231,8 +231,10 @@ def verify_tflite(model: keras.Model, tflite: bytes, frames: np.ndarray, *, map_
             {"frames": len(frames), "max_abs_diff": max_diff, "map_atol": float(map_atol)})
     agreement = _KeypointAgreement(0, 0, 0.0, 0, 0)
     if check_keypoints and keras_maps.ndim == 4 and keras_maps.shape[-1] >= 2:
+        from fcnpose_tf.training.model import schema_of
+
         agreement = _compare_keypoints(keras_maps, tflite_maps, max_diff, threshold, keypoint_px,
-                                       keypoint_share, what)
+                                       keypoint_share, what, schema_of(model).keypoints)
     return ParityReport(len(frames), max_diff, float(map_atol), agreement.compared, agreement.ambiguous,
                         agreement.max_px, float(keypoint_px), float(threshold), agreement.within,
                         agreement.lost_or_gained, float(keypoint_share))
@@ -248,7 +250,8 @@ class _KeypointAgreement:
 
 
 def _compare_keypoints(keras_maps: np.ndarray, tflite_maps: np.ndarray, max_diff: float, threshold: float,
-                       keypoint_px: float, keypoint_share: float, what: str) -> _KeypointAgreement:
+                       keypoint_px: float, keypoint_share: float, what: str,
+                       names: Sequence[str]) -> _KeypointAgreement:
     from fcnpose_tf.postprocess import maps_to_keypoints
 
     # The gate compares Algorithm 1's clusters (the plain centroid is a function of which pixels a cluster holds);
@@ -285,7 +288,8 @@ def _compare_keypoints(keras_maps: np.ndarray, tflite_maps: np.ndarray, max_diff
                 f"{keypoint_share:.0%} required" if keypoint_share < 1 else
                 f"{compared - within} keypoint(s) disagree")
         raise ExportVerificationError(
-            f"{what} decodes keypoint {k} of frame {n} at {show(got[n, k])}, the Keras model at {show(ref[n, k])}"
+            f"{what} decodes {names[k]} (keypoint {k}) of frame {n} at {show(got[n, k])}, the Keras model at "
+            f"{show(ref[n, k])}"
             f"{distance} ({gate}; max abs map difference {max_diff:.3g}); nothing written",
             {"frames": len(keras_maps), "max_abs_diff": max_diff, "keypoints_compared": compared,
              "keypoints_within_px": within, "keypoints_lost_or_gained": int(lost_or_gained.sum()),
