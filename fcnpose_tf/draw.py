@@ -104,6 +104,18 @@ def _draw_names(out: np.ndarray, kp: np.ndarray, visible: list[int], schema: Key
         cv2.putText(out, name, org, _FONT, font_scale, color, 1, cv2.LINE_AA)
 
 
+def enlarged(image_bgr: np.ndarray, points: np.ndarray, side: int = 640) -> tuple[np.ndarray, np.ndarray]:
+    """A frame smaller than `side` on its longer side, enlarged to it (the pixels' centres kept: (x + 0.5) * s -
+    0.5), with its K x 2 `points` moved along, so names and captions drawn on it stay legible; a larger frame as it
+    is."""
+    h, w = image_bgr.shape[:2]
+    s = side / max(h, w)
+    if s <= 1:
+        return image_bgr, np.asarray(points, np.float64)
+    image = cv2.resize(image_bgr, (max(1, round(w * s)), max(1, round(h * s))), interpolation=cv2.INTER_LINEAR)
+    return image, (np.asarray(points, np.float64) + 0.5) * s - 0.5
+
+
 def zoom_on(image_bgr: np.ndarray, points: np.ndarray, side: int = 640, margin: float = 0.3
             ) -> tuple[np.ndarray, np.ndarray]:
     """The part of the image around the finite `points` (their box grown by `margin` of its larger side on each

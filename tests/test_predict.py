@@ -212,8 +212,9 @@ def test_sigterm_keeps_the_frames_done_as_a_project(tmp_path, model_path):
 
 
 def test_draw_pictures_every_frame_written_with_its_points(capsys, tmp_path, model_path, quadrant_images):
-    """--draw DIR: one PNG per frame written (the frame's size, each found keypoint's dot in its colour where the
-    keypoint is), a contact sheet of them; --select draws its picks only; a folder holding files is refused first."""
+    """--draw DIR: one PNG per frame written (a small frame enlarged to 640 px across so names stay legible, each
+    found keypoint's dot in its colour where the keypoint is), a contact sheet of them; --select draws its picks only;
+    a folder holding files is refused first."""
     from fcnpose_tf.draw import keypoint_colour
 
     pictures = tmp_path / "pictures"
@@ -226,11 +227,11 @@ def test_draw_pictures_every_frame_written_with_its_points(capsys, tmp_path, mod
     assert f"drawn in {pictures} (4 PNG and contact_sheet.png)" in stdout
     for i, frame in enumerate(read_via(via, min_visible=0).frames):
         picture = cv2.imread(str(pictures / names[i]))
-        assert picture.shape == (240, 320, 3)
+        assert picture.shape == (480, 640, 3)  # the 320 x 240 frame, twice the size
         found = [k for k in range(8) if np.isfinite(frame.keypoints[k]).all()]
         assert found
         for k in found:
-            x, y = np.round(frame.keypoints[k]).astype(int)
+            x, y = np.round((frame.keypoints[k] + 0.5) * 2 - 0.5).astype(int)
             here = [j for j in found if np.allclose(frame.keypoints[j], frame.keypoints[k])]  # dots drawn on top
             assert tuple(int(c) for c in picture[y, x]) in {keypoint_colour(j) for j in here}, (i, k)
     assert cv2.imread(str(pictures / "contact_sheet.png")).shape == (2 * 244, 3 * 324, 3)  # 4 tiles, 3 a row

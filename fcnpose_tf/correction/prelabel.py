@@ -135,10 +135,10 @@ class ViaPredictions:
     def _draw(self, image: np.ndarray, name: str, keypoints: np.ndarray) -> None:
         """The frame with the points it gets in the project, into the pictures folder; a thumbnail kept for the
         contact sheet (every `_stride`-th frame, the stride doubled whenever twice SHEET_TILES are kept)."""
-        from fcnpose_tf.draw import draw_keypoints, png_bytes, with_caption
+        from fcnpose_tf.draw import draw_keypoints, enlarged, png_bytes, with_caption
 
         count = int(np.isfinite(keypoints).all(axis=1).sum())
-        picture = with_caption(draw_keypoints(image, keypoints, self.schema),
+        picture = with_caption(draw_keypoints(*enlarged(image, keypoints), self.schema),
                                f"{name}: {count} of {self.schema.num_keypoints} keypoints")
         path = self.pictures / f"{len(self.frames):04d}_{Path(name).stem}.png"
         with fileio.parts_of(None):  # kept with the project, removed with it when the run fails
