@@ -6,12 +6,12 @@ frames its model was trained on, so that evaluate away from the record still mea
 import json
 import zipfile
 
-import cv2
 import numpy as np
 import pytest
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5, KeypointSchema, named_schema, schema_for_maps
+from tests.test_train_evaluate import make_via_folder
 
 MINE = KeypointSchema("arm4", ("j0", "j1", "j2", "tip"), ((0, 1), (1, 2), (2, 3)))
 TRAIN_FROM = ("--epochs", "1", "--input-size", "64", "--augment", "paper", "--augment-copies", "0", "--batch-size",
@@ -20,20 +20,7 @@ TRAIN = (*TRAIN_FROM, "--init", "none")
 
 
 def _own_schema_folder(folder, schema=MINE, n=6, size=64):
-    from fcnpose_tf.data.via import ViaFrame, write_via_project
-
-    rng = np.random.default_rng(3)
-    (folder / "images").mkdir(parents=True)
-    frames = []
-    for i in range(n):
-        image = np.full((size, size, 3), 40, np.uint8)
-        kps = np.c_[rng.uniform(8, size - 9, schema.num_keypoints), rng.uniform(8, size - 9, schema.num_keypoints)]
-        for k, (x, y) in enumerate(kps):
-            cv2.circle(image, (int(round(x)), int(round(y))), 3, (60 * k, 255 - 60 * k, 200), -1)
-        cv2.imwrite(str(folder / "images" / f"f{i}.png"), image)
-        frames.append(ViaFrame(f"f{i}.png", size, size, kps))
-    write_via_project(folder / "labels.json", frames, schema)
-    return folder
+    return make_via_folder(folder, n=n, size=(size, size), seed=3, schema=schema, suffix=".png")
 
 
 def test_named_schema_reads_the_stored_entry_then_the_record(tmp_path):

@@ -16,20 +16,20 @@ from fcnpose_tf.progress import SILENT
 from fcnpose_tf.records import training_record
 
 
-def make_via_folder(folder, n=10, size=(96, 72), seed=0):
-    """Frames of any size with coloured dots at the keypoints (a user's VIA export, not synthetic)."""
+def make_via_folder(folder, n=10, size=(96, 72), seed=0, schema=UR5, suffix=".jpg"):
+    """Frames of any size with coloured dots at the keypoints (a user's VIA export of `schema`, not synthetic)."""
     rng = np.random.default_rng(seed)
     (folder / "images").mkdir(parents=True)
     w, h = size
     frames = []
     for i in range(n):
         img = np.full((h, w, 3), 40, np.uint8)
-        kps = np.c_[rng.uniform(8, w - 9, 8), rng.uniform(8, h - 9, 8)]
+        kps = np.c_[rng.uniform(8, w - 9, schema.num_keypoints), rng.uniform(8, h - 9, schema.num_keypoints)]
         for k, (x, y) in enumerate(kps):
             cv2.circle(img, (int(round(x)), int(round(y))), 3, (30 * k, 255 - 30 * k, 200), -1)
-        cv2.imwrite(str(folder / "images" / f"cam_{i:02d}.jpg"), img)
-        frames.append(ViaFrame(f"cam_{i:02d}.jpg", w, h, kps))
-    write_via_project(folder / "labels.json", frames, UR5)
+        cv2.imwrite(str(folder / "images" / f"cam_{i:02d}{suffix}"), img)
+        frames.append(ViaFrame(f"cam_{i:02d}{suffix}", w, h, kps))
+    write_via_project(folder / "labels.json", frames, schema)
     return folder
 
 

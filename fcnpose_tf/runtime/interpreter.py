@@ -276,6 +276,15 @@ def inspect_io(interpreter: Any, path: str | os.PathLike = "model") -> ModelIO:
     return ModelIO(spec_in, spec_out)
 
 
+def _metadata_entry(path: str | os.PathLike, name: str) -> bytes | None:
+    """One metadata entry of a .tflite file (`tflite_metadata.read_metadata`), None when absent; UserError when the
+    file's metadata cannot be read."""
+    try:
+        return read_metadata(path).get(name)
+    except (OSError, ValueError) as exc:
+        raise UserError(f"{path}: its metadata cannot be read ({exc})") from exc
+
+
 def read_schema(path: str | os.PathLike, io: ModelIO) -> KeypointSchema | None:
     """What a .tflite model names its maps.
 
@@ -288,11 +297,7 @@ def read_schema(path: str | os.PathLike, io: ModelIO) -> KeypointSchema | None:
     Raises:
         UserError: unreadable metadata, or a stored schema that does not fit the file's maps.
     """
-    try:
-        stored = read_metadata(path).get(SCHEMA_METADATA)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: its metadata cannot be read ({exc})") from exc
-    return named_schema(io.num_maps, stored, path)
+    return named_schema(io.num_maps, _metadata_entry(path, SCHEMA_METADATA), path)
 
 
 def read_view(path: str | os.PathLike, io: ModelIO) -> FrameView:
@@ -306,10 +311,7 @@ def read_view(path: str | os.PathLike, io: ModelIO) -> FrameView:
     Raises:
         UserError: unreadable metadata, or a stored view that does not fit the file's input.
     """
-    try:
-        stored = read_metadata(path).get(VIEW_METADATA)
-    except (OSError, ValueError) as exc:
-        raise UserError(f"{path}: its metadata cannot be read ({exc})") from exc
+    stored = _metadata_entry(path, VIEW_METADATA)
     if stored is None:
         return FrameView(*io.input_shape)
     try:
