@@ -30,6 +30,7 @@ platforms to ~1e-5, but its output is off the 1/255 grid.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from dataclasses import dataclass
@@ -40,6 +41,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import read_regular_file
+from fcnpose_tf.nativelog import native_stderr_captured
 
 Box = tuple[int, int, int, int]
 """(x, y, width, height) of a box in frame pixels: columns x..x+width-1, rows y..y+height-1."""
@@ -291,6 +293,9 @@ def keypoints_to_frame(keypoints: np.ndarray, frame_shape: tuple[int, ...], view
     return (np.asarray(keypoints, np.float64) + 0.5) / view.scale(frame_shape) - 0.5 + (x, y)
 
 
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
 def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.ndarray | None:
     """An image file as `cv2.imread(path, flags)` reads it, None if it is not a readable image.
 
@@ -305,8 +310,10 @@ def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.nda
         return None
     if data.size == 0:
         return None
-    try:
-        return cv2.imdecode(data, flags)
+    truncated_png = data[:8].tobytes() == _PNG_SIGNATURE and b"IEND" not in data[-12:].tobytes()
+    try:  # libpng prints its own "libpng error: ..." line for a cut-off PNG: kept off the terminal (None says it)
+        with native_stderr_captured() if truncated_png else contextlib.nullcontext():
+            return cv2.imdecode(data, flags)
     except cv2.error:
         return None
 
