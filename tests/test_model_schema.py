@@ -162,9 +162,17 @@ def test_a_model_is_read_by_its_keypoint_names_and_refused_for_other_ones(tmp_pa
     status, _, err = cli_here("train", "--data", mine, "--init", lone / "m.keras", "--out", tmp_path / "t.keras",
                               *TRAIN_FROM)
     assert status == 2 and "m.keras: trained for base, wrist, finger L, finger R" in err
-    status, _, err = cli_here("train", "--data", swapped, "--init", lone / "m.keras", "--out", tmp_path / "t.keras",
-                              *TRAIN_FROM)
-    assert status == 2 and "the same keypoints in another order" in err
+    # the same keypoints in another order: the start's maps are put in the data's order, not refused
+    from fcnpose_tf.training.model import in_keypoint_order, load_model, schema_of
+
+    start, reordered = load_model(lone / "m.keras"), load_model(lone / "m.keras")
+    in_keypoint_order(reordered, other.schema, "m.keras")
+    frame = np.random.default_rng(0).random((1, 64, 64, 3), np.float32)
+    np.testing.assert_array_equal(start(frame).numpy()[..., [0, 1, 3, 2, 4]], reordered(frame).numpy())
+    status, out, err = cli_here("train", "--data", swapped, "--init", lone / "m.keras", "--out", tmp_path / "t.keras",
+                                *TRAIN_FROM)
+    assert status == 0, out + err
+    assert schema_of(load_model(tmp_path / "t.keras")) == other.schema
     status, _, err = cli_here("compress", "--rate", "0.7", "--model", lone / "m.keras", "--data", mine, "--out-dir",
                               tmp_path / "c", "--quantize", "float16", "--threads", "1")
     assert status == 2 and "compress it with frames of its own keypoints" in err and not (tmp_path / "c").exists()

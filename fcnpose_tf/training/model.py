@@ -25,7 +25,7 @@ import tf_keras as keras
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.fileio import entry_problem, native_name
-from fcnpose_tf.keypoints import KeypointSchema, named_schema, schema_for_maps
+from fcnpose_tf.keypoints import KeypointSchema, keypoint_difference, named_schema, schema_for_maps
 from fcnpose_tf.metrics import conv_macs
 from fcnpose_tf.preprocess import FrameView, ViewLike
 from fcnpose_tf.settings import INPUT_SIZE, INPUT_SIZE_MULTIPLE, check_input_size  # noqa: F401 - re-exported
@@ -251,6 +251,36 @@ def with_schema(model: keras.Model, schema: KeypointSchema) -> keras.Model:
                         f"({schema.num_keypoints} keypoints + skeleton)")
     object.__setattr__(model, _SCHEMA_ATTRIBUTE, schema)  # past Keras' attribute tracking, as the view
     return model
+
+
+def in_keypoint_order(model: keras.Model, schema: KeypointSchema, name: str) -> keras.Model:
+    """`model` with its keypoint maps in `schema`'s order: a model that names the same keypoints in another order
+    (its file's schema, `given_schema`) gets its output layer's filters permuted (in place; the skeleton map stays
+    last) and `schema`; a model that names none, or them in this order, only gets `schema`.
+
+    Args:
+        model: a keypoint-map model whose last layer is the output Conv2D.
+        schema: the data's keypoints.
+        name: the model's name in messages (its file).
+    Returns:
+        `model`.
+    Raises:
+        UserError: the model names other keypoints than `schema` (`keypoints.keypoint_difference` says which), or
+            has another number of maps.
+    """
+    named = given_schema(model)
+    if named is not None and named.keypoints != schema.keypoints:
+        if set(named.keypoints) != set(schema.keypoints):
+            raise UserError(f"{name}: trained for {', '.join(named.keypoints)}, but the data's schema {schema.name!r} "
+                            f"has {', '.join(schema.keypoints)} ({keypoint_difference(named.keypoints, schema.keypoints, name)})")
+        output = model.layers[-1]
+        if not isinstance(output, keras.layers.Conv2D):
+            raise UserError(f"{name}: its keypoints are in another order than the data's, and its last layer "
+                            f"{output.name} is no Conv2D whose maps could be reordered")
+        order = [named.keypoints.index(k) for k in schema.keypoints] + [schema.num_keypoints]  # skeleton last
+        kernel, bias = output.get_weights()
+        output.set_weights([kernel[..., order], bias[order]])
+    return with_schema(model, schema)
 
 
 def with_facts_of(model: keras.Model, source: keras.Model) -> keras.Model:

@@ -938,13 +938,14 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
         schema: the keypoints the data has.
         input_size: S, (H, W) or a `preprocess.FrameView` whose crop it takes (None: the view it was saved with).
     Returns:
-        The model at that input size, its maps named by `schema`.
+        The model at that input size, its maps named by `schema` (a model of the same keypoints in another order: its
+        maps put in the data's, `training.model.in_keypoint_order`).
     Raises:
         UserError: `init` is no keypoint-map model, predicts other maps than `schema` needs, or names other keypoints
-            (or the same in another order: its file's schema, else its training record's).
+            (its file's schema, else its training record's).
     """
     from fcnpose_tf.keypoints import keypoint_difference
-    from fcnpose_tf.training.model import at_input_size, conv_widths, given_schema, load_model
+    from fcnpose_tf.training.model import at_input_size, conv_widths, given_schema, in_keypoint_order, load_model
 
     source = load_model(init)
     widths = conv_widths(source)
@@ -953,14 +954,15 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
         raise UserError(f"{init}: not a keypoint-map model (input {in_shape[1:]}, output {out_shape[1:]}); --init "
                         "takes an FCN-Pose model file that train or compress wrote, whose maps have its input's size")
     named = given_schema(source)
-    difference = (keypoint_difference(named.keypoints, schema.keypoints, Path(init).name) if named is not None
-                  else None)
+    difference = (keypoint_difference(named.keypoints, schema.keypoints, Path(init).name)
+                  if named is not None and set(named.keypoints) != set(schema.keypoints) else None)
     if widths[-1] != schema.num_maps or difference:
         names = ", ".join(named.keypoints) if named is not None else f"{widths[-1] - 1} keypoints"
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
                         f"{', '.join(schema.keypoints)}" + (f" ({difference})" if difference else "") +
                         "; pass --init none to train from scratch, or --init MODEL with a model of this schema")
-    return with_schema(source if input_size is None else at_input_size(source, input_size), schema)
+    source = in_keypoint_order(source, schema, Path(init).name)
+    return source if input_size is None else at_input_size(source, input_size)
 
 
 def train_fold(dataset: Any, fold: int | None, model_path: str | Path, config: FitConfig, *, input_size: Any,
