@@ -190,9 +190,12 @@ class LocalExecutor(Executor):
                         failed.add(job.name)
                         for other in list(running.values()) + [job]:
                             on_event(JobEvent("failed", other, error="its worker process died (out of memory? "
-                                                                     "killed?)"))
+                                                                     "killed? a script's code not under `if "
+                                                                     "__name__ == \"__main__\":`?)"))
                         raise UserError("a sweep worker process died; the jobs still to run were not started; "
-                                        "rerun to continue (fewer --workers needs less memory)") from None
+                                        "rerun to continue (fewer --workers needs less memory; from a Python script, "
+                                        "put the sweep under `if __name__ == \"__main__\":`, which the worker "
+                                        "processes start again)") from None
                     except Exception as exc:  # noqa: BLE001
                         failed.add(job.name)
                         on_event(JobEvent("failed", job, error=_error_text(exc),
