@@ -206,3 +206,36 @@ def test_the_schema_survives_a_save_in_via_and_projects_of_the_same_keypoints_me
     status, _, err = cli_here("data", "merge", data / "labels.json", _own_schema_folder(tmp_path / "mine", MINE) /
                               "labels.json", "--out", tmp_path / "m3" / "m.json")
     assert status == 2 and "only projects of the same keypoints can be merged" in err and "lacks" in err
+
+
+@pytest.mark.slow
+def test_a_copied_file_is_scored_on_the_validation_frames_of_its_own_split_seed(tmp_path, cli_here):
+    """A model trained on `--split-seed 3` splits, exported, copied away from its record, evaluated on a copy of the
+    data without its splits file: its validation frames are seed 3's (the file's record), not seed 0's. With the
+    splits file, commands that give no --split-seed take the stored seed instead of refusing it."""
+    import shutil
+
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.data.splits import make_splits
+
+    data = make_via_folder(tmp_path / "d", n=10, size=(64, 64))
+    model = tmp_path / "m.keras"
+    status, out, err = cli_here("train", "--data", data, "--split-seed", "3", "--out", model, *TRAIN)
+    assert status == 0, out + err
+    status, out, err = cli_here("export", model, "--quantize", "float16", "--threads", "1", "--quiet")
+    assert status == 0, out + err  # its data and the stored seed-3 splits, with no --split-seed
+    status, out, err = cli_here("evaluate", model, "--data", data, "--threads", "1", "--quiet", "--worst", "0")
+    assert status == 0, out + err
+    copy = tmp_path / "copy"
+    shutil.copytree(data, copy, ignore=shutil.ignore_patterns("*.splits.json"))
+    (tmp_path / "pi").mkdir()
+    alone = tmp_path / "pi" / "m_fp16.tflite"
+    shutil.copy(tmp_path / "m_fp16.tflite", alone)
+    status, out, err = cli_here("evaluate", alone, "--data", copy, "--threads", "1", "--quiet", "--worst", "0",
+                                "--json", tmp_path / "e.json")
+    assert status == 0, out + err
+    frames = [s.filename for s in load_dataset(copy, write_splits=False, split_seed=None).samples]
+    seed3, seed0 = (sorted(frames[i] for i in make_splits(10, 5, 0.2, seed).holdout[1]) for seed in (3, 0))
+    assert seed3 != seed0
+    scored = sorted(row["frame"] for row in json.loads((tmp_path / "e.json").read_text())["per_frame"])
+    assert scored == seed3

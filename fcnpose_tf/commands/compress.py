@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.compression.steps import SharedScoring
     from fcnpose_tf.compression.options import CompressOptions, check_outputs
     from fcnpose_tf.compression.summary import accuracy_note, report_table
-    from fcnpose_tf.data.args import default_data, load_from_args, load_test_data
+    from fcnpose_tf.data.args import default_data, load_from_args, load_test_data, splits_of_record
     from fcnpose_tf.data.dataset import load_dataset
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
@@ -181,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
         set_tensorflow_threads(args.threads)
         if args.data is None:
             args.data, args.images = default_data(model_path, args.images)
+        splits_of_record(args, model_path)  # retrained on its training frames, measured on its validation frames
         train_dataset = load_from_args(args)
         bundled_task = False  # the bundled baseline on its own synthetic frames: the README's command
         if args.test_data is not None:

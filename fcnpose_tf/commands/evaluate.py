@@ -74,7 +74,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from fcnpose_tf.data.args import load_from_args
+    from fcnpose_tf.data.args import load_from_args, splits_of_record
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.evaluate import choose_frames, evaluate_predictor, format_timing, open_model
     from fcnpose_tf.fileio import check_writable, write_json
@@ -103,6 +103,7 @@ def run(args: argparse.Namespace) -> int:
 
     model_path = args.model
     predictor = open_model(model_path, args.threads, Decoding.from_args(args))
+    splits_of_record(args, model_path)  # a copy of the data it was trained on: its split, not seed 0's
     dataset = load_from_args(args)
     indices, description = choose_frames(dataset, model_path, args.split, args.fold)
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema, progress=True)

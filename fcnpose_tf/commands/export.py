@@ -84,7 +84,7 @@ def _input_range(text: str) -> tuple[float, float]:
 
 def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
-    from fcnpose_tf.data.args import default_data, load_from_args
+    from fcnpose_tf.data.args import default_data, load_from_args, splits_of_record
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.compression.export import ExportOptions, write_tflite
     from fcnpose_tf.compression.summary import finish_formats
@@ -123,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
         model = at_input_height(model, args.input_size)
     if args.data is None:
         args.data, args.images = default_data(args.model, args.images)
+    splits_of_record(args, args.model)  # calibrated on its training frames, verified on its validation frames
     dataset = load_from_args(args)
     train, val = dataset.split(None)
     view = view_of(model)  # verification and calibration frames as the model sees them: its crop, its H x W

@@ -37,7 +37,9 @@ def add_data_arguments(parser: argparse.ArgumentParser, positional: bool = True,
     if folds_option:  # unset (None): the default K, and no folds on a dataset smaller than that
         FOLDS.variant(default=None, paper=None, help=f"{FOLDS.help}; default {FOLDS.default}, refused for fewer frames "
                       "when given").add_to(parser)
-    parser.add_argument("--split-seed", type=int, default=0, help="seed of the stored splits")
+    parser.add_argument("--split-seed", type=int, default=None,
+                        help="seed of the splits: left out, the stored splits' (or the model's training record's, "
+                             "for the data it was trained on), else 0 for new ones")
     parser.add_argument("--resplit", action="store_true", help="replace the stored splits")
 
 
@@ -97,6 +99,30 @@ def load_from_args(args: argparse.Namespace) -> Any:
         folds = FOLDS.default
     return load_dataset(args.data, args.images, attribute=args.keypoint_attr, min_visible=args.min_visible,
                         skip_bad=args.skip_bad, folds=folds, split_seed=args.split_seed, resplit=args.resplit)
+
+
+def splits_of_record(args: argparse.Namespace, model_path: str | Path) -> None:
+    """With no --split-seed (and no --folds) given, the seed and K of the splits `model_path` was trained with, when
+    `args.data` is the annotation file it was trained on (its training record's, or a .tflite's own, SHA-256): new
+    splits of a copy of the data (no splits file beside it) then hold the model's validation frames, not seed 0's.
+    Sets `args.split_seed` (and `args.folds`) in place."""
+    from fcnpose_tf.data.dataset import resolve_data
+    from fcnpose_tf.records import file_sha256, training_record
+
+    if getattr(args, "split_seed", None) is not None or getattr(args, "data", None) is None:
+        return
+    record = training_record(model_path)
+    if record is None or record.split_seed is None or not record.data_sha256:
+        return
+    try:
+        via_path, _ = resolve_data(args.data, getattr(args, "images", None))
+        same = file_sha256(via_path) == record.data_sha256
+    except (UserError, OSError):  # loading the data says what is wrong with it
+        return
+    if same:
+        args.split_seed = record.split_seed
+        if getattr(args, "folds", None) is None and getattr(args, "fold", None) is None and record.folds:
+            args.folds = record.folds
 
 
 def recorded_data(model_path: str | Path, record: Any) -> tuple[Path, Path | None] | None:

@@ -190,7 +190,8 @@ def resolve_data(data: str | os.PathLike, images: str | os.PathLike | None = Non
 
 def load_dataset(data: str | os.PathLike, images: str | os.PathLike | None = None, *, attribute: str = "keypoint",
                  schema: KeypointSchema | None = None, min_visible: int | None = None, skip_bad: bool = False,
-                 folds: int | None = None, val_fraction: float = 0.2, split_seed: int = 0, write_splits: bool = True,
+                 folds: int | None = None, val_fraction: float = 0.2, split_seed: int | None = 0,
+                 write_splits: bool = True,
                  resplit: bool = False) -> Dataset:
     """Load a dataset by the `--data` rule and attach its stored (or newly stored) splits.
 
@@ -200,7 +201,7 @@ def load_dataset(data: str | os.PathLike, images: str | os.PathLike | None = Non
         attribute, schema, min_visible, skip_bad: as in `via.read_via`.
         folds, val_fraction, split_seed: K-fold count, hold-out validation fraction and seed. A K
             given is refused for fewer than K frames (`splits.check_fold_count`); None means
-            the default 5, with no folds on a dataset too small for them.
+            the default 5, with no folds on a dataset too small for them. Seed None: the stored splits', else 0.
         write_splits: store new splits as `<VIA stem>.splits.json` (skipped silently when the
             folder is read-only).
         resplit: replace stored splits (needed after changing the frames or split options).

@@ -211,19 +211,21 @@ def stored_roles(via_path: str | os.PathLike) -> dict[str, str]:
 
 
 def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: int | None = None,
-                          val_fraction: float = 0.2, seed: int = 0, write: bool = True,
+                          val_fraction: float = 0.2, seed: int | None = 0, write: bool = True,
                           resplit: bool = False, roles: Sequence[str | None] | None = None
                           ) -> tuple[Splits, Path, str]:
     """The dataset's stored splits, or new ones saved beside the VIA file (when `write`).
 
     `k`: the K folds asked for, refused (`check_fold_count`) when there are fewer frames; None:
     no K asked for: the stored splits' K, whatever it is, or for new splits the default K (5), whose folds a dataset
-    too small for them simply lacks (the hold-out split still serves). Returns (splits, path of the splits file,
+    too small for them simply lacks (the hold-out split still serves). `seed`: None, no seed asked for: the stored
+    splits' seed, or 0 for new ones. Returns (splits, path of the splits file,
     status) with status "loaded", "created", or "not saved" (folder not writable or write=False). Stored
     splits made with another seed, K or fraction, or for another frame list, are
     an error unless `resplit` replaces them.
     """
-    asked = k
+    asked, asked_seed = k, seed
+    seed = 0 if seed is None else seed
     if k is None:
         k = FOLDS.default
     else:
@@ -237,10 +239,12 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
             raise UserError(f"{path}: cannot read splits file ({reason}); delete it to split again") from None
         splits = splits_from_dict(data, names, str(path))
         k = splits.k if asked is None else k  # a command that asks for no K (the hold-out split) takes the stored one
+        seed = splits.seed if asked_seed is None else seed  # and no seed: the stored one
         if (splits.seed, splits.k) != (seed, k) or abs(splits.val_fraction - val_fraction) > 1e-9:
             raise UserError(f"{path}: stored splits use seed {splits.seed}, {splits.k} folds, validation fraction "
                             f"{splits.val_fraction:g}, but seed {seed}, {k} folds, {val_fraction:g} were asked for; "
-                            "use the stored settings, or pass --resplit to replace them")
+                            f"use the stored settings (--split-seed {splits.seed} --folds {splits.k}, or leave both "
+                            "out), or pass --resplit to replace them")
         return splits, path, "loaded"
     splits = make_splits(len(names), k, val_fraction, seed, roles)
     if not write:
