@@ -92,6 +92,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf import settings
     from fcnpose_tf.data.args import load_from_args, load_test_data
     from fcnpose_tf.data.dataset import resolve_data
+    from fcnpose_tf.data.splits import stored_seed
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.evaluate import format_timing
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
@@ -122,6 +123,8 @@ def run(args: argparse.Namespace) -> int:
         for fold in folds:  # fail before any training, not after the first fold
             check_outputs(fold_model_path(args.out, fold), args.force)
     via_path, images_dir = resolve_data(args.data, args.images)
+    if args.split_seed is None:  # the stored splits' seed, else 0: what the checkpoint's identity records
+        args.split_seed = stored_seed(via_path) or 0
     finished = _finished_folds(args, folds, via_path) if args.resume and len(folds) > 1 else {}
     resumes = {fold: args.resume and fold not in finished and (len(folds) == 1 or _has_checkpoint(args.out, fold))
                for fold in folds}  # --resume --folds K: each fold's checkpoint continued, the folds never begun started

@@ -171,6 +171,16 @@ def splits_to_dict(splits: Splits, names: Sequence[str]) -> dict:
     }
 
 
+def stored_seed(via_path: str | os.PathLike) -> int | None:
+    """The seed of the splits stored beside a VIA file, None when there are none or they cannot be read (loading
+    them says why): what a command given no --split-seed uses (`load_or_create_splits`)."""
+    try:
+        seed = fileio.parse_json(splits_path(via_path).read_text("utf-8")).get("seed")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return seed if isinstance(seed, int) and not isinstance(seed, bool) else None
+
+
 def splits_from_dict(data: dict, names: Sequence[str], source: str = "splits") -> Splits:
     """Splits from `splits_to_dict` output, as indices into `names`; UserError if the frame lists differ."""
     try:
