@@ -86,22 +86,39 @@ class KeypointSchema:
 _SIDES = {"left": "right", "right": "left", "l": "r", "r": "l", "lft": "rgt", "rgt": "lft"}
 
 
+_AXIS_WORDS = {"axis", "axle", "joint", "j"}
+"""Words beside a single letter that make it an axis's name, not a side (Yaskawa's L and R axes: `L-axis`)."""
+
+
 def mirrored_name(name: str) -> str | None:
-    """The name of the keypoint on the other side: each left/right word of `name` (`left`, `L`, `lft`, whole words
-    between spaces, `_`, `-` or `.`, any case) swapped for the other side's, in the same case; None when it has none.
+    """The name of the keypoint on the other side: each left/right word of `name` (`left`, `right`, `lft`, `rgt`,
+    or `L`/`R` beside another word; whole words between spaces, `_`, `-` or `.`, any case) swapped for the other
+    side's, in the same case; None when it has none. A lone letter (`L`, Yaskawa's lower-arm axis) or a letter beside
+    an axis word (`L-axis`, `joint R`) names an axis, not a side.
 
     Example:
-        >>> mirrored_name("gripper L"), mirrored_name("Left_finger"), mirrored_name("elbow")
-        ('gripper R', 'Right_finger', None)
+        >>> mirrored_name("gripper L"), mirrored_name("Left_finger"), mirrored_name("elbow"), mirrored_name("L-axis")
+        ('gripper R', 'Right_finger', None, None)
     """
     parts = re.split(r"([\s_.-]+)", name)
+    words = [part.lower() for part in parts[::2] if part]
     swapped = False
     for i, part in enumerate(parts):
         other = _SIDES.get(part.lower())
-        if other is not None and i % 2 == 0:
-            parts[i] = other.upper() if part.isupper() else other.capitalize() if part[:1].isupper() else other
-            swapped = True
+        if other is None or i % 2:
+            continue
+        if len(part) == 1 and (len(words) < 2 or _AXIS_WORDS & set(words)):
+            continue
+        parts[i] = other.upper() if part.isupper() else other.capitalize() if part[:1].isupper() else other
+        swapped = True
     return "".join(parts) if swapped else None
+
+
+def describe_mirror(schema: "KeypointSchema") -> str | None:
+    """The left/right pairs a flip swaps (`KeypointSchema.mirror`), for `train` and `data inspect` to say: "gripper L
+    <-> gripper R"; None without a pair."""
+    pairs = [(schema.keypoints[i], schema.keypoints[j]) for i, j in enumerate(schema.mirror) if i < j]
+    return ", ".join(f"{a} <-> {b}" for a, b in pairs) or None
 
 
 UR5 = KeypointSchema.chain("ur5", ("base", "shoulder", "elbow", "wrist1", "wrist2", "wrist3", "flange", "tool"))

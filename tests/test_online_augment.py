@@ -69,10 +69,13 @@ def test_a_flip_swaps_the_labels_of_left_right_pairs():
     """A gripper's L and R fingers: flipped, the left finger is where a right finger is, and is labelled so (review:
     half the online-augmented targets swapped L and R); an unflipped sample keeps its labels."""
     from fcnpose_tf.correction.selection import flip_back
-    from fcnpose_tf.keypoints import KeypointSchema
+    from fcnpose_tf.keypoints import UR5, KeypointSchema, describe_mirror
 
     schema = KeypointSchema.chain("gripper", ("base", "finger L", "finger R"))
     assert schema.mirror == (0, 2, 1)
+    assert KeypointSchema.chain("yaskawa", "SLURBT").mirror == tuple(range(6))  # axes named by a letter: no pair
+    assert KeypointSchema.chain("axes", ("S-axis", "L-axis", "R-axis", "joint L", "joint R")).mirror == tuple(range(5))
+    assert describe_mirror(schema) == "finger L <-> finger R" and describe_mirror(UR5) is None
     kps = np.array([[60.0, 80.0], [40.0, 30.0], [90.0, 30.0]])
     scaled = (kps + 0.5) * np.array([S / W, S / H]) - 0.5
     flipping = OnlineAugmenter(S, OnlineAugmentConfig(flip_p=1.0, affine_p=0.0, **NO_APPEARANCE), schema.mirror)

@@ -99,7 +99,7 @@ def _inspect(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.masks import default_radius, default_thickness
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.fileio import check_writable
-    from fcnpose_tf.keypoints import spelling_hint
+    from fcnpose_tf.keypoints import describe_mirror, spelling_hint
     from fcnpose_tf.tables import format_table
 
     settings.TRAIN_INPUT_SIZE.validate(args.input_size)
@@ -117,7 +117,7 @@ def _inspect(args: argparse.Namespace) -> int:
     folder = {s.image_path.parent for s in ds.samples}
     print(f"Dataset: {ds.via_path}  (images: {', '.join(sorted(map(str, folder)))})")
     print(f"Schema:  {schema.name}, {schema.num_keypoints} keypoints ({', '.join(schema.keypoints)}), "
-          f"{schema.num_maps} target maps")
+          f"{schema.num_maps} target maps" + (f"; flips swap {pairs}" if (pairs := describe_mirror(schema)) else ""))
     hint = spelling_hint(schema.keypoints)
     if hint:
         print(f"note: {hint}; as they are, no bundled model can start the training")

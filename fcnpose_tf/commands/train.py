@@ -93,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.data.args import load_from_args, load_test_data
     from fcnpose_tf.data.dataset import resolve_data
     from fcnpose_tf.data.splits import stored_seed
+    from fcnpose_tf.keypoints import describe_mirror
     from fcnpose_tf.errors import UserError
     from fcnpose_tf.training.evaluate import format_timing
     from fcnpose_tf.training.tfsetup import set_tensorflow_threads
@@ -184,6 +185,8 @@ def run(args: argparse.Namespace) -> int:
                                                augment=args.augment, augment_copies=args.augment_copies,
                                                split_seed=args.split_seed))
     dataset = load_from_args(args)  # --folds K or a --fold: K folds required of the data; else the hold-out split
+    if args.augment == "online" and (pairs := describe_mirror(dataset.schema)):
+        print(f"Flips swap the labels of {pairs} (names that differ only in a side word)")
     test = load_test_data(args, dataset) if args.test_data is not None else None
 
     set_tensorflow_threads(args.threads)
