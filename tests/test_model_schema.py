@@ -239,3 +239,34 @@ def test_a_copied_file_is_scored_on_the_validation_frames_of_its_own_split_seed(
     assert seed3 != seed0
     scored = sorted(row["frame"] for row in json.loads((tmp_path / "e.json").read_text())["per_frame"])
     assert scored == seed3
+
+
+def test_a_merge_names_every_point_one_way_and_keeps_the_schema_through_a_save_in_via(tmp_path, cli_here):
+    """`data merge --keypoint-attr joint` of the user's project (points under `joint`) and predict's (under
+    `keypoint`): every point of the merged project under `joint` (a reader of `joint` took the others in schema
+    order, mislabelling frames missing a keypoint), and the schema, skeleton too, in the attribute's description."""
+    from fcnpose_tf.data.via import SCHEMA_KEY, read_via, write_via_project
+
+    data = _own_schema_folder(tmp_path / "d", TREE, n=4)
+    frames = read_via(data / "labels.json").frames
+    write_via_project(data / "labels.json", frames[:2], TREE, attribute="joint", force=True)
+    predicted = tmp_path / "pre"
+    predicted.mkdir()
+    (predicted / "images").symlink_to(data / "images")
+    later = [type(f)(f.filename, f.width, f.height, f.keypoints.copy()) for f in frames[2:]]
+    later[0].keypoints[2] = np.nan  # a keypoint not found: its frame's points must not shift by one
+    write_via_project(predicted / "pre.json", later, TREE)
+    merged = tmp_path / "m" / "m.json"
+    status, out, err = cli_here("data", "merge", data / "labels.json", predicted / "pre.json", "--keypoint-attr",
+                                "joint", "--out", merged)
+    assert status == 0, out + err
+    project = json.loads(merged.read_text())
+    names = {name for meta in project["_via_img_metadata"].values() for r in meta["regions"]
+             for name in r["region_attributes"]}
+    assert names == {"joint"} and set(project["_via_attributes"]["region"]) == {"joint"}
+    saved = tmp_path / "m" / "saved.json"  # VIA's own save: its keys only
+    saved.write_text(json.dumps({k: v for k, v in project.items() if k != SCHEMA_KEY}))
+    read = read_via(saved, attribute="joint", min_visible=1)
+    assert read.schema == TREE
+    by_name = {f.filename: f.keypoints for f in read.frames}
+    np.testing.assert_array_equal(by_name[later[0].filename], later[0].keypoints)

@@ -96,6 +96,20 @@ def _relative(folder: Path, base: Path) -> str:
         return os.fspath(folder)
 
 
+def _named_by(meta: dict, found: str, attribute: str) -> dict:
+    """A frame's entry whose points name their keypoints under `found` (an input read by another attribute than
+    --keypoint-attr: `predict` writes `keypoint`), renamed to `attribute`: the merged project names every point one
+    way, or a reader of `attribute` takes the others' points in schema order."""
+    if found == attribute:
+        return meta
+    regions = meta.get("regions")
+    for region in (regions.values() if isinstance(regions, dict) else regions if isinstance(regions, list) else ()):
+        names = region.get("region_attributes") if isinstance(region, dict) else None
+        if isinstance(names, dict) and found in names:
+            names[attribute] = names.pop(found)
+    return meta
+
+
 def _regions(meta: dict) -> list[str]:
     """A frame's regions in an order of their own: the same points listed in another order are the same
     annotation (a project whose dropdown lists the keypoints in another order writes them so)."""
@@ -140,6 +154,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
     merged: dict[str, list[_Entry]] = {}  # by file name: the different images sharing it
     result = MergeResult({}, None, [])  # type: ignore[arg-type]
     attributes: dict[str, dict] = {"region": {}, "file": {}}
+    renamed: set[str] = set()  # inputs' keypoint attributes other than `attribute`: their points are renamed
     for via_path in paths:
         annotations = _via.read_via(via_path, attribute=attribute, min_visible=0, skip_bad=skip_bad)
         if schema is None:
@@ -153,6 +168,8 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
             annotations = _via.read_via(via_path, attribute=attribute, schema=schema, min_visible=0,
                                         skip_bad=skip_bad)
         result.skipped += [f"{via_path}: {message}" for message in annotations.problems]
+        if annotations.attribute != attribute:
+            renamed.add(annotations.attribute)
         data = _via._load_json(via_path)
         metadata, _ = _via._split_file(via_path, data)
         raw = {meta["filename"]: meta for meta in metadata.values()
@@ -163,7 +180,8 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
                 attributes[kind].setdefault(name, copy.deepcopy(spec))
         roles = stored_roles(via_path)
         for frame in annotations.frames:
-            entry = _Entry(via_path, copy.deepcopy(raw[frame.filename]), Path(frame.image_path))
+            entry = _Entry(via_path, _named_by(copy.deepcopy(raw[frame.filename]), annotations.attribute, attribute),
+                           Path(frame.image_path))
             role = frame.split or roles.get(frame.filename)
             if role is not None:
                 if not isinstance(entry.meta.get("file_attributes"), dict):
@@ -220,6 +238,11 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
     for kind in ("region", "file"):
         for name, spec in project["_via_attributes"][kind].items():
             attributes[kind].setdefault(name, spec)
+    # the keypoint attribute as the merged schema writes it: its options and, in its description, the schema itself
+    # (what survives a save in VIA), whatever the inputs' said
+    attributes["region"][attribute] = project["_via_attributes"]["region"][attribute]
+    for name in renamed - {attribute}:  # no point names its keypoint under it any more
+        attributes["region"].pop(name, None)
     project["_via_attributes"] = attributes
     project["_via_img_metadata"] = metadata
     project["_via_image_id_list"] = list(metadata)
