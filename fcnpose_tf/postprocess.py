@@ -411,9 +411,9 @@ def _chain_prior(schema: KeypointSchema | None, k: int) -> LimbPrior | None:
     schema = schema if schema is not None else schema_for_maps(k + 1)
     if schema.num_keypoints != k:
         raise UserError(f"schema {schema.name!r} has {schema.num_keypoints} keypoints, the maps {k}")
-    if set(schema.edges) != {(i, i + 1) for i in range(k - 1)}:
-        raise UserError(f"--cluster chain follows a serial chain of keypoints (each joined to the next); schema "
-                        f"{schema.name!r}'s skeleton is not one: use --cluster largest")
+    if {frozenset(edge) for edge in schema.edges} != {frozenset((i, i + 1)) for i in range(k - 1)}:
+        raise UserError(f"--cluster chain follows a serial chain of keypoints (each joined to the next in the "
+                        f"schema's order); the skeleton of schema {schema.name!r} is not one: use --cluster largest")
     return UR5_LIMBS if schema.keypoints == UR5.keypoints else None
 
 

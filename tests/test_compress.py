@@ -323,9 +323,9 @@ def test_export_command_writes_verified_files_next_to_the_model(setup, cli_here,
     assert "arm_int8.tflite" in stdout and "folded" in stdout
     validation = len(load_dataset(data).split(None)[1])  # fewer than 16: topped up with training frames, said so
     assert validation < 16 and record["verification_frames"] == (
-        f"the {validation} of the validation split and the first {16 - validation} of the training split")
+        f"the {validation} frames of the validation split and the first {16 - validation} of the training split")
     assert f"on {record['verification_frames']} of " in stdout
-    assert describe_check_frames(16, 40) == "the first 16 of the validation split"
+    assert describe_check_frames(16, 40) == "the first 16 frames of the validation split"
     assert record["schema"]["keypoints"][0] == "base"  # the names the files' maps stand for
     status, _, err = cli_here("export", model, "--data", data, "--quantize", "int8")
     assert status == 2 and "already exists; pass --force" in err

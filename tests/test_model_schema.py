@@ -173,6 +173,11 @@ def test_a_model_is_read_by_its_keypoint_names_and_refused_for_other_ones(tmp_pa
                                 *TRAIN_FROM)
     assert status == 0, out + err
     assert schema_of(load_model(tmp_path / "t.keras")) == other.schema
+    plain = tmp_path / "old" / "p.keras"  # no schema stored, no record: read in the data's order, and said so
+    plain.parent.mkdir()
+    save_for_inference(randomize(build_fcn_pose(input_size=64, num_maps=5), seed=1), plain)
+    status, out, err = cli_here("evaluate", plain, "--data", mine, "--threads", "1", "--worst", "0")
+    assert status == 0 and "note: p.keras names no keypoints" in out and "read as the data's j0, j1, j2, tip" in out
     status, _, err = cli_here("compress", "--rate", "0.7", "--model", lone / "m.keras", "--data", mine, "--out-dir",
                               tmp_path / "c", "--quantize", "float16", "--threads", "1")
     assert status == 2 and "compress it with frames of its own keypoints" in err and not (tmp_path / "c").exists()

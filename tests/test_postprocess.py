@@ -800,8 +800,11 @@ def test_the_chain_weighs_the_ur5s_limb_lengths_where_the_skeleton_cannot_tell()
     unweighted, _ = maps_to_keypoints(maps, centroid="plain", cluster="chain", schema=other)
     assert unweighted[4] == pytest.approx(largest[4], abs=0.6)  # the larger cluster, both on the skeleton
     tree = KeypointSchema("tree", other.keypoints, ((0, 1), (1, 2), (1, 3), (3, 4), (4, 5), (5, 6), (6, 7)))
-    with pytest.raises(UserError, match="schema 'tree''s skeleton is not one: use --cluster largest"):
+    with pytest.raises(UserError, match="the skeleton of schema 'tree' is not one: use --cluster largest"):
         maps_to_keypoints(maps, cluster="chain", schema=tree)
+    backwards = KeypointSchema("back", other.keypoints, tuple((i + 1, i) for i in range(7)))  # the same chain
+    np.testing.assert_array_equal(maps_to_keypoints(maps, centroid="plain", cluster="chain", schema=backwards)[0],
+                                  unweighted)
     assert maps_to_keypoints(maps, cluster="chain", schema=UR5)[0][4] == pytest.approx(points[4], abs=0.6)
 
 

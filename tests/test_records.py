@@ -206,3 +206,7 @@ def test_evaluating_a_model_without_a_record_on_frames_with_stored_splits_says_i
     assert choose_frames(first, tmp_path / "m_fp16.tflite", "auto", None)[1] == "all 6 frames"
     indices, described = choose_frames(load_dataset(data), tmp_path / "m_fp16.tflite", "auto", None)
     assert indices == list(range(6)) and described.startswith("all 6 frames; no training record beside m_fp16.tflite")
+    # a record of another annotation file (the same frames saved again in VIA: other bytes) says so too
+    (tmp_path / "m_train.json").write_text(json.dumps({"data_sha256": "0" * 64, "fold": None}))
+    described = choose_frames(load_dataset(data), tmp_path / "m_fp16.tflite", "auto", None)[1]
+    assert described.startswith("all 6 frames; m_fp16.tflite's training record names another annotation file")

@@ -178,7 +178,7 @@ def test_a_test_set_whose_images_lie_elsewhere_is_read_with_test_images(tmp_path
     (test / "labels.json").rename(labels)
     out = tmp_path / "m.keras"
     status, _, err = cli_here("train", "--data", data, "--out", out, "--test-data", labels, *TRAIN)
-    assert status == 2 and "pass --images DIR" in err  # the hint names the option of the data it is about
+    assert status == 2 and "pass --test-images DIR" in err  # the hint names the option of the data it is about
     status, stdout, err = cli_here("train", "--data", data, "--out", out, "--test-data", labels, "--test-images",
                                    test / "images", "--init", "none", *TRAIN)
     assert status == 0, stdout + err

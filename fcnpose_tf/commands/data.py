@@ -68,7 +68,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         description="Join VIA 2 projects frame by file name into one project that train --data and data inspect "
                     "load: images are found as train --data finds them, their folders stored in the merged "
                     "project (relative to it). A frame annotated differently in two inputs is an error naming it "
-                    "(or --prefer last); identical annotations are kept once; the keypoint schemas must match.",
+                    "(or --prefer last); identical annotations are kept once; the inputs must name the same keypoints "
+                    "(in any order: the first input's schema is kept).",
         epilog="examples:\n" + MERGE_EXAMPLES.rstrip())
     settings.add_command_options(merge)
     merge.add_argument("inputs", nargs="+", type=Path, metavar="VIA",

@@ -105,6 +105,9 @@ def run(args: argparse.Namespace) -> int:
     predictor = open_model(model_path, args.threads, Decoding.from_args(args))
     splits_of_record(args, model_path)  # a copy of the data it was trained on: its split, not seed 0's
     dataset = load_from_args(args)
+    if not predictor.names_keypoints and dataset.schema.keypoints != predictor.schema.keypoints:
+        print(f"note: {Path(model_path).name} names no keypoints (a file from before 2026-12-05 without its training "
+              f"record): its maps are read as the data's {', '.join(dataset.schema.keypoints)}, in that order")
     indices, description = choose_frames(dataset, model_path, args.split, args.fold)
     result = evaluate_predictor(predictor, dataset, indices, dataset.schema, progress=True)
     print(f"Model: {model_path} ({Path(model_path).stat().st_size:,} bytes)")

@@ -68,8 +68,8 @@ def export_frames(quantize: str, input_size: ViewLike, train_dataset: Any, train
 
 
 def describe_check_frames(samples: int, check_count: int, check_name: str = "validation split") -> str:
-    """Which frames `export_frames` verified a file on, in words: "the first 16 of the validation split", or with
-    fewer than `samples` there "the 5 of the validation split and the first 11 of the training split".
+    """Which frames `export_frames` verified a file on, in words: "the first 16 frames of the validation split", or
+    with fewer than `samples` there "the 5 frames of the validation split and the first 11 of the training split".
 
     Args:
         samples: the frames verified on.
@@ -79,8 +79,9 @@ def describe_check_frames(samples: int, check_count: int, check_name: str = "val
         The phrase.
     """
     if check_count >= samples:
-        return f"the first {samples} of the {check_name}"
-    return f"the {check_count} of the {check_name} and the first {samples - check_count} of the training split"
+        return f"the first {samples} frames of the {check_name}"
+    return (f"the {check_count} frame{'s' if check_count != 1 else ''} of the {check_name} and the first "
+            f"{samples - check_count} of the training split")
 
 
 def calibration_frames(dataset: Any, indices: Sequence[int], count: int, input_size: ViewLike,

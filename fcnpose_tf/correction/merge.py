@@ -160,7 +160,7 @@ def merge_via_projects(inputs: Sequence[str | os.PathLike], out: str | os.PathLi
         if schema is None:
             schema = annotations.schema
         elif set(annotations.schema.keypoints) != set(schema.keypoints):
-            difference = keypoint_difference(schema.keypoints, annotations.schema.keypoints, paths[0].name, "it")
+            difference = keypoint_difference(schema.keypoints, annotations.schema.keypoints, str(paths[0]), "it")
             raise UserError(f"{via_path}: keypoint schema {_schema_text(annotations.schema)} differs from "
                             f"{paths[0]}'s {_schema_text(schema)} ({difference}); only projects of the same "
                             "keypoints can be merged")

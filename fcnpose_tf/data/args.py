@@ -66,8 +66,12 @@ def load_test_data(args: argparse.Namespace, dataset: Any) -> Any:
     from fcnpose_tf.keypoints import keypoint_difference
 
     def load(schema=None):
-        return load_dataset(args.test_data, getattr(args, "test_images", None), attribute=args.keypoint_attr,
-                            schema=schema, min_visible=args.min_visible, skip_bad=args.skip_bad, write_splits=False)
+        try:
+            return load_dataset(args.test_data, getattr(args, "test_images", None), attribute=args.keypoint_attr,
+                                schema=schema, min_visible=args.min_visible, skip_bad=args.skip_bad,
+                                write_splits=False)
+        except UserError as exc:  # the reader names --data's option; the test set's is --test-images
+            raise UserError(str(exc).replace("pass --images DIR", "pass --test-images DIR")) from None
 
     test = load()
     if set(test.schema.keypoints) != set(dataset.schema.keypoints):

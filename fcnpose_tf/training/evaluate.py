@@ -53,9 +53,12 @@ def choose_frames(dataset: Any, model_path: str | os.PathLike, split: str, fold:
                 fold = record.fold
         else:
             split = "all"
-            if record is None and dataset.splits_status == "loaded":  # frames some model was trained on, maybe this
-                unknown = (f"; no training record beside {Path(model_path).name} says which frames it was trained on: "
-                           "if these, its training frames are among them (--split val takes the validation frames)")
+            if dataset.splits_status == "loaded":  # frames some model was trained on, maybe this one
+                why = (f"no training record beside {Path(model_path).name} says which frames it was trained on"
+                       if record is None else f"{Path(model_path).name}'s training record names another annotation "
+                       "file (another SHA-256: edited, or saved again in VIA?)")
+                unknown = (f"; {why}: if these are its frames, its training frames are among them (--split val takes "
+                           "the validation frames)")
     if split == "all":
         return list(range(len(dataset))), f"all {len(dataset)} frames{unknown}"
     _, val = dataset.split(fold)
