@@ -46,12 +46,13 @@ class SweepOutcome:
 def prepare_config(config: SweepConfig) -> tuple[SweepConfig, int]:
     """Load the data once in the driver (storing its splits beside it), fingerprint data and folds.
 
-    Returns the config with an absolute VIA path and both fingerprints, and the frame count.
+    Returns the config with an absolute VIA path, the splits' seed (the stored one when none was asked) and both
+    fingerprints, and the frame count.
     """
     dataset = load_data(dataclasses.replace(config, data_sha256="", splits_sha256=""), write_splits=True)
     for k in range(config.folds):
         dataset.split(k)  # UserError when there are too few frames for K folds
-    config = dataclasses.replace(config, data=str(dataset.via_path.resolve()),
+    config = dataclasses.replace(config, data=str(dataset.via_path.resolve()), split_seed=dataset.splits.seed,
                                  images=str(Path(config.images).resolve()) if config.images else None,
                                  out=str(Path(config.out).resolve()),
                                  data_sha256=file_sha256(dataset.via_path),

@@ -148,7 +148,9 @@ class SweepConfig:
     keypoint_attr: str = "keypoint"
     min_visible: int | None = None
     skip_bad: bool = False
-    split_seed: int = 0
+    split_seed: int | None = None
+    """The splits' seed; None (the CLI without --split-seed): the stored splits', else 0, fixed by
+    `driver.prepare_config` before any job runs."""
     folds: int = settings.FOLDS.field()
     rates: tuple[float, ...] = parse_rates(DEFAULT_RATES_SPEC)
     input_size: int = settings.INPUT_SIZE.field()
