@@ -164,7 +164,8 @@ def named_schema(num_maps: int, stored: bytes | str | None, model_path: str | os
         schema = KeypointSchema.from_dict(data)
         if schema.num_maps != num_maps:
             raise UserError(f"{model_path}: its stored keypoint schema {schema.name!r} has {schema.num_keypoints} "
-                            f"keypoints, but the model has {num_maps} output maps ({num_maps - 1} keypoints + skeleton)")
+                            f"keypoints, but the model has {num_maps} output maps ({num_maps - 1} keypoints + "
+                            "skeleton)")
         return schema
     recorded = recorded_schema(model_path)
     if isinstance(recorded, dict):

@@ -166,7 +166,7 @@ def test_a_model_is_read_by_its_keypoint_names_and_refused_for_other_ones(tmp_pa
     from fcnpose_tf.training.model import in_keypoint_order, load_model, schema_of
 
     start, reordered = load_model(lone / "m.keras"), load_model(lone / "m.keras")
-    in_keypoint_order(reordered, other.schema, "m.keras")
+    in_keypoint_order(reordered, other.schema, "m.keras", "")
     frame = np.random.default_rng(0).random((1, 64, 64, 3), np.float32)
     np.testing.assert_array_equal(start(frame).numpy()[..., [0, 1, 3, 2, 4]], reordered(frame).numpy())
     status, out, err = cli_here("train", "--data", swapped, "--init", lone / "m.keras", "--out", tmp_path / "t.keras",

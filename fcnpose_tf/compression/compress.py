@@ -79,9 +79,7 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
             maps or keypoint names do not match the dataset.
         ValueError: `metadata` names a section of the report, or options not checked (`CompressOptions.checked`).
     """
-    from fcnpose_tf.keypoints import keypoint_difference
-    from fcnpose_tf.training.model import (architecture_of, at_input_height, given_schema, in_keypoint_order,
-                                           load_model, view_of)
+    from fcnpose_tf.training.model import architecture_of, at_input_height, in_keypoint_order, load_model, view_of
     from fcnpose_tf.compression.frames import check_enough_frames
     from fcnpose_tf.compression.plan import check_chain, plan_widths
 
@@ -99,14 +97,9 @@ def compress_model(base_path: str | os.PathLike, train_dataset: Any, eval_datase
     if base.output_shape[-1] != train_dataset.schema.num_maps:
         raise UserError(f"{base_path}: {base.output_shape[-1]} output maps, but the data's schema needs "
                         f"{train_dataset.schema.num_maps}")
-    named = given_schema(base)
-    if named is not None and set(named.keypoints) != set(train_dataset.schema.keypoints):
-        difference = keypoint_difference(named.keypoints, train_dataset.schema.keypoints, base_path.name)
-        raise UserError(f"{base_path}: trained for {', '.join(named.keypoints)}, but the data's schema "
-                        f"{train_dataset.schema.name!r} has {', '.join(train_dataset.schema.keypoints)} ({difference}); "
-                        "compress it with frames of its own keypoints (--data)")
     # what the files' maps stand for: the data they are retrained on (the same keypoints in another order: reordered)
-    in_keypoint_order(base, train_dataset.schema, base_path.name)
+    in_keypoint_order(base, train_dataset.schema, str(base_path),
+                      "compress it with frames of its own keypoints (--data)")
     architecture = architecture_of(base)
     saved_view = view_of(base)
     if options.input_size:  # the height; an H x W input keeps its aspect

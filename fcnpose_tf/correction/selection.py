@@ -14,7 +14,8 @@ folder). Strategies (docs/data.md, "Correcting and merging rounds"):
   previous and the next processed frame (at either end: from the line through the two on one side, scaled
   so noise scores alike): one frame off its track scores high, smooth fast motion does not.
 - `disagree`: test-time augmentation: the frame flipped left-right (the labels of left/right pairs swapped back,
-  `keypoints.KeypointSchema.mirror`; the UR5 chain has none) and zoomed out (centred on a canvas PAD_FRACTION larger, as the training's padding),
+  `keypoints.KeypointSchema.mirror`; the UR5 chain has none) and zoomed out (centred on a canvas PAD_FRACTION
+  larger, as the training's padding),
   each predicted and mapped back; per keypoint the largest distance to the plain prediction (the frame's
   diagonal when found in one and not the other), averaged over keypoints.
 

@@ -253,7 +253,7 @@ def with_schema(model: keras.Model, schema: KeypointSchema) -> keras.Model:
     return model
 
 
-def in_keypoint_order(model: keras.Model, schema: KeypointSchema, name: str) -> keras.Model:
+def in_keypoint_order(model: keras.Model, schema: KeypointSchema, name: str, advice: str) -> keras.Model:
     """`model` with its keypoint maps in `schema`'s order: a model that names the same keypoints in another order
     (its file's schema, `given_schema`) gets its output layer's filters permuted (in place; the skeleton map stays
     last) and `schema`; a model that names none, or them in this order, only gets `schema`.
@@ -262,6 +262,7 @@ def in_keypoint_order(model: keras.Model, schema: KeypointSchema, name: str) -> 
         model: a keypoint-map model whose last layer is the output Conv2D.
         schema: the data's keypoints.
         name: the model's name in messages (its file).
+        advice: what the refusal tells the user to do instead (the command's options).
     Returns:
         `model`.
     Raises:
@@ -271,8 +272,9 @@ def in_keypoint_order(model: keras.Model, schema: KeypointSchema, name: str) -> 
     named = given_schema(model)
     if named is not None and named.keypoints != schema.keypoints:
         if set(named.keypoints) != set(schema.keypoints):
+            difference = keypoint_difference(named.keypoints, schema.keypoints, name)
             raise UserError(f"{name}: trained for {', '.join(named.keypoints)}, but the data's schema {schema.name!r} "
-                            f"has {', '.join(schema.keypoints)} ({keypoint_difference(named.keypoints, schema.keypoints, name)})")
+                            f"has {', '.join(schema.keypoints)} ({difference}); {advice}")
         output = model.layers[-1]
         if not isinstance(output, keras.layers.Conv2D):
             raise UserError(f"{name}: its keypoints are in another order than the data's, and its last layer "

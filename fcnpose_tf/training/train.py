@@ -944,7 +944,6 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
         UserError: `init` is no keypoint-map model, predicts other maps than `schema` needs, or names other keypoints
             (its file's schema, else its training record's).
     """
-    from fcnpose_tf.keypoints import keypoint_difference
     from fcnpose_tf.training.model import at_input_size, conv_widths, given_schema, in_keypoint_order, load_model
 
     source = load_model(init)
@@ -953,15 +952,13 @@ def initial_model(init: str | Path, schema: Any, input_size: Any = None) -> kera
     if not widths or len(out_shape) != 4 or out_shape[1:3] != in_shape[1:3]:
         raise UserError(f"{init}: not a keypoint-map model (input {in_shape[1:]}, output {out_shape[1:]}); --init "
                         "takes an FCN-Pose model file that train or compress wrote, whose maps have its input's size")
-    named = given_schema(source)
-    difference = (keypoint_difference(named.keypoints, schema.keypoints, Path(init).name)
-                  if named is not None and set(named.keypoints) != set(schema.keypoints) else None)
-    if widths[-1] != schema.num_maps or difference:
+    advice = "pass --init none to train from scratch, or --init MODEL with a model of this schema"
+    if widths[-1] != schema.num_maps:
+        named = given_schema(source)
         names = ", ".join(named.keypoints) if named is not None else f"{widths[-1] - 1} keypoints"
         raise UserError(f"{init}: trained for {names}, but the data's schema {schema.name!r} has "
-                        f"{', '.join(schema.keypoints)}" + (f" ({difference})" if difference else "") +
-                        "; pass --init none to train from scratch, or --init MODEL with a model of this schema")
-    source = in_keypoint_order(source, schema, Path(init).name)
+                        f"{', '.join(schema.keypoints)}; {advice}")
+    source = in_keypoint_order(source, schema, str(init), advice)
     return source if input_size is None else at_input_size(source, input_size)
 
 
