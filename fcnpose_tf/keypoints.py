@@ -53,8 +53,9 @@ class KeypointSchema:
         pair (`mirrored_name`: `gripper L` and `gripper R`, `left_finger` and `right_finger`), else its own. A
         flip without the swap would teach the model to put the left finger on the right one. UR5's chain has no
         pair: the identity."""
-        return tuple(self.keypoints.index(partner) if (partner := mirrored_name(name)) in self.keypoints else i
-                     for i, name in enumerate(self.keypoints))
+        folded = [name.casefold() for name in self.keypoints]  # `Gripper Left` pairs with `gripper right`
+        return tuple(folded.index(partner.casefold()) if (partner := mirrored_name(name)) is not None
+                     and partner.casefold() in folded else i for i, name in enumerate(self.keypoints))
 
     def index(self, name: str) -> int:
         """Position of a keypoint name; UserError naming the known labels if it is unknown."""
@@ -92,8 +93,8 @@ _AXIS_WORDS = {"axis", "axle", "joint", "j"}
 
 def mirrored_name(name: str) -> str | None:
     """The name of the keypoint on the other side: each left/right word of `name` (`left`, `right`, `lft`, `rgt`,
-    or `L`/`R` beside another word; whole words between spaces, `_`, `-` or `.`, any case) swapped for the other
-    side's, in the same case; None when it has none. A lone letter (`L`, Yaskawa's lower-arm axis) or a letter beside
+    or `L`/`R` beside another word; whole words between spaces, `_`, `-` or `.`, any case, a number after it kept:
+    `finger L1`) swapped for the other side's, in the same case; None when it has none. A lone letter (`L`, Yaskawa's lower-arm axis) or a letter beside
     an axis word (`L-axis`, `joint R`) names an axis, not a side.
 
     Example:
@@ -104,12 +105,13 @@ def mirrored_name(name: str) -> str | None:
     words = [part.lower() for part in parts[::2] if part]
     swapped = False
     for i, part in enumerate(parts):
-        other = _SIDES.get(part.lower())
+        word, number = re.fullmatch(r"(.*?)(\d*)", part).groups()  # `L1`: the side L of the first pair
+        other = _SIDES.get(word.lower())
         if other is None or i % 2:
             continue
-        if len(part) == 1 and (len(words) < 2 or _AXIS_WORDS & set(words)):
+        if len(word) == 1 and (len(words) < 2 or _AXIS_WORDS & set(words)):
             continue
-        parts[i] = other.upper() if part.isupper() else other.capitalize() if part[:1].isupper() else other
+        parts[i] = (other.upper() if word.isupper() else other.capitalize() if word[:1].isupper() else other) + number
         swapped = True
     return "".join(parts) if swapped else None
 

@@ -196,6 +196,11 @@ def test_the_schema_survives_a_save_in_via_and_projects_of_the_same_keypoints_me
     (saved / "labels.json").write_text(json.dumps({k: project[k] for k in via_keys}))
     assert SCHEMA_KEY not in json.loads((saved / "labels.json").read_text())
     assert read_via(saved / "labels.json").schema == TREE  # name, order and skeleton, from the description
+    described = project["_via_attributes"]["region"]["keypoint"]["description"]
+    noted = {k: project[k] for k in via_keys}
+    noted["_via_attributes"]["region"]["keypoint"]["description"] = described + " (checked by Ann)"  # words added
+    (saved / "noted.json").write_text(json.dumps(noted))
+    assert read_via(saved / "noted.json").schema == TREE
     status, out, err = cli_here("data", "merge", data / "labels.json", saved / "labels.json", "--out",
                                 tmp_path / "m" / "m.json")
     assert status == 0, out + err

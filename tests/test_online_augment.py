@@ -76,6 +76,9 @@ def test_a_flip_swaps_the_labels_of_left_right_pairs():
     assert KeypointSchema.chain("yaskawa", "SLURBT").mirror == tuple(range(6))  # axes named by a letter: no pair
     assert KeypointSchema.chain("axes", ("S-axis", "L-axis", "R-axis", "joint L", "joint R")).mirror == tuple(range(5))
     assert describe_mirror(schema) == "finger L <-> finger R" and describe_mirror(UR5) is None
+    several = KeypointSchema.chain("hand", ("Gripper Left", "gripper right", "finger L1", "finger R1", "finger L2",
+                                            "finger R2", "tip"))
+    assert several.mirror == (1, 0, 3, 2, 5, 4, 6)  # case aside, and numbered pairs
     kps = np.array([[60.0, 80.0], [40.0, 30.0], [90.0, 30.0]])
     scaled = (kps + 0.5) * np.array([S / W, S / H]) - 0.5
     flipping = OnlineAugmenter(S, OnlineAugmentConfig(flip_p=1.0, affine_p=0.0, **NO_APPEARANCE), schema.mirror)

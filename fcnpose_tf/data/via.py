@@ -333,8 +333,9 @@ def _described_schema(data: object, attribute: str) -> KeypointSchema | None:
         return None
     if not isinstance(description, str) or DESCRIBED_SCHEMA not in description:
         return None
-    try:
-        return KeypointSchema.from_dict(json.loads(description.split(DESCRIBED_SCHEMA, 1)[1]))
+    try:  # the JSON object after the marker; words a user added after it are not part of it
+        data, _ = json.JSONDecoder().raw_decode(description.split(DESCRIBED_SCHEMA, 1)[1].lstrip())
+        return KeypointSchema.from_dict(data)
     except (ValueError, RecursionError, UserError):  # edited by hand: the dropdown decides
         return None
 
