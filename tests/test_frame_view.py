@@ -182,3 +182,24 @@ def test_frames_of_another_aspect_than_the_crops_are_warned_about_once_per_size(
         for shape in ((480, 640, 3), (960, 1280, 3), (720, 1280, 3), (720, 1280, 3), (360, 640, 3)):
             model.predict(np.zeros(shape, np.uint8))
     assert [r.getMessage() for r in caplog.records] == [f"m.tflite: {note}", f"m.tflite: {VIEW.aspect_note((360, 640))}"]
+
+
+def test_bench_draws_its_synthetic_frame_at_the_crops_frame_size(tmp_path, capsys, caplog):
+    """A crop set on 1280x720 frames: bench's synthetic frame is 1280x720 (no warning about its own frame's aspect);
+    --frame-size still wins; a whole-frame model keeps 640x480."""
+    from fcnpose_tf.cli import main
+    from fcnpose_tf.compression.export import write_tflite
+    from fcnpose_tf.runtime.bench import crop_frame_size
+    from fcnpose_tf.training.model import build_fcn_pose
+
+    wide = FrameView(64, 96, crop=(300, 100, 600, 400), frame_size=(1280, 720))
+    path = tmp_path / "wide.tflite"
+    write_tflite(randomize(build_fcn_pose(input_size=wide), seed=1), path, "float32")
+    assert crop_frame_size(path) == (1280, 720) and crop_frame_size(tmp_path / "missing.tflite") == (640, 480)
+    with caplog.at_level("WARNING", logger="fcnpose_tf.runtime.estimator"):
+        assert main(["bench", str(path), "--threads", "1", "--frames", "2", "--warmup", "0"]) == 0
+        assert "frame: synthetic 1280x720" in capsys.readouterr().out and not caplog.records
+        assert main(["bench", str(path), "--threads", "1", "--frames", "2", "--warmup", "0", "--frame-size",
+                     "640x480"]) == 0
+        assert "frame: synthetic 640x480" in capsys.readouterr().out
+    assert any("not of the aspect" in r.getMessage() for r in caplog.records)

@@ -43,7 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=int, default=200, help="timed frames per thread count (>= 50 advised)")
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames first, per thread count")
     parser.add_argument("--image", type=Path, help="benchmark on this image instead of a synthetic frame")
-    parser.add_argument("--frame-size", default="640x480", metavar="WxH", help="size of the synthetic frame")
+    parser.add_argument("--frame-size", default=None, metavar="WxH",
+                        help="size of the synthetic frame (default: the frames the first model's crop was set on, "
+                             "else 640x480)")
     add_decoding_arguments(parser, fallback=False)
     parser.add_argument("--json", type=Path, metavar="FILE",
                         help="also write the results as JSON (several models: {\"models\": [one result each]})")
@@ -63,13 +65,13 @@ def run(args: argparse.Namespace) -> int:
     from fcnpose_tf.fileio import check_writable, write_json
     from fcnpose_tf.postprocess import Decoding
     from fcnpose_tf.progress import Reporter
-    from fcnpose_tf.runtime.bench import benchmark, comparison_table, load_frame
+    from fcnpose_tf.runtime.bench import benchmark, comparison_table, crop_frame_size, load_frame
     from fcnpose_tf.runtime.sources import parse_size
 
     threads = args.threads or None
     if args.json is not None:
         check_writable(args.json, args.force)
-    frame_size = parse_size(args.frame_size)
+    frame_size = parse_size(args.frame_size) if args.frame_size is not None else crop_frame_size(args.model[0])
     if max(frame_size) > MAX_FRAME_SIDE:  # 30000x30000 would be 2.7 GB of pixels before the first frame
         raise UserError(f"--frame-size {args.frame_size}: at most {MAX_FRAME_SIDE} pixels a side (an 8K frame is "
                         "7680x4320); for a real camera's frame pass --image")

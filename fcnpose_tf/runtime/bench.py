@@ -10,6 +10,7 @@ mean and std over the timed iterations; FPS follows timing.FPS_DEFINITION.
 
 from __future__ import annotations
 
+import json
 import os
 import time
 from dataclasses import dataclass, field
@@ -21,7 +22,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.postprocess import Decoding
-from fcnpose_tf.preprocess import read_image
+from fcnpose_tf.preprocess import FrameView, read_image
 from fcnpose_tf.progress import SILENT, Reporter
 from fcnpose_tf.records import HostInfo, host_info
 from fcnpose_tf.runtime.estimator import KeypointModel
@@ -253,6 +254,20 @@ def comparison_table(reports: list[BenchReport], markdown: bool = False) -> str:
                          ratio))
     return format_table(["Threads", "Model", "MMACs", "E2E p50 (ms)", "FPS", "FPS invoke",
                          f"FPS vs {Path(reports[0].model).name}"], rows, markdown=markdown)
+
+
+def crop_frame_size(model_path: str | os.PathLike, default: tuple[int, int] = (640, 480)) -> tuple[int, int]:
+    """(width, height) of the frames a .tflite's crop was set on (its view in the metadata), so the synthetic frame
+    is of its camera's aspect; `default` for a whole-frame model or a file whose metadata cannot be read (loading it
+    says why)."""
+    from fcnpose_tf.runtime.tflite_metadata import VIEW_METADATA, read_metadata
+
+    try:
+        stored = read_metadata(model_path).get(VIEW_METADATA)
+        view = FrameView.from_json(json.loads(stored)) if stored is not None else None
+    except (OSError, ValueError, KeyError, TypeError, RecursionError, UserError):
+        return default
+    return tuple(view.frame_size) if view is not None and view.frame_size is not None else default
 
 
 def load_frame(path: str | os.PathLike | None, size: tuple[int, int] = (640, 480)) -> tuple[np.ndarray, str]:
