@@ -247,8 +247,9 @@ def test_a_copied_file_is_scored_on_the_validation_frames_of_its_own_split_seed(
     frames = [s.filename for s in load_dataset(copy, write_splits=False, split_seed=None).samples]
     seed3, seed0 = (sorted(frames[i] for i in make_splits(10, 5, 0.2, seed).holdout[1]) for seed in (3, 0))
     assert seed3 != seed0
-    scored = sorted(row["frame"] for row in json.loads((tmp_path / "e.json").read_text())["per_frame"])
-    assert scored == seed3
+    report = json.loads((tmp_path / "e.json").read_text())
+    assert sorted(row["frame"] for row in report["per_frame"]) == seed3
+    assert report["keypoints"] == list(UR5.keypoints)  # what per_frame's errors_px are, in order
 
 
 def test_a_merge_names_every_point_one_way_and_keeps_the_schema_through_a_save_in_via(tmp_path, cli_here):

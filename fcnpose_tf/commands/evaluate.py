@@ -133,6 +133,7 @@ def run(args: argparse.Namespace) -> int:
                                "data": str(dataset.via_path), "frames": description,
                                "decoding": predictor.decoding.to_json(),
                                **result.measurement().to_json(), "worst_frames": worst,
+                               "keypoints": list(dataset.schema.keypoints),  # the order of per_frame's errors_px
                                "per_frame": frame_rows(result.predictions, result.ground_truth, dataset, indices),
                                **({"sequence": sequence.to_json()} if sequence is not None else {})}, force=args.force)
         print(f"Report: {args.json}")
