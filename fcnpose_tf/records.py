@@ -148,12 +148,19 @@ def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
         return own
     for candidate in _record_files(model_path):
         if candidate.is_file():
-            try:
-                record = json.loads(candidate.read_text())
-            except (OSError, ValueError, RecursionError):  # unreadable, not JSON, nested beyond Python's parser
-                return None
-            return TrainingRecord.from_json(record) if isinstance(record, dict) else None
+            record = _json_object(candidate)
+            return TrainingRecord.from_json(record) if record is not None else None
     return None
+
+
+def _json_object(path: Path) -> dict[str, Any] | None:
+    """The JSON object in a record file; None when it is missing, unreadable, not JSON (or nested beyond Python's
+    parser) or no object."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError, RecursionError):
+        return None
+    return record if isinstance(record, dict) else None
 
 
 def _record_files(model_path: str | os.PathLike) -> list[Path]:
@@ -172,18 +179,12 @@ def _record_files(model_path: str | os.PathLike) -> list[Path]:
 
 
 def recorded_schema(model_path: str | os.PathLike) -> dict[str, Any] | None:
-    """The keypoint schema (`KeypointSchema.to_dict`) the nearest training record of a model file holds (a .tflite's
-    own, NAME_train.json, then its origins': a compressed model's record written before 2026-12-05 holds none, its
-    base model's does), or None."""
-    own = _record_in_metadata(model_path) if Path(model_path).suffix == ".tflite" else None
-    if own is not None and isinstance(own.raw.get("schema"), dict):
-        return own.raw["schema"]
+    """The keypoint schema (`KeypointSchema.to_dict`) the nearest training record beside a model file holds
+    (NAME_train.json, then its origins': a compressed model's record written before 2026-12-05 holds none, its base
+    model's does), or None. (A .tflite's own schema is its `SCHEMA_METADATA` entry, not part of its record.)"""
     for candidate in _record_files(model_path):
-        try:
-            record = json.loads(candidate.read_text()) if candidate.is_file() else None
-        except (OSError, ValueError, RecursionError):
-            continue
-        if isinstance(record, dict) and isinstance(record.get("schema"), dict):
+        record = _json_object(candidate)
+        if record is not None and isinstance(record.get("schema"), dict):
             return record["schema"]
     return None
 
