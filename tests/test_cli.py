@@ -102,6 +102,16 @@ def test_a_help_shows_a_default_of_zero_once_and_hides_none_and_false(cli_here, 
     assert all(line.count("(default") <= 1 for line in lines.values())
 
 
+@pytest.mark.parametrize("command, reads_record", [("evaluate", True), ("export", True), ("compress", True),
+                                                   ("train", False), ("sweep", False)])
+def test_split_seed_help_names_the_training_record_only_where_it_is_read(cli_here, command, reads_record):
+    """Left out, --split-seed takes a model's recorded seed in the commands that read a model's splits
+    (`splits_of_record`): only their help says so."""
+    status, out, _ = cli_here(command, "--help")
+    entry = out.split("\n  --split-seed", 1)[1].split("\n  -", 1)[0]
+    assert status == 0 and ("training record" in " ".join(entry.split())) == reads_record, entry
+
+
 def test_every_command_takes_quiet_from_one_setting():
     """--quiet is one setting the CLI adds to every command, as --debug: the command's reporter is quiet with it and
     only with it (synth's --no-progress, its name before, is the same option)."""

@@ -93,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("--model", type=model_argument(KERAS_SUFFIXES), default="workcell", metavar="MODEL",
                         help=f"the .keras/.h5 model to compress, or a bundled one by name ({names_help(KERAS_SUFFIXES)})")
-    add_data_arguments(parser, positional=False, required=False)
+    add_data_arguments(parser, positional=False, required=False, model_splits=True)
     add_test_data_arguments(parser, "frames to measure on, never trained on (default: --data's validation split; "
                             "without --data, held-out synthetic frames)")
     settings.RETRAIN_EPOCHS.add_to(parser)

@@ -55,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("model", nargs="?", type=model_argument(), default="workcell", metavar="MODEL",
                         help=f"a .keras/.h5 or .tflite model, or a bundled one by name ({names_help()})")
-    add_data_arguments(parser, positional=False)
+    add_data_arguments(parser, positional=False, model_splits=True)
     parser.add_argument("--split", choices=("auto", "val", "all"), default="auto",
                         help="auto: validation frames on the model's own training data, else all frames")
     parser.add_argument("--fold", type=int, metavar="k", help="use the validation frames of fold k")

@@ -57,7 +57,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument("model", type=model_argument(KERAS_SUFFIXES), metavar="MODEL",
                         help=f"a trained .keras/.h5 FCN-Pose, or a bundled one by name ({names_help(KERAS_SUFFIXES)})")
-    add_data_arguments(parser, positional=False, required=False)
+    add_data_arguments(parser, positional=False, required=False, model_splits=True)
     parser.add_argument("--out-dir", type=Path, help="folder for the .tflite files (default: the model's folder)")
     for setting in (settings.QUANTIZE, settings.CALIBRATION_FRAMES, settings.CALIBRATION_SEED, settings.THREADS,
                     settings.EXPORT_INPUT_SIZE):

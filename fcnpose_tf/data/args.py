@@ -16,11 +16,12 @@ from fcnpose_tf.settings import FOLDS
 
 
 def add_data_arguments(parser: argparse.ArgumentParser, positional: bool = True, required: bool = True,
-                       folds_option: bool = True) -> None:
+                       folds_option: bool = True, model_splits: bool = False) -> None:
     """The dataset options every data-reading command shares (DATA, --images, labels, drops, splits).
 
     `positional=False` makes it `--data DATA` (train, evaluate, compress); `folds_option=False`
-    leaves --folds to the command (train uses it for "one model per fold"), K then defaulting to 5.
+    leaves --folds to the command (train uses it for "one model per fold"), K then defaulting to 5;
+    `model_splits=True` for a command that reads a model's splits from its training record (`splits_of_record`).
     """
     if positional:
         parser.add_argument("data", type=Path, metavar="DATA", help="dataset folder or VIA .json file")
@@ -37,9 +38,9 @@ def add_data_arguments(parser: argparse.ArgumentParser, positional: bool = True,
     if folds_option:  # unset (None): the default K, and no folds on a dataset smaller than that
         FOLDS.variant(default=None, paper=None, help=f"{FOLDS.help}; default {FOLDS.default}, refused for fewer frames "
                       "when given").add_to(parser)
+    recorded = " (or the model's training record's, for the data it was trained on)" if model_splits else ""
     parser.add_argument("--split-seed", type=int, default=None,
-                        help="seed of the splits: left out, the stored splits' (or the model's training record's, "
-                             "for the data it was trained on), else 0 for new ones")
+                        help=f"seed of the splits: left out, the stored splits'{recorded}, else 0 for new ones")
     parser.add_argument("--resplit", action="store_true", help="replace the stored splits")
 
 
