@@ -87,21 +87,28 @@ class KeypointSchema:
 _SIDES = {"left": "right", "right": "left", "l": "r", "r": "l", "lft": "rgt", "rgt": "lft"}
 
 
+_WORD_BREAK = r"([\s_.-]+|(?<=[a-z0-9])(?=[A-Z])|(?<=[A-Z])(?=[A-Z][a-z]))"
+"""Where one word of a keypoint's name ends: separators, or a camel-case capital (`left|Finger`, `R|Wrist`); the
+separators are kept (captured, an empty one at a capital) so the name is rebuilt as written."""
+
 _AXIS_WORDS = {"axis", "axle", "joint", "j"}
 """Words beside a single letter that make it an axis's name, not a side (Yaskawa's L and R axes: `L-axis`)."""
 
 
 def mirrored_name(name: str) -> str | None:
     """The name of the keypoint on the other side: each left/right word of `name` (`left`, `right`, `lft`, `rgt`,
-    or `L`/`R` beside another word; whole words between spaces, `_`, `-` or `.`, any case, a number after it kept:
-    `finger L1`) swapped for the other side's, in the same case; None when it has none. A lone letter (`L`, Yaskawa's lower-arm axis) or a letter beside
-    an axis word (`L-axis`, `joint R`) names an axis, not a side.
+    or `L`/`R` beside another word; whole words between spaces, `_`, `-` or `.` or in camel case (`leftFinger`,
+    OpenPose's `RWrist`), any case, a number after it kept: `finger L1`) swapped for the other side's, in the same
+    case; None when it has none. A lone letter (`L`, Yaskawa's lower-arm axis) or a letter beside an axis word
+    (`L-axis`, `joint R`) names an axis, not a side.
 
     Example:
         >>> mirrored_name("gripper L"), mirrored_name("Left_finger"), mirrored_name("elbow"), mirrored_name("L-axis")
         ('gripper R', 'Right_finger', None, None)
+        >>> mirrored_name("leftFinger"), mirrored_name("RWrist"), mirrored_name("wristRoll")
+        ('rightFinger', 'LWrist', None)
     """
-    parts = re.split(r"([\s_.-]+)", name)
+    parts = re.split(_WORD_BREAK, name)
     words = [part.lower() for part in parts[::2] if part]
     swapped = False
     for i, part in enumerate(parts):

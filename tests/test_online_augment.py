@@ -79,6 +79,8 @@ def test_a_flip_swaps_the_labels_of_left_right_pairs():
     several = KeypointSchema.chain("hand", ("Gripper Left", "gripper right", "finger L1", "finger R1", "finger L2",
                                             "finger R2", "tip"))
     assert several.mirror == (1, 0, 3, 2, 5, 4, 6)  # case aside, and numbered pairs
+    camel = KeypointSchema.chain("camel", ("leftFinger", "rightFinger", "RWrist", "LWrist", "wristRoll", "LAxis"))
+    assert camel.mirror == (1, 0, 3, 2, 4, 5)  # camel-case words (OpenPose's RWrist) pair too; an axis stays
     kps = np.array([[60.0, 80.0], [40.0, 30.0], [90.0, 30.0]])
     scaled = (kps + 0.5) * np.array([S / W, S / H]) - 0.5
     flipping = OnlineAugmenter(S, OnlineAugmentConfig(flip_p=1.0, affine_p=0.0, **NO_APPEARANCE), schema.mirror)
