@@ -495,7 +495,7 @@ def test_image_folder_natural_order_and_skip(image_dir):
     names = [Path(f.name).name for f in frames]
     assert names == ["frame1.png", "frame2.png", "frame10.png"]
     assert src.skipped == 1 and messages == [f"skipped {image_dir / 'frame5.png'}: not a readable image"]
-    assert "read 3 of 4 images" == src.end_reason
+    assert src.end_reason == "end of the images (3 read, 1 unreadable)"  # all gone through, not stopped early
 
 
 def test_single_image_and_errors(tmp_path, image_dir):

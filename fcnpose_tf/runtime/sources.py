@@ -124,7 +124,8 @@ class ImageSource(FrameSource):
                 self.warn(f"skipped {path}: not a readable image")
                 continue
             yield Frame(i, np.ascontiguousarray(image), time.time(), str(path))
-        self.end_reason = f"read {len(self.paths) - self.skipped} of {len(self.paths)} images"
+        unreadable = f", {self.skipped} unreadable" if self.skipped else ""
+        self.end_reason = f"end of the images ({len(self.paths) - self.skipped} read{unreadable})"
 
     def describe(self) -> str:
         """One line for the run's summary: "N images from NAME".
