@@ -33,6 +33,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import zlib
 from dataclasses import dataclass
 from typing import Any, Union
 
@@ -296,6 +297,24 @@ def keypoints_to_frame(keypoints: np.ndarray, frame_shape: tuple[int, ...], view
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
+def _damaged_png(raw: bytes) -> bool:
+    """Whether `raw` is a PNG whose chunks do not all check out: one cut off, one whose CRC-32 does not match its
+    bytes, or no IEND. libpng prints its own `libpng error: ...` line for such a file as it fails to decode it. False
+    for any other format, and for an intact PNG (about 0.1 ms for a 640 x 480 frame: zlib's CRC)."""
+    if not raw.startswith(_PNG_SIGNATURE):
+        return False
+    view, at = memoryview(raw), len(_PNG_SIGNATURE)
+    while at + 12 <= len(raw):
+        length = int.from_bytes(view[at:at + 4], "big")
+        end = at + 12 + length
+        if end > len(raw) or zlib.crc32(view[at + 4:end - 4]) != int.from_bytes(view[end - 4:end], "big"):
+            return True
+        if view[at + 4:at + 8] == b"IEND":
+            return False
+        at = end
+    return True
+
+
 def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.ndarray | None:
     """An image file as `cv2.imread(path, flags)` reads it, None if it is not a readable image.
 
@@ -305,15 +324,14 @@ def read_image(path: str | os.PathLike, flags: int = cv2.IMREAD_COLOR) -> np.nda
     `cv2.imread`, and so does a header OpenCV refuses to decode (one that claims 40000 x 40000 pixels).
     """
     try:
-        data = np.frombuffer(read_regular_file(path), dtype=np.uint8)
+        raw = read_regular_file(path)
     except (OSError, ValueError):
         return None
-    if data.size == 0:
+    if not raw:
         return None
-    truncated_png = data[:8].tobytes() == _PNG_SIGNATURE and b"IEND" not in data[-12:].tobytes()
-    try:  # libpng prints its own "libpng error: ..." line for a cut-off PNG: kept off the terminal (None says it)
-        with native_stderr_captured() if truncated_png else contextlib.nullcontext():
-            return cv2.imdecode(data, flags)
+    try:  # libpng prints its own "libpng error: ..." line for a damaged PNG: kept off the terminal (None says it)
+        with native_stderr_captured() if _damaged_png(raw) else contextlib.nullcontext():
+            return cv2.imdecode(np.frombuffer(raw, dtype=np.uint8), flags)
     except cv2.error:
         return None
 

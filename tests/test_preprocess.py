@@ -126,13 +126,17 @@ def test_read_image_gives_none_for_a_header_opencv_refuses_and_for_a_named_pipe(
         assert read_image(tmp_path / "pipe.png") is None  # at once: no writer is waited for
 
 
-def test_a_cut_off_png_reads_as_none_without_libpngs_own_line(tmp_path, capfd):
-    """libpng prints `libpng error: ...` to descriptor 2 for a truncated PNG, ahead of the command's one `error:`
+def test_a_cut_off_or_damaged_png_reads_as_none_without_libpngs_own_line(tmp_path, capfd):
+    """libpng prints `libpng error: ...` to descriptor 2 for a truncated or damaged PNG, ahead of the command's one `error:`
     line; the reader keeps it off (the None is what the caller reports)."""
     whole = tmp_path / "whole.png"
     cv2.imwrite(str(whole), (np.random.default_rng(0).random((64, 64, 3)) * 255).astype(np.uint8))
     cut = tmp_path / "cut.png"
     cut.write_bytes(whole.read_bytes()[:whole.stat().st_size // 2])
+    damaged = bytearray(whole.read_bytes())
+    damaged[len(damaged) // 2:len(damaged) // 2 + 64] = bytes(64)  # inside IDAT: its CRC no longer matches
+    scrambled = tmp_path / "scrambled.png"  # whole, IEND and all: "libpng error: ..." as it decodes
+    scrambled.write_bytes(damaged)
     capfd.readouterr()
-    assert read_image(cut) is None and read_image(whole).shape == (64, 64, 3)
+    assert read_image(cut) is None and read_image(scrambled) is None and read_image(whole).shape == (64, 64, 3)
     assert capfd.readouterr().err == ""
