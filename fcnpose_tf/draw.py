@@ -8,6 +8,9 @@ the Pi-side core: numpy and OpenCV only.
 from __future__ import annotations
 
 import os
+import shutil
+import subprocess
+import unicodedata
 from typing import Sequence
 
 import cv2
@@ -23,6 +26,53 @@ shoulder, elbow, wrist1-3, flange, tool. Schemas with more keypoints repeat it."
 
 _SHIFT = 4  # fractional bits of the fixed-point coordinates OpenCV draws with (1/16 px)
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+FONT_ENV = "FCNPOSE_TF_FONT"
+"""An environment variable naming a .ttf/.otf/.ttc font file for the characters OpenCV's own fonts lack (Chinese,
+Japanese, Korean keypoint or file names)."""
+
+_FONT_FILES = ("/usr/share/fonts/opentype/noto/NotoSansCJK-Regular.ttc",
+               "/usr/share/fonts/truetype/wqy/wqy-microhei.ttc", "/usr/share/fonts/truetype/wqy/wqy-zenhei.ttc",
+               "/usr/share/fonts/truetype/droid/DroidSansFallbackFull.ttf",
+               "/System/Library/Fonts/PingFang.ttc", "C:/Windows/Fonts/msyh.ttc")
+"""Where such a font usually is (Debian's and Raspberry Pi OS's fonts-noto-cjk, fonts-wqy-*, fonts-droid-fallback;
+macOS; Windows), after `FONT_ENV` and before fontconfig's `fc-list :lang=zh`."""
+
+_wide_font: str | None | bool = False  # the font file loaded for wide characters; None: none found; False: not sought
+
+
+def _wide_font_file() -> str | None:
+    """The first font file for wide characters this machine has: `FONT_ENV`'s, a usual place, or fontconfig's."""
+    candidates = [os.environ.get(FONT_ENV, ""), *_FONT_FILES]
+    if shutil.which("fc-list"):
+        try:
+            listed = subprocess.run(["fc-list", ":lang=zh", "file"], capture_output=True, text=True, timeout=10)
+            candidates += sorted(line.strip().rstrip(":") for line in listed.stdout.splitlines())
+        except (OSError, subprocess.SubprocessError):
+            pass
+    return next((path for path in candidates if path and os.path.isfile(path)
+                 and cv2.FontFace.setBuiltinFont("uni", path)), None)
+
+
+def _with_glyphs(text: str) -> str:
+    """`text`, after loading a font for its wide characters (Chinese, Japanese, Korean: OpenCV draws them as `?`
+    with its own fonts) into OpenCV's "uni" slot, once per process, if any; measure and draw text through it."""
+    global _wide_font
+    if _wide_font is False and not text.isascii() and any(unicodedata.east_asian_width(c) in "WF" for c in text):
+        _wide_font = _wide_font_file()
+    return text
+
+
+def text_size(text: str, font_scale: float, thickness: int = 1) -> tuple[tuple[int, int], int]:
+    """`cv2.getTextSize` in the pictures' font: ((width, height), baseline) in pixels."""
+    return cv2.getTextSize(_with_glyphs(text), _FONT, font_scale, thickness)
+
+
+def put_text(image_bgr: np.ndarray, text: str, org: tuple[int, int], font_scale: float,
+             colour: tuple[int, int, int], thickness: int = 1) -> None:
+    """`text` drawn into the image in the pictures' font, its baseline's left end at `org`."""
+    cv2.putText(image_bgr, _with_glyphs(text), org, _FONT, font_scale, colour, thickness, cv2.LINE_AA)
 
 
 def keypoint_colour(k: int) -> tuple[int, int, int]:
@@ -77,7 +127,7 @@ def _draw_names(out: np.ndarray, kp: np.ndarray, visible: list[int], schema: Key
     for k in visible:
         name = schema.keypoints[k]
         color = keypoint_colour(k)
-        (tw, th), base = cv2.getTextSize(name, _FONT, font_scale, 1)
+        (tw, th), base = text_size(name, font_scale)
         x, y = kp[k]
         best = None
         for dist in (r + 3, 3 * r + 8, 6 * r + 14, 10 * r + 22):
@@ -100,8 +150,8 @@ def _draw_names(out: np.ndarray, kp: np.ndarray, visible: list[int], schema: Key
         if dist > r + 3:
             anchor = (min(max(x, box[0]), box[2]), min(max(y, box[1]), box[3]))
             cv2.line(out, _fixed(kp[k]), _fixed(anchor), color, 1, cv2.LINE_AA, _SHIFT)
-        cv2.putText(out, name, org, _FONT, font_scale, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(out, name, org, _FONT, font_scale, color, 1, cv2.LINE_AA)
+        put_text(out, name, org, font_scale, (0, 0, 0), 3)
+        put_text(out, name, org, font_scale, color)
 
 
 def enlarged(image_bgr: np.ndarray, points: np.ndarray, side: int = 640) -> tuple[np.ndarray, np.ndarray]:
@@ -174,10 +224,10 @@ def with_caption(image_bgr: np.ndarray, caption: str) -> np.ndarray:
     """`caption` in white on a dark band along the top of the image (drawn in place; the image is returned)."""
     scale = max(0.6, max(image_bgr.shape[:2]) / 640)
     font_scale = max(0.45, 0.5 * scale)
-    (_, th), base = cv2.getTextSize(caption, _FONT, font_scale, 1)
+    (_, th), base = text_size(caption, font_scale)
     band = th + base + 8
     image_bgr[:band] = (image_bgr[:band] * 0.35).astype(image_bgr.dtype)
-    cv2.putText(image_bgr, caption, (6, band - base - 4), _FONT, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+    put_text(image_bgr, caption, (6, band - base - 4), font_scale, (255, 255, 255))
     return image_bgr
 
 

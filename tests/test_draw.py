@@ -89,3 +89,47 @@ def test_zoom_on_maps_points_to_the_zoomed_pixels_and_the_errors_are_drawn():
     picture = draw_truth_and_prediction(np.zeros((480, 640, 3), np.uint8), truth, predicted, caption="#1 a.png")
     assert picture.shape[2] == 3 and picture[:10].max() > 0  # the caption band
     assert picture.reshape(-1, 3).max(axis=1).astype(bool).mean() > 0.001
+
+
+def test_wide_names_load_a_font_for_their_glyphs_once(monkeypatch, tmp_path):
+    """OpenCV's own fonts draw Chinese, Japanese or Korean as `?`: the first text with such a character loads a font
+    that has them (FCNPOSE_TF_FONT first, then the usual places) into OpenCV's "uni" slot, once; Latin text,
+    accented or not, never looks for one."""
+    import cv2
+
+    from fcnpose_tf import draw
+    from fcnpose_tf.keypoints import KeypointSchema
+
+    font = tmp_path / "cjk.ttf"
+    font.write_bytes(b"not read: setBuiltinFont is replaced")
+    loaded = []
+    monkeypatch.setattr(draw, "_wide_font", False)
+    monkeypatch.setattr(draw, "_FONT_FILES", (str(tmp_path / "absent.ttc"),))
+    monkeypatch.setattr(draw.shutil, "which", lambda name: None)  # no fontconfig
+    monkeypatch.setenv(draw.FONT_ENV, str(font))
+    monkeypatch.setattr(cv2.FontFace, "setBuiltinFont", lambda slot, path: loaded.append((slot, path)) or True,
+                        raising=False)
+    image = np.zeros((240, 320, 3), np.uint8)
+    latin = KeypointSchema.chain("latin", ("Schulter", "Gelenk ä"))
+    draw_keypoints(image, np.array([[80.0, 120.0], [240.0, 120.0]]), latin)
+    assert loaded == []
+    wide = KeypointSchema.chain("wide", ("肩", "肘"))
+    for _ in range(2):
+        draw_keypoints(image, np.array([[80.0, 120.0], [240.0, 120.0]]), wide)
+    assert loaded == [("uni", str(font))]
+    assert draw._wide_font == str(font)
+
+
+def test_a_wide_name_is_drawn_with_its_glyphs_where_a_font_has_them(monkeypatch):
+    """With a font for them on the machine, "肘" is drawn as itself, not as the `?` OpenCV's own fonts draw."""
+    from fcnpose_tf import draw
+
+    monkeypatch.setattr(draw, "_wide_font", False)
+    if draw._wide_font_file() is None:
+        pytest.skip("no font with Chinese glyphs on this machine (fonts-noto-cjk, fonts-wqy-microhei)")
+    pictures = []
+    for text in ("肘", "?"):
+        image = np.zeros((40, 40, 3), np.uint8)
+        draw.put_text(image, text, (8, 30), 0.8, (255, 255, 255))
+        pictures.append(image)
+    assert np.abs(pictures[0].astype(int) - pictures[1]).sum() > 0

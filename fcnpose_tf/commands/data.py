@@ -245,11 +245,12 @@ def _overlay_maps(rgb_image, maps):
 
 def _caption(tile, text: str):
     """The tile with a caption strip above it (so no keypoint at the top edge is hidden)."""
-    import cv2
     import numpy as np
 
+    from fcnpose_tf.draw import put_text
+
     strip = np.zeros((18, tile.shape[1], 3), np.uint8)
-    cv2.putText(strip, text[:38], (4, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
+    put_text(strip, text[:38], (4, 13), 0.42, (255, 255, 255))
     return np.concatenate([strip, tile], axis=0)
 
 
@@ -269,7 +270,7 @@ def preview_image(dataset, samples: int, input_size, seed: int = 0):
     import numpy as np
 
     from fcnpose_tf.data.dataset import TrainingData
-    from fcnpose_tf.draw import draw_keypoints, keypoint_colour
+    from fcnpose_tf.draw import draw_keypoints, keypoint_colour, put_text, text_size
     from fcnpose_tf.preprocess import FrameView
 
     view = FrameView.of(input_size)
@@ -297,8 +298,8 @@ def preview_image(dataset, samples: int, input_size, seed: int = 0):
     x = 6
     for k, name in enumerate(dataset.schema.keypoints):
         cv2.circle(legend, (x + 6, 12), 6, keypoint_colour(k), -1, cv2.LINE_AA)
-        cv2.putText(legend, name, (x + 16, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (255, 255, 255), 1, cv2.LINE_AA)
-        x += 24 + 8 * len(name)
+        put_text(legend, name, (x + 16, 16), 0.42, (255, 255, 255))
+        x += 24 + text_size(name, 0.42)[0][0]
         if x > legend.shape[1] - 60:
             break
     return np.concatenate([grid, legend], axis=0)
