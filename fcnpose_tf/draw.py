@@ -70,9 +70,19 @@ def text_size(text: str, font_scale: float, thickness: int = 1) -> tuple[tuple[i
 
 
 def put_text(image_bgr: np.ndarray, text: str, org: tuple[int, int], font_scale: float,
-             colour: tuple[int, int, int], thickness: int = 1) -> None:
-    """`text` drawn into the image in the pictures' font, its baseline's left end at `org`."""
-    cv2.putText(image_bgr, _with_glyphs(text), org, _FONT, font_scale, colour, thickness, cv2.LINE_AA)
+             colour: tuple[int, int, int], outline: tuple[int, int, int] | None = None) -> None:
+    """`text` drawn into the image in the pictures' font, its baseline's left end at `org`, in `colour` over an
+    `outline` of about a pixel (legible on any background) when given.
+
+    The outline is the same text shifted a pixel or two each way, not a thicker stroke: OpenCV 5 draws the Hershey
+    constants with a TrueType font, where a thicker stroke is a bolder and wider font, so a halo drawn that way runs
+    past the letters it should frame."""
+    text = _with_glyphs(text)
+    if outline is not None:
+        r = max(1, round(2 * font_scale))
+        for dx, dy in ((dx, dy) for dx in (-r, 0, r) for dy in (-r, 0, r) if dx or dy):
+            cv2.putText(image_bgr, text, (org[0] + dx, org[1] + dy), _FONT, font_scale, outline, 1, cv2.LINE_AA)
+    cv2.putText(image_bgr, text, org, _FONT, font_scale, colour, 1, cv2.LINE_AA)
 
 
 def keypoint_colour(k: int) -> tuple[int, int, int]:
@@ -150,8 +160,7 @@ def _draw_names(out: np.ndarray, kp: np.ndarray, visible: list[int], schema: Key
         if dist > r + 3:
             anchor = (min(max(x, box[0]), box[2]), min(max(y, box[1]), box[3]))
             cv2.line(out, _fixed(kp[k]), _fixed(anchor), color, 1, cv2.LINE_AA, _SHIFT)
-        put_text(out, name, org, font_scale, (0, 0, 0), 3)
-        put_text(out, name, org, font_scale, color)
+        put_text(out, name, org, font_scale, color, outline=(0, 0, 0))
 
 
 def enlarged(image_bgr: np.ndarray, points: np.ndarray, side: int = 640) -> tuple[np.ndarray, np.ndarray]:

@@ -133,3 +133,19 @@ def test_a_wide_name_is_drawn_with_its_glyphs_where_a_font_has_them(monkeypatch)
         draw.put_text(image, text, (8, 30), 0.8, (255, 255, 255))
         pictures.append(image)
     assert np.abs(pictures[0].astype(int) - pictures[1]).sum() > 0
+
+
+def test_a_name_s_dark_outline_hugs_its_letters():
+    """Each name is drawn in its keypoint's colour over a dark outline about a pixel wide. OpenCV 5 draws the
+    Hershey constants with a TrueType font, where a thicker stroke is a wider bold font: an outline drawn that way
+    ran 13 px past the end of a 22-letter name at 640 px across."""
+    from fcnpose_tf.keypoints import KeypointSchema
+
+    image = np.full((120, 640, 3), 230, np.uint8)
+    schema = KeypointSchema.chain("one", ("upper wrist roll joint", "far"))
+    out = draw_keypoints(image, np.array([[40.0, 60.0], [np.nan, np.nan]]), schema)
+    label = out[:, 60:].astype(int)  # right of the dot, where the first free spot puts the name
+    coloured = np.flatnonzero((np.abs(label - keypoint_colour(0)).sum(axis=2) < 60).any(axis=0))
+    dark = np.flatnonzero((label.sum(axis=2) < 150).any(axis=0))
+    assert coloured.size and dark.size
+    assert abs(dark.max() - coloured.max()) <= 2 and abs(dark.min() - coloured.min()) <= 2, (coloured.max(), dark.max())
