@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import unicodedata
 import warnings
 from dataclasses import dataclass
 from typing import Sequence
@@ -33,6 +34,10 @@ class KeypointSchema:
     def __post_init__(self):
         if len(self.keypoints) < 1 or len(set(self.keypoints)) != len(self.keypoints):
             raise UserError(f"schema {self.name!r}: keypoint names must be non-empty and unique")
+        for text in (self.name, *self.keypoints):  # names reach messages, tables and files as they are
+            if not text or any(unicodedata.category(ch) in ("Cc", "Zl", "Zp") for ch in text):
+                raise UserError(f"schema {self.name!r}: name {text!r} is empty or holds a control character (a "
+                                "line break, tab or NUL); keypoint names are text on one line")
         n = len(self.keypoints)
         for a, b in self.edges:
             if not (0 <= a < n and 0 <= b < n) or a == b:
@@ -75,9 +80,15 @@ class KeypointSchema:
 
     @classmethod
     def from_dict(cls, data: dict) -> "KeypointSchema":
+        def listed(value, kind) -> bool:  # as JSON holds them: no str(1) for a name, no int(1.9) for an index
+            return isinstance(value, list) and all(isinstance(v, kind) and not isinstance(v, bool) for v in value)
+
         try:
-            return cls(str(data["name"]), tuple(str(k) for k in data["keypoints"]),
-                       tuple((int(a), int(b)) for a, b in data["edges"]))
+            name, keypoints, edges = data["name"], data["keypoints"], data["edges"]
+            if not (isinstance(name, str) and listed(keypoints, str) and listed(edges, list)
+                    and all(len(edge) == 2 and listed(edge, int) for edge in edges)):
+                raise TypeError("a schema entry of another kind")
+            return cls(name, tuple(keypoints), tuple((a, b) for a, b in edges))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             shown = repr(data) if len(repr(data)) <= 200 else repr(data)[:200] + "..."
             raise UserError(f"invalid keypoint schema {shown}: expected name, keypoints (a list of names) and "
@@ -163,7 +174,10 @@ def named_schema(num_maps: int, stored: bytes | str | None, model_path: str | os
             data = json.loads(stored)
         except (ValueError, RecursionError) as exc:
             raise UserError(f"{model_path}: its stored keypoint schema is not JSON ({entry_problem(exc)})") from None
-        schema = KeypointSchema.from_dict(data)
+        try:
+            schema = KeypointSchema.from_dict(data)
+        except UserError as exc:
+            raise UserError(f"{model_path}: {exc}") from None
         if schema.num_maps != num_maps:
             raise UserError(f"{model_path}: its stored keypoint schema {schema.name!r} has {schema.num_keypoints} "
                             f"keypoints, but the model has {num_maps} output maps ({num_maps - 1} keypoints + "

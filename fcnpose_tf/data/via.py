@@ -253,10 +253,7 @@ def _schema_from_attributes(data: dict, attribute: str) -> KeypointSchema | None
     names = tuple(str(k) for k in options)
     if set(names) == set(UR5.keypoints):
         return UR5
-    try:
-        return KeypointSchema.chain(attribute, names)
-    except UserError:
-        return None
+    return KeypointSchema.chain(attribute, names)
 
 
 def _json_kind(value) -> str:
@@ -534,16 +531,19 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
     data = _load_json(path)
     metadata, settings = _split_file(path, data)
     present = _region_attribute_names(metadata)
-    if present and attribute not in present:
-        named = _attribute_naming_keypoints(data, metadata, present, schema)
-        if named is not None:  # the labels under another name: read by it, not guessed in schema order
-            logger.warning("%s: no region has the attribute %r (--keypoint-attr); reading the keypoint names from %r, "
-                           "whose values are all keypoint names", path, attribute, named)
-            attribute = named
-    undeclared = schema is None and _schema_from_attributes(data, attribute) is None and not (
-        isinstance(data, dict) and isinstance(data.get(SCHEMA_KEY), dict))  # UR5's by default
-    if schema is None:
-        schema = _file_schema(data, attribute)
+    try:  # the schema the file declares (a stored one, a dropdown) refused with the file's name
+        if present and attribute not in present:
+            named = _attribute_naming_keypoints(data, metadata, present, schema)
+            if named is not None:  # the labels under another name: read by it, not guessed in schema order
+                logger.warning("%s: no region has the attribute %r (--keypoint-attr); reading the keypoint names from "
+                               "%r, whose values are all keypoint names", path, attribute, named)
+                attribute = named
+        undeclared = schema is None and _schema_from_attributes(data, attribute) is None and not (
+            isinstance(data, dict) and isinstance(data.get(SCHEMA_KEY), dict))  # UR5's by default
+        if schema is None:
+            schema = _file_schema(data, attribute)
+    except UserError as exc:
+        raise UserError(f"{path}: {exc}") from None
     if min_visible is None:
         min_visible = default_min_visible(schema)
     if not 0 <= min_visible <= schema.num_keypoints:
