@@ -57,10 +57,19 @@ class KeypointSchema:
         """Where each keypoint's label goes when the frame is flipped left-right: its partner's index for a left/right
         pair (`mirrored_name`: `gripper L` and `gripper R`, `left_finger` and `right_finger`), else its own. A
         flip without the swap would teach the model to put the left finger on the right one. UR5's chain has no
-        pair: the identity."""
-        folded = [name.casefold() for name in self.keypoints]  # `Gripper Left` pairs with `gripper right`
-        return tuple(folded.index(partner.casefold()) if (partner := mirrored_name(name)) is not None
-                     and partner.casefold() in folded else i for i, name in enumerate(self.keypoints))
+        pair: the identity. Always a permutation: a keypoint is swapped only with one whose partner it is in turn
+        (`finger r` beside `finger L` and `finger R` keeps its label rather than taking finger L's)."""
+        names, folded = self.keypoints, [name.casefold() for name in self.keypoints]
+
+        def partner(name: str) -> int | None:  # the same spelling first, else any case: `Gripper Left`, `gripper right`
+            other = mirrored_name(name)
+            if other is None:
+                return None
+            return names.index(other) if other in names else (
+                folded.index(other.casefold()) if other.casefold() in folded else None)
+
+        partners = [partner(name) for name in names]
+        return tuple(j if j is not None and partners[j] == i else i for i, j in enumerate(partners))
 
     def index(self, name: str) -> int:
         """Position of a keypoint name; UserError naming the known labels if it is unknown."""
