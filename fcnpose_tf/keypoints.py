@@ -155,7 +155,12 @@ def schema_for_maps(num_maps: int) -> KeypointSchema:
         num_maps: the model's output maps.
     Returns:
         The schema.
+    Raises:
+        UserError: fewer than 2 maps (no keypoint map beside the skeleton's): no FCN-Pose model.
     """
+    if num_maps < 2:
+        raise UserError(f"a model of {num_maps} output map(s) is no FCN-Pose keypoint model: it has one map per "
+                        "keypoint plus the skeleton map, at least 2")
     if num_maps == UR5.num_maps:
         return UR5
     return KeypointSchema.chain("generic", [f"kp{i}" for i in range(num_maps - 1)])

@@ -27,6 +27,8 @@ def test_named_schema_reads_the_stored_entry_then_the_record(tmp_path):
     model = tmp_path / "m.keras"
     assert named_schema(5, None, model) is None  # neither: the caller's default (kp0..kp3)
     assert schema_for_maps(5).keypoints == ("kp0", "kp1", "kp2", "kp3")
+    with pytest.raises(UserError, match=r"^a model of 1 output map\(s\) is no FCN-Pose keypoint model"):
+        schema_for_maps(1)  # "schema 'generic': keypoint names must be non-empty and unique" before
     assert named_schema(5, json.dumps(MINE.to_dict()), model) == MINE
     (tmp_path / "m_train.json").write_text(json.dumps({"schema": MINE.to_dict()}))
     assert named_schema(5, None, model) == MINE
