@@ -35,9 +35,10 @@ class KeypointSchema:
         if len(self.keypoints) < 1 or len(set(self.keypoints)) != len(self.keypoints):
             raise UserError(f"schema {self.name!r}: keypoint names must be non-empty and unique")
         for text in (self.name, *self.keypoints):  # names reach messages, tables and files as they are
-            if not text or any(unicodedata.category(ch) in ("Cc", "Zl", "Zp") for ch in text):
+            if not text or any(unicodedata.category(ch) in ("Cc", "Cs", "Zl", "Zp") for ch in text):
                 raise UserError(f"schema {self.name!r}: name {text!r} is empty or holds a control character (a "
-                                "line break, tab or NUL); keypoint names are text on one line")
+                                "line break, tab or NUL) or a lone surrogate (no UTF-8: OpenCV's drawing of it "
+                                "crashed); keypoint names are text on one line")
         n = len(self.keypoints)
         for a, b in self.edges:
             if not (0 <= a < n and 0 <= b < n) or a == b:
