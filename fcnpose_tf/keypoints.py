@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import unicodedata
 import warnings
 from dataclasses import dataclass
 from typing import Sequence
@@ -33,6 +34,11 @@ class KeypointSchema:
     def __post_init__(self):
         if len(self.keypoints) < 1 or len(set(self.keypoints)) != len(self.keypoints):
             raise UserError(f"schema {self.name!r}: keypoint names must be non-empty and unique")
+        for text in (self.name, *self.keypoints):  # names reach messages, tables and files as they are
+            if not text or any(unicodedata.category(ch) in ("Cc", "Cs", "Zl", "Zp") for ch in text):
+                raise UserError(f"schema {self.name!r}: name {text!r} is empty or holds a control character (a "
+                                "line break, tab or NUL) or a lone surrogate (no UTF-8: OpenCV's drawing of it "
+                                "crashed); keypoint names are text on one line")
         n = len(self.keypoints)
         for a, b in self.edges:
             if not (0 <= a < n and 0 <= b < n) or a == b:
@@ -52,10 +58,19 @@ class KeypointSchema:
         """Where each keypoint's label goes when the frame is flipped left-right: its partner's index for a left/right
         pair (`mirrored_name`: `gripper L` and `gripper R`, `left_finger` and `right_finger`), else its own. A
         flip without the swap would teach the model to put the left finger on the right one. UR5's chain has no
-        pair: the identity."""
-        folded = [name.casefold() for name in self.keypoints]  # `Gripper Left` pairs with `gripper right`
-        return tuple(folded.index(partner.casefold()) if (partner := mirrored_name(name)) is not None
-                     and partner.casefold() in folded else i for i, name in enumerate(self.keypoints))
+        pair: the identity. Always a permutation: a keypoint is swapped only with one whose partner it is in turn
+        (`finger r` beside `finger L` and `finger R` keeps its label rather than taking finger L's)."""
+        names, folded = self.keypoints, [name.casefold() for name in self.keypoints]
+
+        def partner(name: str) -> int | None:  # the same spelling first, else any case: `Gripper Left`, `gripper right`
+            other = mirrored_name(name)
+            if other is None:
+                return None
+            return names.index(other) if other in names else (
+                folded.index(other.casefold()) if other.casefold() in folded else None)
+
+        partners = [partner(name) for name in names]
+        return tuple(j if j is not None and partners[j] == i else i for i, j in enumerate(partners))
 
     def index(self, name: str) -> int:
         """Position of a keypoint name; UserError naming the known labels if it is unknown."""
@@ -75,9 +90,15 @@ class KeypointSchema:
 
     @classmethod
     def from_dict(cls, data: dict) -> "KeypointSchema":
+        def listed(value, kind) -> bool:  # as JSON holds them: no str(1) for a name, no int(1.9) for an index
+            return isinstance(value, list) and all(isinstance(v, kind) and not isinstance(v, bool) for v in value)
+
         try:
-            return cls(str(data["name"]), tuple(str(k) for k in data["keypoints"]),
-                       tuple((int(a), int(b)) for a, b in data["edges"]))
+            name, keypoints, edges = data["name"], data["keypoints"], data["edges"]
+            if not (isinstance(name, str) and listed(keypoints, str) and listed(edges, list)
+                    and all(len(edge) == 2 and listed(edge, int) for edge in edges)):
+                raise TypeError("a schema entry of another kind")
+            return cls(name, tuple(keypoints), tuple((a, b) for a, b in edges))
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             shown = repr(data) if len(repr(data)) <= 200 else repr(data)[:200] + "..."
             raise UserError(f"invalid keypoint schema {shown}: expected name, keypoints (a list of names) and "
@@ -142,7 +163,12 @@ def schema_for_maps(num_maps: int) -> KeypointSchema:
         num_maps: the model's output maps.
     Returns:
         The schema.
+    Raises:
+        UserError: fewer than 2 maps (no keypoint map beside the skeleton's): no FCN-Pose model.
     """
+    if num_maps < 2:
+        raise UserError(f"a model of {num_maps} output map(s) is no FCN-Pose keypoint model: it has one map per "
+                        "keypoint plus the skeleton map, at least 2")
     if num_maps == UR5.num_maps:
         return UR5
     return KeypointSchema.chain("generic", [f"kp{i}" for i in range(num_maps - 1)])
@@ -170,7 +196,10 @@ def named_schema(num_maps: int, stored: bytes | str | None, model_path: str | os
             data = json.loads(stored)
         except (ValueError, RecursionError) as exc:
             raise UserError(f"{model_path}: its stored keypoint schema is not JSON ({entry_problem(exc)})") from None
-        schema = KeypointSchema.from_dict(data)
+        try:
+            schema = KeypointSchema.from_dict(data)
+        except UserError as exc:
+            raise UserError(f"{model_path}: {exc}") from None
         if schema.num_maps != num_maps:
             raise UserError(f"{model_path}: its stored keypoint schema {schema.name!r} has {schema.num_keypoints} "
                             f"keypoints, but the model has {num_maps} output maps ({num_maps - 1} keypoints + "

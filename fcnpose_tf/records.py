@@ -154,9 +154,11 @@ def training_record(model_path: str | os.PathLike) -> TrainingRecord | None:
 
 
 def _json_object(path: Path) -> dict[str, Any] | None:
-    """The JSON object in a record file; None when it is missing, unreadable, not JSON (or nested beyond Python's
-    parser) or no object."""
+    """The JSON object in a record file; None when it is missing, no regular file (a folder; a named pipe, whose
+    opening would wait for a writer), unreadable, not JSON (or nested beyond Python's parser) or no object."""
     try:
+        if not path.is_file():
+            return None
         record = json.loads(path.read_text())
     except (OSError, ValueError, RecursionError):
         return None

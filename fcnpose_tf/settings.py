@@ -477,7 +477,12 @@ INIT = Setting(
 """`train` fine-tunes the bundled generalist: measured on two proxies of a user's frames (docs/training.md,
 "Training on your own frames")."""
 SEED = Setting("seed", int, 0, "seed of weights, augmentation and batch order", label="seed",
-               check=lambda v: True, requirement="a whole number")
+               check=lambda v: 0 <= v < 2 ** 32, requirement="a whole number from 0 to 2**32 - 1")
+"""The range numpy's seeding takes (a negative seed ended a run in a traceback)."""
+SPLIT_SEED = SEED.variant(name="split_seed", label="split seed", default=None, paper=None,
+                          help="seed of the dataset's splits (which frames are validation frames)")
+"""Checked where splits are made or looked up (`data.splits.load_or_create_splits`): given as --split-seed, or
+taken from a model's training record."""
 
 # ------------------------------------------------------------------------------------------
 # Optimisation (base training and retraining)

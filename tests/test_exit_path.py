@@ -72,6 +72,18 @@ def test_train_with_bad_data_leaves_no_output_folder(tmp_path, capsys):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty"]
 
 
+
+@pytest.mark.parametrize("args", [["data", "inspect", "{data}", "--split-seed", "-1"],
+                                  ["train", "--data", "{data}", "--out", "{out}", "--init", "none", "--seed", "-1"]],
+                         ids=["split-seed", "seed"])
+def test_a_negative_seed_is_one_line_not_a_traceback(tmp_path, capsys, args):
+    from tests.test_via import write_dataset
+
+    via, _ = write_dataset(tmp_path / "d", n=4)
+    status = main([a.format(data=via, out=tmp_path / "models" / "m.keras") for a in args])
+    _one_error_line(status, capsys.readouterr().err, "seed must be a whole number from 0 to 2**32 - 1, got -1")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d"] and not via.with_suffix(".splits.json").exists()
+
 def test_ctrl_c_removes_what_the_command_made_and_exits_130(tmp_path, tflite_model, capsys, monkeypatch):
     from fcnpose_tf.runtime import bench
 

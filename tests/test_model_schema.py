@@ -27,6 +27,8 @@ def test_named_schema_reads_the_stored_entry_then_the_record(tmp_path):
     model = tmp_path / "m.keras"
     assert named_schema(5, None, model) is None  # neither: the caller's default (kp0..kp3)
     assert schema_for_maps(5).keypoints == ("kp0", "kp1", "kp2", "kp3")
+    with pytest.raises(UserError, match=r"^a model of 1 output map\(s\) is no FCN-Pose keypoint model"):
+        schema_for_maps(1)  # "schema 'generic': keypoint names must be non-empty and unique" before
     assert named_schema(5, json.dumps(MINE.to_dict()), model) == MINE
     (tmp_path / "m_train.json").write_text(json.dumps({"schema": MINE.to_dict()}))
     assert named_schema(5, None, model) == MINE
@@ -43,6 +45,25 @@ def test_named_schema_reads_the_stored_entry_then_the_record(tmp_path):
     with pytest.raises(UserError, match="invalid keypoint schema"):
         named_schema(5, json.dumps({"name": "x"}), model)
 
+
+
+@pytest.mark.parametrize("edit", [
+    {"keypoints": [1, 2, 3, 4]},  # not names: read as '1'..'4' before
+    {"keypoints": "abcd"},  # a string: read as the names a, b, c, d before
+    {"edges": [[0, 1.9]]},  # read as (0, 1) before
+    {"edges": [[True, False]]},
+    {"edges": ["01", "12"]},  # a string's characters: read as (0, 1), (1, 2) before
+    {"name": {"x": 1}},
+    {"keypoints": ["j0", "j1\nerror: forged", "j2", "tip"]},  # its names reach messages, tables and files
+    {"keypoints": ["j0", "j1\x00", "j2", "tip"]},
+    {"keypoints": ["", "j1", "j2", "tip"]},
+    {"keypoints": ["j0", "j1\ud800", "j2", "tip"]},  # no UTF-8: `run --save-video` died in OpenCV (SIGSEGV)
+])
+def test_a_stored_schema_is_read_as_its_json_holds_it_or_refused_on_one_line_naming_the_file(tmp_path, edit):
+    stored = json.dumps({**MINE.to_dict(), **edit})
+    with pytest.raises(UserError, match=r"^\S*m\.keras: invalid keypoint schema") as refused:
+        named_schema(5, stored, tmp_path / "m.keras")
+    assert str(refused.value).isprintable()
 
 def test_the_schema_survives_saving_resizing_and_surgery(tmp_path):
     from fcnpose_tf.compression.magnitude import magnitude_prune

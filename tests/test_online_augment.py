@@ -81,6 +81,10 @@ def test_a_flip_swaps_the_labels_of_left_right_pairs():
     assert several.mirror == (1, 0, 3, 2, 5, 4, 6)  # case aside, and numbered pairs
     camel = KeypointSchema.chain("camel", ("leftFinger", "rightFinger", "RWrist", "LWrist", "wristRoll", "LAxis"))
     assert camel.mirror == (1, 0, 3, 2, 4, 5)  # camel-case words (OpenPose's RWrist) pair too; an axis stays
+    for names, mirror in [(("finger L", "finger R", "finger r"), (1, 0, 2)),  # was (1, 0, 0): finger r lost its label
+                          (("finger r", "finger L", "finger R"), (0, 2, 1)),  # the same spelling pairs first
+                          (("base", "gripper L", "gripper R", "Gripper L"), (0, 2, 1, 3))]:
+        assert KeypointSchema.chain("cased", names).mirror == mirror, names  # a permutation, whatever the names
     kps = np.array([[60.0, 80.0], [40.0, 30.0], [90.0, 30.0]])
     scaled = (kps + 0.5) * np.array([S / W, S / H]) - 0.5
     flipping = OnlineAugmenter(S, OnlineAugmentConfig(flip_p=1.0, affine_p=0.0, **NO_APPEARANCE), schema.mirror)

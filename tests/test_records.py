@@ -112,6 +112,29 @@ def test_training_record_is_none_for_a_file_that_is_no_record(tmp_path, text):
     assert training_record(tmp_path / "m.keras") is None
 
 
+
+def test_a_record_that_is_no_regular_file_is_no_record_and_no_wait(tmp_path):
+    import os
+    import threading
+
+    from fcnpose_tf.records import recorded_schema
+
+    (tmp_path / "m_train.json").mkdir()
+    (tmp_path / "loop_train.json").symlink_to("loop_train.json")
+    os.mkfifo(tmp_path / "pipe_train.json")  # opened for reading, it would wait for a writer: a hung `run`
+    found = {}
+    reader = threading.Thread(target=lambda: found.update(
+        (name, (recorded_schema(tmp_path / name), training_record(tmp_path / name)))
+        for name in ("m.keras", "loop_fp16.tflite", "pipe.keras")), daemon=True)
+    reader.start()
+    reader.join(timeout=10)
+    if reader.is_alive():
+        try:  # let the waiting reader go: a writer that closes at once
+            os.close(os.open(tmp_path / "pipe_train.json", os.O_WRONLY | os.O_NONBLOCK))
+        except OSError:
+            pass
+    assert found == dict.fromkeys(("m.keras", "loop_fp16.tflite", "pipe.keras"), (None, None))
+
 def test_lineage_follows_each_records_init_back_to_a_bundled_start(tmp_path):
     """round2 was trained from round1 (a path), round1 from the generalist: round2's lineage names both, nearest first;
     a random start, a model without a record and a loop end it."""

@@ -133,6 +133,50 @@ def test_schema_from_dropdown_options(tmp_path):
     assert ann.min_visible == 2
 
 
+
+def test_a_schema_the_file_declares_badly_is_refused_on_one_line_naming_the_file(tmp_path):
+    via, _ = write_dataset(tmp_path, n=2, schema=KeypointSchema.chain("arm", ("a", "b", "c")))
+    project = json.loads(via.read_text())
+    project["_via_attributes"]["region"]["keypoint"]["options"] = {"a": "", "b\nerror: forged": "", "c": ""}
+    del project["fcnpose_schema"]  # the dropdown decides (it fell back to UR5's names before)
+    (tmp_path / "dropdown.json").write_text(json.dumps(project))
+    with pytest.raises(UserError, match=r"^\S*dropdown\.json: schema 'keypoint': name 'b\\nerror: forged' is empty or "
+                                        "holds a control character") as refused:
+        read_via(tmp_path / "dropdown.json")
+    assert "\n" not in str(refused.value)
+    project = json.loads(via.read_text())
+    project["fcnpose_schema"]["keypoints"] = ["a", "a", "c"]
+    (tmp_path / "stored.json").write_text(json.dumps(project))
+    with pytest.raises(UserError, match=r"^\S*stored\.json: invalid keypoint schema .*must be non-empty and unique"):
+        read_via(tmp_path / "stored.json")
+
+
+def test_a_described_schema_the_dropdown_overrules_is_said_not_silently_dropped(tmp_path, caplog):
+    tree = KeypointSchema("gripper", ("base", "wrist", "finger L", "finger R"), ((0, 1), (1, 2), (1, 3)))
+    via, _ = write_dataset(tmp_path, n=2, schema=tree)
+    project = json.loads(via.read_text())
+    del project["fcnpose_schema"]  # as VIA's Project > Save leaves it: the description holds the schema
+    attribute = project["_via_attributes"]["region"]["keypoint"]
+    described = attribute["description"]
+    for name, description, why in [
+            ("cut.json", described[:-30], "cannot be read (Unterminated string"),  # edited by hand
+            ("renamed.json", described.replace('"base"', '"root"'), "names other keypoints (root, wrist")]:
+        attribute["description"] = description
+        (tmp_path / name).write_text(json.dumps(project))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="fcnpose_tf"):
+            schema = read_via(tmp_path / name).schema
+        assert schema == KeypointSchema.chain("keypoint", tree.keypoints)  # the dropdown's chain, as before: now said
+        said = " ".join(caplog.messages)
+        assert f"{name}: the fcnpose-tf schema in the 'keypoint' attribute's description {why}" in said
+        assert "joined in a chain (base, wrist, finger L, finger R)" in said
+    attribute["description"] = described
+    (tmp_path / "saved.json").write_text(json.dumps(project))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="fcnpose_tf"):
+        assert read_via(tmp_path / "saved.json").schema == tree
+    assert not any("description" in message for message in caplog.messages)
+
 def test_occluded_frames_are_dropped_and_counted_with_a_warning(tmp_path, caplog):
     via, _ = write_dataset(tmp_path, n=5, missing={1: range(5), 3: range(8)})  # 3 visible; none
     with caplog.at_level(logging.WARNING):

@@ -21,7 +21,7 @@ import numpy as np
 
 from fcnpose_tf import fileio
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.settings import FOLDS
+from fcnpose_tf.settings import FOLDS, SPLIT_SEED
 
 SPLITS_VERSION = 1
 
@@ -234,7 +234,7 @@ def load_or_create_splits(via_path: str | os.PathLike, names: Sequence[str], k: 
     splits made with another seed, K or fraction, or for another frame list, are
     an error unless `resplit` replaces them.
     """
-    asked, asked_seed = k, seed
+    asked, asked_seed = k, SPLIT_SEED.validate(seed)
     seed = 0 if seed is None else seed
     if k is None:
         k = FOLDS.default

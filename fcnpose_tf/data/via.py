@@ -253,10 +253,7 @@ def _schema_from_attributes(data: dict, attribute: str) -> KeypointSchema | None
     names = tuple(str(k) for k in options)
     if set(names) == set(UR5.keypoints):
         return UR5
-    try:
-        return KeypointSchema.chain(attribute, names)
-    except UserError:
-        return None
+    return KeypointSchema.chain(attribute, names)
 
 
 def _json_kind(value) -> str:
@@ -311,22 +308,34 @@ def _region_attributes(metadata: dict):
                 yield attributes
 
 
-def _file_schema(data: object, attribute: str) -> KeypointSchema:
+def _file_schema(data: object, attribute: str, path: Path | None = None) -> KeypointSchema:
     """The schema a VIA file holds: the one this package stored in it (`SCHEMA_KEY`; else, after VIA saved the
     project without that key, the one in the attribute's description while its dropdown lists the same keypoints),
-    else the attribute's dropdown options, else UR5's."""
+    else the attribute's dropdown options, else UR5's. With `path`, a warning says when the description holds a
+    schema that the dropdown overrules (edited by hand, or keypoints renamed in VIA): its name and skeleton are lost."""
     stored = data.get(SCHEMA_KEY) if isinstance(data, dict) else None
     if isinstance(stored, dict):
         return KeypointSchema.from_dict(stored)
     options = _schema_from_attributes(data, attribute)
-    described = _described_schema(data, attribute)
+    try:
+        described = _described_schema(data, attribute)
+    except UserError as exc:
+        described, unread = None, str(exc)
+    else:
+        unread = None
     if described is not None and options is not None and set(described.keypoints) == set(options.keypoints):
         return described
+    if path is not None and options is not None and (described or unread):
+        why = unread or f"names other keypoints ({', '.join(described.keypoints)}) than its dropdown"
+        logger.warning("%s: the fcnpose-tf schema in the %r attribute's description %s: the dropdown's keypoints are "
+                       "read in their listed order, joined in a chain (%s)", path, attribute, why,
+                       ", ".join(options.keypoints))
     return options or UR5
 
 
 def _described_schema(data: object, attribute: str) -> KeypointSchema | None:
-    """The schema `via_project_dict` wrote into the region attribute's description (`DESCRIBED_SCHEMA`), or None."""
+    """The schema `via_project_dict` wrote into the region attribute's description (`DESCRIBED_SCHEMA`), or None
+    without one; UserError saying why when one is there but cannot be read."""
     try:
         description = data["_via_attributes"]["region"][attribute]["description"]
     except (KeyError, TypeError):
@@ -336,8 +345,8 @@ def _described_schema(data: object, attribute: str) -> KeypointSchema | None:
     try:  # the JSON object after the marker; words a user added after it are not part of it
         data, _ = json.JSONDecoder().raw_decode(description.split(DESCRIBED_SCHEMA, 1)[1].lstrip())
         return KeypointSchema.from_dict(data)
-    except (ValueError, RecursionError, UserError):  # edited by hand: the dropdown decides
-        return None
+    except (ValueError, RecursionError) as exc:  # UserError among them: edited by hand
+        raise UserError(f"cannot be read ({fileio.entry_problem(exc)})") from None
 
 
 def _attribute_naming_keypoints(data: object, metadata: dict, present: set[str],
@@ -534,16 +543,19 @@ def read_via(path: str | os.PathLike, images_dir: str | os.PathLike | None = Non
     data = _load_json(path)
     metadata, settings = _split_file(path, data)
     present = _region_attribute_names(metadata)
-    if present and attribute not in present:
-        named = _attribute_naming_keypoints(data, metadata, present, schema)
-        if named is not None:  # the labels under another name: read by it, not guessed in schema order
-            logger.warning("%s: no region has the attribute %r (--keypoint-attr); reading the keypoint names from %r, "
-                           "whose values are all keypoint names", path, attribute, named)
-            attribute = named
-    undeclared = schema is None and _schema_from_attributes(data, attribute) is None and not (
-        isinstance(data, dict) and isinstance(data.get(SCHEMA_KEY), dict))  # UR5's by default
-    if schema is None:
-        schema = _file_schema(data, attribute)
+    try:  # the schema the file declares (a stored one, a dropdown) refused with the file's name
+        if present and attribute not in present:
+            named = _attribute_naming_keypoints(data, metadata, present, schema)
+            if named is not None:  # the labels under another name: read by it, not guessed in schema order
+                logger.warning("%s: no region has the attribute %r (--keypoint-attr); reading the keypoint names from "
+                               "%r, whose values are all keypoint names", path, attribute, named)
+                attribute = named
+        undeclared = schema is None and _schema_from_attributes(data, attribute) is None and not (
+            isinstance(data, dict) and isinstance(data.get(SCHEMA_KEY), dict))  # UR5's by default
+        if schema is None:
+            schema = _file_schema(data, attribute, path)
+    except UserError as exc:
+        raise UserError(f"{path}: {exc}") from None
     if min_visible is None:
         min_visible = default_min_visible(schema)
     if not 0 <= min_visible <= schema.num_keypoints:
