@@ -78,6 +78,17 @@ def test_an_arm_too_small_for_the_cap_gets_the_most_pixels_within_it():
     assert fcn_pose_macs(view.shape) <= 1.91e9 and fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) <= 160e6
 
 
+def test_a_workspace_wider_than_any_input_gets_a_crop_at_the_widest_input(capsys):
+    from fcnpose_tf.data.arm_size import resolve_view
+
+    # a 2000 x 300 camera whose arm sweeps a 1700 x 250 workspace (6.8 : 1; the widest input is 384 x 128's 3 : 1)
+    frames = [ViaFrame(f"f{i}.png", 2000, 300, _box(150 + 170 * i, 25, 170, 250)) for i in range(10)]
+    view = resolve_view(frames, "auto", "auto", fixed_camera=True).chose
+    assert view.shape == (128, 384) and view.crop is not None and view.frame_size == (2000, 300)
+    assert "frames of several sizes" not in capsys.readouterr().out  # they are of one size
+    assert aspect_inputs(6.8) == aspect_inputs(3.0) and aspect_inputs(0.05) == aspect_inputs(1 / 3)
+
+
 @pytest.mark.parametrize("span, side", [(1.0, 224), (0.625, 224), (0.53, 288), (0.39, 384), (0.1, 384)])
 def test_views_that_vary_keep_the_square_side_measured_there(span, side):
     frames = [(_box(5 + i, 5, span * 640, span * 480 * 0.5), 640, 480) for i in range(5)]

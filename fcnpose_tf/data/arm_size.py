@@ -104,8 +104,11 @@ def block_friendly(box: Box, input_shape: tuple[int, int], frame_wh: tuple[int, 
 
 def aspect_inputs(aspect: float) -> list[tuple[int, int]]:
     """(height, width) inputs, multiples of 32, whose aspect is closest to `aspect` for each height, fewest pixels
-    first."""
+    first; a region wider (taller) than AUTO_MAX_SIDE : AUTO_MIN_SIDE gets the inputs of that extreme aspect (its
+    pixels then squeezed along its long side, as the whole frame in a square input would squeeze them more)."""
     m = INPUT_SIZE_MULTIPLE
+    extreme = AUTO_MAX_SIDE / AUTO_MIN_SIDE
+    aspect = min(max(aspect, 1 / extreme), extreme)
     shapes = set()
     for height in range(AUTO_MIN_SIDE, AUTO_MAX_SIDE + 1, m):
         width = int(round(height * aspect / m)) * m
