@@ -8,7 +8,7 @@ import pytest
 
 from fcnpose_tf import settings
 from fcnpose_tf.data.arm_size import (AUTO_MAX_INPUT_PIXELS, MIN_ARM_INPUT_PX, WORKSPACE_MARGIN, arm_input_px,
-                                      aspect_inputs, choose_view, fit_aspect, workspace_box)
+                                      _holds, aspect_inputs, choose_view, fit_aspect, workspace_box)
 from fcnpose_tf.data.via import ViaFrame, write_via_project
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
@@ -107,6 +107,13 @@ def test_a_start_view_is_kept_only_while_it_holds_the_frames():
     assert arm_input_px(large, FrameView(288, 288)) >= MIN_ARM_INPUT_PX
     assert choose_view(large, True, start=FrameView(288, 288)).crop is not None
     assert choose_view(large, False, start=FrameView(288, 288)) == FrameView(288, 288)  # views that vary: kept
+    # frames of another aspect (a 16:9 camera mode after 640x480): the start's crop, stretched, holds them and gives
+    # the arm its pixels, but its pixels are no longer square: the frames' own workspace is chosen instead
+    wide = [(_box(400 + 4 * i, 200, 300, 200), 1280, 720) for i in range(5)]
+    assert _holds(start, wide) and arm_input_px(wide, start) >= MIN_ARM_INPUT_PX
+    chosen = choose_view(wide, True, start=start)
+    assert chosen != start and chosen.frame_size == (1280, 720)
+    assert choose_view([(k * 2, 1280, 960) for k, _, _ in frames], True, start=start) == start  # 4:3 at 2x: kept
 
 
 def test_train_takes_auto_s_or_hxw_and_the_paper_keeps_224_over_the_whole_frame():

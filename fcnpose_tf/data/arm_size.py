@@ -141,7 +141,8 @@ def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: boo
     the whole frame at the smallest square side from WHOLE_FRAME_MIN_SIDE to AUTO_MAX_SIDE that gives the arm
     MIN_ARM_INPUT_PX pixels (AUTO_MAX_SIDE when none does): there 288 x 288 measured ahead of 224 x 288 (see
     WHOLE_FRAME_MIN_SIDE). `start` (the starting model's own view) is kept instead when its crop holds
-    every keypoint of the frames, the arm spans MIN_ARM_INPUT_PX there and it is of the kind the rule would take
+    every keypoint of the frames, the frames are of the aspect of those its crop was set on (not stretched:
+    `FrameView.aspect_note`), the arm spans MIN_ARM_INPUT_PX there and it is of the kind the rule would take
     (a crop for a workspace, the whole frame otherwise): the correction loop's next round stays at the view it
     learnt.
     """
@@ -149,6 +150,7 @@ def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: boo
     frame_wh = max(sizes)
     box = workspace_box(frames) if fixed_camera else None
     if (start is not None and (start.crop is None) == (box is None) and _holds(start, frames)
+            and not any(start.aspect_note((h, w)) for _, w, h in frames)
             and arm_input_px(frames, start) >= MIN_ARM_INPUT_PX):
         return start  # a start of the same kind (a crop for a workspace, the whole frame otherwise) that still fits
     if box is None:
