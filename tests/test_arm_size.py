@@ -29,7 +29,18 @@ def test_the_workspace_holds_every_keypoint_with_its_margin_inside_the_frame():
     assert x + w - 1 == int(np.ceil(400 + grow[0])) and y + h - 1 == int(np.ceil(300 + grow[1]))
     edge = workspace_box([(_box(0, 0, 639, 479), 640, 480)])
     assert edge == (0, 0, 640, 480)
-    assert workspace_box([(_box(0, 0, 10, 10), 640, 480), (_box(0, 0, 10, 10), 320, 240)]) is None  # two sizes
+    assert workspace_box([(_box(0, 0, 10, 10), 640, 480), (_box(0, 0, 10, 10), 320, 360)]) is None  # two aspects
+
+
+def test_frames_of_one_aspect_at_two_sizes_share_one_workspace_in_the_larger_frames_pixels():
+    # one camera at 640 x 480 and 1280 x 960: the same arm box, stated in each frame's pixels
+    small = [(_box(200 + 8 * i, 150 + 4 * i, 80, 160), 640, 480) for i in range(6)]
+    large = [((k + 0.5) * 2 - 0.5, 1280, 960) for k, _, _ in small]
+    mixed = small[::2] + large[1::2]
+    assert workspace_box(mixed) == workspace_box(large)
+    view = choose_view(mixed, fixed_camera=True)
+    assert view.crop is not None and view.frame_size == (1280, 960) and view == choose_view(large, fixed_camera=True)
+    assert view.box((480, 640, 3)) == tuple(round(v / 2) for v in view.crop)  # the crop follows the frame's size
 
 
 def test_fit_aspect_grows_one_axis_about_the_centre_and_stays_in_the_frame():
@@ -85,7 +96,7 @@ def test_a_workspace_wider_than_any_input_gets_a_crop_at_the_widest_input(capsys
     frames = [ViaFrame(f"f{i}.png", 2000, 300, _box(150 + 170 * i, 25, 170, 250)) for i in range(10)]
     view = resolve_view(frames, "auto", "auto", fixed_camera=True).chose
     assert view.shape == (128, 384) and view.crop is not None and view.frame_size == (2000, 300)
-    assert "frames of several sizes" not in capsys.readouterr().out  # they are of one size
+    assert "frames of several" not in capsys.readouterr().out  # they are of one size
     assert aspect_inputs(6.8) == aspect_inputs(3.0) and aspect_inputs(0.05) == aspect_inputs(1 / 3)
 
 
