@@ -53,6 +53,12 @@ ASPECT_TOLERANCE = 0.01
 (1280x720 against 640x480: 0.33; a rounding of the same mode, 1278x720 against 1280x720: 0.002)."""
 
 
+def same_aspect(size: tuple[int, int], other: tuple[int, int]) -> bool:
+    """Whether frames of (width, height) `size` and `other` are of one aspect, within `ASPECT_TOLERANCE`: two modes of
+    one camera's view, so a crop stated in one is the same region of the other (`FrameView.box`)."""
+    return abs((size[0] / size[1]) / (other[0] / other[1]) - 1) <= ASPECT_TOLERANCE
+
+
 @dataclass(frozen=True)
 class FrameView:
     """What a model sees of a frame: `crop` (the whole frame when None) resized to height x width.
@@ -131,7 +137,7 @@ class FrameView:
             return None
         fh, fw = int(frame_shape[0]), int(frame_shape[1])
         cw, ch = self.frame_size
-        if abs((fw / fh) / (cw / ch) - 1) <= ASPECT_TOLERANCE:
+        if same_aspect((fw, fh), self.frame_size):
             return None
         return (f"frames of {fw}x{fh} are not of the aspect of the {cw}x{ch} frames the model's crop was set on "
                 f"({fw / fh:.2f} against {cw / ch:.2f}): the crop is stretched to fit them and may not frame the arm's "

@@ -393,7 +393,7 @@ TRAIN_INPUT_SIZE = INPUT_SIZE.variant(
          "up to 224x288's, at which the arm's keypoint box spans 140 input pixels in the median frame (where views "
          "vary: the whole frame at the smallest square side from 224 to 384 that does; docs/training.md, \"Input "
          "size\"), or the starting model's own view where the arm spans "
-         "140 pixels there too and its crop holds every keypoint, and keeps the starting model as saved if it scores "
+         "140 pixels there too and its crop holds every keypoint of frames of its aspect, and keeps the starting model as saved if it scores "
          "higher on the validation frames; or S (S x S) or HxW, multiples of 32")
 """`train` serves a user's camera: where the arm is small in the input, PCK@0.05's radius is a few input pixels
 wide and fine localisation falls (measured on the held-out fixed camera: docs/training.md, "Someone else's

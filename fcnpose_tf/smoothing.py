@@ -6,13 +6,14 @@ Per keypoint, on the (x, y) position in frame pixels:
 
     a(fc)   = 1 / (1 + 1 / (2 pi fc dt))                       the smoothing factor of cut-off fc (Hz)
     v       = low-pass of (x_t - x^_{t-1}) / dt at d_cutoff      speed, px/s
-    fc      = min_cutoff + beta |v|                              Hz
+    fc      = min_cutoff + beta |v| 800 / diagonal               Hz
     x^_t    = x^_{t-1} + a(fc) (x_t - x^_{t-1})
 
 A keypoint the model misses is held at its last estimate for up to `max_coast` frames (coasting),
 then reported missing, and its filter starts afresh at its next detection (a reset after a gap, so a
-keypoint that reappears elsewhere is not dragged there slowly). Defaults and what they measured:
-docs/runtime.md, "Smoothing".
+keypoint that reappears elsewhere is not dragged there slowly). The speed counts in pixels of a 640 x 480 frame
+(times REFERENCE_DIAGONAL_PX / the frame's diagonal), so the defaults, tuned there, smooth a camera of any
+resolution alike. Defaults and what they measured: docs/runtime.md, "Smoothing".
 """
 
 from __future__ import annotations
@@ -25,7 +26,11 @@ import numpy as np
 DEFAULT_MIN_CUTOFF_HZ = 0.5
 """Cut-off of a keypoint at rest (Hz)."""
 DEFAULT_BETA = 0.03
-"""Cut-off added per pixel/second of speed (Hz per px/s)."""
+"""Cut-off added per pixel/second of speed (Hz per px/s, pixels of a 640 x 480 frame: REFERENCE_DIAGONAL_PX)."""
+REFERENCE_DIAGONAL_PX = 800.0
+"""The diagonal of the 640 x 480 frames the defaults were tuned on: a frame of diagonal D counts a speed of v px/s as
+v * 800 / D (the same motion on 1920 x 1440 frames, 3x the pixels a second, smoothed 0.65x instead of 0.50x
+without it)."""
 DEFAULT_D_CUTOFF_HZ = 1.0
 """Cut-off of the speed estimate (Hz)."""
 DEFAULT_MAX_COAST = 2
@@ -46,8 +51,10 @@ class OneEuroParams:
     max_coast: int = DEFAULT_MAX_COAST
 
     def describe(self) -> str:
-        """`One-Euro filter (cut-off 0.5 Hz at rest + 0.03 Hz per px/s, speed cut-off 1 Hz, coasting 2 frames)`."""
-        return (f"One-Euro filter (cut-off {self.min_cutoff_hz:g} Hz at rest + {self.beta:g} Hz per px/s, speed "
+        """`One-Euro filter (cut-off 0.5 Hz at rest + 0.03 Hz per px/s of a 640x480 frame, speed cut-off 1 Hz, coasting 2
+        frames)`."""
+        return (f"One-Euro filter (cut-off {self.min_cutoff_hz:g} Hz at rest + {self.beta:g} Hz per px/s of a 640x480 "
+                f"frame, speed "
                 f"cut-off {self.d_cutoff_hz:g} Hz, coasting {self.max_coast} frame{'s' if self.max_coast != 1 else ''})")
 
     def check(self) -> "OneEuroParams":
@@ -75,9 +82,13 @@ class KeypointSmoother:
         >>> steady = smoother(keypoints_xy, t_seconds)   # K x 2, NaN where missing
     """
 
-    def __init__(self, num_keypoints: int, params: OneEuroParams | None = None) -> None:
+    def __init__(self, num_keypoints: int, params: OneEuroParams | None = None,
+                 frame_shape: tuple[int, ...] | None = None) -> None:
+        """`frame_shape` (height, width[, channels]) of the video's frames: speeds count in pixels of a 640 x 480 frame
+        (REFERENCE_DIAGONAL_PX); None: they are such frames."""
         self.params = (params or OneEuroParams()).check()
         self.k = int(num_keypoints)
+        self.speed_scale = 1.0 if frame_shape is None else REFERENCE_DIAGONAL_PX / math.hypot(*frame_shape[:2])
         self.reset()
 
     def reset(self) -> None:
@@ -106,7 +117,7 @@ class KeypointSmoother:
             p = self.params
             raw_v = (obs[update] - self._x[update]) / dt
             self._v[update] += _alpha(p.d_cutoff_hz, dt) * (raw_v - self._v[update])
-            speed = np.linalg.norm(self._v[update], axis=1)
+            speed = np.linalg.norm(self._v[update], axis=1) * self.speed_scale
             a = _alpha(p.min_cutoff_hz + p.beta * speed, dt)[:, None]
             self._x[update] += a * (obs[update] - self._x[update])
         self._missed[seen] = 0
@@ -117,10 +128,12 @@ class KeypointSmoother:
         return self._x.copy()
 
 
-def smooth_track(keypoints: np.ndarray, fps: float, params: OneEuroParams | None = None) -> np.ndarray:
-    """A whole N x K x 2 sequence at `fps` frames per second, smoothed frame by frame (as `run` does live)."""
+def smooth_track(keypoints: np.ndarray, fps: float, params: OneEuroParams | None = None,
+                 frame_shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """A whole N x K x 2 sequence at `fps` frames per second, smoothed frame by frame (as `run` does live); its
+    frames' `frame_shape` as `KeypointSmoother`'s."""
     keypoints = np.asarray(keypoints, np.float64)
-    smoother = KeypointSmoother(keypoints.shape[1], params)
+    smoother = KeypointSmoother(keypoints.shape[1], params, frame_shape)
     return np.stack([smoother(frame, i / float(fps)) for i, frame in enumerate(keypoints)])
 
 
@@ -133,7 +146,8 @@ def add_smoothing_arguments(parser, video_only: bool = False) -> None:
     parser.add_argument("--smooth-min-cutoff", type=float, default=DEFAULT_MIN_CUTOFF_HZ, metavar="HZ",
                         help=f"cut-off of a keypoint at rest (default {DEFAULT_MIN_CUTOFF_HZ:g} Hz; lower: steadier)")
     parser.add_argument("--smooth-beta", type=float, default=DEFAULT_BETA, metavar="B",
-                        help=f"cut-off added per px/s of speed (default {DEFAULT_BETA:g}; higher: less lag)")
+                        help=f"cut-off added per px/s of speed, in pixels of a 640x480 frame (scaled to the frame's "
+                             f"diagonal) (default {DEFAULT_BETA:g}; higher: less lag)")
     parser.add_argument("--smooth-coast", type=int, default=DEFAULT_MAX_COAST, metavar="N",
                         help=f"frames a missed keypoint is held (default {DEFAULT_MAX_COAST})")
 

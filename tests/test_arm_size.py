@@ -8,7 +8,7 @@ import pytest
 
 from fcnpose_tf import settings
 from fcnpose_tf.data.arm_size import (AUTO_MAX_INPUT_PIXELS, MIN_ARM_INPUT_PX, WORKSPACE_MARGIN, arm_input_px,
-                                      aspect_inputs, choose_view, fit_aspect, workspace_box)
+                                      _holds, aspect_inputs, choose_view, fit_aspect, workspace_box)
 from fcnpose_tf.data.via import ViaFrame, write_via_project
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.keypoints import UR5
@@ -29,7 +29,18 @@ def test_the_workspace_holds_every_keypoint_with_its_margin_inside_the_frame():
     assert x + w - 1 == int(np.ceil(400 + grow[0])) and y + h - 1 == int(np.ceil(300 + grow[1]))
     edge = workspace_box([(_box(0, 0, 639, 479), 640, 480)])
     assert edge == (0, 0, 640, 480)
-    assert workspace_box([(_box(0, 0, 10, 10), 640, 480), (_box(0, 0, 10, 10), 320, 240)]) is None  # two sizes
+    assert workspace_box([(_box(0, 0, 10, 10), 640, 480), (_box(0, 0, 10, 10), 320, 360)]) is None  # two aspects
+
+
+def test_frames_of_one_aspect_at_two_sizes_share_one_workspace_in_the_larger_frames_pixels():
+    # one camera at 640 x 480 and 1280 x 960: the same arm box, stated in each frame's pixels
+    small = [(_box(200 + 8 * i, 150 + 4 * i, 80, 160), 640, 480) for i in range(6)]
+    large = [((k + 0.5) * 2 - 0.5, 1280, 960) for k, _, _ in small]
+    mixed = small[::2] + large[1::2]
+    assert workspace_box(mixed) == workspace_box(large)
+    view = choose_view(mixed, fixed_camera=True)
+    assert view.crop is not None and view.frame_size == (1280, 960) and view == choose_view(large, fixed_camera=True)
+    assert view.box((480, 640, 3)) == tuple(round(v / 2) for v in view.crop)  # the crop follows the frame's size
 
 
 def test_fit_aspect_grows_one_axis_about_the_centre_and_stays_in_the_frame():
@@ -78,6 +89,17 @@ def test_an_arm_too_small_for_the_cap_gets_the_most_pixels_within_it():
     assert fcn_pose_macs(view.shape) <= 1.91e9 and fcn_pose_macs(view.shape, FCN_POSE_P70_WIDTHS) <= 160e6
 
 
+def test_a_workspace_wider_than_any_input_gets_a_crop_at_the_widest_input(capsys):
+    from fcnpose_tf.data.arm_size import resolve_view
+
+    # a 2000 x 300 camera whose arm sweeps a 1700 x 250 workspace (6.8 : 1; the widest input is 384 x 128's 3 : 1)
+    frames = [ViaFrame(f"f{i}.png", 2000, 300, _box(150 + 170 * i, 25, 170, 250)) for i in range(10)]
+    view = resolve_view(frames, "auto", "auto", fixed_camera=True).chose
+    assert view.shape == (128, 384) and view.crop is not None and view.frame_size == (2000, 300)
+    assert "frames of several" not in capsys.readouterr().out  # they are of one size
+    assert aspect_inputs(6.8) == aspect_inputs(3.0) and aspect_inputs(0.05) == aspect_inputs(1 / 3)
+
+
 @pytest.mark.parametrize("span, side", [(1.0, 224), (0.625, 224), (0.53, 288), (0.39, 384), (0.1, 384)])
 def test_views_that_vary_keep_the_square_side_measured_there(span, side):
     frames = [(_box(5 + i, 5, span * 640, span * 480 * 0.5), 640, 480) for i in range(5)]
@@ -96,6 +118,13 @@ def test_a_start_view_is_kept_only_while_it_holds_the_frames():
     assert arm_input_px(large, FrameView(288, 288)) >= MIN_ARM_INPUT_PX
     assert choose_view(large, True, start=FrameView(288, 288)).crop is not None
     assert choose_view(large, False, start=FrameView(288, 288)) == FrameView(288, 288)  # views that vary: kept
+    # frames of another aspect (a 16:9 camera mode after 640x480): the start's crop, stretched, holds them and gives
+    # the arm its pixels, but its pixels are no longer square: the frames' own workspace is chosen instead
+    wide = [(_box(400 + 4 * i, 200, 300, 200), 1280, 720) for i in range(5)]
+    assert _holds(start, wide) and arm_input_px(wide, start) >= MIN_ARM_INPUT_PX
+    chosen = choose_view(wide, True, start=start)
+    assert chosen != start and chosen.frame_size == (1280, 720)
+    assert choose_view([(k * 2, 1280, 960) for k, _, _ in frames], True, start=start) == start  # 4:3 at 2x: kept
 
 
 def test_train_takes_auto_s_or_hxw_and_the_paper_keeps_224_over_the_whole_frame():

@@ -203,3 +203,12 @@ def test_bench_draws_its_synthetic_frame_at_the_crops_frame_size(tmp_path, capsy
                      "640x480"]) == 0
         assert "frame: synthetic 640x480" in capsys.readouterr().out
     assert any("not of the aspect" in r.getMessage() for r in caplog.records)
+    # several models whose crops were set on frames of other sizes: each gets its own frames' synthetic frame
+    caplog.clear()
+    tall = FrameView(96, 64, crop=(40, 200, 400, 600), frame_size=(480, 960))
+    write_tflite(randomize(build_fcn_pose(input_size=tall), seed=1), tmp_path / "tall.tflite", "float32")
+    with caplog.at_level("WARNING", logger="fcnpose_tf.runtime.estimator"):
+        assert main(["bench", str(path), str(tmp_path / "tall.tflite"), "--threads", "1", "--frames", "2", "--warmup",
+                     "0"]) == 0
+    out = capsys.readouterr().out
+    assert "frame: synthetic 1280x720" in out and "frame: synthetic 480x960" in out and not caplog.records

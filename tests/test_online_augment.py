@@ -123,6 +123,9 @@ def test_working_frame_scales_keypoints_through_pixel_edges():
     rgb, kps = working_frame(frame, np.array([[-0.5, -0.5], [639.5, 479.5]]), 64, 1.5)
     assert rgb.shape == (96, 128, 3)
     np.testing.assert_allclose(kps, [[-0.5, -0.5], [127.5, 95.5]])
+    # a frame of another aspect than the input's: each side at least 1.5 x the input's, so none is enlarged later
+    tall, _ = working_frame(np.zeros((640, 480, 3), np.uint8), np.zeros((2, 2)), (32, 96), 1.5)
+    assert tall.shape[1] >= 1.5 * 96 and tall.shape[0] >= 1.5 * 32 and tall.shape[:2] == (192, 144)
 
 
 def test_bad_ranges_are_refused():

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from fcnpose_tf.data.via import read_via
+from fcnpose_tf.preprocess import FrameView
 from fcnpose_tf.runtime.sources import Frame
 from fcnpose_tf.correction.selection import (FrameRecord, FrameScores, default_min_gap, flip_back, pick_spread, pick_uniform,
                                           zoom_out)
@@ -104,6 +105,30 @@ def test_disagree_picks_the_frame_whose_keypoints_move_when_flipped_or_zoomed():
     assert values.argmax() == 4 and values[4] == pytest.approx(50 - (8 + 5 * 4))
     assert np.delete(values, 4).max() == 0.0
     assert [r.index for r in scores.pick(1, 1)] == [4]
+
+
+class CropDotFinder(DotFinder):
+    """`DotFinder` reading only its view's crop of a frame, as a model with a workspace crop does."""
+
+    def __init__(self, view: FrameView):
+        self.view = view
+
+    def predict(self, image):
+        x, y, w, h = self.view.box(image.shape)
+        found = DotFinder.predict(self, image[y:y + h, x:x + w])
+        return SimpleNamespace(keypoints=found.keypoints + (x, y), confidence=found.confidence)
+
+
+def test_disagree_flips_and_zooms_out_the_crop_a_model_reads_not_the_whole_frame():
+    finder = CropDotFinder(FrameView(48, 64, (0, 0, 64, 48), (128, 48)))  # the workspace: the frame's left half
+    scores = FrameScores("disagree", finder)
+    image = np.zeros((48, 128, 3), np.uint8)
+    image[10, 20] = 255
+    scores.add(Frame(0, image, 0.0, "f"), finder.predict(image))
+    flipped, zoomed = scores.records[0].views
+    np.testing.assert_allclose(flipped, np.tile([20.0, 10.0], (K, 1)))  # the whole frame flipped: outside the crop
+    np.testing.assert_allclose(zoomed, np.tile([20.0, 10.0], (K, 1)))
+    assert scores.scores()[0] == 0.0 and finder.view.crop == (0, 0, 64, 48)  # every view agrees; the view restored
 
 
 def test_views_map_back_to_the_frame():

@@ -98,3 +98,15 @@ def test_evaluate_sequence_reports_jitter_and_lag(cli_here, tmp_path):
     assert seq["raw"]["jitter_px"] is None or seq["raw"]["jitter_px"] >= 0
     status, _, err = cli_here("evaluate", baseline_model(), "--data", tmp_path / "seq", "--smooth")
     assert status == 2 and "--sequence" in err
+
+
+def test_a_camera_of_another_resolution_is_smoothed_alike():
+    rng = np.random.default_rng(1)
+    t = np.arange(120) / FPS
+    track = np.stack([300 + 150 * np.sin(2 * math.pi * 0.4 * t), 200 + 80 * np.cos(2 * math.pi * 0.3 * t)], -1)
+    noisy = (track + rng.normal(0, 2.0, track.shape))[:, None, :]
+    at_640 = smooth_track(noisy, FPS, frame_shape=(480, 640, 3))
+    np.testing.assert_array_equal(at_640, smooth_track(noisy, FPS))  # the frames the defaults were tuned on
+    # the same motion filmed at 1920 x 1440: 3x the pixels, 3x the speeds; smoothed as at 640 x 480, scaled
+    at_1920 = smooth_track((noisy + 0.5) * 3 - 0.5, FPS, frame_shape=(1440, 1920))
+    np.testing.assert_allclose(at_1920, (at_640 + 0.5) * 3 - 0.5, atol=1e-9)

@@ -5,9 +5,11 @@ count: invoke and end-to-end (preprocess + invoke + postprocess) median and
 p95 latency, mean ± std, the share of pre/post-processing, and FPS
 (1000 / mean end-to-end ms) next to the invoke-only rate. Needs only the `pi`
 extra. The frame is synthetic unless --image is given (post-processing time
-depends on what the model sees: use a real frame for a trained model). Several models are
-measured one after the other on the same frame, each with its own table (the bundled int8 file
-beside the float16 one, for instance); compare them with the same thread count.
+depends on what the model sees: use a real frame for a trained model; a synthetic one is of the
+frames the model's crop was set on). Several models are measured one after the other on the same
+frame (synthetic: of the same size, where their crops were set on frames of one size), each with its
+own table (the bundled int8 file beside the float16 one, for instance); compare them with the same
+thread count.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--warmup", type=int, default=10, help="untimed frames first, per thread count")
     parser.add_argument("--image", type=Path, help="benchmark on this image instead of a synthetic frame")
     parser.add_argument("--frame-size", default=None, metavar="WxH",
-                        help="size of the synthetic frame (default: the frames the first model's crop was set on, "
+                        help="size of the synthetic frame (default: for each model the frames its crop was set on, "
                              "else 640x480)")
     add_decoding_arguments(parser, fallback=False)
     parser.add_argument("--json", type=Path, metavar="FILE",
@@ -71,14 +73,16 @@ def run(args: argparse.Namespace) -> int:
     threads = args.threads or None
     if args.json is not None:
         check_writable(args.json, args.force)
-    frame_size = parse_size(args.frame_size) if args.frame_size is not None else crop_frame_size(args.model[0])
-    if max(frame_size) > MAX_FRAME_SIDE:  # 30000x30000 would be 2.7 GB of pixels before the first frame
+    frame_size = parse_size(args.frame_size) if args.frame_size is not None else None
+    if frame_size is not None and max(frame_size) > MAX_FRAME_SIDE:  # 30000x30000: 2.7 GB of pixels
         raise UserError(f"--frame-size {args.frame_size}: at most {MAX_FRAME_SIDE} pixels a side (an 8K frame is "
                         "7680x4320); for a real camera's frame pass --image")
-    frame, label = load_frame(args.image, frame_size)
+    sizes = [frame_size or crop_frame_size(model) for model in args.model]  # each model's own frames: no aspect warning
+    frames = {size: load_frame(args.image, size) for size in set(sizes)}
     reports = []
     progress = Reporter(stream=sys.stderr)  # the tables go to stdout
-    for i, model in enumerate(args.model):
+    for i, (model, size) in enumerate(zip(args.model, sizes)):
+        frame, label = frames[size]
         try:
             reports.append(benchmark(model, threads, args.frames, args.warmup, frame, label, args.backend,
                                      decoding=Decoding.from_args(args), reporter=progress))

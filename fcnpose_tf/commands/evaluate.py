@@ -125,8 +125,9 @@ def run(args: argparse.Namespace) -> int:
     if args.sequence is not None:
         from fcnpose_tf.training.evaluate import format_sequence, sequence_report
 
+        first = dataset.samples[indices[0]]
         sequence = sequence_report(result.predictions, result.ground_truth, args.sequence,
-                                   params_from_args(args), dataset.schema.keypoints)
+                                   params_from_args(args), dataset.schema.keypoints, (first.height, first.width))
         print(format_sequence(sequence))
     if args.json is not None:
         write_json(args.json, {"model": str(model_path), "size_bytes": Path(model_path).stat().st_size,

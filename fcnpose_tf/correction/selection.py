@@ -31,6 +31,8 @@ import cv2
 import numpy as np
 
 from fcnpose_tf.errors import UserError
+from fcnpose_tf.preprocess import Box
+from fcnpose_tf.runtime.tracking import predict_over
 
 STRATEGIES = ("uniform", "uncertain", "jump", "disagree")
 DEFAULT_STRATEGY = "uniform"
@@ -67,14 +69,17 @@ def zoom_out(frame: np.ndarray, fraction: float = PAD_FRACTION) -> tuple[np.ndar
 
 
 def augmented_views(predict: Callable[[np.ndarray], np.ndarray], frame: np.ndarray,
-                    mirror: Sequence[int] | None = None) -> list[np.ndarray]:
-    """`disagree`'s views of a frame, each predicted by `predict` (BGR frame -> K x 2) and mapped back (`mirror`:
-    the schema's left/right pairs, `KeypointSchema.mirror`)."""
-    width = frame.shape[1]
-    flipped = flip_back(predict(np.ascontiguousarray(frame[:, ::-1])), width, mirror)
-    canvas, (dx, dy) = zoom_out(frame)
+                    mirror: Sequence[int] | None = None, box: Box | None = None) -> list[np.ndarray]:
+    """`disagree`'s views of the part of a frame a model reads (`box`, x, y, width, height: its crop; None: the whole
+    frame), flipped and zoomed out, each predicted by `predict` (BGR image -> K x 2, the image read whole) and mapped
+    back to the frame (`mirror`: the schema's left/right pairs, `KeypointSchema.mirror`). A crop is flipped and zoomed
+    out in place: the flipped frame's workspace is elsewhere, where the crop would not read it."""
+    x, y, width, height = box if box is not None else (0, 0, frame.shape[1], frame.shape[0])
+    part = frame[y:y + height, x:x + width]
+    flipped = flip_back(predict(np.ascontiguousarray(part[:, ::-1])), width, mirror)
+    canvas, (dx, dy) = zoom_out(part)
     zoomed = np.array(predict(canvas), np.float64, copy=True) - (dx, dy)
-    return [flipped, zoomed]
+    return [flipped + (x, y), zoomed + (x, y)]
 
 
 class FrameScores:
@@ -99,8 +104,11 @@ class FrameScores:
         views = []
         if self.strategy == "disagree":
             schema = getattr(self.predictor, "schema", None)
-            views = augmented_views(lambda image: self.predictor.predict(image).keypoints, frame.image,
-                                    schema.mirror if schema is not None else None)
+            view = getattr(self.predictor, "view", None)
+            box = view.box(frame.image.shape) if view is not None and view.crop is not None else None
+            views = augmented_views(lambda image: predict_over(self.predictor, image, None if box is None else
+                                                               (0, 0, image.shape[1], image.shape[0])).keypoints,
+                                    frame.image, schema.mirror if schema is not None else None, box)
         self.records.append(FrameRecord(int(frame.index), np.array(prediction.keypoints, np.float64, copy=True),
                                         np.array(prediction.confidence, np.float64, copy=True),
                                         tuple(frame.image.shape), views))

@@ -25,7 +25,7 @@ import numpy as np
 
 from fcnpose_tf import progress, settings
 from fcnpose_tf.metrics import FCN_POSE_P70_WIDTHS, fcn_pose_macs
-from fcnpose_tf.preprocess import Box, FrameView
+from fcnpose_tf.preprocess import Box, FrameView, same_aspect
 from fcnpose_tf.progress import Reporter
 from fcnpose_tf.settings import INPUT_SIZE_MULTIPLE
 
@@ -53,15 +53,23 @@ def _points(keypoints) -> np.ndarray:
     return points[np.isfinite(points).all(axis=1)]
 
 
+def frame_size_of(frames: Sequence[tuple[np.ndarray, int, int]]) -> tuple[int, int]:
+    """(width, height) of the largest of the frames (640 x 480 for none): the size a crop chosen on them is stated in."""
+    return max({(int(w), int(h)) for _, w, h in frames} or {(640, 480)})
+
+
 def workspace_box(frames: Sequence[tuple[np.ndarray, int, int]], margin: float = WORKSPACE_MARGIN) -> Box | None:
-    """The box (x, y, width, height in frame pixels) holding every keypoint of `frames`, grown by `margin` of its size
-    on each side and kept inside the frame; None when the frames differ in size or hold fewer than two keypoints."""
-    sizes = {(int(w), int(h)) for _, w, h in frames}
-    points = [_points(k) for k, _, _ in frames]
-    points = np.concatenate(points) if points else np.empty((0, 2))
-    if len(sizes) != 1 or len(points) < 2:
+    """The box (x, y, width, height in pixels of the largest frame, `frame_size_of`) holding every keypoint of `frames`,
+    grown by `margin` of its size on each side and kept inside the frame; frames of another size but the same aspect
+    (`preprocess.same_aspect`: the camera at another resolution) count with their keypoints scaled to it. None when the
+    frames differ in aspect or hold fewer than two keypoints."""
+    fw, fh = frame_size_of(frames)
+    if not all(same_aspect((int(w), int(h)), (fw, fh)) for _, w, h in frames):
         return None
-    (fw, fh), = sizes
+    points = [(_points(k) + 0.5) * (fw / int(w), fh / int(h)) - 0.5 for k, w, h in frames]  # through pixel edges
+    points = np.concatenate(points) if points else np.empty((0, 2))
+    if len(points) < 2:
+        return None
     lo, hi = points.min(axis=0), points.max(axis=0)
     grow = margin * (hi - lo)
     x0, y0 = (int(np.floor(v)) for v in np.maximum(lo - grow, 0))
@@ -104,8 +112,11 @@ def block_friendly(box: Box, input_shape: tuple[int, int], frame_wh: tuple[int, 
 
 def aspect_inputs(aspect: float) -> list[tuple[int, int]]:
     """(height, width) inputs, multiples of 32, whose aspect is closest to `aspect` for each height, fewest pixels
-    first."""
+    first; a region wider (taller) than AUTO_MAX_SIDE : AUTO_MIN_SIDE gets the inputs of that extreme aspect (its
+    pixels then squeezed along its long side, as the whole frame in a square input would squeeze them more)."""
     m = INPUT_SIZE_MULTIPLE
+    extreme = AUTO_MAX_SIDE / AUTO_MIN_SIDE
+    aspect = min(max(aspect, 1 / extreme), extreme)
     shapes = set()
     for height in range(AUTO_MIN_SIDE, AUTO_MAX_SIDE + 1, m):
         width = int(round(height * aspect / m)) * m
@@ -138,14 +149,15 @@ def choose_view(frames: Sequence[tuple[np.ndarray, int, int]], fixed_camera: boo
     the whole frame at the smallest square side from WHOLE_FRAME_MIN_SIDE to AUTO_MAX_SIDE that gives the arm
     MIN_ARM_INPUT_PX pixels (AUTO_MAX_SIDE when none does): there 288 x 288 measured ahead of 224 x 288 (see
     WHOLE_FRAME_MIN_SIDE). `start` (the starting model's own view) is kept instead when its crop holds
-    every keypoint of the frames, the arm spans MIN_ARM_INPUT_PX there and it is of the kind the rule would take
+    every keypoint of the frames, the frames are of the aspect of those its crop was set on (not stretched:
+    `FrameView.aspect_note`), the arm spans MIN_ARM_INPUT_PX there and it is of the kind the rule would take
     (a crop for a workspace, the whole frame otherwise): the correction loop's next round stays at the view it
     learnt.
     """
-    sizes = {(int(w), int(h)) for _, w, h in frames} or {(640, 480)}
-    frame_wh = max(sizes)
+    frame_wh = frame_size_of(frames)
     box = workspace_box(frames) if fixed_camera else None
     if (start is not None and (start.crop is None) == (box is None) and _holds(start, frames)
+            and not any(start.aspect_note((h, w)) for _, w, h in frames)
             and arm_input_px(frames, start) >= MIN_ARM_INPUT_PX):
         return start  # a start of the same kind (a crop for a workspace, the whole frame otherwise) that still fits
     if box is None:
@@ -228,7 +240,7 @@ def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera
         view = FrameView.of(input_size)
         box = workspace_box(boxes) if use_crop else None
         if box is not None:
-            frame_wh = (frames[0].width, frames[0].height)
+            frame_wh = frame_size_of(boxes)
             view = FrameView(view.height, view.width, block_friendly(fit_aspect(box, view.width / view.height, frame_wh),
                                                                      view.shape, frame_wh), frame_wh)
     arm_px = arm_input_px(boxes, view)
@@ -236,7 +248,7 @@ def resolve_view(frames: Sequence[Any], input_size: Any, crop: str, fixed_camera
     kept = "; the starting model's own view, kept" if start is not None and view == start else ""
     where = ("its workspace" + (": one fixed camera" if fixed_camera else "") if view.crop is not None else
              "the whole frame" + (": views vary" if chosen and crop == "auto" and not fixed_camera else
-                                  ": frames of several sizes" if use_crop else ""))
+                                  ": frames of several aspects" if use_crop else ""))
     progress.resolve(reporter).say(
         f"View: {view.describe()} ({where}{kept}); the arm's keypoint box spans {arm_px:.0f} input pixels in the "
         f"median frame ({MIN_ARM_INPUT_PX} wanted); {macs / 1e9:.2f} G multiply-adds a frame unpruned, "

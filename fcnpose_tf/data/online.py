@@ -66,8 +66,8 @@ class OnlineAugmentConfig:
     max_holes: int = 3
     max_hole_fraction: float = 0.2
     work_scale: float = 1.5
-    """The frames are cached with their short side at work_scale x the input side (geometry runs
-    there, so zooming in keeps detail); the appearance transforms run at the input side."""
+    """The frames are cached with each side at least work_scale x the input's (geometry runs there, so zooming in
+    keeps detail); the appearance transforms run at the input side."""
 
     def __post_init__(self) -> None:
         probabilities = ("flip_p", "affine_p", "color_p", "gamma_p", "shuffle_p", "blur_p", "noise_p", "jpeg_p",
@@ -169,17 +169,19 @@ class OnlineAugmenter:
         return np.ascontiguousarray(small), keypoints_to_input(moved, (h, w), self.input_size)
 
 
-def working_frame(frame_bgr: np.ndarray, keypoints: np.ndarray, input_size: int, work_scale: float
+def working_frame(frame_bgr: np.ndarray, keypoints: np.ndarray, input_size: int | tuple[int, int], work_scale: float
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """A frame as cached for online augmentation: RGB, short side work_scale x `input_size` (the input's shorter
-    side; never enlarged).
+    """A frame as cached for online augmentation: RGB, each side at least work_scale x the input's matching side
+    (`input_size`: S or (height, width); never enlarged), so a frame of another aspect than the input's is not
+    enlarged along one axis by the last resize (a 480 x 640 frame for a 128 x 384 input: 480 px wide, not 192).
 
     Keypoints scale through the pixel edges, as `preprocess.keypoints_to_input` does.
     """
     import cv2
 
     h, w = frame_bgr.shape[:2]
-    factor = min(1.0, work_scale * input_size / min(h, w))
+    in_h, in_w = (input_size, input_size) if np.isscalar(input_size) else input_size
+    factor = min(1.0, work_scale * max(in_h / h, in_w / w))
     size = (max(1, int(round(w * factor))), max(1, int(round(h * factor))))
     rgb = cv2.cvtColor(frame_bgr, cv2.COLOR_BGR2RGB)
     if size != (w, h):
@@ -216,7 +218,7 @@ class OnlineTrainingData:
         label = f"frames for online augmentation at {self.view.describe(whole='')}"
         for index in report_items(self.indices, progress, label):
             frame, kps = self.view.crop_sample(dataset.load_image(int(index)), dataset.samples[int(index)].keypoints)
-            rgb, kps = working_frame(frame, kps, min(self.input_size), config.work_scale)
+            rgb, kps = working_frame(frame, kps, self.input_size, config.work_scale)
             self.frames.append(rgb)
             self.keypoints.append(kps)
         self.augmenter = OnlineAugmenter(self.input_size, config, self.schema.mirror)

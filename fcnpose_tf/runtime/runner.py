@@ -425,7 +425,8 @@ class _Delivery:
         summary = self.summary
         raw = prediction.keypoints
         if self.smooth is not None:
-            self.smoother = self.smoother or KeypointSmoother(len(prediction.keypoints), self.smooth)
+            self.smoother = self.smoother or KeypointSmoother(len(prediction.keypoints), self.smooth,
+                                                              prediction.frame_shape)
             prediction = replace(prediction, keypoints=self.smoother(prediction.keypoints,
                                                                      frame_time_s(frame, self.source)))
         thumbnail = _thumbnail(frame.image)

@@ -260,7 +260,7 @@ def format_timing(timing: Timing) -> str:
 
 
 def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = None,
-                    names: Sequence[str] = ()) -> SequenceReport:
+                    names: Sequence[str] = (), frame_shape: tuple[int, ...] | None = None) -> SequenceReport:
     """Jitter and lag of a video's tracks, and with `smooth` the same for the smoothed tracks beside their PCK and EPE.
 
     Args:
@@ -269,6 +269,7 @@ def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = 
         fps: the video's frame rate.
         smooth: One-Euro parameters (`smoothing`), or None for the raw tracks only.
         names: keypoint names, in map order (`metrics.keypoint_report`).
+        frame_shape: (height, width) of the video's frames, for the smoothing (`smoothing.KeypointSmoother`).
     Returns:
         The report (`evaluate --sequence`).
     """
@@ -285,7 +286,7 @@ def sequence_report(pred: np.ndarray, gt: np.ndarray, fps: float, smooth: Any = 
         return SequenceReport(fps, SEQUENCE_DEFINITIONS, describe(pred))
     smoothing = {"filter": "one-euro", "min_cutoff_hz": smooth.min_cutoff_hz, "beta": smooth.beta,
                  "d_cutoff_hz": smooth.d_cutoff_hz, "max_coast_frames": smooth.max_coast}
-    return SequenceReport(fps, SEQUENCE_DEFINITIONS, describe(pred), smoothing, describe(smooth_track(pred, fps, smooth)))
+    return SequenceReport(fps, SEQUENCE_DEFINITIONS, describe(pred), smoothing, describe(smooth_track(pred, fps, smooth, frame_shape)))
 
 
 def format_sequence(report: SequenceReport) -> str:
