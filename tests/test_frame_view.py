@@ -169,6 +169,36 @@ def test_keypoints_at_an_inner_border_of_the_crop_are_flagged_and_the_frames_own
     assert not Prediction(kps, np.ones(6), times, (480, 640, 3)).at_crop_edge().any()  # no crop, no edge
 
 
+def test_no_keypoint_of_the_frames_a_workspace_crop_was_set_on_is_at_its_edge():
+    """The crop's edge means a keypoint beyond every training keypoint: the workspace crop holds the training
+    keypoints with a margin, so none of them is flagged. At a share of 0.10 a fixed camera's base, which never moves,
+    flagged 298 of the new cell's 300 test frames."""
+    from fcnpose_tf.data.arm_size import workspace_box
+    from fcnpose_tf.runtime.estimator import Prediction, StageTimes
+
+    rng = np.random.default_rng(0)
+    for trial in range(20):
+        lo = rng.uniform([20, 20], [300, 200])
+        hi = lo + rng.uniform([40, 40], [320, 260])
+        frames = [rng.uniform(lo, hi, size=(8, 2)) for _ in range(12)]
+        crop = workspace_box([(k, 640, 480) for k in frames])
+        flagged = [Prediction(k, np.ones(8), StageTimes(0.0, 0.0, 0.0), (480, 640, 3), crop).at_crop_edge()
+                   for k in frames]
+        assert not np.any(flagged), (trial, crop)
+
+
+def test_the_run_summary_says_to_retrain_only_when_a_frame_had_a_keypoint_at_the_crop_edge(cropped_tflite):
+    from fcnpose_tf.runtime.estimator import KeypointModel
+    from fcnpose_tf.runtime.runner import RunSummary
+    from fcnpose_tf.runtime.sources import ImageSource
+
+    model = KeypointModel(cropped_tflite / "m.tflite", num_threads=1)
+    for flagged, advised in ((0, False), (3, True)):
+        report = RunSummary(crop_edge_frames=flagged).report(model, ImageSource([], "frames"))
+        crop = next(line for line in report.splitlines() if line.startswith("Crop:"))
+        assert f"{flagged} of 0 frames had a keypoint at its edge" in crop and ("retrain" in crop) == advised, crop
+
+
 def test_frames_of_another_aspect_than_the_crops_are_warned_about_once_per_size(cropped_tflite, caplog):
     from fcnpose_tf.runtime.estimator import KeypointModel
 

@@ -148,10 +148,11 @@ class RunSummary:
                              f"({meaning})")
             lines.append(self._jitter())
         if model.view.crop is not None:
+            advice = (": the arm may reach past the crop there, in poses the training frames did not show; retrain "
+                      "with frames of those poses (docs/training.md, \"Input size\")" if self.crop_edge_frames else "")
             lines.append(f"Crop:    the model sees {model.view.describe()}; {self.crop_edge_frames} of {self.frames} "
-                         f"frames had a keypoint at its edge (the records' crop_edge): an arm reaching past the "
-                         f"crop is placed at its border or not found: retrain on frames of those poses "
-                         f"(docs/training.md, \"Input size\")")
+                         f"frames had a keypoint at its edge, beyond the training frames' keypoints (the records' "
+                         f"crop_edge){advice}")
         note = model.run_note()
         if note:
             lines.append(note)
