@@ -1,6 +1,7 @@
 """train --test-data (a fixed test set measured at the start and the end of every training) and a training
 stopped before its first epoch ends (nothing to resume, nothing left behind)."""
 
+import io
 import json
 
 import cv2
@@ -204,6 +205,26 @@ def _synth_frames(folder, n, seed):
 
     generate(folder, n=n, seed=seed, width=160, height=120, workers=1, progress=False)
     return folder
+
+
+def test_a_start_whose_crop_was_set_on_frames_of_another_aspect_is_not_weighed(tmp_path):
+    """A 16:9 camera mode's crop on 4:3 frames is stretched: kept, the model would warn on every frame it reads, so
+    the start as saved is not a candidate (as `choose_view` does not keep its view)."""
+    from fcnpose_tf.data.dataset import load_dataset
+    from fcnpose_tf.preprocess import FrameView
+    from fcnpose_tf.progress import Reporter
+    from fcnpose_tf.training.model import build_fcn_pose, save_for_inference, with_view
+    from fcnpose_tf.training.train import keep_start_if_better
+
+    data = load_dataset(_synth_frames(tmp_path / "frames", 6, seed=5))  # 160 x 120 frames
+    _, val_idx = data.split(None)
+    start = tmp_path / "wide_start.keras"
+    save_for_inference(with_view(build_fcn_pose(input_size=64), FrameView(64, 64, (100, 20, 180, 180), (640, 360))),
+                       start)
+    said = io.StringIO()
+    assert keep_start_if_better(start, data, val_idx, None, tmp_path / "trained.keras", FrameView(64, 64),
+                                reporter=Reporter(stream=said)) is None
+    assert "not weighed" in said.getvalue() and "640x360" in said.getvalue(), said.getvalue()
 
 
 @pytest.mark.slow

@@ -1133,7 +1133,8 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
         label: prefix of the lines.
         decoding: how keypoints are read (`postprocess.Decoding`; default the commands').
     Returns:
-        None when the start's view is the run's; else (the record's "start_as_saved": its view, both scores and
+        None when the start's view is the run's, or its crop was set on frames of another aspect than the validation
+        frames (stretched on them, it would warn on every frame); else (the record's "start_as_saved": its view, both scores and
         "chose": "start" or "trained"; the start's predictor; its validation measurement).
     """
     from fcnpose_tf.metrics import mean_pck
@@ -1145,6 +1146,12 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
         return None
     start_size, input_size = start_view.describe(), view.describe()
     reporter = progress.resolve(reporter)
+    stretched = next((note for i in val_idx if (note := start_view.aspect_note(
+        (dataset.samples[i].height, dataset.samples[i].width)))), None)
+    if stretched is not None:  # kept, it would warn on every frame it reads (`choose_view` does not keep it either)
+        reporter.say(f"{label}: the starting model as saved is not weighed: its crop was set on frames of another "
+                     f"aspect ({stretched.split(' (', 1)[0]})")
+        return None
     reporter.say(f"{label}: evaluating the starting model as saved ({start_size}) on the same "
                  f"{len(val_idx)} validation frames")
     predictor = KerasKeypointModel(start, Path(init), num_threads=threads, decoding=decoding)
