@@ -164,9 +164,20 @@ def merges_and_reshapes(K):
     return K.Model(i, conv(K, 3, "head", 1)(x), name="merges")
 
 
+def preprocessing(K):
+    """EfficientNet's and MobileNetV3's preprocessing layers at the input, a per-channel Rescaling inside."""
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.Rescaling(1 / 127.5, offset=-1.0, name="rescale")(i)
+    x = K.layers.Normalization(axis=-1, name="norm")(x)
+    x = conv(K, 8, "c1", activation="relu")(x)
+    x = K.layers.Rescaling([0.5 + k / 8 for k in range(8)], name="channel_scale")(x)
+    x = conv(K, 6, "c2", activation="relu")(x)
+    return K.Model(i, conv(K, 3, "head", 1)(x), name="preprocessing")
+
+
 ARCHITECTURES = {f.__name__: f for f in (residual_block, resnet_like, unet, densenet_block, mobilenet_v2,
                                          separable_stack, bn_everywhere, encoder_decoder, classifier, fcn_pose,
-                                         merges_and_reshapes)}
+                                         merges_and_reshapes, preprocessing)}
 SLOW = {"mobilenet_v2"}
 
 
@@ -185,6 +196,8 @@ def randomize(model, seed=0):
             new = [rng.normal(0, 0.5, w.shape) for w in weights]
             new[0] = rng.uniform(0.5, 1.5, weights[0].shape)  # gamma
             new[-1] = rng.uniform(0.5, 2.0, weights[-1].shape)  # moving variance
+        elif type(layer).__name__ == "Normalization":  # mean, variance, count (an integer, kept)
+            new = [rng.normal(0, 1, weights[0].shape), rng.uniform(0.5, 2.0, weights[1].shape)] + weights[2:]
         elif type(layer).__name__ in ("PReLU", "LayerNormalization"):
             new = [rng.uniform(0.1, 1.0, w.shape) for w in weights]
         else:
@@ -192,7 +205,7 @@ def randomize(model, seed=0):
             for w in weights:
                 fan_in = np.prod(w.shape[:-1]) if w.ndim > 1 else 0
                 new.append(rng.normal(0, np.sqrt(2 / fan_in), w.shape) if w.ndim > 1 else rng.normal(0, 0.1, w.shape))
-        layer.set_weights([w.astype(np.float32) for w in new])
+        layer.set_weights([w if w.dtype.kind != "f" else w.astype(np.float32) for w in new])
     return model
 
 
@@ -442,6 +455,28 @@ def test_original_unchanged_and_flavour_kept(flavour):
     assert small.name == model.name
     sequential = prune_graph(built("bn_everywhere", flavour), 0.5)
     assert isinstance(sequential, FLAVOURS[flavour].Sequential)
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_per_channel_offsets_and_statistics_are_sliced(flavour):
+    """A Rescaling's offset and a Normalization's mean map a removed (zero) channel to a non-zero value, so only the
+    readers-zeroed check (a) applies; the pruned layers keep the kept channels' values."""
+    K = FLAVOURS[flavour]
+    scale, offset, mean, variance = (np.linspace(start, stop, 6) for start, stop in
+                                     ((0.5, 2.0), (-0.3, 0.4), (-1.0, 1.0), (0.5, 3.0)))
+    i = K.Input((8, 8, 3), name="image")
+    x = K.layers.Rescaling(scale.tolist(), offset=offset.tolist(), name="rs")(conv(K, 6, "c1", activation="relu")(i))
+    x = K.layers.Normalization(mean=mean.tolist(), variance=variance.tolist(), name="nm")(x)
+    model = randomize(K.Model(i, conv(K, 2, "head", 1)(x), name="offsets"))
+    plan, small = plan_graph(model, 0.5), prune_graph(model, 0.5)
+    kept = plan.kept_filters()["c1"]
+    assert len(kept) == 3
+    np.testing.assert_allclose(small.get_layer("rs").get_config()["scale"], scale[kept])
+    np.testing.assert_allclose(small.get_layer("rs").get_config()["offset"], offset[kept])
+    np.testing.assert_allclose(small.get_layer("nm").get_config()["mean"], mean[kept])
+    np.testing.assert_allclose(small.get_layer("nm").get_config()["variance"], variance[kept])
+    x = inputs_for(model)
+    assert_same(run(small, x), run_changed(model, zero_readers(model, plan), x))
 
 
 # ------------------------------------------------------------------------------------------

@@ -11,7 +11,8 @@ Kinds of layers:
 
     producer     Conv2D, Conv2DTranspose, SeparableConv2D (its pointwise filters), Dense: new channels
     depthwise    DepthwiseConv2D (depth_multiplier 1): per-channel weights, channels follow the input
-    per-channel  BatchNormalization (channel axis), PReLU: per-channel weights sliced with their channel
+    per-channel  BatchNormalization, Normalization (channel axis), PReLU: per-channel weights sliced with their
+                 channel; Rescaling: its scale and offset, one number or one per channel (sliced in its config)
     mixing       LayerNormalization (channel axis), Softmax / softmax activations on the channel axis: they mix
                  channels, so the channels through them are never pruned (the dependency graph freezes them)
     pass-through activations, pooling, global pooling, UpSampling2D, Resizing, ZeroPadding2D, Cropping2D,
@@ -36,8 +37,8 @@ from fcnpose_tf.errors import UserError
 _MIXING_ACTIVATIONS = ("softmax", "log_softmax")
 
 SUPPORTED = ("Conv2D, Conv2DTranspose, SeparableConv2D, DepthwiseConv2D, Dense, BatchNormalization, "
-             "LayerNormalization, activations, pooling, UpSampling2D, Resizing, ZeroPadding2D, Cropping2D, "
-             "dropout, Add/Subtract/Multiply/Average/Maximum/Minimum, Concatenate, Flatten and Reshape")
+             "LayerNormalization, Normalization, Rescaling, activations, pooling, UpSampling2D, Resizing, "
+             "ZeroPadding2D, Cropping2D, dropout, Add/Subtract/Multiply/Average/Maximum/Minimum, Concatenate, Flatten and Reshape")
 
 
 def unsupported(layer: Any, why: str = "") -> UserError:
@@ -205,6 +206,37 @@ class PerChannel(Rule):
     def slice_weights(self, layer, weights, kept_in, kept_out):
         # gamma, beta, moving statistics (C,); PReLU's alpha (..., C), or (..., 1) when shared over channels
         return [w[..., kept_in[0]] if w.ndim and w.shape[-1] != 1 else w for w in weights]
+
+
+class Normalization(PerChannel):
+    """Normalization over the channel axis: its mean and variance (weights, or numbers in its config) per channel."""
+
+    def new_config(self, layer, config, kept_in, kept_out):
+        return _sliced_config(layer, config, ("mean", "variance"), kept_in[0])
+
+
+class Rescaling(Rule):
+    """Rescaling: ``x * scale + offset``, each one number or one per channel (sliced with the channels)."""
+
+    def check(self, layer, in_shapes, out_shape):
+        super().check(layer, in_shapes, out_shape)
+        for key in ("scale", "offset"):
+            size = np.size(getattr(layer, key))
+            if size not in (1, in_shapes[0][-1]):
+                raise unsupported(layer, f"its {key} has {size} values for {in_shapes[0][-1]} channels")
+
+    def new_config(self, layer, config, kept_in, kept_out):
+        return _sliced_config(layer, config, ("scale", "offset"), kept_in[0])
+
+
+def _sliced_config(layer: Any, config: dict, keys: Sequence[str], kept: np.ndarray) -> dict:
+    """`config` with the per-channel values under `keys` (one per channel of the layer's input) kept at `kept`."""
+    channels = int(layer.input.shape[-1])
+    for key in keys:
+        value = config.get(key)
+        if value is not None and np.size(value) == channels and channels > 1:
+            config[key] = [float(v) for v in np.ravel(np.asarray(value, dtype=np.float64))[kept]]
+    return config
 
 
 class Merge(Rule):
@@ -409,6 +441,8 @@ def _rule_table(keras: ModuleType) -> dict[type, Rule]:
         layers.DepthwiseConv2D: Depthwise(),
         layers.BatchNormalization: PerChannel(),
         layers.PReLU: PerChannel(),
+        layers.Normalization: Normalization(),
+        layers.Rescaling: Rescaling(),
         layers.LayerNormalization: PerChannel(mixes=True),
         layers.Softmax: Softmax(),
         layers.Concatenate: Concatenate(),
