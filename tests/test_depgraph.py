@@ -175,9 +175,29 @@ def preprocessing(K):
     return K.Model(i, conv(K, 3, "head", 1)(x), name="preprocessing")
 
 
+def squeeze_excite(K):
+    """MobileNetV3's block: hard sigmoid as tensor arithmetic (``relu6(x + 3) * (1 / 6)``: Keras 3 operations,
+    tf_keras TFOpLambda layers), hard swish as a Multiply, a squeeze-excite reading a GlobalAveragePooling2D with
+    keepdims, and the residual written as ``x + y``."""
+    def hard_sigmoid(x):
+        return K.layers.ReLU(6.0)(x + 3.0) * (1.0 / 6.0)
+
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.BatchNormalization(name="stem_bn")(conv(K, 16, "stem")(i))
+    x = K.layers.Multiply(name="stem_hswish")([x, hard_sigmoid(x)])
+    y = K.layers.DepthwiseConv2D(3, padding="same", name="dw")(x)
+    y = K.layers.Activation("relu", name="dw_relu")(K.layers.BatchNormalization(name="dw_bn")(y))
+    s = K.layers.GlobalAveragePooling2D(keepdims=True, name="se_pool")(y)
+    s = conv(K, 16, "se_expand", 1)(conv(K, 4, "se_reduce", 1, activation="relu")(s))
+    y = K.layers.Multiply(name="se_mul")([y, hard_sigmoid(s)])
+    y = K.layers.BatchNormalization(name="project_bn")(conv(K, 16, "project", 1)(y))
+    x = K.layers.Dropout(0.2, name="drop")(x + y)
+    return K.Model(i, conv(K, 3, "head", 1)(x), name="squeeze_excite")
+
+
 ARCHITECTURES = {f.__name__: f for f in (residual_block, resnet_like, unet, densenet_block, mobilenet_v2,
                                          separable_stack, bn_everywhere, encoder_decoder, classifier, fcn_pose,
-                                         merges_and_reshapes, preprocessing)}
+                                         merges_and_reshapes, preprocessing, squeeze_excite)}
 SLOW = {"mobilenet_v2"}
 
 
@@ -510,6 +530,25 @@ def test_refusals_name_the_layer(flavour):
     assert "scale (Multiply)" in _refusal(broadcast)
     with pytest.raises(UserError, match="tf_keras or Keras 3 model"):
         prune_graph(object(), 0.5)
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_operations_on_tensors(flavour):
+    """Tensor arithmetic couples as a merge or passes with one number; other constants and functions are refused."""
+    K = FLAVOURS[flavour]
+    graph = dependency_graph(built("squeeze_excite", flavour))
+    group = next(g for g in graph.groups if "stem" in g.producers)
+    assert set(group.producers) == {"stem", "se_expand", "project"} and not group.frozen
+    i = K.Input((8, 8, 3), name="image")
+    c = conv(K, 4, "c")(i)
+    constant = np.arange(4, dtype=np.float32)
+    vector = K.Model(i, conv(K, 2, "head")(c * (constant if K is keras3 else tf_keras.backend.constant(constant))))
+    assert "is not one number" in _refusal(vector)
+    import tensorflow as tf
+
+    mean = keras3.ops.mean(c, axis=-1, keepdims=True) if K is keras3 else tf.reduce_mean(c, axis=-1, keepdims=True)
+    message = _refusal(K.Model(i, conv(K, 2, "head")(mean)))
+    assert "unsupported" in message and ("Mean" in message or "reduce_mean" in message)
 
 
 @pytest.mark.parametrize("flavour", FLAVOURS)

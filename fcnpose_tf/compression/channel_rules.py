@@ -19,6 +19,9 @@ Kinds of layers:
                  dropout and noise layers: the channels pass unchanged
     merge        Add, Subtract, Multiply, Average, Maximum, Minimum (and Concatenate off the channel axis):
                  all inputs carry one channel set, coupled channel by channel
+    elementwise  operations written on tensors (Keras 3's ``x + 3.0`` or ``keras.ops.relu6(x)``, tf_keras'
+                 TFOpLambda such as ``tf.math.multiply``): of several tensors a merge, of one tensor and numbers
+                 (one number each) or of one tensor alone a pass-through
     concatenate  Concatenate on the channel axis: the inputs' channels side by side, at their offsets
     flatten      Flatten, and Reshape to one axis: every spatial position repeats the channel map
     reshape      Reshape that keeps the channel axis's length: the map passes unchanged
@@ -26,6 +29,7 @@ Kinds of layers:
 
 from __future__ import annotations
 
+import importlib
 import math
 from types import ModuleType
 from typing import Any, Sequence
@@ -38,7 +42,8 @@ _MIXING_ACTIVATIONS = ("softmax", "log_softmax")
 
 SUPPORTED = ("Conv2D, Conv2DTranspose, SeparableConv2D, DepthwiseConv2D, Dense, BatchNormalization, "
              "LayerNormalization, Normalization, Rescaling, activations, pooling, UpSampling2D, Resizing, "
-             "ZeroPadding2D, Cropping2D, dropout, Add/Subtract/Multiply/Average/Maximum/Minimum, Concatenate, Flatten and Reshape")
+             "ZeroPadding2D, Cropping2D, dropout, Add/Subtract/Multiply/Average/Maximum/Minimum, Concatenate, Flatten, "
+             "Reshape and elementwise arithmetic or activations on tensors")
 
 
 def unsupported(layer: Any, why: str = "") -> UserError:
@@ -50,7 +55,8 @@ def unsupported(layer: Any, why: str = "") -> UserError:
     Returns:
         The error, for the caller to raise.
     """
-    return UserError(f"unsupported layer {layer.name} ({type(layer).__name__}){': ' + why if why else ''}; "
+    what = "layer" if hasattr(layer, "get_weights") else "operation"  # Keras 3's ops on tensors are not layers
+    return UserError(f"unsupported {what} {layer.name} ({type(layer).__name__}){': ' + why if why else ''}; "
                      f"graph pruning handles {SUPPORTED} layers")
 
 
@@ -96,6 +102,16 @@ class Rule:
             raise unsupported(layer, "channels_first data format")
         if len(in_shapes) != 1:
             raise unsupported(layer, f"it reads {len(in_shapes)} tensors")
+
+    def check_call(self, layer: Any, args: tuple, kwargs: dict) -> None:
+        """Refuse a call of the layer the rule cannot handle (an operation's constant operands).
+
+        Args:
+            layer: the layer (or Keras 3 operation).
+            args, kwargs: the arguments it was called with, its input tensors among them.
+        Raises:
+            UserError: `unsupported`'s.
+        """
 
     def output_map(self, layer: Any, in_maps: list[np.ndarray], in_shapes: Sequence[tuple],
                    out_shape: tuple, context: Context) -> np.ndarray:
@@ -271,6 +287,51 @@ class Concatenate(Merge):
         if self._on_channels(layer, len(in_shapes[0])):
             return np.concatenate(in_maps)
         return super().output_map(layer, in_maps, in_shapes, out_shape, context)
+
+
+class Elementwise(Merge):
+    """An elementwise operation on tensors (Keras 3 ops, tf_keras TFOpLambda): several tensors of one channel count
+    are coupled as a merge couples them; a constant operand must be one number (``x + 3.0`` in MobileNetV3's hard
+    sigmoid), so the channels pass.
+
+    Args:
+        functions: for TFOpLambda, the TensorFlow functions (its config's ``function``) this rule handles; None for
+            a Keras 3 operation class, which is the function.
+    """
+
+    kind = "elementwise"
+
+    def __init__(self, functions: Sequence[str] | None = None) -> None:
+        self.functions = functions
+
+    def check(self, layer, in_shapes, out_shape):
+        if self.functions is not None and layer.get_config().get("function") not in self.functions:
+            raise unsupported(layer, f"TensorFlow function {layer.get_config().get('function')} (elementwise "
+                                     f"{', '.join(self.functions)} are handled)")
+        super().check(layer, in_shapes, out_shape)
+        if out_shape[-1] != in_shapes[0][-1]:
+            raise unsupported(layer, f"its output has {out_shape[-1]} channels for {in_shapes[0][-1]} in")
+
+    def check_call(self, layer, args, kwargs):
+        operands = list(args) + [value for key, value in kwargs.items() if key != "name"]
+        for value in _leaves(operands):
+            if value is None or hasattr(value, "_keras_history"):
+                continue
+            try:
+                size = np.size(np.asarray(value))
+            except Exception:  # an object numpy cannot read
+                size = None
+            if size != 1:
+                raise unsupported(layer, f"its constant operand {type(value).__name__} of "
+                                         f"{size if size is not None else 'unknown'} values is not one number")
+
+
+def _leaves(value: Any) -> list:
+    if isinstance(value, (list, tuple)):
+        return [leaf for item in value for leaf in _leaves(item)]
+    if isinstance(value, dict):
+        return [leaf for item in value.values() for leaf in _leaves(item)]
+    return [value]
 
 
 class Flatten(Rule):
@@ -458,7 +519,30 @@ def _rule_table(keras: ModuleType) -> dict[type, Rule]:
                  "UpSampling2D", "Resizing", "ZeroPadding2D", "Cropping2D", "Dropout", "SpatialDropout2D",
                  "GaussianDropout", "GaussianNoise"):
         table[getattr(layers, name)] = Rule()
+    table.update(_operation_rules(keras))
     return table
+
+
+# Elementwise TensorFlow functions of tf_keras' TFOpLambda (`x + y`, `x * 0.5`, `tf.nn.relu6(x)`) and Keras 3 ops
+_TF_FUNCTIONS = ("__operators__.add", "math.add", "math.subtract", "math.multiply", "math.truediv", "math.divide",
+                 "math.maximum", "math.minimum", "math.negative", "nn.relu", "nn.relu6", "math.sigmoid", "nn.silu",
+                 "nn.swish", "math.tanh", "nn.gelu", "nn.elu", "nn.selu", "math.softplus", "nn.leaky_relu")
+_KERAS_OPS = {"numpy": ("Add", "Subtract", "Multiply", "Divide", "TrueDivide", "Maximum", "Minimum", "Negative",
+                        "Tanh"),
+              "nn": ("Relu", "Relu6", "Sigmoid", "HardSigmoid", "Silu", "HardSilu", "Gelu", "Elu", "Selu",
+                     "Softplus", "LeakyRelu")}
+
+
+def _operation_rules(keras: ModuleType) -> dict[type, Rule]:
+    """Rules for the elementwise operations written on tensors of this Keras's functional models."""
+    if keras.__name__ == "tf_keras":
+        module = importlib.import_module("tf_keras.src.layers.core.tf_op_layer")
+        return {module.TFOpLambda: Elementwise(_TF_FUNCTIONS)}
+    rules: dict[type, Rule] = {}
+    for module_name, names in _KERAS_OPS.items():
+        module = importlib.import_module(f"{keras.__name__}.src.ops.{module_name}")
+        rules.update({getattr(module, name): Elementwise() for name in names if hasattr(module, name)})
+    return rules
 
 
 _TABLES: dict[str, dict[type, Rule]] = {}

@@ -70,7 +70,8 @@ def keras_of(model: Any) -> ModuleType:
 
 @dataclass
 class TracedOp:
-    """One call of a layer in the model: the tensors it reads and the one it makes (keys), with their shapes."""
+    """One call of a layer in the model: the tensors it reads and the one it makes (keys), with their shapes, and
+    the arguments it was called with (its input tensors among them), to call the rebuilt layer the same way."""
 
     layer: Any
     rule: Rule
@@ -78,6 +79,8 @@ class TracedOp:
     output: tuple
     in_shapes: list[tuple]
     out_shape: tuple
+    args: tuple = ()
+    kwargs: dict = field(default_factory=dict)
 
 
 def tensor_key(tensor: Any) -> tuple:
@@ -94,6 +97,19 @@ def tensor_key(tensor: Any) -> tuple:
 
 def _listed(value: Any) -> list:
     return list(value) if isinstance(value, (list, tuple)) else [value]
+
+
+def call_arguments(node: Any) -> tuple[tuple, dict]:
+    """The positional and keyword arguments of a layer's call in a functional model, as Keras recorded them.
+
+    Args:
+        node: the call's node (Keras 3 `Node` with ``arguments``, tf_keras `Node` with ``call_args``).
+    Returns:
+        (args, kwargs), with the symbolic input tensors in place.
+    """
+    if hasattr(node, "arguments"):  # Keras 3
+        return tuple(node.arguments.args), dict(node.arguments.kwargs)
+    return tuple(node.call_args), dict(node.call_kwargs)
 
 
 def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[TracedOp]]:
@@ -113,7 +129,8 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
             inputs[key] = tensor
             continue
         node = layer._inbound_nodes[key[1]]
-        sources = _listed(node.input_tensors)
+        # every symbolic tensor of the call (tf_keras' input_tensors is its first argument only: `x + y` reads y too)
+        sources = list(node.keras_inputs) if hasattr(node, "keras_inputs") else _listed(node.input_tensors)
         if not ready:
             stack.append((tensor, True))
             stack.extend((source, False) for source in reversed(sources))
@@ -128,7 +145,10 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
         out_shape = tuple(tensor.shape)
         rule = rule_for(layer, keras)
         rule.check(layer, in_shapes, out_shape)
-        op = TracedOp(layer, rule, [tensor_key(source) for source in sources], key, in_shapes, out_shape)
+        args, kwargs = call_arguments(node)
+        rule.check_call(layer, args, kwargs)
+        op = TracedOp(layer, rule, [tensor_key(source) for source in sources], key, in_shapes, out_shape, args,
+                      kwargs)
         ops[key] = op
         order.append(op)
     return inputs, order

@@ -313,7 +313,7 @@ def _layer_channels(graph: DependencyGraph, plans: list[GroupPlan]) -> dict[str,
     for op in graph.ops:
         kept_in = tuple(np.flatnonzero(alive[graph.maps[key]]).astype(np.int64) for key in op.inputs)
         kept_out = np.flatnonzero(alive[graph.maps[op.output]]).astype(np.int64)
-        weights = op.layer.get_weights()
+        weights = weights_of(op.layer)
         sliced = op.rule.slice_weights(op.layer, weights, list(kept_in), kept_out)
         widths_in = [shape[-1] for shape in op.in_shapes]
         macs = (op.rule.macs(op.layer, op.in_shapes, op.out_shape, widths_in, op.out_shape[-1]),
@@ -369,15 +369,15 @@ def rebuild(plan: GraphPlan) -> Any:
         (first,) = tensors.values()
         pruned = keras.Sequential([first] + [layer for layer, _ in new_layers], name=model.name)
     else:
-        for op, (layer, _) in zip(graph.ops, new_layers):
-            sources = [tensors[key] for key in op.inputs]
-            tensors[op.output] = layer(sources if op.rule.kind in ("merge", "concatenate") else sources[0])
+        for op, (layer, _) in zip(graph.ops, new_layers):  # called as the original was, on the new tensors
+            tensors[op.output] = layer(*_substituted(op.args, tensors), **_substituted(op.kwargs, tensors))
         inputs = [tensors[tensor_key(t)] for t in model.inputs]
         outputs = [tensors[tensor_key(t)] for t in model.outputs]
         pruned = keras.Model(inputs if len(inputs) > 1 else inputs[0],
                              outputs if len(outputs) > 1 else outputs[0], name=model.name)
     for layer, weights in new_layers:
-        layer.set_weights(weights)
+        if weights:
+            layer.set_weights(weights)
     if keras.__name__ == TF_KERAS:  # an FCN-Pose's crop and keypoint names go with it
         from fcnpose_tf.training.model import with_facts_of
 
@@ -396,5 +396,29 @@ def _narrowed(op: TracedOp, entry: LayerChannels) -> tuple[Any, list[np.ndarray]
     except Exception as exc:  # a custom activation or regularizer that cannot be re-created
         raise UserError(f"layer {op.layer.name} ({type(op.layer).__name__}) cannot be rebuilt from its "
                         f"config: {type(exc).__name__}: {exc}") from exc
-    weights = op.rule.slice_weights(op.layer, op.layer.get_weights(), list(entry.kept_in), entry.kept_out)
+    weights = op.rule.slice_weights(op.layer, weights_of(op.layer), list(entry.kept_in), entry.kept_out)
     return layer, weights
+
+
+def weights_of(layer: Any) -> list[np.ndarray]:
+    """A layer's weights (`get_weights()`); none for a Keras 3 operation on tensors (``x + 3.0``), not a layer.
+
+    Args:
+        layer: a layer or operation of a functional model.
+    Returns:
+        Its weights.
+    """
+    return layer.get_weights() if hasattr(layer, "get_weights") else []
+
+
+def _substituted(value: Any, tensors: dict[tuple, Any]) -> Any:
+    """A call's arguments with every symbolic tensor of the original model replaced by the rebuilt model's."""
+    if hasattr(value, "_keras_history"):
+        return tensors[tensor_key(value)]
+    if isinstance(value, tuple):
+        return tuple(_substituted(item, tensors) for item in value)
+    if isinstance(value, list):
+        return [_substituted(item, tensors) for item in value]
+    if isinstance(value, dict):
+        return {key: _substituted(item, tensors) for key, item in value.items()}
+    return value
