@@ -10,6 +10,7 @@ Every architecture is built with either Keras and pruned at three rates; two che
 
 import doctest
 import functools
+import importlib
 
 import keras as keras3
 import numpy as np
@@ -195,9 +196,33 @@ def squeeze_excite(K):
     return K.Model(i, conv(K, 3, "head", 1)(x), name="squeeze_excite")
 
 
+def convnext_block(K, nested=False):
+    """ConvNeXt's pieces: a depthwise convolution written as Conv2D(groups=C), LayerNormalization, Dense on feature
+    maps, LayerScale and StochasticDepth (keras.applications.convnext), the residual as ``x + y``; then a grouped
+    depthwise convolution and a LayerScale on channels that can be pruned. ``nested``: the stem is a Sequential
+    model inside the model, as ConvNeXt's is."""
+    convnext = importlib.import_module(f"{K.__name__}.src.applications.convnext")
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.Normalization(mean=[0.4, 0.5, 0.6], variance=[0.05, 0.06, 0.07], name="prestem")(i)
+    stem = [conv(K, 16, "stem_conv", 2, strides=2), K.layers.LayerNormalization(epsilon=1e-6, name="stem_ln")]
+    if nested:
+        x = K.Sequential(stem, name="stem")(x)
+    else:
+        x = stem[1](stem[0](x))
+    y = K.layers.Conv2D(16, 7, padding="same", groups=16, name="dw")(x)
+    y = K.layers.Dense(64, name="pw1")(K.layers.LayerNormalization(epsilon=1e-6, name="ln")(y))
+    y = K.layers.Dense(16, name="pw2")(K.layers.Activation("gelu", name="gelu")(y))
+    y = convnext.StochasticDepth(0.1, name="drop_path")(convnext.LayerScale(0.5, 16, name="scale")(y))
+    x = x + y
+    z = K.layers.ReLU(name="z_relu")(K.layers.BatchNormalization(name="z_bn")(conv(K, 12, "z_conv")(x)))
+    z = K.layers.Conv2D(12, 3, padding="same", groups=12, activation="relu", name="z_dw")(z)
+    z = convnext.LayerScale(0.5, 12, name="z_scale")(z)
+    return K.Model(i, conv(K, 3, "head", 1)(z), name="convnext")
+
+
 ARCHITECTURES = {f.__name__: f for f in (residual_block, resnet_like, unet, densenet_block, mobilenet_v2,
                                          separable_stack, bn_everywhere, encoder_decoder, classifier, fcn_pose,
-                                         merges_and_reshapes, preprocessing, squeeze_excite)}
+                                         merges_and_reshapes, preprocessing, squeeze_excite, convnext_block)}
 SLOW = {"mobilenet_v2"}
 
 
@@ -284,6 +309,8 @@ def zero_readers(model, plan):
     for layer in model.layers:
         if layer.name not in plan.layers or kind(layer) not in ("Conv2D", "Conv2DTranspose", "SeparableConv2D",
                                                                  "Dense"):
+            continue
+        if getattr(layer, "groups", 1) > 1:  # a depthwise Conv2D: its outputs go with its inputs, as DepthwiseConv2D
             continue
         w = layer.get_weights()
         in_axis = {"Conv2D": 2, "Conv2DTranspose": 3, "SeparableConv2D": 2, "Dense": 0}[kind(layer)]
@@ -499,6 +526,28 @@ def test_per_channel_offsets_and_statistics_are_sliced(flavour):
     assert_same(run(small, x), run_changed(model, zero_readers(model, plan), x))
 
 
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_a_nested_model_prunes_as_its_flat_equivalent(flavour):
+    """ConvNeXt's stem is a Sequential inside the model: traced through, its layers become the pruned model's."""
+    K = FLAVOURS[flavour]
+    flat, nested = built("convnext_block", flavour), convnext_block(K, nested=True)
+    for layer in flat.layers:
+        if layer.get_weights():
+            (nested.get_layer("stem").get_layer(layer.name) if layer.name.startswith("stem_")
+             else nested.get_layer(layer.name)).set_weights(layer.get_weights())
+    want, got = prune_graph(flat, 0.5), prune_graph(nested, 0.5)
+    named = [[layer.name for layer in m.layers if not layer.name.startswith("tf.")] for m in (got, want)]  # tf_keras
+    assert named[0] == named[1] and len(got.layers) == len(want.layers)  # names its `x + y` in order of creation
+    assert got.get_layer("pw1").units == 32 and got.get_layer("z_dw").filters == 6
+    x = inputs_for(flat)
+    np.testing.assert_array_equal(run(got, x)[0], run(want, x)[0])
+    np.testing.assert_allclose(run(nested, x)[0], run(flat, x)[0], rtol=1e-6, atol=1e-6)
+    i = K.Input((8, 8, 3), name="image")
+    inner = K.Sequential([conv(K, 3, "inner_conv")], name="inner")
+    twice = K.Model(i, conv(K, 2, "head")(K.layers.Add(name="sum")([inner(i), inner(i)])))
+    assert "inner (Sequential) is used more than once" in _refusal(twice)
+
+
 # ------------------------------------------------------------------------------------------
 # refusals
 # ------------------------------------------------------------------------------------------
@@ -522,10 +571,17 @@ def test_refusals_name_the_layer(flavour):
     shared = conv(K, 3, "shared")
     twice = K.Model(i, conv(K, 2, "head")(shared(shared(i))))
     assert "shared (Conv2D) is used more than once" in _refusal(twice)
-    inner = K.Model(i, conv(K, 3, "inner_conv")(i), name="inner")
+    class Subclassed(K.Model):  # a nested model whose graph cannot be traced (a functional one is traced through)
+        def __init__(self):
+            super().__init__(name="inner")
+            self.inner_conv = conv(K, 3, "inner_conv")
+
+        def call(self, x):
+            return self.inner_conv(x)
+
     j = K.Input((8, 8, 3), name="outer_image")
-    nested = K.Model(j, conv(K, 2, "head")(inner(j)))
-    assert "inner" in _refusal(nested) and ("nested model" in _refusal(nested) or "more than once" in _refusal(nested))
+    nested = K.Model(j, conv(K, 2, "head")(Subclassed()(j)))
+    assert "inner" in _refusal(nested) and "nested model" in _refusal(nested)
     broadcast = K.Model(i, K.layers.Multiply(name="scale")([conv(K, 4, "c4")(i), conv(K, 1, "c1")(i)]))
     assert "scale (Multiply)" in _refusal(broadcast)
     with pytest.raises(UserError, match="tf_keras or Keras 3 model"):

@@ -10,13 +10,14 @@ supported layer may change its behaviour, so it is refused).
 Kinds of layers:
 
     producer     Conv2D, Conv2DTranspose, SeparableConv2D (its pointwise filters), Dense: new channels
-    depthwise    DepthwiseConv2D (depth_multiplier 1): per-channel weights, channels follow the input
-    per-channel  BatchNormalization, Normalization (channel axis), PReLU: per-channel weights sliced with their
-                 channel; Rescaling: its scale and offset, one number or one per channel (sliced in its config)
+    depthwise    DepthwiseConv2D (depth_multiplier 1), Conv2D with groups = its input channels = its filters:
+                 per-channel weights, channels follow the input
+    per-channel  BatchNormalization, Normalization (channel axis), PReLU, ConvNeXt's LayerScale: per-channel weights
+                 sliced with their channel; Rescaling: its scale and offset, one number or one per channel (sliced in its config)
     mixing       LayerNormalization (channel axis), Softmax / softmax activations on the channel axis: they mix
                  channels, so the channels through them are never pruned (the dependency graph freezes them)
     pass-through activations, pooling, global pooling, UpSampling2D, Resizing, ZeroPadding2D, Cropping2D,
-                 dropout and noise layers: the channels pass unchanged
+                 dropout and noise layers, ConvNeXt's StochasticDepth: the channels pass unchanged
     merge        Add, Subtract, Multiply, Average, Maximum, Minimum (and Concatenate off the channel axis):
                  all inputs carry one channel set, coupled channel by channel
     elementwise  operations written on tensors (Keras 3's ``x + 3.0`` or ``keras.ops.relu6(x)``, tf_keras'
@@ -102,6 +103,16 @@ class Rule:
             raise unsupported(layer, "channels_first data format")
         if len(in_shapes) != 1:
             raise unsupported(layer, f"it reads {len(in_shapes)} tensors")
+
+    def specialised(self, layer: Any) -> "Rule":
+        """The rule for this particular layer of the rule's type (a setting may change its kind).
+
+        Args:
+            layer: the layer.
+        Returns:
+            This rule, unless a subclass says otherwise.
+        """
+        return self
 
     def check_call(self, layer: Any, args: tuple, kwargs: dict) -> None:
         """Refuse a call of the layer the rule cannot handle (an operation's constant operands).
@@ -222,6 +233,15 @@ class PerChannel(Rule):
     def slice_weights(self, layer, weights, kept_in, kept_out):
         # gamma, beta, moving statistics (C,); PReLU's alpha (..., C), or (..., 1) when shared over channels
         return [w[..., kept_in[0]] if w.ndim and w.shape[-1] != 1 else w for w in weights]
+
+
+class LayerScale(PerChannel):
+    """ConvNeXt's LayerScale (keras.applications): ``x * gamma``, one gamma per channel, its config's
+    ``projection_dim`` the channel count."""
+
+    def new_config(self, layer, config, kept_in, kept_out):
+        config["projection_dim"] = int(len(kept_out))
+        return config
 
 
 class Normalization(PerChannel):
@@ -390,6 +410,21 @@ class Depthwise(Rule):
         return _area(out_shape) * kh * kw * widths_in[0] if _area(out_shape) is not None else None
 
 
+class GroupedDepthwise(Depthwise):
+    """A Conv2D with ``groups`` equal to its input channels and its filters (ConvNeXt's depthwise convolution): kernel
+    (kh, kw, 1, C) and bias (C,) follow the input channels, ``filters`` and ``groups`` the kept count."""
+
+    def check(self, layer, in_shapes, out_shape):
+        Rule.check(self, layer, in_shapes, out_shape)
+
+    def slice_weights(self, layer, weights, kept_in, kept_out):
+        return [w[..., kept_in[0]] for w in weights]
+
+    def new_config(self, layer, config, kept_in, kept_out):
+        config["filters"] = config["groups"] = int(len(kept_out))
+        return config
+
+
 class Producer(Rule):
     """A layer making new channels: its output axis is where its filters are, its input axis reads channels.
 
@@ -399,6 +434,19 @@ class Producer(Rule):
 
     def __init__(self, kind: str) -> None:
         self.kind = kind
+
+    def specialised(self, layer: Any) -> Rule:
+        """The rule for this layer: a Conv2D whose every group is one input channel making one filter is depthwise.
+
+        Args:
+            layer: a built layer of the rule's type.
+        Returns:
+            `GroupedDepthwise` for such a Conv2D, else this rule.
+        """
+        groups = getattr(layer, "groups", 1)
+        if self.kind == "conv" and groups > 1 and groups == layer.filters and layer.kernel.shape[-2] == 1:
+            return _GROUPED_DEPTHWISE
+        return self
 
     def width(self, layer) -> int:
         """The layer's filter (unit) count.
@@ -475,6 +523,9 @@ class Producer(Rule):
         return area * kh * kw * cin * width_out
 
 
+_GROUPED_DEPTHWISE = GroupedDepthwise()
+
+
 def _activation_mixes(activation: Any) -> bool:
     name = getattr(activation, "__name__", str(activation))
     return name in _MIXING_ACTIVATIONS
@@ -520,6 +571,9 @@ def _rule_table(keras: ModuleType) -> dict[type, Rule]:
                  "GaussianDropout", "GaussianNoise"):
         table[getattr(layers, name)] = Rule()
     table.update(_operation_rules(keras))
+    convnext = importlib.import_module(f"{keras.__name__}.src.applications.convnext")
+    table[convnext.LayerScale] = LayerScale()
+    table[convnext.StochasticDepth] = Rule()  # the identity at inference; drops whole samples in training
     return table
 
 
@@ -563,10 +617,10 @@ def rule_for(layer: Any, keras: ModuleType) -> Rule:
     if table is None:
         table = _TABLES[keras.__name__] = _rule_table(keras)
     rule = table.get(type(layer))
-    if rule is None:
-        if isinstance(layer, keras.Model):
-            raise UserError(f"layer {layer.name} ({type(layer).__name__}) is a nested model; graph pruning "
-                            "handles a flat model (rebuild it with the inner model's layers)")
-        raise unsupported(layer)
-    return rule
+    if rule is not None:
+        return rule.specialised(layer)
+    if isinstance(layer, keras.Model):
+        raise UserError(f"layer {layer.name} ({type(layer).__name__}) is a nested model; graph pruning "
+                        "handles a flat model (rebuild it with the inner model's layers)")
+    raise unsupported(layer)
 

@@ -112,17 +112,23 @@ def call_arguments(node: Any) -> tuple[tuple, dict]:
     return tuple(node.call_args), dict(node.call_kwargs)
 
 
-def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[TracedOp]]:
-    """The model's input tensors by key, and its layer calls in an order where every input comes first."""
+def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[TracedOp], dict[tuple, tuple]]:
+    """The model's input tensors by key, its layer calls in an order where every input comes first, and the aliases:
+    the key of a nested model's output (or of its inputs) -> the key of the inner (or outer) tensor it is. A nested
+    model is traced through: its layers become the flat model's."""
     inputs: dict[tuple, Any] = {}
     ops: dict[tuple, TracedOp] = {}
     order: list[TracedOp] = []
-    calls: dict[str, tuple] = {}  # layer name -> its node, to refuse shared layers
+    aliases: dict[tuple, Any] = {}  # tensor key -> the tensor it stands for
+    calls: dict[str, tuple] = {}  # layer name -> (the layer's id, its node), to refuse shared layers
     stack = [(tensor, False) for tensor in reversed(model.outputs)]
     while stack:
         tensor, ready = stack.pop()
         key = tensor_key(tensor)
         if key in ops or key in inputs:
+            continue
+        if key in aliases:  # a nested model's input or output: trace the tensor it is
+            stack.append((aliases[key], ready))
             continue
         layer = tensor._keras_history[0]
         if isinstance(layer, keras.layers.InputLayer):
@@ -131,13 +137,21 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
         node = layer._inbound_nodes[key[1]]
         # every symbolic tensor of the call (tf_keras' input_tensors is its first argument only: `x + y` reads y too)
         sources = list(node.keras_inputs) if hasattr(node, "keras_inputs") else _listed(node.input_tensors)
+        _check_single_use(layer, key, calls)
+        if _is_graph_model(layer, keras):
+            inner_inputs, inner_outputs = list(getattr(layer, "inputs", None) or []), list(layer.outputs or [])
+            if len(inner_inputs) != len(sources):
+                raise UserError(f"layer {layer.name} ({type(layer).__name__}) is a nested model called on "
+                                f"{len(sources)} tensors for its {len(inner_inputs)} inputs; graph pruning traces "
+                                "a nested model called on its inputs")
+            aliases.update((tensor_key(inner), source) for inner, source in zip(inner_inputs, sources))
+            aliases[key] = inner_outputs[key[2]]
+            stack.append((inner_outputs[key[2]], False))
+            continue
         if not ready:
             stack.append((tensor, True))
             stack.extend((source, False) for source in reversed(sources))
             continue
-        if calls.setdefault(layer.name, key[:2]) != key[:2]:
-            raise UserError(f"layer {layer.name} ({type(layer).__name__}) is used more than once (a shared "
-                            "layer); graph pruning handles layers called once")
         if len(_listed(node.output_tensors)) != 1:
             raise UserError(f"layer {layer.name} ({type(layer).__name__}) has several outputs; graph pruning "
                             "handles layers with one output")
@@ -147,11 +161,33 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
         rule.check(layer, in_shapes, out_shape)
         args, kwargs = call_arguments(node)
         rule.check_call(layer, args, kwargs)
-        op = TracedOp(layer, rule, [tensor_key(source) for source in sources], key, in_shapes, out_shape, args,
-                      kwargs)
+        op = TracedOp(layer, rule, [_resolved(tensor_key(source), aliases) for source in sources], key, in_shapes,
+                      out_shape, args, kwargs)
         ops[key] = op
         order.append(op)
-    return inputs, order
+    return inputs, order, {key: _resolved(key, aliases) for key in aliases}
+
+
+def _is_graph_model(layer: Any, keras: ModuleType) -> bool:
+    """A nested functional or Sequential model (its graph can be traced), not a subclassed one."""
+    return isinstance(layer, keras.Model) and type(layer).__name__ in ("Functional", "Sequential") and \
+        type(layer).__module__.startswith(keras.__name__ + ".")
+
+
+def _check_single_use(layer: Any, key: tuple, calls: dict[str, tuple]) -> None:
+    seen = calls.setdefault(layer.name, (id(layer), key[1]))
+    if seen[0] != id(layer):
+        raise UserError(f"model has two layers named {layer.name} (a nested model's and another); graph pruning "
+                        "needs unique layer names")
+    if seen[1] != key[1]:
+        raise UserError(f"layer {layer.name} ({type(layer).__name__}) is used more than once (a shared "
+                        "layer); graph pruning handles layers called once")
+
+
+def _resolved(key: tuple, aliases: dict[tuple, Any]) -> tuple:
+    while key in aliases:
+        key = tensor_key(aliases[key])
+    return key
 
 
 # --------------------------------------------------------------------------------------------
@@ -189,7 +225,7 @@ class DependencyGraph(Context):
     def __init__(self, model: Any, keep: Iterable[str] = ()) -> None:
         self.model = model
         self.keras = keras_of(model)
-        self.inputs, self.ops = _trace(model, self.keras)
+        self.inputs, self.ops, self.aliases = _trace(model, self.keras)
         self._parent: list[int] = []
         self._owner: list[str] = []  # channel -> the layer (or model input) making it
         self._blocks: dict[str, np.ndarray] = {}  # layer (or model input) -> the channels it makes
@@ -204,12 +240,23 @@ class DependencyGraph(Context):
             self.maps[op.output] = op.rule.output_map(op.layer, in_maps, op.in_shapes, op.out_shape, self)
         # The first reason given is the one a group reports.
         for tensor in model.outputs:
-            self._freeze(self.maps[tensor_key(tensor)], f"reaches output {tensor_key(tensor)[0]}")
+            self._freeze(self.maps[self.key(tensor)], f"reaches output {self.key(tensor)[0]}")
         self._keep(keep)
         for op in self.ops:
             if op.rule.mixes_channels(op.layer, op.in_shapes):
                 self._freeze(self.maps[op.output], f"{op.layer.name} mixes channels")
         self.groups = self._groups()
+
+    def key(self, tensor: Any) -> tuple:
+        """The key of the traced tensor a symbolic tensor of the model is (a nested model's output: the inner one).
+
+        Args:
+            tensor: a Keras tensor of the model or of a model nested in it.
+        Returns:
+            The key of `maps` and of the ops' inputs and outputs.
+        """
+        key = tensor_key(tensor)
+        return self.aliases.get(key, key)
 
     # Context, for the rules
     def new_channels(self, layer: Any, count: int) -> np.ndarray:
@@ -316,7 +363,7 @@ class DependencyGraph(Context):
         return tuple(groups)
 
     def layer(self, name: str) -> Any:
-        """The model's layer called `name` (a producer of a group).
+        """The model's layer called `name` (a producer of a group), in a nested model too.
 
         Args:
             name: the layer's name.
@@ -325,6 +372,9 @@ class DependencyGraph(Context):
         Raises:
             ValueError: no such layer (Keras' `get_layer`).
         """
+        for op in self.ops:
+            if op.layer.name == name:
+                return op.layer
         return self.model.get_layer(name)
 
     def describe(self) -> str:

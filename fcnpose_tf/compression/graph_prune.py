@@ -21,8 +21,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.keras_file import TF_KERAS
 from fcnpose_tf.compression.channel_rules import rule_for
-from fcnpose_tf.compression.depgraph import (ChannelGroup, DependencyGraph, TracedOp, dependency_graph, short_list,
-                                             tensor_key)
+from fcnpose_tf.compression.depgraph import ChannelGroup, DependencyGraph, TracedOp, dependency_graph, short_list
 from fcnpose_tf.compression.importance import WeightNorm
 from fcnpose_tf.compression.keep_rule import Rate, exact_keep_count, exact_rate, kept_top
 from fcnpose_tf.tables import format_table
@@ -370,9 +369,9 @@ def rebuild(plan: GraphPlan) -> Any:
         pruned = keras.Sequential([first] + [layer for layer, _ in new_layers], name=model.name)
     else:
         for op, (layer, _) in zip(graph.ops, new_layers):  # called as the original was, on the new tensors
-            tensors[op.output] = layer(*_substituted(op.args, tensors), **_substituted(op.kwargs, tensors))
-        inputs = [tensors[tensor_key(t)] for t in model.inputs]
-        outputs = [tensors[tensor_key(t)] for t in model.outputs]
+            tensors[op.output] = layer(*_substituted(op.args, tensors, graph), **_substituted(op.kwargs, tensors, graph))
+        inputs = [tensors[graph.key(t)] for t in model.inputs]
+        outputs = [tensors[graph.key(t)] for t in model.outputs]
         pruned = keras.Model(inputs if len(inputs) > 1 else inputs[0],
                              outputs if len(outputs) > 1 else outputs[0], name=model.name)
     for layer, weights in new_layers:
@@ -411,14 +410,14 @@ def weights_of(layer: Any) -> list[np.ndarray]:
     return layer.get_weights() if hasattr(layer, "get_weights") else []
 
 
-def _substituted(value: Any, tensors: dict[tuple, Any]) -> Any:
+def _substituted(value: Any, tensors: dict[tuple, Any], graph: DependencyGraph) -> Any:
     """A call's arguments with every symbolic tensor of the original model replaced by the rebuilt model's."""
     if hasattr(value, "_keras_history"):
-        return tensors[tensor_key(value)]
+        return tensors[graph.key(value)]
     if isinstance(value, tuple):
-        return tuple(_substituted(item, tensors) for item in value)
+        return tuple(_substituted(item, tensors, graph) for item in value)
     if isinstance(value, list):
-        return [_substituted(item, tensors) for item in value]
+        return [_substituted(item, tensors, graph) for item in value]
     if isinstance(value, dict):
-        return {key: _substituted(item, tensors) for key, item in value.items()}
+        return {key: _substituted(item, tensors, graph) for key, item in value.items()}
     return value
