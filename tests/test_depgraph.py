@@ -220,9 +220,21 @@ def convnext_block(K, nested=False):
     return K.Model(i, conv(K, 3, "head", 1)(z), name="convnext")
 
 
+def grouped(K, width=20, groups=2):
+    """RegNetX's block: 1x1, a grouped 3x3 convolution (groups of width / groups channels), 1x1, a residual Add."""
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.ReLU(name="stem_relu")(K.layers.BatchNormalization(name="stem_bn")(conv(K, width, "stem")(i)))
+    y = K.layers.ReLU(name="a_relu")(K.layers.BatchNormalization(name="a_bn")(conv(K, width, "a", 1)(x)))
+    y = K.layers.Conv2D(width, 3, padding="same", groups=groups, name="b")(y)
+    y = K.layers.ReLU(name="b_relu")(K.layers.BatchNormalization(name="b_bn")(y))
+    y = K.layers.BatchNormalization(name="c_bn")(conv(K, width, "c", 1)(y))
+    x = K.layers.ReLU(name="out_relu")(K.layers.Add(name="add")([x, y]))
+    return K.Model(i, conv(K, 3, "head", 1)(x), name="grouped")
+
+
 ARCHITECTURES = {f.__name__: f for f in (residual_block, resnet_like, unet, densenet_block, mobilenet_v2,
                                          separable_stack, bn_everywhere, encoder_decoder, classifier, fcn_pose,
-                                         merges_and_reshapes, preprocessing, squeeze_excite, convnext_block)}
+                                         merges_and_reshapes, preprocessing, squeeze_excite, convnext_block, grouped)}
 SLOW = {"mobilenet_v2"}
 
 
@@ -310,9 +322,14 @@ def zero_readers(model, plan):
         if layer.name not in plan.layers or kind(layer) not in ("Conv2D", "Conv2DTranspose", "SeparableConv2D",
                                                                  "Dense"):
             continue
-        if getattr(layer, "groups", 1) > 1:  # a depthwise Conv2D: its outputs go with its inputs, as DepthwiseConv2D
-            continue
         w = layer.get_weights()
+        groups = getattr(layer, "groups", 1)
+        if groups > 1:  # input channel c is row c % (cin / groups) of the filters of group c // (cin / groups)
+            per_in, per_out = w[0].shape[2], w[0].shape[3] // groups
+            for c in removed(per_in * groups, plan.layers[layer.name].kept_in[0]):
+                w[0][:, :, c % per_in, (c // per_in) * per_out:(c // per_in + 1) * per_out] = 0
+            changes[layer.name] = w
+            continue
         in_axis = {"Conv2D": 2, "Conv2DTranspose": 3, "SeparableConv2D": 2, "Dense": 0}[kind(layer)]
         gone = removed(w[0].shape[in_axis], plan.layers[layer.name].kept_in[0])
         if kind(layer) == "Conv2DTranspose":
@@ -524,6 +541,28 @@ def test_per_channel_offsets_and_statistics_are_sliced(flavour):
     np.testing.assert_allclose(small.get_layer("nm").get_config()["variance"], variance[kept])
     x = inputs_for(model)
     assert_same(run(small, x), run_changed(model, zero_readers(model, plan), x))
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_a_grouped_convolution_keeps_as_many_channels_in_each_group(flavour):
+    K = FLAVOURS[flavour]
+    model = randomize(grouped(K, width=16, groups=4))
+    plan = plan_graph(model, 0.7)  # keep rule: 16 - floor(11.2) = 5 channels, rounded up to 8 for 4 groups
+    for name in ("a", "b"):
+        kept = plan.kept_filters()[name]
+        assert len(kept) == 8 and np.bincount(kept // 4, minlength=4).tolist() == [2, 2, 2, 2]
+    assert len(plan.kept_filters()["stem"]) == 5  # not a grouped convolution's channels
+    small = prune_graph(model, 0.7)
+    assert small.get_layer("b").groups == 4 and small.get_layer("b").get_weights()[0].shape == (3, 3, 2, 8)
+    x = inputs_for(model)
+    assert_same(run(small, x), run_changed(model, zero_readers(model, plan), x))
+    assert len(plan_graph(model, 0.7, round_to=8).kept_filters()["a"]) == 8
+    with pytest.raises(UserError, match="multiple of 4"):
+        plan_graph(model, 0.5, counts=[8, 6, 8])
+    i = K.Input((8, 8, 3), name="image")
+    both = K.layers.Concatenate(name="cat")([conv(K, 8, "p")(i), conv(K, 8, "q")(i)])
+    split = K.Model(i, conv(K, 2, "head")(K.layers.Conv2D(8, 3, groups=4, name="g")(both)))
+    assert "g (Conv2D): a grouped convolution (groups=4) whose channels are not one whole group" in _refusal(split)
 
 
 @pytest.mark.parametrize("flavour", FLAVOURS)

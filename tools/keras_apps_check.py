@@ -103,11 +103,17 @@ def readers_zeroed(model, plan) -> dict:
     for layer in all_layers(model).values():
         axis = PRODUCER_INPUT_AXIS.get(type(layer).__name__)
         entry = plan.layers.get(layer.name)
-        if axis is None or entry is None or getattr(layer, "groups", 1) > 1:  # a depthwise Conv2D: not a reader
+        if axis is None or entry is None:
             continue
         weights = layer.get_weights()
-        gone = np.setdiff1d(np.arange(weights[0].shape[axis]), entry.kept_in[0])
-        np.moveaxis(weights[0], axis, 0)[gone] = 0
+        groups = getattr(layer, "groups", 1)
+        if groups > 1:  # input channel c is row c % (cin / groups) of the filters of group c // (cin / groups)
+            per_in, per_out = weights[0].shape[2], weights[0].shape[3] // groups
+            for c in np.setdiff1d(np.arange(per_in * groups), entry.kept_in[0]):
+                weights[0][:, :, c % per_in, (c // per_in) * per_out:(c // per_in + 1) * per_out] = 0
+        else:
+            gone = np.setdiff1d(np.arange(weights[0].shape[axis]), entry.kept_in[0])
+            np.moveaxis(weights[0], axis, 0)[gone] = 0
         changes[layer.name] = weights
     return changes
 

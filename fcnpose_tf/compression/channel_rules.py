@@ -9,7 +9,8 @@ supported layer may change its behaviour, so it is refused).
 
 Kinds of layers:
 
-    producer     Conv2D, Conv2DTranspose, SeparableConv2D (its pointwise filters), Dense: new channels
+    producer     Conv2D, Conv2DTranspose, SeparableConv2D (its pointwise filters), Dense: new channels; a grouped
+                 Conv2D keeps as many input channels and filters in each of its groups
     depthwise    DepthwiseConv2D (depth_multiplier 1), Conv2D with groups = its input channels = its filters:
                  per-channel weights, channels follow the input
     per-channel  BatchNormalization, Normalization (channel axis), PReLU, ConvNeXt's LayerScale: per-channel weights
@@ -113,6 +114,17 @@ class Rule:
             This rule, unless a subclass says otherwise.
         """
         return self
+
+    def channel_blocks(self, layer: Any) -> int:
+        """Into how many equal blocks the layer splits its input and output channels, each output block reading its
+        input block only (a grouped convolution's groups): each block must keep as many channels as the others.
+
+        Args:
+            layer: the layer.
+        Returns:
+            1 for a layer without groups.
+        """
+        return 1
 
     def check_call(self, layer: Any, args: tuple, kwargs: dict) -> None:
         """Refuse a call of the layer the rule cannot handle (an operation's constant operands).
@@ -460,8 +472,11 @@ class Producer(Rule):
 
     def check(self, layer, in_shapes, out_shape):
         super().check(layer, in_shapes, out_shape)
-        if getattr(layer, "groups", 1) != 1:
+        if getattr(layer, "groups", 1) != 1 and self.kind != "conv":
             raise unsupported(layer, f"grouped convolution (groups={layer.groups})")
+
+    def channel_blocks(self, layer):
+        return int(getattr(layer, "groups", 1)) if self.kind == "conv" else 1
 
     def output_map(self, layer, in_maps, in_shapes, out_shape, context):
         return context.new_channels(layer, self.width(layer))
@@ -485,7 +500,10 @@ class Producer(Rule):
 
     def slice_weights(self, layer, weights, kept_in, kept_out):
         rows = kept_in[0]
-        if self.kind == "conv":
+        if self.kind == "conv" and self.channel_blocks(layer) > 1:
+            kernels = [_grouped_kernel(weights[0], self.channel_blocks(layer), rows, kept_out)]
+            rest = weights[1:]
+        elif self.kind == "conv":
             kernels = [weights[0][:, :, rows, :][..., kept_out]]
             rest = weights[1:]
         elif self.kind == "transpose":
@@ -520,10 +538,24 @@ class Producer(Rule):
         if self.kind == "separable":
             multiplier = layer.depth_multiplier
             return area * (kh * kw * cin * multiplier + cin * multiplier * width_out)
-        return area * kh * kw * cin * width_out
+        return area * kh * kw * (cin // self.channel_blocks(layer)) * width_out
 
 
 _GROUPED_DEPTHWISE = GroupedDepthwise()
+
+
+def _grouped_kernel(kernel: np.ndarray, groups: int, rows: np.ndarray, kept_out: np.ndarray) -> np.ndarray:
+    """A grouped convolution's kernel (kh, kw, cin / groups, filters) for the kept input channels and filters: the
+    filters of group g read the kept channels of input block g, as many in every block."""
+    per_in, per_out = kernel.shape[2], kernel.shape[3] // groups
+    parts = []
+    for g in range(groups):
+        block_rows = rows[rows // per_in == g] - g * per_in
+        parts.append(kernel[:, :, block_rows, :][..., kept_out[kept_out // per_out == g]])
+    if len({part.shape[2] for part in parts}) != 1:
+        raise UserError(f"a grouped convolution must keep as many input channels in each of its {groups} groups, "
+                        f"got {[part.shape[2] for part in parts]}")
+    return np.concatenate(parts, axis=-1)
 
 
 def _activation_mixes(activation: Any) -> bool:

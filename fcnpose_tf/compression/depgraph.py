@@ -204,6 +204,8 @@ class ChannelGroup:
         width: the number of channels, n (coupled channels of several producers count once).
         channel_of: producer name -> the group channel (0..n-1) of each of its filters.
         frozen: why the group is not pruned ("" if it may be).
+        block_of: for channels a grouped convolution makes or reads, the block (its group) of each group channel;
+            every block keeps as many channels as the others. None: no such constraint.
     """
 
     index: int
@@ -211,6 +213,12 @@ class ChannelGroup:
     width: int
     channel_of: dict[str, np.ndarray] = field(repr=False)
     frozen: str = ""
+    block_of: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def blocks(self) -> int:
+        """How many equal blocks the group's kept channels come in (1 without a grouped convolution)."""
+        return 1 if self.block_of is None else int(self.block_of.max()) + 1
 
 
 class DependencyGraph(Context):
@@ -360,7 +368,38 @@ class DependencyGraph(Context):
                           for p in producers}
             frozen = next((self._frozen[c] for c in channels.tolist() if c in self._frozen), "")
             groups.append(ChannelGroup(len(groups), tuple(producers), len(classes), channel_of, frozen))
-        return tuple(groups)
+        return tuple(self._with_blocks(groups, roots))
+
+    def _with_blocks(self, groups: list[ChannelGroup], roots: np.ndarray) -> list[ChannelGroup]:
+        """The groups with the blocks of the grouped convolutions reading or making their channels."""
+        group_of = {}  # root channel -> (group index, position)
+        for group in groups:
+            for producer, positions in group.channel_of.items():
+                for channel, position in zip(self._blocks[producer].tolist(), positions.tolist()):
+                    group_of[int(roots[channel])] = (group.index, position)
+        for op in self.ops:
+            count = op.rule.channel_blocks(op.layer)
+            if count == 1:
+                continue
+            for channels in [self.maps[key] for key in op.inputs] + [self.maps[op.output]]:
+                places = [group_of[int(roots[c])] for c in channels.tolist()]
+                index = places[0][0]
+                group = groups[index]
+                positions = np.array([p for _, p in places], dtype=np.int64)
+                if group.frozen:
+                    continue
+                if any(i != index for i, _ in places) or sorted(positions.tolist()) != list(range(group.width)):
+                    raise UserError(f"layer {op.layer.name} ({type(op.layer).__name__}): a grouped convolution "
+                                    f"(groups={count}) whose channels are not one whole group of channels; graph "
+                                    "pruning handles a grouped convolution reading and making whole groups")
+                block_of = np.empty(group.width, dtype=np.int64)
+                block_of[positions] = np.arange(len(positions)) // (len(positions) // count)
+                if group.block_of is not None and not np.array_equal(group.block_of, block_of):
+                    raise UserError(f"layer {op.layer.name} ({type(op.layer).__name__}): its groups split channels "
+                                    f"{short_list(group.producers)} differently from another grouped convolution")
+                groups[index] = ChannelGroup(group.index, group.producers, group.width, group.channel_of,
+                                             group.frozen, block_of)
+        return groups
 
     def layer(self, name: str) -> Any:
         """The model's layer called `name` (a producer of a group), in a nested model too.

@@ -159,9 +159,22 @@ def _check_count(value: Any, what: str, minimum: int) -> int:
     return int(value)
 
 
-def _group_keep_count(width: int, rate: Fraction, min_filters: int, round_to: int) -> int:
+def _group_keep_count(width: int, rate: Fraction, min_filters: int, round_to: int, blocks: int = 1) -> int:
     count = max(exact_keep_count(int(width), rate), min(width, min_filters))
-    return min(width, math.ceil(count / round_to) * round_to)
+    step = math.lcm(round_to, blocks)  # a grouped convolution keeps as many channels in each block
+    return min(width, math.ceil(count / step) * step)
+
+
+def _kept_in_blocks(group: ChannelGroup, scores: np.ndarray, count: int) -> np.ndarray:
+    """The `count` best channels of a group, as many from each block of a grouped convolution."""
+    if group.block_of is None:
+        return kept_top(scores, count)
+    if count % group.blocks:
+        raise UserError(f"layers {short_list(group.producers)} feed or form a grouped convolution of {group.blocks} "
+                        f"groups: they keep a multiple of {group.blocks} channels, not {count}")
+    kept = [np.flatnonzero(group.block_of == b)[kept_top(scores[group.block_of == b], count // group.blocks)]
+            for b in range(group.blocks)]
+    return np.sort(np.concatenate(kept)).astype(np.int64)
 
 
 def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", aggregate: str = "sum",
@@ -196,14 +209,14 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
     scorer = _scorer(importance)
     graph = dependency_graph(model, keep)
     wanted = _checked_counts(graph, counts) if counts is not None else \
-        [_group_keep_count(group.width, exact, min_filters, round_to) for group in prunable_groups(graph)]
+        [_group_keep_count(group.width, exact, min_filters, round_to, group.blocks) for group in prunable_groups(graph)]
     plans, wanted = [], iter(wanted)
     for group in graph.groups:
         if group.frozen:
             plans.append(GroupPlan(group, np.arange(group.width, dtype=np.int64)))
             continue
         scores = _group_scores(graph, group, scorer, AGGREGATES[aggregate])
-        plans.append(GroupPlan(group, kept_top(scores, next(wanted)), scores))
+        plans.append(GroupPlan(group, _kept_in_blocks(group, scores, next(wanted)), scores))
     return _finished(graph, plans)
 
 
@@ -239,7 +252,8 @@ def group_cost(graph: DependencyGraph) -> Callable[[Sequence[int]], tuple[int, i
     """
     def cost(counts: Sequence[int]) -> tuple[int, int | None]:
         wanted = iter(_checked_counts(graph, counts))
-        plans = [GroupPlan(group, np.arange(group.width if group.frozen else next(wanted), dtype=np.int64))
+        plans = [GroupPlan(group, np.arange(group.width, dtype=np.int64) if group.frozen else
+                           _kept_in_blocks(group, np.zeros(group.width), next(wanted)))  # the first of each block
                  for group in graph.groups]
         plan = _finished(graph, plans)
         return plan.params[1], plan.macs[1]
@@ -273,6 +287,10 @@ def plan_kept(model: Any, kept: Mapping[str, np.ndarray]) -> GraphPlan:
         positions = np.array(next(iter(chosen)), dtype=np.int64) if chosen else np.arange(group.width, dtype=np.int64)
         if group.frozen and len(positions) < group.width:
             raise UserError(f"layers {short_list(group.producers)} cannot lose channels: {group.frozen}")
+        if group.block_of is not None and len(set(np.bincount(group.block_of[positions],
+                                                              minlength=group.blocks).tolist())) > 1:
+            raise UserError(f"layers {short_list(group.producers)} feed or form a grouped convolution of "
+                            f"{group.blocks} groups: they keep as many channels in each group")
         plans.append(GroupPlan(group, positions))
     if named:
         raise UserError(f"no layer of model {graph.model.name} makes channels named {', '.join(sorted(named))}")
