@@ -603,10 +603,20 @@ def _rule_table(keras: ModuleType) -> dict[type, Rule]:
                  "GaussianDropout", "GaussianNoise"):
         table[getattr(layers, name)] = Rule()
     table.update(_operation_rules(keras))
-    convnext = importlib.import_module(f"{keras.__name__}.src.applications.convnext")
-    table[convnext.LayerScale] = LayerScale()
-    table[convnext.StochasticDepth] = Rule()  # the identity at inference; drops whole samples in training
+    convnext = _private_module(f"{keras.__name__}.src.applications.convnext")
+    if convnext is not None:
+        table[convnext.LayerScale] = LayerScale()
+        table[convnext.StochasticDepth] = Rule()  # the identity at inference; drops whole samples in training
     return table
+
+
+def _private_module(name: str) -> ModuleType | None:
+    """A module of a Keras's private tree (`keras.src...`), None if this version moved it: its layers are then
+    refused as unknown rather than every model failing."""
+    try:
+        return importlib.import_module(name)
+    except ImportError:
+        return None
 
 
 # Elementwise TensorFlow functions of tf_keras' TFOpLambda (`x + y`, `x * 0.5`, `tf.nn.relu6(x)`) and Keras 3 ops
@@ -622,11 +632,11 @@ _KERAS_OPS = {"numpy": ("Add", "Subtract", "Multiply", "Divide", "TrueDivide", "
 def _operation_rules(keras: ModuleType) -> dict[type, Rule]:
     """Rules for the elementwise operations written on tensors of this Keras's functional models."""
     if keras.__name__ == "tf_keras":
-        module = importlib.import_module("tf_keras.src.layers.core.tf_op_layer")
-        return {module.TFOpLambda: Elementwise(_TF_FUNCTIONS)}
+        module = _private_module("tf_keras.src.layers.core.tf_op_layer")
+        return {module.TFOpLambda: Elementwise(_TF_FUNCTIONS)} if hasattr(module, "TFOpLambda") else {}
     rules: dict[type, Rule] = {}
     for module_name, names in _KERAS_OPS.items():
-        module = importlib.import_module(f"{keras.__name__}.src.ops.{module_name}")
+        module = _private_module(f"{keras.__name__}.src.ops.{module_name}")
         rules.update({getattr(module, name): Elementwise() for name in names if hasattr(module, name)})
     return rules
 

@@ -613,8 +613,10 @@ def load_model(path) -> keras.Model:
 def _application_layers() -> dict:
     """tf_keras.applications layers tf_keras does not register for loading: ConvNeXt's LayerScale and StochasticDepth
     (without them tf_keras cannot read back its own ConvNeXt files: "Unknown layer: 'LayerScale'")."""
-    from tf_keras.src.applications import convnext
-
+    try:
+        from tf_keras.src.applications import convnext
+    except ImportError:  # a tf_keras that moved its private tree
+        return {}
     return {"LayerScale": convnext.LayerScale, "StochasticDepth": convnext.StochasticDepth}
 
 
