@@ -277,14 +277,14 @@ def pruned(arch, flavour, rate):
     return plan_graph(model, rate), prune_graph(model, rate)
 
 
-def run_changed(model, changes, x):
+def run_changed(model, changes, x, training=False):
     """`model`'s outputs on `x` with some layers' weights replaced (layer name -> weights), then put back
     (cheaper than a clone of the model)."""
     saved = {name: model.get_layer(name).get_weights() for name in changes}
     try:
         for name, weights in changes.items():
             model.get_layer(name).set_weights(weights)
-        return run(model, x)
+        return run_training(model, x) if training else run(model, x)
     finally:
         for name, weights in saved.items():
             model.get_layer(name).set_weights(weights)
@@ -293,6 +293,10 @@ def run_changed(model, changes, x):
 def run(model, x):
     out = model(x, training=False)
     return [np.asarray(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
+
+
+def run_training(model, x):
+    return np.asarray(model(x, training=True))
 
 
 def inputs_for(model, seed=1):
@@ -582,6 +586,12 @@ def test_a_nested_model_prunes_as_its_flat_equivalent(flavour):
     np.testing.assert_array_equal(run(got, x)[0], run(want, x)[0])
     np.testing.assert_allclose(run(nested, x)[0], run(flat, x)[0], rtol=1e-6, atol=1e-6)
     i = K.Input((8, 8, 3), name="image")
+    base = K.Sequential([K.Input((8, 8, 3)), conv(K, 8, "base_conv"), K.layers.BatchNormalization(name="base_bn"),
+                         K.layers.ReLU(name="base_relu")], name="base")
+    tuned = K.Model(i, conv(K, 2, "head", 1)(randomize(base)(i, training=False)))  # the fine-tuning idiom
+    plan, small, x = plan_graph(tuned, 0.5), prune_graph(tuned, 0.5), inputs_for(tuned)
+    assert small.get_layer("base_conv").filters == 4  # in training too, base_bn runs as the nested call says
+    assert_same([run_training(small, x)], [run_changed(tuned, zero_readers(tuned, plan), x, training=True)])
     inner = K.Sequential([conv(K, 3, "inner_conv")], name="inner")
     twice = K.Model(i, conv(K, 2, "head")(K.layers.Add(name="sum")([inner(i), inner(i)])))
     assert "inner (Sequential) is used more than once" in _refusal(twice)

@@ -121,6 +121,7 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
     order: list[TracedOp] = []
     aliases: dict[tuple, Any] = {}  # tensor key -> the tensor it stands for
     calls: dict[str, tuple] = {}  # layer name -> (the layer's id, its node), to refuse shared layers
+    training: dict[int, Any] = {}  # id of a layer in a nested model called with training= -> that value
     stack = [(tensor, False) for tensor in reversed(model.outputs)]
     while stack:
         tensor, ready = stack.pop()
@@ -146,6 +147,9 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
                                 "a nested model called on its inputs")
             aliases.update((tensor_key(inner), source) for inner, source in zip(inner_inputs, sources))
             aliases[key] = inner_outputs[key[2]]
+            mode = call_arguments(node)[1].get("training")
+            if mode is not None:  # base(x, training=False) keeps its BatchNormalization in inference mode
+                training.update((id(inner), mode) for inner in _sublayers(layer))
             stack.append((inner_outputs[key[2]], False))
             continue
         if not ready:
@@ -161,6 +165,8 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
         rule.check(layer, in_shapes, out_shape)
         args, kwargs = call_arguments(node)
         rule.check_call(layer, args, kwargs)
+        if id(layer) in training and "training" not in kwargs and _takes_training(layer):
+            kwargs = {**kwargs, "training": training[id(layer)]}
         op = TracedOp(layer, rule, [_resolved(tensor_key(source), aliases) for source in sources], key, in_shapes,
                       out_shape, args, kwargs)
         ops[key] = op
@@ -172,6 +178,21 @@ def _is_graph_model(layer: Any, keras: ModuleType) -> bool:
     """A nested functional or Sequential model (its graph can be traced), not a subclassed one."""
     return isinstance(layer, keras.Model) and type(layer).__name__ in ("Functional", "Sequential") and \
         type(layer).__module__.startswith(keras.__name__ + ".")
+
+
+def _sublayers(model: Any) -> list:
+    """The layers of a nested model and of the models nested in it."""
+    return [inner for layer in model.layers for inner in ([layer] + (_sublayers(layer) if hasattr(layer, "layers")
+                                                                    else []))]
+
+
+def _takes_training(layer: Any) -> bool:
+    import inspect
+
+    try:
+        return "training" in inspect.signature(layer.call).parameters
+    except (TypeError, ValueError):
+        return False
 
 
 def _check_single_use(layer: Any, key: tuple, calls: dict[str, tuple]) -> None:
