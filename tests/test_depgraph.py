@@ -595,6 +595,9 @@ def test_a_nested_model_prunes_as_its_flat_equivalent(flavour):
     inner = K.Sequential([conv(K, 3, "inner_conv")], name="inner")
     twice = K.Model(i, conv(K, 2, "head")(K.layers.Add(name="sum")([inner(i), inner(i)])))
     assert "inner (Sequential) is used more than once" in _refusal(twice)
+    dup = K.Sequential([K.Input((8, 8, 3)), conv(K, 4, "dup")], name="dup_inner")
+    clash = K.Model(i, conv(K, 2, "head")(conv(K, 4, "dup", 1)(dup(i))))  # the flat model could not hold both
+    assert "two layers named dup" in _refusal(clash)
 
 
 # ------------------------------------------------------------------------------------------
