@@ -26,8 +26,10 @@ import numpy as np
 
 FLAVOURS = {"tf_keras": "tf_keras", "keras3": "keras"}
 NETS = {  # builder -> extra arguments
+    "MobileNet": {},
     "MobileNetV2": {},
     "MobileNetV3Small": {},
+    "MobileNetV3Large": {},
     "MobileNetV3Small/no-preprocessing": {"include_preprocessing": False},
     "MobileNetV3Small/minimalistic": {"minimalistic": True},
     "ResNet50": {},
