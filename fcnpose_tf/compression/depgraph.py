@@ -457,7 +457,8 @@ def dependency_graph(model: Any, keep: Iterable[str] = ()) -> DependencyGraph:
         The `DependencyGraph`, with its `groups`.
     Raises:
         UserError: for a layer the surgery does not handle, one line naming it and its type; a shared layer, a
-            nested model, or an unknown name in `keep`.
+            subclassed nested model (a functional or Sequential one is traced through), a layer name used twice,
+            or an unknown name in `keep`.
     """
     return DependencyGraph(model, keep)
 
