@@ -10,6 +10,7 @@ Every architecture is built with either Keras and pruned at three rates; two che
 
 import doctest
 import functools
+import importlib
 
 import keras as keras3
 import numpy as np
@@ -164,9 +165,76 @@ def merges_and_reshapes(K):
     return K.Model(i, conv(K, 3, "head", 1)(x), name="merges")
 
 
+def preprocessing(K):
+    """EfficientNet's and MobileNetV3's preprocessing layers at the input, a per-channel Rescaling inside."""
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.Rescaling(1 / 127.5, offset=-1.0, name="rescale")(i)
+    x = K.layers.Normalization(axis=-1, name="norm")(x)
+    x = conv(K, 8, "c1", activation="relu")(x)
+    x = K.layers.Rescaling([0.5 + k / 8 for k in range(8)], name="channel_scale")(x)
+    x = conv(K, 6, "c2", activation="relu")(x)
+    return K.Model(i, conv(K, 3, "head", 1)(x), name="preprocessing")
+
+
+def squeeze_excite(K):
+    """MobileNetV3's block: hard sigmoid as tensor arithmetic (``relu6(x + 3) * (1 / 6)``: Keras 3 operations,
+    tf_keras TFOpLambda layers), hard swish as a Multiply, a squeeze-excite reading a GlobalAveragePooling2D with
+    keepdims, and the residual written as ``x + y``."""
+    def hard_sigmoid(x):
+        return K.layers.ReLU(6.0)(x + 3.0) * (1.0 / 6.0)
+
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.BatchNormalization(name="stem_bn")(conv(K, 16, "stem")(i))
+    x = K.layers.Multiply(name="stem_hswish")([x, hard_sigmoid(x)])
+    y = K.layers.DepthwiseConv2D(3, padding="same", name="dw")(x)
+    y = K.layers.Activation("relu", name="dw_relu")(K.layers.BatchNormalization(name="dw_bn")(y))
+    s = K.layers.GlobalAveragePooling2D(keepdims=True, name="se_pool")(y)
+    s = conv(K, 16, "se_expand", 1)(conv(K, 4, "se_reduce", 1, activation="relu")(s))
+    y = K.layers.Multiply(name="se_mul")([y, hard_sigmoid(s)])
+    y = K.layers.BatchNormalization(name="project_bn")(conv(K, 16, "project", 1)(y))
+    x = K.layers.Dropout(0.2, name="drop")(x + y)
+    return K.Model(i, conv(K, 3, "head", 1)(x), name="squeeze_excite")
+
+
+def convnext_block(K, nested=False):
+    """ConvNeXt's pieces: a depthwise convolution written as Conv2D(groups=C), LayerNormalization, Dense on feature
+    maps, LayerScale and StochasticDepth (keras.applications.convnext), the residual as ``x + y``; then a grouped
+    depthwise convolution and a LayerScale on channels that can be pruned. ``nested``: the stem is a Sequential
+    model inside the model, as ConvNeXt's is."""
+    convnext = importlib.import_module(f"{K.__name__}.src.applications.convnext")
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.Normalization(mean=[0.4, 0.5, 0.6], variance=[0.05, 0.06, 0.07], name="prestem")(i)
+    stem = [conv(K, 16, "stem_conv", 2, strides=2), K.layers.LayerNormalization(epsilon=1e-6, name="stem_ln")]
+    if nested:
+        x = K.Sequential(stem, name="stem")(x)
+    else:
+        x = stem[1](stem[0](x))
+    y = K.layers.Conv2D(16, 7, padding="same", groups=16, name="dw")(x)
+    y = K.layers.Dense(64, name="pw1")(K.layers.LayerNormalization(epsilon=1e-6, name="ln")(y))
+    y = K.layers.Dense(16, name="pw2")(K.layers.Activation("gelu", name="gelu")(y))
+    y = convnext.StochasticDepth(0.1, name="drop_path")(convnext.LayerScale(0.5, 16, name="scale")(y))
+    x = x + y
+    z = K.layers.ReLU(name="z_relu")(K.layers.BatchNormalization(name="z_bn")(conv(K, 12, "z_conv")(x)))
+    z = K.layers.Conv2D(12, 3, padding="same", groups=12, activation="relu", name="z_dw")(z)
+    z = convnext.LayerScale(0.5, 12, name="z_scale")(z)
+    return K.Model(i, conv(K, 3, "head", 1)(z), name="convnext")
+
+
+def grouped(K, width=20, groups=2):
+    """RegNetX's block: 1x1, a grouped 3x3 convolution (groups of width / groups channels), 1x1, a residual Add."""
+    i = K.Input((16, 16, 3), name="image")
+    x = K.layers.ReLU(name="stem_relu")(K.layers.BatchNormalization(name="stem_bn")(conv(K, width, "stem")(i)))
+    y = K.layers.ReLU(name="a_relu")(K.layers.BatchNormalization(name="a_bn")(conv(K, width, "a", 1)(x)))
+    y = K.layers.Conv2D(width, 3, padding="same", groups=groups, name="b")(y)
+    y = K.layers.ReLU(name="b_relu")(K.layers.BatchNormalization(name="b_bn")(y))
+    y = K.layers.BatchNormalization(name="c_bn")(conv(K, width, "c", 1)(y))
+    x = K.layers.ReLU(name="out_relu")(K.layers.Add(name="add")([x, y]))
+    return K.Model(i, conv(K, 3, "head", 1)(x), name="grouped")
+
+
 ARCHITECTURES = {f.__name__: f for f in (residual_block, resnet_like, unet, densenet_block, mobilenet_v2,
                                          separable_stack, bn_everywhere, encoder_decoder, classifier, fcn_pose,
-                                         merges_and_reshapes)}
+                                         merges_and_reshapes, preprocessing, squeeze_excite, convnext_block, grouped)}
 SLOW = {"mobilenet_v2"}
 
 
@@ -185,6 +253,8 @@ def randomize(model, seed=0):
             new = [rng.normal(0, 0.5, w.shape) for w in weights]
             new[0] = rng.uniform(0.5, 1.5, weights[0].shape)  # gamma
             new[-1] = rng.uniform(0.5, 2.0, weights[-1].shape)  # moving variance
+        elif type(layer).__name__ == "Normalization":  # mean, variance, count (an integer, kept)
+            new = [rng.normal(0, 1, weights[0].shape), rng.uniform(0.5, 2.0, weights[1].shape)] + weights[2:]
         elif type(layer).__name__ in ("PReLU", "LayerNormalization"):
             new = [rng.uniform(0.1, 1.0, w.shape) for w in weights]
         else:
@@ -192,7 +262,7 @@ def randomize(model, seed=0):
             for w in weights:
                 fan_in = np.prod(w.shape[:-1]) if w.ndim > 1 else 0
                 new.append(rng.normal(0, np.sqrt(2 / fan_in), w.shape) if w.ndim > 1 else rng.normal(0, 0.1, w.shape))
-        layer.set_weights([w.astype(np.float32) for w in new])
+        layer.set_weights([w if w.dtype.kind != "f" else w.astype(np.float32) for w in new])
     return model
 
 
@@ -207,14 +277,14 @@ def pruned(arch, flavour, rate):
     return plan_graph(model, rate), prune_graph(model, rate)
 
 
-def run_changed(model, changes, x):
+def run_changed(model, changes, x, training=False):
     """`model`'s outputs on `x` with some layers' weights replaced (layer name -> weights), then put back
     (cheaper than a clone of the model)."""
     saved = {name: model.get_layer(name).get_weights() for name in changes}
     try:
         for name, weights in changes.items():
             model.get_layer(name).set_weights(weights)
-        return run(model, x)
+        return run_training(model, x) if training else run(model, x)
     finally:
         for name, weights in saved.items():
             model.get_layer(name).set_weights(weights)
@@ -223,6 +293,10 @@ def run_changed(model, changes, x):
 def run(model, x):
     out = model(x, training=False)
     return [np.asarray(o) for o in (out if isinstance(out, (list, tuple)) else [out])]
+
+
+def run_training(model, x):
+    return np.asarray(model(x, training=True))
 
 
 def inputs_for(model, seed=1):
@@ -253,6 +327,13 @@ def zero_readers(model, plan):
                                                                  "Dense"):
             continue
         w = layer.get_weights()
+        groups = getattr(layer, "groups", 1)
+        if groups > 1:  # input channel c is row c % (cin / groups) of the filters of group c // (cin / groups)
+            per_in, per_out = w[0].shape[2], w[0].shape[3] // groups
+            for c in removed(per_in * groups, plan.layers[layer.name].kept_in[0]):
+                w[0][:, :, c % per_in, (c // per_in) * per_out:(c // per_in + 1) * per_out] = 0
+            changes[layer.name] = w
+            continue
         in_axis = {"Conv2D": 2, "Conv2DTranspose": 3, "SeparableConv2D": 2, "Dense": 0}[kind(layer)]
         gone = removed(w[0].shape[in_axis], plan.layers[layer.name].kept_in[0])
         if kind(layer) == "Conv2DTranspose":
@@ -444,6 +525,81 @@ def test_original_unchanged_and_flavour_kept(flavour):
     assert isinstance(sequential, FLAVOURS[flavour].Sequential)
 
 
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_per_channel_offsets_and_statistics_are_sliced(flavour):
+    """A Rescaling's offset and a Normalization's mean map a removed (zero) channel to a non-zero value, so only the
+    readers-zeroed check (a) applies; the pruned layers keep the kept channels' values."""
+    K = FLAVOURS[flavour]
+    scale, offset, mean, variance = (np.linspace(start, stop, 6) for start, stop in
+                                     ((0.5, 2.0), (-0.3, 0.4), (-1.0, 1.0), (0.5, 3.0)))
+    i = K.Input((8, 8, 3), name="image")
+    x = K.layers.Rescaling(scale.tolist(), offset=offset.tolist(), name="rs")(conv(K, 6, "c1", activation="relu")(i))
+    x = K.layers.Normalization(mean=mean.tolist(), variance=variance.tolist(), name="nm")(x)
+    model = randomize(K.Model(i, conv(K, 2, "head", 1)(x), name="offsets"))
+    plan, small = plan_graph(model, 0.5), prune_graph(model, 0.5)
+    kept = plan.kept_filters()["c1"]
+    assert len(kept) == 3
+    np.testing.assert_allclose(small.get_layer("rs").get_config()["scale"], scale[kept])
+    np.testing.assert_allclose(small.get_layer("rs").get_config()["offset"], offset[kept])
+    np.testing.assert_allclose(small.get_layer("nm").get_config()["mean"], mean[kept])
+    np.testing.assert_allclose(small.get_layer("nm").get_config()["variance"], variance[kept])
+    x = inputs_for(model)
+    assert_same(run(small, x), run_changed(model, zero_readers(model, plan), x))
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_a_grouped_convolution_keeps_as_many_channels_in_each_group(flavour):
+    K = FLAVOURS[flavour]
+    model = randomize(grouped(K, width=16, groups=4))
+    plan = plan_graph(model, 0.7)  # keep rule: 16 - floor(11.2) = 5 channels, rounded up to 8 for 4 groups
+    for name in ("a", "b"):
+        kept = plan.kept_filters()[name]
+        assert len(kept) == 8 and np.bincount(kept // 4, minlength=4).tolist() == [2, 2, 2, 2]
+    assert len(plan.kept_filters()["stem"]) == 5  # not a grouped convolution's channels
+    small = prune_graph(model, 0.7)
+    assert small.get_layer("b").groups == 4 and small.get_layer("b").get_weights()[0].shape == (3, 3, 2, 8)
+    x = inputs_for(model)
+    assert_same(run(small, x), run_changed(model, zero_readers(model, plan), x))
+    assert len(plan_graph(model, 0.7, round_to=8).kept_filters()["a"]) == 8
+    with pytest.raises(UserError, match="multiple of 4"):
+        plan_graph(model, 0.5, counts=[8, 6, 8])
+    i = K.Input((8, 8, 3), name="image")
+    both = K.layers.Concatenate(name="cat")([conv(K, 8, "p")(i), conv(K, 8, "q")(i)])
+    split = K.Model(i, conv(K, 2, "head")(K.layers.Conv2D(8, 3, groups=4, name="g")(both)))
+    assert "g (Conv2D): a grouped convolution (groups=4) whose channels are not one whole group" in _refusal(split)
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_a_nested_model_prunes_as_its_flat_equivalent(flavour):
+    """ConvNeXt's stem is a Sequential inside the model: traced through, its layers become the pruned model's."""
+    K = FLAVOURS[flavour]
+    flat, nested = built("convnext_block", flavour), convnext_block(K, nested=True)
+    for layer in flat.layers:
+        if layer.get_weights():
+            (nested.get_layer("stem").get_layer(layer.name) if layer.name.startswith("stem_")
+             else nested.get_layer(layer.name)).set_weights(layer.get_weights())
+    want, got = prune_graph(flat, 0.5), prune_graph(nested, 0.5)
+    named = [[layer.name for layer in m.layers if not layer.name.startswith("tf.")] for m in (got, want)]  # tf_keras
+    assert named[0] == named[1] and len(got.layers) == len(want.layers)  # names its `x + y` in order of creation
+    assert got.get_layer("pw1").units == 32 and got.get_layer("z_dw").filters == 6
+    x = inputs_for(flat)
+    np.testing.assert_array_equal(run(got, x)[0], run(want, x)[0])
+    np.testing.assert_allclose(run(nested, x)[0], run(flat, x)[0], rtol=1e-6, atol=1e-6)
+    i = K.Input((8, 8, 3), name="image")
+    base = K.Sequential([K.Input((8, 8, 3)), conv(K, 8, "base_conv"), K.layers.BatchNormalization(name="base_bn"),
+                         K.layers.ReLU(name="base_relu")], name="base")
+    tuned = K.Model(i, conv(K, 2, "head", 1)(randomize(base)(i, training=False)))  # the fine-tuning idiom
+    plan, small, x = plan_graph(tuned, 0.5), prune_graph(tuned, 0.5), inputs_for(tuned)
+    assert small.get_layer("base_conv").filters == 4  # in training too, base_bn runs as the nested call says
+    assert_same([run_training(small, x)], [run_changed(tuned, zero_readers(tuned, plan), x, training=True)])
+    inner = K.Sequential([conv(K, 3, "inner_conv")], name="inner")
+    twice = K.Model(i, conv(K, 2, "head")(K.layers.Add(name="sum")([inner(i), inner(i)])))
+    assert "inner (Sequential) is used more than once" in _refusal(twice)
+    dup = K.Sequential([K.Input((8, 8, 3)), conv(K, 4, "dup")], name="dup_inner")
+    clash = K.Model(i, conv(K, 2, "head")(conv(K, 4, "dup", 1)(dup(i))))  # the flat model could not hold both
+    assert "two layers named dup" in _refusal(clash)
+
+
 # ------------------------------------------------------------------------------------------
 # refusals
 # ------------------------------------------------------------------------------------------
@@ -467,14 +623,40 @@ def test_refusals_name_the_layer(flavour):
     shared = conv(K, 3, "shared")
     twice = K.Model(i, conv(K, 2, "head")(shared(shared(i))))
     assert "shared (Conv2D) is used more than once" in _refusal(twice)
-    inner = K.Model(i, conv(K, 3, "inner_conv")(i), name="inner")
+    class Subclassed(K.Model):  # a nested model whose graph cannot be traced (a functional one is traced through)
+        def __init__(self):
+            super().__init__(name="inner")
+            self.inner_conv = conv(K, 3, "inner_conv")
+
+        def call(self, x):
+            return self.inner_conv(x)
+
     j = K.Input((8, 8, 3), name="outer_image")
-    nested = K.Model(j, conv(K, 2, "head")(inner(j)))
-    assert "inner" in _refusal(nested) and ("nested model" in _refusal(nested) or "more than once" in _refusal(nested))
+    nested = K.Model(j, conv(K, 2, "head")(Subclassed()(j)))
+    assert "inner" in _refusal(nested) and "nested model" in _refusal(nested)
     broadcast = K.Model(i, K.layers.Multiply(name="scale")([conv(K, 4, "c4")(i), conv(K, 1, "c1")(i)]))
     assert "scale (Multiply)" in _refusal(broadcast)
     with pytest.raises(UserError, match="tf_keras or Keras 3 model"):
         prune_graph(object(), 0.5)
+
+
+@pytest.mark.parametrize("flavour", FLAVOURS)
+def test_operations_on_tensors(flavour):
+    """Tensor arithmetic couples as a merge or passes with one number; other constants and functions are refused."""
+    K = FLAVOURS[flavour]
+    graph = dependency_graph(built("squeeze_excite", flavour))
+    group = next(g for g in graph.groups if "stem" in g.producers)
+    assert set(group.producers) == {"stem", "se_expand", "project"} and not group.frozen
+    i = K.Input((8, 8, 3), name="image")
+    c = conv(K, 4, "c")(i)
+    constant = np.arange(4, dtype=np.float32)
+    vector = K.Model(i, conv(K, 2, "head")(c * (constant if K is keras3 else tf_keras.backend.constant(constant))))
+    assert "is not one number" in _refusal(vector)
+    import tensorflow as tf
+
+    mean = keras3.ops.mean(c, axis=-1, keepdims=True) if K is keras3 else tf.reduce_mean(c, axis=-1, keepdims=True)
+    message = _refusal(K.Model(i, conv(K, 2, "head")(mean)))
+    assert "unsupported" in message and ("Mean" in message or "reduce_mean" in message)
 
 
 @pytest.mark.parametrize("flavour", FLAVOURS)

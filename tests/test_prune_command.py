@@ -121,6 +121,25 @@ def test_files_that_are_not_models_and_unsupported_layers_are_refused(cli_here, 
     assert not (tmp_path / "p.keras").exists()
 
 
+@pytest.mark.parametrize("suffix", [".keras", ".h5"])
+def test_a_tf_keras_convnext_file_is_read_back(cli_here, tmp_path, suffix):
+    """tf_keras does not register ConvNeXt's LayerScale and StochasticDepth; its own ConvNeXt files still load."""
+    import tf_keras
+    from tf_keras.src.applications import convnext
+
+    inp = tf_keras.Input((16, 16, 3))
+    x = tf_keras.layers.Conv2D(8, 3, padding="same", activation="relu", name="c1")(inp)
+    x = convnext.StochasticDepth(0.1, name="drop_path")(convnext.LayerScale(0.5, 8, name="scale")(x))
+    path, out = tmp_path / f"cnx{suffix}", tmp_path / f"p50{suffix}"
+    tf_keras.Model(inp, tf_keras.layers.Conv2D(2, 1, name="head")(x)).save(path)
+    status, _, err = cli_here("prune", path, "--rate", "0.5", "--out", out)
+    assert status == 0, err
+    from fcnpose_tf.compression.keras_file import load_any
+
+    pruned = load_any(out)
+    assert pruned.get_layer("c1").filters == 4 and pruned.get_layer("scale").get_weights()[0].shape == (4,)
+
+
 def test_saved_by_reads_the_keras_version(saved, tmp_path):
     from fcnpose_tf.compression.keras_file import saved_by
 

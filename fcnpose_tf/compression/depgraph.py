@@ -70,7 +70,8 @@ def keras_of(model: Any) -> ModuleType:
 
 @dataclass
 class TracedOp:
-    """One call of a layer in the model: the tensors it reads and the one it makes (keys), with their shapes."""
+    """One call of a layer in the model: the tensors it reads and the one it makes (keys), with their shapes, and
+    the arguments it was called with (its input tensors among them), to call the rebuilt layer the same way."""
 
     layer: Any
     rule: Rule
@@ -78,6 +79,8 @@ class TracedOp:
     output: tuple
     in_shapes: list[tuple]
     out_shape: tuple
+    args: tuple = ()
+    kwargs: dict = field(default_factory=dict)
 
 
 def tensor_key(tensor: Any) -> tuple:
@@ -96,31 +99,63 @@ def _listed(value: Any) -> list:
     return list(value) if isinstance(value, (list, tuple)) else [value]
 
 
-def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[TracedOp]]:
-    """The model's input tensors by key, and its layer calls in an order where every input comes first."""
+def call_arguments(node: Any) -> tuple[tuple, dict]:
+    """The positional and keyword arguments of a layer's call in a functional model, as Keras recorded them.
+
+    Args:
+        node: the call's node (Keras 3 `Node` with ``arguments``, tf_keras `Node` with ``call_args``).
+    Returns:
+        (args, kwargs), with the symbolic input tensors in place.
+    """
+    if hasattr(node, "arguments"):  # Keras 3
+        return tuple(node.arguments.args), dict(node.arguments.kwargs)
+    return tuple(node.call_args), dict(node.call_kwargs)
+
+
+def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[TracedOp], dict[tuple, tuple]]:
+    """The model's input tensors by key, its layer calls in an order where every input comes first, and the aliases:
+    the key of a nested model's output (or of its inputs) -> the key of the inner (or outer) tensor it is. A nested
+    model is traced through: its layers become the flat model's."""
     inputs: dict[tuple, Any] = {}
     ops: dict[tuple, TracedOp] = {}
     order: list[TracedOp] = []
-    calls: dict[str, tuple] = {}  # layer name -> its node, to refuse shared layers
+    aliases: dict[tuple, Any] = {}  # tensor key -> the tensor it stands for
+    calls: dict[str, tuple] = {}  # layer name -> (the layer's id, its node), to refuse shared layers
+    training: dict[int, Any] = {}  # id of a layer in a nested model called with training= -> that value
     stack = [(tensor, False) for tensor in reversed(model.outputs)]
     while stack:
         tensor, ready = stack.pop()
         key = tensor_key(tensor)
         if key in ops or key in inputs:
             continue
+        if key in aliases:  # a nested model's input or output: trace the tensor it is
+            stack.append((aliases[key], ready))
+            continue
         layer = tensor._keras_history[0]
         if isinstance(layer, keras.layers.InputLayer):
             inputs[key] = tensor
             continue
         node = layer._inbound_nodes[key[1]]
-        sources = _listed(node.input_tensors)
+        # every symbolic tensor of the call (tf_keras' input_tensors is its first argument only: `x + y` reads y too)
+        sources = list(node.keras_inputs) if hasattr(node, "keras_inputs") else _listed(node.input_tensors)
+        _check_single_use(layer, key, calls)
+        if _is_graph_model(layer, keras):
+            inner_inputs, inner_outputs = list(getattr(layer, "inputs", None) or []), list(layer.outputs or [])
+            if len(inner_inputs) != len(sources):
+                raise UserError(f"layer {layer.name} ({type(layer).__name__}) is a nested model called on "
+                                f"{len(sources)} tensors for its {len(inner_inputs)} inputs; graph pruning traces "
+                                "a nested model called on its inputs")
+            aliases.update((tensor_key(inner), source) for inner, source in zip(inner_inputs, sources))
+            aliases[key] = inner_outputs[key[2]]
+            mode = call_arguments(node)[1].get("training")
+            if mode is not None:  # base(x, training=False) keeps its BatchNormalization in inference mode
+                training.update((id(inner), mode) for inner in _sublayers(layer))
+            stack.append((inner_outputs[key[2]], False))
+            continue
         if not ready:
             stack.append((tensor, True))
             stack.extend((source, False) for source in reversed(sources))
             continue
-        if calls.setdefault(layer.name, key[:2]) != key[:2]:
-            raise UserError(f"layer {layer.name} ({type(layer).__name__}) is used more than once (a shared "
-                            "layer); graph pruning handles layers called once")
         if len(_listed(node.output_tensors)) != 1:
             raise UserError(f"layer {layer.name} ({type(layer).__name__}) has several outputs; graph pruning "
                             "handles layers with one output")
@@ -128,10 +163,52 @@ def _trace(model: Any, keras: ModuleType) -> tuple[dict[tuple, Any], list[Traced
         out_shape = tuple(tensor.shape)
         rule = rule_for(layer, keras)
         rule.check(layer, in_shapes, out_shape)
-        op = TracedOp(layer, rule, [tensor_key(source) for source in sources], key, in_shapes, out_shape)
+        args, kwargs = call_arguments(node)
+        rule.check_call(layer, args, kwargs)
+        if id(layer) in training and "training" not in kwargs and _takes_training(layer):
+            kwargs = {**kwargs, "training": training[id(layer)]}
+        op = TracedOp(layer, rule, [_resolved(tensor_key(source), aliases) for source in sources], key, in_shapes,
+                      out_shape, args, kwargs)
         ops[key] = op
         order.append(op)
-    return inputs, order
+    return inputs, order, {key: _resolved(key, aliases) for key in aliases}
+
+
+def _is_graph_model(layer: Any, keras: ModuleType) -> bool:
+    """A nested functional or Sequential model (its graph can be traced), not a subclassed one."""
+    return isinstance(layer, keras.Model) and type(layer).__name__ in ("Functional", "Sequential") and \
+        type(layer).__module__.startswith(keras.__name__ + ".")
+
+
+def _sublayers(model: Any) -> list:
+    """The layers of a nested model and of the models nested in it."""
+    return [inner for layer in model.layers for inner in ([layer] + (_sublayers(layer) if hasattr(layer, "layers")
+                                                                    else []))]
+
+
+def _takes_training(layer: Any) -> bool:
+    import inspect
+
+    try:
+        return "training" in inspect.signature(layer.call).parameters
+    except (TypeError, ValueError):
+        return False
+
+
+def _check_single_use(layer: Any, key: tuple, calls: dict[str, tuple]) -> None:
+    seen = calls.setdefault(layer.name, (id(layer), key[1]))
+    if seen[0] != id(layer):
+        raise UserError(f"model has two layers named {layer.name} (a nested model's and another); graph pruning "
+                        "needs unique layer names")
+    if seen[1] != key[1]:
+        raise UserError(f"layer {layer.name} ({type(layer).__name__}) is used more than once (a shared "
+                        "layer); graph pruning handles layers called once")
+
+
+def _resolved(key: tuple, aliases: dict[tuple, Any]) -> tuple:
+    while key in aliases:
+        key = tensor_key(aliases[key])
+    return key
 
 
 # --------------------------------------------------------------------------------------------
@@ -148,6 +225,8 @@ class ChannelGroup:
         width: the number of channels, n (coupled channels of several producers count once).
         channel_of: producer name -> the group channel (0..n-1) of each of its filters.
         frozen: why the group is not pruned ("" if it may be).
+        block_of: for channels a grouped convolution makes or reads, the block (its group) of each group channel;
+            every block keeps as many channels as the others. None: no such constraint.
     """
 
     index: int
@@ -155,6 +234,12 @@ class ChannelGroup:
     width: int
     channel_of: dict[str, np.ndarray] = field(repr=False)
     frozen: str = ""
+    block_of: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def blocks(self) -> int:
+        """How many equal blocks the group's kept channels come in (1 without a grouped convolution)."""
+        return 1 if self.block_of is None else int(self.block_of.max()) + 1
 
 
 class DependencyGraph(Context):
@@ -169,7 +254,7 @@ class DependencyGraph(Context):
     def __init__(self, model: Any, keep: Iterable[str] = ()) -> None:
         self.model = model
         self.keras = keras_of(model)
-        self.inputs, self.ops = _trace(model, self.keras)
+        self.inputs, self.ops, self.aliases = _trace(model, self.keras)
         self._parent: list[int] = []
         self._owner: list[str] = []  # channel -> the layer (or model input) making it
         self._blocks: dict[str, np.ndarray] = {}  # layer (or model input) -> the channels it makes
@@ -184,12 +269,23 @@ class DependencyGraph(Context):
             self.maps[op.output] = op.rule.output_map(op.layer, in_maps, op.in_shapes, op.out_shape, self)
         # The first reason given is the one a group reports.
         for tensor in model.outputs:
-            self._freeze(self.maps[tensor_key(tensor)], f"reaches output {tensor_key(tensor)[0]}")
+            self._freeze(self.maps[self.key(tensor)], f"reaches output {self.key(tensor)[0]}")
         self._keep(keep)
         for op in self.ops:
             if op.rule.mixes_channels(op.layer, op.in_shapes):
                 self._freeze(self.maps[op.output], f"{op.layer.name} mixes channels")
         self.groups = self._groups()
+
+    def key(self, tensor: Any) -> tuple:
+        """The key of the traced tensor a symbolic tensor of the model is (a nested model's output: the inner one).
+
+        Args:
+            tensor: a Keras tensor of the model or of a model nested in it.
+        Returns:
+            The key of `maps` and of the ops' inputs and outputs.
+        """
+        key = tensor_key(tensor)
+        return self.aliases.get(key, key)
 
     # Context, for the rules
     def new_channels(self, layer: Any, count: int) -> np.ndarray:
@@ -293,10 +389,41 @@ class DependencyGraph(Context):
                           for p in producers}
             frozen = next((self._frozen[c] for c in channels.tolist() if c in self._frozen), "")
             groups.append(ChannelGroup(len(groups), tuple(producers), len(classes), channel_of, frozen))
-        return tuple(groups)
+        return tuple(self._with_blocks(groups, roots))
+
+    def _with_blocks(self, groups: list[ChannelGroup], roots: np.ndarray) -> list[ChannelGroup]:
+        """The groups with the blocks of the grouped convolutions reading or making their channels."""
+        group_of = {}  # root channel -> (group index, position)
+        for group in groups:
+            for producer, positions in group.channel_of.items():
+                for channel, position in zip(self._blocks[producer].tolist(), positions.tolist()):
+                    group_of[int(roots[channel])] = (group.index, position)
+        for op in self.ops:
+            count = op.rule.channel_blocks(op.layer)
+            if count == 1:
+                continue
+            for channels in [self.maps[key] for key in op.inputs] + [self.maps[op.output]]:
+                places = [group_of[int(roots[c])] for c in channels.tolist()]
+                index = places[0][0]
+                group = groups[index]
+                positions = np.array([p for _, p in places], dtype=np.int64)
+                if group.frozen:
+                    continue
+                if any(i != index for i, _ in places) or sorted(positions.tolist()) != list(range(group.width)):
+                    raise UserError(f"layer {op.layer.name} ({type(op.layer).__name__}): a grouped convolution "
+                                    f"(groups={count}) whose channels are not one whole group of channels; graph "
+                                    "pruning handles a grouped convolution reading and making whole groups")
+                block_of = np.empty(group.width, dtype=np.int64)
+                block_of[positions] = np.arange(len(positions)) // (len(positions) // count)
+                if group.block_of is not None and not np.array_equal(group.block_of, block_of):
+                    raise UserError(f"layer {op.layer.name} ({type(op.layer).__name__}): its groups split channels "
+                                    f"{short_list(group.producers)} differently from another grouped convolution")
+                groups[index] = ChannelGroup(group.index, group.producers, group.width, group.channel_of,
+                                             group.frozen, block_of)
+        return groups
 
     def layer(self, name: str) -> Any:
-        """The model's layer called `name` (a producer of a group).
+        """The model's layer called `name` (a producer of a group), in a nested model too.
 
         Args:
             name: the layer's name.
@@ -305,6 +432,9 @@ class DependencyGraph(Context):
         Raises:
             ValueError: no such layer (Keras' `get_layer`).
         """
+        for op in self.ops:
+            if op.layer.name == name:
+                return op.layer
         return self.model.get_layer(name)
 
     def describe(self) -> str:
@@ -327,7 +457,8 @@ def dependency_graph(model: Any, keep: Iterable[str] = ()) -> DependencyGraph:
         The `DependencyGraph`, with its `groups`.
     Raises:
         UserError: for a layer the surgery does not handle, one line naming it and its type; a shared layer, a
-            nested model, or an unknown name in `keep`.
+            subclassed nested model (a functional or Sequential one is traced through), a layer name used twice,
+            or an unknown name in `keep`.
     """
     return DependencyGraph(model, keep)
 

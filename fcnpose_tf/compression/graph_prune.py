@@ -21,8 +21,7 @@ import numpy as np
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.keras_file import TF_KERAS
 from fcnpose_tf.compression.channel_rules import rule_for
-from fcnpose_tf.compression.depgraph import (ChannelGroup, DependencyGraph, TracedOp, dependency_graph, short_list,
-                                             tensor_key)
+from fcnpose_tf.compression.depgraph import ChannelGroup, DependencyGraph, TracedOp, dependency_graph, short_list
 from fcnpose_tf.compression.importance import WeightNorm
 from fcnpose_tf.compression.keep_rule import Rate, exact_keep_count, exact_rate, kept_top
 from fcnpose_tf.tables import format_table
@@ -160,9 +159,22 @@ def _check_count(value: Any, what: str, minimum: int) -> int:
     return int(value)
 
 
-def _group_keep_count(width: int, rate: Fraction, min_filters: int, round_to: int) -> int:
+def _group_keep_count(width: int, rate: Fraction, min_filters: int, round_to: int, blocks: int = 1) -> int:
     count = max(exact_keep_count(int(width), rate), min(width, min_filters))
-    return min(width, math.ceil(count / round_to) * round_to)
+    step = math.lcm(round_to, blocks)  # a grouped convolution keeps as many channels in each block
+    return min(width, math.ceil(count / step) * step)
+
+
+def _kept_in_blocks(group: ChannelGroup, scores: np.ndarray, count: int) -> np.ndarray:
+    """The `count` best channels of a group, as many from each block of a grouped convolution."""
+    if group.block_of is None:
+        return kept_top(scores, count)
+    if count % group.blocks:
+        raise UserError(f"layers {short_list(group.producers)} feed or form a grouped convolution of {group.blocks} "
+                        f"groups: they keep a multiple of {group.blocks} channels, not {count}")
+    kept = [np.flatnonzero(group.block_of == b)[kept_top(scores[group.block_of == b], count // group.blocks)]
+            for b in range(group.blocks)]
+    return np.sort(np.concatenate(kept)).astype(np.int64)
 
 
 def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", aggregate: str = "sum",
@@ -197,14 +209,14 @@ def plan_graph(model: Any, rate: Rate, *, importance: ImportanceLike = "l1", agg
     scorer = _scorer(importance)
     graph = dependency_graph(model, keep)
     wanted = _checked_counts(graph, counts) if counts is not None else \
-        [_group_keep_count(group.width, exact, min_filters, round_to) for group in prunable_groups(graph)]
+        [_group_keep_count(group.width, exact, min_filters, round_to, group.blocks) for group in prunable_groups(graph)]
     plans, wanted = [], iter(wanted)
     for group in graph.groups:
         if group.frozen:
             plans.append(GroupPlan(group, np.arange(group.width, dtype=np.int64)))
             continue
         scores = _group_scores(graph, group, scorer, AGGREGATES[aggregate])
-        plans.append(GroupPlan(group, kept_top(scores, next(wanted)), scores))
+        plans.append(GroupPlan(group, _kept_in_blocks(group, scores, next(wanted)), scores))
     return _finished(graph, plans)
 
 
@@ -240,7 +252,8 @@ def group_cost(graph: DependencyGraph) -> Callable[[Sequence[int]], tuple[int, i
     """
     def cost(counts: Sequence[int]) -> tuple[int, int | None]:
         wanted = iter(_checked_counts(graph, counts))
-        plans = [GroupPlan(group, np.arange(group.width if group.frozen else next(wanted), dtype=np.int64))
+        plans = [GroupPlan(group, np.arange(group.width, dtype=np.int64) if group.frozen else
+                           _kept_in_blocks(group, np.zeros(group.width), next(wanted)))  # the first of each block
                  for group in graph.groups]
         plan = _finished(graph, plans)
         return plan.params[1], plan.macs[1]
@@ -274,6 +287,10 @@ def plan_kept(model: Any, kept: Mapping[str, np.ndarray]) -> GraphPlan:
         positions = np.array(next(iter(chosen)), dtype=np.int64) if chosen else np.arange(group.width, dtype=np.int64)
         if group.frozen and len(positions) < group.width:
             raise UserError(f"layers {short_list(group.producers)} cannot lose channels: {group.frozen}")
+        if group.block_of is not None and len(set(np.bincount(group.block_of[positions],
+                                                              minlength=group.blocks).tolist())) > 1:
+            raise UserError(f"layers {short_list(group.producers)} feed or form a grouped convolution of "
+                            f"{group.blocks} groups: they keep as many channels in each group")
         plans.append(GroupPlan(group, positions))
     if named:
         raise UserError(f"no layer of model {graph.model.name} makes channels named {', '.join(sorted(named))}")
@@ -313,7 +330,7 @@ def _layer_channels(graph: DependencyGraph, plans: list[GroupPlan]) -> dict[str,
     for op in graph.ops:
         kept_in = tuple(np.flatnonzero(alive[graph.maps[key]]).astype(np.int64) for key in op.inputs)
         kept_out = np.flatnonzero(alive[graph.maps[op.output]]).astype(np.int64)
-        weights = op.layer.get_weights()
+        weights = weights_of(op.layer)
         sliced = op.rule.slice_weights(op.layer, weights, list(kept_in), kept_out)
         widths_in = [shape[-1] for shape in op.in_shapes]
         macs = (op.rule.macs(op.layer, op.in_shapes, op.out_shape, widths_in, op.out_shape[-1]),
@@ -369,15 +386,15 @@ def rebuild(plan: GraphPlan) -> Any:
         (first,) = tensors.values()
         pruned = keras.Sequential([first] + [layer for layer, _ in new_layers], name=model.name)
     else:
-        for op, (layer, _) in zip(graph.ops, new_layers):
-            sources = [tensors[key] for key in op.inputs]
-            tensors[op.output] = layer(sources if op.rule.kind in ("merge", "concatenate") else sources[0])
-        inputs = [tensors[tensor_key(t)] for t in model.inputs]
-        outputs = [tensors[tensor_key(t)] for t in model.outputs]
+        for op, (layer, _) in zip(graph.ops, new_layers):  # called as the original was, on the new tensors
+            tensors[op.output] = layer(*_substituted(op.args, tensors, graph), **_substituted(op.kwargs, tensors, graph))
+        inputs = [tensors[graph.key(t)] for t in model.inputs]
+        outputs = [tensors[graph.key(t)] for t in model.outputs]
         pruned = keras.Model(inputs if len(inputs) > 1 else inputs[0],
                              outputs if len(outputs) > 1 else outputs[0], name=model.name)
     for layer, weights in new_layers:
-        layer.set_weights(weights)
+        if weights:
+            layer.set_weights(weights)
     if keras.__name__ == TF_KERAS:  # an FCN-Pose's crop and keypoint names go with it
         from fcnpose_tf.training.model import with_facts_of
 
@@ -396,5 +413,29 @@ def _narrowed(op: TracedOp, entry: LayerChannels) -> tuple[Any, list[np.ndarray]
     except Exception as exc:  # a custom activation or regularizer that cannot be re-created
         raise UserError(f"layer {op.layer.name} ({type(op.layer).__name__}) cannot be rebuilt from its "
                         f"config: {type(exc).__name__}: {exc}") from exc
-    weights = op.rule.slice_weights(op.layer, op.layer.get_weights(), list(entry.kept_in), entry.kept_out)
+    weights = op.rule.slice_weights(op.layer, weights_of(op.layer), list(entry.kept_in), entry.kept_out)
     return layer, weights
+
+
+def weights_of(layer: Any) -> list[np.ndarray]:
+    """A layer's weights (`get_weights()`); none for a Keras 3 operation on tensors (``x + 3.0``), not a layer.
+
+    Args:
+        layer: a layer or operation of a functional model.
+    Returns:
+        Its weights.
+    """
+    return layer.get_weights() if hasattr(layer, "get_weights") else []
+
+
+def _substituted(value: Any, tensors: dict[tuple, Any], graph: DependencyGraph) -> Any:
+    """A call's arguments with every symbolic tensor of the original model replaced by the rebuilt model's."""
+    if hasattr(value, "_keras_history"):
+        return tensors[graph.key(value)]
+    if isinstance(value, tuple):
+        return tuple(_substituted(item, tensors, graph) for item in value)
+    if isinstance(value, list):
+        return [_substituted(item, tensors, graph) for item in value]
+    if isinstance(value, dict):
+        return {key: _substituted(item, tensors, graph) for key, item in value.items()}
+    return value

@@ -592,7 +592,7 @@ def load_model(path) -> keras.Model:
         raise UserError(f"{path}: expected a Keras model file (.keras or .h5)"
                         + ("; use a .tflite with `run`, `bench` or `evaluate`" if path.suffix == ".tflite" else ""))
     try:
-        model = keras.models.load_model(native_name(path), compile=False)
+        model = keras.models.load_model(native_name(path), compile=False, custom_objects=_application_layers())
     except Exception as exc:  # keras raises many types for a corrupt file
         raise UserError(f"{path}: cannot be read as a Keras model ({type(exc).__name__}: "
                         f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from exc
@@ -608,6 +608,16 @@ def load_model(path) -> keras.Model:
         if (schema := read_stored_schema(path, int(shape[-1]))) is not None:
             with_schema(model, schema)
     return model
+
+
+def _application_layers() -> dict:
+    """tf_keras.applications layers tf_keras does not register for loading: ConvNeXt's LayerScale and StochasticDepth
+    (without them tf_keras cannot read back its own ConvNeXt files: "Unknown layer: 'LayerScale'")."""
+    try:
+        from tf_keras.src.applications import convnext
+    except ImportError:  # a tf_keras that moved its private tree
+        return {}
+    return {"LayerScale": convnext.LayerScale, "StochasticDepth": convnext.StochasticDepth}
 
 
 def check_fixed_input(model: keras.Model, path=None) -> None:
