@@ -1,6 +1,6 @@
 """Compression: filter importance (`importance`), L1-norm filter surgery (`prune`) and its generalisation to
 branching tf_keras and Keras 3 models through a dependency graph of coupled channels (`depgraph`, with each layer
-type's channel rule in `channel_rules`), the `compress` pipeline
+type's channel rule in `layer_rules`, what a rule is in `channel_rules`), the `compress` pipeline
 (prune, retrain, export, measure), quantization-aware training (`qat`), TFLite export verified on keypoints
 (`export`) and the inference graph the converter sees (`inference_graph`).
 

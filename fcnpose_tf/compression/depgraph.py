@@ -6,7 +6,7 @@ channels that must go together. The filters of every layer whose outputs meet in
 Subtract, Multiply, ...) form one group, coupled channel by channel; a Concatenate on the channel axis puts its
 inputs' channels side by side, each keeping its own group, and its consumers read them at their offsets; a
 Flatten before a Dense repeats the channels at every spatial position (the Dense loses rows ``c + C * k``).
-`fcnpose_tf.compression.channel_rules` holds what each layer type does to channels.
+`fcnpose_tf.compression.layer_rules` holds what each layer type does to channels (`channel_rules`: what a rule is).
 
 Every group of n channels keeps ``n - floor(n * rate)`` of them (the paper's keep rule, `keep_rule.keep_count`), the
 ones whose importance is highest: the importance of a channel is the aggregate (sum, mean or max) over the layers
@@ -38,7 +38,8 @@ from typing import Any, Iterable
 import numpy as np
 
 from fcnpose_tf.errors import UserError
-from fcnpose_tf.compression.channel_rules import Context, Rule, rule_for
+from fcnpose_tf.compression.channel_rules import Context, Rule
+from fcnpose_tf.compression.layer_rules import rule_for
 from fcnpose_tf.tables import format_table
 
 

@@ -20,7 +20,7 @@ import numpy as np
 
 from fcnpose_tf.errors import UserError
 from fcnpose_tf.compression.keras_file import TF_KERAS
-from fcnpose_tf.compression.channel_rules import rule_for
+from fcnpose_tf.compression.layer_rules import rule_for
 from fcnpose_tf.compression.depgraph import ChannelGroup, DependencyGraph, TracedOp, dependency_graph, short_list
 from fcnpose_tf.compression.importance import WeightNorm
 from fcnpose_tf.compression.keep_rule import Rate, exact_keep_count, exact_rate, kept_top
