@@ -82,3 +82,13 @@ def test_the_pi_runtime_imports_nothing_of_the_training_side_or_the_correction_l
     reached = {target for name in runtime for target in graph[name]}
     assert not {t for t in reached if t.startswith(("fcnpose_tf.data", "fcnpose_tf.correction", "fcnpose_tf.training",
                                                     "fcnpose_tf.compression", "fcnpose_tf.sweep"))}
+
+
+COMPRESSION_MODULE_MAX_LINES = 500
+"""No module of compression/ longer: each holds one concern a reader takes in at once (issue 51's layout)."""
+
+
+def test_no_compression_module_is_over_500_lines():
+    lengths = {path.name: len(path.read_text().splitlines()) for path in (PACKAGE / "compression").glob("*.py")}
+    assert lengths and max(lengths.values()) <= COMPRESSION_MODULE_MAX_LINES, {
+        name: n for name, n in lengths.items() if n > COMPRESSION_MODULE_MAX_LINES}
