@@ -61,6 +61,10 @@ class RunSummary:
     skipped: int = 0
     crop_edge_frames: int = 0
     """Frames with a keypoint at the edge of the model's crop (`Prediction.at_crop_edge`)."""
+    missed_frames: int = 0
+    """Frames in which the model did not find every keypoint."""
+    missed_by_keypoint: list[int] = field(default_factory=list)
+    """Per keypoint, in the model's order, the frames in which the model did not find it."""
     dropped: int = 0
     end_reason: str = ""
     wall_s: float = 0.0
@@ -108,6 +112,21 @@ class RunSummary:
         return (f"Jitter:  over {still} still frames (the image unchanged from the one before), the keypoints moved "
                 f"RMS {jitter_rms(self.still_raw_steps_px):.2f} px as the model found them{written}")
 
+    def count_missed(self, keypoints: np.ndarray) -> None:
+        """Count a frame's keypoints the model did not find (NaN rows of its K x 2 `keypoints`, before smoothing)."""
+        missed = np.isnan(keypoints).any(axis=1)
+        self.missed_by_keypoint = [c + int(m) for c, m in zip(self.missed_by_keypoint or [0] * len(missed), missed)]
+        self.missed_frames += bool(missed.any())
+
+    def _found(self, names: tuple[str, ...]) -> str:
+        if not self.missed_frames:
+            return "Found:   every keypoint in every frame"
+        worst = sorted(((-n, k) for k, n in enumerate(self.missed_by_keypoint) if n))
+        listed = ", ".join(f"{names[k]} in {-n}" for n, k in worst[:4])
+        more = f", {len(worst) - 4} more keypoints" if len(worst) > 4 else ""
+        return (f"Found:   every keypoint in {self.frames - self.missed_frames} of {self.frames} frames; not found: "
+                f"{listed}{more} (the records' nulls)")
+
     def report(self, model: KeypointPredictor, source: FrameSource) -> str:
         """The run's summary for the terminal: counts, the per-stage latency table, FPS with its definition, outputs.
 
@@ -132,6 +151,7 @@ class RunSummary:
             lines.append(f"Delivered: {rate}, {self._mode()}; per frame "
                          f"{d['median']:.1f} ms p50, {d['p95']:.1f} ms p95 from read to records written "
                          f"({DELIVERED_DEFINITION})")
+            lines.append(self._found(model.schema.keypoints))
         if len(self.raw_steps_px):
             raw = float(np.median(self.raw_steps_px))
             stills = isinstance(source, ImageSource)
@@ -152,7 +172,7 @@ class RunSummary:
                       "with frames of those poses (docs/training.md, \"Input size\")" if self.crop_edge_frames else "")
             lines.append(f"Crop:    the model sees {model.view.describe()}; {self.crop_edge_frames} of {self.frames} "
                          f"frames had a keypoint at its edge, beyond the training frames' keypoints (the records' "
-                         f"crop_edge){advice}")
+                         f"crop_edge){advice}. An arm past the crop shows mostly as keypoints not found (Found above)")
         note = model.run_note()
         if note:
             lines.append(note)
@@ -444,6 +464,7 @@ class _Delivery:
         summary.latency.add(prediction.times)
         self.rolling.add(prediction.times.total_ms)
         summary.crop_edge_frames += bool(prediction.at_crop_edge().any())
+        summary.count_missed(raw)
         with signals_deferred():  # Ctrl-C/SIGTERM take effect after a frame's records, hook and count
             for writer in self.writers:
                 writer.write(frame, prediction)
