@@ -54,8 +54,7 @@ class OneEuroParams:
         """`One-Euro filter (cut-off 0.5 Hz at rest + 0.03 Hz per px/s of a 640x480 frame, speed cut-off 1 Hz, coasting 2
         frames)`."""
         return (f"One-Euro filter (cut-off {self.min_cutoff_hz:g} Hz at rest + {self.beta:g} Hz per px/s of a 640x480 "
-                f"frame, speed "
-                f"cut-off {self.d_cutoff_hz:g} Hz, coasting {self.max_coast} frame{'s' if self.max_coast != 1 else ''})")
+                f"frame, speed cut-off {self.d_cutoff_hz:g} Hz, coasting {self.max_coast} frame{'s' if self.max_coast != 1 else ''})")
 
     def check(self) -> "OneEuroParams":
         from fcnpose_tf.errors import UserError

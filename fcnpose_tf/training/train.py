@@ -1146,11 +1146,12 @@ def keep_start_if_better(init: str | Path, dataset: Any, val_idx: Sequence[int],
         return None
     start_size, input_size = start_view.describe(), view.describe()
     reporter = progress.resolve(reporter)
-    stretched = next((note for i in val_idx if (note := start_view.aspect_note(
-        (dataset.samples[i].height, dataset.samples[i].width)))), None)
+    stretched = next(((sample.width, sample.height) for sample in (dataset.samples[i] for i in val_idx)
+                      if start_view.aspect_note((sample.height, sample.width))), None)
     if stretched is not None:  # kept, it would warn on every frame it reads (`choose_view` does not keep it either)
-        reporter.say(f"{label}: the starting model as saved is not weighed: its crop was set on frames of another "
-                     f"aspect ({stretched.split(' (', 1)[0]})")
+        cw, ch = start_view.frame_size
+        reporter.say(f"{label}: the starting model as saved is not weighed: its crop was set on {cw}x{ch} frames, "
+                     f"of another aspect than these {stretched[0]}x{stretched[1]} ones")
         return None
     reporter.say(f"{label}: evaluating the starting model as saved ({start_size}) on the same "
                  f"{len(val_idx)} validation frames")
